@@ -1,0 +1,380 @@
+//! `Array<T>`: a cheap shared handle over kernel data, with an optional gradient (adjoint)
+//! buffer, an optional tangent buffer and a version counter that every write bumps.
+
+use std::cell::UnsafeCell;
+use std::fmt;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock, RwLockReadGuard, RwLockWriteGuard};
+
+use crate::error::Error;
+use crate::Value;
+
+/// What an array can hold: any kernel value (scalars, vectors, matrices, indices).
+pub trait Element: Value + fmt::Debug {}
+impl<T: Value + fmt::Debug> Element for T {}
+
+static NEXT_ID: AtomicU64 = AtomicU64::new(1);
+
+struct Inner<T> {
+    id: u64,
+    name: Mutex<Option<Arc<str>>>,
+    /// Host reads hold `access` for reading, host writes for writing. A launch holds it for
+    /// writing on the arrays it writes and for reading on those it reads, and goes through
+    /// raw pointers.
+    data: UnsafeCell<Vec<T>>,
+    len: usize,
+    access: RwLock<()>,
+    version: AtomicU64,
+    requires_grad: AtomicBool,
+    grad: Mutex<Option<Array<T>>>,
+    tangent: Mutex<Option<Array<T>>>,
+}
+
+// SAFETY: `data` is only touched under `access` (host) or by launches that hold `access` for
+// reading and write disjoint indices (the documented kernel contract: a store to the same index
+// from two threads is a race; scatters go through the deterministic scatter logs).
+unsafe impl<T: Send + Sync> Send for Inner<T> {}
+unsafe impl<T: Send + Sync> Sync for Inner<T> {}
+
+/// A 1-D array of kernel values, shared by handle: cloning an `Array` clones the handle, not
+/// the data (use [`Array::deep_clone`] for a copy).
+///
+/// ```
+/// use adflex_runtime::{Array, Vec3};
+/// let x = Array::from_vec(vec![Vec3::new(1.0, 2.0, 3.0); 4]).requires_grad().named("x");
+/// assert_eq!(x.len(), 4);
+/// assert_eq!(x.grad().unwrap().to_vec(), vec![Vec3::zeros(); 4]);
+/// let y: adflex_runtime::Array<f32> = adflex_runtime::Array::zeros(3);
+/// assert!(y.grad().is_err()); // no silent None: gradients must be asked for
+/// ```
+pub struct Array<T> {
+    inner: Arc<Inner<T>>,
+}
+
+impl<T> Clone for Array<T> {
+    fn clone(&self) -> Self {
+        Array {
+            inner: self.inner.clone(),
+        }
+    }
+}
+
+impl<T: Element> fmt::Debug for Array<T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Array")
+            .field("name", &self.name())
+            .field("len", &self.len())
+            .field("version", &self.version())
+            .field("requires_grad", &self.is_requires_grad())
+            .finish()
+    }
+}
+
+impl<T: Element> Array<T> {
+    /// An array holding `data`.
+    pub fn from_vec(data: Vec<T>) -> Self {
+        Array {
+            inner: Arc::new(Inner {
+                id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+                name: Mutex::new(None),
+                len: data.len(),
+                data: UnsafeCell::new(data),
+                access: RwLock::new(()),
+                version: AtomicU64::new(0),
+                requires_grad: AtomicBool::new(false),
+                grad: Mutex::new(None),
+                tangent: Mutex::new(None),
+            }),
+        }
+    }
+
+    /// `len` zeros.
+    pub fn zeros(len: usize) -> Self {
+        Self::from_vec(vec![T::zeroed(); len])
+    }
+
+    /// Zeros shaped like `self` (same length), without gradient.
+    pub fn zeros_like(&self) -> Self {
+        Self::zeros(self.len())
+    }
+
+    /// A copy of the data in a new array (new id, no gradient, same name).
+    pub fn deep_clone(&self) -> Self {
+        let a = Self::from_vec(self.to_vec());
+        *a.inner.name.lock().unwrap() = self.inner.name.lock().unwrap().clone();
+        a
+    }
+
+    /// Gives the array a name used in error messages, DOT graphs and reports.
+    pub fn named(self, name: impl Into<String>) -> Self {
+        *self.inner.name.lock().unwrap() = Some(Arc::from(name.into()));
+        self
+    }
+
+    /// The name given by [`Array::named`], if any.
+    pub fn name(&self) -> Option<Arc<str>> {
+        self.inner.name.lock().unwrap().clone()
+    }
+
+    /// Marks the array as a gradient target and allocates its (zeroed) gradient buffer.
+    pub fn requires_grad(self) -> Self {
+        self.inner.requires_grad.store(true, Ordering::Relaxed);
+        self.ensure_grad();
+        self
+    }
+
+    /// Whether [`Array::requires_grad`] was called.
+    pub fn is_requires_grad(&self) -> bool {
+        self.inner.requires_grad.load(Ordering::Relaxed)
+    }
+
+    /// The gradient buffer (a handle sharing it). An error if this array neither requires grad
+    /// nor received a gradient buffer from a tape.
+    pub fn grad(&self) -> Result<Array<T>, Error> {
+        self.grad_buffer().ok_or_else(|| Error::NoGrad {
+            array: self.label(),
+        })
+    }
+
+    /// The gradient buffer if one exists.
+    pub fn grad_buffer(&self) -> Option<Array<T>> {
+        self.inner.grad.lock().unwrap().clone()
+    }
+
+    /// Allocates a zeroed gradient buffer if there is none; returns it.
+    pub fn ensure_grad(&self) -> Array<T> {
+        let mut g = self.inner.grad.lock().unwrap();
+        g.get_or_insert_with(|| Array::zeros(self.len())).clone()
+    }
+
+    /// Sets the gradient buffer to zero (no-op without one).
+    pub fn zero_grad(&self) {
+        if let Some(g) = self.grad_buffer() {
+            g.fill(T::zeroed());
+        }
+    }
+
+    /// The tangent buffer (forward mode) if one exists.
+    pub fn tangent_buffer(&self) -> Option<Array<T>> {
+        self.inner.tangent.lock().unwrap().clone()
+    }
+
+    /// Attaches `tangent` (same length) as this array's tangent buffer for forward-mode launches.
+    pub fn set_tangent(&self, tangent: Option<Array<T>>) {
+        if let Some(t) = &tangent {
+            assert_eq!(
+                t.len(),
+                self.len(),
+                "tangent of `{}` has the wrong length",
+                self.label()
+            );
+        }
+        *self.inner.tangent.lock().unwrap() = tangent;
+    }
+
+    /// Allocates a zeroed tangent buffer if there is none; returns it.
+    pub fn ensure_tangent(&self) -> Array<T> {
+        let mut g = self.inner.tangent.lock().unwrap();
+        g.get_or_insert_with(|| Array::zeros(self.len())).clone()
+    }
+
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        self.inner.len
+    }
+
+    /// Whether the array has no elements.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// A copy of the data.
+    pub fn to_vec(&self) -> Vec<T> {
+        let _g = self.inner.access.read().unwrap();
+        // SAFETY: under the read lock nobody writes (writers hold the write lock).
+        unsafe { std::slice::from_raw_parts(self.data_ptr(), self.len()) }.to_vec()
+    }
+
+    /// Element `i` (panics with the array's name if out of bounds).
+    pub fn get(&self, i: usize) -> T {
+        let _g = self.inner.access.read().unwrap();
+        let len = self.len();
+        if i >= len {
+            panic!(
+                "index {i} out of bounds for array `{}` of length {len}",
+                self.label()
+            );
+        }
+        // SAFETY: in bounds, under the read lock.
+        unsafe { *self.data_ptr().add(i) }
+    }
+
+    /// Runs `f` on the data for writing, then bumps the version.
+    pub fn modify<U>(&self, f: impl FnOnce(&mut [T]) -> U) -> U {
+        let _g = self.inner.access.write().unwrap();
+        // SAFETY: exclusive under the write lock.
+        let out = f(unsafe { std::slice::from_raw_parts_mut(self.data_ptr(), self.len()) });
+        self.bump_version();
+        out
+    }
+
+    /// Sets element `i`.
+    pub fn set(&self, i: usize, v: T) {
+        let label = self.label();
+        self.modify(|d| {
+            let len = d.len();
+            *d.get_mut(i).unwrap_or_else(|| {
+                panic!("index {i} out of bounds for array `{label}` of length {len}")
+            }) = v
+        })
+    }
+
+    /// Copies `src` (same length) into the array.
+    pub fn assign(&self, src: &[T]) {
+        let label = self.label();
+        self.modify(|d| {
+            assert_eq!(d.len(), src.len(), "assign to `{label}`: length mismatch");
+            d.copy_from_slice(src)
+        })
+    }
+
+    /// Sets every element to `v`.
+    pub fn fill(&self, v: T) {
+        self.modify(|d| d.fill(v))
+    }
+
+    /// Unique id of the underlying buffer (shared by clones of the handle).
+    pub fn id(&self) -> u64 {
+        self.inner.id
+    }
+
+    /// The write counter: bumped by every host write and every launch that writes the array.
+    pub fn version(&self) -> u64 {
+        self.inner.version.load(Ordering::Acquire)
+    }
+
+    pub(crate) fn bump_version(&self) {
+        self.inner.version.fetch_add(1, Ordering::AcqRel);
+    }
+
+    /// The name if set, otherwise `array#<id>`.
+    pub fn label(&self) -> String {
+        match self.name() {
+            Some(n) => n.to_string(),
+            None => format!("array#{}", self.inner.id),
+        }
+    }
+
+    pub(crate) fn data_ptr(&self) -> *mut T {
+        // SAFETY: only the pointer is taken; callers uphold the launch contract.
+        unsafe { (*self.inner.data.get()).as_mut_ptr() }
+    }
+}
+
+/// The access lock a launch holds on one array.
+pub enum ArrayLock<'a> {
+    /// Held for reading.
+    Read(RwLockReadGuard<'a, ()>),
+    /// Held for writing.
+    Write(RwLockWriteGuard<'a, ()>),
+}
+
+/// An array with its element type erased: what tapes and checks hold.
+pub trait AnyArray: Send + Sync {
+    /// See [`Array::id`].
+    fn id(&self) -> u64;
+    /// See [`Array::label`].
+    fn label(&self) -> String;
+    /// See [`Array::version`].
+    fn version(&self) -> u64;
+    /// See [`Array::len`].
+    fn len(&self) -> usize;
+    /// Whether it has no elements.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// See [`Array::is_requires_grad`].
+    fn is_requires_grad(&self) -> bool;
+    /// Whether a gradient buffer exists.
+    fn has_grad(&self) -> bool;
+    /// Allocates the gradient buffer if missing.
+    fn ensure_grad(&self);
+    /// Zeroes the gradient buffer if present.
+    fn zero_grad(&self);
+    /// Number of differentiable scalars per element (0 for index arrays).
+    fn element_dim(&self) -> usize;
+    /// A clone of the handle, boxed.
+    fn boxed(&self) -> Box<dyn AnyArray>;
+    /// The gradient buffer, boxed, if present.
+    fn grad_any(&self) -> Option<Box<dyn AnyArray>>;
+    /// Scalar component `k` of the whole array, `k < len * element_dim`.
+    fn scalar(&self, k: usize) -> f64;
+    /// Sets scalar component `k` (bumps the version).
+    fn set_scalar(&self, k: usize, x: f64);
+    /// First index whose element has a NaN or infinite component.
+    fn first_non_finite(&self) -> Option<usize>;
+    /// Holds the access lock while a launch runs: for writing if the launch writes the array.
+    fn lock(&self, write: bool) -> ArrayLock<'_>;
+    /// Bumps the version (after a launch wrote the array).
+    fn mark_written(&self);
+}
+
+impl<T: Element> AnyArray for Array<T> {
+    fn id(&self) -> u64 {
+        Array::id(self)
+    }
+    fn label(&self) -> String {
+        Array::label(self)
+    }
+    fn version(&self) -> u64 {
+        Array::version(self)
+    }
+    fn len(&self) -> usize {
+        Array::len(self)
+    }
+    fn is_requires_grad(&self) -> bool {
+        Array::is_requires_grad(self)
+    }
+    fn has_grad(&self) -> bool {
+        self.grad_buffer().is_some()
+    }
+    fn ensure_grad(&self) {
+        Array::ensure_grad(self);
+    }
+    fn zero_grad(&self) {
+        Array::zero_grad(self)
+    }
+    fn element_dim(&self) -> usize {
+        T::DIM
+    }
+    fn boxed(&self) -> Box<dyn AnyArray> {
+        Box::new(self.clone())
+    }
+    fn grad_any(&self) -> Option<Box<dyn AnyArray>> {
+        self.grad_buffer().map(|g| Box::new(g) as Box<dyn AnyArray>)
+    }
+    fn scalar(&self, k: usize) -> f64 {
+        self.get(k / T::DIM).component(k % T::DIM)
+    }
+    fn set_scalar(&self, k: usize, x: f64) {
+        self.modify(|d| d[k / T::DIM].set_component(k % T::DIM, x))
+    }
+    fn first_non_finite(&self) -> Option<usize> {
+        if T::DIM == 0 {
+            return None;
+        }
+        self.to_vec()
+            .iter()
+            .position(|v| (0..T::DIM).any(|k| !v.component(k).is_finite()))
+    }
+    fn lock(&self, write: bool) -> ArrayLock<'_> {
+        if write {
+            ArrayLock::Write(self.inner.access.write().unwrap())
+        } else {
+            ArrayLock::Read(self.inner.access.read().unwrap())
+        }
+    }
+    fn mark_written(&self) {
+        self.bump_version()
+    }
+}

@@ -1,0 +1,393 @@
+//! The interface between `#[diff_kernel]`'s output and the runtime: kernel traits, the
+//! per-chunk views of arrays that generated code reads and writes through, and the
+//! deterministic scatter logs behind `atomic_add`.
+//!
+//! Users do not implement these traits by hand; the macro does.
+
+use std::ops::Range;
+
+use crate::array::{AnyArray, Array, Element};
+
+/// How a kernel uses one of its parameters (decided by the macro from the source).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    /// A value parameter (scalar, vector, index): not an array.
+    Value,
+    /// An array the kernel reads.
+    Read,
+    /// An array the kernel stores to (`a[i] = v`).
+    Store,
+    /// An array the kernel accumulates into (`a.atomic_add(i, v)`).
+    Atomic,
+    /// An array passed but not used.
+    Unused,
+}
+
+impl Access {
+    /// Whether the kernel writes the array.
+    pub fn writes(self) -> bool {
+        matches!(self, Access::Store | Access::Atomic)
+    }
+}
+
+/// One kernel parameter: its name in the source and how the kernel uses it.
+#[derive(Debug, Clone, Copy)]
+pub struct ParamInfo {
+    /// Name in the source.
+    pub name: &'static str,
+    /// How the kernel uses it.
+    pub access: Access,
+}
+
+/// Which of the three generated kernels to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    /// The kernel as written.
+    Forward,
+    /// Reverse mode: reads adjoints of outputs from their gradient buffers, accumulates adjoints
+    /// of inputs into theirs.
+    Adjoint,
+    /// Forward mode: reads tangents of inputs from their tangent buffers, writes tangents of
+    /// outputs into theirs.
+    Tangent,
+}
+
+/// A `#[diff_kernel]` that can be launched with the borrowed argument tuple `Args`
+/// (e.g. `(&Array<Vec3>, f32, &Array<Vec3>)`).
+#[diagnostic::on_unimplemented(
+    message = "kernel `{Self}` cannot be launched with arguments `{Args}`",
+    label = "these arguments do not match the kernel's parameters",
+    note = "pass a tuple with one element per kernel parameter, in order: `&array` for each \
+            `&Array<T>` parameter (with the same element type) and a value for each value parameter"
+)]
+pub trait Kernel<Args>: Copy + Send + Sync + 'static {
+    /// The arguments with every `&Array` replaced by a handle (what a tape keeps).
+    type Owned: Send + Sync + 'static;
+    /// Takes handles of the arrays in `args`.
+    fn to_owned(args: &Args) -> Self::Owned;
+}
+
+/// The body of a kernel over its owned arguments: what a launch or a tape runs.
+pub trait KernelBody<Owned>: Copy + Send + Sync + 'static {
+    /// The kernel's name (its fn name).
+    const NAME: &'static str;
+    /// Its parameters in order.
+    const PARAMS: &'static [ParamInfo];
+    /// The array passed for each parameter (`None` for value parameters).
+    fn arrays(args: &Owned) -> Vec<Option<&dyn AnyArray>>;
+    /// Runs thread ids `range` in `mode`; returns the scatter logs to apply (empty when `exec`
+    /// writes directly).
+    fn run(&self, mode: Mode, args: &Owned, range: Range<usize>, exec: &Exec) -> Vec<ScatterLog>;
+}
+
+/// Converts one launch argument into what the tape keeps.
+pub trait LaunchArg {
+    /// The owned form.
+    type Owned: Send + Sync + 'static;
+    /// Takes a handle or copies the value.
+    fn to_owned_arg(&self) -> Self::Owned;
+}
+
+impl<T: Element> LaunchArg for &Array<T> {
+    type Owned = Array<T>;
+    #[inline]
+    fn to_owned_arg(&self) -> Array<T> {
+        (*self).clone()
+    }
+}
+
+impl<T: crate::Value> LaunchArg for T {
+    type Owned = T;
+    #[inline]
+    fn to_owned_arg(&self) -> T {
+        *self
+    }
+}
+
+/// Where a kernel reads and writes an array: named in bounds errors.
+#[derive(Debug)]
+pub struct Site {
+    /// The kernel.
+    pub kernel: &'static str,
+    /// The parameter.
+    pub param: &'static str,
+}
+
+#[cold]
+#[inline(never)]
+fn out_of_bounds(site: &Site, what: &str, index: i128, len: usize) -> ! {
+    panic!(
+        "kernel `{}`: index {index} out of bounds for {what}`{}` of length {len}",
+        site.kernel, site.param
+    )
+}
+
+/// An index into an array: `usize`, `u32`, `i32`, ... (negative indices are out of bounds).
+pub trait ToIndex: Copy {
+    /// The index as a wide signed integer (to report it as written).
+    fn to_i128(self) -> i128;
+}
+macro_rules! to_index {
+    ($($t:ty),*) => {$( impl ToIndex for $t { #[inline(always)] fn to_i128(self) -> i128 { self as i128 } } )*};
+}
+to_index!(u8, u16, u32, u64, usize, i8, i16, i32, i64, isize);
+
+#[inline(always)]
+fn checked<I: ToIndex>(i: I, len: usize, site: &Site, what: &str) -> usize {
+    let w = i.to_i128();
+    if w < 0 || w >= len as i128 {
+        out_of_bounds(site, what, w, len)
+    }
+    w as usize
+}
+
+/// How a chunk of a launch runs: writing scatters directly (one chunk in thread-id order) or
+/// into logs that the launch applies afterwards in thread-id order.
+#[derive(Debug, Clone, Copy)]
+pub struct Exec {
+    pub(crate) direct: bool,
+}
+
+impl Exec {
+    /// Scatters write straight into their targets (single-chunk launches).
+    pub fn direct() -> Self {
+        Exec { direct: true }
+    }
+    /// Scatters are logged and applied after all chunks ran.
+    pub fn logged() -> Self {
+        Exec { direct: false }
+    }
+}
+
+/// Reads an array inside a kernel (`a[i]`).
+pub struct Reader<T> {
+    ptr: *const T,
+    len: usize,
+    site: &'static Site,
+}
+
+impl<T: Element> Reader<T> {
+    /// Element `i`, bounds-checked with the kernel's and parameter's names.
+    #[inline(always)]
+    pub fn get<I: ToIndex>(&self, i: I) -> T {
+        let i = checked(i, self.len, self.site, "array ");
+        // SAFETY: in bounds; the launch holds the array's access lock and no thread of this
+        // launch writes an array that the kernel reads (checked by the macro).
+        unsafe { *self.ptr.add(i) }
+    }
+}
+
+/// Reads an optional buffer (gradient or tangent); absent buffers read as zero.
+pub struct OptReader<T> {
+    ptr: Option<*const T>,
+    len: usize,
+    site: &'static Site,
+}
+
+impl<T: Element> OptReader<T> {
+    /// Element `i` or zero.
+    #[inline(always)]
+    pub fn get<I: ToIndex>(&self, i: I) -> T {
+        let i = checked(i, self.len, self.site, "array ");
+        match self.ptr {
+            // SAFETY: in bounds, buffer held by the owned args for the launch.
+            Some(p) => unsafe { *p.add(i) },
+            None => T::zeroed(),
+        }
+    }
+}
+
+/// Stores into an array inside a kernel (`a[i] = v`); absent buffers ignore stores.
+pub struct Writer<T> {
+    ptr: Option<*mut T>,
+    len: usize,
+    site: &'static Site,
+}
+
+impl<T: Element> Writer<T> {
+    /// `a[i] = v`.
+    #[inline(always)]
+    pub fn store<I: ToIndex>(&self, i: I, v: T) {
+        let i = checked(i, self.len, self.site, "array ");
+        if let Some(p) = self.ptr {
+            // SAFETY: in bounds; threads store to distinct indices (kernel contract).
+            unsafe { *p.add(i) = v }
+        }
+    }
+}
+
+/// Accumulates into an array (`a.atomic_add(i, v)`), deterministically.
+pub struct Scatter<T: Element> {
+    target: Option<Array<T>>,
+    ptr: *mut T,
+    len: usize,
+    direct: bool,
+    log: Vec<(u32, T)>,
+    site: &'static Site,
+}
+
+impl<T: Element> Scatter<T> {
+    fn new(target: Option<Array<T>>, exec: &Exec, site: &'static Site, len: usize) -> Self {
+        let ptr = target
+            .as_ref()
+            .map_or(std::ptr::null_mut(), |a| a.data_ptr());
+        Scatter {
+            target,
+            ptr,
+            len,
+            direct: exec.direct,
+            log: Vec::new(),
+            site,
+        }
+    }
+
+    /// `a[i] += v`.
+    #[inline(always)]
+    pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
+        let i = checked(i, self.len, self.site, "array ");
+        if self.target.is_none() {
+            return;
+        }
+        if self.direct {
+            // SAFETY: direct mode runs a single chunk on one thread; in bounds.
+            unsafe { (*self.ptr.add(i)).acc(v) }
+        } else {
+            self.log.push((i as u32, v));
+        }
+    }
+
+    /// `a[i] -= v`.
+    #[inline(always)]
+    pub fn sub<I: ToIndex>(&mut self, i: I, v: T) {
+        let mut neg = T::zeroed();
+        neg.acc_neg(v);
+        self.add(i, neg)
+    }
+
+    /// The log of this chunk (empty in direct mode).
+    pub fn finish(self) -> ScatterLog {
+        match self.target {
+            Some(t) if !self.log.is_empty() => ScatterLog(Some(Box::new(TypedLog {
+                target: t,
+                entries: self.log,
+            }))),
+            _ => ScatterLog(None),
+        }
+    }
+}
+
+/// The scatters one chunk made into one target, applied in thread-id order after the chunks ran.
+pub struct ScatterLog(pub(crate) Option<Box<dyn ApplyLog>>);
+
+pub(crate) trait ApplyLog: Send + Sync {
+    fn target_id(&self) -> u64;
+    fn entries(&self) -> usize;
+    fn target_len(&self) -> usize;
+    /// Applies the entries whose index is in `lo..hi`, in log order.
+    ///
+    /// # Safety
+    /// No other thread may write `lo..hi` of the target concurrently.
+    unsafe fn apply_range(&self, lo: usize, hi: usize);
+}
+
+struct TypedLog<T: Element> {
+    target: Array<T>,
+    entries: Vec<(u32, T)>,
+}
+
+impl<T: Element> ApplyLog for TypedLog<T> {
+    fn target_id(&self) -> u64 {
+        self.target.id()
+    }
+    fn entries(&self) -> usize {
+        self.entries.len()
+    }
+    fn target_len(&self) -> usize {
+        self.target.len()
+    }
+    unsafe fn apply_range(&self, lo: usize, hi: usize) {
+        let p = self.target.data_ptr();
+        let full = lo == 0 && hi >= self.target.len();
+        for &(i, v) in &self.entries {
+            let i = i as usize;
+            if full || (lo <= i && i < hi) {
+                (*p.add(i)).acc(v);
+            }
+        }
+    }
+}
+
+// SAFETY: the raw pointers in views point into arrays kept alive by the launch's owned
+// arguments; the launch contract (above) rules out conflicting access.
+unsafe impl<T: Send> Send for Reader<T> {}
+unsafe impl<T: Send> Send for OptReader<T> {}
+unsafe impl<T: Send> Send for Writer<T> {}
+unsafe impl<T: Element> Send for Scatter<T> {}
+
+fn opt_reader<T: Element>(a: Option<Array<T>>, len: usize, site: &'static Site) -> OptReader<T> {
+    OptReader {
+        ptr: a.map(|a| a.data_ptr() as *const T),
+        len,
+        site,
+    }
+}
+
+/// A reader of `a`.
+#[inline]
+pub fn reader<T: Element>(a: &Array<T>, site: &'static Site) -> Reader<T> {
+    Reader {
+        ptr: a.data_ptr(),
+        len: a.len(),
+        site,
+    }
+}
+
+/// A writer of `a`.
+#[inline]
+pub fn writer<T: Element>(a: &Array<T>, site: &'static Site) -> Writer<T> {
+    Writer {
+        ptr: Some(a.data_ptr()),
+        len: a.len(),
+        site,
+    }
+}
+
+/// A scatter into `a`.
+#[inline]
+pub fn scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
+    Scatter::new(Some(a.clone()), exec, site, a.len())
+}
+
+/// A reader of `a`'s gradient (zeros if it has none).
+#[inline]
+pub fn grad_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReader<T> {
+    opt_reader(a.grad_buffer(), a.len(), site)
+}
+
+/// A scatter into `a`'s gradient (a no-op if it has none).
+#[inline]
+pub fn grad_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
+    Scatter::new(a.grad_buffer(), exec, site, a.len())
+}
+
+/// A reader of `a`'s tangent (zeros if it has none).
+#[inline]
+pub fn tangent_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReader<T> {
+    opt_reader(a.tangent_buffer(), a.len(), site)
+}
+
+/// A writer of `a`'s tangent (ignores stores if it has none).
+#[inline]
+pub fn tangent_writer<T: Element>(a: &Array<T>, site: &'static Site) -> Writer<T> {
+    Writer {
+        ptr: a.tangent_buffer().map(|t| t.data_ptr()),
+        len: a.len(),
+        site,
+    }
+}
+
+/// A scatter into `a`'s tangent (a no-op if it has none).
+#[inline]
+pub fn tangent_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
+    Scatter::new(a.tangent_buffer(), exec, site, a.len())
+}

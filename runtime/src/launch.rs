@@ -1,0 +1,215 @@
+//! Launching kernels over the rayon thread pool.
+//!
+//! Thread ids `0..dim` run in fixed chunks of [`CHUNK`] ids (fixed by size, never by thread
+//! count). A launch smaller than [`SERIAL_BELOW`] ids, or on a one-thread pool, runs as a single
+//! chunk in thread-id order and scatters straight into its targets. A larger launch runs its
+//! chunks in parallel, each logging its scatters; the logs are then applied chunk by chunk,
+//! which is thread-id order again. So the result is bitwise identical for any number of
+//! threads and from run to run.
+
+use std::ops::Range;
+
+use rayon::prelude::*;
+
+use crate::array::AnyArray;
+use crate::kernel::{Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
+
+/// Thread ids per chunk.
+pub const CHUNK: usize = 2048;
+/// Launches with fewer thread ids than this run serially (rayon's per-call overhead is a few
+/// microseconds; see docs/performance.md).
+pub const SERIAL_BELOW: usize = 4096;
+
+/// A kernel bound to its (owned) arguments: what a tape records and replays.
+pub trait BoundLaunch: Send + Sync {
+    /// The kernel's name.
+    fn name(&self) -> &'static str;
+    /// The kernel's parameters.
+    fn params(&self) -> &'static [ParamInfo];
+    /// The array passed for each parameter.
+    fn arrays(&self) -> Vec<Option<&dyn AnyArray>>;
+    /// Runs `0..dim` in `mode`.
+    fn run(&self, mode: Mode, dim: usize);
+}
+
+pub(crate) struct Bound<K, O> {
+    pub(crate) kernel: K,
+    pub(crate) args: O,
+}
+
+impl<K: KernelBody<O>, O: Send + Sync + 'static> BoundLaunch for Bound<K, O> {
+    fn name(&self) -> &'static str {
+        K::NAME
+    }
+    fn params(&self) -> &'static [ParamInfo] {
+        K::PARAMS
+    }
+    fn arrays(&self) -> Vec<Option<&dyn AnyArray>> {
+        K::arrays(&self.args)
+    }
+    fn run(&self, mode: Mode, dim: usize) {
+        run_bound(&self.kernel, &self.args, mode, dim)
+    }
+}
+
+/// Binds `kernel` to `args` (taking handles of the arrays).
+pub fn bind<K, A>(kernel: K, args: A) -> Box<dyn BoundLaunch>
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    Box::new(Bound {
+        kernel,
+        args: K::to_owned(&args),
+    })
+}
+
+/// Runs `kernel` over thread ids `0..dim` with `args` (forward mode, not recorded).
+///
+/// ```
+/// use adflex_runtime::prelude::*;
+/// use adflex_macros::diff_kernel;
+/// #[diff_kernel]
+/// fn scale(x: &Array<f32>, s: f32, y: &Array<f32>) {
+///     let t = tid();
+///     y[t] = x[t] * s;
+/// }
+/// let x = Array::from_vec(vec![1.0f32, 2.0, 3.0]);
+/// let y = Array::zeros(3);
+/// launch(scale, 3, (&x, 2.0, &y));
+/// assert_eq!(y.to_vec(), vec![2.0, 4.0, 6.0]);
+/// ```
+pub fn launch<K, A>(kernel: K, dim: usize, args: A)
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    run_bound(&kernel, &K::to_owned(&args), Mode::Forward, dim)
+}
+
+/// Runs the tangent (forward-mode) kernel: reads the tangent buffers of the inputs
+/// ([`crate::Array::set_tangent`]) and writes those of the outputs (which must exist and
+/// start at zero for accumulated outputs).
+pub fn launch_tangent<K, A>(kernel: K, dim: usize, args: A)
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    run_bound(&kernel, &K::to_owned(&args), Mode::Tangent, dim)
+}
+
+/// Runs the adjoint (reverse-mode) kernel once: reads the gradient buffers of the outputs and
+/// accumulates into those of the inputs. A [`crate::Tape`] does this for you.
+pub fn launch_adjoint<K, A>(kernel: K, dim: usize, args: A)
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    run_bound(&kernel, &K::to_owned(&args), Mode::Adjoint, dim)
+}
+
+/// Runs `f` with a thread pool of `threads` threads (launches inside use it).
+pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("building a rayon thread pool")
+        .install(f)
+}
+
+fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
+    let arrays = K::arrays(args);
+    let _locks = lock_arrays(K::NAME, K::PARAMS, &arrays, mode);
+    let serial = dim < SERIAL_BELOW || rayon::current_num_threads() == 1;
+    if serial {
+        let logs = kernel.run(mode, args, 0..dim, &Exec::direct());
+        debug_assert!(logs.iter().all(|l| l.0.is_none()));
+    } else {
+        let chunks: Vec<Range<usize>> = (0..dim)
+            .step_by(CHUNK)
+            .map(|s| s..(s + CHUNK).min(dim))
+            .collect();
+        let logs: Vec<Vec<ScatterLog>> = chunks
+            .into_par_iter()
+            .map(|r| kernel.run(mode, args, r, &Exec::logged()))
+            .collect();
+        apply_logs(logs);
+    }
+    mark_written(K::PARAMS, &arrays, mode);
+}
+
+/// Locks every array of a launch: for writing those the launch writes (in forward mode; the
+/// other modes write only gradient and tangent buffers). Panics if one array is passed for two
+/// parameters and one of them writes it: the kernel would read its own output, or two writes
+/// would race.
+fn lock_arrays<'a>(
+    kernel: &str,
+    params: &[ParamInfo],
+    arrays: &'a [Option<&'a dyn AnyArray>],
+    mode: Mode,
+) -> Vec<crate::array::ArrayLock<'a>> {
+    let mut locks = Vec::new();
+    for (i, (p, a)) in params.iter().zip(arrays).enumerate() {
+        let Some(a) = a else { continue };
+        let writes = p.access.writes();
+        for (q, b) in params.iter().zip(arrays).take(i) {
+            if let Some(b) = b {
+                if a.id() == b.id() {
+                    if writes || q.access.writes() {
+                        panic!(
+                            "kernel `{kernel}`: array `{}` is passed as both `{}` and `{}`, and                              the kernel writes one of them; pass distinct arrays",
+                            a.label(),
+                            q.name,
+                            p.name
+                        );
+                    }
+                    continue;
+                }
+            }
+        }
+        if !arrays[..i].iter().flatten().any(|b| b.id() == a.id()) {
+            locks.push(a.lock(writes && mode == Mode::Forward));
+        }
+    }
+    locks
+}
+
+/// Bumps the versions of what the launch wrote: the arrays it writes in forward mode; in the
+/// other modes only gradient or tangent buffers, which carry no version that tapes check.
+fn mark_written(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mode) {
+    if mode != Mode::Forward {
+        return;
+    }
+    for (p, a) in params.iter().zip(arrays) {
+        if let (true, Some(a)) = (p.access.writes(), a) {
+            a.mark_written();
+        }
+    }
+}
+
+/// Applies every chunk's logs in chunk order. Logs of one target are applied by index range in
+/// parallel when they are large; each range still sees its entries in thread-id order.
+fn apply_logs(logs: Vec<Vec<ScatterLog>>) {
+    let mut by_target: Vec<(u64, Vec<&dyn crate::kernel::ApplyLog>)> = Vec::new();
+    for chunk in &logs {
+        for log in chunk.iter().filter_map(|l| l.0.as_deref()) {
+            match by_target.iter_mut().find(|(id, _)| *id == log.target_id()) {
+                Some((_, v)) => v.push(log),
+                None => by_target.push((log.target_id(), vec![log])),
+            }
+        }
+    }
+    for (_, logs) in by_target {
+        let len = logs[0].target_len();
+        let entries: usize = logs.iter().map(|l| l.entries()).sum();
+        let parts = if entries < 1 << 16 {
+            1
+        } else {
+            rayon::current_num_threads().max(1)
+        };
+        let step = len.div_ceil(parts).max(1);
+        (0..parts).into_par_iter().for_each(|p| {
+            let (lo, hi) = (p * step, ((p + 1) * step).min(len));
+            for l in &logs {
+                // SAFETY: the parts cover disjoint index ranges of the target.
+                unsafe { l.apply_range(lo, hi) }
+            }
+        });
+    }
+}
