@@ -1,9 +1,60 @@
-use proc_macro::TokenStream;
+//! `#[diff_kernel]` and `#[diff_func]`: plain Rust functions become a forward kernel, its
+//! adjoint (reverse mode) and its tangent (forward mode).
+//!
+//! The pipeline, each step a module: [`attr`] and [`signature`] parse what is around the body;
+//! [`lower`] validates the body against the kernel language (collecting every error at its
+//! span) and lowers it to the SSA of [`ir`]; [`emit`] writes the three bodies; [`expand`]
+//! assembles the items. The macro knows no types: every operation is a call to a rule in
+//! `adflex_runtime::math`, which type inference resolves.
+//!
+//! The language and its errors are documented in docs/guide.md of the repository.
+
+use proc_macro2::Span;
+
+mod attr;
+mod builtins;
+mod emit;
+mod expand;
+mod ir;
+mod lower;
+mod signature;
+
+/// Compiles a kernel: a fn whose body runs once per thread id (`tid()`), reading `&Array<T>`
+/// parameters (`x[i]`), storing (`y[i] = v`) and accumulating (`f.atomic_add(i, v)`).
+///
+/// The fn becomes a unit struct of the same name that `launch` and `Tape::launch` accept,
+/// with a forward, an adjoint and a tangent kernel. See the guide (docs/guide.md).
 #[proc_macro_attribute]
-pub fn diff_kernel(_a: TokenStream, i: TokenStream) -> TokenStream {
-    i
+pub fn diff_kernel(args: proc_macro::TokenStream, item: proc_macro::TokenStream) -> proc_macro::TokenStream {
+    expand::expand(args.into(), item.into(), true).into()
 }
+
+/// Compiles a differentiable function that kernels (and other functions) can call.
+///
+/// The fn becomes a unit struct of the same name implementing `adflex::DiffFunc`; kernels call
+/// it as written (`f(x, y)`), plain Rust as `f::call(x, y)`. `#[diff_func(adjoint = a,
+/// tangent = t)]` replaces the generated derivatives with hand-written ones:
+/// `fn a(x1, .., xn, adj_out) -> (adj_x1, .., adj_xn,)` and `fn t(x1, .., xn, dx1, .., dxn) -> dout`.
 #[proc_macro_attribute]
-pub fn diff_func(_a: TokenStream, i: TokenStream) -> TokenStream {
-    i
+pub fn diff_func(args: proc_macro::TokenStream, item: proc_macro::TokenStream) -> proc_macro::TokenStream {
+    expand::expand(args.into(), item.into(), false).into()
+}
+
+/// Errors collected while expanding, each at its span.
+#[derive(Default)]
+pub(crate) struct Errors(Vec<syn::Error>);
+
+impl Errors {
+    pub fn push(&mut self, span: Span, msg: impl std::fmt::Display) {
+        self.0.push(syn::Error::new(span, msg));
+    }
+    pub fn push_error(&mut self, e: syn::Error) {
+        self.0.push(e);
+    }
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+    pub fn to_compile_errors(&self) -> proc_macro2::TokenStream {
+        self.0.iter().map(syn::Error::to_compile_error).collect()
+    }
 }

@@ -104,6 +104,15 @@ where
     run_bound(&kernel, &K::to_owned(&args), Mode::Adjoint, dim)
 }
 
+/// Runs `kernel` in `mode` (forward, adjoint or tangent); see [`launch`], [`launch_adjoint`],
+/// [`launch_tangent`].
+pub fn launch_mode<K, A>(mode: Mode, kernel: K, dim: usize, args: A)
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    run_bound(&kernel, &K::to_owned(&args), mode, dim)
+}
+
 /// Runs `f` with a thread pool of `threads` threads (launches inside use it).
 pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
     rayon::ThreadPoolBuilder::new()

@@ -1,0 +1,510 @@
+//! Emission: the SSA body becomes the forward, adjoint and tangent code.
+//!
+//! - Forward: the statements as written.
+//! - Adjoint of a block: replay the block's forward (no stores), declaring an adjoint `a<N>`
+//!   beside every value; seed; then walk the statements backward applying each op's rule
+//!   (`adj_<op>` in `adflex_runtime::math`). A nested `if` replays and reverses its taken
+//!   branch. A dynamic loop's replay pushes each iteration's carried values (and index) on a
+//!   stack; its reverse pops them, replays that iteration's body and reverses it, so no
+//!   iteration is ever replayed with another iteration's values.
+//! - Tangent: the forward with a tangent `d<N>` beside every value (`tan_<op>` rules).
+
+use proc_macro2::{Ident, Span, TokenStream};
+use quote::{format_ident, quote, quote_spanned};
+
+use crate::ir::*;
+
+pub struct Emitter<'a> {
+    pub rt: &'a TokenStream,
+}
+
+fn local(prefix: &str, n: impl std::fmt::Display, span: Span) -> Ident {
+    Ident::new(&format!("{prefix}{n}"), Span::mixed_site().located_at(span))
+}
+fn v(n: ValueId) -> Ident {
+    local("v", n, Span::call_site())
+}
+fn a(n: ValueId) -> Ident {
+    local("a", n, Span::call_site())
+}
+fn d(n: ValueId) -> Ident {
+    local("d", n, Span::call_site())
+}
+/// The view of array parameter `p` (reader, writer or scatter).
+pub fn view(p: usize) -> Ident {
+    local("__view", p, Span::call_site())
+}
+/// The view of the gradient of array parameter `p`.
+pub fn grad_view(p: usize) -> Ident {
+    local("__grad", p, Span::call_site())
+}
+/// The view of the tangent of array parameter `p`.
+pub fn tangent_view(p: usize) -> Ident {
+    local("__tangent", p, Span::call_site())
+}
+/// The thread id.
+pub fn tid() -> Ident {
+    local("__tid", "", Span::call_site())
+}
+
+fn vs(ids: &[ValueId]) -> Vec<Ident> {
+    ids.iter().map(|&i| v(i)).collect()
+}
+fn ds(ids: &[ValueId]) -> Vec<Ident> {
+    ids.iter().map(|&i| d(i)).collect()
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Replay {
+    /// The kernel as written: with stores.
+    Forward,
+    /// Inside an adjoint, at the level being reversed: no stores, adjoints declared, loops
+    /// recorded.
+    Top,
+    /// Inside an adjoint, nested below that level: no stores, nothing declared or recorded.
+    Nested,
+}
+
+impl<'a> Emitter<'a> {
+    /// The forward value of `op`.
+    fn value_expr(&self, op: &Op, span: Span) -> TokenStream {
+        let rt = self.rt;
+        match op {
+            Op::Const(t) => t.clone(),
+            Op::Tid => {
+                let t = tid();
+                quote!(#t)
+            }
+            Op::Builtin { name, args } => {
+                let f = Ident::new(name, span);
+                let args = vs(args);
+                quote_spanned!(span=> #rt::math::#f(#(#args),*))
+            }
+            Op::Func { path, args } => {
+                let args = vs(args);
+                quote_spanned!(span=> #rt::func::call((#(#args,)*), &#path))
+            }
+            Op::Cast { arg, ty } => {
+                let x = v(*arg);
+                quote_spanned!(span=> #rt::math::cast::<_, #ty>(#x))
+            }
+            Op::Typed { src, .. } => {
+                let x = v(*src);
+                quote!(#x)
+            }
+            Op::NativeBinary { op, a: x, b: y } => {
+                let (x, y) = (v(*x), v(*y));
+                quote_spanned!(span=> (#x #op #y))
+            }
+            Op::NativeUnary { op, a: x } => {
+                let x = v(*x);
+                quote_spanned!(span=> (#op #x))
+            }
+            Op::Tuple(items) => {
+                let items = vs(items);
+                quote!((#(#items),*))
+            }
+            Op::Read { param, index } => {
+                let (r, i) = (view(*param), v(*index));
+                quote_spanned!(span=> #r.get(#i))
+            }
+            Op::StopGrad(x) => {
+                let x = v(*x);
+                quote!(#x)
+            }
+            Op::Zero => quote!(#rt::Value::zeroed()),
+            Op::PlainCall { path, args } => {
+                let args = vs(args);
+                quote_spanned!(span=> #path(#(#args),*))
+            }
+            Op::PlainMethod { recv, method, args } => {
+                let (r, args) = (v(*recv), vs(args));
+                quote_spanned!(span=> #r.#method(#(#args),*))
+            }
+        }
+    }
+
+    fn let_stmt(&self, l: &Let) -> TokenStream {
+        let (x, e) = (v(l.id), self.value_expr(&l.op, l.span));
+        match &l.op {
+            Op::Typed { ty, .. } => quote!(let #x: #ty = #e;),
+            _ => quote!(let #x = #e;),
+        }
+    }
+
+    // ---- forward ---------------------------------------------------------------------
+
+    /// The forward code of a block (with stores).
+    pub fn forward(&self, b: &Block) -> TokenStream {
+        self.replay(b, Replay::Forward)
+    }
+
+    fn replay(&self, b: &Block, mode: Replay) -> TokenStream {
+        let rt = self.rt;
+        let mut out = TokenStream::new();
+        for s in &b.stmts {
+            match s {
+                Stmt::Let(l) => {
+                    out.extend(self.let_stmt(l));
+                    if mode == Replay::Top {
+                        let (x, ax) = (v(l.id), a(l.id));
+                        out.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
+                    }
+                }
+                Stmt::Store { param, index, value, kind, span } => {
+                    if mode == Replay::Forward {
+                        let (w, i, x) = (view(*param), v(*index), v(*value));
+                        out.extend(match kind {
+                            StoreKind::Store => quote_spanned!(*span=> #w.store(#i, #x);),
+                            StoreKind::AtomicAdd => quote_spanned!(*span=> #w.add(#i, #x);),
+                            StoreKind::AtomicSub => quote_spanned!(*span=> #w.sub(#i, #x);),
+                        });
+                    }
+                }
+                Stmt::If { cond, then_b, else_b, phis } => {
+                    let inner = if mode == Replay::Forward { Replay::Forward } else { Replay::Nested };
+                    let c = v(*cond);
+                    let (tb, eb) = (self.replay(then_b, inner), self.replay(else_b, inner));
+                    let outs: Vec<_> = phis.iter().map(|p| v(p.out)).collect();
+                    let tvs: Vec<_> = phis.iter().map(|p| v(p.then_v)).collect();
+                    let evs: Vec<_> = phis.iter().map(|p| v(p.else_v)).collect();
+                    out.extend(quote! {
+                        let (#(#outs,)*) = if #c { #tb (#(#tvs,)*) } else { #eb (#(#evs,)*) };
+                    });
+                    if mode == Replay::Top {
+                        for p in phis {
+                            let (x, ax) = (v(p.out), a(p.out));
+                            out.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
+                        }
+                    }
+                }
+                Stmt::Loop(l) => out.extend(self.loop_forward(l, mode)),
+            }
+        }
+        out
+    }
+
+    fn loop_header(&self, l: &Loop, k: &Ident) -> TokenStream {
+        match l.range {
+            Some((s, e, false)) => {
+                let (s, e) = (v(s), v(e));
+                quote!(for #k in #s..#e)
+            }
+            Some((s, e, true)) => {
+                let (s, e) = (v(s), v(e));
+                quote!(for #k in #s..=#e)
+            }
+            None => quote!(loop),
+        }
+    }
+
+    fn loop_forward(&self, l: &Loop, mode: Replay) -> TokenStream {
+        let rt = self.rt;
+        let inner_mode = if mode == Replay::Forward { Replay::Forward } else { Replay::Nested };
+        let c = local("__carry", l.id, Span::call_site());
+        let st = local("__stack", l.id, Span::call_site());
+        let k = local("__k", l.id, Span::call_site());
+        let inits: Vec<_> = l.carried.iter().map(|c| v(c.init)).collect();
+        let inners: Vec<_> = l.carried.iter().map(|c| v(c.inner)).collect();
+        let nexts: Vec<_> = l.carried.iter().map(|c| v(c.next)).collect();
+        let outs: Vec<_> = l.carried.iter().map(|c| v(c.out)).collect();
+        let header = self.loop_header(l, &k);
+        let index = match l.index {
+            Some(i) => {
+                let i = v(i);
+                quote!(let #i = #k;)
+            }
+            None => quote!(),
+        };
+        let record = if mode == Replay::Top {
+            let key = if l.range.is_some() { quote!(#k) } else { quote!(()) };
+            quote!(#st.push((#key, #c));)
+        } else {
+            quote!()
+        };
+        let body = self.replay(&l.body, inner_mode);
+        let exit = match l.exit {
+            Some(x) => {
+                let x = v(x);
+                quote!(if #x { break; })
+            }
+            None => quote!(),
+        };
+        let stack_decl = if mode == Replay::Top {
+            quote!(let mut #st = ::std::vec::Vec::new();)
+        } else {
+            quote!()
+        };
+        let adj_outs = if mode == Replay::Top {
+            let decl = l.carried.iter().map(|c| {
+                let (x, ax) = (v(c.out), a(c.out));
+                quote!(let mut #ax = #rt::zero_like(&#x);)
+            });
+            quote!(#(#decl)*)
+        } else {
+            quote!()
+        };
+        quote! {
+            #stack_decl
+            let mut #c = (#(#inits,)*);
+            #header {
+                #record
+                #index
+                let (#(#inners,)*) = #c;
+                #body
+                #c = (#(#nexts,)*);
+                #exit
+            }
+            let (#(#outs,)*) = #c;
+            #adj_outs
+        }
+    }
+
+    // ---- adjoint ---------------------------------------------------------------------
+
+    /// The adjoint of a block: replay, seed `adj(value) += seed`, reverse.
+    pub fn adjoint(&self, b: &Block, seeds: &[(ValueId, TokenStream)]) -> TokenStream {
+        let rt = self.rt;
+        let replay = self.replay(b, Replay::Top);
+        let seeds = seeds.iter().map(|(x, s)| {
+            let ax = a(*x);
+            quote!(#rt::acc(&mut #ax, #s);)
+        });
+        let reverse = b.stmts.iter().rev().map(|s| self.reverse(s));
+        quote! {
+            #replay
+            #(#seeds)*
+            #(#reverse)*
+        }
+    }
+
+    fn reverse(&self, s: &Stmt) -> TokenStream {
+        let rt = self.rt;
+        match s {
+            Stmt::Let(l) => self.reverse_let(l),
+            Stmt::Store { param, index, value, kind, span } => {
+                let (g, i, ax) = (grad_view(*param), v(*index), a(*value));
+                match kind {
+                    StoreKind::Store | StoreKind::AtomicAdd => {
+                        quote_spanned!(*span=> #rt::acc(&mut #ax, #g.get(#i));)
+                    }
+                    StoreKind::AtomicSub => quote_spanned!(*span=> #rt::acc_neg(&mut #ax, #g.get(#i));),
+                }
+            }
+            Stmt::If { cond, then_b, else_b, phis } => {
+                let c = v(*cond);
+                let tseeds: Vec<_> = phis.iter().map(|p| (p.then_v, self.adj_tokens(p.out))).collect();
+                let eseeds: Vec<_> = phis.iter().map(|p| (p.else_v, self.adj_tokens(p.out))).collect();
+                let (tb, eb) = (self.adjoint(then_b, &tseeds), self.adjoint(else_b, &eseeds));
+                quote!(if #c { #tb } else { #eb })
+            }
+            Stmt::Loop(l) => self.reverse_loop(l),
+        }
+    }
+
+    fn adj_tokens(&self, x: ValueId) -> TokenStream {
+        let ax = a(x);
+        quote!(#ax)
+    }
+
+    fn reverse_let(&self, l: &Let) -> TokenStream {
+        let rt = self.rt;
+        let span = l.span;
+        let an = a(l.id);
+        match &l.op {
+            Op::Builtin { args, .. } if args.is_empty() => quote!(),
+            Op::Builtin { name, args } => {
+                let f = format_ident!("adj_{}", name, span = span);
+                let xs = vs(args);
+                if args.len() == 1 {
+                    let ax = a(args[0]);
+                    quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::#f(#(#xs,)* #an));)
+                } else {
+                    let gs: Vec<_> = (0..args.len()).map(|i| local("__g", i, Span::call_site())).collect();
+                    let axs = args.iter().map(|&x| a(x));
+                    quote_spanned! {span=>
+                        let (#(#gs,)*) = #rt::math::#f(#(#xs,)* #an);
+                        #(#rt::acc(&mut #axs, #gs);)*
+                    }
+                }
+            }
+            Op::Func { path, args } => {
+                let xs = vs(args);
+                let gs: Vec<_> = (0..args.len()).map(|i| local("__g", i, Span::call_site())).collect();
+                let axs = args.iter().map(|&x| a(x));
+                quote_spanned! {span=>
+                    let (#(#gs,)*) = #rt::func::call_adjoint((#(#xs,)*), #an, &#path);
+                    #(#rt::acc(&mut #axs, #gs);)*
+                }
+            }
+            Op::Cast { arg, ty } => {
+                let (x, ax) = (v(*arg), a(*arg));
+                quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::adj_cast::<_, #ty>(#x, #an));)
+            }
+            Op::Typed { src, .. } => {
+                let ax = a(*src);
+                quote!(#rt::acc(&mut #ax, #an);)
+            }
+            Op::Read { param, index } => {
+                let (g, i) = (grad_view(*param), v(*index));
+                quote_spanned!(span=> #g.add(#i, #an);)
+            }
+            _ => quote!(),
+        }
+    }
+
+    fn reverse_loop(&self, l: &Loop) -> TokenStream {
+        let rt = self.rt;
+        let st = local("__stack", l.id, Span::call_site());
+        let ac = local("__adj_carry", l.id, Span::call_site());
+        let k = local("__k", l.id, Span::call_site());
+        let cin = local("__carry_in", l.id, Span::call_site());
+        let adj_outs: Vec<_> = l.carried.iter().map(|c| a(c.out)).collect();
+        let inners: Vec<_> = l.carried.iter().map(|c| v(c.inner)).collect();
+        let adj_inners: Vec<_> = l.carried.iter().map(|c| a(c.inner)).collect();
+        let adj_inits: Vec<_> = l.carried.iter().map(|c| a(c.init)).collect();
+        let index = match l.index {
+            Some(i) => {
+                let (x, ax) = (v(i), a(i));
+                quote!(let #x = #k; let mut #ax = #rt::zero_like(&#x);)
+            }
+            None => quote!(let _ = #k;),
+        };
+        let seeds: Vec<_> = l
+            .carried
+            .iter()
+            .enumerate()
+            .map(|(n, c)| {
+                let n = syn::Index::from(n);
+                (c.next, quote!(#ac.#n))
+            })
+            .collect();
+        let body = self.adjoint(&l.body, &seeds);
+        let idx: Vec<_> = (0..l.carried.len()).map(syn::Index::from).collect();
+        quote! {
+            let mut #ac = (#(#adj_outs,)*);
+            while let ::std::option::Option::Some((#k, #cin)) = #st.pop() {
+                #index
+                let (#(#inners,)*) = #cin;
+                #(let mut #adj_inners = #rt::zero_like(&#inners);)*
+                #body
+                #ac = (#(#adj_inners,)*);
+            }
+            #(#rt::acc(&mut #adj_inits, #ac.#idx);)*
+        }
+    }
+
+    // ---- tangent ---------------------------------------------------------------------
+
+    /// The tangent code of a block: every value with its tangent.
+    pub fn tangent(&self, b: &Block) -> TokenStream {
+        let rt = self.rt;
+        let mut out = TokenStream::new();
+        for s in &b.stmts {
+            match s {
+                Stmt::Let(l) => out.extend(self.tangent_let(l)),
+                Stmt::Store { param, index, value, kind, span } => {
+                    let (t, i, dx) = (tangent_view(*param), v(*index), d(*value));
+                    out.extend(match kind {
+                        StoreKind::Store => quote_spanned!(*span=> #t.store(#i, #dx);),
+                        StoreKind::AtomicAdd => quote_spanned!(*span=> #t.add(#i, #dx);),
+                        StoreKind::AtomicSub => quote_spanned!(*span=> #t.sub(#i, #dx);),
+                    });
+                }
+                Stmt::If { cond, then_b, else_b, phis } => {
+                    let c = v(*cond);
+                    let (tb, eb) = (self.tangent(then_b), self.tangent(else_b));
+                    let outs: Vec<_> = phis.iter().map(|p| pair(p.out)).collect();
+                    let tvs: Vec<_> = phis.iter().map(|p| pair(p.then_v)).collect();
+                    let evs: Vec<_> = phis.iter().map(|p| pair(p.else_v)).collect();
+                    out.extend(quote! {
+                        let (#(#outs,)*) = if #c { #tb (#(#tvs,)*) } else { #eb (#(#evs,)*) };
+                    });
+                }
+                Stmt::Loop(l) => {
+                    let c = local("__carry", l.id, Span::call_site());
+                    let k = local("__k", l.id, Span::call_site());
+                    let inits: Vec<_> = l.carried.iter().map(|c| pair(c.init)).collect();
+                    let inners: Vec<_> = l.carried.iter().map(|c| pair(c.inner)).collect();
+                    let nexts: Vec<_> = l.carried.iter().map(|c| pair(c.next)).collect();
+                    let outs: Vec<_> = l.carried.iter().map(|c| pair(c.out)).collect();
+                    let header = self.loop_header(l, &k);
+                    let index = match l.index {
+                        Some(i) => {
+                            let (x, dx) = (v(i), d(i));
+                            quote!(let #x = #k; let #dx = #rt::zero_like(&#x);)
+                        }
+                        None => quote!(),
+                    };
+                    let body = self.tangent(&l.body);
+                    let exit = match l.exit {
+                        Some(x) => {
+                            let x = v(x);
+                            quote!(if #x { break; })
+                        }
+                        None => quote!(),
+                    };
+                    out.extend(quote! {
+                        let mut #c = (#(#inits,)*);
+                        #header {
+                            #index
+                            let (#(#inners,)*) = #c;
+                            #body
+                            #c = (#(#nexts,)*);
+                            #exit
+                        }
+                        let (#(#outs,)*) = #c;
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    fn tangent_let(&self, l: &Let) -> TokenStream {
+        let rt = self.rt;
+        let span = l.span;
+        let (x, dx) = (v(l.id), d(l.id));
+        match &l.op {
+            Op::Builtin { name, args } if !args.is_empty() => {
+                let fwd = self.let_stmt(l);
+                let f = format_ident!("tan_{}", name, span = span);
+                let (xs, dxs) = (vs(args), ds(args));
+                quote_spanned!(span=> #fwd let #dx = #rt::math::#f(#(#xs,)* #(#dxs),*);)
+            }
+            Op::Func { path, args } => {
+                let (xs, dxs) = (vs(args), ds(args));
+                quote_spanned!(span=> let (#x, #dx) = #rt::func::call_tangent((#(#xs,)*), (#(#dxs,)*), &#path);)
+            }
+            Op::Cast { arg, ty } => {
+                let fwd = self.let_stmt(l);
+                let (y, dy) = (v(*arg), d(*arg));
+                quote_spanned!(span=> #fwd let #dx = #rt::math::tan_cast::<_, #ty>(#y, #dy);)
+            }
+            Op::Typed { src, ty } => {
+                let fwd = self.let_stmt(l);
+                let ds = d(*src);
+                quote!(#fwd let #dx: #ty = #ds;)
+            }
+            Op::Read { param, index } => {
+                let fwd = self.let_stmt(l);
+                let (t, i) = (tangent_view(*param), v(*index));
+                quote_spanned!(span=> #fwd let #dx = #t.get(#i);)
+            }
+            _ => {
+                let fwd = self.let_stmt(l);
+                quote!(#fwd let #dx = #rt::zero_like(&#x);)
+            }
+        }
+    }
+}
+
+fn pair(x: ValueId) -> TokenStream {
+    let (x, dx) = (v(x), d(x));
+    quote!((#x, #dx))
+}
+
+/// The identifiers of a value, its adjoint and its tangent (for the item assembly).
+pub fn names(x: ValueId) -> (Ident, Ident, Ident) {
+    (v(x), a(x), d(x))
+}

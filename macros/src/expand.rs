@@ -1,0 +1,410 @@
+//! Expansion: parse -> validate/lower -> emit the items of a kernel or a function.
+
+use proc_macro2::TokenStream;
+use quote::{format_ident, quote, ToTokens};
+use syn::spanned::Spanned;
+
+use crate::attr::Attr;
+use crate::emit::{self, Emitter};
+use crate::ir::Body;
+use crate::lower::{ArrayUse, Lowerer};
+use crate::signature::{ParamKind, Signature};
+use crate::Errors;
+
+/// Expands `#[diff_kernel]` (`is_kernel`) or `#[diff_func]` on `item`.
+pub fn expand(args: TokenStream, item: TokenStream, is_kernel: bool) -> TokenStream {
+    let mut errors = Errors::default();
+    let f: syn::ItemFn = match syn::parse2(item) {
+        Ok(f) => f,
+        Err(e) => {
+            let what = if is_kernel { "#[diff_kernel]" } else { "#[diff_func]" };
+            return syn::Error::new(e.span(), format!("{what} applies to a fn")).to_compile_error();
+        }
+    };
+    let attr = Attr::parse(args, is_kernel, &mut errors);
+    let rt = runtime_path(&attr);
+    let sig = Signature::parse(&f, is_kernel, &mut errors);
+    let passthrough = passthrough_attrs(&f, &mut errors);
+    let custom = attr.adjoint.is_some();
+    let (body, uses) = Lowerer::new(&sig, &rt, is_kernel, &mut errors).lower_body(&f.block);
+    if !errors.is_empty() {
+        let stub = if is_kernel { kernel_stub(&sig, &rt, &passthrough) } else { func_stub(&sig, &rt, &passthrough) };
+        let errs = errors.to_compile_errors();
+        return quote!(#errs #stub);
+    }
+    let items = if is_kernel {
+        kernel_items(&sig, &rt, &body, &uses, &passthrough)
+    } else {
+        let custom = custom.then(|| (attr.adjoint.as_ref().unwrap(), attr.tangent.as_ref().unwrap()));
+        func_items(&sig, &rt, &body, custom, &passthrough)
+    };
+    dump(&sig.name.to_string(), &items);
+    items
+}
+
+/// Finds the runtime crate as the user's Cargo.toml names it.
+fn runtime_path(attr: &Attr) -> TokenStream {
+    use proc_macro_crate::{crate_name, FoundCrate};
+    if let Some(p) = &attr.krate {
+        return p.to_token_stream();
+    }
+    match crate_name("adflex-runtime") {
+        Ok(FoundCrate::Itself) => quote!(::adflex_runtime),
+        Ok(FoundCrate::Name(n)) => {
+            let id = format_ident!("{}", n);
+            quote!(::#id)
+        }
+        Err(_) => match crate_name("adflex") {
+            Ok(FoundCrate::Name(n)) => {
+                let id = format_ident!("{}", n);
+                quote!(::#id::runtime)
+            }
+            _ => quote!(::adflex::runtime),
+        },
+    }
+}
+
+/// Attributes copied onto the generated struct (docs, cfg, lints); others are refused.
+fn passthrough_attrs(f: &syn::ItemFn, errors: &mut Errors) -> Vec<syn::Attribute> {
+    let mut keep = Vec::new();
+    for a in &f.attrs {
+        let name = a.path().get_ident().map(|i| i.to_string()).unwrap_or_default();
+        match name.as_str() {
+            "doc" | "cfg" | "allow" | "warn" | "deny" | "expect" => keep.push(a.clone()),
+            _ => errors.push(a.span(), format!("attribute `#[{name}]` is not supported on a kernel")),
+        }
+    }
+    keep
+}
+
+fn name_lit(sig: &Signature) -> syn::LitStr {
+    syn::LitStr::new(&sig.name.to_string(), sig.name.span())
+}
+
+fn struct_item(sig: &Signature, attrs: &[syn::Attribute]) -> TokenStream {
+    let (name, vis) = (&sig.name, &sig.vis);
+    quote! {
+        #(#attrs)*
+        #[allow(non_camel_case_types)]
+        #[derive(Clone, Copy, Debug, Default)]
+        #vis struct #name;
+    }
+}
+
+const LINTS: &str = "unused_mut, unused_variables, unused_assignments, unused_parens, \
+    unreachable_code, non_snake_case, clippy::all, clippy::pedantic";
+
+fn lints() -> TokenStream {
+    let l: TokenStream = LINTS.parse().unwrap();
+    quote!(#[allow(#l)])
+}
+
+// ---- kernels ---------------------------------------------------------------------------
+
+fn kernel_items(sig: &Signature, rt: &TokenStream, body: &Body, uses: &[ArrayUse], attrs: &[syn::Attribute]) -> TokenStream {
+    let name = &sig.name;
+    let name_str = name_lit(sig);
+    let owned: Vec<_> = sig.params.iter().map(|p| p.owned_ty().clone()).collect();
+    let borrowed: Vec<_> = sig
+        .params
+        .iter()
+        .map(|p| match &p.kind {
+            ParamKind::Array { ty } => quote!(&'__a #ty),
+            ParamKind::Value { ty, .. } => quote!(#ty),
+        })
+        .collect();
+    let idx: Vec<_> = (0..sig.params.len()).map(syn::Index::from).collect();
+    let access: Vec<_> = sig
+        .params
+        .iter()
+        .zip(uses)
+        .map(|(p, u)| {
+            let pname = p.name.to_string();
+            let acc = if !p.is_array() {
+                quote!(Value)
+            } else if u.read.is_some() {
+                quote!(Read)
+            } else if u.store.is_some() {
+                quote!(Store)
+            } else if u.atomic.is_some() {
+                quote!(Atomic)
+            } else {
+                quote!(Unused)
+            };
+            quote!(#rt::kernel::ParamInfo { name: #pname, access: #rt::kernel::Access::#acc })
+        })
+        .collect();
+    let arrays: Vec<_> = sig
+        .params
+        .iter()
+        .zip(&idx)
+        .map(|(p, i)| {
+            if p.is_array() {
+                quote!(::std::option::Option::Some(&__args.#i as &dyn #rt::AnyArray))
+            } else {
+                quote!(::std::option::Option::None)
+            }
+        })
+        .collect();
+    let generic_params = sig.generic_params();
+    let (impl_generics, where_clause) = sig.impl_generics();
+    let em = Emitter { rt };
+    let modes = [Mode::Forward, Mode::Adjoint, Mode::Tangent].map(|m| kernel_mode(sig, rt, body, uses, &em, m));
+    let [fwd, adj, tan] = modes;
+    let strukt = struct_item(sig, attrs);
+    let lints = lints();
+    quote! {
+        #strukt
+
+        impl<'__a, #(#generic_params),*> #rt::kernel::Kernel<(#(#borrowed,)*)> for #name #where_clause {
+            type Owned = (#(#owned,)*);
+            #[inline]
+            fn to_owned(args: &(#(#borrowed,)*)) -> Self::Owned {
+                (#(#rt::kernel::LaunchArg::to_owned_arg(&args.#idx),)*)
+            }
+        }
+
+        impl #impl_generics #rt::kernel::KernelBody<(#(#owned,)*)> for #name #where_clause {
+            const NAME: &'static str = #name_str;
+            const PARAMS: &'static [#rt::kernel::ParamInfo] = &[#(#access),*];
+            fn arrays(__args: &(#(#owned,)*)) -> ::std::vec::Vec<::std::option::Option<&dyn #rt::AnyArray>> {
+                ::std::vec![#(#arrays),*]
+            }
+            #lints
+            fn run(
+                &self,
+                __mode: #rt::kernel::Mode,
+                __args: &(#(#owned,)*),
+                __range: ::std::ops::Range<usize>,
+                __exec: &#rt::kernel::Exec,
+            ) -> ::std::vec::Vec<#rt::kernel::ScatterLog> {
+                match __mode {
+                    #rt::kernel::Mode::Forward => { #fwd }
+                    #rt::kernel::Mode::Adjoint => { #adj }
+                    #rt::kernel::Mode::Tangent => { #tan }
+                }
+            }
+        }
+    }
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Mode {
+    Forward,
+    Adjoint,
+    Tangent,
+}
+
+fn kernel_mode(sig: &Signature, rt: &TokenStream, body: &Body, uses: &[ArrayUse], em: &Emitter, mode: Mode) -> TokenStream {
+    let kname = sig.name.to_string();
+    let mut views = TokenStream::new();
+    let mut finish = Vec::new();
+    for (p, (param, u)) in sig.params.iter().zip(uses).enumerate() {
+        if !param.is_array() {
+            continue;
+        }
+        let i = syn::Index::from(p);
+        let pname = param.name.to_string();
+        let site = quote!(&#rt::kernel::Site { kernel: #kname, param: #pname });
+        let (vw, gv, tv) = (emit::view(p), emit::grad_view(p), emit::tangent_view(p));
+        let arr = quote!(&__args.#i);
+        let k = quote!(#rt::kernel);
+        if u.read.is_some() {
+            views.extend(quote!(let #vw = #k::reader(#arr, #site);));
+            match mode {
+                Mode::Adjoint => {
+                    views.extend(quote!(let mut #gv = #k::grad_scatter(#arr, __exec, #site);));
+                    finish.push(quote!(#gv.finish()));
+                }
+                Mode::Tangent => views.extend(quote!(let #tv = #k::tangent_reader(#arr, #site);)),
+                Mode::Forward => {}
+            }
+        } else if u.store.is_some() {
+            views.extend(match mode {
+                Mode::Forward => quote!(let #vw = #k::writer(#arr, #site);),
+                Mode::Adjoint => quote!(let #gv = #k::grad_reader(#arr, #site);),
+                Mode::Tangent => quote!(let #tv = #k::tangent_writer(#arr, #site);),
+            });
+        } else if u.atomic.is_some() {
+            match mode {
+                Mode::Forward => {
+                    views.extend(quote!(let mut #vw = #k::scatter(#arr, __exec, #site);));
+                    finish.push(quote!(#vw.finish()));
+                }
+                Mode::Adjoint => views.extend(quote!(let #gv = #k::grad_reader(#arr, #site);)),
+                Mode::Tangent => {
+                    views.extend(quote!(let mut #tv = #k::tangent_scatter(#arr, __exec, #site);));
+                    finish.push(quote!(#tv.finish()));
+                }
+            }
+        }
+    }
+    let mut prologue = TokenStream::new();
+    for (p, (param, &val)) in sig.params.iter().zip(&body.params).enumerate() {
+        if param.is_array() {
+            continue;
+        }
+        let i = syn::Index::from(p);
+        let (x, ax, dx) = emit::names(val);
+        prologue.extend(quote!(let #x = __args.#i;));
+        match mode {
+            Mode::Adjoint => prologue.extend(quote!(let mut #ax = #rt::zero_like(&#x);)),
+            Mode::Tangent => prologue.extend(quote!(let #dx = #rt::zero_like(&#x);)),
+            Mode::Forward => {}
+        }
+    }
+    let code = match mode {
+        Mode::Forward => em.forward(&body.block),
+        Mode::Adjoint => em.adjoint(&body.block, &[]),
+        Mode::Tangent => em.tangent(&body.block),
+    };
+    let t = emit::tid();
+    quote! {
+        #views
+        for #t in __range {
+            #prologue
+            #code
+        }
+        ::std::vec![#(#finish),*]
+    }
+}
+
+fn kernel_stub(sig: &Signature, rt: &TokenStream, attrs: &[syn::Attribute]) -> TokenStream {
+    let name = &sig.name;
+    let name_str = name_lit(sig);
+    let strukt = struct_item(sig, attrs);
+    quote! {
+        #strukt
+        impl<__A> #rt::kernel::Kernel<__A> for #name {
+            type Owned = ();
+            fn to_owned(_: &__A) {}
+        }
+        impl #rt::kernel::KernelBody<()> for #name {
+            const NAME: &'static str = #name_str;
+            const PARAMS: &'static [#rt::kernel::ParamInfo] = &[];
+            fn arrays(_: &()) -> ::std::vec::Vec<::std::option::Option<&dyn #rt::AnyArray>> {
+                ::std::vec::Vec::new()
+            }
+            fn run(&self, _: #rt::kernel::Mode, _: &(), _: ::std::ops::Range<usize>, _: &#rt::kernel::Exec) -> ::std::vec::Vec<#rt::kernel::ScatterLog> {
+                ::std::unreachable!()
+            }
+        }
+    }
+}
+
+// ---- functions -------------------------------------------------------------------------
+
+fn func_items(
+    sig: &Signature,
+    rt: &TokenStream,
+    body: &Body,
+    custom: Option<(&syn::Path, &syn::Path)>,
+    attrs: &[syn::Attribute],
+) -> TokenStream {
+    let name = &sig.name;
+    let vis = &sig.vis;
+    let tys: Vec<_> = sig.params.iter().map(|p| p.owned_ty().clone()).collect();
+    let pnames: Vec<_> = sig.params.iter().map(|p| p.name.clone()).collect();
+    let ret = sig.ret.as_ref().unwrap();
+    let (impl_generics, where_clause) = sig.impl_generics();
+    let generics = &sig.generics;
+    let em = Emitter { rt };
+    let strukt = struct_item(sig, attrs);
+    let lints = lints();
+    let args_ty = quote!((#(#tys,)*));
+    let xs: Vec<_> = body.params.iter().map(|&p| emit::names(p).0).collect();
+    let axs: Vec<_> = body.params.iter().map(|&p| emit::names(p).1).collect();
+    let dxs: Vec<_> = body.params.iter().map(|&p| emit::names(p).2).collect();
+    let r = body.ret.unwrap();
+    let (rv, _, rd) = emit::names(r);
+    let (adjoint, tangent) = match custom {
+        Some((adj, tan)) => (
+            quote! {
+                let (#(#xs,)*) = __args;
+                #adj(#(#xs,)* __adj_out)
+            },
+            quote! {
+                let (#(#xs,)*) = __args;
+                let (#(#dxs,)*) = __dots;
+                (<Self as #rt::DiffFunc<#args_ty, #ret>>::forward(self, __args), #tan(#(#xs,)* #(#dxs),*))
+            },
+        ),
+        None => {
+            let adj_body = em.adjoint(&body.block, &[(r, quote!(__adj_out))]);
+            let tan_body = em.tangent(&body.block);
+            (
+                quote! {
+                    let (#(#xs,)*) = __args;
+                    #(let mut #axs = #rt::zero_like(&#xs);)*
+                    #adj_body
+                    (#(#axs,)*)
+                },
+                quote! {
+                    let (#(#xs,)*) = __args;
+                    let (#(#dxs,)*) = __dots;
+                    #tan_body
+                    (#rv, #rd)
+                },
+            )
+        }
+    };
+    let fwd_body = em.forward(&body.block);
+    let doc = format!("Calls `{name}` (the forward function; kernels call it as `{name}(..)`).");
+    quote! {
+        #strukt
+
+        impl #name {
+            #[doc = #doc]
+            #[inline]
+            #vis fn call #generics (#(#pnames: #tys),*) -> #ret #where_clause {
+                <Self as #rt::DiffFunc<#args_ty, #ret>>::forward(&#name, (#(#pnames,)*))
+            }
+        }
+
+        impl #impl_generics #rt::DiffFunc<#args_ty, #ret> for #name #where_clause {
+            #lints
+            #[inline]
+            fn forward(&self, __args: #args_ty) -> #ret {
+                let (#(#xs,)*) = __args;
+                #fwd_body
+                #rv
+            }
+            #lints
+            #[inline]
+            fn adjoint(&self, __args: #args_ty, __adj_out: #ret) -> #args_ty {
+                #adjoint
+            }
+            #lints
+            #[inline]
+            fn tangent(&self, __args: #args_ty, __dots: #args_ty) -> (#ret, #ret) {
+                #tangent
+            }
+        }
+    }
+}
+
+fn func_stub(sig: &Signature, rt: &TokenStream, attrs: &[syn::Attribute]) -> TokenStream {
+    let name = &sig.name;
+    let strukt = struct_item(sig, attrs);
+    quote! {
+        #strukt
+        impl<__A, __O> #rt::DiffFunc<__A, __O> for #name {
+            fn forward(&self, _: __A) -> __O { ::std::unreachable!() }
+            fn adjoint(&self, _: __A, _: __O) -> __A { ::std::unreachable!() }
+            fn tangent(&self, _: __A, _: __A) -> (__O, __O) { ::std::unreachable!() }
+        }
+    }
+}
+
+/// With `ADFLEX_EXPAND_DIR=dir`, writes the generated code of each kernel and function to
+/// `dir/<name>.rs`, formatted, so that gradients can be debugged by reading it.
+fn dump(name: &str, items: &TokenStream) {
+    let Some(dir) = std::env::var_os("ADFLEX_EXPAND_DIR") else { return };
+    let text = match syn::parse2::<syn::File>(items.clone()) {
+        Ok(file) => prettyplease::unparse(&file),
+        Err(_) => items.to_string(),
+    };
+    let dir = std::path::PathBuf::from(dir);
+    let _ = std::fs::create_dir_all(&dir);
+    let _ = std::fs::write(dir.join(format!("{name}.rs")), text);
+}

@@ -1,0 +1,339 @@
+//! Every construct of the kernel language, differentiated: the adjoint against central finite
+//! differences in f64 and the tangent against the adjoint (dot-product test); each kernel is
+//! generic over the scalar and also runs in f32, where it must agree with f64.
+
+mod common;
+
+use adflex::prelude::*;
+use common::{assert_checked, check, Rng};
+
+const TOL: f64 = 1e-6;
+
+/// Runs a kernel on f64 inputs `xs` with `n` outputs and checks it; returns the f64 forward.
+macro_rules! check_kernel {
+    ($kernel:ident, dim = $dim:expr, inputs = [$($x:ident : $xv:expr),*], outputs = [$($y:ident : $yn:expr),*] $(, extra = ($($e:expr),*))?) => {{
+        $(let $x: Array<f64> = Array::from_vec($xv.clone());)*
+        $(let $y: Array<f64> = Array::zeros($yn);)*
+        let c = check(&[$(&$x),*], &[$(&$y),*], 7, |m| launch_mode(m, $kernel, $dim, ($(&$x,)* $($($e,)*)? $(&$y,)*)));
+        assert_checked(&c, TOL);
+        // The same source in f32 agrees with f64.
+        $(let $x: Array<f32> = Array::from_vec($xv.iter().map(|&v| v as f32).collect());)*
+        $(let $y: Array<f32> = Array::zeros($yn);)*
+        launch($kernel, $dim, ($(&$x,)* $($($e,)*)? $(&$y,)*));
+        let f32_out: Vec<Vec<f32>> = vec![$($y.to_vec()),*];
+        $(let $x: Array<f64> = Array::from_vec($xv.clone());)*
+        $(let $y: Array<f64> = Array::zeros($yn);)*
+        launch($kernel, $dim, ($(&$x,)* $($($e,)*)? $(&$y,)*));
+        let f64_out: Vec<Vec<f64>> = vec![$($y.to_vec()),*];
+        for (a, b) in f32_out.iter().flatten().zip(f64_out.iter().flatten()) {
+            assert!((*a as f64 - b).abs() <= 1e-4 * b.abs().max(1.0), "f32 {a} vs f64 {b}");
+        }
+        (c, f64_out)
+    }};
+}
+
+fn inputs(n: usize, seed: u64) -> Vec<f64> {
+    Rng(seed).vec(n, 0.5, 1.5)
+}
+
+// ---- straight-line code, let mut, operators --------------------------------------------
+
+#[diff_kernel]
+fn arith<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    let a = x[t];
+    let mut b = a * a - 2.0 * a;
+    b += a / (1.0 + a);
+    b -= -a;
+    b *= 3.0;
+    b /= 2.0;
+    let c: R = b * b;
+    y[t] = c + sqrt(a) * sin(a) - exp(-a) + ln(a) * cos(a) / tan(a) + pow(a, 1.5) + atan2(a, 2.0);
+}
+
+#[test]
+fn straight_line_arithmetic_and_let_mut() {
+    check_kernel!(arith, dim = 5, inputs = [x: inputs(5, 1)], outputs = [y: 5]);
+}
+
+// ---- vectors, components, destructuring, builtins ----------------------------------------
+
+#[diff_kernel]
+fn vectors<R: Real>(x: &Array<R>, pairs: &Array<[u32; 2]>, y: &Array<R>) {
+    let t = tid();
+    let [i, j] = pairs[t];
+    let a = vec3(x[i as usize * 3], x[i as usize * 3 + 1], x[i as usize * 3 + 2]);
+    let b = vec3(x[j as usize * 3], x[j as usize * 3 + 1], x[j as usize * 3 + 2]);
+    let mut c = cross(a, b) + normalize(a - b) * length(b);
+    c.y = c.y * 2.0 + a[2];
+    c[0] = c.x - dot(a, b);
+    let m = outer(a, b) + mat33_identity();
+    let r = m * c;
+    y[t] = r.x + r.y * r.z + determinant(m) + trace(transpose(m)) + length_sq(c);
+}
+
+#[test]
+fn vectors_components_and_destructuring() {
+    let pairs = Array::from_vec(vec![[0u32, 1], [1, 2], [2, 0], [0, 2]]);
+    check_kernel!(vectors, dim = 4, inputs = [x: inputs(9, 2)], outputs = [y: 4], extra = (&pairs));
+}
+
+// ---- if / else, if as an expression, match, && and || -----------------------------------
+
+#[diff_kernel]
+fn branches<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    let a = x[t];
+    let mut b = a;
+    if a > 1.0 {
+        b = b * b;
+    } else if a > 0.8 {
+        b = b * 3.0;
+    } else {
+        b = sin(b);
+    }
+    let c = if b > 1.2 && a < 1.4 { b * a } else { b + a };
+    let d = match t % 3 {
+        0 => c * 2.0,
+        1 | 2 if a > 0.9 || b > 100.0 => c * c,
+        _ => c,
+    };
+    y[t] = d + select(a > 1.0, a, b);
+}
+
+#[test]
+fn if_else_match_and_short_circuit() {
+    check_kernel!(branches, dim = 12, inputs = [x: inputs(12, 3)], outputs = [y: 12]);
+}
+
+// ---- loops with constant bounds (unrolled) and dynamic bounds ----------------------------
+
+#[diff_kernel]
+fn loops<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
+    let t = tid();
+    let mut s = x[t];
+    for k in 0..3 {
+        s = s * x[(t + k) % n] + 0.1;
+    }
+    let mut p = s;
+    for k in 1..n {
+        p = p + x[k] * p * 0.5;
+        if k == 2 {
+            p = sqrt(p);
+        }
+    }
+    y[t] = p;
+}
+
+#[test]
+fn constant_and_dynamic_for_loops() {
+    check_kernel!(loops, dim = 4, inputs = [x: inputs(4, 4)], outputs = [y: 4], extra = (4usize));
+}
+
+// ---- the three loops NVIDIA Warp 1.19 differentiates wrongly -----------------------------
+
+#[diff_kernel]
+fn product_loop<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
+    let mut p = 1.0;
+    for k in 0..n {
+        p = p * x[k];
+    }
+    y[tid()] = p;
+}
+
+#[test]
+fn warp_case_product_loop() {
+    let xs = inputs(6, 5);
+    let (c, _) = check_kernel!(product_loop, dim = 1, inputs = [x: xs], outputs = [y: 1], extra = (6usize));
+    // The gradient is the product of the others.
+    let w = {
+        let x: Array<f64> = Array::from_vec(xs.clone());
+        let y: Array<f64> = Array::zeros(1);
+        let c = check(&[&x], &[&y], 7, |m| launch_mode(m, product_loop, 1, (&x, 6usize, &y)));
+        c.grad[0][0] / xs[1..].iter().product::<f64>()
+    };
+    for (k, g) in c.grad[0].iter().enumerate() {
+        let others: f64 = xs.iter().enumerate().filter(|(j, _)| *j != k).map(|(_, v)| v).product();
+        assert!((g - w * others).abs() < 1e-12, "d/dx{k}: {g} vs {}", w * others);
+    }
+}
+
+#[diff_kernel]
+fn break_loop<R: Real>(x: &Array<R>, n: usize, limit: R, y: &Array<R>) {
+    let mut s = 0.0;
+    let mut count = 0.0;
+    for i in 0..n {
+        s = s + x[i] * x[i];
+        count = count + 1.0;
+        if s > limit {
+            break;
+        }
+    }
+    y[tid()] = s * count;
+}
+
+#[test]
+fn warp_case_loop_with_break() {
+    // Breaks after 3 of 8 terms: only those have a gradient.
+    let (c, _) = check_kernel!(break_loop, dim = 1, inputs = [x: inputs(8, 6)], outputs = [y: 1], extra = (8usize, 2.0));
+    let nonzero = c.grad[0].iter().filter(|g| **g != 0.0).count();
+    assert!(nonzero > 0 && nonzero < 8, "break must cut the gradient: {:?}", c.grad[0]);
+}
+
+#[diff_kernel]
+fn while_loop<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
+    let mut i = 0;
+    let mut s = 0.0;
+    while i < n {
+        s = s + x[i] * x[i];
+        i += 1;
+    }
+    y[tid()] = s;
+}
+
+#[test]
+fn warp_case_while_sum_of_squares() {
+    let xs = inputs(7, 7);
+    let (c, _) = check_kernel!(while_loop, dim = 1, inputs = [x: xs], outputs = [y: 1], extra = (7usize));
+    let x: Array<f64> = Array::from_vec(xs.clone());
+    let y: Array<f64> = Array::zeros(1);
+    y.ensure_grad().fill(1.0);
+    x.ensure_grad().fill(0.0);
+    launch(while_loop, 1, (&x, 7usize, &y));
+    launch_adjoint(while_loop, 1, (&x, 7usize, &y));
+    for (g, v) in x.grad().unwrap().to_vec().iter().zip(&xs) {
+        assert!((g - 2.0 * v).abs() < 1e-12);
+    }
+    assert!(c.adjoint_err < TOL);
+}
+
+// ---- continue, loop with break, nested loops, early return ----------------------------
+
+#[diff_kernel]
+fn continue_and_loop<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
+    let t = tid();
+    let mut s = 0.0;
+    for i in 0..n {
+        if i % 2 == 1 {
+            continue;
+        }
+        let mut j = 0;
+        let mut q = x[i];
+        loop {
+            q = q * x[(i + j) % n] + 0.25;
+            j += 1;
+            if j > t {
+                break;
+            }
+        }
+        s = s + q;
+    }
+    if s > 1000.0 {
+        return;
+    }
+    y[t] = s;
+}
+
+#[test]
+fn continue_loop_break_nested_and_early_return() {
+    check_kernel!(continue_and_loop, dim = 3, inputs = [x: inputs(5, 8)], outputs = [y: 3], extra = (5usize));
+}
+
+#[diff_kernel]
+fn early_return<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    let a = x[t];
+    if a < 1.0 {
+        y[t] = a * a;
+        return;
+    }
+    y[t] = a * 3.0;
+}
+
+#[test]
+fn early_return_in_kernel() {
+    check_kernel!(early_return, dim = 8, inputs = [x: inputs(8, 9)], outputs = [y: 8]);
+}
+
+// ---- diff funcs: calls, early return in a func, nested calls, no_grad --------------------
+
+#[diff_func]
+fn smooth_clamp<R: Real>(a: R, lo: R) -> R {
+    if a < lo {
+        return lo + 0.1 * (a - lo);
+    }
+    let mut b = a;
+    for _ in 0..2 {
+        b = b * 0.9 + 0.1 * a;
+    }
+    b
+}
+
+#[diff_func]
+fn energy<R: Real>(a: R, b: R) -> R {
+    let d = smooth_clamp(a - b, 0.2);
+    d * d + b * no_grad(a * 0.0)
+}
+
+#[diff_kernel]
+fn call_funcs<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    y[t] = energy(x[t], x[(t + 1) % 6]);
+}
+
+#[test]
+fn diff_func_calls_with_early_return_and_no_grad() {
+    check_kernel!(call_funcs, dim = 6, inputs = [x: inputs(6, 10)], outputs = [y: 6]);
+}
+
+#[test]
+fn diff_func_is_callable_from_rust() {
+    assert!((smooth_clamp::call(0.0f64, 0.2) - (0.2 - 0.02)).abs() < 1e-15);
+    let g = DiffFunc::adjoint(&energy, (1.0f64, 0.5), 1.0);
+    let h = 1e-6;
+    let fd = (energy::call(1.0 + h, 0.5) - energy::call(1.0 - h, 0.5)) / (2.0 * h);
+    assert!((g.0 - fd).abs() < 1e-6, "{} vs {fd}", g.0);
+}
+
+#[diff_kernel]
+fn stop_gradient<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    let a = x[t];
+    // Plain Rust (a method call) is allowed inside no_grad; its derivative is zero.
+    y[t] = no_grad(a * a + a.max(0.5)) + 3.0 * a;
+}
+
+#[test]
+fn no_grad_has_zero_derivative() {
+    let x: Array<f64> = Array::from_vec(vec![0.7, 1.3]).requires_grad();
+    let y: Array<f64> = Array::zeros(2);
+    launch(stop_gradient, 2, (&x, &y));
+    for (a, b) in y.to_vec().iter().zip([0.49 + 0.7 + 2.1, 1.69 + 1.3 + 3.9]) {
+        assert!((a - b).abs() < 1e-12);
+    }
+    y.ensure_grad().fill(1.0);
+    launch_adjoint(stop_gradient, 2, (&x, &y));
+    assert_eq!(x.grad().unwrap().to_vec(), vec![3.0, 3.0]);
+    x.set_tangent(Some(Array::from_vec(vec![1.0, 2.0])));
+    y.ensure_tangent().fill(0.0);
+    launch_tangent(stop_gradient, 2, (&x, &y));
+    assert_eq!(y.tangent_buffer().unwrap().to_vec(), vec![3.0, 6.0]);
+}
+
+// ---- atomic_add / atomic_sub, and reads of an index array -------------------------------
+
+#[diff_kernel]
+fn scatter<R: Real>(x: &Array<R>, pairs: &Array<[u32; 2]>, f: &Array<R>) {
+    let [i, j] = pairs[tid()];
+    let d = x[i] - x[j];
+    let e = d * d * d;
+    f.atomic_add(i, e);
+    f.atomic_sub(j, e * 2.0);
+    f[j] += d;
+}
+
+#[test]
+fn atomic_add_and_sub() {
+    let pairs = Array::from_vec(vec![[0u32, 1], [1, 2], [2, 3], [3, 0], [0, 2]]);
+    check_kernel!(scatter, dim = 5, inputs = [x: inputs(4, 11)], outputs = [f: 4], extra = (&pairs));
+}
