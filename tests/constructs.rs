@@ -337,3 +337,53 @@ fn atomic_add_and_sub() {
     let pairs = Array::from_vec(vec![[0u32, 1], [1, 2], [2, 3], [3, 0], [0, 2]]);
     check_kernel!(scatter, dim = 5, inputs = [x: inputs(4, 11)], outputs = [f: 4], extra = (&pairs));
 }
+
+// ---- custom derivatives: a "leaky" contact gradient ---------------------------------------
+
+/// Penetration depth `min(d, 0)`, whose true gradient is zero when out of contact (d > 0). The
+/// custom rules let a small fraction `LEAK` through there, so optimizers see inactive contacts.
+#[diff_func(adjoint = leaky_depth_adjoint, tangent = leaky_depth_tangent)]
+fn leaky_depth<R: Real>(d: R) -> R {
+    min(d, 0.0)
+}
+
+const LEAK: f64 = 0.01;
+
+fn leaky_slope<R: Real>(d: R) -> R {
+    if d < R::lit(0.0) {
+        R::lit(1.0)
+    } else {
+        R::lit(LEAK)
+    }
+}
+
+fn leaky_depth_adjoint<R: Real>(d: R, adj_out: R) -> (R,) {
+    (leaky_slope(d) * adj_out,)
+}
+
+fn leaky_depth_tangent<R: Real>(d: R, dd: R) -> R {
+    leaky_slope(d) * dd
+}
+
+#[diff_kernel]
+fn contact<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    let c = leaky_depth(x[t] - 1.0);
+    y[t] = c * 1000.0;
+}
+
+#[test]
+fn custom_adjoint_and_tangent_replace_the_generated_ones() {
+    let x: Array<f64> = Array::from_vec(vec![0.5, 1.5]);
+    let y: Array<f64> = Array::zeros(2);
+    launch(contact, 2, (&x, &y));
+    assert_eq!(y.to_vec(), vec![-500.0, 0.0]);
+    y.ensure_grad().fill(1.0);
+    x.ensure_grad().fill(0.0);
+    launch_adjoint(contact, 2, (&x, &y));
+    // In contact: the true gradient 1000; out of contact: 1000 * LEAK instead of 0.
+    assert_eq!(x.grad().unwrap().to_vec(), vec![1000.0, 1000.0 * LEAK]);
+    // Forward and reverse mode agree (the custom tangent matches the custom adjoint).
+    let c = check(&[&x], &[&y], 3, |m| launch_mode(m, contact, 2, (&x, &y)));
+    assert!(c.dot_err < 1e-12);
+}

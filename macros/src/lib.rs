@@ -58,3 +58,6 @@ impl Errors {
         self.0.iter().map(syn::Error::to_compile_error).collect()
     }
 }
+
+#[cfg(test)]
+mod tests;

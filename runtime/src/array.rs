@@ -317,6 +317,15 @@ pub trait AnyArray: Send + Sync {
     fn lock(&self, write: bool) -> ArrayLock<'_>;
     /// Bumps the version (after a launch wrote the array).
     fn mark_written(&self);
+    /// The handle as [`std::any::Any`], to downcast to its `Array<T>`.
+    fn as_any(&self) -> &dyn std::any::Any;
+    /// Adds `src` (an array of the same element type and length) into this array element by
+    /// element (bumps the version). Panics on a type or length mismatch.
+    fn add_from(&self, src: &dyn AnyArray);
+    /// The tangent buffer, boxed, if present.
+    fn tangent_any(&self) -> Option<Box<dyn AnyArray>>;
+    /// Allocates a zeroed tangent buffer, or zeroes the existing one.
+    fn reset_tangent(&self);
 }
 
 impl<T: Element> AnyArray for Array<T> {
@@ -376,5 +385,35 @@ impl<T: Element> AnyArray for Array<T> {
     }
     fn mark_written(&self) {
         self.bump_version()
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+    fn add_from(&self, src: &dyn AnyArray) {
+        let src = src
+            .as_any()
+            .downcast_ref::<Array<T>>()
+            .unwrap_or_else(|| {
+                panic!(
+                    "add `{}` into `{}`: element types differ",
+                    src.label(),
+                    self.label()
+                )
+            })
+            .to_vec();
+        let label = self.label();
+        self.modify(|d| {
+            assert_eq!(d.len(), src.len(), "add into `{label}`: length mismatch");
+            for (a, b) in d.iter_mut().zip(src) {
+                a.acc(b);
+            }
+        })
+    }
+    fn tangent_any(&self) -> Option<Box<dyn AnyArray>> {
+        self.tangent_buffer()
+            .map(|t| Box::new(t) as Box<dyn AnyArray>)
+    }
+    fn reset_tangent(&self) {
+        self.ensure_tangent().fill(T::zeroed())
     }
 }

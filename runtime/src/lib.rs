@@ -8,25 +8,32 @@
 extern crate self as adflex_runtime;
 
 pub mod array;
+pub mod checkpoint;
 mod error;
 pub mod func;
+pub mod gradcheck;
 pub mod kernel;
 pub mod launch;
 pub mod math;
 mod real;
+pub mod tape;
 mod value;
 
 pub use array::{AnyArray, Array, Element};
 pub use error::Error;
 pub use func::DiffFunc;
 pub use kernel::{Kernel, KernelBody, Mode};
-pub use launch::{launch, launch_adjoint, launch_tangent, with_threads};
+pub use launch::{launch, launch_adjoint, launch_mode, launch_tangent, with_threads};
 pub use real::{Mat22, Mat33, Quat, Real, Vec2, Vec3, Vec4};
+pub use tape::{BackwardStats, Tape};
 pub use value::{acc, acc_neg, zero_like, Value};
 
 /// Everything a kernel author needs: types, math builtins, arrays, launches, the tape.
 pub mod prelude {
+    pub use crate::checkpoint::{checkpointed, Checkpoint};
+    pub use crate::gradcheck::{gradcheck, gradcheck_kernel, GradCheck};
     pub use crate::math::*;
-    pub use crate::{launch, launch_adjoint, launch_tangent, with_threads};
-    pub use crate::{Array, Error, Mat22, Mat33, Quat, Real, Value, Vec2, Vec3, Vec4};
+    pub use crate::{launch, launch_adjoint, launch_mode, launch_tangent, with_threads, Mode};
+    pub use crate::{AnyArray, Tape};
+    pub use crate::{Array, DiffFunc, Error, Mat22, Mat33, Quat, Real, Value, Vec2, Vec3, Vec4};
 }

@@ -7,4 +7,107 @@
 //! - `tan_f(a, b, dot_a, dot_b) -> dot_out`, its forward-mode rule.
 //!
 //! Adjoints and tangents have the type of the value they belong to. Arguments that are not
-//! differentiable (indices, booleans) get a zero adjoint of their own type.
+//! differentiable (indices, booleans) get a zero adjoint of their own type. Zero-argument
+//! builtins (the identities) are constants and have no rules.
+//!
+//! Builtins that take several types (`mul`, `length`, `extract`, ...) dispatch through one
+//! trait per operation (`MulRule`, `VectorValue`, `ComponentRule`, ...), implemented for every
+//! type (pair) from a table, generically over the scalar `R: Real`; so the same call works in
+//! `f32`, `f64` and in kernels generic over `R`. Every rule is checked against central finite
+//! differences in `f64` next to where it is defined.
+//!
+//! Rules are finite at their singular points wherever the function is; each function's docs
+//! give its convention (they follow NVIDIA Warp). Below, `R` is a scalar (`f32`, `f64`),
+//! `V` a vector (`Vec2`, `Vec3`, `Vec4`), `M` a matrix (`Mat22`, `Mat33`), `Q` a quaternion,
+//! `I` an integer type.
+//!
+//! # Operators ([`ops`])
+//! - [`add`]`(a, b)`, [`sub`]`(a, b)`: `+`, `-` on same-type `R`, `V`, `M`, `Q`, `I`.
+//! - [`mul`]`(a, b)`: `*` on `R*R`, `R*V`, `V*R`, `R*M`, `M*R`, `R*Q`, `Q*R`, `Mat22*Vec2`,
+//!   `Mat33*Vec3`, `M*M`, `Q*Q` (Hamilton product), `I*I`.
+//! - [`div`]`(a, b)`: `/` on `R/R`, `V/R`, `M/R`, `Q/R`, `I/I`.
+//! - [`neg`]`(a)`: unary `-` on `R`, `V`, `M`, `Q`, signed `I`.
+//! - [`rem`]`(a, b)`: `%` on integers only (no float `%`, so no wrong gradient).
+//!
+//! # Scalar functions ([`scalar`])
+//! - [`sqrt`], [`sin`], [`cos`], [`tan`], [`asin`], [`acos`], [`atan`], [`sinh`], [`cosh`],
+//!   [`tanh`], [`exp`], [`ln`], [`log2`], [`log10`]`(x)`: the elementary functions
+//!   (`sqrt'(0) = 0`; `asin`, `acos` clamp to `[-1, 1]` and have derivative 0 at `|x| >= 1`).
+//! - [`atan2`]`(y, x)`: angle of `(x, y)`, zero gradient at the origin.
+//! - [`pow`]`(x, y)`: `x^y` for real `y`; [`powi`]`(x, n)`: `x^n` for `n: i32`.
+//! - [`abs`]`(x)`, [`sign`]`(x)`: absolute value (`abs'(0) = 0`) and sign (`sign(0) = 0`,
+//!   zero derivative); also for signed integers.
+//! - [`floor`], [`ceil`], [`round`]`(x)`: rounding, zero derivative.
+//! - [`min`]`(a, b)`, [`max`]`(a, b)`, [`clamp`]`(x, lo, hi)`: ties send the gradient to `b`,
+//!   `b`, `x`; also for integers.
+//! - [`lerp`]`(a, b, t)`: `a (1 - t) + b t` for `a`, `b` of type `R`, `V`, `M` or `Q`.
+//! - [`select`]`(c, a, b)`: `a` if `c` else `b`, any value type.
+//! - [`step`]`(x)`: 1 if `x >= 0` else 0; [`smoothstep`]`(e0, e1, x)`: Hermite smoothstep.
+//!
+//! # Vectors ([`vector`])
+//! - [`dot`]`(a, b)`: inner product of two `V`.
+//! - [`cross`]`(a, b)`: cross product of two `Vec3`.
+//! - [`length`]`(v)`, [`length_sq`]`(v)`: norm and squared norm (`length` has gradient 0 at 0).
+//! - [`normalize`]`(v)`: `v / |v|`, the zero vector (gradient 0) at 0.
+//! - [`outer`]`(a, b)`: `a b^T`, `Vec2 -> Mat22`, `Vec3 -> Mat33`.
+//! - [`cw_mul`]`(a, b)`, [`cw_div`]`(a, b)`: componentwise product and quotient of `V` or `M`.
+//!
+//! # Matrices ([`matrix`])
+//! - [`transpose`]`(m)`, [`trace`]`(m)`, [`determinant`]`(m)`: the usual (determinant's
+//!   gradient is the cofactor matrix, finite everywhere).
+//! - [`inverse`]`(m)`: `m^-1`, the zero matrix (gradient 0) when `det(m) == 0`.
+//! - [`ddot`]`(a, b)`: the Frobenius inner product `sum a_ij b_ij`.
+//! - [`skew`]`(a)`: the `Mat33` with `skew(a) * b == cross(a, b)`.
+//! - [`diag`]`(v)`: the diagonal matrix of `Vec2` or `Vec3`.
+//!
+//! # Constructors ([`construct`])
+//! - [`vec2`]`(x, y)`, [`vec3`]`(x, y, z)`, [`vec4`]`(x, y, z, w)`: vectors from scalars.
+//! - [`mat22`]`(4 scalars)`, [`mat33`]`(9 scalars)`: matrices from entries, row-major.
+//! - [`mat22_cols`]`(c0, c1)`, [`mat33_cols`]`(c0, c1, c2)`: matrices from columns.
+//! - [`mat22_rows`]`(r0, r1)`, [`mat33_rows`]`(r0, r1, r2)`: matrices from rows.
+//! - [`quat`]`(x, y, z, w)`: a quaternion from its components.
+//! - [`mat22_identity`]`()`, [`mat33_identity`]`()`, [`quat_identity`]`()`: constants.
+//!
+//! # Quaternions ([`quat`](mod@quat))
+//! - [`quat_mul`]`(p, q)`: Hamilton product (same as `mul(p, q)`).
+//! - [`quat_conjugate`]`(q)`, [`quat_inverse`]`(q)`: conjugate, and `conj(q) / |q|^2` (zero
+//!   at `q == 0`).
+//! - [`quat_length`]`(q)`, [`quat_normalize`]`(q)`: norm, and `q / |q|` (zero at `q == 0`).
+//! - [`quat_rotate`]`(q, v)`, [`quat_rotate_inv`]`(q, v)`: rotate a `Vec3` by a unit `q`, or by
+//!   its conjugate.
+//! - [`quat_from_axis_angle`]`(axis, angle)`: rotation about a unit axis.
+//! - [`quat_to_mat33`]`(q)`: rotation matrix of a unit `q`.
+//!
+//! # Components ([`component`])
+//! - [`extract`]`(v, k)`: component `k` of a `V`, `Q` (x, y, z, w) or `[T; N]` (`k: usize`),
+//!   or of an `M` (`k: (row, col)`). What `v.x`, `v[k]`, `m[(r, c)]` lower to.
+//! - [`replace`]`(v, k, x)`: `v` with component `k` set to `x`. What `v.x = e` lowers to.
+//!
+//! # Casts ([`cast`](mod@cast))
+//! - [`cast`]`::<_, T>(x)`: `x as T` between floats (gradient flows) and integers (zero
+//!   gradient).
+
+pub mod cast;
+pub mod component;
+pub mod construct;
+pub mod linear;
+pub mod matrix;
+pub mod ops;
+pub mod quat;
+pub mod scalar;
+pub mod vector;
+
+#[cfg(test)]
+pub(crate) mod check;
+#[cfg(test)]
+mod tests;
+
+pub use cast::*;
+pub use component::*;
+pub use construct::*;
+pub use linear::*;
+pub use matrix::*;
+pub use ops::*;
+pub use quat::*;
+pub use scalar::*;
+pub use vector::*;

@@ -1,0 +1,245 @@
+//! Checkpointing: gradients of long rollouts without keeping every step on a tape.
+//!
+//! A plain tape keeps every intermediate array of every step alive until `backward`: memory
+//! O(T) states for T steps. [`checkpointed`] runs the rollout forward keeping only a copy of
+//! every k-th state, then goes backward segment by segment: it re-runs the k steps of a segment
+//! from its checkpoint on a fresh tape, seeds the gradient of the segment's last state with the
+//! gradient of the next segment's first state, and backpropagates. Live memory is O(T/k + k)
+//! states (k near sqrt(T) minimizes it), for about T extra steps of compute.
+//!
+//! Launches are deterministic, so the recomputed segments give the same bits as the first run
+//! and the gradients equal a plain tape's bit for bit.
+
+use std::collections::HashSet;
+
+use crate::array::{AnyArray, Array, Element};
+use crate::error::Error;
+use crate::tape::Tape;
+
+/// A simulation state that can be checkpointed: the arrays it holds, and a deep copy.
+///
+/// Everything a step carries to the next must be in the state. Parameters shared by all steps
+/// (stiffnesses, controls) are captured by the step closure instead, and receive gradients
+/// from every segment.
+///
+/// ```
+/// use adflex_runtime::checkpoint::Checkpoint;
+/// use adflex_runtime::{AnyArray, Array, Vec3};
+/// struct State { x: Array<Vec3>, v: Array<Vec3> }
+/// impl Checkpoint for State {
+///     fn arrays(&self) -> Vec<&dyn AnyArray> { vec![&self.x, &self.v] }
+///     fn snapshot(&self) -> Self { State { x: self.x.deep_clone(), v: self.v.deep_clone() } }
+/// }
+/// ```
+pub trait Checkpoint: Sized {
+    /// The state's arrays, always in the same order and with the same lengths (distinct arrays).
+    fn arrays(&self) -> Vec<&dyn AnyArray>;
+    /// A deep copy: new arrays with the same values and no gradients
+    /// ([`Array::deep_clone`] on each).
+    fn snapshot(&self) -> Self;
+}
+
+impl<T: Element> Checkpoint for Array<T> {
+    fn arrays(&self) -> Vec<&dyn AnyArray> {
+        vec![self]
+    }
+    fn snapshot(&self) -> Self {
+        self.deep_clone()
+    }
+}
+
+impl<S: Checkpoint> Checkpoint for Vec<S> {
+    fn arrays(&self) -> Vec<&dyn AnyArray> {
+        self.iter().flat_map(Checkpoint::arrays).collect()
+    }
+    fn snapshot(&self) -> Self {
+        self.iter().map(Checkpoint::snapshot).collect()
+    }
+}
+
+macro_rules! tuple_checkpoint {
+    ($($n:tt $t:ident),*) => {
+        impl<$($t: Checkpoint),*> Checkpoint for ($($t,)*) {
+            fn arrays(&self) -> Vec<&dyn AnyArray> {
+                let mut v = Vec::new();
+                $(v.extend(self.$n.arrays());)*
+                v
+            }
+            fn snapshot(&self) -> Self {
+                ($(self.$n.snapshot(),)*)
+            }
+        }
+    };
+}
+tuple_checkpoint!(0 A, 1 B);
+tuple_checkpoint!(0 A, 1 B, 2 C);
+tuple_checkpoint!(0 A, 1 B, 2 C, 3 D);
+
+/// What [`checkpointed`] returns.
+pub struct Rollout<L> {
+    /// The loss array (its value is the loss of the rollout).
+    pub loss: Array<L>,
+    /// States kept as checkpoints, the initial state included (`ceil(steps / every)`).
+    pub checkpoints: usize,
+    /// Steps run in all (the forward sweep plus the recomputed segments), at most `2 * steps`.
+    pub steps_run: usize,
+}
+
+impl<L: Element> std::fmt::Debug for Rollout<L> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Rollout")
+            .field("loss", &self.loss)
+            .field("checkpoints", &self.checkpoints)
+            .field("steps_run", &self.steps_run)
+            .finish()
+    }
+}
+
+/// Which arrays of `s` count as sources (depend on something that requires grad).
+fn flagged<S: Checkpoint>(s: &S, flags: &[bool]) -> HashSet<u64> {
+    s.arrays()
+        .iter()
+        .zip(flags)
+        .filter(|(_, &f)| f)
+        .map(|(a, _)| a.id())
+        .collect()
+}
+
+/// Runs `steps` steps of `step` from `initial`, then `loss` on the final state, and
+/// backpropagates, keeping a checkpoint every `every` steps (see the [module docs](self)).
+///
+/// `step(tape, s)` records one step on `tape` and returns the next state (new arrays);
+/// `loss(tape, s)` records the loss of the final state and returns the loss array (usually of
+/// length 1; it is seeded with ones like [`Tape::backward`]). Both must be deterministic
+/// functions of the state and the captured parameters, since segments are run twice.
+///
+/// Gradients accumulate, as with a plain tape, into the arrays of `initial` and the captured
+/// arrays that require grad; they are bitwise equal to those of
+/// `for _ in 0..steps { s = step(&mut tape, &s) }; tape.backward(&loss(&mut tape, &s))` when
+/// those gradient buffers start at zero. Memory: O(steps / every + every) states.
+///
+/// Errors: those of [`Tape::backward`] for each segment.
+///
+/// ```
+/// use adflex_runtime::prelude::*;
+/// use adflex_runtime::checkpoint::checkpointed;
+///
+/// // x_{t+1} = 2 x_t on the host, loss = x_T: d loss / d x_0 = 2^T.
+/// let double = |tape: &mut Tape, x: &Array<f64>| {
+///     let y = Array::<f64>::zeros(1);
+///     let (xb, yb) = (x.clone(), y.clone());
+///     tape.record_fn("double", &[x], &[&y], || y.set(0, 2.0 * x.get(0)), move || {
+///         if let Some(g) = xb.grad_buffer() {
+///             let d = yb.grad_buffer().unwrap().get(0);
+///             g.modify(|g| g[0] += 2.0 * d);
+///         }
+///     });
+///     y
+/// };
+/// let x0 = Array::from_vec(vec![1.0f64]).requires_grad();
+/// let out = checkpointed(&x0, 10, 3, double, |tape, x| double(tape, x)).unwrap();
+/// assert_eq!(out.loss.get(0), 2048.0);
+/// assert_eq!(x0.grad().unwrap().get(0), 2048.0);
+/// ```
+pub fn checkpointed<S, L, F, G>(
+    initial: &S,
+    steps: usize,
+    every: usize,
+    mut step: F,
+    mut loss: G,
+) -> Result<Rollout<L>, Error>
+where
+    S: Checkpoint,
+    L: Element,
+    F: FnMut(&mut Tape, &S) -> S,
+    G: FnMut(&mut Tape, &S) -> Array<L>,
+{
+    assert!(every >= 1, "checkpointed: `every` must be at least 1");
+    let starts: Vec<usize> = if steps == 0 {
+        vec![0]
+    } else {
+        (0..steps).step_by(every).collect()
+    };
+    let last_start = *starts.last().expect("at least one segment");
+    let mut steps_run = 0;
+
+    // Forward sweep on throwaway tapes, keeping a snapshot at the start of every segment and,
+    // for each of its arrays, whether it depends on something that requires grad.
+    let flags0: Vec<bool> = initial
+        .arrays()
+        .iter()
+        .map(|a| a.is_requires_grad())
+        .collect();
+    let mut saved: Vec<(S, Vec<bool>)> = Vec::new();
+    {
+        let mut cur: Option<S> = None;
+        let mut flags = flags0.clone();
+        for t in 0..last_start {
+            let s = cur.as_ref().unwrap_or(initial);
+            let sources = flagged(s, &flags);
+            let mut tape = Tape::new();
+            let next = step(&mut tape, s);
+            steps_run += 1;
+            let reach = tape.forward_reach(&sources);
+            flags = next
+                .arrays()
+                .iter()
+                .map(|a| reach.contains(&a.id()) || a.is_requires_grad())
+                .collect();
+            drop(tape);
+            if (t + 1) % every == 0 {
+                saved.push((next.snapshot(), flags.clone()));
+            }
+            cur = Some(next);
+        }
+    }
+
+    // Backward, segment by segment, last first.
+    let mut result = None;
+    let mut later: Option<S> = None;
+    for j in (0..starts.len()).rev() {
+        let end = starts.get(j + 1).copied().unwrap_or(steps);
+        let (own, flags) = match j {
+            0 => (None, flags0.clone()),
+            _ => {
+                let (s, f) = saved.pop().expect("one checkpoint per segment");
+                (Some(s), f)
+            }
+        };
+        let first = own.as_ref().unwrap_or(initial);
+        let sources = flagged(first, &flags);
+        let mut tape = Tape::new();
+        let mut cur: Option<S> = None;
+        for _ in starts[j]..end {
+            let next = step(&mut tape, cur.as_ref().unwrap_or(first));
+            steps_run += 1;
+            cur = Some(next);
+        }
+        let last = cur.as_ref().unwrap_or(first);
+        match later.take() {
+            None => {
+                let l = loss(&mut tape, last);
+                tape.backward_sources(&l, &sources)?;
+                result = Some(l);
+            }
+            Some(next_first) => {
+                let mut seeds = Vec::new();
+                for (a, n) in last.arrays().into_iter().zip(next_first.arrays()) {
+                    if let Some(g) = n.grad_any() {
+                        a.ensure_grad();
+                        a.grad_any().expect("just allocated").add_from(&*g);
+                        seeds.push(a);
+                    }
+                }
+                tape.backward_seeded(&seeds, &sources)?;
+            }
+        }
+        drop(tape);
+        later = own;
+    }
+    Ok(Rollout {
+        loss: result.expect("the last segment computes the loss"),
+        checkpoints: starts.len(),
+        steps_run,
+    })
+}

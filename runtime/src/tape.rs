@@ -1,0 +1,694 @@
+//! The tape: records launches as they run, then runs their adjoints backward (reverse mode) or
+//! their tangents forward (forward mode).
+//!
+//! A [`Tape`] keeps, for every recorded launch, the kernel bound to handles of its arrays, the
+//! launch dimension, the scope it ran in, and the version of every array it read. Backward
+//! refuses to run if one of those arrays was written since (it would replay the kernel with the
+//! new values and give wrong gradients), and skips the adjoints that cannot matter.
+//!
+//! Kernels are not the only steps: [`Tape::record_fn`] records a host computation (a linear
+//! solve, a copy) with a hand-written backward.
+
+use std::collections::HashSet;
+use std::fmt::{self, Write as _};
+
+use crate::array::{AnyArray, Array, Element};
+use crate::error::Error;
+use crate::kernel::{Access, Kernel, KernelBody, Mode};
+use crate::launch::{bind, BoundLaunch};
+
+type StepFn = Box<dyn FnMut() + Send + Sync>;
+
+/// One array a recorded step read or wrote.
+struct Use {
+    param: String,
+    array: Box<dyn AnyArray>,
+    /// Version when the step was recorded (before it ran).
+    version: u64,
+    atomic: bool,
+}
+
+enum Step {
+    Launch {
+        launch: Box<dyn BoundLaunch>,
+        dim: usize,
+    },
+    Custom {
+        name: String,
+        backward: StepFn,
+        tangent: Option<StepFn>,
+    },
+}
+
+struct Record {
+    step: Step,
+    scope: Option<String>,
+    reads: Vec<Use>,
+    writes: Vec<Use>,
+}
+
+impl Record {
+    fn name(&self) -> &str {
+        match &self.step {
+            Step::Launch { launch, .. } => launch.name(),
+            Step::Custom { name, .. } => name,
+        }
+    }
+
+    /// The name as errors show it: `scope/name` inside a scope.
+    fn qualified(&self) -> String {
+        match &self.scope {
+            Some(s) => format!("{s}/{}", self.name()),
+            None => self.name().to_string(),
+        }
+    }
+
+    fn non_finite(&self, launch: usize, u: &Use, index: usize, pass: &'static str) -> Error {
+        Error::NonFinite {
+            kernel: self.qualified(),
+            launch,
+            param: u.param.clone(),
+            array: u.array.label(),
+            index,
+            pass,
+        }
+    }
+}
+
+/// What the last [`Tape::backward`] did: how many recorded steps had their adjoint run and how
+/// many were skipped because they could not contribute.
+///
+/// A step's adjoint runs only if the step read an array that depends on an array that
+/// requires grad, and wrote an array from which the seeds (the loss) can be reached.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BackwardStats {
+    /// Adjoints run.
+    pub run: usize,
+    /// Adjoints skipped.
+    pub skipped: usize,
+}
+
+/// Which steps a backward pass runs, which arrays get gradient buffers, and which of those
+/// start from zero (intermediates: written on the tape, not seeds).
+struct Plan {
+    run: Vec<bool>,
+    grads: HashSet<u64>,
+    zeroed: HashSet<u64>,
+}
+
+/// Records launches and runs them backward for gradients (or forward for tangents).
+///
+/// ```
+/// use adflex_runtime::prelude::*;
+///
+/// // A host step (no kernel needed): y = 3 x, with its backward x.grad += 3 y.grad.
+/// let x = Array::from_vec(vec![1.0f64, 2.0]).requires_grad().named("x");
+/// let y = Array::<f64>::zeros(2).named("y");
+/// let mut tape = Tape::new();
+/// let (xb, yb) = (x.clone(), y.clone());
+/// tape.record_fn(
+///     "triple",
+///     &[&x],
+///     &[&y],
+///     || y.assign(&x.to_vec().iter().map(|v| 3.0 * v).collect::<Vec<_>>()),
+///     move || {
+///         let gy = yb.grad_buffer().unwrap().to_vec();
+///         if let Some(gx) = xb.grad_buffer() {
+///             gx.modify(|g| g.iter_mut().zip(&gy).for_each(|(g, d)| *g += 3.0 * d));
+///         }
+///     },
+/// );
+/// tape.backward(&y).unwrap(); // seeds y.grad with ones
+/// assert_eq!(x.grad().unwrap().to_vec(), vec![3.0, 3.0]);
+/// ```
+pub struct Tape {
+    records: Vec<Record>,
+    scopes: Vec<String>,
+    check_finite: bool,
+    last: BackwardStats,
+}
+
+impl Default for Tape {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl fmt::Debug for Tape {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Tape")
+            .field(
+                "records",
+                &self
+                    .records
+                    .iter()
+                    .map(Record::qualified)
+                    .collect::<Vec<_>>(),
+            )
+            .field("check_finite", &self.check_finite)
+            .field("last_backward", &self.last)
+            .finish()
+    }
+}
+
+/// Splits a step's arrays into reads and writes, with their current versions.
+fn uses(
+    params: &[crate::kernel::ParamInfo],
+    arrays: &[Option<&dyn AnyArray>],
+) -> (Vec<Use>, Vec<Use>) {
+    let (mut reads, mut writes) = (Vec::new(), Vec::new());
+    for (p, a) in params.iter().zip(arrays) {
+        let Some(a) = a else { continue };
+        let u = Use {
+            param: p.name.to_string(),
+            array: a.boxed(),
+            version: a.version(),
+            atomic: p.access == Access::Atomic,
+        };
+        match p.access {
+            Access::Read => reads.push(u),
+            Access::Store | Access::Atomic => writes.push(u),
+            Access::Value | Access::Unused => {}
+        }
+    }
+    (reads, writes)
+}
+
+impl Tape {
+    /// An empty tape.
+    pub fn new() -> Self {
+        Tape {
+            records: Vec::new(),
+            scopes: Vec::new(),
+            check_finite: false,
+            last: BackwardStats::default(),
+        }
+    }
+
+    /// Number of recorded steps (launches and custom steps).
+    pub fn len(&self) -> usize {
+        self.records.len()
+    }
+
+    /// Whether nothing is recorded.
+    pub fn is_empty(&self) -> bool {
+        self.records.is_empty()
+    }
+
+    /// Turns the NaN/Inf check on or off (off by default; it reads every written array after
+    /// each step).
+    ///
+    /// When on, [`Tape::launch`] and [`Tape::record_fn`] check the arrays they wrote and
+    /// **panic** with the [`Error::NonFinite`] message (kernel, launch, array, first bad index);
+    /// [`Tape::backward`] checks the gradient buffers of the arrays each adjoint read and
+    /// [`Tape::tangent`] the tangents each step wrote, and return the error.
+    pub fn check_finite(&mut self, on: bool) {
+        self.check_finite = on;
+    }
+
+    /// Runs `kernel` over thread ids `0..dim` with `args` (like [`crate::launch()`]) and records
+    /// the launch with the version of every array it reads.
+    ///
+    /// Panics with an [`Error::NonFinite`] message if [`Tape::check_finite`] is on and the launch
+    /// wrote a NaN or an infinity.
+    // TODO(lead): add a runnable example with a #[diff_kernel] once the macro works.
+    /// ```ignore
+    /// let mut tape = Tape::new();
+    /// tape.launch(eval_springs, pairs.len(), (&x, &v, &pairs, &rest, &ke, 0.1, &f));
+    /// tape.launch(loss_kernel, 1, (&f, &loss));
+    /// tape.backward(&loss)?;
+    /// ```
+    pub fn launch<K, A>(&mut self, kernel: K, dim: usize, args: A)
+    where
+        K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+    {
+        let launch = bind(kernel, args);
+        let (reads, writes) = uses(launch.params(), &launch.arrays());
+        launch.run(Mode::Forward, dim);
+        self.push(Record {
+            step: Step::Launch { launch, dim },
+            scope: self.scope_path(),
+            reads,
+            writes,
+        });
+    }
+
+    /// Runs `forward` now and records it as a custom step reading `inputs` and writing
+    /// `outputs`; `backward` runs in its place during [`Tape::backward`].
+    ///
+    /// `forward` computes the outputs on the host (e.g. a linear solve). `backward` must read
+    /// the gradient of each output (`grad_buffer()`, which is `None` when nothing downstream
+    /// needs it) and **add** into the gradient of each input (`grad_buffer()`, `None` when the
+    /// input needs none). Capture handles (`Array::clone`) in it. The step takes part in
+    /// skipping and in the version check like a launch (its inputs appear as parameters
+    /// `input 0`, `input 1`, ...). Give it a tangent with [`CustomStep::with_tangent`] to use
+    /// it in [`Tape::tangent`].
+    ///
+    /// Panics like [`Tape::launch`] if [`Tape::check_finite`] is on and an output is not finite.
+    /// See the example on [`Tape`].
+    pub fn record_fn(
+        &mut self,
+        name: impl Into<String>,
+        inputs: &[&dyn AnyArray],
+        outputs: &[&dyn AnyArray],
+        forward: impl FnOnce(),
+        backward: impl FnMut() + Send + Sync + 'static,
+    ) -> CustomStep<'_> {
+        let side = |arrays: &[&dyn AnyArray], what: &str| {
+            arrays
+                .iter()
+                .enumerate()
+                .map(|(i, a)| Use {
+                    param: format!("{what} {i}"),
+                    array: a.boxed(),
+                    version: a.version(),
+                    atomic: false,
+                })
+                .collect::<Vec<_>>()
+        };
+        let (reads, writes) = (side(inputs, "input"), side(outputs, "output"));
+        forward();
+        let index = self.push(Record {
+            step: Step::Custom {
+                name: name.into(),
+                backward: Box::new(backward),
+                tangent: None,
+            },
+            scope: self.scope_path(),
+            reads,
+            writes,
+        });
+        CustomStep { tape: self, index }
+    }
+
+    /// Pushes a record and runs the forward NaN/Inf check; returns its index.
+    fn push(&mut self, record: Record) -> usize {
+        let index = self.records.len();
+        self.records.push(record);
+        if self.check_finite {
+            let r = &self.records[index];
+            for u in &r.writes {
+                if let Some(i) = u.array.first_non_finite() {
+                    panic!("{}", r.non_finite(index, u, i, "forward"));
+                }
+            }
+        }
+        index
+    }
+
+    /// Runs `f` inside a named scope: steps recorded in it are shown as `name/kernel` in errors
+    /// and grouped under `name` in [`Tape::to_dot`]. Scopes nest (`outer/inner/kernel`).
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// let mut tape = Tape::new();
+    /// let n = tape.scope("step 3", |tape| tape.len());
+    /// assert_eq!(n, 0);
+    /// ```
+    pub fn scope<R>(&mut self, name: impl Into<String>, f: impl FnOnce(&mut Tape) -> R) -> R {
+        self.push_scope(name);
+        let r = f(self);
+        self.pop_scope();
+        r
+    }
+
+    /// Enters a named scope (see [`Tape::scope`]); pair with [`Tape::pop_scope`].
+    pub fn push_scope(&mut self, name: impl Into<String>) {
+        self.scopes.push(name.into());
+    }
+
+    /// Leaves the innermost scope (no-op outside any scope).
+    pub fn pop_scope(&mut self) {
+        self.scopes.pop();
+    }
+
+    fn scope_path(&self) -> Option<String> {
+        (!self.scopes.is_empty()).then(|| self.scopes.join("/"))
+    }
+
+    fn writes(&self, id: u64) -> bool {
+        self.records
+            .iter()
+            .any(|r| r.writes.iter().any(|u| u.array.id() == id))
+    }
+
+    /// Forward reach: which steps read an array that depends on a source (an array that
+    /// requires grad, or one of `sources`), and the set of such arrays.
+    fn forward_flags(&self, sources: &HashSet<u64>) -> (Vec<bool>, HashSet<u64>) {
+        let mut f = sources.clone();
+        for r in &self.records {
+            for u in r.reads.iter().chain(&r.writes) {
+                if u.array.is_requires_grad() {
+                    f.insert(u.array.id());
+                }
+            }
+        }
+        let mut fwd = vec![false; self.records.len()];
+        for (i, r) in self.records.iter().enumerate() {
+            if r.reads.iter().any(|u| f.contains(&u.array.id())) {
+                fwd[i] = true;
+                f.extend(r.writes.iter().map(|u| u.array.id()));
+            }
+        }
+        (fwd, f)
+    }
+
+    /// The ids of the arrays on the tape that depend on an array that requires grad or on one
+    /// of `sources` (which are included).
+    pub(crate) fn forward_reach(&self, sources: &HashSet<u64>) -> HashSet<u64> {
+        self.forward_flags(sources).1
+    }
+
+    fn check_versions(&self, i: usize) -> Result<(), Error> {
+        let r = &self.records[i];
+        for u in &r.reads {
+            let now = u.array.version();
+            if now != u.version {
+                return Err(Error::ArrayChanged {
+                    kernel: r.qualified(),
+                    launch: i,
+                    param: u.param.clone(),
+                    array: u.array.label(),
+                    recorded: u.version,
+                    now,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Reach analysis and version check for a backward pass from `seeds`.
+    fn plan(&self, seeds: &HashSet<u64>, sources: &HashSet<u64>) -> Result<Plan, Error> {
+        let (fwd, f) = self.forward_flags(sources);
+        let mut b = seeds.clone();
+        let mut run = vec![false; self.records.len()];
+        for (i, r) in self.records.iter().enumerate().rev() {
+            if fwd[i] && r.writes.iter().any(|u| b.contains(&u.array.id())) {
+                run[i] = true;
+                b.extend(r.reads.iter().map(|u| u.array.id()));
+            }
+        }
+        for i in (0..self.records.len()).filter(|&i| run[i]) {
+            self.check_versions(i)?;
+        }
+        let grads: HashSet<u64> = f.intersection(&b).copied().collect();
+        let zeroed = self
+            .records
+            .iter()
+            .flat_map(|r| &r.writes)
+            .map(|u| u.array.id())
+            .filter(|id| grads.contains(id) && !seeds.contains(id))
+            .collect();
+        Ok(Plan { run, grads, zeroed })
+    }
+
+    /// Allocates the gradient buffers of the plan and runs its adjoints in reverse order.
+    fn execute(&mut self, plan: &Plan) -> Result<(), Error> {
+        for (r, _) in self.records.iter().zip(&plan.run).filter(|(_, &run)| run) {
+            for u in r.reads.iter().chain(&r.writes) {
+                let id = u.array.id();
+                if plan.grads.contains(&id) {
+                    u.array.ensure_grad();
+                    if plan.zeroed.contains(&id) {
+                        u.array.zero_grad();
+                    }
+                }
+            }
+        }
+        self.last = BackwardStats::default();
+        for i in (0..self.records.len()).rev() {
+            if !plan.run[i] {
+                self.last.skipped += 1;
+                continue;
+            }
+            self.last.run += 1;
+            match &mut self.records[i].step {
+                Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
+                Step::Custom { backward, .. } => backward(),
+            }
+            if self.check_finite {
+                let r = &self.records[i];
+                for u in &r.reads {
+                    if let Some(k) = u.array.grad_any().and_then(|g| g.first_non_finite()) {
+                        return Err(r.non_finite(i, u, k, "adjoint"));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Backpropagates from `loss`: sets every component of every element of `loss.grad` to 1
+    /// (so a `loss` of several elements is differentiated as their sum), then runs the adjoints
+    /// of the recorded steps in reverse order, accumulating into gradient buffers.
+    ///
+    /// Gradient buffers are allocated for every array on a path from an array that requires
+    /// grad to `loss`. Those of intermediates (arrays some recorded step wrote) start from zero
+    /// at every backward pass; those of the other arrays (the leaves: parameters, initial
+    /// states) accumulate, like PyTorch's `.grad` (clear them with [`Tape::zero`]). Steps that
+    /// cannot contribute are skipped ([`Tape::last_backward`]).
+    ///
+    /// Errors: [`Error::NotOnTape`] if no recorded step wrote `loss`; [`Error::ArrayChanged`]
+    /// (before anything runs) if an array read by a step whose adjoint would run was written
+    /// since; [`Error::NonFinite`] in [`Tape::check_finite`] mode.
+    pub fn backward<T: Element>(&mut self, loss: &Array<T>) -> Result<(), Error> {
+        self.backward_sources(loss, &HashSet::new())
+    }
+
+    /// [`Tape::backward`] with extra arrays treated as requiring grad (by id).
+    pub(crate) fn backward_sources<T: Element>(
+        &mut self,
+        loss: &Array<T>,
+        sources: &HashSet<u64>,
+    ) -> Result<(), Error> {
+        if !self.writes(loss.id()) {
+            return Err(Error::NotOnTape {
+                array: loss.label(),
+            });
+        }
+        let plan = self.plan(&HashSet::from([loss.id()]), sources)?;
+        let mut one = T::zeroed();
+        for k in 0..T::DIM {
+            one.set_component(k, 1.0);
+        }
+        loss.ensure_grad().fill(one);
+        self.execute(&plan)
+    }
+
+    /// Backpropagates from `seeds` whose gradient buffers the caller has already written
+    /// (e.g. a vector-Jacobian product with a chosen cotangent). Otherwise like
+    /// [`Tape::backward`]; the seeds' gradients are not zeroed (other intermediates' are).
+    ///
+    /// Errors: [`Error::NotOnTape`] if no recorded step wrote a seed, [`Error::NoGrad`] if a
+    /// seed has no gradient buffer, and the errors of [`Tape::backward`].
+    pub fn backward_with(&mut self, seeds: &[&dyn AnyArray]) -> Result<(), Error> {
+        for s in seeds {
+            if !self.writes(s.id()) {
+                return Err(Error::NotOnTape { array: s.label() });
+            }
+            if !s.has_grad() {
+                return Err(Error::NoGrad { array: s.label() });
+            }
+        }
+        self.backward_seeded(seeds, &HashSet::new())
+    }
+
+    /// [`Tape::backward_with`] without the checks, with extra sources (by id).
+    pub(crate) fn backward_seeded(
+        &mut self,
+        seeds: &[&dyn AnyArray],
+        sources: &HashSet<u64>,
+    ) -> Result<(), Error> {
+        let seeds = seeds.iter().map(|s| s.id()).collect();
+        let plan = self.plan(&seeds, sources)?;
+        self.execute(&plan)
+    }
+
+    /// What the last backward pass ran and skipped.
+    pub fn last_backward(&self) -> BackwardStats {
+        self.last
+    }
+
+    /// Forward mode over the whole tape: re-runs every recorded step's tangent, in order.
+    ///
+    /// Set the tangents of the inputs first ([`Array::set_tangent`]); arrays without a tangent
+    /// buffer count as constant. Every array a recorded step writes gets a zeroed tangent
+    /// buffer before the pass (its tangent is an output, so a tangent set on it is replaced).
+    /// Only tangent kernels run: the forward results, versions and accumulations stay as they
+    /// are.
+    ///
+    /// Errors: [`Error::ArrayChanged`] if any array a step read was written since it was
+    /// recorded, [`Error::Other`] if a custom step has no tangent, [`Error::NonFinite`] in
+    /// [`Tape::check_finite`] mode.
+    pub fn tangent(&mut self) -> Result<(), Error> {
+        for i in 0..self.records.len() {
+            self.check_versions(i)?;
+            if let Step::Custom {
+                name,
+                tangent: None,
+                ..
+            } = &self.records[i].step
+            {
+                return Err(Error::Other(format!(
+                    "custom step `{name}` (#{i} on the tape) has no tangent: give one with \
+                     `record_fn(..).with_tangent(..)`"
+                )));
+            }
+        }
+        let mut seen = HashSet::new();
+        for r in &self.records {
+            for u in &r.writes {
+                if seen.insert(u.array.id()) {
+                    u.array.reset_tangent();
+                }
+            }
+        }
+        for i in 0..self.records.len() {
+            match &mut self.records[i].step {
+                Step::Launch { launch, dim } => launch.run(Mode::Tangent, *dim),
+                Step::Custom { tangent, .. } => (tangent.as_mut().expect("checked above"))(),
+            }
+            if self.check_finite {
+                let r = &self.records[i];
+                for u in &r.writes {
+                    if let Some(k) = u.array.tangent_any().and_then(|t| t.first_non_finite()) {
+                        return Err(r.non_finite(i, u, k, "tangent"));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Zeroes the gradient buffers of every array on the tape (those that requires grad
+    /// included), keeping the records: call it between two backward passes.
+    pub fn zero(&mut self) {
+        for r in &self.records {
+            for u in r.reads.iter().chain(&r.writes) {
+                u.array.zero_grad();
+            }
+        }
+    }
+
+    /// Zeroes the gradients (like [`Tape::zero`]) and forgets every record.
+    pub fn reset(&mut self) {
+        self.zero();
+        self.records.clear();
+        self.last = BackwardStats::default();
+    }
+
+    /// The tape as a Graphviz DOT graph: a box per step (`#index name`, `dim`, scope; steps of
+    /// one scope grouped in a cluster), an ellipse per array (its label; filled if it requires
+    /// grad), an edge array -> step per read and step -> array per write (dashed for
+    /// `atomic_*`), each labelled with the parameter.
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// let dot = Tape::new().to_dot();
+    /// assert!(dot.starts_with("digraph tape {"));
+    /// ```
+    pub fn to_dot(&self) -> String {
+        fn esc(s: &str) -> String {
+            s.replace('\\', "\\\\")
+                .replace('"', "\\\"")
+                .replace('\n', "\\n")
+        }
+        let mut out =
+            String::from("digraph tape {\n  rankdir=TB;\n  node [fontname=\"Helvetica\"];\n");
+        let mut seen = HashSet::new();
+        for r in &self.records {
+            for u in r.reads.iter().chain(&r.writes) {
+                if seen.insert(u.array.id()) {
+                    let fill = if u.array.is_requires_grad() {
+                        ", style=filled, fillcolor=lightblue"
+                    } else {
+                        ""
+                    };
+                    let _ = writeln!(
+                        out,
+                        "  a{} [shape=ellipse, label=\"{}\"{fill}];",
+                        u.array.id(),
+                        esc(&u.array.label())
+                    );
+                }
+            }
+        }
+        let mut groups: Vec<(Option<&str>, Vec<usize>)> = Vec::new();
+        for (i, r) in self.records.iter().enumerate() {
+            let s = r.scope.as_deref();
+            match groups.iter_mut().find(|(g, _)| *g == s) {
+                Some((_, v)) => v.push(i),
+                None => groups.push((s, vec![i])),
+            }
+        }
+        for (k, (scope, idx)) in groups.iter().enumerate() {
+            let indent = if scope.is_some() { "    " } else { "  " };
+            if let Some(s) = scope {
+                let _ = writeln!(out, "  subgraph cluster_{k} {{\n    label=\"{}\";", esc(s));
+            }
+            for &i in idx {
+                let r = &self.records[i];
+                let mut label = format!("#{i} {}", r.name());
+                let style = match &r.step {
+                    Step::Launch { dim, .. } => {
+                        let _ = write!(label, "\ndim {dim}");
+                        ""
+                    }
+                    Step::Custom { .. } => {
+                        label.push_str("\n(custom)");
+                        ", style=rounded"
+                    }
+                };
+                if let Some(s) = scope {
+                    let _ = write!(label, "\nscope: {s}");
+                }
+                let _ = writeln!(
+                    out,
+                    "{indent}l{i} [shape=box{style}, label=\"{}\"];",
+                    esc(&label)
+                );
+            }
+            if scope.is_some() {
+                out.push_str("  }\n");
+            }
+        }
+        for (i, r) in self.records.iter().enumerate() {
+            for u in &r.reads {
+                let _ = writeln!(
+                    out,
+                    "  a{} -> l{i} [label=\"{}\"];",
+                    u.array.id(),
+                    esc(&u.param)
+                );
+            }
+            for u in &r.writes {
+                let dash = if u.atomic { ", style=dashed" } else { "" };
+                let _ = writeln!(
+                    out,
+                    "  l{i} -> a{} [label=\"{}\"{dash}];",
+                    u.array.id(),
+                    esc(&u.param)
+                );
+            }
+        }
+        out.push_str("}\n");
+        out
+    }
+}
+
+/// A custom step just recorded by [`Tape::record_fn`]; lets you attach its tangent.
+pub struct CustomStep<'t> {
+    tape: &'t mut Tape,
+    index: usize,
+}
+
+impl CustomStep<'_> {
+    /// The forward-mode rule of the step for [`Tape::tangent`]: it must read the tangents of
+    /// the inputs (`tangent_buffer()`, `None` = zero) and write those of the outputs (whose
+    /// buffers exist and are zero when it runs).
+    pub fn with_tangent(self, tangent: impl FnMut() + Send + Sync + 'static) {
+        if let Step::Custom { tangent: t, .. } = &mut self.tape.records[self.index].step {
+            *t = Some(Box::new(tangent));
+        }
+    }
+}

@@ -1,0 +1,86 @@
+//! Scatters above the serial threshold give the same bits for 1 or 2 threads and across runs,
+//! forward and adjoint.
+
+mod common;
+
+use adflex_runtime::launch::SERIAL_BELOW;
+use adflex_runtime::prelude::*;
+use common::{random, GatherScatter};
+
+const DIM: usize = 100_000;
+
+fn bits(v: Vec<f64>) -> Vec<u64> {
+    v.into_iter().map(f64::to_bits).collect()
+}
+
+/// One forward and one adjoint launch; returns (out, x.grad) bits.
+fn run(threads: usize) -> (Vec<u64>, Vec<u64>) {
+    let x = Array::from_vec(random(1000, 11, -3.0, 3.0)).named("x");
+    let idx = Array::from_vec(
+        random(DIM, 12, 0.0, 1000.0)
+            .into_iter()
+            .map(|v| v as u32)
+            .collect(),
+    );
+    let out = Array::<f64>::zeros(7).named("out");
+    with_threads(threads, || {
+        launch(GatherScatter, DIM, (&x, &idx, &out));
+        x.ensure_grad();
+        out.ensure_grad().assign(&random(7, 13, -1.0, 1.0));
+        launch_adjoint(GatherScatter, DIM, (&x, &idx, &out));
+    });
+    (bits(out.to_vec()), bits(x.grad().unwrap().to_vec()))
+}
+
+/// The same through a tape (forward launch recorded, then backward).
+fn run_tape(threads: usize) -> (Vec<u64>, Vec<u64>) {
+    let x = Array::from_vec(random(1000, 14, -3.0, 3.0))
+        .requires_grad()
+        .named("x");
+    let idx = Array::from_vec((0..DIM as u32).map(|i| (i * 7919) % 1000).collect());
+    let out = Array::<f64>::zeros(7).named("out");
+    with_threads(threads, || {
+        let mut tape = Tape::new();
+        tape.launch(GatherScatter, DIM, (&x, &idx, &out));
+        tape.backward(&out).unwrap();
+    });
+    (bits(out.to_vec()), bits(x.grad().unwrap().to_vec()))
+}
+
+#[test]
+fn scatter_is_deterministic() {
+    const { assert!(DIM > SERIAL_BELOW) };
+    let one = run(1);
+    let two = run(2);
+    let again = run(2);
+    assert_eq!(one.0, two.0, "forward, 1 vs 2 threads");
+    assert_eq!(one.1, two.1, "adjoint, 1 vs 2 threads");
+    assert_eq!(two, again, "two runs");
+    assert!(one.1.iter().any(|&b| f64::from_bits(b) != 0.0));
+
+    let one = run_tape(1);
+    let two = run_tape(2);
+    assert_eq!(one, two, "tape, 1 vs 2 threads");
+    assert_eq!(two, run_tape(2), "tape, two runs");
+}
+
+#[test]
+fn summation_order_matters_here() {
+    // Guard against a vacuous test: summing the same terms in another order changes the bits.
+    let x = random(1000, 11, -3.0, 3.0);
+    let idx: Vec<usize> = random(DIM, 12, 0.0, 1000.0)
+        .into_iter()
+        .map(|v| v as usize)
+        .collect();
+    let mut fwd = [0.0f64; 7];
+    let mut rev = [0.0f64; 7];
+    for i in 0..DIM {
+        fwd[i % 7] += x[idx[i]] * x[idx[i]];
+    }
+    for i in (0..DIM).rev() {
+        rev[i % 7] += x[idx[i]] * x[idx[i]];
+    }
+    assert_ne!(bits(fwd.to_vec()), bits(rev.to_vec()));
+    let (out, _) = run(2);
+    assert_eq!(out, bits(fwd.to_vec()), "thread-id order");
+}

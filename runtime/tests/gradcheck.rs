@@ -1,0 +1,158 @@
+//! Gradient checks: they pass on correct adjoints and fail on a wrong one.
+
+mod common;
+
+use adflex_runtime::gradcheck::{
+    dot_test, gradcheck, gradcheck_kernel, jacobian_adjoint, jacobian_fd, jacobian_tangent,
+    GradCheck,
+};
+use adflex_runtime::prelude::*;
+use common::{random, Square, Step, SumSq};
+
+#[test]
+fn kernel_check_passes_on_correct_adjoints() {
+    let x = Array::from_vec(random(6, 1, -2.0, 2.0)).named("x");
+    let y = Array::<f64>::zeros(6).named("y");
+    let r = gradcheck_kernel(Square::<false>, 6, (&x, 1.5, &y)).unwrap();
+    assert_eq!(r.checked, 6);
+    r.assert_within(1e-7);
+    // The outputs hold the forward result afterwards.
+    let expected: Vec<f64> = x.to_vec().iter().map(|x| 1.5 * x * x).collect();
+    assert_eq!(y.to_vec(), expected);
+
+    // Atomic output: restored before every run, so its initial value does not pile up.
+    let loss = Array::from_vec(vec![10.0]).named("loss");
+    gradcheck_kernel(SumSq, 6, (&x, &loss))
+        .unwrap()
+        .assert_within(1e-7);
+    let sum: f64 = x.to_vec().iter().map(|x| x * x).sum();
+    assert!((loss.get(0) - (10.0 + sum)).abs() < 1e-12);
+
+    // Several inputs and outputs, scatters in the adjoint.
+    let (n, m) = (9, 4);
+    let xs = Array::from_vec(random(n, 2, -1.0, 1.0)).named("x");
+    let vs = Array::from_vec(random(n, 3, -1.0, 1.0)).named("v");
+    let ps = Array::from_vec(random(m, 4, 0.5, 2.0)).named("p");
+    let (x2, v2) = (Array::<f64>::zeros(n), Array::<f64>::zeros(n));
+    let r = GradCheck::new()
+        .worst(3)
+        .kernel(Step, n, (&xs, &vs, &ps, 0.1, &x2, &v2))
+        .unwrap();
+    assert_eq!((r.checked, r.entries.len()), (2 * n + m, 3));
+    r.assert_within(1e-7);
+}
+
+#[test]
+fn kernel_check_fails_on_a_wrong_adjoint() {
+    let x = Array::from_vec(random(5, 5, 0.5, 2.0)).named("x");
+    let y = Array::<f64>::zeros(5).named("y");
+    let r = gradcheck_kernel(Square::<true>, 5, (&x, 1.5, &y)).unwrap();
+    assert!(!r.is_within(1e-3), "{r}");
+    // Analytic 3 a x against numeric 2 a x: relative error 1/3.
+    assert!((r.max_error - 1.0 / 3.0).abs() < 1e-6, "{r}");
+    let e = &r.entries[0];
+    assert_eq!((e.array.as_str(), e.component), ("x", 0));
+    assert!((e.analytic / e.numeric - 1.5).abs() < 1e-6);
+    let shown = r.to_string();
+    assert!(
+        shown.contains("max relative error") && shown.contains("analytic"),
+        "{shown}"
+    );
+}
+
+#[test]
+#[should_panic(expected = "gradient check failed")]
+fn assert_within_panics_on_a_wrong_adjoint() {
+    let x = Array::from_vec(random(3, 6, 0.5, 2.0)).named("x");
+    let y = Array::<f64>::zeros(3);
+    gradcheck_kernel(Square::<true>, 3, (&x, 2.0, &y))
+        .unwrap()
+        .assert_within(1e-4);
+}
+
+#[test]
+fn tape_check_fails_on_a_wrong_adjoint_and_restores_params() {
+    let x = Array::from_vec(random(4, 7, -1.0, 1.0)).named("x");
+    let before: Vec<u64> = x.to_vec().iter().map(|v| v.to_bits()).collect();
+    let f = |tape: &mut Tape| {
+        let y = Array::<f64>::zeros(4);
+        let l = Array::<f64>::zeros(1);
+        tape.launch(Square::<true>, 4, (&x, 0.5, &y));
+        tape.launch(SumSq, 4, (&y, &l));
+        l
+    };
+    let r = gradcheck(f, &[&x]).unwrap();
+    assert!(!r.is_within(1e-2), "{r}");
+    let after: Vec<u64> = x.to_vec().iter().map(|v| v.to_bits()).collect();
+    assert_eq!(before, after, "perturbed values restored exactly");
+}
+
+#[test]
+fn f32_values_restore_exactly() {
+    let x = Array::from_vec(vec![0.1f32, 1.0 / 3.0, -7.25]).named("x32");
+    let before: Vec<u32> = x.to_vec().iter().map(|v| v.to_bits()).collect();
+    let r = GradCheck::new()
+        .step(1e-3)
+        .run(
+            |tape| {
+                let l = Array::<f32>::zeros(1);
+                let (xb, lb) = (x.clone(), l.clone());
+                tape.record_fn(
+                    "sum",
+                    &[&x],
+                    &[&l],
+                    || l.set(0, x.to_vec().iter().sum()),
+                    move || {
+                        let d = lb.grad_buffer().unwrap().get(0);
+                        if let Some(g) = xb.grad_buffer() {
+                            g.modify(|g| g.iter_mut().for_each(|g| *g += d));
+                        }
+                    },
+                );
+                l
+            },
+            &[&x],
+        )
+        .unwrap();
+    r.assert_within(1e-2);
+    let after: Vec<u32> = x.to_vec().iter().map(|v| v.to_bits()).collect();
+    assert_eq!(before, after);
+}
+
+#[test]
+fn jacobians_three_ways_and_dot_test() {
+    let (n, m) = (5, 2);
+    let x = Array::from_vec(random(n, 8, -1.0, 1.0)).named("x");
+    let v = Array::from_vec(random(n, 9, -1.0, 1.0)).named("v");
+    let p = Array::from_vec(random(m, 10, 0.5, 2.0)).named("p");
+    // Two steps and a loss: outputs x2, v2 and the loss.
+    let f = |tape: &mut Tape| {
+        let (x1, v1) = (Array::<f64>::zeros(n), Array::<f64>::zeros(n));
+        let (x2, v2) = (Array::<f64>::zeros(n), Array::<f64>::zeros(n));
+        let l = Array::<f64>::zeros(1);
+        tape.launch(Step, n, (&x, &v, &p, 0.1, &x1, &v1));
+        tape.launch(Step, n, (&x1, &v1, &p, 0.1, &x2, &v2));
+        tape.launch(SumSq, n, (&x2, &l));
+        vec![x2.boxed(), v2.boxed(), l.boxed()]
+    };
+    let inputs: [&dyn AnyArray; 3] = [&x, &v, &p];
+    let ja = jacobian_adjoint(f, &inputs).unwrap();
+    let jt = jacobian_tangent(f, &inputs).unwrap();
+    let jf = jacobian_fd(f, &inputs, 1e-6).unwrap();
+    assert_eq!((ja.rows, ja.cols), (2 * n + 1, 2 * n + m));
+    assert!(ja.max_abs_diff(&jt) < 1e-12, "adjoint vs tangent");
+    assert!(ja.max_abs_diff(&jf) < 1e-7, "adjoint vs fd");
+    // d x2[0] / d x[0] is about 1 for a small dt.
+    assert!((ja[(0, 0)] - 1.0).abs() < 0.1);
+    for seed in 0..3 {
+        dot_test(f, &inputs, seed).unwrap().assert_within(1e-12);
+    }
+    // Inputs need not require grad, and nothing is left on their tangents.
+    assert!(!x.is_requires_grad());
+    assert!(x
+        .tangent_buffer()
+        .unwrap()
+        .to_vec()
+        .iter()
+        .all(|&t| t == 0.0));
+}
