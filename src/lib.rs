@@ -21,3 +21,7 @@ pub mod prelude {
     pub use adflex_macros::{diff_func, diff_kernel};
     pub use adflex_runtime::prelude::*;
 }
+
+#[doc = include_str!("../docs/guide.md")]
+#[cfg(doctest)]
+pub struct Guide;

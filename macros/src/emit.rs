@@ -9,6 +9,8 @@
 //!   iteration is ever replayed with another iteration's values.
 //! - Tangent: the forward with a tangent `d<N>` beside every value (`tan_<op>` rules).
 
+use std::collections::HashSet;
+
 use proc_macro2::{Ident, Span, TokenStream};
 use quote::{format_ident, quote, quote_spanned};
 
@@ -16,6 +18,65 @@ use crate::ir::*;
 
 pub struct Emitter<'a> {
     pub rt: &'a TokenStream,
+    /// Values some statement uses; an unused placeholder (`Op::Zero`) is not emitted, since
+    /// nothing would give it a type.
+    used: HashSet<ValueId>,
+}
+
+impl<'a> Emitter<'a> {
+    pub fn new(rt: &'a TokenStream, body: &crate::ir::Body) -> Self {
+        let mut used = HashSet::new();
+        used.extend(body.ret);
+        collect_uses(&body.block, &mut used);
+        Emitter { rt, used }
+    }
+
+    fn skip(&self, l: &Let) -> bool {
+        matches!(l.op, Op::Zero) && !self.used.contains(&l.id)
+    }
+}
+
+fn collect_uses(b: &Block, used: &mut HashSet<ValueId>) {
+    for s in &b.stmts {
+        match s {
+            Stmt::Let(l) => match &l.op {
+                Op::Builtin { args, .. } | Op::Func { args, .. } | Op::Tuple(args) | Op::PlainCall { args, .. } => {
+                    used.extend(args)
+                }
+                Op::PlainMethod { recv, args, .. } => {
+                    used.insert(*recv);
+                    used.extend(args);
+                }
+                Op::Cast { arg: x, .. } | Op::Typed { src: x, .. } | Op::NativeUnary { a: x, .. } | Op::StopGrad(x) => {
+                    used.insert(*x);
+                }
+                Op::NativeBinary { a, b, .. } => used.extend([*a, *b]),
+                Op::Read { index, .. } => {
+                    used.insert(*index);
+                }
+                Op::Const(_) | Op::Tid | Op::Zero => {}
+            },
+            Stmt::Store { index, value, .. } => used.extend([*index, *value]),
+            Stmt::If { cond, then_b, else_b, phis } => {
+                used.insert(*cond);
+                for p in phis {
+                    used.extend([p.then_v, p.else_v]);
+                }
+                collect_uses(then_b, used);
+                collect_uses(else_b, used);
+            }
+            Stmt::Loop(l) => {
+                if let Some((s, e, _)) = l.range {
+                    used.extend([s, e]);
+                }
+                used.extend(l.exit);
+                for c in &l.carried {
+                    used.extend([c.init, c.next]);
+                }
+                collect_uses(&l.body, used);
+            }
+        }
+    }
 }
 
 fn local(prefix: &str, n: impl std::fmt::Display, span: Span) -> Ident {
@@ -144,6 +205,7 @@ impl<'a> Emitter<'a> {
         let mut out = TokenStream::new();
         for s in &b.stmts {
             match s {
+                Stmt::Let(l) if self.skip(l) => {}
                 Stmt::Let(l) => {
                     out.extend(self.let_stmt(l));
                     if mode == Replay::Top {
@@ -281,6 +343,7 @@ impl<'a> Emitter<'a> {
     fn reverse(&self, s: &Stmt) -> TokenStream {
         let rt = self.rt;
         match s {
+            Stmt::Let(l) if self.skip(l) => quote!(),
             Stmt::Let(l) => self.reverse_let(l),
             Stmt::Store { param, index, value, kind, span } => {
                 let (g, i, ax) = (grad_view(*param), v(*index), a(*value));
@@ -402,6 +465,7 @@ impl<'a> Emitter<'a> {
         let mut out = TokenStream::new();
         for s in &b.stmts {
             match s {
+                Stmt::Let(l) if self.skip(l) => {}
                 Stmt::Let(l) => out.extend(self.tangent_let(l)),
                 Stmt::Store { param, index, value, kind, span } => {
                     let (t, i, dx) = (tangent_view(*param), v(*index), d(*value));

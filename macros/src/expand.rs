@@ -148,7 +148,7 @@ fn kernel_items(sig: &Signature, rt: &TokenStream, body: &Body, uses: &[ArrayUse
         .collect();
     let generic_params = sig.generic_params();
     let (impl_generics, where_clause) = sig.impl_generics();
-    let em = Emitter { rt };
+    let em = Emitter::new(rt, body);
     let modes = [Mode::Forward, Mode::Adjoint, Mode::Tangent].map(|m| kernel_mode(sig, rt, body, uses, &em, m));
     let [fwd, adj, tan] = modes;
     let strukt = struct_item(sig, attrs);
@@ -308,7 +308,7 @@ fn func_items(
     let ret = sig.ret.as_ref().unwrap();
     let (impl_generics, where_clause) = sig.impl_generics();
     let generics = &sig.generics;
-    let em = Emitter { rt };
+    let em = Emitter::new(rt, body);
     let strukt = struct_item(sig, attrs);
     let lints = lints();
     let args_ty = quote!((#(#tys,)*));
