@@ -350,9 +350,22 @@ impl GradCheck {
     /// Outputs are restored before every run, so `atomic_*` outputs start from their values at
     /// the call; at the end they hold the result of one forward launch. The gradient buffers
     /// of the kernel's arrays are allocated if missing and overwritten.
-    // TODO(lead): add a runnable example with a #[diff_kernel] once the macro works.
-    /// ```ignore
-    /// GradCheck::new().kernel(eval_springs, n, (&x, &v, &pairs, &rest, &ke, 0.1, &f))?.assert_within(1e-6);
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// use adflex_macros::diff_kernel;
+    ///
+    /// #[diff_kernel]
+    /// fn spring_energy(x: &Array<f64>, k: &Array<f64>, e: &Array<f64>) {
+    ///     let t = tid();
+    ///     let d = x[t + 1] - x[t] - 1.0;
+    ///     e[t] = 0.5 * k[t] * d * d;
+    /// }
+    /// let x = Array::from_vec(vec![0.0, 1.2, 2.1]);
+    /// let k = Array::from_vec(vec![10.0, 20.0]);
+    /// let e = Array::zeros(2);
+    /// GradCheck::new().kernel(spring_energy, 2, (&x, &k, &e))?.assert_within(1e-6);
+    /// # Ok::<(), Error>(())
     /// ```
     pub fn kernel<K, A>(&self, kernel: K, dim: usize, args: A) -> Result<Report, Error>
     where

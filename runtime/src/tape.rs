@@ -211,12 +211,29 @@ impl Tape {
     ///
     /// Panics with an [`Error::NonFinite`] message if [`Tape::check_finite`] is on and the launch
     /// wrote a NaN or an infinity.
-    // TODO(lead): add a runnable example with a #[diff_kernel] once the macro works.
-    /// ```ignore
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// use adflex_macros::diff_kernel;
+    ///
+    /// #[diff_kernel]
+    /// fn scale(x: &Array<f64>, s: f64, y: &Array<f64>) {
+    ///     let t = tid();
+    ///     y[t] = x[t] * s;
+    /// }
+    /// #[diff_kernel]
+    /// fn total(y: &Array<f64>, loss: &Array<f64>) {
+    ///     loss.atomic_add(0, y[tid()]);
+    /// }
+    ///
+    /// let x = Array::from_vec(vec![1.0, 2.0]).requires_grad();
+    /// let (y, loss) = (Array::zeros(2), Array::zeros(1));
     /// let mut tape = Tape::new();
-    /// tape.launch(eval_springs, pairs.len(), (&x, &v, &pairs, &rest, &ke, 0.1, &f));
-    /// tape.launch(loss_kernel, 1, (&f, &loss));
+    /// tape.launch(scale, 2, (&x, 3.0, &y));
+    /// tape.launch(total, 2, (&y, &loss));
     /// tape.backward(&loss)?;
+    /// assert_eq!(x.grad()?.to_vec(), vec![3.0, 3.0]);
+    /// # Ok::<(), Error>(())
     /// ```
     pub fn launch<K, A>(&mut self, kernel: K, dim: usize, args: A)
     where

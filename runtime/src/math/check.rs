@@ -376,6 +376,7 @@ macro_rules! fd_tests {
     ($( $test:ident: $f:ident, $adj:ident, $tan:ident [$($t:ty = $g:expr),+ $(,)?]; )*) => {$(
         #[test]
         fn $test() {
+            #[allow(clippy::extra_unused_type_parameters)]
             fn sample<R: $crate::Real>(rng: &mut $crate::math::check::Rng) -> ($($t,)+) {
                 ($(($g)(rng),)+)
             }

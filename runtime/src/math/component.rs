@@ -35,9 +35,9 @@ pub trait ComponentRule<K: Copy>: Value {
     /// The zero index (the adjoint of an index).
     const ZERO_INDEX: K;
     /// Component `k`.
-    fn get(self, k: K) -> Self::Out;
+    fn comp_get(self, k: K) -> Self::Out;
     /// `self` with component `k` set to `x`.
-    fn set(self, k: K, x: Self::Out) -> Self;
+    fn comp_set(self, k: K, x: Self::Out) -> Self;
 }
 
 macro_rules! component_vector {
@@ -46,11 +46,11 @@ macro_rules! component_vector {
             type Out = R;
             const ZERO_INDEX: usize = 0;
             #[inline(always)]
-            fn get(self, k: usize) -> R {
+            fn comp_get(self, k: usize) -> R {
                 self[k]
             }
             #[inline(always)]
-            fn set(mut self, k: usize, x: R) -> Self {
+            fn comp_set(mut self, k: usize, x: R) -> Self {
                 self[k] = x;
                 self
             }
@@ -63,11 +63,11 @@ impl<R: Real> ComponentRule<usize> for Quaternion<R> {
     type Out = R;
     const ZERO_INDEX: usize = 0;
     #[inline(always)]
-    fn get(self, k: usize) -> R {
+    fn comp_get(self, k: usize) -> R {
         self.coords[k]
     }
     #[inline(always)]
-    fn set(mut self, k: usize, x: R) -> Self {
+    fn comp_set(mut self, k: usize, x: R) -> Self {
         self.coords[k] = x;
         self
     }
@@ -79,11 +79,11 @@ macro_rules! component_matrix {
             type Out = R;
             const ZERO_INDEX: (usize, usize) = (0, 0);
             #[inline(always)]
-            fn get(self, k: (usize, usize)) -> R {
+            fn comp_get(self, k: (usize, usize)) -> R {
                 self[k]
             }
             #[inline(always)]
-            fn set(mut self, k: (usize, usize), x: R) -> Self {
+            fn comp_set(mut self, k: (usize, usize), x: R) -> Self {
                 self[k] = x;
                 self
             }
@@ -96,11 +96,11 @@ impl<T: Value + Default, const N: usize> ComponentRule<usize> for [T; N] {
     type Out = T;
     const ZERO_INDEX: usize = 0;
     #[inline(always)]
-    fn get(self, k: usize) -> T {
+    fn comp_get(self, k: usize) -> T {
         self[k]
     }
     #[inline(always)]
-    fn set(mut self, k: usize, x: T) -> Self {
+    fn comp_set(mut self, k: usize, x: T) -> Self {
         self[k] = x;
         self
     }
@@ -110,23 +110,23 @@ impl<T: Value + Default, const N: usize> ComponentRule<usize> for [T; N] {
 /// `(row, col)`, `[T; N]` by `usize`. Panics if `k` is out of range. No singular points.
 #[inline(always)]
 pub fn extract<V: ComponentRule<K>, K: Copy>(v: V, k: K) -> V::Out {
-    v.get(k)
+    v.comp_get(k)
 }
 /// Adjoint of [`extract`]: `(adj` in component `k` and zero elsewhere`, 0)`.
 #[inline]
 pub fn adj_extract<V: ComponentRule<K>, K: Copy>(_v: V, k: K, adj: V::Out) -> (V, K) {
-    (V::zeroed().set(k, adj), V::ZERO_INDEX)
+    (V::zeroed().comp_set(k, adj), V::ZERO_INDEX)
 }
 /// Tangent of [`extract`]: component `k` of `dv`.
 #[inline]
 pub fn tan_extract<V: ComponentRule<K>, K: Copy>(_v: V, k: K, dv: V, _dk: K) -> V::Out {
-    dv.get(k)
+    dv.comp_get(k)
 }
 
 /// `v` with component `k` replaced by `x` (same types as [`extract`]). No singular points.
 #[inline(always)]
 pub fn replace<V: ComponentRule<K>, K: Copy>(v: V, k: K, x: V::Out) -> V {
-    v.set(k, x)
+    v.comp_set(k, x)
 }
 /// Adjoint of [`replace`]: `(adj` with component `k` zeroed`, 0, adj[k])`.
 #[inline]
@@ -136,7 +136,11 @@ pub fn adj_replace<V: ComponentRule<K>, K: Copy>(
     _x: V::Out,
     adj: V,
 ) -> (V, K, V::Out) {
-    (adj.set(k, V::Out::zeroed()), V::ZERO_INDEX, adj.get(k))
+    (
+        adj.comp_set(k, V::Out::zeroed()),
+        V::ZERO_INDEX,
+        adj.comp_get(k),
+    )
 }
 /// Tangent of [`replace`]: `dv` with component `k` replaced by `dx`.
 #[inline]
@@ -148,7 +152,7 @@ pub fn tan_replace<V: ComponentRule<K>, K: Copy>(
     _dk: K,
     dx: V::Out,
 ) -> V {
-    dv.set(k, dx)
+    dv.comp_set(k, dx)
 }
 
 #[cfg(test)]

@@ -1,11 +1,14 @@
 //! Constructors: vectors and matrices from scalars (`vec2`, `vec3`, `vec4`, `mat22`, `mat33`,
 //! row-major), matrices from columns or rows (`mat22_cols`, ...), quaternions (`quat`), and the
-//! constants `mat22_identity`, `mat33_identity`, `quat_identity`. All are linear: adjoints
-//! take the components apart again, tangents build the same value from the tangents.
+//! constants `mat22_identity`, `mat33_identity`, `quat_identity`. All are linear, with no
+//! singular points: adjoints take the components apart again, tangents build the same value
+//! from the tangents.
 
 use crate::{Mat22, Mat33, Quat, Real, Vec2, Vec3, Vec4};
 
 /// `(x, y)`.
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn vec2<R: Real>(x: R, y: R) -> Vec2<R> {
     Vec2::new(x, y)
@@ -22,6 +25,8 @@ pub fn tan_vec2<R: Real>(_x: R, _y: R, dx: R, dy: R) -> Vec2<R> {
 }
 
 /// `(x, y, z)`.
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn vec3<R: Real>(x: R, y: R, z: R) -> Vec3<R> {
     Vec3::new(x, y, z)
@@ -38,6 +43,8 @@ pub fn tan_vec3<R: Real>(_x: R, _y: R, _z: R, dx: R, dy: R, dz: R) -> Vec3<R> {
 }
 
 /// `(x, y, z, w)`.
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn vec4<R: Real>(x: R, y: R, z: R, w: R) -> Vec4<R> {
     Vec4::new(x, y, z, w)
@@ -55,6 +62,8 @@ pub fn tan_vec4<R: Real>(_x: R, _y: R, _z: R, _w: R, dx: R, dy: R, dz: R, dw: R)
 }
 
 /// The 2x2 matrix `[[m00, m01], [m10, m11]]` (arguments in row-major order).
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn mat22<R: Real>(m00: R, m01: R, m10: R, m11: R) -> Mat22<R> {
     Mat22::new(m00, m01, m10, m11)
@@ -82,6 +91,8 @@ pub fn tan_mat22<R: Real>(
 
 /// The 3x3 matrix with rows `(m00, m01, m02)`, `(m10, m11, m12)`, `(m20, m21, m22)`
 /// (arguments in row-major order).
+///
+/// No singular points (linear).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 pub fn mat33<R: Real>(
@@ -151,6 +162,8 @@ pub fn tan_mat33<R: Real>(
 }
 
 /// The 2x2 matrix with columns `c0`, `c1`.
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn mat22_cols<R: Real>(c0: Vec2<R>, c1: Vec2<R>) -> Mat22<R> {
     Mat22::from_columns(&[c0, c1])
@@ -167,6 +180,8 @@ pub fn tan_mat22_cols<R: Real>(_c0: Vec2<R>, _c1: Vec2<R>, d0: Vec2<R>, d1: Vec2
 }
 
 /// The 3x3 matrix with columns `c0`, `c1`, `c2`.
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn mat33_cols<R: Real>(c0: Vec3<R>, c1: Vec3<R>, c2: Vec3<R>) -> Mat33<R> {
     Mat33::from_columns(&[c0, c1, c2])
@@ -199,6 +214,8 @@ pub fn tan_mat33_cols<R: Real>(
 }
 
 /// The 2x2 matrix with rows `r0`, `r1` (given as vectors).
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn mat22_rows<R: Real>(r0: Vec2<R>, r1: Vec2<R>) -> Mat22<R> {
     Mat22::from_rows(&[r0.transpose(), r1.transpose()])
@@ -215,6 +232,8 @@ pub fn tan_mat22_rows<R: Real>(_r0: Vec2<R>, _r1: Vec2<R>, d0: Vec2<R>, d1: Vec2
 }
 
 /// The 3x3 matrix with rows `r0`, `r1`, `r2` (given as vectors).
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn mat33_rows<R: Real>(r0: Vec3<R>, r1: Vec3<R>, r2: Vec3<R>) -> Mat33<R> {
     Mat33::from_rows(&[r0.transpose(), r1.transpose(), r2.transpose()])
@@ -247,6 +266,8 @@ pub fn tan_mat33_rows<R: Real>(
 }
 
 /// The quaternion `x i + y j + z k + w` (arguments in storage order x, y, z, w).
+///
+/// No singular points (linear).
 #[inline(always)]
 pub fn quat<R: Real>(x: R, y: R, z: R, w: R) -> Quat<R> {
     Quat::new(w, x, y, z)

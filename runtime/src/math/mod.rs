@@ -65,7 +65,7 @@
 //! - [`mat22`]`(4 scalars)`, [`mat33`]`(9 scalars)`: matrices from entries, row-major.
 //! - [`mat22_cols`]`(c0, c1)`, [`mat33_cols`]`(c0, c1, c2)`: matrices from columns.
 //! - [`mat22_rows`]`(r0, r1)`, [`mat33_rows`]`(r0, r1, r2)`: matrices from rows.
-//! - [`quat`]`(x, y, z, w)`: a quaternion from its components.
+//! - [`quat`](fn@quat)`(x, y, z, w)`: a quaternion from its components.
 //! - [`mat22_identity`]`()`, [`mat33_identity`]`()`, [`quat_identity`]`()`: constants.
 //!
 //! # Quaternions ([`quat`](mod@quat))
@@ -84,7 +84,7 @@
 //! - [`replace`]`(v, k, x)`: `v` with component `k` set to `x`. What `v.x = e` lowers to.
 //!
 //! # Casts ([`cast`](mod@cast))
-//! - [`cast`]`::<_, T>(x)`: `x as T` between floats (gradient flows) and integers (zero
+//! - [`cast`](fn@cast)`::<_, T>(x)`: `x as T` between floats (gradient flows) and integers (zero
 //!   gradient).
 
 pub mod cast;

@@ -89,7 +89,8 @@ impl<T: Linear> NegRule for T {
     }
 }
 
-/// `a + b`: same-type pairs of scalars, vectors, matrices, quaternions and integers.
+/// `a + b`: same-type pairs of scalars, vectors, matrices, quaternions and integers. No
+/// singular points.
 #[inline(always)]
 pub fn add<T: AddRule>(a: T, b: T) -> T {
     a.add_fwd(b)
@@ -105,7 +106,8 @@ pub fn tan_add<T: AddRule>(a: T, b: T, da: T, db: T) -> T {
     a.add_tan(b, da, db)
 }
 
-/// `a - b`: same-type pairs of scalars, vectors, matrices, quaternions and integers.
+/// `a - b`: same-type pairs of scalars, vectors, matrices, quaternions and integers. No
+/// singular points.
 #[inline(always)]
 pub fn sub<T: SubRule>(a: T, b: T) -> T {
     a.sub_fwd(b)
@@ -121,7 +123,7 @@ pub fn tan_sub<T: SubRule>(a: T, b: T, da: T, db: T) -> T {
     a.sub_tan(b, da, db)
 }
 
-/// `-a`: scalars, vectors, matrices, quaternions and signed integers.
+/// `-a`: scalars, vectors, matrices, quaternions and signed integers. No singular points.
 #[inline(always)]
 pub fn neg<T: NegRule>(a: T) -> T {
     a.neg_fwd()
@@ -250,7 +252,8 @@ impl<R: Real> MulRule<Quaternion<R>> for Quaternion<R> {
 }
 
 /// `a * b`: scalar * scalar; scalar * vector/matrix/quaternion and back; `Mat22 * Vec2`,
-/// `Mat33 * Vec3`; matrix * matrix; quaternion * quaternion (Hamilton product); integers.
+/// `Mat33 * Vec3`; matrix * matrix; quaternion * quaternion (Hamilton product); integers. No
+/// singular points.
 #[inline(always)]
 pub fn mul<A: MulRule<B>, B>(a: A, b: B) -> A::Out {
     a.mul_fwd(b)
@@ -313,7 +316,8 @@ div_scalar!(
     Quaternion<R>
 );
 
-/// `a / b`: scalar, vector, matrix or quaternion by a scalar; integers (truncating).
+/// `a / b`: scalar, vector, matrix or quaternion by a scalar; integers (truncating). At
+/// `b == 0` value and derivatives are inf/NaN like the division itself (integers panic).
 #[inline(always)]
 pub fn div<A: DivRule<B>, B>(a: A, b: B) -> A::Out {
     a.div_fwd(b)

@@ -622,5 +622,7 @@ mod tests {
         let v = Vec3::new(1.0f32, 2.0, 3.0);
         let _: Vec3<f32> = lerp(v, v, 0.5);
         let _: f32 = min(1.0, 2.0f32);
+        let _: f32 = lerp(1.0, 2.0, 0.5f32);
+        let _: f32 = clamp(0.5f32, 0.0, 1.0);
     }
 }

@@ -113,8 +113,8 @@ fn generic_compiles() {
     let a = generic_mix(q, v, m, 0.3f32);
     let b = generic_mix(
         cast_quat(q),
-        v.map(|x| cast::<_, f64>(x)),
-        m.map(|x| cast::<_, f64>(x)),
+        v.map(cast::<_, f64>),
+        m.map(cast::<_, f64>),
         0.3f32 as f64,
     );
     assert!(close(a as f64, b, 1e-5), "{a} {b}");
