@@ -387,3 +387,20 @@ fn custom_adjoint_and_tangent_replace_the_generated_ones() {
     let c = check(&[&x], &[&y], 3, |m| launch_mode(m, contact, 2, (&x, &y)));
     assert!(c.dot_err < 1e-12);
 }
+
+// ---- bad input -------------------------------------------------------------------------
+
+#[diff_kernel]
+fn gather(x: &Array<f64>, idx: &Array<u32>, y: &Array<f64>) {
+    let t = tid();
+    y[t] = x[idx[t]];
+}
+
+#[test]
+#[should_panic(expected = "kernel `gather`: index 7 out of bounds for array `positions` (parameter `x`) of length 3")]
+fn out_of_bounds_index_names_kernel_array_index_and_length() {
+    let x = Array::from_vec(vec![1.0, 2.0, 3.0]).named("positions");
+    let idx = Array::from_vec(vec![0u32, 7]);
+    let y = Array::zeros(2);
+    launch(gather, 2, (&x, &idx, &y));
+}

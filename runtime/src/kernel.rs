@@ -5,6 +5,7 @@
 //! Users do not implement these traits by hand; the macro does.
 
 use std::ops::Range;
+use std::sync::Arc;
 
 use crate::array::{AnyArray, Array, Element};
 
@@ -115,11 +116,17 @@ pub struct Site {
 
 #[cold]
 #[inline(never)]
-fn out_of_bounds(site: &Site, what: &str, index: i128, len: usize) -> ! {
-    panic!(
-        "kernel `{}`: index {index} out of bounds for {what}`{}` of length {len}",
-        site.kernel, site.param
-    )
+fn out_of_bounds(site: &Site, name: &Option<Arc<str>>, index: i128, len: usize) -> ! {
+    match name {
+        Some(n) => panic!(
+            "kernel `{}`: index {index} out of bounds for array `{n}` (parameter `{}`) of length {len}",
+            site.kernel, site.param
+        ),
+        None => panic!(
+            "kernel `{}`: index {index} out of bounds for parameter `{}` (an array of length {len})",
+            site.kernel, site.param
+        ),
+    }
 }
 
 /// An index into an array: `usize`, `u32`, `i32`, ... (negative indices are out of bounds).
@@ -132,11 +139,24 @@ macro_rules! to_index {
 }
 to_index!(u8, u16, u32, u64, usize, i8, i16, i32, i64, isize);
 
+/// Where a view reads or writes: the kernel, the parameter and the array's name, for errors.
+#[derive(Clone)]
+struct Place {
+    site: &'static Site,
+    name: Option<Arc<str>>,
+}
+
+impl Place {
+    fn of<T: Element>(a: &Array<T>, site: &'static Site) -> Self {
+        Place { site, name: a.name() }
+    }
+}
+
 #[inline(always)]
-fn checked<I: ToIndex>(i: I, len: usize, site: &Site, what: &str) -> usize {
+fn checked<I: ToIndex>(i: I, len: usize, place: &Place) -> usize {
     let w = i.to_i128();
     if w < 0 || w >= len as i128 {
-        out_of_bounds(site, what, w, len)
+        out_of_bounds(place.site, &place.name, w, len)
     }
     w as usize
 }
@@ -163,14 +183,14 @@ impl Exec {
 pub struct Reader<T> {
     ptr: *const T,
     len: usize,
-    site: &'static Site,
+    place: Place,
 }
 
 impl<T: Element> Reader<T> {
     /// Element `i`, bounds-checked with the kernel's and parameter's names.
     #[inline(always)]
     pub fn get<I: ToIndex>(&self, i: I) -> T {
-        let i = checked(i, self.len, self.site, "array ");
+        let i = checked(i, self.len, &self.place);
         // SAFETY: in bounds; the launch holds the array's access lock and no thread of this
         // launch writes an array that the kernel reads (checked by the macro).
         unsafe { *self.ptr.add(i) }
@@ -181,14 +201,14 @@ impl<T: Element> Reader<T> {
 pub struct OptReader<T> {
     ptr: Option<*const T>,
     len: usize,
-    site: &'static Site,
+    place: Place,
 }
 
 impl<T: Element> OptReader<T> {
     /// Element `i` or zero.
     #[inline(always)]
     pub fn get<I: ToIndex>(&self, i: I) -> T {
-        let i = checked(i, self.len, self.site, "array ");
+        let i = checked(i, self.len, &self.place);
         match self.ptr {
             // SAFETY: in bounds, buffer held by the owned args for the launch.
             Some(p) => unsafe { *p.add(i) },
@@ -201,14 +221,14 @@ impl<T: Element> OptReader<T> {
 pub struct Writer<T> {
     ptr: Option<*mut T>,
     len: usize,
-    site: &'static Site,
+    place: Place,
 }
 
 impl<T: Element> Writer<T> {
     /// `a[i] = v`.
     #[inline(always)]
     pub fn store<I: ToIndex>(&self, i: I, v: T) {
-        let i = checked(i, self.len, self.site, "array ");
+        let i = checked(i, self.len, &self.place);
         if let Some(p) = self.ptr {
             // SAFETY: in bounds; threads store to distinct indices (kernel contract).
             unsafe { *p.add(i) = v }
@@ -223,11 +243,11 @@ pub struct Scatter<T: Element> {
     len: usize,
     direct: bool,
     log: Vec<(u32, T)>,
-    site: &'static Site,
+    place: Place,
 }
 
 impl<T: Element> Scatter<T> {
-    fn new(target: Option<Array<T>>, exec: &Exec, site: &'static Site, len: usize) -> Self {
+    fn new(target: Option<Array<T>>, exec: &Exec, place: Place, len: usize) -> Self {
         let ptr = target
             .as_ref()
             .map_or(std::ptr::null_mut(), |a| a.data_ptr());
@@ -237,14 +257,14 @@ impl<T: Element> Scatter<T> {
             len,
             direct: exec.direct,
             log: Vec::new(),
-            site,
+            place,
         }
     }
 
     /// `a[i] += v`.
     #[inline(always)]
     pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
-        let i = checked(i, self.len, self.site, "array ");
+        let i = checked(i, self.len, &self.place);
         if self.target.is_none() {
             return;
         }
@@ -324,11 +344,11 @@ unsafe impl<T: Send> Send for OptReader<T> {}
 unsafe impl<T: Send> Send for Writer<T> {}
 unsafe impl<T: Element> Send for Scatter<T> {}
 
-fn opt_reader<T: Element>(a: Option<Array<T>>, len: usize, site: &'static Site) -> OptReader<T> {
+fn opt_reader<T: Element>(of: &Array<T>, buf: Option<Array<T>>, site: &'static Site) -> OptReader<T> {
     OptReader {
-        ptr: a.map(|a| a.data_ptr() as *const T),
-        len,
-        site,
+        ptr: buf.map(|b| b.data_ptr() as *const T),
+        len: of.len(),
+        place: Place::of(of, site),
     }
 }
 
@@ -338,7 +358,7 @@ pub fn reader<T: Element>(a: &Array<T>, site: &'static Site) -> Reader<T> {
     Reader {
         ptr: a.data_ptr(),
         len: a.len(),
-        site,
+        place: Place::of(a, site),
     }
 }
 
@@ -348,32 +368,32 @@ pub fn writer<T: Element>(a: &Array<T>, site: &'static Site) -> Writer<T> {
     Writer {
         ptr: Some(a.data_ptr()),
         len: a.len(),
-        site,
+        place: Place::of(a, site),
     }
 }
 
 /// A scatter into `a`.
 #[inline]
 pub fn scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    Scatter::new(Some(a.clone()), exec, site, a.len())
+    Scatter::new(Some(a.clone()), exec, Place::of(a, site), a.len())
 }
 
 /// A reader of `a`'s gradient (zeros if it has none).
 #[inline]
 pub fn grad_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReader<T> {
-    opt_reader(a.grad_buffer(), a.len(), site)
+    opt_reader(a, a.grad_buffer(), site)
 }
 
 /// A scatter into `a`'s gradient (a no-op if it has none).
 #[inline]
 pub fn grad_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    Scatter::new(a.grad_buffer(), exec, site, a.len())
+    Scatter::new(a.grad_buffer(), exec, Place::of(a, site), a.len())
 }
 
 /// A reader of `a`'s tangent (zeros if it has none).
 #[inline]
 pub fn tangent_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReader<T> {
-    opt_reader(a.tangent_buffer(), a.len(), site)
+    opt_reader(a, a.tangent_buffer(), site)
 }
 
 /// A writer of `a`'s tangent (ignores stores if it has none).
@@ -382,12 +402,12 @@ pub fn tangent_writer<T: Element>(a: &Array<T>, site: &'static Site) -> Writer<T
     Writer {
         ptr: a.tangent_buffer().map(|t| t.data_ptr()),
         len: a.len(),
-        site,
+        place: Place::of(a, site),
     }
 }
 
 /// A scatter into `a`'s tangent (a no-op if it has none).
 #[inline]
 pub fn tangent_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    Scatter::new(a.tangent_buffer(), exec, site, a.len())
+    Scatter::new(a.tangent_buffer(), exec, Place::of(a, site), a.len())
 }
