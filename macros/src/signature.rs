@@ -75,8 +75,10 @@ impl Signature {
                             continue;
                         }
                     };
+                    // After an error the parameter is still recorded (as what it most likely
+                    // is), so that its uses in the body do not cascade into more errors.
                     let kind = match &*pt.ty {
-                        Type::Reference(r) => {
+                        Type::Reference(r) if is_array_type(&r.elem) => {
                             if r.mutability.is_some() {
                                 errors.push(
                                     r.span(),
@@ -85,15 +87,6 @@ impl Signature {
                                          kernels write arrays through a shared handle (`{name}[i] = v`)"
                                     ),
                                 );
-                                continue;
-                            }
-                            if !is_array_type(&r.elem) {
-                                errors.push(
-                                    r.span(),
-                                    "the only reference a kernel takes is `&Array<T>`; pass \
-                                     values (scalars, vectors, indices) by value",
-                                );
-                                continue;
                             }
                             if !is_kernel {
                                 errors.push(
@@ -101,24 +94,31 @@ impl Signature {
                                     "a #[diff_func] takes values only; read array elements in \
                                      the kernel and pass them in",
                                 );
-                                continue;
                             }
                             if mutable {
                                 errors.push(pt.pat.span(), "an `&Array` parameter cannot be `mut`");
                             }
                             ParamKind::Array { ty: (*r.elem).clone() }
                         }
+                        Type::Reference(r) => {
+                            errors.push(
+                                r.span(),
+                                "the only reference a kernel takes is `&Array<T>`; pass values \
+                                 (scalars, vectors, indices) by value",
+                            );
+                            ParamKind::Value { ty: (*r.elem).clone(), mutable }
+                        }
                         Type::Ptr(p) => {
                             errors.push(p.span(), "pointers are not supported in kernels");
-                            continue;
+                            ParamKind::Value { ty: (*p.elem).clone(), mutable }
                         }
                         Type::ImplTrait(t) => {
                             errors.push(t.span(), "`impl Trait` parameters are not supported; use a generic `R: Real`");
-                            continue;
+                            ParamKind::Value { ty: pt.ty.as_ref().clone(), mutable }
                         }
                         ty if is_array_type(ty) => {
                             errors.push(ty.span(), "take arrays by reference: `&Array<T>`");
-                            continue;
+                            ParamKind::Array { ty: ty.clone() }
                         }
                         ty => ParamKind::Value { ty: ty.clone(), mutable },
                     };

@@ -93,3 +93,54 @@ macro_rules! cast_to_int {
 }
 cast_to_int!(u8, u16, u32, u64, usize, i8, i16, i32, i64, isize);
 cast_zero!(bool => u8, u16, u32, u64, usize, i8, i16, i32, i64, isize);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::check::*;
+
+    #[test]
+    fn floats() {
+        // f64 -> f64 is the only cast whose output keeps f64 precision for central differences
+        check_rule(
+            "cast_f64_f64",
+            |rng| (any::<f64>(rng),),
+            cast::<f64, f64>,
+            adj_cast::<f64, f64>,
+            tan_cast::<f64, f64>,
+        );
+        // the others: derivative exactly 1 (up to the rounding of the cast itself)
+        assert_eq!(cast::<_, f64>(1.5f32), 1.5);
+        assert_eq!(cast::<_, f32>(1.5f64), 1.5f32);
+        assert_eq!(cast::<_, f32>(1.5f32), 1.5f32);
+        assert_eq!(adj_cast::<_, f64>(1.5f32, 2.0), 2.0f32);
+        assert_eq!(adj_cast::<_, f32>(1.5f64, 2.0), 2.0f64);
+        assert_eq!(adj_cast::<_, f32>(1.5f32, 2.0), 2.0f32);
+        assert_eq!(tan_cast::<_, f32>(1.5f64, 2.0), 2.0f32);
+        assert_eq!(tan_cast::<_, f64>(1.5f32, 2.0), 2.0f64);
+    }
+
+    #[test]
+    fn generic() {
+        fn half<R: Real>(i: u32, x: R) -> (R, f64, u32) {
+            (cast::<_, R>(i), cast::<_, f64>(x), cast::<_, u32>(x))
+        }
+        assert_eq!(half(3, 2.5f32), (3.0, 2.5, 2));
+        assert_eq!(half(3, 2.5f64), (3.0, 2.5, 2));
+    }
+
+    #[test]
+    fn integers() {
+        assert_eq!(cast::<_, u32>(3.7f32), 3);
+        assert_eq!(cast::<_, i32>(-3.7f64), -3);
+        assert_eq!(cast::<_, f32>(3u32), 3.0);
+        assert_eq!(cast::<_, usize>(3u32), 3);
+        assert_eq!(cast::<_, i64>(-3i32), -3);
+        assert_eq!(cast::<_, u32>(true), 1);
+        assert_eq!(adj_cast::<_, u32>(3.7f32, 5), 0.0);
+        assert_eq!(tan_cast::<_, u32>(3.7f32, 1.0), 0);
+        assert_eq!(adj_cast::<_, f64>(3u32, 1.0), 0);
+        assert_eq!(tan_cast::<_, f64>(3u32, 1), 0.0);
+        assert_eq!(adj_cast::<_, usize>(3u32, 1), 0);
+    }
+}

@@ -6,26 +6,6 @@ use nalgebra::{Matrix2, Matrix3, Quaternion, Vector2, Vector3, Vector4};
 
 use crate::{Real, Value};
 
-/// A matrix index `(row, col)` is an index value like `usize`: no differentiable components,
-/// so its adjoint stays zero and accumulating into it does nothing. (It lives here, next to the
-/// only builtins that take it; it belongs with the other index values in `value.rs`.)
-impl Value for (usize, usize) {
-    const DIM: usize = 0;
-    #[inline(always)]
-    fn zeroed() -> Self {
-        (0, 0)
-    }
-    #[inline(always)]
-    fn acc(&mut self, _: Self) {}
-    #[inline(always)]
-    fn acc_neg(&mut self, _: Self) {}
-    fn component(&self, _: usize) -> f64 {
-        panic!("index values have no differentiable components")
-    }
-    fn set_component(&mut self, _: usize, _: f64) {
-        panic!("index values have no differentiable components")
-    }
-}
 
 /// Component access of a value with index type `K`: vectors and quaternions by `usize`
 /// (quaternions in storage order x, y, z, w), matrices by `(row, col)`, and arrays `[T; N]`.
