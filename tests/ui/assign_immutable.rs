@@ -1,0 +1,11 @@
+use adflex::prelude::*;
+
+#[diff_kernel]
+fn k(x: &Array<f32>, y: &Array<f32>) {
+    let t = tid();
+    let a = x[t];
+    a = a * 2.0;
+    y[t] = a;
+}
+
+fn main() {}

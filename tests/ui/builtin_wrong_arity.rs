@@ -1,0 +1,10 @@
+use adflex::prelude::*;
+
+#[diff_kernel]
+fn k(x: &Array<Vec3>, y: &Array<f32>) {
+    let t = tid();
+    let a = x[t];
+    y[t] = dot(a);
+}
+
+fn main() {}

@@ -1,0 +1,10 @@
+use adflex::prelude::*;
+
+#[diff_kernel]
+fn k(x: &Array<f32>, y: &Array<f32>) {
+    let t = tid();
+    println!("{}", x[t]);
+    y[t] = x[t];
+}
+
+fn main() {}

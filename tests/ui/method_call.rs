@@ -1,0 +1,10 @@
+use adflex::prelude::*;
+
+#[diff_kernel]
+fn k(x: &Array<Vec3>, y: &Array<f32>) {
+    let t = tid();
+    let v = x[t];
+    y[t] = v.norm();
+}
+
+fn main() {}

@@ -1,0 +1,11 @@
+use adflex::prelude::*;
+
+#[diff_kernel]
+fn k(x: &Array<f32>, y: &Array<f32>) {
+    let t = tid();
+    let a = x[t];
+    let r = &a;
+    y[t] = a;
+}
+
+fn main() {}
