@@ -1,0 +1,12 @@
+#![allow(unused_imports)]
+use adflex_macros::{diff_func, diff_kernel};
+use adflex_runtime::prelude::*;
+
+#[diff_kernel]
+fn k(x: &Array<f32>, y: &Array<f32>) {
+    let t = tid();
+    let pair = (x[t], 2.0);
+    y[t] = x[t];
+}
+
+fn main() {}

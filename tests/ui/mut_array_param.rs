@@ -1,9 +1,0 @@
-use adflex::prelude::*;
-
-#[diff_kernel]
-fn k(x: &Array<f32>, y: &mut Array<f32>) {
-    let t = tid();
-    y[t] = x[t];
-}
-
-fn main() {}
