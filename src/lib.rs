@@ -15,9 +15,10 @@ pub use adflex_macros::{diff_func, diff_kernel};
 pub use adflex_runtime as runtime;
 pub use adflex_runtime::math;
 
-/// `use adflex::prelude::*;` brings the macros, the types, the math builtins, arrays, launches
-/// and the tape.
+/// `use adflex::prelude::*;` brings the macros, the types, the math builtins, arrays, launches,
+/// the tape, and the physics library's builder, model, state and integrators.
 pub mod prelude {
+    pub use adflex_kernels::prelude::*;
     pub use adflex_macros::{diff_func, diff_kernel};
     pub use adflex_runtime::prelude::*;
 }

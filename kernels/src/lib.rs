@@ -1,1 +1,57 @@
-//! physics kernels
+//! Physics kernels of adflex, written with `#[diff_kernel]`: forces (springs, dihedral bending,
+//! triangle and tetrahedral FEM, drag and wind), contact (ground, particle-particle, analytic
+//! shapes), rigid bodies, XPBD constraints, integrators, and the model builder.
+//!
+//! A [`ModelBuilder`] describes a scene; [`ModelBuilder::finalize`] turns it into a [`Model`]
+//! that holds arrays only for what the scene contains, and whose [`Model::eval_forces`]
+//! launches only the kernels the scene needs. An [`Integrator`] steps a [`State`] on a
+//! [`Tape`](adflex_runtime::Tape), writing new state arrays every step, so the whole rollout
+//! can be differentiated with `tape.backward`.
+//!
+//! Units are SI throughout: metres, seconds, kilograms, newtons. Every kernel is generic over
+//! the scalar `R: Real`, so a scene runs in `f32` for speed and in `f64` for gradient checks.
+//!
+//! ```
+//! use adflex_kernels::prelude::*;
+//! use adflex_runtime::{Tape, Vec3};
+//!
+//! // Two particles joined by a spring, one pinned, falling onto the ground.
+//! let mut b = ModelBuilder::<f64>::new();
+//! let a = b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 0.0);
+//! let c = b.add_particle(Vec3::new(0.5, 1.0, 0.0), Vec3::zeros(), 1.0);
+//! b.add_spring(a, c, 100.0, 0.1);
+//! b.set_ground(Ground::default());
+//! let model = b.finalize();
+//! let mut tape = Tape::new();
+//! let mut state = model.state();
+//! for _ in 0..10 {
+//!     state = SemiImplicitEuler.step(&model, &mut tape, &state, None, 1e-3);
+//! }
+//! assert!(state.x.get(1).y < 1.0);
+//! ```
+
+#![warn(missing_docs)]
+
+pub mod contact;
+pub mod forces;
+pub mod integrators;
+pub mod model;
+pub mod rigid;
+pub mod scene_file;
+pub mod scenes;
+pub mod xpbd;
+
+pub use integrators::{Integrator, SemiImplicitEuler};
+pub use model::{BodyState, Control, Model, ModelBuilder, State};
+
+/// The builder, model, state, integrators and component types in one import.
+pub mod prelude {
+    pub use crate::contact::ground::Ground;
+    pub use crate::contact::particle::ParticleContact;
+    pub use crate::contact::shapes::{Shape, ShapeKind};
+    pub use crate::forces::bending::RestAngle;
+    pub use crate::forces::particle::Drag;
+    pub use crate::integrators::{ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd};
+    pub use crate::model::{BodyState, Control, Model, ModelBuilder, State};
+    pub use crate::scenes::cloth::ClothGrid;
+}

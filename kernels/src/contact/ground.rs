@@ -1,0 +1,120 @@
+//! Penalty contact of particles with a ground plane, with dFlex's smoothed Coulomb friction,
+//! and an optional "leaky" gradient that lets optimizers see contacts that are not active yet.
+
+use adflex_macros::{diff_func, diff_kernel};
+use adflex_runtime::prelude::*;
+
+/// Penetration depth `min(d, 0)` (m) with a leaky derivative: `1` for `d < 0` (in contact),
+/// `leak` for `d >= 0` (out of contact, where the true derivative is 0).
+///
+/// The forward value is exactly `min(d, 0)`; only the adjoint and tangent differ. With
+/// `leak = 0` the derivative is the exact one (`min`'s tie at `d = 0` goes to the constant, so
+/// 0 there). A small leak (e.g. 0.01: a contact 1 cm away pulls with 1% of the stiffness)
+/// gives a nonzero gradient for a particle above the ground, the standard remedy for the
+/// vanishing gradients of penalty contact (cf. "leaky" contact in DiffTaichi/gradSim). The
+/// gradient is then not the derivative of the simulation: gradient checks must use `leak = 0`.
+#[diff_func(adjoint = contact_depth_adjoint, tangent = contact_depth_tangent)]
+pub fn contact_depth<R: Real>(d: R, leak: R) -> R {
+    min(d, 0.0)
+}
+
+/// The slope [`contact_depth`] uses in place of the derivative of `min(d, 0)`.
+#[inline]
+pub fn contact_depth_slope<R: Real>(d: R, leak: R) -> R {
+    if d < R::lit(0.0) {
+        R::lit(1.0)
+    } else {
+        leak
+    }
+}
+
+/// Adjoint of [`contact_depth`] (the leak factor itself gets no gradient).
+pub fn contact_depth_adjoint<R: Real>(d: R, leak: R, adj: R) -> (R, R) {
+    (contact_depth_slope(d, leak) * adj, R::lit(0.0))
+}
+
+/// Tangent of [`contact_depth`].
+pub fn contact_depth_tangent<R: Real>(d: R, leak: R, dd: R, _dleak: R) -> R {
+    contact_depth_slope(d, leak) * dd
+}
+
+/// Penalty contact force of a point against a surface of unit normal `n`: the force the point
+/// receives, `-(fn + fd - ft)` with `c` the (non-positive) penetration depth (m), `v` the
+/// point's velocity relative to the surface (m/s):
+/// `fn = n c ke`, `fd = n min(v.n, 0) kd`, `ft = vt (mu c ke / (|vt| + 0.01))` with
+/// `vt = v - n (v.n)`; `ke` (N/m), `kd` (N s/m), `mu` (friction coefficient).
+///
+/// As in dFlex, the damping `fd` acts whenever the point approaches the surface, even out of
+/// contact; the friction is Coulomb's `mu |fn|` smoothed near `vt = 0` (so `|vt| = 0` is
+/// regular: `length`'s gradient there is 0).
+#[diff_func]
+pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R) -> Vec3<R> {
+    let vn = dot(n, v);
+    let vt = v - n * vn;
+    let fnormal = n * c * ke;
+    let fd = n * min(vn, 0.0) * kd;
+    let ft = vt * (mu * c * ke / (length(vt) + 0.01));
+    (fnormal + fd - ft) * -1.0
+}
+
+/// Ground contact of particle `tid`: the plane `dot(normal, x) = offset` (m), particles of
+/// radius `radius` (m); `c = contact_depth(dot(normal, x) - offset - radius, leak)` and
+/// `f += contact_force(normal, c, v, ke, kd, mu)`.
+#[diff_kernel]
+pub fn eval_ground<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    normal: Vec3<R>,
+    offset: R,
+    radius: R,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let c = contact_depth(dot(normal, x[t]) - offset - radius, leak);
+    f.atomic_add(t, contact_force(normal, c, v[t], ke, kd, mu));
+}
+
+/// A ground plane for particle (and rigid body point) contact.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ground<R: Real> {
+    /// Unit normal, pointing out of the ground (default `+y`).
+    pub normal: Vec3<R>,
+    /// The plane is `dot(normal, x) = offset` (m; default 0).
+    pub offset: R,
+    /// Contact stiffness (N/m; default 1000).
+    pub ke: R,
+    /// Contact damping (N s/m; default 1).
+    pub kd: R,
+    /// Friction coefficient (default 0.5).
+    pub mu: R,
+    /// Gradient leak of [`contact_depth`] out of contact (default 0: exact gradients).
+    pub leak: R,
+}
+
+impl<R: Real> Default for Ground<R> {
+    fn default() -> Self {
+        Ground {
+            normal: Vec3::new(R::lit(0.0), R::lit(1.0), R::lit(0.0)),
+            offset: R::lit(0.0),
+            ke: R::lit(1000.0),
+            kd: R::lit(1.0),
+            mu: R::lit(0.5),
+            leak: R::lit(0.0),
+        }
+    }
+}
+
+impl<R: Real> Ground<R> {
+    /// Records [`eval_ground`] for particles of radius `radius` (m), accumulating into `f`.
+    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, radius: R, f: &Array<Vec3<R>>) {
+        tape.launch(
+            eval_ground,
+            x.len(),
+            (x, v, self.normal, self.offset, radius, self.ke, self.kd, self.mu, self.leak, f),
+        );
+    }
+}

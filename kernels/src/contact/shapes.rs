@@ -1,0 +1,175 @@
+//! Contact of particles with static analytic shapes given by signed distance functions:
+//! sphere, box, capsule. Each shape has a position and an orientation (both arrays, so they can
+//! be gradient targets); the SDF and its outward normal are evaluated in the shape's frame.
+
+use adflex_macros::{diff_func, diff_kernel};
+use adflex_runtime::prelude::*;
+
+use super::ground::{contact_depth, contact_force};
+
+/// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
+/// with `n` the outward normal (zero at the centre).
+#[diff_func]
+pub fn sdf_sphere<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
+    let n = normalize(p);
+    vec4(n.x, n.y, n.z, length(p) - size.x)
+}
+
+/// SDF of a box of half-extents `size` (m) centred at the origin, packed like [`sdf_sphere`].
+/// Outside, the normal points from the closest point of the box; inside, along the axis of the
+/// closest face.
+#[diff_func]
+pub fn sdf_box<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
+    let qx = abs(p.x) - size.x;
+    let qy = abs(p.y) - size.y;
+    let qz = abs(p.z) - size.z;
+    let qo = vec3(max(qx, 0.0), max(qy, 0.0), max(qz, 0.0));
+    let outside = length(qo);
+    let d = outside + min(max(qx, max(qy, qz)), 0.0);
+    if outside > 0.0 {
+        let no = normalize(qo);
+        return vec4(no.x * sign(p.x), no.y * sign(p.y), no.z * sign(p.z), d);
+    }
+    if qx >= qy && qx >= qz {
+        return vec4(sign(p.x), 0.0, 0.0, d);
+    }
+    if qy >= qz {
+        return vec4(0.0, sign(p.y), 0.0, d);
+    }
+    vec4(0.0, 0.0, sign(p.z), d)
+}
+
+/// SDF of a capsule of radius `size.x` around the segment from `(-size.y, 0, 0)` to
+/// `(size.y, 0, 0)` (m), packed like [`sdf_sphere`].
+#[diff_func]
+pub fn sdf_capsule<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
+    let h = size.y;
+    let s = clamp(p.x, 0.0 - h, h);
+    let dv = p - vec3(s, 0.0, 0.0);
+    let n = normalize(dv);
+    vec4(n.x, n.y, n.z, length(dv) - size.x)
+}
+
+/// Contact of particle `tid / num_shapes` with shape `tid % num_shapes`: kind 0 sphere, 1 box,
+/// 2 capsule (sizes as in [`sdf_sphere`], [`sdf_box`], [`sdf_capsule`]). With `(n, d)` the SDF
+/// at the particle and `c = contact_depth(d - radius, leak)`, the particle gets
+/// `contact_force(n, c, v, ke, kd [c < 0], mu)` (damping only in contact).
+#[diff_kernel]
+pub fn eval_shape_contact<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    kind: &Array<u32>,
+    pos: &Array<Vec3<R>>,
+    rot: &Array<Quat<R>>,
+    size: &Array<Vec3<R>>,
+    num_shapes: usize,
+    radius: R,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let p = t / num_shapes;
+    let s = t % num_shapes;
+    let k = kind[s];
+    let q = rot[s];
+    let pl = quat_rotate_inv(q, x[p] - pos[s]);
+    let sz = size[s];
+    let mut g = sdf_sphere(pl, sz);
+    if k == 1 {
+        g = sdf_box(pl, sz);
+    } else if k == 2 {
+        g = sdf_capsule(pl, sz);
+    }
+    let n = quat_rotate(q, vec3(g.x, g.y, g.z));
+    let c = contact_depth(g.w - radius, leak);
+    let kdc = select(c < 0.0, kd, 0.0);
+    f.atomic_add(p, contact_force(n, c, v[p], ke, kdc, mu));
+}
+
+/// The geometry of an analytic shape.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ShapeKind<R: Real> {
+    /// A ball.
+    Sphere {
+        /// Radius (m).
+        radius: R,
+    },
+    /// A box.
+    Box {
+        /// Half the side lengths along the shape's axes (m).
+        half_extents: Vec3<R>,
+    },
+    /// A capsule along the shape's x axis.
+    Capsule {
+        /// Radius (m).
+        radius: R,
+        /// Half the length of the axis segment (m).
+        half_length: R,
+    },
+}
+
+impl<R: Real> ShapeKind<R> {
+    /// The kind code and size vector the kernel takes.
+    pub fn code(&self) -> (u32, Vec3<R>) {
+        let z = R::lit(0.0);
+        match *self {
+            ShapeKind::Sphere { radius } => (0, Vec3::new(radius, z, z)),
+            ShapeKind::Box { half_extents } => (1, half_extents),
+            ShapeKind::Capsule { radius, half_length } => (2, Vec3::new(radius, half_length, z)),
+        }
+    }
+}
+
+/// A static analytic shape in the world.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Shape<R: Real> {
+    /// Geometry.
+    pub kind: ShapeKind<R>,
+    /// Position of the shape's origin (m).
+    pub pos: Vec3<R>,
+    /// Orientation (unit quaternion).
+    pub rot: Quat<R>,
+}
+
+impl<R: Real> Shape<R> {
+    /// A shape at `pos` with the identity orientation.
+    pub fn new(kind: ShapeKind<R>, pos: Vec3<R>) -> Self {
+        Shape { kind, pos, rot: Quat::identity() }
+    }
+}
+
+/// The shapes of a model and the contact parameters they share.
+#[derive(Clone, Debug)]
+pub struct Shapes<R: Real> {
+    /// Kind code per shape (0 sphere, 1 box, 2 capsule).
+    pub kind: Array<u32>,
+    /// Position (m).
+    pub pos: Array<Vec3<R>>,
+    /// Orientation (unit quaternion).
+    pub rot: Array<Quat<R>>,
+    /// Size vector (m), see [`ShapeKind::code`].
+    pub size: Array<Vec3<R>>,
+    /// Contact stiffness (N/m).
+    pub ke: R,
+    /// Contact damping (N s/m).
+    pub kd: R,
+    /// Friction coefficient.
+    pub mu: R,
+    /// Gradient leak out of contact; 0 = exact.
+    pub leak: R,
+}
+
+impl<R: Real> Shapes<R> {
+    /// Records [`eval_shape_contact`] for every (particle, shape) pair, accumulating into `f`.
+    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, radius: R, f: &Array<Vec3<R>>) {
+        let ns = self.kind.len();
+        tape.launch(
+            eval_shape_contact,
+            x.len() * ns,
+            (x, v, &self.kind, &self.pos, &self.rot, &self.size, ns, radius, self.ke, self.kd, self.mu, self.leak, f),
+        );
+    }
+}

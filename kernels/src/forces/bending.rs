@@ -1,0 +1,153 @@
+//! Dihedral bending between pairs of triangles sharing an edge: dFlex's bending force, the
+//! same as `eval_bending` of NVIDIA Warp (Bridson et al. 2003 style gradients of the dihedral
+//! angle).
+
+use std::collections::HashMap;
+
+use adflex_macros::{diff_func, diff_kernel};
+use adflex_runtime::prelude::*;
+
+/// `-1` if `a < 0`, else `1` (zero derivative). Warp's `sign`: unlike [`sign`] it is `1` at
+/// zero, which matters for a flat cloth, whose `cos_theta` may round to just below 1 while
+/// the sign test is exactly 0.
+#[diff_func]
+pub fn sign_nonzero<R: Real>(a: R) -> R {
+    select(a < 0.0, -1.0, 1.0)
+}
+
+/// Accumulates the bending force of element `tid` into `f`.
+///
+/// Element `(i, j, k, l)`: `i`, `j` the vertices opposite the shared edge, `k`, `l` the edge.
+/// The angle is `acos(clamp(cos_theta, -1, 1))` signed by `dot(cross(n2, n1), e_hat)`;
+/// `ke` (N m/rad) and `kd` (N m s/rad) are the stiffness and damping, `rest` (rad) the rest
+/// angle. An element with a degenerate triangle (zero normal) exerts no force.
+#[diff_kernel]
+pub fn eval_bending<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    quads: &Array<[u32; 4]>,
+    rest: &Array<R>,
+    ke: &Array<R>,
+    kd: &Array<R>,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let [i, j, k, l] = quads[t];
+    let x1 = x[i];
+    let x2 = x[j];
+    let x3 = x[k];
+    let x4 = x[l];
+    let n1 = cross(x3 - x1, x4 - x1);
+    let n2 = cross(x4 - x2, x3 - x2);
+    let n1_length = length(n1);
+    let n2_length = length(n2);
+    if n1_length <= 0.0 || n2_length <= 0.0 {
+        return;
+    }
+    let rcp_n1 = 1.0 / n1_length;
+    let rcp_n2 = 1.0 / n2_length;
+    let cos_theta = dot(n1, n2) * rcp_n1 * rcp_n2;
+    let m1 = n1 * rcp_n1 * rcp_n1;
+    let m2 = n2 * rcp_n2 * rcp_n2;
+    let e = x4 - x3;
+    let e_hat = normalize(e);
+    let e_length = length(e);
+    let s = sign_nonzero(dot(cross(m2, m1), e_hat));
+    let angle = acos(clamp(cos_theta, -1.0, 1.0)) * s;
+    let d1 = m1 * e_length;
+    let d2 = m2 * e_length;
+    let d3 = m1 * dot(x1 - x4, e_hat) + m2 * dot(x2 - x4, e_hat);
+    let d4 = m1 * dot(x3 - x1, e_hat) + m2 * dot(x3 - x2, e_hat);
+    let f_elastic = ke[t] * (angle - rest[t]);
+    let f_damp = kd[t] * (dot(d1, v[i]) + dot(d2, v[j]) + dot(d3, v[k]) + dot(d4, v[l]));
+    let f_total = 0.0 - e_length * (f_elastic + f_damp);
+    f.atomic_add(i, d1 * f_total);
+    f.atomic_add(j, d2 * f_total);
+    f.atomic_add(k, d3 * f_total);
+    f.atomic_add(l, d4 * f_total);
+}
+
+/// The bending elements of a model.
+#[derive(Clone, Debug)]
+pub struct Bending<R: Real> {
+    /// `(o1, o2, e0, e1)`: the two opposite vertices, then the shared edge.
+    pub quads: Array<[u32; 4]>,
+    /// Rest angle (rad).
+    pub rest: Array<R>,
+    /// Stiffness (N m/rad).
+    pub ke: Array<R>,
+    /// Damping (N m s/rad).
+    pub kd: Array<R>,
+}
+
+impl<R: Real> Bending<R> {
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        self.quads.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.quads.is_empty()
+    }
+
+    /// Records [`eval_bending`] on `tape`, accumulating into `f`.
+    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+        tape.launch(eval_bending, self.len(), (x, v, &self.quads, &self.rest, &self.ke, &self.kd, f));
+    }
+}
+
+/// The rest angle given to new bending elements.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum RestAngle {
+    /// Zero: the rest shape is flat (the `cloth` benchmark scene).
+    #[default]
+    Flat,
+    /// The dihedral angle of the initial positions.
+    Initial,
+}
+
+/// Every edge shared by two triangles, as `(o1, o2, e0, e1)`, in the order of dFlex and of
+/// `warp_cloth_scene.py`: edges in order of first appearance (triangle by triangle, edges
+/// `(t0,t1)`, `(t1,t2)`, `(t2,t0)`), the edge's vertices in the orientation of the first
+/// triangle that has it, `o1` opposite in that triangle. Edges on one triangle only (the
+/// boundary) and on more than two (non-manifold) get no element.
+pub fn bending_edges(triangles: &[[u32; 3]]) -> Vec<[u32; 4]> {
+    // (first-seen order, [(opposite, u, w)]) per undirected edge
+    let mut order: Vec<(u32, u32)> = Vec::new();
+    let mut map: HashMap<(u32, u32), Vec<[u32; 3]>> = HashMap::new();
+    for t in triangles {
+        for e in 0..3 {
+            let (u, w, o) = (t[e], t[(e + 1) % 3], t[(e + 2) % 3]);
+            let key = (u.min(w), u.max(w));
+            let list = map.entry(key).or_insert_with(|| {
+                order.push(key);
+                Vec::new()
+            });
+            list.push([o, u, w]);
+        }
+    }
+    order
+        .iter()
+        .filter_map(|key| {
+            let l = &map[key];
+            (l.len() == 2).then(|| [l[0][0], l[1][0], l[0][1], l[0][2]])
+        })
+        .collect()
+}
+
+/// The dihedral angle of element `(o1, o2, e0, e1)` at positions `x`, as [`eval_bending`]
+/// computes it (in f64 on the host; rad).
+pub fn dihedral_angle(x: &[Vec3<f64>], q: [u32; 4]) -> f64 {
+    let [x1, x2, x3, x4] = q.map(|i| x[i as usize]);
+    let n1 = (x3 - x1).cross(&(x4 - x1));
+    let n2 = (x4 - x2).cross(&(x3 - x2));
+    let (l1, l2) = (n1.norm(), n2.norm());
+    if l1 == 0.0 || l2 == 0.0 {
+        return 0.0;
+    }
+    let c = (n1.dot(&n2) / (l1 * l2)).clamp(-1.0, 1.0);
+    let e = (x4 - x3).normalize();
+    let s = if n2.cross(&n1).dot(&e) < 0.0 { -1.0 } else { 1.0 };
+    c.acos() * s
+}

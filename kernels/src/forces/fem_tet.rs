@@ -1,0 +1,172 @@
+//! Tetrahedra: the stable Neo-Hookean model of Smith, de Goes and Kim (2018), with a
+//! per-element activation (muscle-like volumetric actuation, a gradient target) and damping.
+//!
+//! Energy density, with `F = Ds Dm^-1`, `Ic = tr(F^T F)`, `J = det F`:
+//! `psi = mu/2 (Ic - 3) + lambda/2 (J - alpha + a)^2 - mu/2 ln(Ic + 1)` with
+//! `alpha = 1 + 3 mu / (4 lambda)`, which makes the rest shape stress-free (dFlex uses
+//! `alpha = 1 + mu / lambda`, not quite at rest); `a` is the activation: it moves the volume
+//! the element rests at (`J = alpha - a` for the volumetric term; `a > 0` contracts). Forces are
+//! `-V0 dpsi/dx`, plus damping `kd dF/dt` in the stress and `kd dJ/dt` in the volume term.
+//! `mu`, `lambda` are the model's own parameters (Pa); [`snh_lame`] maps Young's modulus and
+//! Poisson's ratio to them as in the paper.
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+/// Accumulates the force of tetrahedron `tid` into `f`. `mu`, `lambda` (Pa), `kd` (Pa s),
+/// `activation` (dimensionless, 0 = passive).
+#[diff_kernel]
+pub fn eval_tetrahedra<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    tets: &Array<[u32; 4]>,
+    dm_inv: &Array<Mat33<R>>,
+    rest_volume: &Array<R>,
+    mu: &Array<R>,
+    lambda: &Array<R>,
+    kd: &Array<R>,
+    activation: &Array<R>,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let [i, j, k, l] = tets[t];
+    let x0 = x[i];
+    let v0 = v[i];
+    let x10 = x[j] - x0;
+    let x20 = x[k] - x0;
+    let x30 = x[l] - x0;
+    let v10 = v[j] - v0;
+    let v20 = v[k] - v0;
+    let v30 = v[l] - v0;
+    let dm = dm_inv[t];
+    let ff = mat33_cols(x10, x20, x30) * dm;
+    let dfdt = mat33_cols(v10, v20, v30) * dm;
+    let m = mu[t];
+    let la = lambda[t];
+    let c = kd[t];
+    let ic = ddot(ff, ff);
+    let alpha = 1.0 + 0.75 * m / la;
+    // Deviatoric part: P = mu F (1 - 1/(Ic + 1)) + kd dF/dt, forces -V0 P Dm^-T.
+    let p = ff * (m * (1.0 - 1.0 / (ic + 1.0))) + dfdt * c;
+    let h = p * transpose(dm);
+    // Volumetric part: dJ/dx_a from the cross products of the edges (J = det(Ds) det(Dm^-1)).
+    let s = determinant(dm);
+    let dj1 = cross(x20, x30) * s;
+    let dj2 = cross(x30, x10) * s;
+    let dj3 = cross(x10, x20) * s;
+    let jac = determinant(ff);
+    let jdot = dot(dj1, v10) + dot(dj2, v20) + dot(dj3, v30);
+    let fv = la * (jac - alpha + activation[t]) + c * jdot;
+    let vol = rest_volume[t];
+    let f1 = (h * vec3(1.0, 0.0, 0.0) + dj1 * fv) * vol;
+    let f2 = (h * vec3(0.0, 1.0, 0.0) + dj2 * fv) * vol;
+    let f3 = (h * vec3(0.0, 0.0, 1.0) + dj3 * fv) * vol;
+    f.atomic_sub(j, f1);
+    f.atomic_sub(k, f2);
+    f.atomic_sub(l, f3);
+    f.atomic_add(i, f1 + f2 + f3);
+}
+
+/// Elastic energy of tetrahedron `tid`, `V0 psi` (J), added to `energy[0]`.
+#[diff_kernel]
+pub fn tetrahedron_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    tets: &Array<[u32; 4]>,
+    dm_inv: &Array<Mat33<R>>,
+    rest_volume: &Array<R>,
+    mu: &Array<R>,
+    lambda: &Array<R>,
+    activation: &Array<R>,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let [i, j, k, l] = tets[t];
+    let x0 = x[i];
+    let ff = mat33_cols(x[j] - x0, x[k] - x0, x[l] - x0) * dm_inv[t];
+    let m = mu[t];
+    let la = lambda[t];
+    let ic = ddot(ff, ff);
+    let alpha = 1.0 + 0.75 * m / la;
+    let dj = determinant(ff) - alpha + activation[t];
+    let psi = 0.5 * m * (ic - 3.0) + 0.5 * la * dj * dj - 0.5 * m * ln(ic + 1.0);
+    energy.atomic_add(0, rest_volume[t] * psi);
+}
+
+/// The tetrahedra of a model.
+#[derive(Clone, Debug)]
+pub struct TetFem<R: Real> {
+    /// Particle indices (positively oriented at rest).
+    pub tets: Array<[u32; 4]>,
+    /// Inverse rest edge matrix (1/m).
+    pub dm_inv: Array<Mat33<R>>,
+    /// Rest volume (m^3).
+    pub rest_volume: Array<R>,
+    /// Stable Neo-Hookean `mu` (Pa).
+    pub mu: Array<R>,
+    /// Stable Neo-Hookean `lambda` (Pa).
+    pub lambda: Array<R>,
+    /// Damping (Pa s).
+    pub kd: Array<R>,
+    /// Default activation (used when the control gives none; zeros unless set).
+    pub activation: Array<R>,
+}
+
+impl<R: Real> TetFem<R> {
+    /// Number of tetrahedra.
+    pub fn len(&self) -> usize {
+        self.tets.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.tets.is_empty()
+    }
+
+    /// Records [`eval_tetrahedra`] with `activation` (or the default), accumulating into `f`.
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        activation: Option<&Array<R>>,
+        f: &Array<Vec3<R>>,
+    ) {
+        let act = activation.unwrap_or(&self.activation);
+        tape.launch(
+            eval_tetrahedra,
+            self.len(),
+            (x, v, &self.tets, &self.dm_inv, &self.rest_volume, &self.mu, &self.lambda, &self.kd, act, f),
+        );
+    }
+
+    /// Records [`tetrahedron_energy`], adding into `energy[0]`.
+    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, activation: Option<&Array<R>>, energy: &Array<R>) {
+        let act = activation.unwrap_or(&self.activation);
+        tape.launch(
+            tetrahedron_energy,
+            self.len(),
+            (x, &self.tets, &self.dm_inv, &self.rest_volume, &self.mu, &self.lambda, act, energy),
+        );
+    }
+}
+
+/// Stable Neo-Hookean parameters `(mu, lambda)` (Pa) for Young's modulus `young` (Pa) and
+/// Poisson's ratio `poisson`: the Lame parameters reparametrized as in Smith et al. 2018
+/// (sec. 3.4), `mu' = 4/3 mu`, `lambda' = lambda + 5/6 mu`, so that small deformations match
+/// linear elasticity.
+pub fn snh_lame(young: f64, poisson: f64) -> (f64, f64) {
+    let mu = young / (2.0 * (1.0 + poisson));
+    let lambda = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson));
+    (4.0 / 3.0 * mu, lambda + 5.0 / 6.0 * mu)
+}
+
+/// Rest data of a tetrahedron with corners `p` (m): the inverse rest edge matrix and the rest
+/// volume, which is negative if the corners are negatively oriented. `None` if degenerate.
+pub fn tet_rest(p: [Vec3<f64>; 4]) -> Option<(Mat33<f64>, f64)> {
+    let dm = Mat33::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
+    let vol = dm.determinant() / 6.0;
+    if vol == 0.0 || !vol.is_finite() {
+        return None;
+    }
+    Some((dm.try_inverse()?, vol))
+}

@@ -1,0 +1,155 @@
+//! Triangle membranes: St. Venant-Kirchhoff on the 2D Green strain of each triangle, with
+//! viscous damping of the strain rate.
+//!
+//! Each triangle keeps the inverse of its rest edge matrix `Dm` (2x2, in a frame of its rest
+//! plane) and its rest area `A`. With `e1 = x_j - x_i`, `e2 = x_k - x_i`, the deformation
+//! gradient is the 3x2 matrix `F = [e1 e2] Dm^-1` (held as its two columns), the Green strain
+//! `E = (F^T F - I) / 2`, the energy `A (mu E:E + lambda/2 tr(E)^2)`, the second Piola stress
+//! `S = 2 mu E + lambda tr(E) I + kd dE/dt`, and the forces `-A F S Dm^-T`.
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+/// Accumulates the membrane force of triangle `tid` into `f`. `mu`, `lambda` (Pa m, i.e.
+/// N/m: 2D Lame parameters), `kd` (N s/m: strain-rate damping).
+#[diff_kernel]
+pub fn eval_triangles<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    tris: &Array<[u32; 3]>,
+    dm_inv: &Array<Mat22<R>>,
+    area: &Array<R>,
+    mu: &Array<R>,
+    lambda: &Array<R>,
+    kd: &Array<R>,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let [i, j, k] = tris[t];
+    let e1 = x[j] - x[i];
+    let e2 = x[k] - x[i];
+    let u1 = v[j] - v[i];
+    let u2 = v[k] - v[i];
+    let d = dm_inv[t];
+    let d00 = d[(0, 0)];
+    let d01 = d[(0, 1)];
+    let d10 = d[(1, 0)];
+    let d11 = d[(1, 1)];
+    // Columns of F and of dF/dt.
+    let f1 = e1 * d00 + e2 * d10;
+    let f2 = e1 * d01 + e2 * d11;
+    let g1 = u1 * d00 + u2 * d10;
+    let g2 = u1 * d01 + u2 * d11;
+    let e00 = 0.5 * (dot(f1, f1) - 1.0);
+    let e11 = 0.5 * (dot(f2, f2) - 1.0);
+    let e01 = 0.5 * dot(f1, f2);
+    let r00 = dot(f1, g1);
+    let r11 = dot(f2, g2);
+    let r01 = 0.5 * (dot(f1, g2) + dot(g1, f2));
+    let m = mu[t];
+    let la = lambda[t];
+    let c = kd[t];
+    let tr = e00 + e11;
+    let s00 = 2.0 * m * e00 + la * tr + c * r00;
+    let s11 = 2.0 * m * e11 + la * tr + c * r11;
+    let s01 = 2.0 * m * e01 + c * r01;
+    // P = F S (columns), forces on j and k: -A P Dm^-T.
+    let p1 = f1 * s00 + f2 * s01;
+    let p2 = f1 * s01 + f2 * s11;
+    let a = area[t];
+    let fj = (p1 * d00 + p2 * d01) * a;
+    let fk = (p1 * d10 + p2 * d11) * a;
+    f.atomic_sub(j, fj);
+    f.atomic_sub(k, fk);
+    f.atomic_add(i, fj + fk);
+}
+
+/// Elastic energy of triangle `tid`, `A (mu E:E + lambda/2 tr(E)^2)` (J), added to
+/// `energy[0]`.
+#[diff_kernel]
+pub fn triangle_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    tris: &Array<[u32; 3]>,
+    dm_inv: &Array<Mat22<R>>,
+    area: &Array<R>,
+    mu: &Array<R>,
+    lambda: &Array<R>,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let [i, j, k] = tris[t];
+    let e1 = x[j] - x[i];
+    let e2 = x[k] - x[i];
+    let d = dm_inv[t];
+    let f1 = e1 * d[(0, 0)] + e2 * d[(1, 0)];
+    let f2 = e1 * d[(0, 1)] + e2 * d[(1, 1)];
+    let e00 = 0.5 * (dot(f1, f1) - 1.0);
+    let e11 = 0.5 * (dot(f2, f2) - 1.0);
+    let e01 = 0.5 * dot(f1, f2);
+    let tr = e00 + e11;
+    let psi = mu[t] * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * lambda[t] * tr * tr;
+    energy.atomic_add(0, area[t] * psi);
+}
+
+/// The FEM triangles of a model.
+#[derive(Clone, Debug)]
+pub struct TriangleFem<R: Real> {
+    /// Particle indices.
+    pub tris: Array<[u32; 3]>,
+    /// Inverse rest edge matrix (1/m).
+    pub dm_inv: Array<Mat22<R>>,
+    /// Rest area (m^2).
+    pub area: Array<R>,
+    /// First Lame parameter of the membrane (N/m).
+    pub mu: Array<R>,
+    /// Second Lame parameter of the membrane (N/m).
+    pub lambda: Array<R>,
+    /// Strain-rate damping (N s/m).
+    pub kd: Array<R>,
+}
+
+impl<R: Real> TriangleFem<R> {
+    /// Number of triangles.
+    pub fn len(&self) -> usize {
+        self.tris.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.tris.is_empty()
+    }
+
+    /// Records [`eval_triangles`], accumulating into `f`.
+    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+        tape.launch(
+            eval_triangles,
+            self.len(),
+            (x, v, &self.tris, &self.dm_inv, &self.area, &self.mu, &self.lambda, &self.kd, f),
+        );
+    }
+
+    /// Records [`triangle_energy`], adding into `energy[0]`.
+    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
+        tape.launch(
+            triangle_energy,
+            self.len(),
+            (x, &self.tris, &self.dm_inv, &self.area, &self.mu, &self.lambda, energy),
+        );
+    }
+}
+
+/// Rest data of a triangle with corners `p0, p1, p2` (m): the inverse of its edge matrix in an
+/// orthonormal frame of its plane (first axis along `p1 - p0`) and its area. `None` if the
+/// triangle is degenerate (zero area).
+pub fn triangle_rest(p0: Vec3<f64>, p1: Vec3<f64>, p2: Vec3<f64>) -> Option<(Mat22<f64>, f64)> {
+    let (e1, e2) = (p1 - p0, p2 - p0);
+    let n = e1.cross(&e2);
+    let area = 0.5 * n.norm();
+    if area <= 0.0 || !area.is_finite() {
+        return None;
+    }
+    let u = e1.normalize();
+    let w = n.cross(&e1).normalize();
+    let dm = Mat22::new(e1.dot(&u), e2.dot(&u), e1.dot(&w), e2.dot(&w));
+    Some((dm.try_inverse()?, area))
+}

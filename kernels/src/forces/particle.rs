@@ -1,0 +1,58 @@
+//! Per-particle forces: linear drag and wind, external (control) forces, and the conversion of
+//! forces to accelerations with gravity.
+//!
+//! Gravity is an acceleration, not a force: integrators add `g` to every particle with inverse
+//! mass > 0 (so pinned particles, of inverse mass 0, stay put), see [`accelerations`].
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+/// Linear drag relative to the air: `f -= kd (v - v_air)` (`kd` in N s/m, `v_air` in m/s).
+/// With `v_air = 0` it is plain linear drag; otherwise wind.
+#[diff_kernel]
+pub fn eval_drag<R: Real>(v: &Array<Vec3<R>>, kd: R, v_air: Vec3<R>, f: &Array<Vec3<R>>) {
+    let t = tid();
+    f.atomic_sub(t, (v[t] - v_air) * kd);
+}
+
+/// Adds the external force `fext[tid]` (N) to `f[tid]`.
+#[diff_kernel]
+pub fn add_forces<R: Real>(fext: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+    let t = tid();
+    f.atomic_add(t, fext[t]);
+}
+
+/// `a = f w + g [w > 0]` (m/s^2), `w` the inverse mass (1/kg), `g` gravity (m/s^2).
+#[diff_kernel]
+pub fn accelerations<R: Real>(f: &Array<Vec3<R>>, inv_mass: &Array<R>, g: Vec3<R>, a: &Array<Vec3<R>>) {
+    let t = tid();
+    let w = inv_mass[t];
+    a[t] = f[t] * w + select(w > 0.0, g, g * 0.0);
+}
+
+/// Gravity as a force, `f += g / w` on particles with `w > 0`: for integrators that want the
+/// total force rather than [`accelerations`].
+#[diff_kernel]
+pub fn add_gravity_force<R: Real>(inv_mass: &Array<R>, g: Vec3<R>, f: &Array<Vec3<R>>) {
+    let t = tid();
+    let w = inv_mass[t];
+    if w > 0.0 {
+        f.atomic_add(t, g / w);
+    }
+}
+
+/// Linear drag / wind on every particle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Drag<R: Real> {
+    /// Drag coefficient (N s/m).
+    pub kd: R,
+    /// Air velocity (m/s): zero for plain drag, nonzero for wind.
+    pub wind: Vec3<R>,
+}
+
+impl<R: Real> Drag<R> {
+    /// Records [`eval_drag`] on `tape`, accumulating into `f`.
+    pub fn eval(&self, tape: &mut Tape, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+        tape.launch(eval_drag, v.len(), (v, self.kd, self.wind, f));
+    }
+}

@@ -1,0 +1,87 @@
+//! Damped springs between particle pairs (Hooke along the spring plus damping of the
+//! relative velocity along it).
+
+use adflex_macros::{diff_func, diff_kernel};
+use adflex_runtime::prelude::*;
+
+/// Force of one damped spring on its second particle (the first gets the opposite).
+///
+/// `xij = x_i - x_j`, `vij = v_i - v_j` (m, m/s); `rest` (m), `ke` (N/m), `kd` (N s/m). The
+/// direction is `normalize(xij)`, which is bitwise `xij / |xij|` except at a zero-length spring,
+/// where the force is zero (and so is its gradient) instead of NaN.
+#[diff_func]
+pub fn spring_force<R: Real>(xij: Vec3<R>, vij: Vec3<R>, rest: R, ke: R, kd: R) -> Vec3<R> {
+    let l = length(xij);
+    let d = normalize(xij);
+    d * (ke * (l - rest) + kd * dot(d, vij))
+}
+
+/// Accumulates the force of spring `tid` into `f`: `f_i -= fs`, `f_j += fs`, with `fs` from
+/// [`spring_force`].
+#[diff_kernel]
+pub fn eval_springs<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    pairs: &Array<[u32; 2]>,
+    rest: &Array<R>,
+    ke: &Array<R>,
+    kd: &Array<R>,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let [i, j] = pairs[t];
+    let fs = spring_force(x[i] - x[j], v[i] - v[j], rest[t], ke[t], kd[t]);
+    f.atomic_sub(i, fs);
+    f.atomic_add(j, fs);
+}
+
+/// Elastic energy of spring `tid`, `ke/2 (|x_i - x_j| - rest)^2` (J), added to `energy[0]`.
+#[diff_kernel]
+pub fn spring_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    pairs: &Array<[u32; 2]>,
+    rest: &Array<R>,
+    ke: &Array<R>,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let [i, j] = pairs[t];
+    let c = length(x[i] - x[j]) - rest[t];
+    energy.atomic_add(0, 0.5 * ke[t] * c * c);
+}
+
+/// The springs of a model: index pairs and per-spring parameters (each array a possible
+/// gradient target).
+#[derive(Clone, Debug)]
+pub struct Springs<R: Real> {
+    /// Particle indices `(i, j)` of each spring.
+    pub pairs: Array<[u32; 2]>,
+    /// Rest length (m).
+    pub rest: Array<R>,
+    /// Stiffness (N/m).
+    pub ke: Array<R>,
+    /// Damping along the spring (N s/m).
+    pub kd: Array<R>,
+}
+
+impl<R: Real> Springs<R> {
+    /// Number of springs.
+    pub fn len(&self) -> usize {
+        self.pairs.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.pairs.is_empty()
+    }
+
+    /// Records [`eval_springs`] on `tape`, accumulating into `f`.
+    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+        tape.launch(eval_springs, self.len(), (x, v, &self.pairs, &self.rest, &self.ke, &self.kd, f));
+    }
+
+    /// Records [`spring_energy`] on `tape`, adding into `energy[0]`.
+    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
+        tape.launch(spring_energy, self.len(), (x, &self.pairs, &self.rest, &self.ke, energy));
+    }
+}

@@ -1,0 +1,41 @@
+//! Pieces shared by the integrators of this crate: the rigid body step (every particle
+//! integrator advances the bodies with the semi-implicit kernel of [`crate::rigid`]) and a
+//! state built from new particle arrays.
+
+use adflex_runtime::{Array, Real, Tape, Vec3};
+
+use crate::model::{BodyState, Control, Model, State};
+
+/// Advances the rigid bodies of `state` (if any) by `dt` (s) with
+/// [`crate::rigid::RigidBodies::integrate`] (semi-implicit Euler), recording on `tape`.
+pub(crate) fn step_bodies<R: Real>(
+    model: &Model<R>,
+    tape: &mut Tape,
+    state: &State<R>,
+    control: Option<&Control<R>>,
+    dt: R,
+) -> Option<BodyState<R>> {
+    let bodies = model.bodies.as_ref()?;
+    let s = state
+        .bodies
+        .as_ref()
+        .expect("the model has rigid bodies but the state has none");
+    let (f, t) = model
+        .eval_body_forces(tape, state, control)
+        .expect("the model has rigid bodies");
+    Some(bodies.integrate(tape, s, &f, &t, model.gravity, dt))
+}
+
+/// A state with particle arrays `x`, `v` and no bodies (for intermediate stages).
+pub(crate) fn particles<R: Real>(x: &Array<Vec3<R>>, v: &Array<Vec3<R>>) -> State<R> {
+    State {
+        x: x.clone(),
+        v: v.clone(),
+        bodies: None,
+    }
+}
+
+/// New, zeroed particle arrays named `x` and `v`, for a step's output.
+pub(crate) fn new_xv<R: Real>(n: usize) -> (Array<Vec3<R>>, Array<Vec3<R>>) {
+    (Array::zeros(n).named("x"), Array::zeros(n).named("v"))
+}

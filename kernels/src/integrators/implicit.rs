@@ -1,0 +1,774 @@
+//! Implicit (backward) Euler: `v' = v + a(x', v') dt`, `x' = x + v' dt`, solved by Newton's
+//! method with a matrix-free conjugate-gradient solve and a backtracking line search, and
+//! differentiated with the implicit function theorem (one adjoint linear solve per step).
+//!
+//! # The solve
+//!
+//! The unknown is the new velocity `v'` of the free particles (inverse mass `w > 0`; pinned
+//! particles keep `v' = v`). With `M` the mass matrix and `a = w f + g` the accelerations of
+//! [`Model::eval_accelerations`], the residual is
+//!
+//! `G(v') = M (v' - v - dt a(x + dt v', v'))`,
+//!
+//! and its Jacobian `A = M - dt^2 df/dx - dt df/dv` (symmetric for springs, membranes,
+//! tetrahedra, bending and drag). Each Newton iteration solves `A d = -G` by
+//! [`linsolve::cg`] (falling back to BiCGSTAB if CG meets negative curvature, e.g. from
+//! compressed springs, or from friction, which makes `A` unsymmetric). The matrix is never
+//! formed: `A u` is one pass of the **tangent** kernels of the force model, recorded once per
+//! iterate on a scratch tape, with the tangents `dt u` on `x'` and `u` on `v'`
+//! ([`Tape::tangent`]): `A u = M u - dt M a_dot`. A backtracking (Armijo) line search on
+//! `0.5 (v' - v - dt a)^T M (v' - v - dt a)` makes the iteration robust far from the solution
+//! (large `dt`, stiff springs).
+//!
+//! # The gradient
+//!
+//! The step is one custom step on the caller's tape ([`Tape::record_fn`]): the Newton
+//! iterations are **not** recorded. Its backward uses the implicit function theorem: with the
+//! incoming adjoints `x'_bar`, `v'_bar` and `b = v'_bar + dt x'_bar`, it solves the transposed
+//! system `A^T lambda = b` matrix-free with the **adjoint** kernels of the force model
+//! (`A^T u = M u - dt (dt df/dx^T u + df/dv^T u)`, one backward pass of the scratch tape
+//! seeded with `M u` on the accelerations), then one more adjoint pass seeded with
+//! `dt M lambda` gives every input its gradient: `x_bar += x'_bar + dt df/dx^T lambda`,
+//! `v_bar += M lambda`, and the parameters of the model (stiffnesses, rest lengths, masses,
+//! control forces, ...) `+= dt df/dtheta^T lambda`. Forward mode ([`Tape::tangent`]) is the
+//! same with one tangent pass for the right-hand side and a solve with `A`.
+//!
+//! The scratch evaluations run on private copies of the model's parameter arrays, so the
+//! matrix-vector products never touch the gradients or tangents of the real ones.
+
+use std::sync::Arc;
+
+use adflex_runtime::prelude::*;
+use adflex_runtime::Element;
+
+use super::common::{particles, step_bodies};
+use super::linsolve::{self, SolveSettings};
+use super::Integrator;
+use crate::model::{Control, Model, State};
+
+/// Implicit (backward) Euler, solved by Newton-CG with a line search; first order,
+/// unconditionally stable, differentiable through the implicit function theorem.
+///
+/// Suits stiff systems (stiff springs, cloth, FEM with `omega dt >> 1`) where the explicit
+/// methods need tiny steps: it stays bounded for any `dt` (on an undamped spring it
+/// dissipates energy by the factor `1 / (1 + (omega dt)^2)` per step, the numerical damping
+/// that makes it stable and also less accurate than [`Rk4`](crate::integrators::Rk4) on
+/// smooth, soft problems). A step costs a few Newton iterations, each one force evaluation and
+/// a CG solve of tangent passes; its gradient costs one more solve of adjoint passes.
+///
+/// Each step records a single custom step (see the module docs) plus, for rigid bodies, the
+/// semi-implicit body step. The tape records a step per call, however many Newton iterations
+/// it took. Contact and friction make the force non-smooth: Newton still converges in
+/// practice but the gradient is that of the active contact set.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImplicitEuler {
+    /// Maximum Newton iterations per step (default 30).
+    pub max_newton: usize,
+    /// Newton stops when `max |v' - v - dt a| <= tolerance * scale` (m/s), `scale` the
+    /// largest of `|v|`, `|v'|`, `dt |a|`. `None` (default): `1e-10` in f64, `1e-4` in f32.
+    pub tolerance: Option<f64>,
+    /// Stopping rule of the linear solves (Newton and adjoint; default: relative `1e-10`,
+    /// 1000 iterations).
+    pub linear: SolveSettings,
+    /// Backtracking line search on the residual (default on). Off, every Newton step is full.
+    pub line_search: bool,
+    /// Maximum halvings of the step in the line search (default 20).
+    pub max_backtracks: usize,
+}
+
+impl Default for ImplicitEuler {
+    fn default() -> Self {
+        ImplicitEuler {
+            max_newton: 30,
+            tolerance: None,
+            linear: SolveSettings::default(),
+            line_search: true,
+            max_backtracks: 20,
+        }
+    }
+}
+
+/// What one [`ImplicitEuler`] step did (its cost, for the benchmarks).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct NewtonStats {
+    /// Newton iterations (linear solves).
+    pub newton_iterations: usize,
+    /// Matrix-vector products (tangent passes) of all the linear solves.
+    pub linear_iterations: usize,
+    /// Force evaluations (one per line-search trial, plus the first).
+    pub force_evaluations: usize,
+    /// Step halvings in the line searches.
+    pub backtracks: usize,
+    /// Linear solves where CG failed and BiCGSTAB took over.
+    pub fallbacks: usize,
+    /// Final `max |v' - v - dt a|` over free particles (m/s).
+    pub residual: f64,
+    /// Whether the tolerance was met.
+    pub converged: bool,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Private copies of the parameter arrays.
+
+/// A parameter array of the model and its private copy.
+trait Link: Send + Sync {
+    fn original(&self) -> &dyn AnyArray;
+    /// Adds the copy's gradient into the original's (if both have one).
+    fn add_grad(&self);
+    /// Zeroes the copy's gradient.
+    fn zero_copy_grad(&self);
+    /// Gives the copy the original's tangent buffer (`true`) or none (`false`).
+    fn share_tangent(&self, on: bool);
+}
+
+struct TypedLink<T: Element> {
+    original: Array<T>,
+    copy: Array<T>,
+}
+
+impl<T: Element> Link for TypedLink<T> {
+    fn original(&self) -> &dyn AnyArray {
+        &self.original
+    }
+    fn add_grad(&self) {
+        if let (Some(g), Some(c)) = (self.original.grad_buffer(), self.copy.grad_buffer()) {
+            AnyArray::add_from(&g, &c);
+        }
+    }
+    fn zero_copy_grad(&self) {
+        self.copy.zero_grad();
+    }
+    fn share_tangent(&self, on: bool) {
+        self.copy
+            .set_tangent(if on { self.original.tangent_buffer() } else { None });
+    }
+}
+
+/// The model and control with every differentiable array the particle forces read replaced
+/// by a private copy (with a gradient buffer if `grads`).
+struct Copies<R: Real> {
+    model: Model<R>,
+    control: Option<Control<R>>,
+    links: Vec<Box<dyn Link>>,
+}
+
+fn swap<T: Element>(a: &mut Array<T>, grads: bool, links: &mut Vec<Box<dyn Link>>) {
+    let copy = a.deep_clone();
+    let copy = if grads { copy.requires_grad() } else { copy };
+    links.push(Box::new(TypedLink {
+        original: a.clone(),
+        copy: copy.clone(),
+    }));
+    *a = copy;
+}
+
+/// A clone of `model` (array handles) without its host-side triangle list, which the forces
+/// do not use (and which a tape would otherwise keep once per step).
+fn forces_only<R: Real>(model: &Model<R>) -> Model<R> {
+    let mut m = model.clone();
+    m.triangles = Vec::new();
+    m
+}
+
+fn copies<R: Real>(model: &Model<R>, control: Option<&Control<R>>, grads: bool) -> Copies<R> {
+    let mut m = forces_only(model);
+    let mut c = control.cloned();
+    let mut l = Vec::new();
+    swap(&mut m.particle_inv_mass, grads, &mut l);
+    if let Some(s) = &mut m.springs {
+        swap(&mut s.rest, grads, &mut l);
+        swap(&mut s.ke, grads, &mut l);
+        swap(&mut s.kd, grads, &mut l);
+    }
+    if let Some(b) = &mut m.bending {
+        swap(&mut b.rest, grads, &mut l);
+        swap(&mut b.ke, grads, &mut l);
+        swap(&mut b.kd, grads, &mut l);
+    }
+    if let Some(t) = &mut m.tri_fem {
+        swap(&mut t.dm_inv, grads, &mut l);
+        swap(&mut t.area, grads, &mut l);
+        swap(&mut t.mu, grads, &mut l);
+        swap(&mut t.lambda, grads, &mut l);
+        swap(&mut t.kd, grads, &mut l);
+    }
+    if let Some(t) = &mut m.tets {
+        swap(&mut t.dm_inv, grads, &mut l);
+        swap(&mut t.rest_volume, grads, &mut l);
+        swap(&mut t.mu, grads, &mut l);
+        swap(&mut t.lambda, grads, &mut l);
+        swap(&mut t.kd, grads, &mut l);
+        swap(&mut t.activation, grads, &mut l);
+    }
+    if let Some(s) = &mut m.shapes {
+        swap(&mut s.pos, grads, &mut l);
+        swap(&mut s.rot, grads, &mut l);
+        swap(&mut s.size, grads, &mut l);
+    }
+    if let Some(c) = &mut c {
+        if let Some(f) = &mut c.particle_f {
+            swap(f, grads, &mut l);
+        }
+        if let Some(a) = &mut c.tet_activation {
+            swap(a, grads, &mut l);
+        }
+    }
+    Copies {
+        model: m,
+        control: c,
+        links: l,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The nonlinear system of one step.
+
+fn flat<R: Real>(a: &Array<Vec3<R>>) -> Vec<f64> {
+    a.to_vec()
+        .iter()
+        .flat_map(|p| [p.x.to_f64(), p.y.to_f64(), p.z.to_f64()])
+        .collect()
+}
+
+fn unflat<R: Real>(v: &[f64]) -> Vec<Vec3<R>> {
+    v.chunks_exact(3)
+        .map(|c| Vec3::new(R::lit(c[0]), R::lit(c[1]), R::lit(c[2])))
+        .collect()
+}
+
+/// Whether `R` is single precision (it cannot tell 1 from 1 + 1e-10).
+fn is_f32<R: Real>() -> bool {
+    R::lit(1.0 + 1e-10).to_f64() == 1.0
+}
+
+/// The unit roundoff of `R`.
+fn epsilon<R: Real>() -> f64 {
+    if is_f32::<R>() {
+        f32::EPSILON as f64
+    } else {
+        f64::EPSILON
+    }
+}
+
+/// The residual `e` that rounding alone leaves: the rounding of the positions, `eps |x|`,
+/// times the stiffness `dt |da/dx| ~ s / dt`, with `s = |M^-1 A d| / |d| = |e| / |d|` the
+/// stiffness ratio along the Newton step `d` (times a safety factor of 100).
+fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
+    let dn = max_abs(d);
+    let s = if dn > 0.0 { (max_abs(e) / dn).max(1.0) } else { 1.0 };
+    100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0, |m, x| m.max(x.abs()))
+}
+
+/// One step's system: `G(v') = M (v' - v0 - dt a(x0 + dt v', v'))` over the free DOFs.
+struct System<R: Real> {
+    c: Copies<R>,
+    x0: Vec<f64>,
+    v0: Vec<f64>,
+    /// Per DOF: the mass (kg) on free DOFs, 0 on pinned ones.
+    mass: Vec<f64>,
+    /// Per DOF: the inverse mass on free DOFs, 1 on pinned ones (the CG preconditioner).
+    precond: Vec<f64>,
+    free: Vec<bool>,
+    dt: f64,
+}
+
+/// The accelerations recorded at one iterate, on their own tape.
+struct Point<R: Real> {
+    tape: Tape,
+    x: Array<Vec3<R>>,
+    v: Array<Vec3<R>>,
+    a: Array<Vec3<R>>,
+    v_val: Vec<f64>,
+    a_val: Vec<f64>,
+}
+
+impl<R: Real> System<R> {
+    fn new(c: Copies<R>, x0: Vec<f64>, v0: Vec<f64>, inv_mass: &[R], dt: f64) -> Self {
+        let w: Vec<f64> = inv_mass
+            .iter()
+            .flat_map(|w| [w.to_f64(); 3])
+            .collect();
+        System {
+            c,
+            x0,
+            v0,
+            mass: w.iter().map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 }).collect(),
+            precond: w.iter().map(|&w| if w > 0.0 { w } else { 1.0 }).collect(),
+            free: w.iter().map(|&w| w > 0.0).collect(),
+            dt,
+        }
+    }
+
+    /// Records the accelerations at `v'` (`x' = x0 + dt v'`) on a new tape.
+    fn eval(&self, v: &[f64], grads: bool) -> Point<R> {
+        let x: Vec<f64> = self.x0.iter().zip(v).map(|(x, v)| x + self.dt * v).collect();
+        let mut xs = Array::from_vec(unflat::<R>(&x)).named("x_implicit");
+        let mut vs = Array::from_vec(unflat::<R>(v)).named("v_implicit");
+        if grads {
+            xs = xs.requires_grad();
+            vs = vs.requires_grad();
+        }
+        let mut tape = Tape::new();
+        let a = self
+            .c
+            .model
+            .eval_accelerations(&mut tape, &particles(&xs, &vs), self.c.control.as_ref());
+        let a_val = flat(&a);
+        Point {
+            tape,
+            x: xs,
+            v: vs,
+            a,
+            v_val: v.to_vec(),
+            a_val,
+        }
+    }
+
+    /// `v' - v0 - dt a` on free DOFs, 0 on pinned ones (m/s).
+    fn residual(&self, p: &Point<R>) -> Vec<f64> {
+        (0..self.v0.len())
+            .map(|k| {
+                if self.free[k] {
+                    p.v_val[k] - self.v0[k] - self.dt * p.a_val[k]
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
+    /// The line-search merit `0.5 e^T M e` (J).
+    fn merit(&self, e: &[f64]) -> f64 {
+        0.5 * e.iter().zip(&self.mass).map(|(e, m)| m * e * e).sum::<f64>()
+    }
+
+    /// `out = A u` (identity on pinned DOFs) by one tangent pass.
+    fn apply(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let ux: Vec<f64> = u
+            .iter()
+            .zip(&self.free)
+            .map(|(&u, &f)| if f { u } else { 0.0 })
+            .collect();
+        let dx: Vec<f64> = ux.iter().map(|u| self.dt * u).collect();
+        p.x.ensure_tangent().assign(&unflat::<R>(&dx));
+        p.v.ensure_tangent().assign(&unflat::<R>(&ux));
+        p.tape
+            .tangent()
+            .expect("implicit Euler: tangent pass of the force model");
+        let ad = flat(&p.a.tangent_buffer().expect("tangent of the accelerations"));
+        for k in 0..out.len() {
+            out[k] = if self.free[k] {
+                self.mass[k] * (u[k] - self.dt * ad[k])
+            } else {
+                u[k]
+            };
+        }
+    }
+
+    /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
+    /// scratch tape; returns the gradients of `x'` and `v'`.
+    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        p.x.zero_grad();
+        p.v.zero_grad();
+        p.a.ensure_grad().assign(&unflat::<R>(seed));
+        p.tape
+            .backward_with(&[&p.a])
+            .expect("implicit Euler: adjoint pass of the force model");
+        (
+            flat(&p.x.grad().expect("x' requires grad")),
+            flat(&p.v.grad().expect("v' requires grad")),
+        )
+    }
+
+    /// `out = A^T u` (identity on pinned DOFs) by one adjoint pass.
+    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let seed: Vec<f64> = (0..u.len()).map(|k| self.mass[k] * u[k]).collect();
+        let (gx, gv) = self.pull(p, &seed);
+        for k in 0..out.len() {
+            out[k] = if self.free[k] {
+                self.mass[k] * u[k] - self.dt * (self.dt * gx[k] + gv[k])
+            } else {
+                u[k]
+            };
+        }
+    }
+
+    fn mask(&self, v: &mut [f64]) {
+        v.iter_mut().zip(&self.free).for_each(|(v, &f)| {
+            if !f {
+                *v = 0.0
+            }
+        });
+    }
+}
+
+impl ImplicitEuler {
+    fn tolerance<R: Real>(&self) -> f64 {
+        self.tolerance
+            .unwrap_or_else(|| if is_f32::<R>() { 1e-4 } else { 1e-10 })
+    }
+
+    /// Newton with line search from `v' = v0`; returns the solution `v'`.
+    fn newton<R: Real>(&self, sys: &System<R>, stats: &mut NewtonStats) -> Vec<f64> {
+        let tol = self.tolerance::<R>();
+        let mut p = sys.eval(&sys.v0, false);
+        stats.force_evaluations += 1;
+        let mut e = sys.residual(&p);
+        let mut phi = sys.merit(&e);
+        loop {
+            let free_max = |v: &[f64]| {
+                v.iter()
+                    .zip(&sys.free)
+                    .filter(|(_, &f)| f)
+                    .fold(0.0f64, |m, (x, _)| m.max(x.abs()))
+            };
+            let scale = free_max(&sys.v0)
+                .max(free_max(&p.v_val))
+                .max(sys.dt * free_max(&p.a_val));
+            stats.residual = max_abs(&e);
+            if stats.residual <= tol * scale || stats.residual == 0.0 {
+                stats.converged = true;
+                break;
+            }
+            if stats.newton_iterations >= self.max_newton || !phi.is_finite() {
+                break;
+            }
+            stats.newton_iterations += 1;
+            let rhs: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| -m * e).collect();
+            let mut d = vec![0.0; rhs.len()];
+            let (info, fell_back) = linsolve::solve(
+                |u, out| sys.apply(&mut p, u, out),
+                &rhs,
+                &mut d,
+                Some(&sys.precond),
+                &self.linear,
+            );
+            stats.linear_iterations += info.iterations;
+            stats.fallbacks += fell_back as usize;
+            sys.mask(&mut d);
+            if stats.residual <= roundoff_floor::<R>(sys, &e, &d) {
+                stats.converged = true;
+                break;
+            }
+            // Backtracking line search. A step is accepted if it decreases either merit:
+            // the residual `phi` (Armijo; its slope along a Newton direction is -2 phi), or
+            // the incremental potential `E` whose gradient is `G` for conservative forces
+            // (its decrease estimated by the trapezoid rule on the slope `G . d`, so `E`
+            // itself is never needed). The potential is what makes large steps on stiff
+            // nonlinear springs converge: there the residual has local minima.
+            let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
+            let g: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
+            let slope0 = dot(&g, &d);
+            let mut alpha = 1.0;
+            let mut best: Option<(f64, Point<R>, Vec<f64>)> = None;
+            let mut accepted = None;
+            for k in 0..=self.max_backtracks {
+                let vt: Vec<f64> = p.v_val.iter().zip(&d).map(|(v, d)| v + alpha * d).collect();
+                let pt = sys.eval(&vt, false);
+                stats.force_evaluations += 1;
+                let et = sys.residual(&pt);
+                let phit = sys.merit(&et);
+                let residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
+                let potential_ok = slope0 < 0.0 && {
+                    let gt: Vec<f64> = et.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
+                    let slope = dot(&gt, &d);
+                    slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0
+                };
+                if !self.line_search || (phit.is_finite() && (residual_ok || potential_ok)) {
+                    accepted = Some((phit, pt, et));
+                    break;
+                }
+                let better = match &best {
+                    Some(b) => phit < b.0,
+                    None => true,
+                };
+                if phit.is_finite() && better {
+                    best = Some((phit, pt, et));
+                }
+                if k < self.max_backtracks {
+                    stats.backtracks += 1;
+                    alpha *= 0.5;
+                }
+            }
+            // Neither merit decreases along the Newton direction (not a descent direction of
+            // the potential where `A` is indefinite): a potential step along the CG solution
+            // truncated at negative curvature, or else the best residual decrease.
+            let step = match accepted {
+                Some(a) => Some(a),
+                None => self
+                    .potential_step(sys, &mut p, &e, stats)
+                    .or_else(|| best.filter(|b| b.0 < phi)),
+            };
+            match step {
+                Some((phit, pt, et)) => {
+                    phi = phit;
+                    p = pt;
+                    e = et;
+                }
+                // No decrease either way: at the attainable precision (or stuck).
+                None => {
+                    stats.converged = stats.residual <= 10.0 * roundoff_floor::<R>(sys, &e, &d);
+                    break;
+                }
+            }
+        }
+        p.v_val
+    }
+
+    /// A step that decreases the incremental potential `E(v')`, whose gradient is `G` when
+    /// the forces derive from a potential: along the CG solution truncated at negative
+    /// curvature (a descent direction of `E`), or along `-M^-1 G`, with a backtracking line
+    /// search that needs only `G` (the decrease of `E` estimated by the trapezoid rule on the
+    /// slope `G(v' + s d) . d`). Returns the merit, point and residual reached, or `None`.
+    fn potential_step<R: Real>(
+        &self,
+        sys: &System<R>,
+        p: &mut Point<R>,
+        e: &[f64],
+        stats: &mut NewtonStats,
+    ) -> Option<(f64, Point<R>, Vec<f64>)> {
+        let g: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
+        let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
+        let mut d = vec![0.0; g.len()];
+        let info = linsolve::cg(|u, out| sys.apply(p, u, out), &rhs, &mut d, Some(&sys.precond), &self.linear);
+        stats.linear_iterations += info.iterations;
+        sys.mask(&mut d);
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
+        let mut slope0 = dot(&g, &d);
+        if slope0.is_nan() || slope0 >= 0.0 {
+            d = e.iter().map(|e| -e).collect();
+            slope0 = dot(&g, &d);
+        }
+        if slope0.is_nan() || slope0 >= 0.0 {
+            return None;
+        }
+        let mut alpha = 1.0;
+        for _ in 0..=self.max_backtracks {
+            let vt: Vec<f64> = p.v_val.iter().zip(&d).map(|(v, d)| v + alpha * d).collect();
+            let pt = sys.eval(&vt, false);
+            stats.force_evaluations += 1;
+            let et = sys.residual(&pt);
+            let gt: Vec<f64> = et.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
+            let slope = dot(&gt, &d);
+            if slope.is_finite() && 0.5 * alpha * (slope0 + slope) <= 1e-4 * alpha * slope0 {
+                return Some((sys.merit(&et), pt, et));
+            }
+            stats.backtracks += 1;
+            alpha *= 0.5;
+        }
+        None
+    }
+
+    /// One step like [`Integrator::step`], also returning what the solve did.
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_kernels::integrators::ImplicitEuler;
+    /// use adflex_runtime::{Tape, Vec3};
+    ///
+    /// // A very stiff spring (omega dt = 100) swinging under gravity: implicit Euler stays
+    /// // bounded, and the spring barely stretches.
+    /// let mut b = ModelBuilder::<f64>::new();
+    /// let a = b.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    /// let c = b.add_particle(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), 1.0);
+    /// b.add_spring(a, c, 1e6, 0.0);
+    /// let model = b.finalize();
+    /// let mut tape = Tape::new();
+    /// let (s, stats) = ImplicitEuler::default().step_with_stats(&model, &mut tape, &model.state(), None, 0.1);
+    /// assert!(stats.converged);
+    /// assert!((s.x.get(1).norm() - 1.0).abs() < 1e-3);
+    /// assert_eq!(tape.len(), 1); // one custom step, however many Newton iterations
+    /// ```
+    pub fn step_with_stats<R: Real>(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> (State<R>, NewtonStats) {
+        let n = model.particle_count;
+        let mut stats = NewtonStats::default();
+        let dtf = dt.to_f64();
+        let inv_mass = model.particle_inv_mass.to_vec();
+        let (x0, v0) = (flat(&state.x), flat(&state.v));
+        let sys = System::new(copies(model, control, false), x0.clone(), v0.clone(), &inv_mass, dtf);
+        let v1 = if n == 0 { Vec::new() } else { self.newton(&sys, &mut stats) };
+        let x1v: Vec<f64> = x0.iter().zip(&v1).map(|(x, v)| x + dtf * v).collect();
+
+        let x1 = Array::zeros(n).named("x");
+        let v1a = Array::zeros(n).named("v");
+        let shared = Arc::new(Shared {
+            integrator: self.clone(),
+            model: forces_only(model),
+            control: control.cloned(),
+            x0: state.x.clone(),
+            v0: state.v.clone(),
+            x1: x1.clone(),
+            v1: v1a.clone(),
+            x0_val: x0,
+            v0_val: v0,
+            v1_val: v1.clone(),
+            inv_mass,
+            dt: dtf,
+        });
+        let originals = sys.c.links;
+        let mut inputs: Vec<&dyn AnyArray> = vec![&state.x, &state.v];
+        inputs.extend(originals.iter().map(|l| l.original()));
+        let (sb, st) = (shared.clone(), shared);
+        tape.record_fn(
+            "implicit_euler",
+            &inputs,
+            &[&x1, &v1a],
+            || {
+                x1.assign(&unflat::<R>(&x1v));
+                v1a.assign(&unflat::<R>(&v1));
+            },
+            move || sb.backward(),
+        )
+        .with_tangent(move || st.tangent());
+        let bodies = step_bodies(model, tape, state, control, dt);
+        (State { x: x1, v: v1a, bodies }, stats)
+    }
+}
+
+/// What the backward and tangent of a step need.
+struct Shared<R: Real> {
+    integrator: ImplicitEuler,
+    model: Model<R>,
+    control: Option<Control<R>>,
+    x0: Array<Vec3<R>>,
+    v0: Array<Vec3<R>>,
+    x1: Array<Vec3<R>>,
+    v1: Array<Vec3<R>>,
+    x0_val: Vec<f64>,
+    v0_val: Vec<f64>,
+    v1_val: Vec<f64>,
+    inv_mass: Vec<R>,
+    dt: f64,
+}
+
+impl<R: Real> Shared<R> {
+    fn system(&self, grads: bool) -> System<R> {
+        System::new(
+            copies(&self.model, self.control.as_ref(), grads),
+            self.x0_val.clone(),
+            self.v0_val.clone(),
+            &self.inv_mass,
+            self.dt,
+        )
+    }
+
+    /// Reverse mode by the implicit function theorem (see the module docs).
+    fn backward(&self) {
+        let (gx1, gv1) = (self.x1.grad_buffer(), self.v1.grad_buffer());
+        if gx1.is_none() && gv1.is_none() {
+            return;
+        }
+        let m = self.x0_val.len();
+        let gx1 = gx1.map_or_else(|| vec![0.0; m], |g| flat(&g));
+        let gv1 = gv1.map_or_else(|| vec![0.0; m], |g| flat(&g));
+        let dt = self.dt;
+        let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
+        let sys = self.system(true);
+        let mut p = sys.eval(&self.v1_val, true);
+        let mut rhs = b.clone();
+        sys.mask(&mut rhs);
+        let mut lambda = vec![0.0; m];
+        linsolve::solve(
+            |u, out| sys.apply_t(&mut p, u, out),
+            &rhs,
+            &mut lambda,
+            Some(&sys.precond),
+            &self.integrator.linear,
+        );
+        sys.mask(&mut lambda);
+        // The products accumulated into the copies' gradients: start them over.
+        for l in &sys.c.links {
+            l.zero_copy_grad();
+        }
+        let seed: Vec<f64> = (0..m).map(|k| dt * sys.mass[k] * lambda[k]).collect();
+        let (gx, gv) = sys.pull(&mut p, &seed);
+        let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
+        let gv0: Vec<f64> = (0..m)
+            .map(|k| {
+                if sys.free[k] {
+                    sys.mass[k] * lambda[k]
+                } else {
+                    // v' = v on pinned DOFs, which also moves x' = x + dt v.
+                    b[k] + dt * gx[k] + gv[k]
+                }
+            })
+            .collect();
+        add_into(&self.x0, &gx0);
+        add_into(&self.v0, &gv0);
+        for l in &sys.c.links {
+            l.add_grad();
+        }
+    }
+
+    /// Forward mode: `A dv' = M (dv + dt a_dot)`, `a_dot` the tangent of the accelerations
+    /// for the input tangents at fixed `v'`.
+    fn tangent(&self) {
+        let m = self.x0_val.len();
+        let dt = self.dt;
+        let dx0 = self.x0.tangent_buffer().map_or_else(|| vec![0.0; m], |t| flat(&t));
+        let dv0 = self.v0.tangent_buffer().map_or_else(|| vec![0.0; m], |t| flat(&t));
+        let sys = self.system(false);
+        let mut p = sys.eval(&self.v1_val, false);
+        for l in &sys.c.links {
+            l.share_tangent(true);
+        }
+        let dvp: Vec<f64> = (0..m).map(|k| if sys.free[k] { 0.0 } else { dv0[k] }).collect();
+        let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
+        p.x.ensure_tangent().assign(&unflat::<R>(&dxp));
+        p.v.ensure_tangent().assign(&unflat::<R>(&dvp));
+        p.tape
+            .tangent()
+            .expect("implicit Euler: tangent pass of the force model");
+        let ad = flat(&p.a.tangent_buffer().expect("tangent of the accelerations"));
+        for l in &sys.c.links {
+            l.share_tangent(false);
+        }
+        let mut rhs: Vec<f64> = (0..m).map(|k| sys.mass[k] * (dv0[k] + dt * ad[k])).collect();
+        sys.mask(&mut rhs);
+        let mut dv1 = vec![0.0; m];
+        linsolve::solve(
+            |u, out| sys.apply(&mut p, u, out),
+            &rhs,
+            &mut dv1,
+            Some(&sys.precond),
+            &self.integrator.linear,
+        );
+        for k in 0..m {
+            if !sys.free[k] {
+                dv1[k] = dv0[k];
+            }
+        }
+        let dx1: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dv1[k]).collect();
+        if let Some(t) = self.x1.tangent_buffer() {
+            t.assign(&unflat::<R>(&dx1));
+        }
+        if let Some(t) = self.v1.tangent_buffer() {
+            t.assign(&unflat::<R>(&dv1));
+        }
+    }
+}
+
+/// `a.grad += g` if `a` has a gradient buffer.
+fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
+    if let Some(buf) = a.grad_buffer() {
+        let add = unflat::<R>(g);
+        buf.modify(|d| d.iter_mut().zip(add).for_each(|(d, a)| *d += a));
+    }
+}
+
+impl<R: Real> Integrator<R> for ImplicitEuler {
+    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R> {
+        self.step_with_stats(model, tape, state, control, dt).0
+    }
+}

@@ -1,0 +1,639 @@
+//! The scene description ([`ModelBuilder`]), the simulation model it produces ([`Model`]),
+//! the time-varying [`State`] and the per-step actuation [`Control`].
+//!
+//! A `Model` holds arrays only for the components the scene has (each an `Option`), and
+//! [`Model::eval_forces`] launches only their kernels: a scene costs only what it contains.
+
+use adflex_runtime::checkpoint::Checkpoint;
+use adflex_runtime::{AnyArray, Array, Mat22, Mat33, Quat, Real, Tape, Vec3};
+
+use crate::contact::ground::Ground;
+use crate::contact::particle::ParticleContact;
+use crate::contact::shapes::{Shape, Shapes};
+use crate::forces::bending::{bending_edges, dihedral_angle, Bending, RestAngle};
+use crate::forces::fem_tet::{tet_rest, TetFem};
+use crate::forces::fem_tri::{triangle_rest, TriangleFem};
+use crate::forces::particle::{accelerations, add_forces, Drag};
+use crate::forces::spring::Springs;
+use crate::rigid::RigidBodies;
+use crate::xpbd::DistanceConstraints;
+
+fn lit<R: Real>(x: f64) -> R {
+    R::lit(x)
+}
+
+fn wide<R: Real>(v: Vec3<R>) -> Vec3<f64> {
+    Vec3::new(v.x.to_f64(), v.y.to_f64(), v.z.to_f64())
+}
+
+/// The state of the rigid bodies: centre of mass position (m), orientation (unit quaternion),
+/// linear velocity (m/s) and angular velocity (rad/s, world frame).
+#[derive(Clone, Debug)]
+pub struct BodyState<R: Real> {
+    /// Position of the centre of mass (m).
+    pub x: Array<Vec3<R>>,
+    /// Orientation, body to world (unit quaternion).
+    pub q: Array<Quat<R>>,
+    /// Linear velocity (m/s).
+    pub v: Array<Vec3<R>>,
+    /// Angular velocity in world frame (rad/s).
+    pub w: Array<Vec3<R>>,
+}
+
+impl<R: Real> BodyState<R> {
+    /// New arrays with the same values (no gradients).
+    pub fn deep_clone(&self) -> Self {
+        BodyState { x: self.x.deep_clone(), q: self.q.deep_clone(), v: self.v.deep_clone(), w: self.w.deep_clone() }
+    }
+}
+
+/// Everything that changes from step to step: particle positions (m) and velocities (m/s),
+/// and the rigid body state if the model has bodies. Integrators return a new `State` (new
+/// arrays) every step, so a tape keeps the whole trajectory.
+#[derive(Clone, Debug)]
+pub struct State<R: Real> {
+    /// Particle positions (m).
+    pub x: Array<Vec3<R>>,
+    /// Particle velocities (m/s).
+    pub v: Array<Vec3<R>>,
+    /// Rigid bodies, if the model has any.
+    pub bodies: Option<BodyState<R>>,
+}
+
+impl<R: Real> State<R> {
+    /// New arrays with the same values (no gradients).
+    pub fn deep_clone(&self) -> Self {
+        State { x: self.x.deep_clone(), v: self.v.deep_clone(), bodies: self.bodies.as_ref().map(BodyState::deep_clone) }
+    }
+
+    /// Number of particles.
+    pub fn particle_count(&self) -> usize {
+        self.x.len()
+    }
+}
+
+impl<R: Real> Checkpoint for State<R> {
+    fn arrays(&self) -> Vec<&dyn AnyArray> {
+        let mut a: Vec<&dyn AnyArray> = vec![&self.x, &self.v];
+        if let Some(b) = &self.bodies {
+            a.extend([&b.x as &dyn AnyArray, &b.q, &b.v, &b.w]);
+        }
+        a
+    }
+    fn snapshot(&self) -> Self {
+        self.deep_clone()
+    }
+}
+
+/// Per-step actuation. Every field is optional; absent means none (or the model's default).
+#[derive(Clone, Debug, Default)]
+pub struct Control<R: Real> {
+    /// External force on each particle (N).
+    pub particle_f: Option<Array<Vec3<R>>>,
+    /// Activation of each tetrahedron (see [`crate::forces::fem_tet`]); replaces the model's
+    /// default activation.
+    pub tet_activation: Option<Array<R>>,
+    /// External force on each body's centre of mass (N, world frame).
+    pub body_f: Option<Array<Vec3<R>>>,
+    /// External torque on each body (N m, world frame).
+    pub body_t: Option<Array<Vec3<R>>>,
+}
+
+/// Forces (N) and torques (N m) on the rigid bodies, world frame.
+pub type BodyForces<R> = (Array<Vec3<R>>, Array<Vec3<R>>);
+
+/// A rigid body as the builder records it.
+#[derive(Clone, Copy, Debug)]
+struct BodyDesc<R: Real> {
+    x: Vec3<R>,
+    q: Quat<R>,
+    v: Vec3<R>,
+    w: Vec3<R>,
+    mass: R,
+    inertia: Mat33<R>,
+}
+
+/// Describes a scene element by element; [`ModelBuilder::finalize`] makes the [`Model`].
+///
+/// Indices returned by the `add_*` methods are what later elements refer to.
+#[derive(Clone, Debug)]
+pub struct ModelBuilder<R: Real> {
+    /// Gravity (m/s^2); default `(0, -9.8, 0)`.
+    pub gravity: Vec3<R>,
+    /// Radius of every particle for contact (m); default 0.01.
+    pub particle_radius: R,
+    particle_x: Vec<Vec3<R>>,
+    particle_v: Vec<Vec3<R>>,
+    particle_inv_mass: Vec<R>,
+    spring_pairs: Vec<[u32; 2]>,
+    spring_rest: Vec<R>,
+    spring_ke: Vec<R>,
+    spring_kd: Vec<R>,
+    triangles: Vec<[u32; 3]>,
+    tri_fem: Vec<[u32; 3]>,
+    tri_dm_inv: Vec<Mat22<R>>,
+    tri_area: Vec<R>,
+    tri_mu: Vec<R>,
+    tri_lambda: Vec<R>,
+    tri_kd: Vec<R>,
+    bend_quads: Vec<[u32; 4]>,
+    bend_rest: Vec<R>,
+    bend_ke: Vec<R>,
+    bend_kd: Vec<R>,
+    tets: Vec<[u32; 4]>,
+    tet_dm_inv: Vec<Mat33<R>>,
+    tet_volume: Vec<R>,
+    tet_mu: Vec<R>,
+    tet_lambda: Vec<R>,
+    tet_kd: Vec<R>,
+    ground: Option<Ground<R>>,
+    drag: Option<Drag<R>>,
+    particle_contact: Option<ParticleContact<R>>,
+    shapes: Vec<Shape<R>>,
+    shape_contact: ParticleContact<R>,
+    bodies: Vec<BodyDesc<R>>,
+    body_contacts: Vec<(u32, Vec3<R>)>,
+    dist_pairs: Vec<[u32; 2]>,
+    dist_rest: Vec<R>,
+    dist_compliance: Vec<R>,
+}
+
+impl<R: Real> Default for ModelBuilder<R> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<R: Real> ModelBuilder<R> {
+    /// An empty scene with gravity `(0, -9.8, 0)` m/s^2 and particle radius 0.01 m.
+    pub fn new() -> Self {
+        ModelBuilder {
+            gravity: Vec3::new(lit(0.0), lit(-9.8), lit(0.0)),
+            particle_radius: lit(0.01),
+            particle_x: Vec::new(),
+            particle_v: Vec::new(),
+            particle_inv_mass: Vec::new(),
+            spring_pairs: Vec::new(),
+            spring_rest: Vec::new(),
+            spring_ke: Vec::new(),
+            spring_kd: Vec::new(),
+            triangles: Vec::new(),
+            tri_fem: Vec::new(),
+            tri_dm_inv: Vec::new(),
+            tri_area: Vec::new(),
+            tri_mu: Vec::new(),
+            tri_lambda: Vec::new(),
+            tri_kd: Vec::new(),
+            bend_quads: Vec::new(),
+            bend_rest: Vec::new(),
+            bend_ke: Vec::new(),
+            bend_kd: Vec::new(),
+            tets: Vec::new(),
+            tet_dm_inv: Vec::new(),
+            tet_volume: Vec::new(),
+            tet_mu: Vec::new(),
+            tet_lambda: Vec::new(),
+            tet_kd: Vec::new(),
+            ground: None,
+            drag: None,
+            particle_contact: None,
+            shapes: Vec::new(),
+            shape_contact: ParticleContact::default(),
+            bodies: Vec::new(),
+            body_contacts: Vec::new(),
+            dist_pairs: Vec::new(),
+            dist_rest: Vec::new(),
+            dist_compliance: Vec::new(),
+        }
+    }
+
+    /// Number of particles added so far.
+    pub fn particle_count(&self) -> usize {
+        self.particle_x.len()
+    }
+
+    /// Position (m) of particle `i`.
+    pub fn particle_position(&self, i: u32) -> Vec3<R> {
+        self.particle_x[i as usize]
+    }
+
+    /// Adds a particle at `x` (m) with velocity `v` (m/s) and mass `mass` (kg; 0 = pinned:
+    /// inverse mass 0, so no force and no gravity moves it). Returns its index.
+    pub fn add_particle(&mut self, x: Vec3<R>, v: Vec3<R>, mass: R) -> u32 {
+        let m = mass.to_f64();
+        let inv = if m > 0.0 { 1.0 / m } else { 0.0 };
+        self.add_particle_inv_mass(x, v, lit(inv))
+    }
+
+    /// Adds a particle with inverse mass `inv_mass` (1/kg; 0 = pinned). Returns its index.
+    pub fn add_particle_inv_mass(&mut self, x: Vec3<R>, v: Vec3<R>, inv_mass: R) -> u32 {
+        self.particle_x.push(x);
+        self.particle_v.push(v);
+        self.particle_inv_mass.push(inv_mass);
+        (self.particle_x.len() - 1) as u32
+    }
+
+    /// Sets the inverse mass (1/kg) of particle `i` (0 pins it).
+    pub fn set_particle_inv_mass(&mut self, i: u32, inv_mass: R) {
+        self.particle_inv_mass[i as usize] = inv_mass;
+    }
+
+    fn check_particles(&self, what: &str, idx: &[u32]) {
+        let n = self.particle_count();
+        for &i in idx {
+            assert!((i as usize) < n, "{what}: particle index {i} out of range ({n} particles)");
+        }
+    }
+
+    /// Adds a spring between particles `i` and `j` with rest length their current distance
+    /// (computed in `R`), stiffness `ke` (N/m) and damping `kd` (N s/m). Returns its index.
+    pub fn add_spring(&mut self, i: u32, j: u32, ke: R, kd: R) -> u32 {
+        self.check_particles("add_spring", &[i, j]);
+        let d = self.particle_x[i as usize] - self.particle_x[j as usize];
+        // The same sum order as numpy's norm of a 3-vector (the reference scene's rest lengths).
+        let rest = (d.x * d.x + d.y * d.y + d.z * d.z).sqrt();
+        self.add_spring_with_rest(i, j, rest, ke, kd)
+    }
+
+    /// Adds a spring with an explicit rest length (m). Returns its index.
+    pub fn add_spring_with_rest(&mut self, i: u32, j: u32, rest: R, ke: R, kd: R) -> u32 {
+        self.check_particles("add_spring", &[i, j]);
+        self.spring_pairs.push([i, j]);
+        self.spring_rest.push(rest);
+        self.spring_ke.push(ke);
+        self.spring_kd.push(kd);
+        (self.spring_pairs.len() - 1) as u32
+    }
+
+    /// Number of springs added so far.
+    pub fn spring_count(&self) -> usize {
+        self.spring_pairs.len()
+    }
+
+    /// Adds a triangle to the surface topology (used by [`ModelBuilder::add_bending_edges`]);
+    /// it exerts no force of its own (see [`ModelBuilder::add_triangle_fem`]).
+    pub fn add_triangle(&mut self, i: u32, j: u32, k: u32) -> u32 {
+        self.check_particles("add_triangle", &[i, j, k]);
+        self.triangles.push([i, j, k]);
+        (self.triangles.len() - 1) as u32
+    }
+
+    /// The surface triangles added so far.
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        &self.triangles
+    }
+
+    /// Adds a StVK membrane triangle (also to the surface topology), rest shape from the current
+    /// positions; `mu`, `lambda` (N/m), `kd` (N s/m). Panics on a degenerate triangle.
+    pub fn add_triangle_fem(&mut self, i: u32, j: u32, k: u32, mu: R, lambda: R, kd: R) -> u32 {
+        self.add_triangle(i, j, k);
+        let p = |i: u32| wide(self.particle_x[i as usize]);
+        let (dm_inv, area) = triangle_rest(p(i), p(j), p(k))
+            .unwrap_or_else(|| panic!("add_triangle_fem: triangle ({i}, {j}, {k}) is degenerate (zero area)"));
+        self.tri_fem.push([i, j, k]);
+        self.tri_dm_inv.push(dm_inv.map(lit));
+        self.tri_area.push(lit(area));
+        self.tri_mu.push(mu);
+        self.tri_lambda.push(lambda);
+        self.tri_kd.push(kd);
+        (self.tri_fem.len() - 1) as u32
+    }
+
+    /// Adds a bending element `(o1, o2, e0, e1)` (opposite vertices, then the shared edge) with
+    /// rest angle `rest` (rad), stiffness `ke` (N m/rad) and damping `kd` (N m s/rad).
+    pub fn add_bending(&mut self, quad: [u32; 4], rest: R, ke: R, kd: R) -> u32 {
+        self.check_particles("add_bending", &quad);
+        self.bend_quads.push(quad);
+        self.bend_rest.push(rest);
+        self.bend_ke.push(ke);
+        self.bend_kd.push(kd);
+        (self.bend_quads.len() - 1) as u32
+    }
+
+    /// Adds a bending element on every edge shared by two of the triangles added so far, in
+    /// dFlex/Warp order (see [`bending_edges`]); returns how many. Call it once, after the
+    /// triangles.
+    pub fn add_bending_edges(&mut self, ke: R, kd: R, rest: RestAngle) -> usize {
+        let quads = bending_edges(&self.triangles);
+        let xs: Vec<Vec3<f64>> = self.particle_x.iter().map(|&p| wide(p)).collect();
+        for &q in &quads {
+            let angle = match rest {
+                RestAngle::Flat => 0.0,
+                RestAngle::Initial => dihedral_angle(&xs, q),
+            };
+            self.add_bending(q, lit(angle), ke, kd);
+        }
+        quads.len()
+    }
+
+    /// Adds a stable Neo-Hookean tetrahedron, rest shape from the current positions; `mu`,
+    /// `lambda` (Pa, see [`crate::forces::fem_tet::snh_lame`]), `kd` (Pa s). A negatively
+    /// oriented tetrahedron is stored as `(i, k, j, l)`. Panics if it is degenerate.
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_tet(&mut self, i: u32, j: u32, k: u32, l: u32, mu: R, lambda: R, kd: R) -> u32 {
+        self.check_particles("add_tet", &[i, j, k, l]);
+        let p = |i: u32| wide(self.particle_x[i as usize]);
+        let (mut idx, (mut dm_inv, mut vol)) = (
+            [i, j, k, l],
+            tet_rest([p(i), p(j), p(k), p(l)])
+                .unwrap_or_else(|| panic!("add_tet: tetrahedron ({i}, {j}, {k}, {l}) is degenerate (zero volume)")),
+        );
+        if vol < 0.0 {
+            idx = [i, k, j, l];
+            (dm_inv, vol) = tet_rest([p(i), p(k), p(j), p(l)]).expect("reoriented tetrahedron");
+        }
+        self.tets.push(idx);
+        self.tet_dm_inv.push(dm_inv.map(lit));
+        self.tet_volume.push(lit(vol));
+        self.tet_mu.push(mu);
+        self.tet_lambda.push(lambda);
+        self.tet_kd.push(kd);
+        (self.tets.len() - 1) as u32
+    }
+
+    /// Sets the ground plane for particle and body contact.
+    pub fn set_ground(&mut self, ground: Ground<R>) {
+        self.ground = Some(ground);
+    }
+
+    /// Sets linear drag / wind on every particle.
+    pub fn set_drag(&mut self, drag: Drag<R>) {
+        self.drag = Some(drag);
+    }
+
+    /// Enables particle-particle contact.
+    pub fn set_particle_contact(&mut self, contact: ParticleContact<R>) {
+        self.particle_contact = Some(contact);
+    }
+
+    /// Adds a static analytic shape that particles collide with. Returns its index.
+    pub fn add_shape(&mut self, shape: Shape<R>) -> u32 {
+        self.shapes.push(shape);
+        (self.shapes.len() - 1) as u32
+    }
+
+    /// Sets the contact parameters of particles against shapes (`margin` is unused).
+    pub fn set_shape_contact(&mut self, contact: ParticleContact<R>) {
+        self.shape_contact = contact;
+    }
+
+    /// Adds a rigid body: centre of mass at `x` (m), orientation `q`, velocity `v` (m/s),
+    /// angular velocity `w` (rad/s, world frame), mass (kg; 0 = static) and inertia about the
+    /// centre of mass in body frame (kg m^2). Returns its index.
+    pub fn add_body(&mut self, x: Vec3<R>, q: Quat<R>, v: Vec3<R>, w: Vec3<R>, mass: R, inertia: Mat33<R>) -> u32 {
+        self.bodies.push(BodyDesc { x, q: q.normalize(), v, w, mass, inertia });
+        (self.bodies.len() - 1) as u32
+    }
+
+    /// Adds a contact point `p` (m, body frame) to body `body`, which then touches the ground.
+    pub fn add_body_contact_point(&mut self, body: u32, p: Vec3<R>) {
+        assert!((body as usize) < self.bodies.len(), "add_body_contact_point: body {body} out of range ({} bodies)", self.bodies.len());
+        self.body_contacts.push((body, p));
+    }
+
+    /// Adds an XPBD distance constraint between particles `i` and `j`, rest distance their
+    /// current distance, compliance `compliance` (m/N; 0 = rigid). Returns its index.
+    pub fn add_distance_constraint(&mut self, i: u32, j: u32, compliance: R) -> u32 {
+        self.check_particles("add_distance_constraint", &[i, j]);
+        let d = self.particle_x[i as usize] - self.particle_x[j as usize];
+        self.dist_pairs.push([i, j]);
+        self.dist_rest.push(d.norm());
+        self.dist_compliance.push(compliance);
+        (self.dist_pairs.len() - 1) as u32
+    }
+
+    /// Builds the model: arrays for what the scene contains, nothing for the rest.
+    pub fn finalize(&self) -> Model<R> {
+        let n = self.particle_count();
+        let springs = (!self.spring_pairs.is_empty()).then(|| Springs {
+            pairs: Array::from_vec(self.spring_pairs.clone()).named("spring_pairs"),
+            rest: Array::from_vec(self.spring_rest.clone()).named("spring_rest"),
+            ke: Array::from_vec(self.spring_ke.clone()).named("spring_ke"),
+            kd: Array::from_vec(self.spring_kd.clone()).named("spring_kd"),
+        });
+        let bending = (!self.bend_quads.is_empty()).then(|| Bending {
+            quads: Array::from_vec(self.bend_quads.clone()).named("bend_quads"),
+            rest: Array::from_vec(self.bend_rest.clone()).named("bend_rest"),
+            ke: Array::from_vec(self.bend_ke.clone()).named("bend_ke"),
+            kd: Array::from_vec(self.bend_kd.clone()).named("bend_kd"),
+        });
+        let triangles = (!self.tri_fem.is_empty()).then(|| TriangleFem {
+            tris: Array::from_vec(self.tri_fem.clone()).named("tri_indices"),
+            dm_inv: Array::from_vec(self.tri_dm_inv.clone()).named("tri_dm_inv"),
+            area: Array::from_vec(self.tri_area.clone()).named("tri_area"),
+            mu: Array::from_vec(self.tri_mu.clone()).named("tri_mu"),
+            lambda: Array::from_vec(self.tri_lambda.clone()).named("tri_lambda"),
+            kd: Array::from_vec(self.tri_kd.clone()).named("tri_kd"),
+        });
+        let tets = (!self.tets.is_empty()).then(|| TetFem {
+            tets: Array::from_vec(self.tets.clone()).named("tet_indices"),
+            dm_inv: Array::from_vec(self.tet_dm_inv.clone()).named("tet_dm_inv"),
+            rest_volume: Array::from_vec(self.tet_volume.clone()).named("tet_volume"),
+            mu: Array::from_vec(self.tet_mu.clone()).named("tet_mu"),
+            lambda: Array::from_vec(self.tet_lambda.clone()).named("tet_lambda"),
+            kd: Array::from_vec(self.tet_kd.clone()).named("tet_kd"),
+            activation: Array::zeros(self.tets.len()).named("tet_activation"),
+        });
+        let shapes = (!self.shapes.is_empty()).then(|| {
+            let codes: Vec<(u32, Vec3<R>)> = self.shapes.iter().map(|s| s.kind.code()).collect();
+            Shapes {
+                kind: Array::from_vec(codes.iter().map(|c| c.0).collect()).named("shape_kind"),
+                pos: Array::from_vec(self.shapes.iter().map(|s| s.pos).collect()).named("shape_pos"),
+                rot: Array::from_vec(self.shapes.iter().map(|s| s.rot).collect()).named("shape_rot"),
+                size: Array::from_vec(codes.iter().map(|c| c.1).collect()).named("shape_size"),
+                ke: self.shape_contact.ke,
+                kd: self.shape_contact.kd,
+                mu: self.shape_contact.mu,
+                leak: self.shape_contact.leak,
+            }
+        });
+        let bodies = (!self.bodies.is_empty()).then(|| {
+            let b = &self.bodies;
+            let inv_mass: Vec<R> = b.iter().map(|b| if b.mass > lit(0.0) { lit::<R>(1.0) / b.mass } else { lit(0.0) }).collect();
+            let inv_inertia: Vec<Mat33<R>> = b
+                .iter()
+                .map(|b| if b.mass > lit(0.0) { b.inertia.try_inverse().unwrap_or_else(Mat33::zeros) } else { Mat33::zeros() })
+                .collect();
+            let (cb, cp): (Vec<u32>, Vec<Vec3<R>>) = self.body_contacts.iter().copied().unzip();
+            RigidBodies {
+                inv_mass: Array::from_vec(inv_mass).named("body_inv_mass"),
+                inertia: Array::from_vec(b.iter().map(|b| b.inertia).collect()).named("body_inertia"),
+                inv_inertia: Array::from_vec(inv_inertia).named("body_inv_inertia"),
+                initial: BodyState {
+                    x: Array::from_vec(b.iter().map(|b| b.x).collect()).named("body_x"),
+                    q: Array::from_vec(b.iter().map(|b| b.q).collect()).named("body_q"),
+                    v: Array::from_vec(b.iter().map(|b| b.v).collect()).named("body_v"),
+                    w: Array::from_vec(b.iter().map(|b| b.w).collect()).named("body_w"),
+                },
+                contact_body: (!cb.is_empty()).then(|| Array::from_vec(cb).named("body_contact_body")),
+                contact_point: (!cp.is_empty()).then(|| Array::from_vec(cp).named("body_contact_point")),
+            }
+        });
+        let distance_constraints = (!self.dist_pairs.is_empty()).then(|| DistanceConstraints {
+            pairs: Array::from_vec(self.dist_pairs.clone()).named("dist_pairs"),
+            rest: Array::from_vec(self.dist_rest.clone()).named("dist_rest"),
+            compliance: Array::from_vec(self.dist_compliance.clone()).named("dist_compliance"),
+        });
+        Model {
+            particle_count: n,
+            particle_x: Array::from_vec(self.particle_x.clone()).named("x0"),
+            particle_v: Array::from_vec(self.particle_v.clone()).named("v0"),
+            particle_inv_mass: Array::from_vec(self.particle_inv_mass.clone()).named("inv_mass"),
+            gravity: self.gravity,
+            particle_radius: self.particle_radius,
+            triangles: self.triangles.clone(),
+            springs,
+            bending,
+            tri_fem: triangles,
+            tets,
+            ground: self.ground,
+            drag: self.drag,
+            particle_contact: self.particle_contact,
+            shapes,
+            bodies,
+            distance_constraints,
+        }
+    }
+}
+
+/// A simulation model: constant arrays of the scene's components (only those it has) and the
+/// kernels that evaluate them.
+#[derive(Clone, Debug)]
+pub struct Model<R: Real> {
+    /// Number of particles.
+    pub particle_count: usize,
+    /// Initial particle positions (m); [`Model::state`] copies them.
+    pub particle_x: Array<Vec3<R>>,
+    /// Initial particle velocities (m/s).
+    pub particle_v: Array<Vec3<R>>,
+    /// Inverse masses (1/kg; 0 = pinned).
+    pub particle_inv_mass: Array<R>,
+    /// Gravity (m/s^2).
+    pub gravity: Vec3<R>,
+    /// Particle radius for contact (m).
+    pub particle_radius: R,
+    /// The surface triangles (topology, for output and bending; host only).
+    pub triangles: Vec<[u32; 3]>,
+    /// Springs.
+    pub springs: Option<Springs<R>>,
+    /// Dihedral bending elements.
+    pub bending: Option<Bending<R>>,
+    /// StVK membrane triangles.
+    pub tri_fem: Option<TriangleFem<R>>,
+    /// Stable Neo-Hookean tetrahedra.
+    pub tets: Option<TetFem<R>>,
+    /// Ground plane.
+    pub ground: Option<Ground<R>>,
+    /// Drag / wind.
+    pub drag: Option<Drag<R>>,
+    /// Particle-particle contact.
+    pub particle_contact: Option<ParticleContact<R>>,
+    /// Analytic shapes.
+    pub shapes: Option<Shapes<R>>,
+    /// Rigid bodies.
+    pub bodies: Option<RigidBodies<R>>,
+    /// XPBD distance constraints (used by position-based integrators; no force).
+    pub distance_constraints: Option<DistanceConstraints<R>>,
+}
+
+impl<R: Real> Model<R> {
+    /// The initial state: fresh copies of the initial arrays (gradients of a rollout from it
+    /// land in its arrays; mark them with `requires_grad` first).
+    pub fn state(&self) -> State<R> {
+        State {
+            x: self.particle_x.deep_clone().named("x"),
+            v: self.particle_v.deep_clone().named("v"),
+            bodies: self.bodies.as_ref().map(|b| b.initial.deep_clone()),
+        }
+    }
+
+    /// Records the force kernels of every particle component the scene has and returns the
+    /// total force on each particle (N), in a new array: springs, bending, membranes,
+    /// tetrahedra, ground, particle and shape contact, drag, and the control's external
+    /// forces. Gravity is not a force here (see [`Model::eval_accelerations`]).
+    pub fn eval_forces(&self, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>) -> Array<Vec3<R>> {
+        let f = Array::zeros(self.particle_count).named("f");
+        let (x, v) = (&state.x, &state.v);
+        if let Some(s) = &self.springs {
+            s.eval(tape, x, v, &f);
+        }
+        if let Some(b) = &self.bending {
+            b.eval(tape, x, v, &f);
+        }
+        if let Some(t) = &self.tri_fem {
+            t.eval(tape, x, v, &f);
+        }
+        if let Some(t) = &self.tets {
+            t.eval(tape, x, v, control.and_then(|c| c.tet_activation.as_ref()), &f);
+        }
+        if let Some(g) = &self.ground {
+            g.eval(tape, x, v, self.particle_radius, &f);
+        }
+        if let Some(c) = &self.particle_contact {
+            c.eval(tape, x, v, self.particle_radius, &f);
+        }
+        if let Some(s) = &self.shapes {
+            s.eval(tape, x, v, self.particle_radius, &f);
+        }
+        if let Some(d) = &self.drag {
+            d.eval(tape, v, &f);
+        }
+        if let Some(fext) = control.and_then(|c| c.particle_f.as_ref()) {
+            tape.launch(add_forces, self.particle_count, (fext, &f));
+        }
+        f
+    }
+
+    /// Accelerations (m/s^2) of the particles: `f w + g [w > 0]` with `f` from
+    /// [`Model::eval_forces`] (`w` the inverse mass, `g` gravity), in a new array.
+    pub fn eval_accelerations(&self, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>) -> Array<Vec3<R>> {
+        let f = self.eval_forces(tape, state, control);
+        let a = Array::zeros(self.particle_count).named("a");
+        tape.launch(accelerations, self.particle_count, (&f, &self.particle_inv_mass, self.gravity, &a));
+        a
+    }
+
+    /// Records the forces and torques on the rigid bodies (ground contact of their contact
+    /// points, the control's `body_f`, `body_t`) and returns them (N, N m; world frame), or
+    /// `None` if the model has no bodies. Gravity is applied by the integrator.
+    pub fn eval_body_forces(
+        &self,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+    ) -> Option<BodyForces<R>> {
+        let bodies = self.bodies.as_ref()?;
+        let s = state.bodies.as_ref().expect("the model has rigid bodies but the state has none");
+        let n = bodies.len();
+        let f = Array::zeros(n).named("body_f");
+        let t = Array::zeros(n).named("body_t");
+        if let Some(g) = &self.ground {
+            bodies.eval_ground(tape, s, g, &f, &t);
+        }
+        if let Some(c) = control {
+            if let Some(bf) = &c.body_f {
+                tape.launch(add_forces, n, (bf, &f));
+            }
+            if let Some(bt) = &c.body_t {
+                tape.launch(add_forces, n, (bt, &t));
+            }
+        }
+        Some((f, t))
+    }
+
+    /// Records the elastic potential energy of the springs, membranes and tetrahedra (J) and
+    /// returns it as a one-element array (for tests and energy-based integrators).
+    pub fn elastic_energy(&self, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>) -> Array<R> {
+        let e = Array::zeros(1).named("energy");
+        if let Some(s) = &self.springs {
+            s.energy(tape, &state.x, &e);
+        }
+        if let Some(t) = &self.tri_fem {
+            t.energy(tape, &state.x, &e);
+        }
+        if let Some(t) = &self.tets {
+            t.energy(tape, &state.x, control.and_then(|c| c.tet_activation.as_ref()), &e);
+        }
+        e
+    }
+}

@@ -1,0 +1,160 @@
+//! Rigid bodies: position, orientation (unit quaternion), linear and angular velocity (world
+//! frame), mass and body-frame inertia; forces and torques from gravity, contact of body
+//! points with the ground, and control; a semi-implicit Euler step with the gyroscopic term
+//! `w x I w` and quaternion renormalisation.
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+use crate::contact::ground::{contact_depth, contact_force, Ground};
+use crate::model::BodyState;
+
+/// Ground contact of contact point `tid`, a point `contact_point` (m, body frame) of body
+/// `contact_body`: with `r` the point relative to the centre of mass in world frame,
+/// `c = contact_depth(dot(normal, x + r) - offset, leak)`, the body gets the force
+/// `fc = contact_force(normal, c, v + w x r, ke, kd [c < 0], mu)` (N) and the torque `r x fc`
+/// (N m). Damping acts only in contact.
+#[diff_kernel]
+pub fn eval_body_ground<R: Real>(
+    body_x: &Array<Vec3<R>>,
+    body_q: &Array<Quat<R>>,
+    body_v: &Array<Vec3<R>>,
+    body_w: &Array<Vec3<R>>,
+    contact_body: &Array<u32>,
+    contact_point: &Array<Vec3<R>>,
+    normal: Vec3<R>,
+    offset: R,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    body_f: &Array<Vec3<R>>,
+    body_t: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let b = contact_body[t];
+    let r = quat_rotate(body_q[b], contact_point[t]);
+    let vp = body_v[b] + cross(body_w[b], r);
+    let c = contact_depth(dot(normal, body_x[b] + r) - offset, leak);
+    let kdc = select(c < 0.0, kd, 0.0);
+    let fc = contact_force(normal, c, vp, ke, kdc, mu);
+    body_f.atomic_add(b, fc);
+    body_t.atomic_add(b, cross(r, fc));
+}
+
+/// Semi-implicit Euler step of body `tid`:
+/// `v' = v + (f m^-1 + g [m^-1 > 0]) dt`, `x' = x + v' dt`; in the body frame
+/// `w_b' = w_b + I^-1 (tau_b - w_b x I w_b) dt` (explicit gyroscopic term), `w' = q w_b'`;
+/// `q' = normalize(q + (w', 0) q dt/2)`. `f` (N), `tau` (N m), `w` (rad/s) in world frame.
+#[diff_kernel]
+pub fn integrate_bodies<R: Real>(
+    x: &Array<Vec3<R>>,
+    q: &Array<Quat<R>>,
+    v: &Array<Vec3<R>>,
+    w: &Array<Vec3<R>>,
+    f: &Array<Vec3<R>>,
+    tau: &Array<Vec3<R>>,
+    inv_mass: &Array<R>,
+    inertia: &Array<Mat33<R>>,
+    inv_inertia: &Array<Mat33<R>>,
+    g: Vec3<R>,
+    dt: R,
+    x_new: &Array<Vec3<R>>,
+    q_new: &Array<Quat<R>>,
+    v_new: &Array<Vec3<R>>,
+    w_new: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let im = inv_mass[t];
+    let v1 = v[t] + (f[t] * im + select(im > 0.0, g, g * 0.0)) * dt;
+    let r = q[t];
+    let wb = quat_rotate_inv(r, w[t]);
+    let tb = quat_rotate_inv(r, tau[t]);
+    let wb1 = wb + inv_inertia[t] * (tb - cross(wb, inertia[t] * wb)) * dt;
+    let w1 = quat_rotate(r, wb1);
+    let r1 = quat_normalize(r + quat(w1.x, w1.y, w1.z, 0.0) * r * (0.5 * dt));
+    x_new[t] = x[t] + v1 * dt;
+    q_new[t] = r1;
+    v_new[t] = v1;
+    w_new[t] = w1;
+}
+
+/// Kinetic energy of body `tid`, `m |v|^2 / 2 + w_b . I w_b / 2` (J), added to `energy[0]`.
+#[diff_kernel]
+pub fn body_kinetic_energy<R: Real>(
+    q: &Array<Quat<R>>,
+    v: &Array<Vec3<R>>,
+    w: &Array<Vec3<R>>,
+    inv_mass: &Array<R>,
+    inertia: &Array<Mat33<R>>,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let im = inv_mass[t];
+    let wb = quat_rotate_inv(q[t], w[t]);
+    let lin = select(im > 0.0, 0.5 * dot(v[t], v[t]) / im, 0.0);
+    energy.atomic_add(0, lin + 0.5 * dot(wb, inertia[t] * wb));
+}
+
+/// The rigid bodies of a model: mass properties, initial state and contact points.
+#[derive(Clone, Debug)]
+pub struct RigidBodies<R: Real> {
+    /// Inverse mass (1/kg; 0 = static).
+    pub inv_mass: Array<R>,
+    /// Inertia about the centre of mass, body frame (kg m^2).
+    pub inertia: Array<Mat33<R>>,
+    /// Its inverse (0 = no rotation from torques).
+    pub inv_inertia: Array<Mat33<R>>,
+    /// Initial state.
+    pub initial: BodyState<R>,
+    /// The body of each contact point (absent if there are none).
+    pub contact_body: Option<Array<u32>>,
+    /// Contact points in body frame (m).
+    pub contact_point: Option<Array<Vec3<R>>>,
+}
+
+impl<R: Real> RigidBodies<R> {
+    /// Number of bodies.
+    pub fn len(&self) -> usize {
+        self.inv_mass.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.inv_mass.is_empty()
+    }
+
+    /// Records the contact of the body points with `ground` (if both exist), accumulating into
+    /// `body_f` and `body_t`.
+    pub fn eval_ground(&self, tape: &mut Tape, s: &BodyState<R>, ground: &Ground<R>, body_f: &Array<Vec3<R>>, body_t: &Array<Vec3<R>>) {
+        if let (Some(cb), Some(cp)) = (&self.contact_body, &self.contact_point) {
+            tape.launch(
+                eval_body_ground,
+                cb.len(),
+                (&s.x, &s.q, &s.v, &s.w, cb, cp, ground.normal, ground.offset, ground.ke, ground.kd, ground.mu, ground.leak, body_f, body_t),
+            );
+        }
+    }
+
+    /// Records [`integrate_bodies`]: the next body state from forces `f` and torques `tau`.
+    pub fn integrate(&self, tape: &mut Tape, s: &BodyState<R>, f: &Array<Vec3<R>>, tau: &Array<Vec3<R>>, g: Vec3<R>, dt: R) -> BodyState<R> {
+        let n = self.len();
+        let next = BodyState {
+            x: Array::zeros(n).named("body_x"),
+            q: Array::zeros(n).named("body_q"),
+            v: Array::zeros(n).named("body_v"),
+            w: Array::zeros(n).named("body_w"),
+        };
+        tape.launch(
+            integrate_bodies,
+            n,
+            (&s.x, &s.q, &s.v, &s.w, f, tau, &self.inv_mass, &self.inertia, &self.inv_inertia, g, dt, &next.x, &next.q, &next.v, &next.w),
+        );
+        next
+    }
+
+    /// Records [`body_kinetic_energy`], adding into `energy[0]`.
+    pub fn kinetic_energy(&self, tape: &mut Tape, s: &BodyState<R>, energy: &Array<R>) {
+        tape.launch(body_kinetic_energy, self.len(), (&s.q, &s.v, &s.w, &self.inv_mass, &self.inertia, energy));
+    }
+}

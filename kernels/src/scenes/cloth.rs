@@ -1,0 +1,214 @@
+//! The `cloth` benchmark scene (`bench/SCENES.md`): a square sheet falling onto the ground,
+//! pinned at two corners; springs, dihedral bending, ground contact with friction, gravity,
+//! semi-implicit Euler. Topology and ordering match the reference `warp_cloth_scene.py`.
+//!
+//! ```
+//! use adflex_kernels::scenes::cloth;
+//! let scene = cloth::build::<f64>(4);
+//! let out = cloth::rollout(&scene, 3, true).unwrap();
+//! assert!(out.loss > 0.0 && out.grad_v0_norm > 0.0);
+//! ```
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+use crate::contact::ground::Ground;
+use crate::forces::bending::{bending_edges, dihedral_angle, RestAngle};
+use crate::integrators::{Integrator, SemiImplicitEuler};
+use crate::model::{Model, ModelBuilder, State};
+
+/// A rectangular cloth: a grid of particles joined by structural and shear springs, split into
+/// triangles, with bending elements on every interior edge.
+///
+/// Particle `(i, j)` (`i < ni`, `j < nj`) is at `origin + (i h, 0, j h)` with index
+/// `first + i nj + j`. Springs, for each `(i, j)` in row-major order: `(p(i,j), p(i+1,j))`,
+/// `(p(i,j), p(i,j+1))`, then if both exist `(p(i,j), p(i+1,j+1))` and `(p(i+1,j), p(i,j+1))`.
+/// Each quad `a = p(i,j)`, `b = p(i+1,j)`, `c = p(i+1,j+1)`, `d = p(i,j+1)` gives the triangles
+/// `(a, b, c)`, `(a, c, d)`; bending elements follow [`bending_edges`].
+#[derive(Clone, Debug)]
+pub struct ClothGrid<R: Real> {
+    /// Particles along the first axis.
+    pub ni: usize,
+    /// Particles along the second axis.
+    pub nj: usize,
+    /// Position of particle `(0, 0)` (m).
+    pub origin: Vec3<R>,
+    /// Distance between neighbouring particles (m).
+    pub spacing: f64,
+    /// Mass of each particle (kg).
+    pub mass: R,
+    /// Particles `(i, j)` to pin (inverse mass 0).
+    pub pinned: Vec<(usize, usize)>,
+    /// Spring stiffness (N/m).
+    pub spring_ke: R,
+    /// Spring damping (N s/m).
+    pub spring_kd: R,
+    /// Bending stiffness (N m/rad); no bending elements if `None`.
+    pub bend: Option<(R, R)>,
+    /// Rest angle of the bending elements.
+    pub bend_rest: RestAngle,
+}
+
+impl<R: Real> ClothGrid<R> {
+    /// The `cloth` scene's sheet with `n` particles per side: spacing `1/(n-1)`, at height
+    /// 0.03 m, mass 0.01 kg, pinned at `(0, 0)` and `(n-1, 0)`, springs `ke = 50`, `kd = 0.1`,
+    /// bending `ke = 0.01`, `kd = 0`, flat rest.
+    pub fn benchmark(n: usize) -> Self {
+        assert!(n >= 2, "a cloth needs at least 2 particles per side");
+        ClothGrid {
+            ni: n,
+            nj: n,
+            origin: Vec3::new(R::lit(0.0), R::lit(0.03), R::lit(0.0)),
+            spacing: 1.0 / (n - 1) as f64,
+            mass: R::lit(0.01),
+            pinned: vec![(0, 0), (n - 1, 0)],
+            spring_ke: R::lit(50.0),
+            spring_kd: R::lit(0.1),
+            bend: Some((R::lit(0.01), R::lit(0.0))),
+            bend_rest: RestAngle::Flat,
+        }
+    }
+}
+
+impl<R: Real> ModelBuilder<R> {
+    /// Adds a [`ClothGrid`]; returns the index of its first particle.
+    pub fn add_cloth_grid(&mut self, c: &ClothGrid<R>) -> u32 {
+        let first = self.particle_count() as u32;
+        let (ni, nj) = (c.ni, c.nj);
+        let o = Vec3::new(c.origin.x.to_f64(), c.origin.y.to_f64(), c.origin.z.to_f64());
+        for i in 0..ni {
+            for j in 0..nj {
+                // Positions in f64, rounded once (as the reference builds them).
+                let p = Vec3::new(o.x + i as f64 * c.spacing, o.y, o.z + j as f64 * c.spacing);
+                let p = Vec3::new(R::lit(p.x), R::lit(p.y), R::lit(p.z));
+                let mass = if c.pinned.contains(&(i, j)) { R::lit(0.0) } else { c.mass };
+                self.add_particle(p, Vec3::zeros(), mass);
+            }
+        }
+        let pid = |i: usize, j: usize| first + (i * nj + j) as u32;
+        for i in 0..ni {
+            for j in 0..nj {
+                if i + 1 < ni {
+                    self.add_spring(pid(i, j), pid(i + 1, j), c.spring_ke, c.spring_kd);
+                }
+                if j + 1 < nj {
+                    self.add_spring(pid(i, j), pid(i, j + 1), c.spring_ke, c.spring_kd);
+                }
+                if i + 1 < ni && j + 1 < nj {
+                    self.add_spring(pid(i, j), pid(i + 1, j + 1), c.spring_ke, c.spring_kd);
+                    self.add_spring(pid(i + 1, j), pid(i, j + 1), c.spring_ke, c.spring_kd);
+                }
+            }
+        }
+        let mut tris = Vec::new();
+        for i in 0..ni.saturating_sub(1) {
+            for j in 0..nj.saturating_sub(1) {
+                let (a, b, cc, d) = (pid(i, j), pid(i + 1, j), pid(i + 1, j + 1), pid(i, j + 1));
+                tris.push([a, b, cc]);
+                tris.push([a, cc, d]);
+            }
+        }
+        for t in &tris {
+            self.add_triangle(t[0], t[1], t[2]);
+        }
+        if let Some((ke, kd)) = c.bend {
+            let xs: Vec<Vec3<f64>> = (0..self.particle_count() as u32)
+                .map(|i| {
+                    let p = self.particle_position(i);
+                    Vec3::new(p.x.to_f64(), p.y.to_f64(), p.z.to_f64())
+                })
+                .collect();
+            for q in bending_edges(&tris) {
+                let rest = match c.bend_rest {
+                    RestAngle::Flat => 0.0,
+                    RestAngle::Initial => dihedral_angle(&xs, q),
+                };
+                self.add_bending(q, R::lit(rest), ke, kd);
+            }
+        }
+        first
+    }
+}
+
+/// Time step of the scene (s).
+pub const DT: f64 = 1e-3;
+
+/// The `cloth` scene, ready to roll out: its model and initial state. The initial velocities
+/// and the spring stiffnesses require grad (the scene's gradient targets).
+#[derive(Clone, Debug)]
+pub struct Cloth<R: Real> {
+    /// Particles per side.
+    pub n: usize,
+    /// The model (springs, bending, ground; gravity).
+    pub model: Model<R>,
+    /// The initial state (`x0`, `v0`).
+    pub initial: State<R>,
+}
+
+/// Builds the `cloth` scene with `n` particles per side.
+pub fn build<R: Real>(n: usize) -> Cloth<R> {
+    let mut b = ModelBuilder::<R>::new();
+    b.particle_radius = R::lit(0.01);
+    b.add_cloth_grid(&ClothGrid::benchmark(n));
+    b.set_ground(Ground::default());
+    let model = b.finalize();
+    let initial = model.state();
+    let _ = initial.v.clone().requires_grad();
+    let _ = model.springs.as_ref().expect("springs").ke.clone().requires_grad();
+    Cloth { n, model, initial }
+}
+
+/// The scene's loss: `loss[0] += scale |x - x0 - target|^2` for particle `tid`.
+#[diff_kernel]
+pub fn displacement_loss<R: Real>(x: &Array<Vec3<R>>, x0: &Array<Vec3<R>>, target: Vec3<R>, scale: R, loss: &Array<R>) {
+    let t = tid();
+    let d = x[t] - x0[t] - target;
+    loss.atomic_add(0, dot(d, d) * scale);
+}
+
+/// Records `steps` semi-implicit Euler steps of `dt = 1e-3` s from the initial state and the
+/// loss `(1/N^2) sum |x_T - x_0 - (0, -0.1, 0)|^2`; returns the final state and the loss array.
+pub fn forward<R: Real>(scene: &Cloth<R>, tape: &mut Tape, steps: usize) -> (State<R>, Array<R>) {
+    let dt = R::lit(DT);
+    let s = SemiImplicitEuler.rollout(&scene.model, tape, &scene.initial, None, dt, steps);
+    let loss = Array::zeros(1).named("loss");
+    let n2 = (scene.n * scene.n) as f64;
+    let target = Vec3::new(R::lit(0.0), R::lit(-0.1), R::lit(0.0));
+    tape.launch(displacement_loss, s.x.len(), (&s.x, &scene.initial.x, target, R::lit(1.0 / n2), &loss));
+    (s, loss)
+}
+
+/// What [`rollout`] returns.
+#[derive(Clone, Debug)]
+pub struct ClothResult<R: Real> {
+    /// The loss.
+    pub loss: f64,
+    /// `dL/dv0` per particle (empty without backward).
+    pub grad_v0: Vec<Vec3<R>>,
+    /// `dL/dke` per spring (empty without backward).
+    pub grad_ke: Vec<R>,
+    /// Euclidean norm of `grad_v0` (over all components).
+    pub grad_v0_norm: f64,
+    /// Euclidean norm of `grad_ke`.
+    pub grad_ke_norm: f64,
+}
+
+/// Runs the scene for `steps` steps on a fresh tape and, if `backward`, differentiates the
+/// loss with respect to the initial velocities and the spring stiffnesses (gradients from
+/// earlier calls are cleared first). The entry point of the benchmark.
+pub fn rollout<R: Real>(scene: &Cloth<R>, steps: usize, backward: bool) -> Result<ClothResult<R>, Error> {
+    let mut tape = Tape::new();
+    let (_, loss) = forward(scene, &mut tape, steps);
+    let mut out = ClothResult { loss: loss.get(0).to_f64(), grad_v0: Vec::new(), grad_ke: Vec::new(), grad_v0_norm: 0.0, grad_ke_norm: 0.0 };
+    if backward {
+        let ke = &scene.model.springs.as_ref().expect("springs").ke;
+        scene.initial.v.zero_grad();
+        ke.zero_grad();
+        tape.backward(&loss)?;
+        out.grad_v0 = scene.initial.v.grad()?.to_vec();
+        out.grad_ke = ke.grad()?.to_vec();
+        out.grad_v0_norm = out.grad_v0.iter().map(|g| g.iter().map(|c| c.to_f64().powi(2)).sum::<f64>()).sum::<f64>().sqrt();
+        out.grad_ke_norm = out.grad_ke.iter().map(|g| g.to_f64().powi(2)).sum::<f64>().sqrt();
+    }
+    Ok(out)
+}

@@ -1,0 +1,186 @@
+//! Scene files: JSON and TOML scenes build the same models as the builder; malformed files give
+//! errors that name the field and the line, and never panic.
+
+use adflex_kernels::prelude::*;
+use adflex_kernels::scene_file::SceneError;
+use adflex_kernels::scenes::cloth;
+use adflex_runtime::Tape;
+
+const FULL_JSON: &str = r#"{
+  "gravity": [0, -9.81, 0],
+  "particle_radius": 0.02,
+  "particles": [
+    { "x": [0, 1, 0], "mass": 0 },
+    { "x": [1, 1, 0], "v": [0, 0.5, 0], "mass": 0.1 },
+    { "x": [0, 1, 1], "mass": 0.1 },
+    { "x": [1, 1, 1], "mass": 0.1 },
+    { "x": [0.5, 2, 0.5], "mass": 0.1 }
+  ],
+  "springs": [
+    { "i": 0, "j": 1, "ke": 100, "kd": 0.1 },
+    { "i": 1, "j": 3, "ke": 100, "rest": 0.9 }
+  ],
+  "triangles": [
+    { "indices": [0, 1, 3], "mu": 50, "lambda": 20, "kd": 0.1 },
+    { "indices": [0, 3, 2] }
+  ],
+  "bending": { "ke": 0.5, "rest": "initial" },
+  "tets": [ { "indices": [0, 1, 2, 4], "young": 1000, "poisson": 0.3, "kd": 0.1 } ],
+  "ground": { "ke": 2000, "leak": 0.01 },
+  "drag": { "kd": 0.01, "wind": [1, 0, 0] },
+  "particle_contact": { "ke": 500 },
+  "shape_contact": { "mu": 0.3 },
+  "shapes": [
+    { "kind": "sphere", "pos": [0, 0, 0], "radius": 0.5 },
+    { "kind": "box", "pos": [3, 0, 0], "rot": [0, 0.383, 0, 0.924], "half_extents": [0.5, 0.2, 0.3] },
+    { "kind": "capsule", "pos": [-3, 0, 0], "radius": 0.2, "half_length": 0.5 }
+  ],
+  "bodies": [
+    { "x": [0, 3, 0], "w": [0, 1, 0], "mass": 2, "inertia": [0.1, 0.2, 0.3],
+      "contact_points": [[0.1, -0.1, 0.1], [-0.1, -0.1, -0.1]] }
+  ],
+  "distance_constraints": [ { "i": 2, "j": 4, "compliance": 0.001 } ]
+}"#;
+
+#[test]
+fn a_full_json_scene_builds_and_steps() {
+    let b = ModelBuilder::<f64>::from_json_str(FULL_JSON).unwrap();
+    let m = b.finalize();
+    assert_eq!(m.particle_count, 5);
+    assert_eq!(m.springs.as_ref().unwrap().len(), 2);
+    assert_eq!(m.springs.as_ref().unwrap().rest.get(1), 0.9);
+    assert_eq!(m.tri_fem.as_ref().unwrap().len(), 1);
+    assert_eq!(m.triangles.len(), 2);
+    assert_eq!(m.bending.as_ref().unwrap().len(), 1);
+    assert_eq!(m.tets.as_ref().unwrap().len(), 1);
+    assert_eq!(m.shapes.as_ref().unwrap().kind.to_vec(), vec![0, 1, 2]);
+    assert_eq!(m.bodies.as_ref().unwrap().len(), 1);
+    assert_eq!(m.distance_constraints.as_ref().unwrap().len(), 1);
+    assert_eq!(m.ground.unwrap().leak, 0.01);
+    assert_eq!(m.particle_inv_mass.get(0), 0.0);
+    let mut tape = Tape::new();
+    let s = SemiImplicitEuler.step(&m, &mut tape, &m.state(), None, 1e-3);
+    assert!(s.x.to_vec().iter().all(|p| p.iter().all(|c| c.is_finite())));
+    assert!(s.bodies.unwrap().x.get(0).y < 3.0);
+}
+
+#[test]
+fn a_toml_cloth_grid_is_the_benchmark_cloth() {
+    let toml = r#"
+particle_radius = 0.01
+
+[[cloth_grids]]
+ni = 6
+nj = 6
+origin = [0.0, 0.03, 0.0]
+spacing = 0.2
+mass = 0.01
+pinned = [[0, 0], [5, 0]]
+spring_ke = 50.0
+spring_kd = 0.1
+bend_ke = 0.01
+
+[ground]
+"#;
+    let m = ModelBuilder::<f32>::from_toml_str(toml).unwrap().finalize();
+    let reference = cloth::build::<f32>(6);
+    let r = &reference.model;
+    assert_eq!(m.particle_x.to_vec(), r.particle_x.to_vec());
+    assert_eq!(m.particle_inv_mass.to_vec(), r.particle_inv_mass.to_vec());
+    let (s, rs) = (m.springs.as_ref().unwrap(), r.springs.as_ref().unwrap());
+    assert_eq!(s.pairs.to_vec(), rs.pairs.to_vec());
+    assert_eq!(s.rest.to_vec(), rs.rest.to_vec());
+    assert_eq!(m.bending.as_ref().unwrap().quads.to_vec(), r.bending.as_ref().unwrap().quads.to_vec());
+    assert_eq!(m.ground, r.ground);
+}
+
+fn json_err(src: &str) -> SceneError {
+    match ModelBuilder::<f32>::from_json_str(src) {
+        Ok(_) => panic!("accepted a malformed file:\n{src}"),
+        Err(e) => e,
+    }
+}
+
+fn toml_err(src: &str) -> SceneError {
+    match ModelBuilder::<f32>::from_toml_str(src) {
+        Ok(_) => panic!("accepted a malformed file:\n{src}"),
+        Err(e) => e,
+    }
+}
+
+#[track_caller]
+fn expect(e: &SceneError, field: &str, line: usize, says: &str) {
+    assert_eq!(e.field.as_deref(), Some(field), "{e}");
+    assert_eq!(e.line, Some(line), "{e}");
+    assert!(e.message.contains(says), "`{says}` not in: {e}");
+    let shown = e.to_string();
+    assert!(shown.contains(&format!("line {line}")) && shown.contains(field), "{shown}");
+}
+
+#[test]
+fn malformed_json_names_the_field_and_line() {
+    let e = json_err("{\n  \"particles\": [\n    { \"x\": [0, 1, 0], \"mass\": 1 },\n    { \"x\": [0, 1, 0], \"mass\": \"heavy\" }\n  ]\n}");
+    expect(&e, "particles[1].mass", 4, "invalid type");
+    let e = json_err("{\n  \"particles\": [\n    { \"x\": [0, 1, 0] }\n  ]\n}");
+    expect(&e, "particles[0]", 3, "missing field `mass`");
+    let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1, 0], \"mass\": 1 } ],\n  \"springs\": [ { \"i\": 0, \"j\": 0, \"stiffness\": 3 } ]\n}");
+    expect(&e, "springs[0].stiffness", 3, "unknown field `stiffness`");
+    let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1], \"mass\": 1 } ]\n}");
+    expect(&e, "particles[0].x", 2, "invalid length");
+    let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1, 0], \"mass\": 1 }, { \"x\": [1, 1, 0], \"mass\": 1 } ],\n  \"springs\": [\n    { \"i\": 0, \"j\": 7, \"ke\": 3 }\n  ]\n}");
+    expect(&e, "springs[0]", 4, "particle index 7 out of range (2 particles)");
+    let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1, 0], \"mass\": -1 } ]\n}");
+    expect(&e, "particles[0].mass", 2, ">= 0");
+    let e = json_err("{\n  \"shapes\": [\n    { \"kind\": \"cone\", \"pos\": [0, 0, 0] }\n  ]\n}");
+    expect(&e, "shapes[0].kind", 3, "unknown variant `cone`");
+    let e = json_err("{\n  \"shapes\": [\n    { \"kind\": \"sphere\", \"pos\": [0, 0, 0] }\n  ]\n}");
+    expect(&e, "shapes[0]", 3, "missing field `radius`");
+    let e = json_err("{\n \"particles\": [\n  {\"x\": [0,0,0], \"mass\": 1}, {\"x\": [1,0,0], \"mass\": 1},\n  {\"x\": [2,0,0], \"mass\": 1}, {\"x\": [3,0,0], \"mass\": 1}],\n \"tets\": [\n  {\"indices\": [0, 1, 2, 3], \"mu\": 1, \"lambda\": 1}\n ]\n}");
+    expect(&e, "tets[0]", 6, "degenerate");
+    // A syntax error: line and column, no field needed.
+    let e = json_err("{\n  \"gravity\": [0, -9.8, 0]\n  \"particles\": []\n}");
+    assert_eq!(e.line, Some(3), "{e}");
+    assert!(e.message.contains("expected"), "{e}");
+}
+
+#[test]
+fn malformed_toml_names_the_field_and_line() {
+    let e = toml_err("[[particles]]\nx = [0, 1, 0]\nmass = 1\n\n[[particles]]\nx = [0, 1, 0]\nmass = \"heavy\"\n");
+    expect(&e, "particles[1].mass", 7, "invalid type");
+    let e = toml_err("[[particles]]\nx = [0, 1, 0]\nmass = 1\n\n[[springs]]\ni = 0\nj = 3\nke = 1.0\n");
+    expect(&e, "springs[0]", 5, "particle index 3 out of range");
+    let e = toml_err("[ground]\nke = 1000.0\nmu = nan\n");
+    expect(&e, "ground.mu", 3, ">= 0");
+    let e = toml_err("[drag]\nkd = 0.1\nwindy = [1.0, 0.0, 0.0]\n");
+    expect(&e, "drag.windy", 3, "unknown field `windy`");
+    let e = toml_err("[[cloth_grids]]\nni = 4\nnj = 1\norigin = [0.0, 0.0, 0.0]\nspacing = 0.1\nmass = 1.0\nspring_ke = 1.0\n");
+    expect(&e, "cloth_grids[0].ni", 2, "at least 2 per side");
+    let e = toml_err("gravity = [0.0, -9.8, 0.0\n");
+    assert_eq!(e.line, Some(1), "{e}");
+}
+
+#[test]
+fn no_input_makes_the_reader_panic() {
+    // Every prefix of a valid file and a sweep of single-byte corruptions: errors, not panics.
+    let bytes = FULL_JSON.as_bytes();
+    for end in 0..bytes.len() {
+        if let Ok(s) = std::str::from_utf8(&bytes[..end]) {
+            let _ = ModelBuilder::<f32>::from_json_str(s);
+        }
+    }
+    for k in (0..bytes.len()).step_by(3) {
+        for c in [b'0', b'-', b'"', b'[', b'}', b'9', b'e'] {
+            let mut m = bytes.to_vec();
+            m[k] = c;
+            if let Ok(s) = std::str::from_utf8(&m) {
+                if let Err(e) = ModelBuilder::<f32>::from_json_str(s) {
+                    assert!(!e.message.is_empty());
+                }
+            }
+        }
+    }
+    let toml = "[[particles]]\nx = [0.0, 1.0, 0.0]\nmass = 1.0\n[[springs]]\ni = 0\nj = 0\nke = 1.0\n[ground]\nke = 5.0\n";
+    for end in 0..toml.len() {
+        let _ = ModelBuilder::<f32>::from_toml_str(&toml[..end]);
+    }
+}
