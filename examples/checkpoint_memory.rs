@@ -52,10 +52,21 @@ fn main() -> Result<(), Error> {
         tape.backward(&l)?;
         l.get(0)
     } else {
-        checkpointed(&scene.initial, steps, every, step, loss)?.loss.get(0)
+        checkpointed(&scene.initial, steps, every, step, loss)?
+            .loss
+            .get(0)
     };
     let norm = |v: Vec<f64>| v.iter().map(|g| g * g).sum::<f64>().sqrt();
-    let g_v0 = norm(scene.initial.v.grad()?.to_vec().iter().flat_map(|g| g.iter().map(|c| *c as f64)).collect());
+    let g_v0 = norm(
+        scene
+            .initial
+            .v
+            .grad()?
+            .to_vec()
+            .iter()
+            .flat_map(|g| g.iter().map(|c| *c as f64))
+            .collect(),
+    );
     let g_ke = norm(ke.grad()?.to_vec().iter().map(|g| *g as f64).collect());
     println!(
         "{{\"steps\": {steps}, \"n\": {n}, \"mode\": \"{}\", \"every\": {every}, \"loss\": {value:e}, \

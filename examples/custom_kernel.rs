@@ -51,7 +51,11 @@ struct Ring {
 fn loss(tape: &mut Tape, r: &Ring) -> Array<f64> {
     let f = Array::zeros(r.x.len()).named("f");
     let loss = Array::zeros(1).named("loss");
-    tape.launch(eval_springs, r.pairs.len(), (&r.x, &r.v, &r.pairs, &r.rest, &r.ke, 0.1, &f));
+    tape.launch(
+        eval_springs,
+        r.pairs.len(),
+        (&r.x, &r.v, &r.pairs, &r.rest, &r.ke, 0.1, &f),
+    );
     tape.launch(force_norm, f.len(), (&f, &loss));
     loss
 }
@@ -61,17 +65,25 @@ fn main() -> Result<(), Error> {
     let x: Vec<Vec3<f64>> = (0..n)
         .map(|k| {
             let a = k as f64 / n as f64 * std::f64::consts::TAU;
-            Vec3::new(a.cos() * (1.0 + 0.1 * (3.0 * a).sin()), a.sin(), 0.05 * k as f64)
+            Vec3::new(
+                a.cos() * (1.0 + 0.1 * (3.0 * a).sin()),
+                a.sin(),
+                0.05 * k as f64,
+            )
         })
         .collect();
-    let v: Vec<Vec3<f64>> = (0..n).map(|k| Vec3::new(0.0, 0.1 * k as f64, 0.0)).collect();
+    let v: Vec<Vec3<f64>> = (0..n)
+        .map(|k| Vec3::new(0.0, 0.1 * k as f64, 0.0))
+        .collect();
     let pairs: Vec<[u32; 2]> = (0..n as u32).map(|k| [k, (k + 1) % n as u32]).collect();
     let ring = Ring {
         x: Array::from_vec(x).named("x"),
         v: Array::from_vec(v).named("v"),
         pairs: Array::from_vec(pairs).named("pairs"),
         rest: Array::from_vec(vec![0.7; n]).named("rest"),
-        ke: Array::from_vec((0..n).map(|k| 10.0 + k as f64).collect()).named("ke").requires_grad(),
+        ke: Array::from_vec((0..n).map(|k| 10.0 + k as f64).collect())
+            .named("ke")
+            .requires_grad(),
     };
 
     let mut tape = Tape::new();
@@ -79,7 +91,10 @@ fn main() -> Result<(), Error> {
     tape.backward(&l)?;
     let grad = ring.ke.grad()?.to_vec();
     println!("loss = {:.6}", l.get(0));
-    println!("{:>6} {:>16} {:>16} {:>10}", "spring", "adjoint dL/dke", "central diff", "rel err");
+    println!(
+        "{:>6} {:>16} {:>16} {:>10}",
+        "spring", "adjoint dL/dke", "central diff", "rel err"
+    );
     let h = 1e-6;
     let mut worst: f64 = 0.0;
     for (k, g) in grad.iter().enumerate() {

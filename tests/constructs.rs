@@ -62,8 +62,16 @@ fn straight_line_arithmetic_and_let_mut() {
 fn vectors<R: Real>(x: &Array<R>, pairs: &Array<[u32; 2]>, y: &Array<R>) {
     let t = tid();
     let [i, j] = pairs[t];
-    let a = vec3(x[i as usize * 3], x[i as usize * 3 + 1], x[i as usize * 3 + 2]);
-    let b = vec3(x[j as usize * 3], x[j as usize * 3 + 1], x[j as usize * 3 + 2]);
+    let a = vec3(
+        x[i as usize * 3],
+        x[i as usize * 3 + 1],
+        x[i as usize * 3 + 2],
+    );
+    let b = vec3(
+        x[j as usize * 3],
+        x[j as usize * 3 + 1],
+        x[j as usize * 3 + 2],
+    );
     let mut c = cross(a, b) + normalize(a - b) * length(b);
     c.y = c.y * 2.0 + a[2];
     c[0] = c.x - dot(a, b);
@@ -144,17 +152,29 @@ fn product_loop<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
 #[test]
 fn warp_case_product_loop() {
     let xs = inputs(6, 5);
-    let (c, _) = check_kernel!(product_loop, dim = 1, inputs = [x: xs], outputs = [y: 1], extra = (6usize));
+    let (c, _) =
+        check_kernel!(product_loop, dim = 1, inputs = [x: xs], outputs = [y: 1], extra = (6usize));
     // The gradient is the product of the others.
     let w = {
         let x: Array<f64> = Array::from_vec(xs.clone());
         let y: Array<f64> = Array::zeros(1);
-        let c = check(&[&x], &[&y], 7, |m| launch_mode(m, product_loop, 1, (&x, 6usize, &y)));
+        let c = check(&[&x], &[&y], 7, |m| {
+            launch_mode(m, product_loop, 1, (&x, 6usize, &y))
+        });
         c.grad[0][0] / xs[1..].iter().product::<f64>()
     };
     for (k, g) in c.grad[0].iter().enumerate() {
-        let others: f64 = xs.iter().enumerate().filter(|(j, _)| *j != k).map(|(_, v)| v).product();
-        assert!((g - w * others).abs() < 1e-12, "d/dx{k}: {g} vs {}", w * others);
+        let others: f64 = xs
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != k)
+            .map(|(_, v)| v)
+            .product();
+        assert!(
+            (g - w * others).abs() < 1e-12,
+            "d/dx{k}: {g} vs {}",
+            w * others
+        );
     }
 }
 
@@ -177,7 +197,11 @@ fn warp_case_loop_with_break() {
     // Breaks after 3 of 8 terms: only those have a gradient.
     let (c, _) = check_kernel!(break_loop, dim = 1, inputs = [x: inputs(8, 6)], outputs = [y: 1], extra = (8usize, 2.0));
     let nonzero = c.grad[0].iter().filter(|g| **g != 0.0).count();
-    assert!(nonzero > 0 && nonzero < 8, "break must cut the gradient: {:?}", c.grad[0]);
+    assert!(
+        nonzero > 0 && nonzero < 8,
+        "break must cut the gradient: {:?}",
+        c.grad[0]
+    );
 }
 
 #[diff_kernel]
@@ -194,7 +218,8 @@ fn while_loop<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
 #[test]
 fn warp_case_while_sum_of_squares() {
     let xs = inputs(7, 7);
-    let (c, _) = check_kernel!(while_loop, dim = 1, inputs = [x: xs], outputs = [y: 1], extra = (7usize));
+    let (c, _) =
+        check_kernel!(while_loop, dim = 1, inputs = [x: xs], outputs = [y: 1], extra = (7usize));
     let x: Array<f64> = Array::from_vec(xs.clone());
     let y: Array<f64> = Array::zeros(1);
     y.ensure_grad().fill(1.0);
@@ -397,7 +422,9 @@ fn gather(x: &Array<f64>, idx: &Array<u32>, y: &Array<f64>) {
 }
 
 #[test]
-#[should_panic(expected = "kernel `gather`: index 7 out of bounds for array `positions` (parameter `x`) of length 3")]
+#[should_panic(
+    expected = "kernel `gather`: index 7 out of bounds for array `positions` (parameter `x`) of length 3"
+)]
 fn out_of_bounds_index_names_kernel_array_index_and_length() {
     let x = Array::from_vec(vec![1.0, 2.0, 3.0]).named("positions");
     let idx = Array::from_vec(vec![0u32, 7]);

@@ -1,1 +1,62 @@
-fn main() {}
+//! adflex-bench: `cargo run --release -p adflex-bench -- <command> [options]`
+//!
+//! - `scatter [--quick]`: deterministic scatter strategies and the serial threshold
+//! - `kernels [--quick]`: hand-written against generated spring and bending kernels
+//! - `overhead`: where the generated spring kernel loses time against the hand-written one
+//! - `cloth --n 128 --steps 100 [--threads K] [--f64] [--reps R]`: the cloth benchmark, one
+//!   JSON line
+//! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--no-python]
+//!   [--wait-each L]`: adflex and the peer scripts, as JSONL
+//! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG
+//!
+//! Any command takes `--wait-load L`: first wait (up to 20 min) for the 1-minute load average
+//! to drop below `L`, so that timings are not taken while other builds run.
+
+use adflex_bench::*;
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let cmd = args.first().map(String::as_str).unwrap_or("");
+    let rest = &args[args.len().min(1)..];
+    let flag = |name: &str| rest.iter().any(|a| a == name);
+    // `--wait-load L`: wait (up to 20 min) for the 1-minute load average to drop below L.
+    let mut rest: Vec<String> = rest.to_vec();
+    if let Some(k) = rest.iter().position(|a| a == "--wait-load") {
+        let limit: f64 = rest.get(k + 1).and_then(|v| v.parse().ok()).unwrap_or(1.5);
+        rest.drain(k..(k + 2).min(rest.len()));
+        let l = timing::wait_for_load(limit, 1200.0);
+        eprintln!("load average {l} (waited for < {limit})");
+    }
+    let rest = &rest[..];
+    match cmd {
+        "scatter" => scatter::main(flag("--quick")),
+        "kernels" => kernels_cmp::main(flag("--quick")),
+        "overhead" => overhead::main(),
+        "charts" => {
+            if let Err(e) = charts::parse(rest)
+                .map_err(Into::into)
+                .and_then(|o| charts::main(&o))
+            {
+                eprintln!("charts: {e}");
+                std::process::exit(2);
+            }
+        }
+        "peers" => {
+            if let Err(e) = peers::parse(rest).and_then(|o| peers::main(&o)) {
+                eprintln!("peers: {e}");
+                std::process::exit(2);
+            }
+        }
+        "cloth" => match cloth::parse(rest) {
+            Ok(o) => println!("{}", cloth::run(&o)),
+            Err(e) => {
+                eprintln!("cloth: {e}");
+                std::process::exit(2);
+            }
+        },
+        _ => {
+            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts> [options] (see src/main.rs)");
+            std::process::exit(2);
+        }
+    }
+}

@@ -51,7 +51,9 @@ pub mod prelude {
     pub use crate::contact::shapes::{Shape, ShapeKind};
     pub use crate::forces::bending::RestAngle;
     pub use crate::forces::particle::Drag;
-    pub use crate::integrators::{ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd};
+    pub use crate::integrators::{
+        ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+    };
     pub use crate::model::{BodyState, Control, Model, ModelBuilder, State};
     pub use crate::scenes::cloth::ClothGrid;
 }

@@ -43,7 +43,12 @@ pub struct BodyState<R: Real> {
 impl<R: Real> BodyState<R> {
     /// New arrays with the same values (no gradients).
     pub fn deep_clone(&self) -> Self {
-        BodyState { x: self.x.deep_clone(), q: self.q.deep_clone(), v: self.v.deep_clone(), w: self.w.deep_clone() }
+        BodyState {
+            x: self.x.deep_clone(),
+            q: self.q.deep_clone(),
+            v: self.v.deep_clone(),
+            w: self.w.deep_clone(),
+        }
     }
 }
 
@@ -63,7 +68,11 @@ pub struct State<R: Real> {
 impl<R: Real> State<R> {
     /// New arrays with the same values (no gradients).
     pub fn deep_clone(&self) -> Self {
-        State { x: self.x.deep_clone(), v: self.v.deep_clone(), bodies: self.bodies.as_ref().map(BodyState::deep_clone) }
+        State {
+            x: self.x.deep_clone(),
+            v: self.v.deep_clone(),
+            bodies: self.bodies.as_ref().map(BodyState::deep_clone),
+        }
     }
 
     /// Number of particles.
@@ -241,7 +250,10 @@ impl<R: Real> ModelBuilder<R> {
     fn check_particles(&self, what: &str, idx: &[u32]) {
         let n = self.particle_count();
         for &i in idx {
-            assert!((i as usize) < n, "{what}: particle index {i} out of range ({n} particles)");
+            assert!(
+                (i as usize) < n,
+                "{what}: particle index {i} out of range ({n} particles)"
+            );
         }
     }
 
@@ -288,8 +300,9 @@ impl<R: Real> ModelBuilder<R> {
     pub fn add_triangle_fem(&mut self, i: u32, j: u32, k: u32, mu: R, lambda: R, kd: R) -> u32 {
         self.add_triangle(i, j, k);
         let p = |i: u32| wide(self.particle_x[i as usize]);
-        let (dm_inv, area) = triangle_rest(p(i), p(j), p(k))
-            .unwrap_or_else(|| panic!("add_triangle_fem: triangle ({i}, {j}, {k}) is degenerate (zero area)"));
+        let (dm_inv, area) = triangle_rest(p(i), p(j), p(k)).unwrap_or_else(|| {
+            panic!("add_triangle_fem: triangle ({i}, {j}, {k}) is degenerate (zero area)")
+        });
         self.tri_fem.push([i, j, k]);
         self.tri_dm_inv.push(dm_inv.map(lit));
         self.tri_area.push(lit(area));
@@ -335,8 +348,9 @@ impl<R: Real> ModelBuilder<R> {
         let p = |i: u32| wide(self.particle_x[i as usize]);
         let (mut idx, (mut dm_inv, mut vol)) = (
             [i, j, k, l],
-            tet_rest([p(i), p(j), p(k), p(l)])
-                .unwrap_or_else(|| panic!("add_tet: tetrahedron ({i}, {j}, {k}, {l}) is degenerate (zero volume)")),
+            tet_rest([p(i), p(j), p(k), p(l)]).unwrap_or_else(|| {
+                panic!("add_tet: tetrahedron ({i}, {j}, {k}, {l}) is degenerate (zero volume)")
+            }),
         );
         if vol < 0.0 {
             idx = [i, k, j, l];
@@ -380,14 +394,33 @@ impl<R: Real> ModelBuilder<R> {
     /// Adds a rigid body: centre of mass at `x` (m), orientation `q`, velocity `v` (m/s),
     /// angular velocity `w` (rad/s, world frame), mass (kg; 0 = static) and inertia about the
     /// centre of mass in body frame (kg m^2). Returns its index.
-    pub fn add_body(&mut self, x: Vec3<R>, q: Quat<R>, v: Vec3<R>, w: Vec3<R>, mass: R, inertia: Mat33<R>) -> u32 {
-        self.bodies.push(BodyDesc { x, q: q.normalize(), v, w, mass, inertia });
+    pub fn add_body(
+        &mut self,
+        x: Vec3<R>,
+        q: Quat<R>,
+        v: Vec3<R>,
+        w: Vec3<R>,
+        mass: R,
+        inertia: Mat33<R>,
+    ) -> u32 {
+        self.bodies.push(BodyDesc {
+            x,
+            q: q.normalize(),
+            v,
+            w,
+            mass,
+            inertia,
+        });
         (self.bodies.len() - 1) as u32
     }
 
     /// Adds a contact point `p` (m, body frame) to body `body`, which then touches the ground.
     pub fn add_body_contact_point(&mut self, body: u32, p: Vec3<R>) {
-        assert!((body as usize) < self.bodies.len(), "add_body_contact_point: body {body} out of range ({} bodies)", self.bodies.len());
+        assert!(
+            (body as usize) < self.bodies.len(),
+            "add_body_contact_point: body {body} out of range ({} bodies)",
+            self.bodies.len()
+        );
         self.body_contacts.push((body, p));
     }
 
@@ -438,8 +471,10 @@ impl<R: Real> ModelBuilder<R> {
             let codes: Vec<(u32, Vec3<R>)> = self.shapes.iter().map(|s| s.kind.code()).collect();
             Shapes {
                 kind: Array::from_vec(codes.iter().map(|c| c.0).collect()).named("shape_kind"),
-                pos: Array::from_vec(self.shapes.iter().map(|s| s.pos).collect()).named("shape_pos"),
-                rot: Array::from_vec(self.shapes.iter().map(|s| s.rot).collect()).named("shape_rot"),
+                pos: Array::from_vec(self.shapes.iter().map(|s| s.pos).collect())
+                    .named("shape_pos"),
+                rot: Array::from_vec(self.shapes.iter().map(|s| s.rot).collect())
+                    .named("shape_rot"),
                 size: Array::from_vec(codes.iter().map(|c| c.1).collect()).named("shape_size"),
                 ke: self.shape_contact.ke,
                 kd: self.shape_contact.kd,
@@ -449,15 +484,31 @@ impl<R: Real> ModelBuilder<R> {
         });
         let bodies = (!self.bodies.is_empty()).then(|| {
             let b = &self.bodies;
-            let inv_mass: Vec<R> = b.iter().map(|b| if b.mass > lit(0.0) { lit::<R>(1.0) / b.mass } else { lit(0.0) }).collect();
+            let inv_mass: Vec<R> = b
+                .iter()
+                .map(|b| {
+                    if b.mass > lit(0.0) {
+                        lit::<R>(1.0) / b.mass
+                    } else {
+                        lit(0.0)
+                    }
+                })
+                .collect();
             let inv_inertia: Vec<Mat33<R>> = b
                 .iter()
-                .map(|b| if b.mass > lit(0.0) { b.inertia.try_inverse().unwrap_or_else(Mat33::zeros) } else { Mat33::zeros() })
+                .map(|b| {
+                    if b.mass > lit(0.0) {
+                        b.inertia.try_inverse().unwrap_or_else(Mat33::zeros)
+                    } else {
+                        Mat33::zeros()
+                    }
+                })
                 .collect();
             let (cb, cp): (Vec<u32>, Vec<Vec3<R>>) = self.body_contacts.iter().copied().unzip();
             RigidBodies {
                 inv_mass: Array::from_vec(inv_mass).named("body_inv_mass"),
-                inertia: Array::from_vec(b.iter().map(|b| b.inertia).collect()).named("body_inertia"),
+                inertia: Array::from_vec(b.iter().map(|b| b.inertia).collect())
+                    .named("body_inertia"),
                 inv_inertia: Array::from_vec(inv_inertia).named("body_inv_inertia"),
                 initial: BodyState {
                     x: Array::from_vec(b.iter().map(|b| b.x).collect()).named("body_x"),
@@ -465,8 +516,10 @@ impl<R: Real> ModelBuilder<R> {
                     v: Array::from_vec(b.iter().map(|b| b.v).collect()).named("body_v"),
                     w: Array::from_vec(b.iter().map(|b| b.w).collect()).named("body_w"),
                 },
-                contact_body: (!cb.is_empty()).then(|| Array::from_vec(cb).named("body_contact_body")),
-                contact_point: (!cp.is_empty()).then(|| Array::from_vec(cp).named("body_contact_point")),
+                contact_body: (!cb.is_empty())
+                    .then(|| Array::from_vec(cb).named("body_contact_body")),
+                contact_point: (!cp.is_empty())
+                    .then(|| Array::from_vec(cp).named("body_contact_point")),
             }
         });
         let distance_constraints = (!self.dist_pairs.is_empty()).then(|| DistanceConstraints {
@@ -551,7 +604,12 @@ impl<R: Real> Model<R> {
     /// total force on each particle (N), in a new array: springs, bending, membranes,
     /// tetrahedra, ground, particle and shape contact, drag, and the control's external
     /// forces. Gravity is not a force here (see [`Model::eval_accelerations`]).
-    pub fn eval_forces(&self, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>) -> Array<Vec3<R>> {
+    pub fn eval_forces(
+        &self,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+    ) -> Array<Vec3<R>> {
         let f = Array::zeros(self.particle_count).named("f");
         let (x, v) = (&state.x, &state.v);
         if let Some(s) = &self.springs {
@@ -564,7 +622,13 @@ impl<R: Real> Model<R> {
             t.eval(tape, x, v, &f);
         }
         if let Some(t) = &self.tets {
-            t.eval(tape, x, v, control.and_then(|c| c.tet_activation.as_ref()), &f);
+            t.eval(
+                tape,
+                x,
+                v,
+                control.and_then(|c| c.tet_activation.as_ref()),
+                &f,
+            );
         }
         if let Some(g) = &self.ground {
             g.eval(tape, x, v, self.particle_radius, &f);
@@ -586,10 +650,19 @@ impl<R: Real> Model<R> {
 
     /// Accelerations (m/s^2) of the particles: `f w + g [w > 0]` with `f` from
     /// [`Model::eval_forces`] (`w` the inverse mass, `g` gravity), in a new array.
-    pub fn eval_accelerations(&self, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>) -> Array<Vec3<R>> {
+    pub fn eval_accelerations(
+        &self,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+    ) -> Array<Vec3<R>> {
         let f = self.eval_forces(tape, state, control);
         let a = Array::zeros(self.particle_count).named("a");
-        tape.launch(accelerations, self.particle_count, (&f, &self.particle_inv_mass, self.gravity, &a));
+        tape.launch(
+            accelerations,
+            self.particle_count,
+            (&f, &self.particle_inv_mass, self.gravity, &a),
+        );
         a
     }
 
@@ -603,7 +676,10 @@ impl<R: Real> Model<R> {
         control: Option<&Control<R>>,
     ) -> Option<BodyForces<R>> {
         let bodies = self.bodies.as_ref()?;
-        let s = state.bodies.as_ref().expect("the model has rigid bodies but the state has none");
+        let s = state
+            .bodies
+            .as_ref()
+            .expect("the model has rigid bodies but the state has none");
         let n = bodies.len();
         let f = Array::zeros(n).named("body_f");
         let t = Array::zeros(n).named("body_t");
@@ -623,7 +699,12 @@ impl<R: Real> Model<R> {
 
     /// Records the elastic potential energy of the springs, membranes and tetrahedra (J) and
     /// returns it as a one-element array (for tests and energy-based integrators).
-    pub fn elastic_energy(&self, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>) -> Array<R> {
+    pub fn elastic_energy(
+        &self,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+    ) -> Array<R> {
         let e = Array::zeros(1).named("energy");
         if let Some(s) = &self.springs {
             s.energy(tape, &state.x, &e);
@@ -632,7 +713,12 @@ impl<R: Real> Model<R> {
             t.energy(tape, &state.x, &e);
         }
         if let Some(t) = &self.tets {
-            t.energy(tape, &state.x, control.and_then(|c| c.tet_activation.as_ref()), &e);
+            t.energy(
+                tape,
+                &state.x,
+                control.and_then(|c| c.tet_activation.as_ref()),
+                &e,
+            );
         }
         e
     }

@@ -126,18 +126,48 @@ impl<R: Real> RigidBodies<R> {
 
     /// Records the contact of the body points with `ground` (if both exist), accumulating into
     /// `body_f` and `body_t`.
-    pub fn eval_ground(&self, tape: &mut Tape, s: &BodyState<R>, ground: &Ground<R>, body_f: &Array<Vec3<R>>, body_t: &Array<Vec3<R>>) {
+    pub fn eval_ground(
+        &self,
+        tape: &mut Tape,
+        s: &BodyState<R>,
+        ground: &Ground<R>,
+        body_f: &Array<Vec3<R>>,
+        body_t: &Array<Vec3<R>>,
+    ) {
         if let (Some(cb), Some(cp)) = (&self.contact_body, &self.contact_point) {
             tape.launch(
                 eval_body_ground,
                 cb.len(),
-                (&s.x, &s.q, &s.v, &s.w, cb, cp, ground.normal, ground.offset, ground.ke, ground.kd, ground.mu, ground.leak, body_f, body_t),
+                (
+                    &s.x,
+                    &s.q,
+                    &s.v,
+                    &s.w,
+                    cb,
+                    cp,
+                    ground.normal,
+                    ground.offset,
+                    ground.ke,
+                    ground.kd,
+                    ground.mu,
+                    ground.leak,
+                    body_f,
+                    body_t,
+                ),
             );
         }
     }
 
     /// Records [`integrate_bodies`]: the next body state from forces `f` and torques `tau`.
-    pub fn integrate(&self, tape: &mut Tape, s: &BodyState<R>, f: &Array<Vec3<R>>, tau: &Array<Vec3<R>>, g: Vec3<R>, dt: R) -> BodyState<R> {
+    pub fn integrate(
+        &self,
+        tape: &mut Tape,
+        s: &BodyState<R>,
+        f: &Array<Vec3<R>>,
+        tau: &Array<Vec3<R>>,
+        g: Vec3<R>,
+        dt: R,
+    ) -> BodyState<R> {
         let n = self.len();
         let next = BodyState {
             x: Array::zeros(n).named("body_x"),
@@ -148,13 +178,33 @@ impl<R: Real> RigidBodies<R> {
         tape.launch(
             integrate_bodies,
             n,
-            (&s.x, &s.q, &s.v, &s.w, f, tau, &self.inv_mass, &self.inertia, &self.inv_inertia, g, dt, &next.x, &next.q, &next.v, &next.w),
+            (
+                &s.x,
+                &s.q,
+                &s.v,
+                &s.w,
+                f,
+                tau,
+                &self.inv_mass,
+                &self.inertia,
+                &self.inv_inertia,
+                g,
+                dt,
+                &next.x,
+                &next.q,
+                &next.v,
+                &next.w,
+            ),
         );
         next
     }
 
     /// Records [`body_kinetic_energy`], adding into `energy[0]`.
     pub fn kinetic_energy(&self, tape: &mut Tape, s: &BodyState<R>, energy: &Array<R>) {
-        tape.launch(body_kinetic_energy, self.len(), (&s.q, &s.v, &s.w, &self.inv_mass, &self.inertia, energy));
+        tape.launch(
+            body_kinetic_energy,
+            self.len(),
+            (&s.q, &s.v, &s.w, &self.inv_mass, &self.inertia, energy),
+        );
     }
 }

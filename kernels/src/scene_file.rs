@@ -372,7 +372,11 @@ fn json_paths(src: &str) -> (Paths, Vec<(String, usize, usize, bool)>) {
             b'{' | b'[' => {
                 out.push((join(&stack), i));
                 open.push((join(&stack), i));
-                stack.push(if c == b'{' { Frame::Object(None) } else { Frame::Array(0) });
+                stack.push(if c == b'{' {
+                    Frame::Object(None)
+                } else {
+                    Frame::Array(0)
+                });
                 expect_key = c == b'{';
                 i += 1;
             }
@@ -449,7 +453,11 @@ fn toml_paths(src: &str) -> Paths {
         } else if let Some((key, _)) = t.split_once('=') {
             let key = key.trim().trim_matches('"');
             if !key.is_empty() && !key.starts_with('#') {
-                let path = if prefix.is_empty() { key.to_string() } else { format!("{prefix}.{key}") };
+                let path = if prefix.is_empty() {
+                    key.to_string()
+                } else {
+                    format!("{prefix}.{key}")
+                };
                 out.push((path, offset + lead));
             }
         }
@@ -462,7 +470,12 @@ fn line_col(src: &str, offset: usize) -> (usize, usize) {
     let offset = offset.min(src.len());
     let before = &src.as_bytes()[..offset];
     let line = before.iter().filter(|&&c| c == b'\n').count() + 1;
-    let col = offset - before.iter().rposition(|&c| c == b'\n').map_or(0, |p| p + 1) + 1;
+    let col = offset
+        - before
+            .iter()
+            .rposition(|&c| c == b'\n')
+            .map_or(0, |p| p + 1)
+        + 1;
     (line, col)
 }
 
@@ -509,7 +522,12 @@ fn at(src: &str, paths: &Paths, path: String, message: impl Into<String>) -> Sce
         Some((l, c)) => (Some(l), Some(c)),
         None => (None, None),
     };
-    SceneError { message: message.into(), field: Some(path), line, column }
+    SceneError {
+        message: message.into(),
+        field: Some(path),
+        line,
+        column,
+    }
 }
 
 // ---- building ------------------------------------------------------------------------------
@@ -555,7 +573,10 @@ impl Checker<'_> {
     fn indices(&self, path: impl Fn() -> String, idx: &[u32], n: usize) -> Result<(), SceneError> {
         for (k, &i) in idx.iter().enumerate() {
             if i as usize >= n {
-                return Err(self.err(path(), format!("particle index {i} out of range ({n} particles)")));
+                return Err(self.err(
+                    path(),
+                    format!("particle index {i} out of range ({n} particles)"),
+                ));
             }
             if idx[..k].contains(&i) {
                 return Err(self.err(path(), format!("particle {i} appears twice")));
@@ -585,7 +606,13 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
     for (k, g) in d.cloth_grids.iter().enumerate() {
         let path = |f: &str| format!("cloth_grids[{k}].{f}");
         if g.ni < 2 || g.nj < 2 || g.ni.saturating_mul(g.nj) > 1 << 26 {
-            return Err(c.err(path("ni"), format!("a grid needs 2 to 2^26 particles with at least 2 per side (got {} x {})", g.ni, g.nj)));
+            return Err(c.err(
+                path("ni"),
+                format!(
+                    "a grid needs 2 to 2^26 particles with at least 2 per side (got {} x {})",
+                    g.ni, g.nj
+                ),
+            ));
         }
         c.finite(|| path("origin"), &g.origin)?;
         c.positive(|| path("spacing"), g.spacing)?;
@@ -598,7 +625,13 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
         }
         for (m, p) in g.pinned.iter().enumerate() {
             if p[0] >= g.ni || p[1] >= g.nj {
-                return Err(c.err(format!("cloth_grids[{k}].pinned[{m}]"), format!("({}, {}) is outside the {} x {} grid", p[0], p[1], g.ni, g.nj)));
+                return Err(c.err(
+                    format!("cloth_grids[{k}].pinned[{m}]"),
+                    format!(
+                        "({}, {}) is outside the {} x {} grid",
+                        p[0], p[1], g.ni, g.nj
+                    ),
+                ));
             }
         }
         b.add_cloth_grid(&ClothGrid {
@@ -643,15 +676,28 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
                 c.finite(|| format!("triangles[{k}].lambda"), &[lambda])?;
                 c.nonneg(|| format!("triangles[{k}].kd"), t.kd)?;
                 if triangle_rest(pos(i, &b), pos(j, &b), pos(l, &b)).is_none() {
-                    return Err(c.err(format!("triangles[{k}]"), "the triangle is degenerate (zero area)"));
+                    return Err(c.err(
+                        format!("triangles[{k}]"),
+                        "the triangle is degenerate (zero area)",
+                    ));
                 }
                 b.add_triangle_fem(i, j, l, R::lit(mu), R::lit(lambda), R::lit(t.kd));
             }
             (None, None) => {
                 b.add_triangle(i, j, l);
             }
-            (Some(_), None) => return Err(c.err(format!("triangles[{k}]"), "`mu` without `lambda`: a membrane needs both")),
-            (None, Some(_)) => return Err(c.err(format!("triangles[{k}]"), "`lambda` without `mu`: a membrane needs both")),
+            (Some(_), None) => {
+                return Err(c.err(
+                    format!("triangles[{k}]"),
+                    "`mu` without `lambda`: a membrane needs both",
+                ))
+            }
+            (None, Some(_)) => {
+                return Err(c.err(
+                    format!("triangles[{k}]"),
+                    "`lambda` without `mu`: a membrane needs both",
+                ))
+            }
         }
     }
     if let Some(bd) = &d.bending {
@@ -680,13 +726,21 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
                 }
                 snh_lame(e, nu)
             }
-            _ => return Err(c.err(format!("tets[{k}]"), "give either `mu` and `lambda`, or `young` and `poisson`")),
+            _ => {
+                return Err(c.err(
+                    format!("tets[{k}]"),
+                    "give either `mu` and `lambda`, or `young` and `poisson`",
+                ))
+            }
         };
         c.nonneg(|| path("mu"), mu)?;
         c.positive(|| path("lambda"), lambda)?;
         c.nonneg(|| path("kd"), t.kd)?;
         if tet_rest(t.indices.map(|i| pos(i, &b))).is_none() {
-            return Err(c.err(format!("tets[{k}]"), "the tetrahedron is degenerate (zero volume)"));
+            return Err(c.err(
+                format!("tets[{k}]"),
+                "the tetrahedron is degenerate (zero volume)",
+            ));
         }
         let [i, j, l, m] = t.indices;
         b.add_tet(i, j, l, m, R::lit(mu), R::lit(lambda), R::lit(t.kd));
@@ -714,13 +768,28 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
     if let Some(dr) = &d.drag {
         c.nonneg(|| "drag.kd".into(), dr.kd)?;
         c.finite(|| "drag.wind".into(), &dr.wind)?;
-        b.set_drag(Drag { kd: R::lit(dr.kd), wind: v3(dr.wind) });
+        b.set_drag(Drag {
+            kd: R::lit(dr.kd),
+            wind: v3(dr.wind),
+        });
     }
     let contact = |name: &str, cd: &ContactDesc| -> Result<ParticleContact<R>, SceneError> {
-        for (f, v) in [("ke", cd.ke), ("kd", cd.kd), ("mu", cd.mu), ("leak", cd.leak), ("margin", cd.margin)] {
+        for (f, v) in [
+            ("ke", cd.ke),
+            ("kd", cd.kd),
+            ("mu", cd.mu),
+            ("leak", cd.leak),
+            ("margin", cd.margin),
+        ] {
             c.nonneg(|| format!("{name}.{f}"), v)?;
         }
-        Ok(ParticleContact { ke: R::lit(cd.ke), kd: R::lit(cd.kd), mu: R::lit(cd.mu), leak: R::lit(cd.leak), margin: R::lit(cd.margin) })
+        Ok(ParticleContact {
+            ke: R::lit(cd.ke),
+            kd: R::lit(cd.kd),
+            mu: R::lit(cd.mu),
+            leak: R::lit(cd.leak),
+            margin: R::lit(cd.margin),
+        })
     };
     if let Some(cd) = &d.particle_contact {
         b.set_particle_contact(contact("particle_contact", cd)?);
@@ -737,18 +806,25 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             return Err(c.err(path("rot"), "must be a nonzero quaternion [x, y, z, w]"));
         }
         let need = |v: Option<f64>, f: &str| -> Result<f64, SceneError> {
-            let v = v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))?;
+            let v =
+                v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))?;
             c.positive(|| path(f), v)?;
             Ok(v)
         };
         let kind = match s.kind {
-            ShapeKindDesc::Sphere => ShapeKind::Sphere { radius: R::lit(need(s.radius, "radius")?) },
+            ShapeKindDesc::Sphere => ShapeKind::Sphere {
+                radius: R::lit(need(s.radius, "radius")?),
+            },
             ShapeKindDesc::Box => {
-                let h = s.half_extents.ok_or_else(|| c.err(format!("shapes[{k}]"), "missing field `half_extents`"))?;
+                let h = s
+                    .half_extents
+                    .ok_or_else(|| c.err(format!("shapes[{k}]"), "missing field `half_extents`"))?;
                 for v in h {
                     c.positive(|| path("half_extents"), v)?;
                 }
-                ShapeKind::Box { half_extents: v3(h) }
+                ShapeKind::Box {
+                    half_extents: v3(h),
+                }
             }
             ShapeKindDesc::Capsule => ShapeKind::Capsule {
                 radius: R::lit(need(s.radius, "radius")?),
@@ -756,7 +832,11 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             },
         };
         let q = q / q.norm();
-        b.add_shape(Shape { kind, pos: v3(s.pos), rot: Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)) });
+        b.add_shape(Shape {
+            kind,
+            pos: v3(s.pos),
+            rot: Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
+        });
     }
     for (k, bd) in d.bodies.iter().enumerate() {
         let path = |f: &str| format!("bodies[{k}].{f}");
@@ -792,7 +872,10 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
     }
     for (k, dc) in d.distance_constraints.iter().enumerate() {
         c.indices(|| format!("distance_constraints[{k}]"), &[dc.i, dc.j], n)?;
-        c.nonneg(|| format!("distance_constraints[{k}].compliance"), dc.compliance)?;
+        c.nonneg(
+            || format!("distance_constraints[{k}].compliance"),
+            dc.compliance,
+        )?;
         b.add_distance_constraint(dc.i, dc.j, R::lit(dc.compliance));
     }
     Ok(b)
@@ -816,7 +899,8 @@ impl<R: Real> ModelBuilder<R> {
             let offset = offset_of(src, line, column).saturating_sub(1);
             let field = if line == 0 {
                 None
-            } else if message.starts_with("missing field") || message.starts_with("invalid length") {
+            } else if message.starts_with("missing field") || message.starts_with("invalid length")
+            {
                 // The error is at the end of the object (array) that lacks a field (an
                 // element): name the innermost one around it.
                 let object = message.starts_with("missing field");
@@ -828,7 +912,12 @@ impl<R: Real> ModelBuilder<R> {
             } else {
                 field_at(&paths, offset, &message)
             };
-            SceneError { message, field: field.filter(|f| !f.is_empty()), line: (line > 0).then_some(line), column: (line > 0).then_some(column) }
+            SceneError {
+                message,
+                field: field.filter(|f| !f.is_empty()),
+                line: (line > 0).then_some(line),
+                column: (line > 0).then_some(column),
+            }
         })?;
         build(desc, src, &paths)
     }
@@ -845,7 +934,12 @@ impl<R: Real> ModelBuilder<R> {
                 column = Some(c);
                 field = field_at(&paths, span.start, &message).filter(|f| !f.is_empty());
             }
-            SceneError { message, field, line, column }
+            SceneError {
+                message,
+                field,
+                line,
+                column,
+            }
         })?;
         build(desc, src, &paths)
     }

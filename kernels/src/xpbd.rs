@@ -46,14 +46,24 @@ pub fn solve_distance_constraints<R: Real>(
 
 /// `x_out = x + dx * relaxation`.
 #[diff_kernel]
-pub fn apply_corrections<R: Real>(x: &Array<Vec3<R>>, dx: &Array<Vec3<R>>, relaxation: R, x_out: &Array<Vec3<R>>) {
+pub fn apply_corrections<R: Real>(
+    x: &Array<Vec3<R>>,
+    dx: &Array<Vec3<R>>,
+    relaxation: R,
+    x_out: &Array<Vec3<R>>,
+) {
     let t = tid();
     x_out[t] = x[t] + dx[t] * relaxation;
 }
 
 /// `v = (x - x_prev) / dt`: the velocity XPBD derives from the corrected positions.
 #[diff_kernel]
-pub fn velocity_from_positions<R: Real>(x_prev: &Array<Vec3<R>>, x: &Array<Vec3<R>>, dt: R, v: &Array<Vec3<R>>) {
+pub fn velocity_from_positions<R: Real>(
+    x_prev: &Array<Vec3<R>>,
+    x: &Array<Vec3<R>>,
+    dt: R,
+    v: &Array<Vec3<R>>,
+) {
     let t = tid();
     v[t] = (x[t] - x_prev[t]) / dt;
 }
@@ -120,7 +130,17 @@ impl<R: Real> DistanceConstraints<R> {
         tape.launch(
             solve_distance_constraints,
             self.len(),
-            (x, inv_mass, &self.pairs, &self.rest, &self.compliance, lambda, dt, &dx, &lambda_out),
+            (
+                x,
+                inv_mass,
+                &self.pairs,
+                &self.rest,
+                &self.compliance,
+                lambda,
+                dt,
+                &dx,
+                &lambda_out,
+            ),
         );
         let x_out = Array::zeros(x.len()).named("x");
         tape.launch(apply_corrections, x.len(), (x, &dx, relaxation, &x_out));

@@ -20,12 +20,18 @@ fn topology_matches_reference_builder() {
     let s = scene.model.springs.as_ref().unwrap();
     // 2 n (n-1) structural + 2 (n-1)^2 shear springs; the first few in reference order.
     assert_eq!(s.len(), 2 * n * (n - 1) + 2 * (n - 1) * (n - 1));
-    assert_eq!(&s.pairs.to_vec()[..6], &[[0, 4], [0, 1], [0, 5], [4, 1], [1, 5], [1, 2]]);
+    assert_eq!(
+        &s.pairs.to_vec()[..6],
+        &[[0, 4], [0, 1], [0, 5], [4, 1], [1, 5], [1, 2]]
+    );
     // Edges shared by two triangles: 3 (n-1)^2 - 2 (n-1) interior edges.
     let b = scene.model.bending.as_ref().unwrap();
     assert_eq!(b.len(), 3 * (n - 1) * (n - 1) - 2 * (n - 1));
     // From warp_cloth_scene.build(4): bends[:4].
-    assert_eq!(&b.quads.to_vec()[..4], &[[0, 9, 4, 5], [4, 1, 5, 0], [0, 6, 5, 1], [1, 10, 5, 6]]);
+    assert_eq!(
+        &b.quads.to_vec()[..4],
+        &[[0, 9, 4, 5], [4, 1, 5, 0], [0, 6, 5, 1], [1, 10, 5, 6]]
+    );
     assert_eq!(bending_edges(&[[0, 1, 2], [0, 2, 3]]), vec![[1, 3, 2, 0]]);
     let w = scene.model.particle_inv_mass.to_vec();
     assert_eq!((w[0], w[n * (n - 1)], w[1]), (0.0, 0.0, 100.0));
@@ -44,9 +50,21 @@ fn loss_and_gradients_match_warp() {
             out.grad_ke_norm,
             t0.elapsed()
         );
-        assert!(rel(out.loss, loss) < 5e-5, "loss {} vs Warp {loss}", out.loss);
-        assert!(rel(out.grad_v0_norm, gv) < 1e-3, "|dL/dv0| {} vs Warp {gv}", out.grad_v0_norm);
-        assert!(rel(out.grad_ke_norm, gk) < 1e-3, "|dL/dke| {} vs Warp {gk}", out.grad_ke_norm);
+        assert!(
+            rel(out.loss, loss) < 5e-5,
+            "loss {} vs Warp {loss}",
+            out.loss
+        );
+        assert!(
+            rel(out.grad_v0_norm, gv) < 1e-3,
+            "|dL/dv0| {} vs Warp {gv}",
+            out.grad_v0_norm
+        );
+        assert!(
+            rel(out.grad_ke_norm, gk) < 1e-3,
+            "|dL/dke| {} vs Warp {gk}",
+            out.grad_ke_norm
+        );
     }
 }
 
@@ -56,7 +74,10 @@ fn loss_and_gradients_match_warp() {
 fn loss_matches_warp_at_n128() {
     let scene = cloth::build::<f32>(128);
     let out = cloth::rollout(&scene, 100, true).unwrap();
-    println!("N=128: loss {:.8}, |dL/dv0| {:.5e}, |dL/dke| {:.5e}", out.loss, out.grad_v0_norm, out.grad_ke_norm);
+    println!(
+        "N=128: loss {:.8}, |dL/dv0| {:.5e}, |dL/dke| {:.5e}",
+        out.loss, out.grad_v0_norm, out.grad_ke_norm
+    );
     assert!(rel(out.loss, 0.00829538) < 5e-5, "loss {}", out.loss);
 }
 
@@ -65,8 +86,18 @@ fn f64_agrees_with_f32() {
     let a = cloth::rollout(&cloth::build::<f32>(16), 100, true).unwrap();
     let b = cloth::rollout(&cloth::build::<f64>(16), 100, true).unwrap();
     assert!(rel(a.loss, b.loss) < 1e-5, "{} vs {}", a.loss, b.loss);
-    assert!(rel(a.grad_v0_norm, b.grad_v0_norm) < 1e-3, "{} vs {}", a.grad_v0_norm, b.grad_v0_norm);
-    assert!(rel(a.grad_ke_norm, b.grad_ke_norm) < 1e-3, "{} vs {}", a.grad_ke_norm, b.grad_ke_norm);
+    assert!(
+        rel(a.grad_v0_norm, b.grad_v0_norm) < 1e-3,
+        "{} vs {}",
+        a.grad_v0_norm,
+        b.grad_v0_norm
+    );
+    assert!(
+        rel(a.grad_ke_norm, b.grad_ke_norm) < 1e-3,
+        "{} vs {}",
+        a.grad_ke_norm,
+        b.grad_ke_norm
+    );
 }
 
 /// Wall time per step, forward and forward + backward (run with `--release -- --ignored`).
@@ -82,6 +113,10 @@ fn timing() {
         let t0 = std::time::Instant::now();
         let _ = cloth::rollout(&scene, 100, true).unwrap();
         let both = t0.elapsed().as_secs_f64() / 100.0;
-        println!("N={n}: forward {:.3} ms/step, forward+backward {:.3} ms/step", fwd * 1e3, both * 1e3);
+        println!(
+            "N={n}: forward {:.3} ms/step, forward+backward {:.3} ms/step",
+            fwd * 1e3,
+            both * 1e3
+        );
     }
 }

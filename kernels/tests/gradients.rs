@@ -15,7 +15,10 @@ use adflex_kernels::forces::spring::{eval_springs, spring_energy};
 use adflex_kernels::integrators::semi_implicit::integrate_particles;
 use adflex_kernels::rigid::{body_kinetic_energy, eval_body_ground, integrate_bodies};
 use adflex_kernels::scenes::cloth::displacement_loss;
-use adflex_kernels::xpbd::{apply_corrections, distance_constraint_energy, solve_distance_constraints, velocity_from_positions};
+use adflex_kernels::xpbd::{
+    apply_corrections, distance_constraint_energy, solve_distance_constraints,
+    velocity_from_positions,
+};
 use adflex_kernels::ModelBuilder;
 use adflex_runtime::{Array, Mat33, Quat, Vec3};
 use common::{arr, check_kernel, Rng};
@@ -29,14 +32,40 @@ fn springs() {
     let mut r = Rng(11);
     let x = arr(r.vec3s(6, 0.0, 1.0), "x");
     let v = arr(r.vec3s(6, -1.0, 1.0), "v");
-    let pairs = arr(vec![[0u32, 1], [1, 2], [2, 3], [3, 4], [4, 5], [5, 0], [0, 3], [1, 4]], "pairs");
+    let pairs = arr(
+        vec![
+            [0u32, 1],
+            [1, 2],
+            [2, 3],
+            [3, 4],
+            [4, 5],
+            [5, 0],
+            [0, 3],
+            [1, 4],
+        ],
+        "pairs",
+    );
     let rest = arr(r.scalars(8, 0.2, 1.0), "rest");
     let ke = arr(r.scalars(8, 10.0, 50.0), "ke");
     let kd = arr(r.scalars(8, 0.1, 1.0), "kd");
     let f = zeros3(6, "f");
-    check_kernel!("eval_springs", eval_springs, 8, (&x, &v, &pairs, &rest, &ke, &kd, &f), inputs = [x, v, rest, ke, kd], outputs = [f]);
+    check_kernel!(
+        "eval_springs",
+        eval_springs,
+        8,
+        (&x, &v, &pairs, &rest, &ke, &kd, &f),
+        inputs = [x, v, rest, ke, kd],
+        outputs = [f]
+    );
     let e: Array<f64> = Array::zeros(1);
-    check_kernel!("spring_energy", spring_energy, 8, (&x, &pairs, &rest, &ke, &e), inputs = [x, rest, ke], outputs = [e]);
+    check_kernel!(
+        "spring_energy",
+        spring_energy,
+        8,
+        (&x, &pairs, &rest, &ke, &e),
+        inputs = [x, rest, ke],
+        outputs = [e]
+    );
 }
 
 /// A 3x3 grid of particles, randomly displaced, with its triangles.
@@ -50,7 +79,12 @@ fn bumpy_grid(r: &mut Rng) -> (Vec<Vec3<f64>>, Vec<[u32; 3]>) {
     let mut tris = Vec::new();
     for i in 0..2u32 {
         for j in 0..2u32 {
-            let (a, b, c, d) = (i * 3 + j, (i + 1) * 3 + j, (i + 1) * 3 + j + 1, i * 3 + j + 1);
+            let (a, b, c, d) = (
+                i * 3 + j,
+                (i + 1) * 3 + j,
+                (i + 1) * 3 + j + 1,
+                i * 3 + j + 1,
+            );
             tris.push([a, b, c]);
             tris.push([a, c, d]);
         }
@@ -71,21 +105,53 @@ fn bending() {
     let ke = arr(r.scalars(m, 0.5, 1.5), "ke");
     let kd = arr(r.scalars(m, 0.1, 0.5), "kd");
     let f = zeros3(9, "f");
-    check_kernel!("eval_bending", eval_bending, m, (&x, &v, &quads, &rest, &ke, &kd, &f), inputs = [x, v, rest, ke, kd], outputs = [f]);
+    check_kernel!(
+        "eval_bending",
+        eval_bending,
+        m,
+        (&x, &v, &quads, &rest, &ke, &kd, &f),
+        inputs = [x, v, rest, ke, kd],
+        outputs = [f]
+    );
 }
 
 #[test]
 fn ground_contact() {
     let mut r = Rng(13);
     let n = 10;
-    let x = arr((0..n).map(|_| Vec3::new(r.uniform(-1.0, 1.0), r.uniform(-0.05, 0.05), r.uniform(-1.0, 1.0))).collect(), "x");
+    let x = arr(
+        (0..n)
+            .map(|_| {
+                Vec3::new(
+                    r.uniform(-1.0, 1.0),
+                    r.uniform(-0.05, 0.05),
+                    r.uniform(-1.0, 1.0),
+                )
+            })
+            .collect(),
+        "x",
+    );
     let v = arr(r.vec3s(n, -1.0, 1.0), "v");
     let f = zeros3(n, "f");
     let up = Vec3::new(0.0, 1.0, 0.0);
-    check_kernel!("eval_ground", eval_ground, n, (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, 0.0, &f), inputs = [x, v], outputs = [f]);
+    check_kernel!(
+        "eval_ground",
+        eval_ground,
+        n,
+        (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, 0.0, &f),
+        inputs = [x, v],
+        outputs = [f]
+    );
     // A tilted plane with an offset.
     let tilt = Vec3::new(0.1, 1.0, -0.2).normalize();
-    check_kernel!("eval_ground (tilted)", eval_ground, n, (&x, &v, tilt, -0.01, 0.01, 1000.0, 1.0, 0.5, 0.0, &f), inputs = [x, v], outputs = [f]);
+    check_kernel!(
+        "eval_ground (tilted)",
+        eval_ground,
+        n,
+        (&x, &v, tilt, -0.01, 0.01, 1000.0, 1.0, 0.5, 0.0, &f),
+        inputs = [x, v],
+        outputs = [f]
+    );
 }
 
 #[test]
@@ -98,15 +164,57 @@ fn particle_forces_and_integrator() {
     let w = arr(r.scalars(n, 0.5, 2.0), "inv_mass");
     let g = Vec3::new(0.0, -9.8, 0.0);
     let out = zeros3(n, "out");
-    check_kernel!("eval_drag", eval_drag, n, (&v, 0.3, Vec3::new(1.0, 0.0, 0.5), &out), inputs = [v], outputs = [out]);
-    check_kernel!("add_forces", add_forces, n, (&f, &out), inputs = [f], outputs = [out]);
-    check_kernel!("accelerations", accelerations, n, (&f, &w, g, &out), inputs = [f, w], outputs = [out]);
-    check_kernel!("add_gravity_force", add_gravity_force, n, (&w, g, &out), inputs = [w], outputs = [out]);
+    check_kernel!(
+        "eval_drag",
+        eval_drag,
+        n,
+        (&v, 0.3, Vec3::new(1.0, 0.0, 0.5), &out),
+        inputs = [v],
+        outputs = [out]
+    );
+    check_kernel!(
+        "add_forces",
+        add_forces,
+        n,
+        (&f, &out),
+        inputs = [f],
+        outputs = [out]
+    );
+    check_kernel!(
+        "accelerations",
+        accelerations,
+        n,
+        (&f, &w, g, &out),
+        inputs = [f, w],
+        outputs = [out]
+    );
+    check_kernel!(
+        "add_gravity_force",
+        add_gravity_force,
+        n,
+        (&w, g, &out),
+        inputs = [w],
+        outputs = [out]
+    );
     let (x1, v1) = (zeros3(n, "x1"), zeros3(n, "v1"));
-    check_kernel!("integrate_particles", integrate_particles, n, (&x, &v, &f, &w, g, 0.01, &x1, &v1), inputs = [x, v, f, w], outputs = [x1, v1]);
+    check_kernel!(
+        "integrate_particles",
+        integrate_particles,
+        n,
+        (&x, &v, &f, &w, g, 0.01, &x1, &v1),
+        inputs = [x, v, f, w],
+        outputs = [x1, v1]
+    );
     let x0 = arr(r.vec3s(n, -1.0, 1.0), "x0");
     let loss: Array<f64> = Array::zeros(1);
-    check_kernel!("displacement_loss", displacement_loss, n, (&x, &x0, Vec3::new(0.0, -0.1, 0.0), 0.5, &loss), inputs = [x, x0], outputs = [loss]);
+    check_kernel!(
+        "displacement_loss",
+        displacement_loss,
+        n,
+        (&x, &x0, Vec3::new(0.0, -0.1, 0.0), 0.5, &loss),
+        inputs = [x, x0],
+        outputs = [loss]
+    );
 }
 
 #[test]
@@ -118,7 +226,14 @@ fn triangle_membranes() {
         b.add_particle(*p, Vec3::zeros(), 1.0);
     }
     for t in &tris {
-        b.add_triangle_fem(t[0], t[1], t[2], r.uniform(50.0, 100.0), r.uniform(20.0, 80.0), r.uniform(0.5, 2.0));
+        b.add_triangle_fem(
+            t[0],
+            t[1],
+            t[2],
+            r.uniform(50.0, 100.0),
+            r.uniform(20.0, 80.0),
+            r.uniform(0.5, 2.0),
+        );
     }
     let m = b.finalize();
     let t = m.tri_fem.as_ref().unwrap();
@@ -147,7 +262,13 @@ fn triangle_membranes() {
 
 /// Two tetrahedra sharing a face, randomly deformed (builder and arrays).
 fn two_tets(r: &mut Rng) -> (adflex_kernels::Model<f64>, Array<Vec3<f64>>) {
-    let rest = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 1.0, 1.0)];
+    let rest = [
+        Vec3::new(0.0, 0.0, 0.0),
+        Vec3::new(1.0, 0.0, 0.0),
+        Vec3::new(0.0, 1.0, 0.0),
+        Vec3::new(0.0, 0.0, 1.0),
+        Vec3::new(1.0, 1.0, 1.0),
+    ];
     let mut b = ModelBuilder::<f64>::new();
     for p in &rest {
         b.add_particle(p + r.vec3(-0.1, 0.1), Vec3::zeros(), 1.0);
@@ -171,7 +292,18 @@ fn tetrahedra() {
         "eval_tetrahedra",
         eval_tetrahedra,
         2,
-        (&x, &v, &t.tets, &t.dm_inv, &t.rest_volume, &t.mu, &t.lambda, &t.kd, &act, &f),
+        (
+            &x,
+            &v,
+            &t.tets,
+            &t.dm_inv,
+            &t.rest_volume,
+            &t.mu,
+            &t.lambda,
+            &t.kd,
+            &act,
+            &f
+        ),
         inputs = [x, v, t.dm_inv, t.rest_volume, t.mu, t.lambda, t.kd, act],
         outputs = [f]
     );
@@ -180,7 +312,16 @@ fn tetrahedra() {
         "tetrahedron_energy",
         tetrahedron_energy,
         2,
-        (&x, &t.tets, &t.dm_inv, &t.rest_volume, &t.mu, &t.lambda, &act, &e),
+        (
+            &x,
+            &t.tets,
+            &t.dm_inv,
+            &t.rest_volume,
+            &t.mu,
+            &t.lambda,
+            &act,
+            &e
+        ),
         inputs = [x, t.dm_inv, t.rest_volume, t.mu, t.lambda, act],
         outputs = [e]
     );
@@ -199,7 +340,14 @@ fn particle_particle_contact() {
     let v = arr(r.vec3s(n, -1.0, 1.0), "v");
     let pairs = arr(pairs, "pairs");
     let f = zeros3(n, "f");
-    check_kernel!("eval_particle_contact", eval_particle_contact, np, (&x, &v, &pairs, radius, 1000.0, 1.0, 0.5, 0.0, &f), inputs = [x, v], outputs = [f]);
+    check_kernel!(
+        "eval_particle_contact",
+        eval_particle_contact,
+        np,
+        (&x, &v, &pairs, radius, 1000.0, 1.0, 0.5, 0.0, &f),
+        inputs = [x, v],
+        outputs = [f]
+    );
 }
 
 #[test]
@@ -207,8 +355,19 @@ fn shape_contact() {
     let mut r = Rng(18);
     let shapes = [
         (ShapeKind::Sphere { radius: 0.5 }, Vec3::new(0.0, 0.0, 0.0)),
-        (ShapeKind::Box { half_extents: Vec3::new(0.4, 0.3, 0.2) }, Vec3::new(2.0, 0.0, 0.0)),
-        (ShapeKind::Capsule { radius: 0.3, half_length: 0.4 }, Vec3::new(-2.0, 0.0, 0.0)),
+        (
+            ShapeKind::Box {
+                half_extents: Vec3::new(0.4, 0.3, 0.2),
+            },
+            Vec3::new(2.0, 0.0, 0.0),
+        ),
+        (
+            ShapeKind::Capsule {
+                radius: 0.3,
+                half_length: 0.4,
+            },
+            Vec3::new(-2.0, 0.0, 0.0),
+        ),
     ];
     let codes: Vec<_> = shapes.iter().map(|s| s.0.code()).collect();
     let kind = arr(codes.iter().map(|c| c.0).collect(), "kind");
@@ -222,11 +381,21 @@ fn shape_contact() {
         let d = r.vec3(-1.0, 1.0).normalize();
         xs.push(d * r.uniform(0.45, 0.52));
     }
-    let box_local = [Vec3::new(0.41, 0.1, 0.05), Vec3::new(-0.1, 0.29, 0.02), Vec3::new(0.41, 0.305, 0.1), Vec3::new(0.1, -0.05, -0.21)];
+    let box_local = [
+        Vec3::new(0.41, 0.1, 0.05),
+        Vec3::new(-0.1, 0.29, 0.02),
+        Vec3::new(0.41, 0.305, 0.1),
+        Vec3::new(0.1, -0.05, -0.21),
+    ];
     for p in box_local {
         xs.push(shapes[1].1 + rots[1].to_rotation_matrix_like(p));
     }
-    let cap_local = [Vec3::new(0.1, 0.29, 0.0), Vec3::new(0.6, 0.1, 0.2), Vec3::new(-0.65, -0.1, 0.05), Vec3::new(0.0, 0.0, -0.31)];
+    let cap_local = [
+        Vec3::new(0.1, 0.29, 0.0),
+        Vec3::new(0.6, 0.1, 0.2),
+        Vec3::new(-0.65, -0.1, 0.05),
+        Vec3::new(0.0, 0.0, -0.31),
+    ];
     for p in cap_local {
         xs.push(shapes[2].1 + rots[2].to_rotation_matrix_like(p));
     }
@@ -243,7 +412,11 @@ fn shape_contact() {
         outputs = [f]
     );
     // Every particle is in contact with its shape.
-    assert!(f.to_vec().iter().all(|f| f.norm() > 0.0), "{:?}", f.to_vec());
+    assert!(
+        f.to_vec().iter().all(|f| f.norm() > 0.0),
+        "{:?}",
+        f.to_vec()
+    );
 }
 
 /// Rotates `p` by the unit quaternion (host side, for test setups).
@@ -268,14 +441,24 @@ fn spd(r: &mut Rng) -> Mat33<f64> {
 fn rigid_bodies() {
     let mut r = Rng(19);
     let nb = 2;
-    let bx = arr(vec![Vec3::new(0.0, 0.15, 0.0), Vec3::new(1.0, 0.1, 0.0)], "body_x");
+    let bx = arr(
+        vec![Vec3::new(0.0, 0.15, 0.0), Vec3::new(1.0, 0.1, 0.0)],
+        "body_x",
+    );
     let bq = arr((0..nb).map(|_| r.quat()).collect(), "body_q");
     let bv = arr(r.vec3s(nb, -1.0, 1.0), "body_v");
     let bw = arr(r.vec3s(nb, -1.0, 1.0), "body_w");
     let mut cb = Vec::new();
     let mut cp = Vec::new();
     for b in 0..nb as u32 {
-        for s in [[1.0, 1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [-1.0, -1.0, -1.0]] {
+        for s in [
+            [1.0, 1.0, 1.0],
+            [-1.0, 1.0, -1.0],
+            [1.0, -1.0, -1.0],
+            [-1.0, -1.0, 1.0],
+            [1.0, -1.0, 1.0],
+            [-1.0, -1.0, -1.0],
+        ] {
             cb.push(b);
             cp.push(Vec3::new(s[0] * 0.2, s[1] * 0.15, s[2] * 0.1) + r.vec3(-0.01, 0.01));
         }
@@ -294,25 +477,60 @@ fn rigid_bodies() {
         outputs = [bf, bt]
     );
     let _ = rep;
-    assert!(bf.to_vec().iter().all(|f| f.y > 0.0), "both bodies touch the ground: {:?}", bf.to_vec());
+    assert!(
+        bf.to_vec().iter().all(|f| f.y > 0.0),
+        "both bodies touch the ground: {:?}",
+        bf.to_vec()
+    );
 
     let f = arr(r.vec3s(nb, -1.0, 1.0), "f");
     let tau = arr(r.vec3s(nb, -1.0, 1.0), "tau");
     let inv_mass = arr(r.scalars(nb, 0.5, 2.0), "inv_mass");
     let inertia_v: Vec<Mat33<f64>> = (0..nb).map(|_| spd(&mut r)).collect();
-    let inv_inertia = arr(inertia_v.iter().map(|m| m.try_inverse().unwrap()).collect(), "inv_inertia");
+    let inv_inertia = arr(
+        inertia_v.iter().map(|m| m.try_inverse().unwrap()).collect(),
+        "inv_inertia",
+    );
     let inertia = arr(inertia_v, "inertia");
-    let (x1, q1, v1, w1) = (zeros3(nb, "x1"), Array::<Quat<f64>>::zeros(nb).named("q1"), zeros3(nb, "v1"), zeros3(nb, "w1"));
+    let (x1, q1, v1, w1) = (
+        zeros3(nb, "x1"),
+        Array::<Quat<f64>>::zeros(nb).named("q1"),
+        zeros3(nb, "v1"),
+        zeros3(nb, "w1"),
+    );
     check_kernel!(
         "integrate_bodies",
         integrate_bodies,
         nb,
-        (&bx, &bq, &bv, &bw, &f, &tau, &inv_mass, &inertia, &inv_inertia, Vec3::new(0.0, -9.8, 0.0), 0.01, &x1, &q1, &v1, &w1),
+        (
+            &bx,
+            &bq,
+            &bv,
+            &bw,
+            &f,
+            &tau,
+            &inv_mass,
+            &inertia,
+            &inv_inertia,
+            Vec3::new(0.0, -9.8, 0.0),
+            0.01,
+            &x1,
+            &q1,
+            &v1,
+            &w1
+        ),
         inputs = [bx, bq, bv, bw, f, tau, inv_mass, inertia, inv_inertia],
         outputs = [x1, q1, v1, w1]
     );
     let e: Array<f64> = Array::zeros(1);
-    check_kernel!("body_kinetic_energy", body_kinetic_energy, nb, (&bq, &bv, &bw, &inv_mass, &inertia, &e), inputs = [bq, bv, bw, inv_mass, inertia], outputs = [e]);
+    check_kernel!(
+        "body_kinetic_energy",
+        body_kinetic_energy,
+        nb,
+        (&bq, &bv, &bw, &inv_mass, &inertia, &e),
+        inputs = [bq, bv, bw, inv_mass, inertia],
+        outputs = [e]
+    );
 }
 
 #[test]
@@ -321,7 +539,10 @@ fn xpbd_distance_constraints() {
     let n = 6;
     let x = arr(r.vec3s(n, 0.0, 1.0), "x");
     let w = arr(r.scalars(n, 0.5, 2.0), "inv_mass");
-    let pairs = arr(vec![[0u32, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4]], "pairs");
+    let pairs = arr(
+        vec![[0u32, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4]],
+        "pairs",
+    );
     let m = pairs.len();
     let rest = arr(r.scalars(m, 0.2, 0.8), "rest");
     let compliance = arr(r.scalars(m, 1e-3, 1e-2), "compliance");
@@ -332,17 +553,48 @@ fn xpbd_distance_constraints() {
         "solve_distance_constraints",
         solve_distance_constraints,
         m,
-        (&x, &w, &pairs, &rest, &compliance, &lambda, 0.01, &dx, &lambda_out),
+        (
+            &x,
+            &w,
+            &pairs,
+            &rest,
+            &compliance,
+            &lambda,
+            0.01,
+            &dx,
+            &lambda_out
+        ),
         inputs = [x, w, rest, compliance, lambda],
         outputs = [dx, lambda_out]
     );
     let d = arr(r.vec3s(n, -0.1, 0.1), "d");
     let x1 = zeros3(n, "x1");
-    check_kernel!("apply_corrections", apply_corrections, n, (&x, &d, 0.8, &x1), inputs = [x, d], outputs = [x1]);
+    check_kernel!(
+        "apply_corrections",
+        apply_corrections,
+        n,
+        (&x, &d, 0.8, &x1),
+        inputs = [x, d],
+        outputs = [x1]
+    );
     let vv = zeros3(n, "v");
-    check_kernel!("velocity_from_positions", velocity_from_positions, n, (&d, &x, 0.01, &vv), inputs = [d, x], outputs = [vv]);
+    check_kernel!(
+        "velocity_from_positions",
+        velocity_from_positions,
+        n,
+        (&d, &x, 0.01, &vv),
+        inputs = [d, x],
+        outputs = [vv]
+    );
     let e: Array<f64> = Array::zeros(1);
     // Energies of soft constraints (the 1/compliance term needs a compliance large against h).
     let soft = arr(r.scalars(m, 0.05, 0.5), "compliance");
-    check_kernel!("distance_constraint_energy", distance_constraint_energy, m, (&x, &pairs, &rest, &soft, &e), inputs = [x, rest, soft], outputs = [e]);
+    check_kernel!(
+        "distance_constraint_energy",
+        distance_constraint_energy,
+        m,
+        (&x, &pairs, &rest, &soft, &e),
+        inputs = [x, rest, soft],
+        outputs = [e]
+    );
 }

@@ -5,7 +5,9 @@
 //! Run with `--nocapture` to see the measured errors and orders.
 
 use adflex_kernels::integrators::oscillator::Oscillator;
-use adflex_kernels::integrators::{ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd};
+use adflex_kernels::integrators::{
+    ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+};
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;
 use adflex_runtime::gradcheck::{dot_test, GradCheck};
@@ -32,9 +34,18 @@ fn spring_system_with(ke: f64, m0: f64) -> Model<f64> {
     let p1 = b.add_particle(Vec3::new(0.6, 1.1, 0.1), Vec3::new(0.0, 0.3, -0.2), 1.0);
     let p2 = b.add_particle(Vec3::new(1.1, 0.8, -0.2), Vec3::new(-0.4, 0.0, 0.1), 0.5);
     let p3 = b.add_particle(Vec3::new(0.5, 0.5, 0.3), Vec3::new(0.2, -0.1, 0.3), 2.0);
-    for (k, (i, j)) in [(p0, p1), (p1, p2), (p2, p3), (p1, p3), (p0, p3)].into_iter().enumerate() {
+    for (k, (i, j)) in [(p0, p1), (p1, p2), (p2, p3), (p1, p3), (p0, p3)]
+        .into_iter()
+        .enumerate()
+    {
         let d = (b.particle_position(i) - b.particle_position(j)).norm();
-        b.add_spring_with_rest(i, j, d * (0.85 + 0.07 * k as f64), ke * (1.0 + 0.3 * k as f64), 0.2);
+        b.add_spring_with_rest(
+            i,
+            j,
+            d * (0.85 + 0.07 * k as f64),
+            ke * (1.0 + 0.3 * k as f64),
+            0.2,
+        );
     }
     b.finalize()
 }
@@ -65,7 +76,11 @@ fn rollout<I: Integrator<f64>>(
     dt: f64,
     steps: usize,
 ) -> State<f64> {
-    let s = State { x: x0.clone(), v: v0.clone(), bodies: None };
+    let s = State {
+        x: x0.clone(),
+        v: v0.clone(),
+        bodies: None,
+    };
     integ.rollout(model, tape, &s, None, dt, steps)
 }
 
@@ -77,7 +92,13 @@ fn loss_of(tape: &mut Tape, s: &State<f64>) -> Array<f64> {
 
 /// Reverse mode against central differences for `x0`, `v0` and the spring parameters; the
 /// dot test between forward and reverse mode. Returns the worst relative errors.
-fn check_integrator<I: Integrator<f64>>(name: &str, integ: &I, model: &Model<f64>, dt: f64, steps: usize) -> (f64, f64) {
+fn check_integrator<I: Integrator<f64>>(
+    name: &str,
+    integ: &I,
+    model: &Model<f64>,
+    dt: f64,
+    steps: usize,
+) -> (f64, f64) {
     let s0 = model.state();
     let (x0, v0) = (s0.x.named("x0"), s0.v.named("v0"));
     let mut params: Vec<&dyn AnyArray> = vec![&x0, &v0];
@@ -125,12 +146,24 @@ fn check_integrator<I: Integrator<f64>>(name: &str, integ: &I, model: &Model<f64
 
 #[test]
 fn explicit_euler_gradients() {
-    check_integrator("explicit Euler", &ExplicitEuler, &spring_system(20.0), 0.01, 6);
+    check_integrator(
+        "explicit Euler",
+        &ExplicitEuler,
+        &spring_system(20.0),
+        0.01,
+        6,
+    );
 }
 
 #[test]
 fn semi_implicit_euler_gradients() {
-    check_integrator("semi-implicit Euler", &SemiImplicitEuler, &spring_system(20.0), 0.01, 6);
+    check_integrator(
+        "semi-implicit Euler",
+        &SemiImplicitEuler,
+        &spring_system(20.0),
+        0.01,
+        6,
+    );
 }
 
 #[test]
@@ -140,7 +173,11 @@ fn rk4_gradients() {
 
 #[test]
 fn xpbd_gradients() {
-    let x = Xpbd { substeps: 3, iterations: 2, relaxation: 0.9 };
+    let x = Xpbd {
+        substeps: 3,
+        iterations: 2,
+        relaxation: 0.9,
+    };
     check_integrator("XPBD", &x, &constraint_system(), 0.01, 3);
 }
 
@@ -154,7 +191,13 @@ fn implicit_euler_gradients_match_finite_differences() {
     assert!(fd < 1e-5 && dot < 1e-9);
     // No pinned particle: the masses are differentiable too.
     let model = spring_system_with(400.0, 3.0);
-    check_integrator("implicit Euler (free, with masses)", &ImplicitEuler::default(), &model, 0.05, 5);
+    check_integrator(
+        "implicit Euler (free, with masses)",
+        &ImplicitEuler::default(),
+        &model,
+        0.05,
+        5,
+    );
 }
 
 /// The Newton iterations are not on the tape: one custom step per time step.
@@ -172,8 +215,14 @@ fn implicit_euler_records_one_step_per_step() {
         s = next;
     }
     assert_eq!(tape.len(), 5);
-    assert!(newton > 5, "a nonlinear system needs more than one Newton iteration per step");
-    println!("implicit Euler: {newton} Newton iterations in 5 steps, {} records on the tape", tape.len());
+    assert!(
+        newton > 5,
+        "a nonlinear system needs more than one Newton iteration per step"
+    );
+    println!(
+        "implicit Euler: {newton} Newton iterations in 5 steps, {} records on the tape",
+        tape.len()
+    );
 }
 
 /// A large step far from the solution needs the line search; the result satisfies the
@@ -195,7 +244,10 @@ fn implicit_euler_large_step_converges() {
             continue;
         }
         let r = s1.v.get(i) - s0.v.get(i) - a.get(i) * 0.5;
-        assert!(r.norm() < 1e-8 * (1.0 + a.get(i).norm()), "particle {i}: residual {r:?}");
+        assert!(
+            r.norm() < 1e-8 * (1.0 + a.get(i).norm()),
+            "particle {i}: residual {r:?}"
+        );
         let dx = s1.x.get(i) - s0.x.get(i) - s1.v.get(i) * 0.5;
         assert!(dx.norm() < 1e-12, "particle {i}: {dx:?}");
     }
@@ -215,13 +267,27 @@ fn order_ratio<I: Integrator<f64>>(integ: &I, osc: &Oscillator, dt: f64) -> (f64
 
 #[test]
 fn accuracy_order_on_a_damped_spring() {
-    let osc = Oscillator { stiffness: 100.0, mass: 1.0, damping: 1.0, displacement: 0.1, velocity: 0.2 };
+    let osc = Oscillator {
+        stiffness: 100.0,
+        mass: 1.0,
+        damping: 1.0,
+        displacement: 0.1,
+        velocity: 0.2,
+    };
     type Run<'a> = &'a dyn Fn(f64) -> (f64, f64, f64);
     let first: [(&str, Run); 5] = [
-        ("explicit Euler", &|dt| order_ratio(&ExplicitEuler, &osc, dt)),
-        ("semi-implicit Euler", &|dt| order_ratio(&SemiImplicitEuler, &osc, dt)),
-        ("implicit Euler", &|dt| order_ratio(&ImplicitEuler::default(), &osc, dt)),
-        ("XPBD (spring, 2 substeps)", &|dt| order_ratio(&Xpbd::new(2), &osc, dt)),
+        ("explicit Euler", &|dt| {
+            order_ratio(&ExplicitEuler, &osc, dt)
+        }),
+        ("semi-implicit Euler", &|dt| {
+            order_ratio(&SemiImplicitEuler, &osc, dt)
+        }),
+        ("implicit Euler", &|dt| {
+            order_ratio(&ImplicitEuler::default(), &osc, dt)
+        }),
+        ("XPBD (spring, 2 substeps)", &|dt| {
+            order_ratio(&Xpbd::new(2), &osc, dt)
+        }),
         ("RK4", &|dt| order_ratio(&Rk4, &osc, dt)),
     ];
     for (name, f) in first {
@@ -232,7 +298,10 @@ fn accuracy_order_on_a_damped_spring() {
             assert!(ratio > 10.0, "{name}: ratio {ratio}");
             assert!(e1 < 1e-4, "{name}: {e1}");
         } else {
-            assert!((1.7..2.4).contains(&ratio), "{name}: ratio {ratio} is not first order");
+            assert!(
+                (1.7..2.4).contains(&ratio),
+                "{name}: ratio {ratio} is not first order"
+            );
         }
     }
 }
@@ -248,7 +317,8 @@ fn implicit_euler_converges_on_stiff_large_steps() {
             let mut s = model.state();
             let (mut newton, mut linear) = (0, 0);
             for step in 0..5 {
-                let (s1, st) = ImplicitEuler::default().step_with_stats(&model, &mut tape, &s, None, dt);
+                let (s1, st) =
+                    ImplicitEuler::default().step_with_stats(&model, &mut tape, &s, None, dt);
                 assert!(st.converged, "ke {ke}, dt {dt}, step {step}: {st:?}");
                 newton += st.newton_iterations;
                 linear += st.linear_iterations;
@@ -286,13 +356,28 @@ fn implicit_euler_cloth_f32_with_contact() {
     assert!(lowest > -0.05, "lowest particle at {lowest}");
     let loss = Array::<f32>::zeros(1);
     let target = Vec3::new(0.0f32, -0.1, 0.0);
-    tape.launch(displacement_loss, x.len(), (&s.x, &scene.initial.x, target, 1.0f32 / 64.0, &loss));
+    tape.launch(
+        displacement_loss,
+        x.len(),
+        (&s.x, &scene.initial.x, target, 1.0f32 / 64.0, &loss),
+    );
     tape.backward(&loss).unwrap();
     let gv = scene.initial.v.grad().unwrap().to_vec();
-    let gk = scene.model.springs.as_ref().unwrap().ke.grad().unwrap().to_vec();
+    let gk = scene
+        .model
+        .springs
+        .as_ref()
+        .unwrap()
+        .ke
+        .grad()
+        .unwrap()
+        .to_vec();
     let norm = |v: &[f32]| v.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt();
     let gv_flat: Vec<f32> = gv.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
     let (nv, nk) = (norm(&gv_flat), norm(&gk));
-    println!("loss {:.6}, |dL/dv0| = {nv:.4e}, |dL/dke| = {nk:.4e}", loss.get(0));
+    println!(
+        "loss {:.6}, |dL/dv0| = {nv:.4e}, |dL/dke| = {nk:.4e}",
+        loss.get(0)
+    );
     assert!(nv.is_finite() && nv > 0.0 && nk.is_finite() && nk > 0.0);
 }

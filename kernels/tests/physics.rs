@@ -59,7 +59,10 @@ fn flat_cloth_at_rest_has_finite_gradients_and_tangents() {
     assert_eq!(g.first_non_finite(), None);
     assert!(g.to_vec().iter().any(|g| g.norm() > 0.0));
     // Forward mode through the same tape.
-    scene.initial.v.set_tangent(Some(Array::from_vec(vec![Vec3::new(0.1, -0.2, 0.3); 16])));
+    scene
+        .initial
+        .v
+        .set_tangent(Some(Array::from_vec(vec![Vec3::new(0.1, -0.2, 0.3); 16])));
     tape.tangent().unwrap();
     assert_eq!(loss.tangent_buffer().unwrap().first_non_finite(), None);
     scene.initial.v.set_tangent(None);
@@ -69,7 +72,14 @@ fn flat_cloth_at_rest_has_finite_gradients_and_tangents() {
     let b = m.bending.as_ref().unwrap();
     let (x, v) = (m.particle_x.deep_clone(), m.particle_v.deep_clone());
     let f: Array<Vec3<f64>> = Array::zeros(16);
-    assert_finite_derivatives!("eval_bending (flat)", eval_bending, b.len(), (&x, &v, &b.quads, &b.rest, &b.ke, &b.kd, &f), inputs = [x, v], outputs = [f]);
+    assert_finite_derivatives!(
+        "eval_bending (flat)",
+        eval_bending,
+        b.len(),
+        (&x, &v, &b.quads, &b.rest, &b.ke, &b.kd, &f),
+        inputs = [x, v],
+        outputs = [f]
+    );
     assert!(f.to_vec().iter().all(|f| f.norm() == 0.0));
 }
 
@@ -77,41 +87,94 @@ fn flat_cloth_at_rest_has_finite_gradients_and_tangents() {
 fn degenerate_elements_have_finite_derivatives() {
     // A zero-length spring.
     let x = arr(vec![Vec3::new(0.3, 0.2, 0.1); 2], "x");
-    let v = arr(vec![Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.0)], "v");
+    let v = arr(
+        vec![Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.0)],
+        "v",
+    );
     let pairs = arr(vec![[0u32, 1]], "pairs");
-    let (rest, ke, kd) = (arr(vec![0.5], "rest"), arr(vec![10.0], "ke"), arr(vec![0.1], "kd"));
+    let (rest, ke, kd) = (
+        arr(vec![0.5], "rest"),
+        arr(vec![10.0], "ke"),
+        arr(vec![0.1], "kd"),
+    );
     let f: Array<Vec3<f64>> = Array::zeros(2);
-    assert_finite_derivatives!("eval_springs (zero length)", eval_springs, 1, (&x, &v, &pairs, &rest, &ke, &kd, &f), inputs = [x, v, rest, ke, kd], outputs = [f]);
+    assert_finite_derivatives!(
+        "eval_springs (zero length)",
+        eval_springs,
+        1,
+        (&x, &v, &pairs, &rest, &ke, &kd, &f),
+        inputs = [x, v, rest, ke, kd],
+        outputs = [f]
+    );
     assert_eq!(f.get(0), Vec3::zeros());
 
     // A bending element with a collapsed triangle (all four points collinear).
     let x = arr((0..4).map(|k| Vec3::new(k as f64, 0.0, 0.0)).collect(), "x");
     let v = arr(vec![Vec3::new(0.0, 1.0, 0.0); 4], "v");
     let quads = arr(vec![[0u32, 1, 2, 3]], "quads");
-    let (rest, bke, bkd) = (arr(vec![0.1], "rest"), arr(vec![1.0], "ke"), arr(vec![0.1], "kd"));
+    let (rest, bke, bkd) = (
+        arr(vec![0.1], "rest"),
+        arr(vec![1.0], "ke"),
+        arr(vec![0.1], "kd"),
+    );
     let f: Array<Vec3<f64>> = Array::zeros(4);
-    assert_finite_derivatives!("eval_bending (collinear)", eval_bending, 1, (&x, &v, &quads, &rest, &bke, &bkd, &f), inputs = [x, v, rest, bke, bkd], outputs = [f]);
+    assert_finite_derivatives!(
+        "eval_bending (collinear)",
+        eval_bending,
+        1,
+        (&x, &v, &quads, &rest, &bke, &bkd, &f),
+        inputs = [x, v, rest, bke, bkd],
+        outputs = [f]
+    );
 
     // Ground contact with zero tangential velocity: at rest, and moving along the normal.
-    let x = arr(vec![Vec3::new(0.0, -0.01, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.5, 0.01, 0.0)], "x");
+    let x = arr(
+        vec![
+            Vec3::new(0.0, -0.01, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.5, 0.01, 0.0),
+        ],
+        "x",
+    );
     let up = Vec3::new(0.0, 1.0, 0.0);
     for vel in [Vec3::zeros(), Vec3::new(0.0, -0.5, 0.0)] {
         let v = arr(vec![vel; 3], "v");
         let f: Array<Vec3<f64>> = Array::zeros(3);
-        assert_finite_derivatives!("eval_ground (vt = 0)", eval_ground, 3, (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, 0.0, &f), inputs = [x, v], outputs = [f]);
+        assert_finite_derivatives!(
+            "eval_ground (vt = 0)",
+            eval_ground,
+            3,
+            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, 0.0, &f),
+            inputs = [x, v],
+            outputs = [f]
+        );
     }
 
     // Two coincident particles in contact.
     let x = arr(vec![Vec3::new(0.2, 0.2, 0.2); 2], "x");
     let v = arr(vec![Vec3::zeros(); 2], "v");
     let f: Array<Vec3<f64>> = Array::zeros(2);
-    assert_finite_derivatives!("eval_particle_contact (coincident)", eval_particle_contact, 1, (&x, &v, &pairs, 0.1, 1000.0, 1.0, 0.5, 0.0, &f), inputs = [x, v], outputs = [f]);
+    assert_finite_derivatives!(
+        "eval_particle_contact (coincident)",
+        eval_particle_contact,
+        1,
+        (&x, &v, &pairs, 0.1, 1000.0, 1.0, 0.5, 0.0, &f),
+        inputs = [x, v],
+        outputs = [f]
+    );
 
     // A particle at the centre of a sphere, on the axis of a capsule, at the centre of a box.
     let kind = arr(vec![0u32, 1, 2], "kind");
     let pos = arr(vec![Vec3::zeros(); 3], "pos");
     let rot = arr(vec![Quat::identity(); 3], "rot");
-    let size = arr(vec![Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.3, 0.3, 0.3), Vec3::new(0.2, 0.4, 0.0)], "size");
+    let size = arr(
+        vec![
+            Vec3::new(0.5, 0.0, 0.0),
+            Vec3::new(0.3, 0.3, 0.3),
+            Vec3::new(0.2, 0.4, 0.0),
+        ],
+        "size",
+    );
     let x = arr(vec![Vec3::zeros()], "x");
     let v = arr(vec![Vec3::zeros()], "v");
     let f: Array<Vec3<f64>> = Array::zeros(1);
@@ -126,21 +189,45 @@ fn degenerate_elements_have_finite_derivatives() {
 
     // An inverted tetrahedron (J < 0) and a flat one (J = 0).
     let mut b = ModelBuilder::<f64>::new();
-    for p in [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] {
+    for p in [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+    ] {
         b.add_particle(Vec3::new(p[0], p[1], p[2]), Vec3::zeros(), 1.0);
     }
     b.add_tet(0, 1, 2, 3, 100.0, 300.0, 1.0);
     let m = b.finalize();
     let t = m.tets.as_ref().unwrap();
     for z in [-0.5, 0.0] {
-        let x = arr(vec![Vec3::zeros(), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.0, 0.0, z)], "x");
+        let x = arr(
+            vec![
+                Vec3::zeros(),
+                Vec3::new(1.0, 0.0, 0.0),
+                Vec3::new(0.0, 1.0, 0.0),
+                Vec3::new(0.0, 0.0, z),
+            ],
+            "x",
+        );
         let v = arr(vec![Vec3::zeros(); 4], "v");
         let f: Array<Vec3<f64>> = Array::zeros(4);
         assert_finite_derivatives!(
             "eval_tetrahedra (inverted)",
             eval_tetrahedra,
             1,
-            (&x, &v, &t.tets, &t.dm_inv, &t.rest_volume, &t.mu, &t.lambda, &t.kd, &t.activation, &f),
+            (
+                &x,
+                &v,
+                &t.tets,
+                &t.dm_inv,
+                &t.rest_volume,
+                &t.mu,
+                &t.lambda,
+                &t.kd,
+                &t.activation,
+                &f
+            ),
             inputs = [x, v],
             outputs = [f]
         );
@@ -155,7 +242,11 @@ fn solid(r: &mut Rng) -> Model<f64> {
     for i in 0..3 {
         for j in 0..3 {
             for k in 0..2 {
-                b.add_particle(Vec3::new(i as f64, k as f64, j as f64) * 0.5 + r.vec3(-0.1, 0.1), Vec3::zeros(), 1.0);
+                b.add_particle(
+                    Vec3::new(i as f64, k as f64, j as f64) * 0.5 + r.vec3(-0.1, 0.1),
+                    Vec3::zeros(),
+                    1.0,
+                );
             }
         }
     }
@@ -163,14 +254,35 @@ fn solid(r: &mut Rng) -> Model<f64> {
     let mut tris = Vec::new();
     for i in 0..2 {
         for j in 0..2 {
-            let (a, bb, c, d) = (id(i, j, 1), id(i + 1, j, 1), id(i + 1, j + 1, 1), id(i, j + 1, 1));
+            let (a, bb, c, d) = (
+                id(i, j, 1),
+                id(i + 1, j, 1),
+                id(i + 1, j + 1, 1),
+                id(i, j + 1, 1),
+            );
             tris.push([a, bb, c]);
             tris.push([a, c, d]);
             b.add_spring(a, c, 40.0, 0.5);
             b.add_spring(bb, d, 30.0, 0.2);
             // Two tetrahedra per column cell.
-            b.add_tet(id(i, j, 0), id(i + 1, j, 0), id(i, j + 1, 0), a, 100.0, 400.0, 0.5);
-            b.add_tet(id(i + 1, j + 1, 0), id(i + 1, j, 0), id(i, j + 1, 0), c, 80.0, 300.0, 0.5);
+            b.add_tet(
+                id(i, j, 0),
+                id(i + 1, j, 0),
+                id(i, j + 1, 0),
+                a,
+                100.0,
+                400.0,
+                0.5,
+            );
+            b.add_tet(
+                id(i + 1, j + 1, 0),
+                id(i + 1, j, 0),
+                id(i, j + 1, 0),
+                c,
+                80.0,
+                300.0,
+                0.5,
+            );
         }
     }
     for t in &tris {
@@ -191,16 +303,29 @@ fn component_forces(m: &Model<f64>, s: &State<f64>) -> Vec<(&'static str, Vec<Ve
         run(&mut tape, &f);
         out.push((name, f.to_vec()));
     };
-    one("springs", &|t, f| m.springs.as_ref().unwrap().eval(t, &s.x, &s.v, f));
-    one("bending", &|t, f| m.bending.as_ref().unwrap().eval(t, &s.x, &s.v, f));
-    one("triangles", &|t, f| m.tri_fem.as_ref().unwrap().eval(t, &s.x, &s.v, f));
-    one("tetrahedra", &|t, f| m.tets.as_ref().unwrap().eval(t, &s.x, &s.v, None, f));
+    one("springs", &|t, f| {
+        m.springs.as_ref().unwrap().eval(t, &s.x, &s.v, f)
+    });
+    one("bending", &|t, f| {
+        m.bending.as_ref().unwrap().eval(t, &s.x, &s.v, f)
+    });
+    one("triangles", &|t, f| {
+        m.tri_fem.as_ref().unwrap().eval(t, &s.x, &s.v, f)
+    });
+    one("tetrahedra", &|t, f| {
+        m.tets.as_ref().unwrap().eval(t, &s.x, &s.v, None, f)
+    });
     out
 }
 
 fn deformed(m: &Model<f64>, r: &mut Rng, vel: f64) -> State<f64> {
     let s = m.state();
-    s.x.assign(&s.x.to_vec().iter().map(|p| p + r.vec3(-0.08, 0.08)).collect::<Vec<_>>());
+    s.x.assign(
+        &s.x.to_vec()
+            .iter()
+            .map(|p| p + r.vec3(-0.08, 0.08))
+            .collect::<Vec<_>>(),
+    );
     s.v.assign(&r.vec3s(m.particle_count, -vel, vel));
     s
 }
@@ -215,15 +340,25 @@ fn internal_forces_sum_to_zero_and_exert_no_torque() {
         let scale = f.iter().map(|f| f.norm()).fold(0.0, f64::max);
         let net: Vec3<f64> = f.iter().sum();
         assert!(scale > 0.0, "{name}: no force");
-        assert!(net.norm() < 1e-12 * scale, "{name}: net force {net:?} (scale {scale})");
+        assert!(
+            net.norm() < 1e-12 * scale,
+            "{name}: net force {net:?} (scale {scale})"
+        );
     }
     // Elastic forces alone (v = 0): the net torque vanishes too (rotation invariant energies).
     let s = deformed(&m, &mut r, 0.0);
     let x = s.x.to_vec();
     for (name, f) in component_forces(&m, &s) {
-        let scale = f.iter().zip(&x).map(|(f, x)| f.norm() * x.norm()).fold(0.0, f64::max);
+        let scale = f
+            .iter()
+            .zip(&x)
+            .map(|(f, x)| f.norm() * x.norm())
+            .fold(0.0, f64::max);
         let torque: Vec3<f64> = f.iter().zip(&x).map(|(f, x)| x.cross(f)).sum();
-        assert!(torque.norm() < 1e-12 * scale, "{name}: net torque {torque:?} (scale {scale})");
+        assert!(
+            torque.norm() < 1e-12 * scale,
+            "{name}: net torque {torque:?} (scale {scale})"
+        );
     }
 }
 
@@ -241,7 +376,12 @@ fn forces_vanish_at_rest() {
     let s = m.state();
     let q = r.quat();
     let rot = nalgebra::UnitQuaternion::from_quaternion(q);
-    s.x.assign(&s.x.to_vec().iter().map(|p| rot * p + Vec3::new(1.0, 2.0, 3.0)).collect::<Vec<_>>());
+    s.x.assign(
+        &s.x.to_vec()
+            .iter()
+            .map(|p| rot * p + Vec3::new(1.0, 2.0, 3.0))
+            .collect::<Vec<_>>(),
+    );
     for (name, f) in component_forces(&m, &s) {
         let worst = f.iter().map(|f| f.norm()).fold(0.0, f64::max);
         assert!(worst < 1e-9, "{name}: force {worst} after a rigid motion");
@@ -267,7 +407,11 @@ fn elastic_forces_are_minus_the_energy_gradient() {
     }
     let scale = f.iter().map(|f| f.norm()).fold(0.0, f64::max);
     for (k, (g, f)) in grad.iter().zip(&f).enumerate() {
-        assert!((g + f).norm() < 1e-10 * scale, "particle {k}: -dE/dx {:?} vs force {f:?}", -g);
+        assert!(
+            (g + f).norm() < 1e-10 * scale,
+            "particle {k}: -dE/dx {:?} vs force {f:?}",
+            -g
+        );
     }
 }
 
@@ -297,7 +441,10 @@ fn undamped_spring_energy_stays_bounded_under_semi_implicit_euler() {
         hi = hi.max(e);
     }
     // Symplectic: the energy oscillates by O(dt) around its initial value, with no drift.
-    assert!((hi - lo) / e0 < 0.02, "energy in [{lo}, {hi}], initial {e0}");
+    assert!(
+        (hi - lo) / e0 < 0.02,
+        "energy in [{lo}, {hi}], initial {e0}"
+    );
     assert!((energy(&s) - e0).abs() / e0 < 0.02);
 }
 
@@ -337,38 +484,68 @@ fn checkpointed_cloth_gradients_equal_the_plain_tape() {
         |tape, s| SemiImplicitEuler.step(m, tape, s, None, 1e-3),
         |tape, s| {
             let loss = Array::zeros(1);
-            tape.launch(cloth::displacement_loss, 25, (&s.x, &x0, Vec3::new(0.0, -0.1, 0.0), 1.0 / 25.0, &loss));
+            tape.launch(
+                cloth::displacement_loss,
+                25,
+                (&s.x, &x0, Vec3::new(0.0, -0.1, 0.0), 1.0 / 25.0, &loss),
+            );
             loss
         },
     )
     .unwrap();
     assert_eq!(out.loss.get(0), plain.loss);
     assert_eq!(scene.initial.v.grad().unwrap().to_vec(), plain.grad_v0);
-    assert_eq!(scene.model.springs.as_ref().unwrap().ke.grad().unwrap().to_vec(), plain.grad_ke);
+    assert_eq!(
+        scene
+            .model
+            .springs
+            .as_ref()
+            .unwrap()
+            .ke
+            .grad()
+            .unwrap()
+            .to_vec(),
+        plain.grad_ke
+    );
 }
 
 // ---- contact ------------------------------------------------------------------------------
 
 #[test]
 fn leaky_ground_gradient_reaches_particles_above_the_ground() {
-    let x = arr(vec![Vec3::new(0.0, 0.5, 0.0), Vec3::new(0.0, -0.02, 0.0)], "x");
+    let x = arr(
+        vec![Vec3::new(0.0, 0.5, 0.0), Vec3::new(0.0, -0.02, 0.0)],
+        "x",
+    );
     let v = arr(vec![Vec3::zeros(); 2], "v");
     let f: Array<Vec3<f64>> = Array::zeros(2);
     let up = Vec3::new(0.0, 1.0, 0.0);
     for leak in [0.0, 0.1] {
         f.fill(Vec3::zeros());
-        launch(eval_ground, 2, (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, leak, &f));
+        launch(
+            eval_ground,
+            2,
+            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, leak, &f),
+        );
         // The forward force is the same with or without leak.
         assert_eq!(f.get(0), Vec3::zeros());
         assert!((f.get(1).y - 30.0).abs() < 1e-9);
         f.ensure_grad().fill(Vec3::new(0.0, 1.0, 0.0));
         x.ensure_grad().fill(Vec3::zeros());
         v.ensure_grad().fill(Vec3::zeros());
-        launch_adjoint(eval_ground, 2, (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, leak, &f));
+        launch_adjoint(
+            eval_ground,
+            2,
+            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.5, leak, &f),
+        );
         let g = x.grad().unwrap().to_vec();
         // d f_y / d y = -ke * slope: slope 1 in contact, `leak` above the ground.
         assert!((g[1].y + 1000.0).abs() < 1e-9);
-        assert!((g[0].y + 1000.0 * leak).abs() < 1e-9, "leak {leak}: {:?}", g[0]);
+        assert!(
+            (g[0].y + 1000.0 * leak).abs() < 1e-9,
+            "leak {leak}: {:?}",
+            g[0]
+        );
     }
 }
 
@@ -399,13 +576,24 @@ fn particles_pile_up_without_interpenetrating() {
     for i in 0..2 {
         for j in 0..2 {
             for k in 0..3 {
-                let p = Vec3::new(i as f64 * 0.11, 0.1 + k as f64 * 0.11, j as f64 * 0.11) + r.vec3(-0.004, 0.004);
+                let p = Vec3::new(i as f64 * 0.11, 0.1 + k as f64 * 0.11, j as f64 * 0.11)
+                    + r.vec3(-0.004, 0.004);
                 b.add_particle(p, Vec3::zeros(), 0.01);
             }
         }
     }
-    b.set_ground(Ground { ke: 1000.0, kd: 0.05, mu: 0.5, ..Ground::default() });
-    b.set_particle_contact(ParticleContact { ke: 2000.0, kd: 0.5, mu: 0.5, ..ParticleContact::default() });
+    b.set_ground(Ground {
+        ke: 1000.0,
+        kd: 0.05,
+        mu: 0.5,
+        ..Ground::default()
+    });
+    b.set_particle_contact(ParticleContact {
+        ke: 2000.0,
+        kd: 0.5,
+        mu: 0.5,
+        ..ParticleContact::default()
+    });
     let m = b.finalize();
     let mut s = m.state();
     let mut closest = f64::INFINITY;
@@ -419,7 +607,10 @@ fn particles_pile_up_without_interpenetrating() {
         }
     }
     // Overlap at most a few millimetres (the weight of the block over the contact stiffness).
-    assert!(closest > 0.095, "two particles came {closest} m close (diameter 0.1)");
+    assert!(
+        closest > 0.095,
+        "two particles came {closest} m close (diameter 0.1)"
+    );
     let x = s.x.to_vec();
     assert!(x.iter().all(|p| p.y > 0.045 && p.y < 0.3), "{x:?}");
 }
@@ -433,9 +624,25 @@ fn particles_come_to_rest_on_shapes() {
     b.add_particle(Vec3::new(2.0, 0.5, 0.1), Vec3::zeros(), 0.01); // onto the box's top face
     b.add_particle(Vec3::new(-2.2, 0.5, 0.0), Vec3::zeros(), 0.01); // onto the capsule
     b.add_shape(Shape::new(ShapeKind::Sphere { radius: 0.5 }, Vec3::zeros()));
-    b.add_shape(Shape::new(ShapeKind::Box { half_extents: Vec3::new(0.4, 0.3, 0.2) }, Vec3::new(2.0, 0.0, 0.0)));
-    b.add_shape(Shape::new(ShapeKind::Capsule { radius: 0.3, half_length: 0.4 }, Vec3::new(-2.0, 0.0, 0.0)));
-    b.set_shape_contact(ParticleContact { ke: 1000.0, kd: 2.0, mu: 1.0, ..ParticleContact::default() });
+    b.add_shape(Shape::new(
+        ShapeKind::Box {
+            half_extents: Vec3::new(0.4, 0.3, 0.2),
+        },
+        Vec3::new(2.0, 0.0, 0.0),
+    ));
+    b.add_shape(Shape::new(
+        ShapeKind::Capsule {
+            radius: 0.3,
+            half_length: 0.4,
+        },
+        Vec3::new(-2.0, 0.0, 0.0),
+    ));
+    b.set_shape_contact(ParticleContact {
+        ke: 1000.0,
+        kd: 2.0,
+        mu: 1.0,
+        ..ParticleContact::default()
+    });
     let m = b.finalize();
     let mut s = m.state();
     for _ in 0..6000 {
@@ -461,7 +668,14 @@ fn spin(wb: Vec3<f64>, steps: usize, dt: f64) -> (Vec<Vec3<f64>>, f64) {
     let mut b = ModelBuilder::<f64>::new();
     b.gravity = Vec3::zeros();
     let inertia = Mat33::from_diagonal(&Vec3::new(1.0, 2.0, 3.0));
-    b.add_body(Vec3::zeros(), Quat::identity(), Vec3::zeros(), wb, 1.0, inertia);
+    b.add_body(
+        Vec3::zeros(),
+        Quat::identity(),
+        Vec3::zeros(),
+        wb,
+        1.0,
+        inertia,
+    );
     let m = b.finalize();
     let mut s = m.state();
     let mut hist = Vec::new();
@@ -482,11 +696,20 @@ fn tennis_racket_theorem() {
     let (mid, qerr) = spin(Vec3::new(0.01, 1.0, 0.01), 10000, 2e-3);
     assert!(qerr < 1e-12, "quaternion norm drifts by {qerr}");
     let min_wy = mid.iter().map(|w| w.y).fold(f64::INFINITY, f64::min);
-    assert!(min_wy < -0.9, "no flip about the intermediate axis: min w_y = {min_wy}");
+    assert!(
+        min_wy < -0.9,
+        "no flip about the intermediate axis: min w_y = {min_wy}"
+    );
     let (major, _) = spin(Vec3::new(0.01, 0.01, 1.0), 10000, 2e-3);
-    assert!(major.iter().all(|w| w.z > 0.99), "rotation about the major axis is not stable");
+    assert!(
+        major.iter().all(|w| w.z > 0.99),
+        "rotation about the major axis is not stable"
+    );
     let (minor, _) = spin(Vec3::new(1.0, 0.01, 0.01), 10000, 2e-3);
-    assert!(minor.iter().all(|w| w.x > 0.99), "rotation about the minor axis is not stable");
+    assert!(
+        minor.iter().all(|w| w.x > 0.99),
+        "rotation about the minor axis is not stable"
+    );
     // Kinetic energy w.I w / 2 stays close to its initial value through the flip.
     let e = |w: &Vec3<f64>| 0.5 * (w.x * w.x + 2.0 * w.y * w.y + 3.0 * w.z * w.z);
     let e0 = e(&Vec3::new(0.01, 1.0, 0.01));
@@ -498,9 +721,24 @@ fn a_box_falls_and_rests_on_the_ground() {
     let mut b = ModelBuilder::<f64>::new();
     let h = Vec3::new(0.2, 0.1, 0.15);
     let mass = 1.0;
-    let inertia = Mat33::from_diagonal(&Vec3::new(h.y * h.y + h.z * h.z, h.x * h.x + h.z * h.z, h.x * h.x + h.y * h.y)) * (mass / 3.0);
-    let q = Quat::from_polar_decomposition(1.0, 0.3, nalgebra::Unit::new_normalize(Vec3::new(1.0, 0.0, 1.0)));
-    let body = b.add_body(Vec3::new(0.0, 0.5, 0.0), q, Vec3::zeros(), Vec3::new(0.0, 1.0, 0.0), mass, inertia);
+    let inertia = Mat33::from_diagonal(&Vec3::new(
+        h.y * h.y + h.z * h.z,
+        h.x * h.x + h.z * h.z,
+        h.x * h.x + h.y * h.y,
+    )) * (mass / 3.0);
+    let q = Quat::from_polar_decomposition(
+        1.0,
+        0.3,
+        nalgebra::Unit::new_normalize(Vec3::new(1.0, 0.0, 1.0)),
+    );
+    let body = b.add_body(
+        Vec3::new(0.0, 0.5, 0.0),
+        q,
+        Vec3::zeros(),
+        Vec3::new(0.0, 1.0, 0.0),
+        mass,
+        inertia,
+    );
     for sx in [-1.0, 1.0] {
         for sy in [-1.0, 1.0] {
             for sz in [-1.0, 1.0] {
@@ -508,7 +746,12 @@ fn a_box_falls_and_rests_on_the_ground() {
             }
         }
     }
-    b.set_ground(Ground { ke: 2e4, kd: 200.0, mu: 0.8, ..Ground::default() });
+    b.set_ground(Ground {
+        ke: 2e4,
+        kd: 200.0,
+        mu: 0.8,
+        ..Ground::default()
+    });
     let m = b.finalize();
     let mut s = m.state();
     for _ in 0..6000 {
@@ -518,7 +761,12 @@ fn a_box_falls_and_rests_on_the_ground() {
     // Resting on its largest face: centre at the half height 0.1 (sunk by m g / (4 ke)).
     let y = bs.x.get(0).y;
     assert!((y - 0.1).abs() < 5e-3, "rest height {y}");
-    assert!(bs.v.get(0).norm() < 0.05 && bs.w.get(0).norm() < 0.2, "not at rest: v {:?} w {:?}", bs.v.get(0), bs.w.get(0));
+    assert!(
+        bs.v.get(0).norm() < 0.05 && bs.w.get(0).norm() < 0.2,
+        "not at rest: v {:?} w {:?}",
+        bs.v.get(0),
+        bs.w.get(0)
+    );
 }
 
 // ---- XPBD --------------------------------------------------------------------------------
@@ -528,14 +776,24 @@ fn xpbd_rigid_constraints_converge_and_compliant_ones_balance() {
     let mut b = ModelBuilder::<f64>::new();
     let mut r = Rng(51);
     for k in 0..5 {
-        b.add_particle(Vec3::new(k as f64 * 0.3, 0.0, 0.0), Vec3::zeros(), if k == 0 { 0.0 } else { 1.0 });
+        b.add_particle(
+            Vec3::new(k as f64 * 0.3, 0.0, 0.0),
+            Vec3::zeros(),
+            if k == 0 { 0.0 } else { 1.0 },
+        );
     }
     for k in 0..4 {
         b.add_distance_constraint(k, k + 1, 0.0);
     }
     let m = b.finalize();
     let dc = m.distance_constraints.as_ref().unwrap();
-    let x: Array<Vec3<f64>> = Array::from_vec(m.particle_x.to_vec().iter().map(|p| p + r.vec3(-0.05, 0.05)).collect());
+    let x: Array<Vec3<f64>> = Array::from_vec(
+        m.particle_x
+            .to_vec()
+            .iter()
+            .map(|p| p + r.vec3(-0.05, 0.05))
+            .collect(),
+    );
     let mut tape = Tape::new();
     let (mut xk, mut lam) = (x.clone(), dc.zero_lambda());
     for _ in 0..200 {
@@ -543,12 +801,20 @@ fn xpbd_rigid_constraints_converge_and_compliant_ones_balance() {
     }
     let p = xk.to_vec();
     for k in 0..4 {
-        assert!(((p[k] - p[k + 1]).norm() - 0.3).abs() < 1e-6, "constraint {k}: {}", (p[k] - p[k + 1]).norm());
+        assert!(
+            ((p[k] - p[k + 1]).norm() - 0.3).abs() < 1e-6,
+            "constraint {k}: {}",
+            (p[k] - p[k + 1]).norm()
+        );
     }
     assert_eq!(p[0], x.get(0), "the pinned particle moved");
     // Differentiable: gradient of the final position w.r.t. the starting one is finite.
     let l = Array::zeros(1);
-    tape.launch(cloth::displacement_loss, 5, (&xk, &x, Vec3::zeros(), 1.0, &l));
+    tape.launch(
+        cloth::displacement_loss,
+        5,
+        (&xk, &x, Vec3::zeros(), 1.0, &l),
+    );
     let x_req = x.clone().requires_grad();
     tape.backward(&l).unwrap();
     assert_eq!(x_req.grad().unwrap().first_non_finite(), None);
@@ -568,6 +834,13 @@ fn xpbd_rigid_constraints_converge_and_compliant_ones_balance() {
         (xk, lam) = dc.iterate(&mut tape, &xk, &m.particle_inv_mass, &lam, dt, 1.0);
     }
     let c = (xk.get(0) - xk.get(1)).norm() - 0.5;
-    assert!(c > 0.01, "a compliant constraint should stay stretched: C = {c}");
-    assert!((c + alpha / (dt * dt) * lam.get(0)).abs() < 1e-9, "C = {c}, lambda = {}", lam.get(0));
+    assert!(
+        c > 0.01,
+        "a compliant constraint should stay stretched: C = {c}"
+    );
+    assert!(
+        (c + alpha / (dt * dt) * lam.get(0)).abs() < 1e-9,
+        "C = {c}, lambda = {}",
+        lam.get(0)
+    );
 }

@@ -90,7 +90,10 @@ bend_ke = 0.01
     let (s, rs) = (m.springs.as_ref().unwrap(), r.springs.as_ref().unwrap());
     assert_eq!(s.pairs.to_vec(), rs.pairs.to_vec());
     assert_eq!(s.rest.to_vec(), rs.rest.to_vec());
-    assert_eq!(m.bending.as_ref().unwrap().quads.to_vec(), r.bending.as_ref().unwrap().quads.to_vec());
+    assert_eq!(
+        m.bending.as_ref().unwrap().quads.to_vec(),
+        r.bending.as_ref().unwrap().quads.to_vec()
+    );
     assert_eq!(m.ground, r.ground);
 }
 
@@ -114,7 +117,10 @@ fn expect(e: &SceneError, field: &str, line: usize, says: &str) {
     assert_eq!(e.line, Some(line), "{e}");
     assert!(e.message.contains(says), "`{says}` not in: {e}");
     let shown = e.to_string();
-    assert!(shown.contains(&format!("line {line}")) && shown.contains(field), "{shown}");
+    assert!(
+        shown.contains(&format!("line {line}")) && shown.contains(field),
+        "{shown}"
+    );
 }
 
 #[test]
@@ -128,12 +134,18 @@ fn malformed_json_names_the_field_and_line() {
     let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1], \"mass\": 1 } ]\n}");
     expect(&e, "particles[0].x", 2, "invalid length");
     let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1, 0], \"mass\": 1 }, { \"x\": [1, 1, 0], \"mass\": 1 } ],\n  \"springs\": [\n    { \"i\": 0, \"j\": 7, \"ke\": 3 }\n  ]\n}");
-    expect(&e, "springs[0]", 4, "particle index 7 out of range (2 particles)");
+    expect(
+        &e,
+        "springs[0]",
+        4,
+        "particle index 7 out of range (2 particles)",
+    );
     let e = json_err("{\n  \"particles\": [ { \"x\": [0, 1, 0], \"mass\": -1 } ]\n}");
     expect(&e, "particles[0].mass", 2, ">= 0");
     let e = json_err("{\n  \"shapes\": [\n    { \"kind\": \"cone\", \"pos\": [0, 0, 0] }\n  ]\n}");
     expect(&e, "shapes[0].kind", 3, "unknown variant `cone`");
-    let e = json_err("{\n  \"shapes\": [\n    { \"kind\": \"sphere\", \"pos\": [0, 0, 0] }\n  ]\n}");
+    let e =
+        json_err("{\n  \"shapes\": [\n    { \"kind\": \"sphere\", \"pos\": [0, 0, 0] }\n  ]\n}");
     expect(&e, "shapes[0]", 3, "missing field `radius`");
     let e = json_err("{\n \"particles\": [\n  {\"x\": [0,0,0], \"mass\": 1}, {\"x\": [1,0,0], \"mass\": 1},\n  {\"x\": [2,0,0], \"mass\": 1}, {\"x\": [3,0,0], \"mass\": 1}],\n \"tets\": [\n  {\"indices\": [0, 1, 2, 3], \"mu\": 1, \"lambda\": 1}\n ]\n}");
     expect(&e, "tets[0]", 6, "degenerate");
@@ -147,7 +159,8 @@ fn malformed_json_names_the_field_and_line() {
 fn malformed_toml_names_the_field_and_line() {
     let e = toml_err("[[particles]]\nx = [0, 1, 0]\nmass = 1\n\n[[particles]]\nx = [0, 1, 0]\nmass = \"heavy\"\n");
     expect(&e, "particles[1].mass", 7, "invalid type");
-    let e = toml_err("[[particles]]\nx = [0, 1, 0]\nmass = 1\n\n[[springs]]\ni = 0\nj = 3\nke = 1.0\n");
+    let e =
+        toml_err("[[particles]]\nx = [0, 1, 0]\nmass = 1\n\n[[springs]]\ni = 0\nj = 3\nke = 1.0\n");
     expect(&e, "springs[0]", 5, "particle index 3 out of range");
     let e = toml_err("[ground]\nke = 1000.0\nmu = nan\n");
     expect(&e, "ground.mu", 3, ">= 0");

@@ -2,7 +2,9 @@
 //! (`omega = sqrt(k / m)`) and a stiff pendulum. Run with `--nocapture` for the figures.
 
 use adflex_kernels::integrators::oscillator::Oscillator;
-use adflex_kernels::integrators::{ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd};
+use adflex_kernels::integrators::{
+    ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+};
 use adflex_kernels::{Model, ModelBuilder};
 use adflex_runtime::{Tape, Vec3};
 
@@ -13,13 +15,22 @@ fn diverged(ratio: f64, threshold: f64) -> bool {
 
 /// An undamped spring of omega = 10 rad/s.
 fn spring() -> Oscillator {
-    Oscillator { stiffness: 100.0, mass: 1.0, damping: 0.0, displacement: 0.1, velocity: 0.0 }
+    Oscillator {
+        stiffness: 100.0,
+        mass: 1.0,
+        damping: 0.0,
+        displacement: 0.1,
+        velocity: 0.0,
+    }
 }
 
 /// The same spring released from 1 micrometre, so that a growing solution can be followed for
 /// a factor 1e10 in energy before the mass reaches the anchor (where the 1-D model ends).
 fn tiny_spring() -> Oscillator {
-    Oscillator { displacement: 1e-6, ..spring() }
+    Oscillator {
+        displacement: 1e-6,
+        ..spring()
+    }
 }
 
 /// Explicit Euler multiplies the energy of an undamped oscillator by exactly
@@ -32,7 +43,10 @@ fn explicit_euler_energy_grows_for_every_dt() {
         let steps = 100.min((1e10f64.ln() / (1.0 + omega_dt * omega_dt).ln()) as usize);
         let tr = osc.simulate(&ExplicitEuler, osc.dt_for(omega_dt), steps);
         for k in 1..tr.energy.len() {
-            assert!(tr.energy[k] > tr.energy[k - 1], "omega dt = {omega_dt}: energy did not grow at step {k}");
+            assert!(
+                tr.energy[k] > tr.energy[k - 1],
+                "omega dt = {omega_dt}: energy did not grow at step {k}"
+            );
         }
         let expected = (1.0 + omega_dt * omega_dt).powi(steps as i32);
         let ratio = tr.final_energy_ratio();
@@ -41,7 +55,10 @@ fn explicit_euler_energy_grows_for_every_dt() {
             ratio.powf(1.0 / steps as f64)
         );
         assert!(ratio > 1.0);
-        assert!((ratio / expected - 1.0).abs() < 1e-6, "omega dt = {omega_dt}: {ratio} vs {expected}");
+        assert!(
+            (ratio / expected - 1.0).abs() < 1e-6,
+            "omega dt = {omega_dt}: {ratio} vs {expected}"
+        );
     }
 }
 
@@ -63,7 +80,10 @@ fn semi_implicit_euler_bounded_below_2_diverges_above() {
     let osc = tiny_spring();
     let tr = osc.simulate(&SemiImplicitEuler, osc.dt_for(2.1), 20);
     let ratio = tr.final_energy_ratio();
-    println!("semi-implicit Euler, omega dt = 2.1: E_20 / E_0 = {ratio:.3e} (growth per step {:.3})", ratio.powf(0.05));
+    println!(
+        "semi-implicit Euler, omega dt = 2.1: E_20 / E_0 = {ratio:.3e} (growth per step {:.3})",
+        ratio.powf(0.05)
+    );
     assert!(diverged(ratio, 1e9), "{ratio}");
 }
 
@@ -73,11 +93,18 @@ fn semi_implicit_euler_bounded_below_2_diverges_above() {
 fn rk4_bounded_below_2_83_diverges_above() {
     let osc = spring();
     let tr = osc.simulate(&Rk4, osc.dt_for(2.7), 1000);
-    println!("RK4, omega dt = 2.7: max E / E0 = {:.6}, final {:.3e}", tr.max_energy_ratio(), tr.final_energy_ratio());
+    println!(
+        "RK4, omega dt = 2.7: max E / E0 = {:.6}, final {:.3e}",
+        tr.max_energy_ratio(),
+        tr.final_energy_ratio()
+    );
     assert!(tr.max_energy_ratio() <= 1.0 + 1e-12);
     let osc = tiny_spring();
     let tr = osc.simulate(&Rk4, osc.dt_for(3.0), 25);
-    println!("RK4, omega dt = 3.0: E_25 / E0 = {:.3e}", tr.final_energy_ratio());
+    println!(
+        "RK4, omega dt = 3.0: E_25 / E0 = {:.3e}",
+        tr.final_energy_ratio()
+    );
     assert!(diverged(tr.final_energy_ratio(), 1e8));
 }
 
@@ -102,15 +129,22 @@ fn implicit_euler_bounded_at_omega_dt_100() {
     let model = osc.model();
     let mut s = model.state();
     for _ in 0..20 {
-        let (next, st) = ImplicitEuler::default().step_with_stats(&model, &mut Tape::new(), &s, None, dt);
+        let (next, st) =
+            ImplicitEuler::default().step_with_stats(&model, &mut Tape::new(), &s, None, dt);
         assert!(st.converged, "{st:?}");
         s = next;
     }
     // The explicit methods at the same step.
     let osc = tiny_spring();
     for (name, ratio) in [
-        ("explicit Euler", osc.simulate(&ExplicitEuler, dt, 2).final_energy_ratio()),
-        ("semi-implicit Euler", osc.simulate(&SemiImplicitEuler, dt, 2).final_energy_ratio()),
+        (
+            "explicit Euler",
+            osc.simulate(&ExplicitEuler, dt, 2).final_energy_ratio(),
+        ),
+        (
+            "semi-implicit Euler",
+            osc.simulate(&SemiImplicitEuler, dt, 2).final_energy_ratio(),
+        ),
         ("RK4", osc.simulate(&Rk4, dt, 1).final_energy_ratio()),
     ] {
         println!("{name}, omega dt = 100: E / E_0 = {ratio:.3e} after 1-2 steps");
@@ -141,7 +175,12 @@ fn pendulum(links: usize, compliance: f64, spring: Option<f64>) -> Model<f64> {
 }
 
 /// The largest relative error of any link length over `steps` steps of `dt`.
-fn max_length_error<I: Integrator<f64>>(model: &Model<f64>, integ: &I, dt: f64, steps: usize) -> f64 {
+fn max_length_error<I: Integrator<f64>>(
+    model: &Model<f64>,
+    integ: &I,
+    dt: f64,
+    steps: usize,
+) -> f64 {
     let n = model.particle_count;
     let rest = 1.0 / (n - 1) as f64;
     let mut s = model.state();
@@ -151,7 +190,11 @@ fn max_length_error<I: Integrator<f64>>(model: &Model<f64>, integ: &I, dt: f64, 
         let x = s.x.to_vec();
         for k in 1..n {
             let e = ((x[k] - x[k - 1]).norm() - rest).abs() / rest;
-            worst = if e.is_nan() { f64::INFINITY } else { worst.max(e) };
+            worst = if e.is_nan() {
+                f64::INFINITY
+            } else {
+                worst.max(e)
+            };
         }
     }
     worst
@@ -164,13 +207,26 @@ fn xpbd_keeps_a_stiff_pendulums_length() {
     let dt = 1.0 / 60.0;
     let steps = 600;
     let single = max_length_error(&pendulum(1, 0.0, None), &Xpbd::default(), dt, steps);
-    println!("XPBD, rigid single pendulum, dt = 1/60, 600 steps: max relative length error {single:.3e}");
+    println!(
+        "XPBD, rigid single pendulum, dt = 1/60, 600 steps: max relative length error {single:.3e}"
+    );
     assert!(single < 1e-9, "{single}");
-    let chain = max_length_error(&pendulum(3, 0.0, None), &Xpbd { substeps: 20, iterations: 2, relaxation: 1.0 }, dt, steps);
+    let chain = max_length_error(
+        &pendulum(3, 0.0, None),
+        &Xpbd {
+            substeps: 20,
+            iterations: 2,
+            relaxation: 1.0,
+        },
+        dt,
+        steps,
+    );
     println!("XPBD, rigid triple pendulum, 20 substeps x 2 Jacobi passes: max relative length error {chain:.3e}");
     assert!(chain < 5e-3, "{chain}");
     let compliant = max_length_error(&pendulum(1, 1e-6, None), &Xpbd::default(), dt, steps);
-    println!("XPBD, single pendulum of compliance 1e-6 m/N: max relative length error {compliant:.3e}");
+    println!(
+        "XPBD, single pendulum of compliance 1e-6 m/N: max relative length error {compliant:.3e}"
+    );
     assert!(compliant < 1e-4, "{compliant}");
     // A spring of 1e6 N/m (omega dt = 16.7) under semi-implicit Euler at the same step.
     let spring = max_length_error(&pendulum(1, 0.0, Some(1e6)), &SemiImplicitEuler, dt, 100);

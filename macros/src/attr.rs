@@ -20,7 +20,11 @@ impl Attr {
     pub fn parse(args: TokenStream, is_kernel: bool, errors: &mut Errors) -> Attr {
         let mut attr = Attr::default();
         let parser = syn::meta::parser(|meta| {
-            let key = meta.path.get_ident().map(|i| i.to_string()).unwrap_or_default();
+            let key = meta
+                .path
+                .get_ident()
+                .map(|i| i.to_string())
+                .unwrap_or_default();
             match key.as_str() {
                 "crate" => {
                     let s: syn::LitStr = meta.value()?.parse()?;

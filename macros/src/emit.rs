@@ -40,14 +40,18 @@ fn collect_uses(b: &Block, used: &mut HashSet<ValueId>) {
     for s in &b.stmts {
         match s {
             Stmt::Let(l) => match &l.op {
-                Op::Builtin { args, .. } | Op::Func { args, .. } | Op::Tuple(args) | Op::PlainCall { args, .. } => {
-                    used.extend(args)
-                }
+                Op::Builtin { args, .. }
+                | Op::Func { args, .. }
+                | Op::Tuple(args)
+                | Op::PlainCall { args, .. } => used.extend(args),
                 Op::PlainMethod { recv, args, .. } => {
                     used.insert(*recv);
                     used.extend(args);
                 }
-                Op::Cast { arg: x, .. } | Op::Typed { src: x, .. } | Op::NativeUnary { a: x, .. } | Op::StopGrad(x) => {
+                Op::Cast { arg: x, .. }
+                | Op::Typed { src: x, .. }
+                | Op::NativeUnary { a: x, .. }
+                | Op::StopGrad(x) => {
                     used.insert(*x);
                 }
                 Op::NativeBinary { a, b, .. } => used.extend([*a, *b]),
@@ -57,7 +61,12 @@ fn collect_uses(b: &Block, used: &mut HashSet<ValueId>) {
                 Op::Const(_) | Op::Tid | Op::Zero => {}
             },
             Stmt::Store { index, value, .. } => used.extend([*index, *value]),
-            Stmt::If { cond, then_b, else_b, phis } => {
+            Stmt::If {
+                cond,
+                then_b,
+                else_b,
+                phis,
+            } => {
                 used.insert(*cond);
                 for p in phis {
                     used.extend([p.then_v, p.else_v]);
@@ -213,7 +222,13 @@ impl<'a> Emitter<'a> {
                         out.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
                     }
                 }
-                Stmt::Store { param, index, value, kind, span } => {
+                Stmt::Store {
+                    param,
+                    index,
+                    value,
+                    kind,
+                    span,
+                } => {
                     if mode == Replay::Forward {
                         let (w, i, x) = (view(*param), v(*index), v(*value));
                         out.extend(match kind {
@@ -223,8 +238,17 @@ impl<'a> Emitter<'a> {
                         });
                     }
                 }
-                Stmt::If { cond, then_b, else_b, phis } => {
-                    let inner = if mode == Replay::Forward { Replay::Forward } else { Replay::Nested };
+                Stmt::If {
+                    cond,
+                    then_b,
+                    else_b,
+                    phis,
+                } => {
+                    let inner = if mode == Replay::Forward {
+                        Replay::Forward
+                    } else {
+                        Replay::Nested
+                    };
                     let c = v(*cond);
                     let (tb, eb) = (self.replay(then_b, inner), self.replay(else_b, inner));
                     let outs: Vec<_> = phis.iter().map(|p| v(p.out)).collect();
@@ -262,7 +286,11 @@ impl<'a> Emitter<'a> {
 
     fn loop_forward(&self, l: &Loop, mode: Replay) -> TokenStream {
         let rt = self.rt;
-        let inner_mode = if mode == Replay::Forward { Replay::Forward } else { Replay::Nested };
+        let inner_mode = if mode == Replay::Forward {
+            Replay::Forward
+        } else {
+            Replay::Nested
+        };
         let c = local("__carry", l.id, Span::call_site());
         let st = local("__stack", l.id, Span::call_site());
         let k = local("__k", l.id, Span::call_site());
@@ -279,7 +307,11 @@ impl<'a> Emitter<'a> {
             None => quote!(),
         };
         let record = if mode == Replay::Top {
-            let key = if l.range.is_some() { quote!(#k) } else { quote!(()) };
+            let key = if l.range.is_some() {
+                quote!(#k)
+            } else {
+                quote!(())
+            };
             quote!(#st.push((#key, #c));)
         } else {
             quote!()
@@ -345,19 +377,38 @@ impl<'a> Emitter<'a> {
         match s {
             Stmt::Let(l) if self.skip(l) => quote!(),
             Stmt::Let(l) => self.reverse_let(l),
-            Stmt::Store { param, index, value, kind, span } => {
+            Stmt::Store {
+                param,
+                index,
+                value,
+                kind,
+                span,
+            } => {
                 let (g, i, ax) = (grad_view(*param), v(*index), a(*value));
                 match kind {
                     StoreKind::Store | StoreKind::AtomicAdd => {
                         quote_spanned!(*span=> #rt::acc(&mut #ax, #g.get(#i));)
                     }
-                    StoreKind::AtomicSub => quote_spanned!(*span=> #rt::acc_neg(&mut #ax, #g.get(#i));),
+                    StoreKind::AtomicSub => {
+                        quote_spanned!(*span=> #rt::acc_neg(&mut #ax, #g.get(#i));)
+                    }
                 }
             }
-            Stmt::If { cond, then_b, else_b, phis } => {
+            Stmt::If {
+                cond,
+                then_b,
+                else_b,
+                phis,
+            } => {
                 let c = v(*cond);
-                let tseeds: Vec<_> = phis.iter().map(|p| (p.then_v, self.adj_tokens(p.out))).collect();
-                let eseeds: Vec<_> = phis.iter().map(|p| (p.else_v, self.adj_tokens(p.out))).collect();
+                let tseeds: Vec<_> = phis
+                    .iter()
+                    .map(|p| (p.then_v, self.adj_tokens(p.out)))
+                    .collect();
+                let eseeds: Vec<_> = phis
+                    .iter()
+                    .map(|p| (p.else_v, self.adj_tokens(p.out)))
+                    .collect();
                 let (tb, eb) = (self.adjoint(then_b, &tseeds), self.adjoint(else_b, &eseeds));
                 quote!(if #c { #tb } else { #eb })
             }
@@ -383,7 +434,9 @@ impl<'a> Emitter<'a> {
                     let ax = a(args[0]);
                     quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::#f(#(#xs,)* #an));)
                 } else {
-                    let gs: Vec<_> = (0..args.len()).map(|i| local("__g", i, Span::call_site())).collect();
+                    let gs: Vec<_> = (0..args.len())
+                        .map(|i| local("__g", i, Span::call_site()))
+                        .collect();
                     let axs = args.iter().map(|&x| a(x));
                     quote_spanned! {span=>
                         let (#(#gs,)*) = #rt::math::#f(#(#xs,)* #an);
@@ -393,7 +446,9 @@ impl<'a> Emitter<'a> {
             }
             Op::Func { path, args } => {
                 let xs = vs(args);
-                let gs: Vec<_> = (0..args.len()).map(|i| local("__g", i, Span::call_site())).collect();
+                let gs: Vec<_> = (0..args.len())
+                    .map(|i| local("__g", i, Span::call_site()))
+                    .collect();
                 let axs = args.iter().map(|&x| a(x));
                 quote_spanned! {span=>
                     let (#(#gs,)*) = #rt::func::call_adjoint((#(#xs,)*), #an, &#path);
@@ -467,7 +522,13 @@ impl<'a> Emitter<'a> {
             match s {
                 Stmt::Let(l) if self.skip(l) => {}
                 Stmt::Let(l) => out.extend(self.tangent_let(l)),
-                Stmt::Store { param, index, value, kind, span } => {
+                Stmt::Store {
+                    param,
+                    index,
+                    value,
+                    kind,
+                    span,
+                } => {
                     let (t, i, dx) = (tangent_view(*param), v(*index), d(*value));
                     out.extend(match kind {
                         StoreKind::Store => quote_spanned!(*span=> #t.store(#i, #dx);),
@@ -475,7 +536,12 @@ impl<'a> Emitter<'a> {
                         StoreKind::AtomicSub => quote_spanned!(*span=> #t.sub(#i, #dx);),
                     });
                 }
-                Stmt::If { cond, then_b, else_b, phis } => {
+                Stmt::If {
+                    cond,
+                    then_b,
+                    else_b,
+                    phis,
+                } => {
                     let c = v(*cond);
                     let (tb, eb) = (self.tangent(then_b), self.tangent(else_b));
                     let outs: Vec<_> = phis.iter().map(|p| pair(p.out)).collect();

@@ -17,7 +17,11 @@ pub fn expand(args: TokenStream, item: TokenStream, is_kernel: bool) -> TokenStr
     let f: syn::ItemFn = match syn::parse2(item) {
         Ok(f) => f,
         Err(e) => {
-            let what = if is_kernel { "#[diff_kernel]" } else { "#[diff_func]" };
+            let what = if is_kernel {
+                "#[diff_kernel]"
+            } else {
+                "#[diff_func]"
+            };
             return syn::Error::new(e.span(), format!("{what} applies to a fn")).to_compile_error();
         }
     };
@@ -28,14 +32,23 @@ pub fn expand(args: TokenStream, item: TokenStream, is_kernel: bool) -> TokenStr
     let custom = attr.adjoint.is_some();
     let (body, uses) = Lowerer::new(&sig, &rt, is_kernel, &mut errors).lower_body(&f.block);
     if !errors.is_empty() {
-        let stub = if is_kernel { kernel_stub(&sig, &rt, &passthrough) } else { func_stub(&sig, &rt, &passthrough) };
+        let stub = if is_kernel {
+            kernel_stub(&sig, &rt, &passthrough)
+        } else {
+            func_stub(&sig, &rt, &passthrough)
+        };
         let errs = errors.to_compile_errors();
         return quote!(#errs #stub);
     }
     let items = if is_kernel {
         kernel_items(&sig, &rt, &body, &uses, &passthrough)
     } else {
-        let custom = custom.then(|| (attr.adjoint.as_ref().unwrap(), attr.tangent.as_ref().unwrap()));
+        let custom = custom.then(|| {
+            (
+                attr.adjoint.as_ref().unwrap(),
+                attr.tangent.as_ref().unwrap(),
+            )
+        });
         func_items(&sig, &rt, &body, custom, &passthrough)
     };
     dump(&sig.name.to_string(), &items);
@@ -68,10 +81,17 @@ fn runtime_path(attr: &Attr) -> TokenStream {
 fn passthrough_attrs(f: &syn::ItemFn, errors: &mut Errors) -> Vec<syn::Attribute> {
     let mut keep = Vec::new();
     for a in &f.attrs {
-        let name = a.path().get_ident().map(|i| i.to_string()).unwrap_or_default();
+        let name = a
+            .path()
+            .get_ident()
+            .map(|i| i.to_string())
+            .unwrap_or_default();
         match name.as_str() {
             "doc" | "cfg" | "allow" | "warn" | "deny" | "expect" => keep.push(a.clone()),
-            _ => errors.push(a.span(), format!("attribute `#[{name}]` is not supported on a kernel")),
+            _ => errors.push(
+                a.span(),
+                format!("attribute `#[{name}]` is not supported on a kernel"),
+            ),
         }
     }
     keep
@@ -101,7 +121,13 @@ fn lints() -> TokenStream {
 
 // ---- kernels ---------------------------------------------------------------------------
 
-fn kernel_items(sig: &Signature, rt: &TokenStream, body: &Body, uses: &[ArrayUse], attrs: &[syn::Attribute]) -> TokenStream {
+fn kernel_items(
+    sig: &Signature,
+    rt: &TokenStream,
+    body: &Body,
+    uses: &[ArrayUse],
+    attrs: &[syn::Attribute],
+) -> TokenStream {
     let name = &sig.name;
     let name_str = name_lit(sig);
     let owned: Vec<_> = sig.params.iter().map(|p| p.owned_ty().clone()).collect();
@@ -149,7 +175,8 @@ fn kernel_items(sig: &Signature, rt: &TokenStream, body: &Body, uses: &[ArrayUse
     let generic_params = sig.generic_params();
     let (impl_generics, where_clause) = sig.impl_generics();
     let em = Emitter::new(rt, body);
-    let modes = [Mode::Forward, Mode::Adjoint, Mode::Tangent].map(|m| kernel_mode(sig, rt, body, uses, &em, m));
+    let modes = [Mode::Forward, Mode::Adjoint, Mode::Tangent]
+        .map(|m| kernel_mode(sig, rt, body, uses, &em, m));
     let [fwd, adj, tan] = modes;
     let strukt = struct_item(sig, attrs);
     let lints = lints();
@@ -195,7 +222,14 @@ enum Mode {
     Tangent,
 }
 
-fn kernel_mode(sig: &Signature, rt: &TokenStream, body: &Body, uses: &[ArrayUse], em: &Emitter, mode: Mode) -> TokenStream {
+fn kernel_mode(
+    sig: &Signature,
+    rt: &TokenStream,
+    body: &Body,
+    uses: &[ArrayUse],
+    em: &Emitter,
+    mode: Mode,
+) -> TokenStream {
     let kname = sig.name.to_string();
     let mut views = TokenStream::new();
     let mut finish = Vec::new();
@@ -399,7 +433,9 @@ fn func_stub(sig: &Signature, rt: &TokenStream, attrs: &[syn::Attribute]) -> Tok
 /// With `ADFLEX_EXPAND_DIR=dir`, writes the generated code of each kernel and function to
 /// `dir/<name>.rs`, formatted, so that gradients can be debugged by reading it.
 fn dump(name: &str, items: &TokenStream) {
-    let Some(dir) = std::env::var_os("ADFLEX_EXPAND_DIR") else { return };
+    let Some(dir) = std::env::var_os("ADFLEX_EXPAND_DIR") else {
+        return;
+    };
     let text = match syn::parse2::<syn::File>(items.clone()) {
         Ok(file) => prettyplease::unparse(&file),
         Err(_) => items.to_string(),

@@ -21,13 +21,20 @@ pub enum Op {
     /// A builtin of `adflex::math` (rules `name`, `adj_name`, `tan_name`).
     Builtin { name: String, args: Vec<ValueId> },
     /// A call to a `#[diff_func]` (through `adflex::DiffFunc`).
-    Func { path: TokenStream, args: Vec<ValueId> },
+    Func {
+        path: TokenStream,
+        args: Vec<ValueId>,
+    },
     /// `x as T`, through the cast rules.
     Cast { arg: ValueId, ty: TokenStream },
     /// `let x: T = e;` (a copy that pins the type).
     Typed { src: ValueId, ty: TokenStream },
     /// A comparison, a logical or bitwise operator: emitted as written, no derivative.
-    NativeBinary { op: TokenStream, a: ValueId, b: ValueId },
+    NativeBinary {
+        op: TokenStream,
+        a: ValueId,
+        b: ValueId,
+    },
     /// `!x`: no derivative.
     NativeUnary { op: TokenStream, a: ValueId },
     /// A tuple of indices (for `m[(r, c)]`): no derivative.
@@ -39,9 +46,16 @@ pub enum Op {
     /// The zero of a type inferred from its use (placeholder for a not-yet-returned value).
     Zero,
     /// A plain call inside `no_grad(..)`.
-    PlainCall { path: TokenStream, args: Vec<ValueId> },
+    PlainCall {
+        path: TokenStream,
+        args: Vec<ValueId>,
+    },
     /// A method call inside `no_grad(..)`.
-    PlainMethod { recv: ValueId, method: TokenStream, args: Vec<ValueId> },
+    PlainMethod {
+        recv: ValueId,
+        method: TokenStream,
+        args: Vec<ValueId>,
+    },
 }
 
 /// `let v<id> = op;`
@@ -94,8 +108,19 @@ pub struct Loop {
 #[derive(Clone)]
 pub enum Stmt {
     Let(Let),
-    Store { param: usize, index: ValueId, value: ValueId, kind: StoreKind, span: Span },
-    If { cond: ValueId, then_b: Block, else_b: Block, phis: Vec<Phi> },
+    Store {
+        param: usize,
+        index: ValueId,
+        value: ValueId,
+        kind: StoreKind,
+        span: Span,
+    },
+    If {
+        cond: ValueId,
+        then_b: Block,
+        else_b: Block,
+        phis: Vec<Phi>,
+    },
     Loop(Loop),
 }
 

@@ -25,7 +25,10 @@ mod signature;
 /// The fn becomes a unit struct of the same name that `launch` and `Tape::launch` accept,
 /// with a forward, an adjoint and a tangent kernel. See the guide (docs/guide.md).
 #[proc_macro_attribute]
-pub fn diff_kernel(args: proc_macro::TokenStream, item: proc_macro::TokenStream) -> proc_macro::TokenStream {
+pub fn diff_kernel(
+    args: proc_macro::TokenStream,
+    item: proc_macro::TokenStream,
+) -> proc_macro::TokenStream {
     expand::expand(args.into(), item.into(), true).into()
 }
 
@@ -36,7 +39,10 @@ pub fn diff_kernel(args: proc_macro::TokenStream, item: proc_macro::TokenStream)
 /// tangent = t)]` replaces the generated derivatives with hand-written ones:
 /// `fn a(x1, .., xn, adj_out) -> (adj_x1, .., adj_xn,)` and `fn t(x1, .., xn, dx1, .., dxn) -> dout`.
 #[proc_macro_attribute]
-pub fn diff_func(args: proc_macro::TokenStream, item: proc_macro::TokenStream) -> proc_macro::TokenStream {
+pub fn diff_func(
+    args: proc_macro::TokenStream,
+    item: proc_macro::TokenStream,
+) -> proc_macro::TokenStream {
     expand::expand(args.into(), item.into(), false).into()
 }
 

@@ -59,7 +59,12 @@ pub struct Lowerer<'a> {
 }
 
 impl<'a> Lowerer<'a> {
-    pub fn new(sig: &'a Signature, rt: &'a TokenStream, is_kernel: bool, errors: &'a mut Errors) -> Self {
+    pub fn new(
+        sig: &'a Signature,
+        rt: &'a TokenStream,
+        is_kernel: bool,
+        errors: &'a mut Errors,
+    ) -> Self {
         Lowerer {
             sig,
             rt,
@@ -113,10 +118,8 @@ impl<'a> Lowerer<'a> {
                     |_, _| Some(t),
                 ),
                 None => {
-                    let ends_with_return = matches!(
-                        body.stmts.last(),
-                        Some(syn::Stmt::Expr(Expr::Return(_), _))
-                    );
+                    let ends_with_return =
+                        matches!(body.stmts.last(), Some(syn::Stmt::Expr(Expr::Return(_), _)));
                     if !ends_with_return {
                         self.errors.push(
                             body.span(),
@@ -128,7 +131,10 @@ impl<'a> Lowerer<'a> {
             }
         } else {
             if tail.is_none() && self.sig.ret.is_some() {
-                self.errors.push(body.span(), "a #[diff_func] must end with the value it returns");
+                self.errors.push(
+                    body.span(),
+                    "a #[diff_func] must end with the value it returns",
+                );
             }
             tail
         };
@@ -179,28 +185,49 @@ impl<'a> Lowerer<'a> {
     }
 
     fn const_flag(&mut self, b: bool, out: &mut Block) -> ValueId {
-        let v = self.push(out, Op::Const(if b { quote!(true) } else { quote!(false) }), Span::call_site());
+        let v = self.push(
+            out,
+            Op::Const(if b { quote!(true) } else { quote!(false) }),
+            Span::call_site(),
+        );
         self.const_bool.insert(v, b);
         v
     }
 
     fn bind(&mut self, name: &str, value: ValueId, mutable: bool) {
-        self.env.last_mut().unwrap().push(Binding { name: name.to_string(), value, mutable });
+        self.env.last_mut().unwrap().push(Binding {
+            name: name.to_string(),
+            value,
+            mutable,
+        });
     }
 
     fn lookup(&self, name: &str) -> Option<&Binding> {
-        self.env.iter().rev().flat_map(|s| s.iter().rev()).find(|b| b.name == name)
+        self.env
+            .iter()
+            .rev()
+            .flat_map(|s| s.iter().rev())
+            .find(|b| b.name == name)
     }
 
     fn lookup_mut(&mut self, name: &str) -> Option<&mut Binding> {
-        self.env.iter_mut().rev().flat_map(|s| s.iter_mut().rev()).find(|b| b.name == name)
+        self.env
+            .iter_mut()
+            .rev()
+            .flat_map(|s| s.iter_mut().rev())
+            .find(|b| b.name == name)
     }
 
     fn assign(&mut self, name: &str, value: ValueId) {
         self.lookup_mut(name).expect("assign to a bound name").value = value;
     }
 
-    fn error_value(&mut self, out: &mut Block, span: Span, msg: impl std::fmt::Display) -> Option<ValueId> {
+    fn error_value(
+        &mut self,
+        out: &mut Block,
+        span: Span,
+        msg: impl std::fmt::Display,
+    ) -> Option<ValueId> {
         self.errors.push(span, msg);
         Some(self.push(out, Op::Zero, span))
     }
@@ -268,11 +295,28 @@ impl<'a> Lowerer<'a> {
                 }
             }
         }
-        let Some(first) = terms.first().copied() else { return Active::Always };
+        let Some(first) = terms.first().copied() else {
+            return Active::Always;
+        };
         let any = terms[1..].iter().fold(first, |acc, &t| {
-            self.push(out, Op::NativeBinary { op: quote!(||), a: acc, b: t }, Span::call_site())
+            self.push(
+                out,
+                Op::NativeBinary {
+                    op: quote!(||),
+                    a: acc,
+                    b: t,
+                },
+                Span::call_site(),
+            )
         });
-        Active::If(self.push(out, Op::NativeUnary { op: quote!(!), a: any }, Span::call_site()))
+        Active::If(self.push(
+            out,
+            Op::NativeUnary {
+                op: quote!(!),
+                a: any,
+            },
+            Span::call_site(),
+        ))
     }
 
     /// Lowers an if/else whose branches are given as closures; merges the bindings they change
@@ -310,7 +354,11 @@ impl<'a> Lowerer<'a> {
                             self.const_bool.insert(o, a);
                         }
                     }
-                    phis.push(Phi { out: o, then_v: t, else_v: e });
+                    phis.push(Phi {
+                        out: o,
+                        then_v: t,
+                        else_v: e,
+                    });
                     o
                 };
                 self.env[si][bi].value = merged;
@@ -319,12 +367,21 @@ impl<'a> Lowerer<'a> {
         let value = match (tv, ev) {
             (Some(t), Some(e)) => {
                 let o = self.fresh();
-                phis.push(Phi { out: o, then_v: t, else_v: e });
+                phis.push(Phi {
+                    out: o,
+                    then_v: t,
+                    else_v: e,
+                });
                 Some(o)
             }
             _ => None,
         };
-        out.stmts.push(Stmt::If { cond, then_b, else_b, phis });
+        out.stmts.push(Stmt::If {
+            cond,
+            then_b,
+            else_b,
+            phis,
+        });
         value
     }
 
@@ -345,11 +402,13 @@ impl<'a> Lowerer<'a> {
 
     fn lower_let(&mut self, l: &syn::Local, out: &mut Block) {
         let Some(init) = &l.init else {
-            self.errors.push(l.span(), "declare locals with a value: `let x = ...;`");
+            self.errors
+                .push(l.span(), "declare locals with a value: `let x = ...;`");
             return;
         };
         if let Some((_, d)) = &init.diverge {
-            self.errors.push(d.span(), "`let .. else` is not supported in kernels");
+            self.errors
+                .push(d.span(), "`let .. else` is not supported in kernels");
             return;
         }
         let (pat, ty) = match &l.pat {
@@ -357,7 +416,8 @@ impl<'a> Lowerer<'a> {
             p => (p, None),
         };
         let Some(v) = self.lower_expr(&init.expr, out) else {
-            self.errors.push(init.expr.span(), "this expression has no value to bind");
+            self.errors
+                .push(init.expr.span(), "this expression has no value to bind");
             return;
         };
         match pat {
@@ -402,9 +462,22 @@ impl<'a> Lowerer<'a> {
             Expr::Unary(u) => {
                 let a = self.lower_value(&u.expr, out)?;
                 match u.op {
-                    UnOp::Neg(_) => Some(self.push(out, Op::Builtin { name: "neg".into(), args: vec![a] }, span)),
-                    UnOp::Not(_) => Some(self.push(out, Op::NativeUnary { op: quote!(!), a }, span)),
-                    _ => self.error_value(out, span, "references and pointers are not supported in kernels (`*x`)"),
+                    UnOp::Neg(_) => Some(self.push(
+                        out,
+                        Op::Builtin {
+                            name: "neg".into(),
+                            args: vec![a],
+                        },
+                        span,
+                    )),
+                    UnOp::Not(_) => {
+                        Some(self.push(out, Op::NativeUnary { op: quote!(!), a }, span))
+                    }
+                    _ => self.error_value(
+                        out,
+                        span,
+                        "references and pointers are not supported in kernels (`*x`)",
+                    ),
                 }
             }
             Expr::Call(c) => self.lower_call(c, out),
@@ -426,7 +499,14 @@ impl<'a> Lowerer<'a> {
                     }
                     idx => self.lower_value(idx, out)?,
                 };
-                Some(self.push(out, Op::Builtin { name: "extract".into(), args: vec![base, index] }, span))
+                Some(self.push(
+                    out,
+                    Op::Builtin {
+                        name: "extract".into(),
+                        args: vec![base, index],
+                    },
+                    span,
+                ))
             }
             Expr::Field(f) => {
                 let k = match component_index(&f.member) {
@@ -435,16 +515,34 @@ impl<'a> Lowerer<'a> {
                 };
                 let base = self.lower_value(&f.base, out)?;
                 let kv = self.push(out, Op::Const(quote!(#k)), f.member.span());
-                Some(self.push(out, Op::Builtin { name: "extract".into(), args: vec![base, kv] }, span))
+                Some(self.push(
+                    out,
+                    Op::Builtin {
+                        name: "extract".into(),
+                        args: vec![base, kv],
+                    },
+                    span,
+                ))
             }
             Expr::Cast(c) => {
                 let arg = self.lower_value(&c.expr, out)?;
-                Some(self.push(out, Op::Cast { arg, ty: c.ty.to_token_stream() }, span))
+                Some(self.push(
+                    out,
+                    Op::Cast {
+                        arg,
+                        ty: c.ty.to_token_stream(),
+                    },
+                    span,
+                ))
             }
             Expr::If(i) => self.lower_if(i, out),
             Expr::Block(b) => {
                 if let Some(l) = &b.label {
-                    return self.error_value(out, l.span(), "labelled blocks are not supported in kernels");
+                    return self.error_value(
+                        out,
+                        l.span(),
+                        "labelled blocks are not supported in kernels",
+                    );
                 }
                 self.env.push(Vec::new());
                 let v = self.lower_block_value(&b.block.stmts, out);
@@ -462,10 +560,12 @@ impl<'a> Lowerer<'a> {
             }
             Expr::While(w) => {
                 if let Some(l) = &w.label {
-                    self.errors.push(l.span(), "loop labels are not supported in kernels");
+                    self.errors
+                        .push(l.span(), "loop labels are not supported in kernels");
                 }
                 if let Expr::Let(l) = &*w.cond {
-                    self.errors.push(l.span(), "`while let` is not supported in kernels");
+                    self.errors
+                        .push(l.span(), "`while let` is not supported in kernels");
                     return None;
                 }
                 self.lower_loop(None, None, &w.body, Some(&w.cond), out);
@@ -473,7 +573,8 @@ impl<'a> Lowerer<'a> {
             }
             Expr::Loop(l) => {
                 if let Some(lb) = &l.label {
-                    self.errors.push(lb.span(), "loop labels are not supported in kernels");
+                    self.errors
+                        .push(lb.span(), "loop labels are not supported in kernels");
                 }
                 if !exits_loop(&l.body) {
                     self.errors.push(
@@ -487,9 +588,11 @@ impl<'a> Lowerer<'a> {
             }
             Expr::Break(b) => {
                 if let Some(l) = &b.label {
-                    self.errors.push(l.span(), "labelled `break` is not supported in kernels");
+                    self.errors
+                        .push(l.span(), "labelled `break` is not supported in kernels");
                 } else if let Some(v) = &b.expr {
-                    self.errors.push(v.span(), "`break` with a value is not supported in kernels");
+                    self.errors
+                        .push(v.span(), "`break` with a value is not supported in kernels");
                 } else if self.loop_depth == 0 {
                     self.errors.push(span, "`break` outside of a loop");
                 } else {
@@ -500,7 +603,8 @@ impl<'a> Lowerer<'a> {
             }
             Expr::Continue(c) => {
                 if let Some(l) = &c.label {
-                    self.errors.push(l.span(), "labelled `continue` is not supported in kernels");
+                    self.errors
+                        .push(l.span(), "labelled `continue` is not supported in kernels");
                 } else if self.loop_depth == 0 {
                     self.errors.push(span, "`continue` outside of a loop");
                 } else {
@@ -511,8 +615,12 @@ impl<'a> Lowerer<'a> {
             }
             Expr::Return(r) => {
                 match (&r.expr, self.is_kernel) {
-                    (Some(v), true) => self.errors.push(v.span(), "a #[diff_kernel] returns no value; use `return;`"),
-                    (None, false) => self.errors.push(span, "a #[diff_func] must return a value: `return x;`"),
+                    (Some(v), true) => self
+                        .errors
+                        .push(v.span(), "a #[diff_kernel] returns no value; use `return;`"),
+                    (None, false) => self
+                        .errors
+                        .push(span, "a #[diff_func] must return a value: `return x;`"),
                     (Some(v), false) => {
                         if let Some(v) = self.lower_value(v, out) {
                             self.assign(RETVAL, v);
@@ -524,24 +632,64 @@ impl<'a> Lowerer<'a> {
                 self.assign(RET, t);
                 None
             }
-            Expr::Closure(c) => self.error_value(out, c.span(), "closures are not supported in kernels; write a #[diff_func] instead"),
-            Expr::Reference(r) => self.error_value(out, r.span(), "references are not supported in kernels; values are passed by copy"),
+            Expr::Closure(c) => self.error_value(
+                out,
+                c.span(),
+                "closures are not supported in kernels; write a #[diff_func] instead",
+            ),
+            Expr::Reference(r) => self.error_value(
+                out,
+                r.span(),
+                "references are not supported in kernels; values are passed by copy",
+            ),
             Expr::Macro(m) => {
                 let msg = macro_message(&m.mac);
                 self.error_value(out, m.span(), msg)
             }
             Expr::Tuple(t) if t.elems.is_empty() => None,
-            Expr::Tuple(t) => self.error_value(out, t.span(), "tuples are not supported in kernels (except as a matrix index `m[(r, c)]`)"),
-            Expr::Array(a) => self.error_value(out, a.span(), "array literals are not supported in kernels; build vectors with vec2/vec3/vec4"),
-            Expr::Repeat(a) => self.error_value(out, a.span(), "array literals are not supported in kernels; build vectors with vec2/vec3/vec4"),
-            Expr::Struct(s) => self.error_value(out, s.span(), "struct literals are not supported in kernels"),
-            Expr::Range(r) => self.error_value(out, r.span(), "ranges are only supported as the bounds of a `for` loop"),
+            Expr::Tuple(t) => self.error_value(
+                out,
+                t.span(),
+                "tuples are not supported in kernels (except as a matrix index `m[(r, c)]`)",
+            ),
+            Expr::Array(a) => self.error_value(
+                out,
+                a.span(),
+                "array literals are not supported in kernels; build vectors with vec2/vec3/vec4",
+            ),
+            Expr::Repeat(a) => self.error_value(
+                out,
+                a.span(),
+                "array literals are not supported in kernels; build vectors with vec2/vec3/vec4",
+            ),
+            Expr::Struct(s) => self.error_value(
+                out,
+                s.span(),
+                "struct literals are not supported in kernels",
+            ),
+            Expr::Range(r) => self.error_value(
+                out,
+                r.span(),
+                "ranges are only supported as the bounds of a `for` loop",
+            ),
             Expr::Let(l) => self.error_value(out, l.span(), "`if let` is not supported in kernels"),
             Expr::Try(t) => self.error_value(out, t.span(), "`?` is not supported in kernels"),
-            Expr::Unsafe(u) => self.error_value(out, u.span(), "`unsafe` blocks are not supported in kernels"),
-            Expr::Async(a) => self.error_value(out, a.span(), "`async` is not supported in kernels"),
-            Expr::Await(a) => self.error_value(out, a.span(), "`.await` is not supported in kernels"),
-            other => self.error_value(out, other.span(), "this expression is not supported in kernels"),
+            Expr::Unsafe(u) => self.error_value(
+                out,
+                u.span(),
+                "`unsafe` blocks are not supported in kernels",
+            ),
+            Expr::Async(a) => {
+                self.error_value(out, a.span(), "`async` is not supported in kernels")
+            }
+            Expr::Await(a) => {
+                self.error_value(out, a.span(), "`.await` is not supported in kernels")
+            }
+            other => self.error_value(
+                out,
+                other.span(),
+                "this expression is not supported in kernels",
+            ),
         }
     }
 
@@ -565,7 +713,13 @@ impl<'a> Lowerer<'a> {
                 None => f.to_token_stream(),
             },
             Lit::Float(_) | Lit::Int(_) | Lit::Bool(_) => lit.to_token_stream(),
-            _ => return self.error_value(out, span, "only numeric and boolean literals are supported in kernels"),
+            _ => {
+                return self.error_value(
+                    out,
+                    span,
+                    "only numeric and boolean literals are supported in kernels",
+                )
+            }
         };
         let v = self.push(out, Op::Const(tokens), span);
         if let Lit::Bool(b) = lit {
@@ -592,7 +746,11 @@ impl<'a> Lowerer<'a> {
             }
             let is_const_like = name.chars().next().is_some_and(|c| c.is_uppercase());
             if !is_const_like {
-                return self.error_value(out, span, format!("cannot find value `{name}` in this kernel"));
+                return self.error_value(
+                    out,
+                    span,
+                    format!("cannot find value `{name}` in this kernel"),
+                );
             }
         }
         // A constant: `PI`, `std::f32::consts::PI`, `MY_CONST`.
@@ -610,9 +768,16 @@ impl<'a> Lowerer<'a> {
             _ => None,
         };
         match b.op {
-            BinOp::AddAssign(_) | BinOp::SubAssign(_) | BinOp::MulAssign(_) | BinOp::DivAssign(_)
-            | BinOp::RemAssign(_) | BinOp::BitAndAssign(_) | BinOp::BitOrAssign(_)
-            | BinOp::BitXorAssign(_) | BinOp::ShlAssign(_) | BinOp::ShrAssign(_) => {
+            BinOp::AddAssign(_)
+            | BinOp::SubAssign(_)
+            | BinOp::MulAssign(_)
+            | BinOp::DivAssign(_)
+            | BinOp::RemAssign(_)
+            | BinOp::BitAndAssign(_)
+            | BinOp::BitOrAssign(_)
+            | BinOp::BitXorAssign(_)
+            | BinOp::ShlAssign(_)
+            | BinOp::ShrAssign(_) => {
                 self.lower_assign(&b.left, Some(&b.op), &b.right, out);
                 None
             }
@@ -621,17 +786,44 @@ impl<'a> Lowerer<'a> {
                 let is_and = matches!(b.op, BinOp::And(_));
                 let right = &*b.right;
                 Some(if is_and {
-                    self.branches(a, out, span, |s, blk| s.lower_value(right, blk), |s, blk| Some(s.const_flag(false, blk)))?
+                    self.branches(
+                        a,
+                        out,
+                        span,
+                        |s, blk| s.lower_value(right, blk),
+                        |s, blk| Some(s.const_flag(false, blk)),
+                    )?
                 } else {
-                    self.branches(a, out, span, |s, blk| Some(s.const_flag(true, blk)), |s, blk| s.lower_value(right, blk))?
+                    self.branches(
+                        a,
+                        out,
+                        span,
+                        |s, blk| Some(s.const_flag(true, blk)),
+                        |s, blk| s.lower_value(right, blk),
+                    )?
                 })
             }
             ref op => {
                 let a = self.lower_value(&b.left, out)?;
                 let c = self.lower_value(&b.right, out)?;
                 match arith(op) {
-                    Some(name) => Some(self.push(out, Op::Builtin { name: name.into(), args: vec![a, c] }, span)),
-                    None => Some(self.push(out, Op::NativeBinary { op: op.to_token_stream(), a, b: c }, span)),
+                    Some(name) => Some(self.push(
+                        out,
+                        Op::Builtin {
+                            name: name.into(),
+                            args: vec![a, c],
+                        },
+                        span,
+                    )),
+                    None => Some(self.push(
+                        out,
+                        Op::NativeBinary {
+                            op: op.to_token_stream(),
+                            a,
+                            b: c,
+                        },
+                        span,
+                    )),
                 }
             }
         }
@@ -640,7 +832,11 @@ impl<'a> Lowerer<'a> {
     fn lower_call(&mut self, c: &syn::ExprCall, out: &mut Block) -> Option<ValueId> {
         let span = c.span();
         let Expr::Path(fp) = &*c.func else {
-            return self.error_value(out, c.func.span(), "only named functions can be called in kernels");
+            return self.error_value(
+                out,
+                c.func.span(),
+                "only named functions can be called in kernels",
+            );
         };
         if fp.qself.is_some() {
             return self.error_value(out, fp.span(), "qualified paths (`<T as Trait>::f`) cannot be called in kernels; wrap the call in no_grad(..) if it needs no derivative");
@@ -658,7 +854,11 @@ impl<'a> Lowerer<'a> {
             }
             Some("no_grad") => {
                 if c.args.len() != 1 {
-                    return self.error_value(out, span, "`no_grad` takes one expression: `no_grad(expr)`");
+                    return self.error_value(
+                        out,
+                        span,
+                        "`no_grad` takes one expression: `no_grad(expr)`",
+                    );
                 }
                 self.no_grad += 1;
                 let v = self.lower_value(&c.args[0], out);
@@ -671,25 +871,49 @@ impl<'a> Lowerer<'a> {
                         return self.error_value(
                             out,
                             span,
-                            format!("builtin `{name}` takes {arity} argument{} but {} {} given", if arity == 1 { "" } else { "s" }, c.args.len(), if c.args.len() == 1 { "was" } else { "were" }),
+                            format!(
+                                "builtin `{name}` takes {arity} argument{} but {} {} given",
+                                if arity == 1 { "" } else { "s" },
+                                c.args.len(),
+                                if c.args.len() == 1 { "was" } else { "were" }
+                            ),
                         );
                     }
                     let args = self.lower_args(&c.args, out)?;
-                    return Some(self.push(out, Op::Builtin { name: name.into(), args }, span));
+                    return Some(self.push(
+                        out,
+                        Op::Builtin {
+                            name: name.into(),
+                            args,
+                        },
+                        span,
+                    ));
                 }
             }
             _ => {}
         }
         if self.no_grad > 0 {
             let args = self.lower_args(&c.args, out)?;
-            return Some(self.push(out, Op::PlainCall { path: fp.to_token_stream(), args }, span));
+            return Some(self.push(
+                out,
+                Op::PlainCall {
+                    path: fp.to_token_stream(),
+                    args,
+                },
+                span,
+            ));
         }
         if single.is_none() {
             if c.args.is_empty() {
                 // `R::zero()`, `Vec3::zeros()`: constants.
                 return Some(self.push(out, Op::Const(c.to_token_stream()), span));
             }
-            let first = fp.path.segments.first().map(|s| s.ident.to_string()).unwrap_or_default();
+            let first = fp
+                .path
+                .segments
+                .first()
+                .map(|s| s.ident.to_string())
+                .unwrap_or_default();
             if first.chars().next().is_some_and(|ch| ch.is_uppercase()) {
                 return self.error_value(
                     out,
@@ -703,10 +927,21 @@ impl<'a> Lowerer<'a> {
             }
         }
         let args = self.lower_args(&c.args, out)?;
-        Some(self.push(out, Op::Func { path: fp.to_token_stream(), args }, span))
+        Some(self.push(
+            out,
+            Op::Func {
+                path: fp.to_token_stream(),
+                args,
+            },
+            span,
+        ))
     }
 
-    fn lower_args(&mut self, args: &syn::punctuated::Punctuated<Expr, syn::Token![,]>, out: &mut Block) -> Option<Vec<ValueId>> {
+    fn lower_args(
+        &mut self,
+        args: &syn::punctuated::Punctuated<Expr, syn::Token![,]>,
+        out: &mut Block,
+    ) -> Option<Vec<ValueId>> {
         let mut vs = Vec::new();
         for a in args {
             vs.push(self.lower_value(a, out)?);
@@ -719,16 +954,34 @@ impl<'a> Lowerer<'a> {
         let method = m.method.to_string();
         if method == "atomic_add" || method == "atomic_sub" {
             let Some(p) = self.array_param(&m.receiver) else {
-                return self.error_value(out, m.receiver.span(), format!("`{method}` accumulates into an `&Array` parameter; this is not one"));
+                return self.error_value(
+                    out,
+                    m.receiver.span(),
+                    format!("`{method}` accumulates into an `&Array` parameter; this is not one"),
+                );
             };
             if m.args.len() != 2 {
-                return self.error_value(out, span, format!("`{method}` takes an index and a value: `a.{method}(i, v)`"));
+                return self.error_value(
+                    out,
+                    span,
+                    format!("`{method}` takes an index and a value: `a.{method}(i, v)`"),
+                );
             }
             let index = self.lower_value(&m.args[0], out)?;
             let value = self.lower_value(&m.args[1], out)?;
             self.uses[p].atomic.get_or_insert(span);
-            let kind = if method == "atomic_add" { StoreKind::AtomicAdd } else { StoreKind::AtomicSub };
-            out.stmts.push(Stmt::Store { param: p, index, value, kind, span });
+            let kind = if method == "atomic_add" {
+                StoreKind::AtomicAdd
+            } else {
+                StoreKind::AtomicSub
+            };
+            out.stmts.push(Stmt::Store {
+                param: p,
+                index,
+                value,
+                kind,
+                span,
+            });
             return None;
         }
         if self.no_grad > 0 {
@@ -736,13 +989,26 @@ impl<'a> Lowerer<'a> {
             let args = self.lower_args(&m.args, out)?;
             let name = &m.method;
             let turbofish = m.turbofish.to_token_stream();
-            return Some(self.push(out, Op::PlainMethod { recv, method: quote!(#name #turbofish), args }, span));
+            return Some(self.push(
+                out,
+                Op::PlainMethod {
+                    recv,
+                    method: quote!(#name #turbofish),
+                    args,
+                },
+                span,
+            ));
         }
         let hint = match builtins::method_hint(&method) {
             Some(h) => format!("call the builtin `{h}` instead"),
-            None => "call a builtin function (see adflex::math) or wrap the call in no_grad(..)".to_string(),
+            None => "call a builtin function (see adflex::math) or wrap the call in no_grad(..)"
+                .to_string(),
         };
-        self.error_value(out, m.method.span(), format!("method calls are not differentiable in kernels: `.{method}(..)`; {hint}"))
+        self.error_value(
+            out,
+            m.method.span(),
+            format!("method calls are not differentiable in kernels: `.{method}(..)`; {hint}"),
+        )
     }
 
     fn lower_if(&mut self, i: &syn::ExprIf, out: &mut Block) -> Option<ValueId> {
@@ -771,7 +1037,11 @@ impl<'a> Lowerer<'a> {
         match m.arms.last() {
             Some(a) if is_catch_all(&a.pat) && a.guard.is_none() => {}
             Some(a) => {
-                return self.error_value(out, a.pat.span(), "a `match` in a kernel must end with a `_ =>` arm");
+                return self.error_value(
+                    out,
+                    a.pat.span(),
+                    "a `match` in a kernel must end with a `_ =>` arm",
+                );
             }
             None => return self.error_value(out, m.span(), "empty `match`"),
         }
@@ -792,10 +1062,22 @@ impl<'a> Lowerer<'a> {
         let mut cond = self.pattern_cond(&arm.pat, s, out)?;
         if let Some((_, g)) = &arm.guard {
             let pc = cond;
-            cond = self.branches(pc, out, g.span(), |st, b| st.lower_value(g, b), |st, b| Some(st.const_flag(false, b)))?;
+            cond = self.branches(
+                pc,
+                out,
+                g.span(),
+                |st, b| st.lower_value(g, b),
+                |st, b| Some(st.const_flag(false, b)),
+            )?;
         }
         let rest = &arms[1..];
-        self.branches(cond, out, arm.span(), |st, b| st.lower_expr(&arm.body, b), |st, b| st.lower_arms(s, rest, b))
+        self.branches(
+            cond,
+            out,
+            arm.span(),
+            |st, b| st.lower_expr(&arm.body, b),
+            |st, b| st.lower_arms(s, rest, b),
+        )
     }
 
     fn pattern_cond(&mut self, p: &Pat, s: ValueId, out: &mut Block) -> Option<ValueId> {
@@ -803,7 +1085,15 @@ impl<'a> Lowerer<'a> {
         match p {
             Pat::Lit(l) => {
                 let c = self.push(out, Op::Const(l.to_token_stream()), span);
-                Some(self.push(out, Op::NativeBinary { op: quote!(==), a: s, b: c }, span))
+                Some(self.push(
+                    out,
+                    Op::NativeBinary {
+                        op: quote!(==),
+                        a: s,
+                        b: c,
+                    },
+                    span,
+                ))
             }
             Pat::Range(r) => {
                 let (Some(lo), Some(hi)) = (&r.start, &r.end) else {
@@ -815,9 +1105,33 @@ impl<'a> Lowerer<'a> {
                     syn::RangeLimits::Closed(_) => quote!(<=),
                     syn::RangeLimits::HalfOpen(_) => quote!(<),
                 };
-                let a = self.push(out, Op::NativeBinary { op: quote!(>=), a: s, b: lo }, span);
-                let b = self.push(out, Op::NativeBinary { op: upper, a: s, b: hi }, span);
-                Some(self.push(out, Op::NativeBinary { op: quote!(&), a, b }, span))
+                let a = self.push(
+                    out,
+                    Op::NativeBinary {
+                        op: quote!(>=),
+                        a: s,
+                        b: lo,
+                    },
+                    span,
+                );
+                let b = self.push(
+                    out,
+                    Op::NativeBinary {
+                        op: upper,
+                        a: s,
+                        b: hi,
+                    },
+                    span,
+                );
+                Some(self.push(
+                    out,
+                    Op::NativeBinary {
+                        op: quote!(&),
+                        a,
+                        b,
+                    },
+                    span,
+                ))
             }
             Pat::Or(o) => {
                 let mut acc = None;
@@ -825,13 +1139,25 @@ impl<'a> Lowerer<'a> {
                     let v = self.pattern_cond(c, s, out)?;
                     acc = Some(match acc {
                         None => v,
-                        Some(a) => self.push(out, Op::NativeBinary { op: quote!(|), a, b: v }, span),
+                        Some(a) => self.push(
+                            out,
+                            Op::NativeBinary {
+                                op: quote!(|),
+                                a,
+                                b: v,
+                            },
+                            span,
+                        ),
                     });
                 }
                 acc
             }
             Pat::Paren(pp) => self.pattern_cond(&pp.pat, s, out),
-            _ => self.error_value(out, span, "`match` in kernels takes integer literals, ranges (`a..=b`), `|` and a final `_`"),
+            _ => self.error_value(
+                out,
+                span,
+                "`match` in kernels takes integer literals, ranges (`a..=b`), `|` and a final `_`",
+            ),
         }
     }
 
@@ -867,14 +1193,24 @@ impl<'a> Lowerer<'a> {
                         return;
                     }
                 };
-                let Some(index) = self.lower_value(&ix.index, out) else { return };
-                let Some(value) = self.lower_value(rhs, out) else { return };
+                let Some(index) = self.lower_value(&ix.index, out) else {
+                    return;
+                };
+                let Some(value) = self.lower_value(rhs, out) else {
+                    return;
+                };
                 if kind == StoreKind::Store {
                     self.uses[p].store.get_or_insert(span);
                 } else {
                     self.uses[p].atomic.get_or_insert(span);
                 }
-                out.stmts.push(Stmt::Store { param: p, index, value, kind, span });
+                out.stmts.push(Stmt::Store {
+                    param: p,
+                    index,
+                    value,
+                    kind,
+                    span,
+                });
                 return;
             }
         }
@@ -888,27 +1224,36 @@ impl<'a> Lowerer<'a> {
         }
         // Local (or component of a local) assignments.
         let (root, component) = match lhs {
-            Expr::Path(p) if p.path.get_ident().is_some() => (p.path.get_ident().unwrap().clone(), None),
+            Expr::Path(p) if p.path.get_ident().is_some() => {
+                (p.path.get_ident().unwrap().clone(), None)
+            }
             Expr::Field(f) => match (&*f.base, component_index(&f.member)) {
-                (Expr::Path(p), Some(k)) if p.path.get_ident().is_some() => {
-                    (p.path.get_ident().unwrap().clone(), Some(Component::Const(k, f.member.span())))
-                }
+                (Expr::Path(p), Some(k)) if p.path.get_ident().is_some() => (
+                    p.path.get_ident().unwrap().clone(),
+                    Some(Component::Const(k, f.member.span())),
+                ),
                 _ => {
-                    self.errors.push(span, "only `.x`, `.y`, `.z`, `.w` of a local vector can be assigned");
+                    self.errors.push(
+                        span,
+                        "only `.x`, `.y`, `.z`, `.w` of a local vector can be assigned",
+                    );
                     return;
                 }
             },
             Expr::Index(ix) => match &*ix.expr {
-                Expr::Path(p) if p.path.get_ident().is_some() => {
-                    (p.path.get_ident().unwrap().clone(), Some(Component::Expr(&ix.index)))
-                }
+                Expr::Path(p) if p.path.get_ident().is_some() => (
+                    p.path.get_ident().unwrap().clone(),
+                    Some(Component::Expr(&ix.index)),
+                ),
                 _ => {
-                    self.errors.push(span, "only components of a local vector can be assigned");
+                    self.errors
+                        .push(span, "only components of a local vector can be assigned");
                     return;
                 }
             },
             _ => {
-                self.errors.push(span, "cannot assign to this expression in a kernel");
+                self.errors
+                    .push(span, "cannot assign to this expression in a kernel");
                 return;
             }
         };
@@ -922,16 +1267,22 @@ impl<'a> Lowerer<'a> {
                 };
                 self.errors.push(span, msg);
             } else {
-                self.errors.push(span, format!("cannot find value `{name}` in this kernel"));
+                self.errors
+                    .push(span, format!("cannot find value `{name}` in this kernel"));
             }
             return;
         };
         if !b.mutable {
-            let is_param = self.sig.param_index(&name).is_some() && self.env[0].iter().any(|x| x.name == name && x.value == b.value);
+            let is_param = self.sig.param_index(&name).is_some()
+                && self.env[0]
+                    .iter()
+                    .any(|x| x.name == name && x.value == b.value);
             let msg = if is_param && component.is_some() {
                 format!("cannot store to `{name}`: it is a value parameter, not an `&Array`")
             } else if is_param {
-                format!("cannot assign to parameter `{name}`; declare it `mut {name}` or use a local")
+                format!(
+                    "cannot assign to parameter `{name}`; declare it `mut {name}` or use a local"
+                )
             } else {
                 format!("cannot assign twice to immutable variable `{name}`; declare it with `let mut {name}`")
             };
@@ -946,25 +1297,56 @@ impl<'a> Lowerer<'a> {
                 None => return,
             },
         };
-        let Some(r) = self.lower_value(rhs, out) else { return };
+        let Some(r) = self.lower_value(rhs, out) else {
+            return;
+        };
         let current = match k {
             None => b.value,
-            Some(k) => self.push(out, Op::Builtin { name: "extract".into(), args: vec![b.value, k] }, span),
+            Some(k) => self.push(
+                out,
+                Op::Builtin {
+                    name: "extract".into(),
+                    args: vec![b.value, k],
+                },
+                span,
+            ),
         };
         let new = match op_name {
             None => r,
-            Some(Ok(name)) => self.push(out, Op::Builtin { name: name.into(), args: vec![current, r] }, span),
+            Some(Ok(name)) => self.push(
+                out,
+                Op::Builtin {
+                    name: name.into(),
+                    args: vec![current, r],
+                },
+                span,
+            ),
             Some(Err(native)) => {
                 let native: TokenStream = {
                     let s = native.to_string();
                     s.trim_end_matches('=').parse().unwrap()
                 };
-                self.push(out, Op::NativeBinary { op: native, a: current, b: r }, span)
+                self.push(
+                    out,
+                    Op::NativeBinary {
+                        op: native,
+                        a: current,
+                        b: r,
+                    },
+                    span,
+                )
             }
         };
         let new = match k {
             None => new,
-            Some(k) => self.push(out, Op::Builtin { name: "replace".into(), args: vec![b.value, k, new] }, span),
+            Some(k) => self.push(
+                out,
+                Op::Builtin {
+                    name: "replace".into(),
+                    args: vec![b.value, k, new],
+                },
+                span,
+            ),
         };
         self.assign(&name, new);
     }
@@ -973,13 +1355,21 @@ impl<'a> Lowerer<'a> {
 
     fn lower_for(&mut self, f: &syn::ExprForLoop, out: &mut Block) {
         if let Some(l) = &f.label {
-            self.errors.push(l.span(), "loop labels are not supported in kernels");
+            self.errors
+                .push(l.span(), "loop labels are not supported in kernels");
         }
         let index_name = match &*f.pat {
-            Pat::Ident(pi) if pi.by_ref.is_none() && pi.subpat.is_none() && pi.mutability.is_none() => Some(pi.ident.to_string()),
+            Pat::Ident(pi)
+                if pi.by_ref.is_none() && pi.subpat.is_none() && pi.mutability.is_none() =>
+            {
+                Some(pi.ident.to_string())
+            }
             Pat::Wild(_) => None,
             other => {
-                self.errors.push(other.span(), "a `for` loop in a kernel binds a plain name: `for i in a..b`");
+                self.errors.push(
+                    other.span(),
+                    "a `for` loop in a kernel binds a plain name: `for i in a..b`",
+                );
                 return;
             }
         };
@@ -991,7 +1381,10 @@ impl<'a> Lowerer<'a> {
             return;
         };
         let (Some(start), Some(end)) = (&r.start, &r.end) else {
-            self.errors.push(r.span(), "a `for` range in a kernel needs both bounds: `a..b`");
+            self.errors.push(
+                r.span(),
+                "a `for` range in a kernel needs both bounds: `a..b`",
+            );
             return;
         };
         let inclusive = matches!(r.limits, syn::RangeLimits::Closed(_));
@@ -1002,12 +1395,29 @@ impl<'a> Lowerer<'a> {
                 return;
             }
         }
-        let Some(s) = self.lower_value(start, out) else { return };
-        let Some(e) = self.lower_value(end, out) else { return };
-        self.lower_loop(Some((s, e, inclusive)), index_name.as_deref(), &f.body, None, out);
+        let Some(s) = self.lower_value(start, out) else {
+            return;
+        };
+        let Some(e) = self.lower_value(end, out) else {
+            return;
+        };
+        self.lower_loop(
+            Some((s, e, inclusive)),
+            index_name.as_deref(),
+            &f.body,
+            None,
+            out,
+        );
     }
 
-    fn lower_unrolled(&mut self, lo: u64, hi: u64, index: Option<&str>, body: &syn::Block, out: &mut Block) {
+    fn lower_unrolled(
+        &mut self,
+        lo: u64,
+        hi: u64,
+        index: Option<&str>,
+        body: &syn::Block,
+        out: &mut Block,
+    ) {
         let may_leave = exits_loop(body) || contains_return(body);
         self.env.push(Vec::new());
         let f = self.const_flag(false, out);
@@ -1077,7 +1487,12 @@ impl<'a> Lowerer<'a> {
             let init = self.env[si][bi].value;
             let inner = self.fresh();
             self.env[si][bi].value = inner;
-            carried.push(Carry { init, inner, next: inner, out: inner });
+            carried.push(Carry {
+                init,
+                inner,
+                next: inner,
+                out: inner,
+            });
         }
         let mut body_b = Block::default();
         self.env.push(Vec::new());
@@ -1095,7 +1510,14 @@ impl<'a> Lowerer<'a> {
         self.loop_depth += 1;
         if let Some(c) = cond {
             if let Some(cv) = self.lower_value(c, &mut body_b) {
-                let nb = self.push(&mut body_b, Op::NativeUnary { op: quote!(!), a: cv }, c.span());
+                let nb = self.push(
+                    &mut body_b,
+                    Op::NativeUnary {
+                        op: quote!(!),
+                        a: cv,
+                    },
+                    c.span(),
+                );
                 self.assign(BRK, nb);
             }
             self.lower_guarded(&body.stmts, &mut body_b);
@@ -1113,7 +1535,15 @@ impl<'a> Lowerer<'a> {
         }
         let exit = exit_terms.first().copied().map(|first| {
             exit_terms[1..].iter().fold(first, |acc, &t| {
-                self.push(&mut body_b, Op::NativeBinary { op: quote!(||), a: acc, b: t }, Span::call_site())
+                self.push(
+                    &mut body_b,
+                    Op::NativeBinary {
+                        op: quote!(||),
+                        a: acc,
+                        b: t,
+                    },
+                    Span::call_site(),
+                )
             })
         });
         self.env.pop();
@@ -1122,7 +1552,14 @@ impl<'a> Lowerer<'a> {
             c.out = self.fresh();
             self.env[si][bi].value = c.out;
         }
-        out.stmts.push(Stmt::Loop(Loop { id, range, index, carried, body: body_b, exit }));
+        out.stmts.push(Stmt::Loop(Loop {
+            id,
+            range,
+            index,
+            carried,
+            body: body_b,
+            exit,
+        }));
     }
 }
 
@@ -1156,7 +1593,9 @@ fn is_catch_all(p: &Pat) -> bool {
 
 fn int_literal(e: &Expr) -> Option<u64> {
     match e {
-        Expr::Lit(syn::ExprLit { lit: Lit::Int(i), .. }) => i.base10_parse().ok(),
+        Expr::Lit(syn::ExprLit {
+            lit: Lit::Int(i), ..
+        }) => i.base10_parse().ok(),
         Expr::Paren(p) => int_literal(&p.expr),
         Expr::Group(g) => int_literal(&g.expr),
         _ => None,
@@ -1174,14 +1613,22 @@ fn macro_message(m: &syn::Macro) -> String {
 /// Whether `stmt` may leave its block early: a `return` anywhere, or a `break`/`continue`
 /// that is not inside a loop of its own.
 fn may_exit(stmt: &syn::Stmt) -> bool {
-    let mut v = Exits { depth: 0, found: false, returns: true };
+    let mut v = Exits {
+        depth: 0,
+        found: false,
+        returns: true,
+    };
     v.visit_stmt(stmt);
     v.found
 }
 
 /// Whether a loop body can end its loop: a `break` for this loop or a `return`.
 fn exits_loop(body: &syn::Block) -> bool {
-    let mut v = Exits { depth: 0, found: false, returns: true };
+    let mut v = Exits {
+        depth: 0,
+        found: false,
+        returns: true,
+    };
     v.visit_block(body);
     v.found
 }
@@ -1276,9 +1723,16 @@ impl<'ast> Visit<'ast> for Assigned {
     fn visit_expr_binary(&mut self, b: &'ast syn::ExprBinary) {
         if matches!(
             b.op,
-            BinOp::AddAssign(_) | BinOp::SubAssign(_) | BinOp::MulAssign(_) | BinOp::DivAssign(_)
-                | BinOp::RemAssign(_) | BinOp::BitAndAssign(_) | BinOp::BitOrAssign(_)
-                | BinOp::BitXorAssign(_) | BinOp::ShlAssign(_) | BinOp::ShrAssign(_)
+            BinOp::AddAssign(_)
+                | BinOp::SubAssign(_)
+                | BinOp::MulAssign(_)
+                | BinOp::DivAssign(_)
+                | BinOp::RemAssign(_)
+                | BinOp::BitAndAssign(_)
+                | BinOp::BitOrAssign(_)
+                | BinOp::BitXorAssign(_)
+                | BinOp::ShlAssign(_)
+                | BinOp::ShrAssign(_)
         ) {
             self.root(&b.left);
         }

@@ -46,7 +46,11 @@ pub struct Signature {
 impl Signature {
     pub fn parse(f: &syn::ItemFn, is_kernel: bool, errors: &mut Errors) -> Signature {
         let sig = &f.sig;
-        let what = if is_kernel { "#[diff_kernel]" } else { "#[diff_func]" };
+        let what = if is_kernel {
+            "#[diff_kernel]"
+        } else {
+            "#[diff_func]"
+        };
         if let Some(c) = &sig.constness {
             errors.push(c.span(), format!("a {what} cannot be `const`"));
         }
@@ -98,7 +102,9 @@ impl Signature {
                             if mutable {
                                 errors.push(pt.pat.span(), "an `&Array` parameter cannot be `mut`");
                             }
-                            ParamKind::Array { ty: (*r.elem).clone() }
+                            ParamKind::Array {
+                                ty: (*r.elem).clone(),
+                            }
                         }
                         Type::Reference(r) => {
                             errors.push(
@@ -106,21 +112,33 @@ impl Signature {
                                 "the only reference a kernel takes is `&Array<T>`; pass values \
                                  (scalars, vectors, indices) by value",
                             );
-                            ParamKind::Value { ty: (*r.elem).clone(), mutable }
+                            ParamKind::Value {
+                                ty: (*r.elem).clone(),
+                                mutable,
+                            }
                         }
                         Type::Ptr(p) => {
                             errors.push(p.span(), "pointers are not supported in kernels");
-                            ParamKind::Value { ty: (*p.elem).clone(), mutable }
+                            ParamKind::Value {
+                                ty: (*p.elem).clone(),
+                                mutable,
+                            }
                         }
                         Type::ImplTrait(t) => {
                             errors.push(t.span(), "`impl Trait` parameters are not supported; use a generic `R: Real`");
-                            ParamKind::Value { ty: pt.ty.as_ref().clone(), mutable }
+                            ParamKind::Value {
+                                ty: pt.ty.as_ref().clone(),
+                                mutable,
+                            }
                         }
                         ty if is_array_type(ty) => {
                             errors.push(ty.span(), "take arrays by reference: `&Array<T>`");
                             ParamKind::Array { ty: ty.clone() }
                         }
-                        ty => ParamKind::Value { ty: ty.clone(), mutable },
+                        ty => ParamKind::Value {
+                            ty: ty.clone(),
+                            mutable,
+                        },
                     };
                     params.push(Param { name, kind });
                 }
@@ -152,13 +170,19 @@ impl Signature {
             match gp {
                 GenericParam::Type(tp) => {
                     let bounded = tp.bounds.iter().any(is_real_bound)
-                        || sig.generics.where_clause.iter().flat_map(|w| &w.predicates).any(|p| match p {
-                            syn::WherePredicate::Type(pt) => {
-                                pt.bounded_ty.to_token_stream().to_string() == tp.ident.to_string()
-                                    && pt.bounds.iter().any(is_real_bound)
-                            }
-                            _ => false,
-                        });
+                        || sig
+                            .generics
+                            .where_clause
+                            .iter()
+                            .flat_map(|w| &w.predicates)
+                            .any(|p| match p {
+                                syn::WherePredicate::Type(pt) => {
+                                    pt.bounded_ty.to_token_stream().to_string()
+                                        == tp.ident.to_string()
+                                        && pt.bounds.iter().any(is_real_bound)
+                                }
+                                _ => false,
+                            });
                     if bounded {
                         if real.is_some() {
                             errors.push(
@@ -198,7 +222,11 @@ impl Signature {
 
     /// The generic parameters as a list for an impl header that adds a lifetime first.
     pub fn generic_params(&self) -> Vec<TokenStream> {
-        self.generics.params.iter().map(|p| p.to_token_stream()).collect()
+        self.generics
+            .params
+            .iter()
+            .map(|p| p.to_token_stream())
+            .collect()
     }
 }
 
@@ -211,7 +239,9 @@ fn is_real_bound(b: &TypeParamBound) -> bool {
 
 fn is_array_type(ty: &Type) -> bool {
     match ty {
-        Type::Path(tp) => tp.qself.is_none() && tp.path.segments.last().is_some_and(|s| s.ident == "Array"),
+        Type::Path(tp) => {
+            tp.qself.is_none() && tp.path.segments.last().is_some_and(|s| s.ident == "Array")
+        }
         Type::Paren(p) => is_array_type(&p.elem),
         Type::Group(g) => is_array_type(&g.elem),
         _ => false,

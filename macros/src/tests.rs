@@ -21,8 +21,14 @@ fn expand_dir_writes_the_generated_code() {
     std::env::remove_var("ADFLEX_EXPAND_DIR");
     let text = std::fs::read_to_string(dir.join("scale.rs")).expect("the dump file exists");
     assert!(text.contains("fn run("), "{text}");
-    assert!(text.contains("adj_mul"), "the adjoint rule of `*` is called: {text}");
-    assert!(text.contains("tan_mul"), "the tangent rule of `*` is called: {text}");
+    assert!(
+        text.contains("adj_mul"),
+        "the adjoint rule of `*` is called: {text}"
+    );
+    assert!(
+        text.contains("tan_mul"),
+        "the tangent rule of `*` is called: {text}"
+    );
     assert!(!out.to_string().contains("compile_error"));
     let _ = std::fs::remove_dir_all(dir);
 }
@@ -43,7 +49,10 @@ fn errors_become_compile_errors_with_a_stub() {
     assert_eq!(out.matches("compile_error").count(), 2, "{out}");
     assert!(out.contains("closures are not supported"), "{out}");
     assert!(out.contains("call the builtin `length(v)`"), "{out}");
-    assert!(out.contains("struct bad"), "the stub keeps the name defined: {out}");
+    assert!(
+        out.contains("struct bad"),
+        "the stub keeps the name defined: {out}"
+    );
 }
 
 #[test]

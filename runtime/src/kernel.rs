@@ -4,8 +4,9 @@
 //!
 //! Users do not implement these traits by hand; the macro does.
 
+use std::any::Any;
 use std::ops::Range;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use crate::array::{AnyArray, Array, Element};
 
@@ -148,7 +149,10 @@ struct Place {
 
 impl Place {
     fn of<T: Element>(a: &Array<T>, site: &'static Site) -> Self {
-        Place { site, name: a.name() }
+        Place {
+            site,
+            name: a.name(),
+        }
     }
 }
 
@@ -256,7 +260,7 @@ impl<T: Element> Scatter<T> {
             ptr,
             len,
             direct: exec.direct,
-            log: Vec::new(),
+            log: if exec.direct { Vec::new() } else { take_log() },
             place,
         }
     }
@@ -291,7 +295,10 @@ impl<T: Element> Scatter<T> {
                 target: t,
                 entries: self.log,
             }))),
-            _ => ScatterLog(None),
+            _ => {
+                give_log(self.log);
+                ScatterLog(None)
+            }
         }
     }
 }
@@ -313,6 +320,38 @@ pub(crate) trait ApplyLog: Send + Sync {
 struct TypedLog<T: Element> {
     target: Array<T>,
     entries: Vec<(u32, T)>,
+}
+
+impl<T: Element> Drop for TypedLog<T> {
+    fn drop(&mut self) {
+        give_log(std::mem::take(&mut self.entries));
+    }
+}
+
+/// Log buffers kept from one launch to the next. Fresh buffers would be faulted in from the
+/// kernel at every launch, which made parallel launches about 3x slower
+/// (docs/performance.md, "Deterministic scatter").
+static LOG_POOL: Mutex<Vec<Box<dyn Any + Send>>> = Mutex::new(Vec::new());
+/// At most this many buffers are kept (each at most a chunk's worth of entries).
+const LOG_POOL_MAX: usize = 128;
+
+fn take_log<T: Element>() -> Vec<(u32, T)> {
+    let mut pool = LOG_POOL.lock().unwrap_or_else(|e| e.into_inner());
+    match pool.iter().rposition(|b| b.is::<Vec<(u32, T)>>()) {
+        Some(k) => *pool.swap_remove(k).downcast().expect("checked by `is`"),
+        None => Vec::new(),
+    }
+}
+
+fn give_log<T: Element>(mut log: Vec<(u32, T)>) {
+    if log.capacity() == 0 {
+        return;
+    }
+    log.clear();
+    let mut pool = LOG_POOL.lock().unwrap_or_else(|e| e.into_inner());
+    if pool.len() < LOG_POOL_MAX {
+        pool.push(Box::new(log));
+    }
 }
 
 impl<T: Element> ApplyLog for TypedLog<T> {
@@ -344,7 +383,11 @@ unsafe impl<T: Send> Send for OptReader<T> {}
 unsafe impl<T: Send> Send for Writer<T> {}
 unsafe impl<T: Element> Send for Scatter<T> {}
 
-fn opt_reader<T: Element>(of: &Array<T>, buf: Option<Array<T>>, site: &'static Site) -> OptReader<T> {
+fn opt_reader<T: Element>(
+    of: &Array<T>,
+    buf: Option<Array<T>>,
+    site: &'static Site,
+) -> OptReader<T> {
     OptReader {
         ptr: buf.map(|b| b.data_ptr() as *const T),
         len: of.len(),

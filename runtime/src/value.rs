@@ -55,7 +55,21 @@ macro_rules! index_value {
     )*};
 }
 // `(usize, usize)` is the index of a matrix entry `m[(r, c)]`.
-index_value!(u8, u16, u32, u64, usize, i8, i16, i32, i64, isize, bool, (), (usize, usize));
+index_value!(
+    u8,
+    u16,
+    u32,
+    u64,
+    usize,
+    i8,
+    i16,
+    i32,
+    i64,
+    isize,
+    bool,
+    (),
+    (usize, usize)
+);
 
 impl<T: Value + Default, const N: usize> Value for [T; N] {
     const DIM: usize = T::DIM * N;

@@ -43,7 +43,12 @@ fn rel(a: f64, b: f64) -> f64 {
 /// The loss is `<w, outputs>` for a random `w`. The adjoint gradient is compared with central
 /// differences (h = 1e-6) of the loss for every input entry, and the tangent `J v` for a random
 /// `v` with the adjoint by the dot-product test.
-pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: impl Fn(Mode)) -> Checked {
+pub fn check(
+    inputs: &[&Array<f64>],
+    outputs: &[&Array<f64>],
+    seed: u64,
+    run: impl Fn(Mode),
+) -> Checked {
     let mut rng = Rng(seed | 1);
     let forward = || -> Vec<Vec<f64>> {
         for o in outputs {
@@ -52,8 +57,16 @@ pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: im
         run(Mode::Forward);
         outputs.iter().map(|o| o.to_vec()).collect()
     };
-    let w: Vec<Vec<f64>> = outputs.iter().map(|o| rng.vec(o.len(), -1.0, 1.0)).collect();
-    let loss = |ys: &[Vec<f64>]| -> f64 { ys.iter().zip(&w).map(|(y, w)| y.iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).sum() };
+    let w: Vec<Vec<f64>> = outputs
+        .iter()
+        .map(|o| rng.vec(o.len(), -1.0, 1.0))
+        .collect();
+    let loss = |ys: &[Vec<f64>]| -> f64 {
+        ys.iter()
+            .zip(&w)
+            .map(|(y, w)| y.iter().zip(w).map(|(a, b)| a * b).sum::<f64>())
+            .sum()
+    };
     forward();
     // Adjoint.
     for (o, w) in outputs.iter().zip(&w) {
@@ -92,18 +105,49 @@ pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: im
     }
     forward();
     run(Mode::Tangent);
-    let jv: f64 = outputs.iter().zip(&w).map(|(o, w)| o.tangent_buffer().unwrap().to_vec().iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).sum();
-    let vjtw: f64 = v.iter().zip(&grad).map(|(v, g)| v.iter().zip(g).map(|(a, b)| a * b).sum::<f64>()).sum();
+    let jv: f64 = outputs
+        .iter()
+        .zip(&w)
+        .map(|(o, w)| {
+            o.tangent_buffer()
+                .unwrap()
+                .to_vec()
+                .iter()
+                .zip(w)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+        })
+        .sum();
+    let vjtw: f64 = v
+        .iter()
+        .zip(&grad)
+        .map(|(v, g)| v.iter().zip(g).map(|(a, b)| a * b).sum::<f64>())
+        .sum();
     for i in inputs {
         i.set_tangent(None);
     }
-    Checked { adjoint_err, dot_err: rel(jv, vjtw), grad }
+    Checked {
+        adjoint_err,
+        dot_err: rel(jv, vjtw),
+        grad,
+    }
 }
 
 /// Asserts the check passed: adjoint within `tol` of central differences, dot test to 1e-10.
 #[track_caller]
 pub fn assert_checked(c: &Checked, tol: f64) {
-    assert!(c.adjoint_err <= tol, "adjoint vs central differences: relative error {:e} > {tol:e}", c.adjoint_err);
-    assert!(c.dot_err <= 1e-10, "tangent vs adjoint (dot-product test): relative error {:e}", c.dot_err);
-    assert!(c.grad.iter().flatten().any(|g| *g != 0.0), "the gradient is identically zero: the check cannot fail");
+    assert!(
+        c.adjoint_err <= tol,
+        "adjoint vs central differences: relative error {:e} > {tol:e}",
+        c.adjoint_err
+    );
+    assert!(
+        c.dot_err <= 1e-10,
+        "tangent vs adjoint (dot-product test): relative error {:e}",
+        c.dot_err
+    );
+    assert!(
+        c.grad.iter().flatten().any(|g| *g != 0.0),
+        "the gradient is identically zero: the check cannot fail"
+    );
 }

@@ -110,11 +110,29 @@ impl<R: Real> Default for Ground<R> {
 
 impl<R: Real> Ground<R> {
     /// Records [`eval_ground`] for particles of radius `radius` (m), accumulating into `f`.
-    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, radius: R, f: &Array<Vec3<R>>) {
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radius: R,
+        f: &Array<Vec3<R>>,
+    ) {
         tape.launch(
             eval_ground,
             x.len(),
-            (x, v, self.normal, self.offset, radius, self.ke, self.kd, self.mu, self.leak, f),
+            (
+                x,
+                v,
+                self.normal,
+                self.offset,
+                radius,
+                self.ke,
+                self.kd,
+                self.mu,
+                self.leak,
+                f,
+            ),
         );
     }
 }

@@ -55,21 +55,40 @@ pub struct ParticleContact<R: Real> {
 
 impl<R: Real> Default for ParticleContact<R> {
     fn default() -> Self {
-        ParticleContact { ke: R::lit(1000.0), kd: R::lit(1.0), mu: R::lit(0.5), leak: R::lit(0.0), margin: R::lit(0.0) }
+        ParticleContact {
+            ke: R::lit(1000.0),
+            kd: R::lit(1.0),
+            mu: R::lit(0.5),
+            leak: R::lit(0.0),
+            margin: R::lit(0.0),
+        }
     }
 }
 
 impl<R: Real> ParticleContact<R> {
     /// Finds the pairs and records [`eval_particle_contact`] on them, accumulating into `f`.
     /// Returns the number of pairs.
-    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, radius: R, f: &Array<Vec3<R>>) -> usize {
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radius: R,
+        f: &Array<Vec3<R>>,
+    ) -> usize {
         let pairs = find_pairs(&x.to_vec(), radius + radius + self.margin);
         if pairs.is_empty() {
             return 0;
         }
         let n = pairs.len();
         let pairs = Array::from_vec(pairs).named("contact_pairs");
-        tape.launch(eval_particle_contact, n, (x, v, &pairs, radius, self.ke, self.kd, self.mu, self.leak, f));
+        tape.launch(
+            eval_particle_contact,
+            n,
+            (
+                x, v, &pairs, radius, self.ke, self.kd, self.mu, self.leak, f,
+            ),
+        );
         n
     }
 }
@@ -84,10 +103,16 @@ pub fn find_pairs<R: Real>(x: &[Vec3<R>], cutoff: R) -> Vec<[u32; 2]> {
     }
     let cell = |p: &Vec3<R>| -> Option<[i64; 3]> {
         let c = [p.x, p.y, p.z].map(|v| (v.to_f64() / h).floor());
-        c.iter().all(|v| v.is_finite() && v.abs() < 1e15).then(|| c.map(|v| v as i64))
+        c.iter()
+            .all(|v| v.is_finite() && v.abs() < 1e15)
+            .then(|| c.map(|v| v as i64))
     };
     // Points sorted by cell (then index): each cell is a contiguous run.
-    let mut sorted: Vec<([i64; 3], u32)> = x.iter().enumerate().filter_map(|(i, p)| Some((cell(p)?, i as u32))).collect();
+    let mut sorted: Vec<([i64; 3], u32)> = x
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| Some((cell(p)?, i as u32)))
+        .collect();
     sorted.sort_unstable();
     let h2 = h * h;
     let mut pairs = Vec::new();

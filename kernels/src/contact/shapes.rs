@@ -118,7 +118,10 @@ impl<R: Real> ShapeKind<R> {
         match *self {
             ShapeKind::Sphere { radius } => (0, Vec3::new(radius, z, z)),
             ShapeKind::Box { half_extents } => (1, half_extents),
-            ShapeKind::Capsule { radius, half_length } => (2, Vec3::new(radius, half_length, z)),
+            ShapeKind::Capsule {
+                radius,
+                half_length,
+            } => (2, Vec3::new(radius, half_length, z)),
         }
     }
 }
@@ -137,7 +140,11 @@ pub struct Shape<R: Real> {
 impl<R: Real> Shape<R> {
     /// A shape at `pos` with the identity orientation.
     pub fn new(kind: ShapeKind<R>, pos: Vec3<R>) -> Self {
-        Shape { kind, pos, rot: Quat::identity() }
+        Shape {
+            kind,
+            pos,
+            rot: Quat::identity(),
+        }
     }
 }
 
@@ -164,12 +171,22 @@ pub struct Shapes<R: Real> {
 
 impl<R: Real> Shapes<R> {
     /// Records [`eval_shape_contact`] for every (particle, shape) pair, accumulating into `f`.
-    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, radius: R, f: &Array<Vec3<R>>) {
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radius: R,
+        f: &Array<Vec3<R>>,
+    ) {
         let ns = self.kind.len();
         tape.launch(
             eval_shape_contact,
             x.len() * ns,
-            (x, v, &self.kind, &self.pos, &self.rot, &self.size, ns, radius, self.ke, self.kd, self.mu, self.leak, f),
+            (
+                x, v, &self.kind, &self.pos, &self.rot, &self.size, ns, radius, self.ke, self.kd,
+                self.mu, self.leak, f,
+            ),
         );
     }
 }

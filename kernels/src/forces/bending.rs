@@ -92,8 +92,18 @@ impl<R: Real> Bending<R> {
     }
 
     /// Records [`eval_bending`] on `tape`, accumulating into `f`.
-    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
-        tape.launch(eval_bending, self.len(), (x, v, &self.quads, &self.rest, &self.ke, &self.kd, f));
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        f: &Array<Vec3<R>>,
+    ) {
+        tape.launch(
+            eval_bending,
+            self.len(),
+            (x, v, &self.quads, &self.rest, &self.ke, &self.kd, f),
+        );
     }
 }
 
@@ -148,6 +158,10 @@ pub fn dihedral_angle(x: &[Vec3<f64>], q: [u32; 4]) -> f64 {
     }
     let c = (n1.dot(&n2) / (l1 * l2)).clamp(-1.0, 1.0);
     let e = (x4 - x3).normalize();
-    let s = if n2.cross(&n1).dot(&e) < 0.0 { -1.0 } else { 1.0 };
+    let s = if n2.cross(&n1).dot(&e) < 0.0 {
+        -1.0
+    } else {
+        1.0
+    };
     c.acos() * s
 }

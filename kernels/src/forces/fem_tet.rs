@@ -135,17 +135,43 @@ impl<R: Real> TetFem<R> {
         tape.launch(
             eval_tetrahedra,
             self.len(),
-            (x, v, &self.tets, &self.dm_inv, &self.rest_volume, &self.mu, &self.lambda, &self.kd, act, f),
+            (
+                x,
+                v,
+                &self.tets,
+                &self.dm_inv,
+                &self.rest_volume,
+                &self.mu,
+                &self.lambda,
+                &self.kd,
+                act,
+                f,
+            ),
         );
     }
 
     /// Records [`tetrahedron_energy`], adding into `energy[0]`.
-    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, activation: Option<&Array<R>>, energy: &Array<R>) {
+    pub fn energy(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        activation: Option<&Array<R>>,
+        energy: &Array<R>,
+    ) {
         let act = activation.unwrap_or(&self.activation);
         tape.launch(
             tetrahedron_energy,
             self.len(),
-            (x, &self.tets, &self.dm_inv, &self.rest_volume, &self.mu, &self.lambda, act, energy),
+            (
+                x,
+                &self.tets,
+                &self.dm_inv,
+                &self.rest_volume,
+                &self.mu,
+                &self.lambda,
+                act,
+                energy,
+            ),
         );
     }
 }

@@ -120,11 +120,27 @@ impl<R: Real> TriangleFem<R> {
     }
 
     /// Records [`eval_triangles`], accumulating into `f`.
-    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        f: &Array<Vec3<R>>,
+    ) {
         tape.launch(
             eval_triangles,
             self.len(),
-            (x, v, &self.tris, &self.dm_inv, &self.area, &self.mu, &self.lambda, &self.kd, f),
+            (
+                x,
+                v,
+                &self.tris,
+                &self.dm_inv,
+                &self.area,
+                &self.mu,
+                &self.lambda,
+                &self.kd,
+                f,
+            ),
         );
     }
 
@@ -133,7 +149,15 @@ impl<R: Real> TriangleFem<R> {
         tape.launch(
             triangle_energy,
             self.len(),
-            (x, &self.tris, &self.dm_inv, &self.area, &self.mu, &self.lambda, energy),
+            (
+                x,
+                &self.tris,
+                &self.dm_inv,
+                &self.area,
+                &self.mu,
+                &self.lambda,
+                energy,
+            ),
         );
     }
 }

@@ -24,7 +24,12 @@ pub fn add_forces<R: Real>(fext: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
 
 /// `a = f w + g [w > 0]` (m/s^2), `w` the inverse mass (1/kg), `g` gravity (m/s^2).
 #[diff_kernel]
-pub fn accelerations<R: Real>(f: &Array<Vec3<R>>, inv_mass: &Array<R>, g: Vec3<R>, a: &Array<Vec3<R>>) {
+pub fn accelerations<R: Real>(
+    f: &Array<Vec3<R>>,
+    inv_mass: &Array<R>,
+    g: Vec3<R>,
+    a: &Array<Vec3<R>>,
+) {
     let t = tid();
     let w = inv_mass[t];
     a[t] = f[t] * w + select(w > 0.0, g, g * 0.0);

@@ -76,12 +76,26 @@ impl<R: Real> Springs<R> {
     }
 
     /// Records [`eval_springs`] on `tape`, accumulating into `f`.
-    pub fn eval(&self, tape: &mut Tape, x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
-        tape.launch(eval_springs, self.len(), (x, v, &self.pairs, &self.rest, &self.ke, &self.kd, f));
+    pub fn eval(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        f: &Array<Vec3<R>>,
+    ) {
+        tape.launch(
+            eval_springs,
+            self.len(),
+            (x, v, &self.pairs, &self.rest, &self.ke, &self.kd, f),
+        );
     }
 
     /// Records [`spring_energy`] on `tape`, adding into `energy[0]`.
     pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
-        tape.launch(spring_energy, self.len(), (x, &self.pairs, &self.rest, &self.ke, energy));
+        tape.launch(
+            spring_energy,
+            self.len(),
+            (x, &self.pairs, &self.rest, &self.ke, energy),
+        );
     }
 }

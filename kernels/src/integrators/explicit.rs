@@ -41,10 +41,21 @@ pub fn explicit_euler_update<R: Real>(
 pub struct ExplicitEuler;
 
 impl<R: Real> Integrator<R> for ExplicitEuler {
-    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R> {
+    fn step(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> State<R> {
         let a = model.eval_accelerations(tape, state, control);
         let (x, v) = new_xv(model.particle_count);
-        tape.launch(explicit_euler_update, model.particle_count, (&state.x, &state.v, &a, dt, &x, &v));
+        tape.launch(
+            explicit_euler_update,
+            model.particle_count,
+            (&state.x, &state.v, &a, dt, &x, &v),
+        );
         let bodies = step_bodies(model, tape, state, control, dt);
         State { x, v, bodies }
     }

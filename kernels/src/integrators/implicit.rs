@@ -139,8 +139,11 @@ impl<T: Element> Link for TypedLink<T> {
         self.copy.zero_grad();
     }
     fn share_tangent(&self, on: bool) {
-        self.copy
-            .set_tangent(if on { self.original.tangent_buffer() } else { None });
+        self.copy.set_tangent(if on {
+            self.original.tangent_buffer()
+        } else {
+            None
+        });
     }
 }
 
@@ -255,7 +258,11 @@ fn epsilon<R: Real>() -> f64 {
 /// stiffness ratio along the Newton step `d` (times a safety factor of 100).
 fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
     let dn = max_abs(d);
-    let s = if dn > 0.0 { (max_abs(e) / dn).max(1.0) } else { 1.0 };
+    let s = if dn > 0.0 {
+        (max_abs(e) / dn).max(1.0)
+    } else {
+        1.0
+    };
     100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
 }
 
@@ -288,15 +295,15 @@ struct Point<R: Real> {
 
 impl<R: Real> System<R> {
     fn new(c: Copies<R>, x0: Vec<f64>, v0: Vec<f64>, inv_mass: &[R], dt: f64) -> Self {
-        let w: Vec<f64> = inv_mass
-            .iter()
-            .flat_map(|w| [w.to_f64(); 3])
-            .collect();
+        let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
         System {
             c,
             x0,
             v0,
-            mass: w.iter().map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 }).collect(),
+            mass: w
+                .iter()
+                .map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 })
+                .collect(),
             precond: w.iter().map(|&w| if w > 0.0 { w } else { 1.0 }).collect(),
             free: w.iter().map(|&w| w > 0.0).collect(),
             dt,
@@ -305,7 +312,12 @@ impl<R: Real> System<R> {
 
     /// Records the accelerations at `v'` (`x' = x0 + dt v'`) on a new tape.
     fn eval(&self, v: &[f64], grads: bool) -> Point<R> {
-        let x: Vec<f64> = self.x0.iter().zip(v).map(|(x, v)| x + self.dt * v).collect();
+        let x: Vec<f64> = self
+            .x0
+            .iter()
+            .zip(v)
+            .map(|(x, v)| x + self.dt * v)
+            .collect();
         let mut xs = Array::from_vec(unflat::<R>(&x)).named("x_implicit");
         let mut vs = Array::from_vec(unflat::<R>(v)).named("v_implicit");
         if grads {
@@ -313,10 +325,11 @@ impl<R: Real> System<R> {
             vs = vs.requires_grad();
         }
         let mut tape = Tape::new();
-        let a = self
-            .c
-            .model
-            .eval_accelerations(&mut tape, &particles(&xs, &vs), self.c.control.as_ref());
+        let a = self.c.model.eval_accelerations(
+            &mut tape,
+            &particles(&xs, &vs),
+            self.c.control.as_ref(),
+        );
         let a_val = flat(&a);
         Point {
             tape,
@@ -343,7 +356,11 @@ impl<R: Real> System<R> {
 
     /// The line-search merit `0.5 e^T M e` (J).
     fn merit(&self, e: &[f64]) -> f64 {
-        0.5 * e.iter().zip(&self.mass).map(|(e, m)| m * e * e).sum::<f64>()
+        0.5 * e
+            .iter()
+            .zip(&self.mass)
+            .map(|(e, m)| m * e * e)
+            .sum::<f64>()
     }
 
     /// `out = A u` (identity on pinned DOFs) by one tangent pass.
@@ -534,7 +551,13 @@ impl ImplicitEuler {
         let g: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
         let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
         let mut d = vec![0.0; g.len()];
-        let info = linsolve::cg(|u, out| sys.apply(p, u, out), &rhs, &mut d, Some(&sys.precond), &self.linear);
+        let info = linsolve::cg(
+            |u, out| sys.apply(p, u, out),
+            &rhs,
+            &mut d,
+            Some(&sys.precond),
+            &self.linear,
+        );
         stats.linear_iterations += info.iterations;
         sys.mask(&mut d);
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
@@ -596,8 +619,18 @@ impl ImplicitEuler {
         let dtf = dt.to_f64();
         let inv_mass = model.particle_inv_mass.to_vec();
         let (x0, v0) = (flat(&state.x), flat(&state.v));
-        let sys = System::new(copies(model, control, false), x0.clone(), v0.clone(), &inv_mass, dtf);
-        let v1 = if n == 0 { Vec::new() } else { self.newton(&sys, &mut stats) };
+        let sys = System::new(
+            copies(model, control, false),
+            x0.clone(),
+            v0.clone(),
+            &inv_mass,
+            dtf,
+        );
+        let v1 = if n == 0 {
+            Vec::new()
+        } else {
+            self.newton(&sys, &mut stats)
+        };
         let x1v: Vec<f64> = x0.iter().zip(&v1).map(|(x, v)| x + dtf * v).collect();
 
         let x1 = Array::zeros(n).named("x");
@@ -632,7 +665,14 @@ impl ImplicitEuler {
         )
         .with_tangent(move || st.tangent());
         let bodies = step_bodies(model, tape, state, control, dt);
-        (State { x: x1, v: v1a, bodies }, stats)
+        (
+            State {
+                x: x1,
+                v: v1a,
+                bodies,
+            },
+            stats,
+        )
     }
 }
 
@@ -716,14 +756,22 @@ impl<R: Real> Shared<R> {
     fn tangent(&self) {
         let m = self.x0_val.len();
         let dt = self.dt;
-        let dx0 = self.x0.tangent_buffer().map_or_else(|| vec![0.0; m], |t| flat(&t));
-        let dv0 = self.v0.tangent_buffer().map_or_else(|| vec![0.0; m], |t| flat(&t));
+        let dx0 = self
+            .x0
+            .tangent_buffer()
+            .map_or_else(|| vec![0.0; m], |t| flat(&t));
+        let dv0 = self
+            .v0
+            .tangent_buffer()
+            .map_or_else(|| vec![0.0; m], |t| flat(&t));
         let sys = self.system(false);
         let mut p = sys.eval(&self.v1_val, false);
         for l in &sys.c.links {
             l.share_tangent(true);
         }
-        let dvp: Vec<f64> = (0..m).map(|k| if sys.free[k] { 0.0 } else { dv0[k] }).collect();
+        let dvp: Vec<f64> = (0..m)
+            .map(|k| if sys.free[k] { 0.0 } else { dv0[k] })
+            .collect();
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
         p.x.ensure_tangent().assign(&unflat::<R>(&dxp));
         p.v.ensure_tangent().assign(&unflat::<R>(&dvp));
@@ -734,7 +782,9 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.share_tangent(false);
         }
-        let mut rhs: Vec<f64> = (0..m).map(|k| sys.mass[k] * (dv0[k] + dt * ad[k])).collect();
+        let mut rhs: Vec<f64> = (0..m)
+            .map(|k| sys.mass[k] * (dv0[k] + dt * ad[k]))
+            .collect();
         sys.mask(&mut rhs);
         let mut dv1 = vec![0.0; m];
         linsolve::solve(
@@ -768,7 +818,14 @@ fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
 }
 
 impl<R: Real> Integrator<R> for ImplicitEuler {
-    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R> {
+    fn step(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> State<R> {
         self.step_with_stats(model, tape, state, control, dt).0
     }
 }

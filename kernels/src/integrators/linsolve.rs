@@ -82,7 +82,11 @@ pub fn cg(
     let n = b.len();
     assert_eq!(x.len(), n, "cg: x and b have different lengths");
     let precond = |r: &[f64], z: &mut [f64]| match inv_diag {
-        Some(d) => z.iter_mut().zip(r).zip(d).for_each(|((z, r), d)| *z = r * d),
+        Some(d) => z
+            .iter_mut()
+            .zip(r)
+            .zip(d)
+            .for_each(|((z, r), d)| *z = r * d),
         None => z.copy_from_slice(r),
     };
     let tol = s.rel_tol * norm(b) + s.abs_tol;
@@ -92,7 +96,10 @@ pub fn cg(
     if x.iter().any(|&v| v != 0.0) {
         apply(x, &mut ap);
         iterations += 1;
-        r.iter_mut().zip(b).zip(&ap).for_each(|((r, b), a)| *r = b - a);
+        r.iter_mut()
+            .zip(b)
+            .zip(&ap)
+            .for_each(|((r, b), a)| *r = b - a);
     } else {
         r.copy_from_slice(b);
     }
@@ -149,7 +156,11 @@ pub fn bicgstab(
     let n = b.len();
     assert_eq!(x.len(), n, "bicgstab: x and b have different lengths");
     let precond = |r: &[f64], z: &mut [f64]| match inv_diag {
-        Some(d) => z.iter_mut().zip(r).zip(d).for_each(|((z, r), d)| *z = r * d),
+        Some(d) => z
+            .iter_mut()
+            .zip(r)
+            .zip(d)
+            .for_each(|((z, r), d)| *z = r * d),
         None => z.copy_from_slice(r),
     };
     let tol = s.rel_tol * norm(b) + s.abs_tol;
@@ -173,7 +184,10 @@ pub fn bicgstab(
     while info.iterations < s.max_iter {
         apply(x, &mut tmp);
         info.iterations += 1;
-        r.iter_mut().zip(b).zip(&tmp).for_each(|((r, b), a)| *r = b - a);
+        r.iter_mut()
+            .zip(b)
+            .zip(&tmp)
+            .for_each(|((r, b), a)| *r = b - a);
         info.residual = norm(&r);
         if info.residual <= tol {
             info.converged = true;
@@ -284,11 +298,21 @@ mod tests {
         let b: Vec<f64> = (0..n).map(|i| (i as f64).sin()).collect();
         let diag: Vec<f64> = (0..n).map(|i| 1.0 / a[i][i]).collect();
         let mut x = vec![0.0; n];
-        let info = cg(matvec(&a), &b, &mut x, Some(&diag), &SolveSettings::default());
+        let info = cg(
+            matvec(&a),
+            &b,
+            &mut x,
+            Some(&diag),
+            &SolveSettings::default(),
+        );
         assert!(info.converged && !info.negative_curvature, "{info:?}");
         let mut ax = vec![0.0; n];
         matvec(&a)(&x, &mut ax);
-        let err = ax.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0.0, f64::max);
+        let err = ax
+            .iter()
+            .zip(&b)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-9, "{err}");
     }
 
@@ -302,7 +326,10 @@ mod tests {
         let mut x = vec![0.0; 2];
         let (info, fell_back) = solve(matvec(&a), &b, &mut x, None, &SolveSettings::default());
         assert!(fell_back && info.converged, "{info:?}");
-        assert!((x[0] - 1.0).abs() < 1e-9 && (x[1] + 0.5).abs() < 1e-9, "{x:?}");
+        assert!(
+            (x[0] - 1.0).abs() < 1e-9 && (x[1] + 0.5).abs() < 1e-9,
+            "{x:?}"
+        );
     }
 
     #[test]
@@ -331,7 +358,11 @@ mod tests {
         assert!(info.converged, "{info:?}");
         let mut ax = vec![0.0; n];
         matvec(&a)(&x, &mut ax);
-        let err = ax.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0.0, f64::max);
+        let err = ax
+            .iter()
+            .zip(&b)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-8, "{err}");
     }
 }

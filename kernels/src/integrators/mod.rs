@@ -28,10 +28,25 @@ pub use xpbd::Xpbd;
 pub trait Integrator<R: Real> {
     /// Records one step of `dt` seconds from `state` on `tape` and returns the new state, whose
     /// arrays are new (the tape keeps the old ones for backward).
-    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R>;
+    fn step(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> State<R>;
 
     /// Records `steps` steps from `state` with the same control; returns the final state.
-    fn rollout(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R, steps: usize) -> State<R> {
+    fn rollout(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+        steps: usize,
+    ) -> State<R> {
         let mut s = state.clone();
         for _ in 0..steps {
             s = self.step(model, tape, &s, control, dt);

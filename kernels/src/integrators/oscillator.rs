@@ -94,7 +94,13 @@ impl Trajectory {
     /// default `u(0) = 0.1`, has left the linear regime: start from a smaller displacement
     /// to follow a growing solution further).
     pub fn max_displacement(&self) -> f64 {
-        self.u.iter().fold(0.0f64, |m, &u| if u.is_nan() || m.is_nan() { f64::NAN } else { m.max(u.abs()) })
+        self.u.iter().fold(0.0f64, |m, &u| {
+            if u.is_nan() || m.is_nan() {
+                f64::NAN
+            } else {
+                m.max(u.abs())
+            }
+        })
     }
 
     /// The largest energy along the trajectory over the initial energy (NaN or infinite if the
@@ -102,12 +108,21 @@ impl Trajectory {
     /// that of a linear oscillator.
     pub fn max_energy_ratio(&self) -> f64 {
         let e0 = self.energy[0];
-        self.energy.iter().fold(0.0f64, |m, &e| if e.is_nan() || m.is_nan() { f64::NAN } else { m.max(e / e0) })
+        self.energy.iter().fold(0.0f64, |m, &e| {
+            if e.is_nan() || m.is_nan() {
+                f64::NAN
+            } else {
+                m.max(e / e0)
+            }
+        })
     }
 
     /// The last energy over the initial energy.
     pub fn final_energy_ratio(&self) -> f64 {
-        self.energy.last().expect("a trajectory has its initial state") / self.energy[0]
+        self.energy
+            .last()
+            .expect("a trajectory has its initial state")
+            / self.energy[0]
     }
 }
 
@@ -190,7 +205,10 @@ impl Oscillator {
             let (a, b) = (u0, (v0 + g * u0) / wd);
             let (s, c) = (wd * t).sin_cos();
             let e = (-g * t).exp();
-            (e * (a * c + b * s), e * ((b * wd - g * a) * c - (a * wd + g * b) * s))
+            (
+                e * (a * c + b * s),
+                e * ((b * wd - g * a) * c - (a * wd + g * b) * s),
+            )
         } else {
             let q = disc.sqrt();
             let (r1, r2) = (-g + q, -g - q);
@@ -210,7 +228,12 @@ impl Oscillator {
 
     /// Runs `steps` steps of `dt` (s) of [`Oscillator::model`] with `integrator` (each step on
     /// a fresh tape, so memory stays flat) and returns the trajectory.
-    pub fn simulate<I: Integrator<f64> + ?Sized>(&self, integrator: &I, dt: f64, steps: usize) -> Trajectory {
+    pub fn simulate<I: Integrator<f64> + ?Sized>(
+        &self,
+        integrator: &I,
+        dt: f64,
+        steps: usize,
+    ) -> Trajectory {
         self.simulate_model(&self.model(), integrator, dt, steps)
     }
 

@@ -69,7 +69,14 @@ pub fn rk4_combine<R: Real>(
 pub struct Rk4;
 
 impl<R: Real> Integrator<R> for Rk4 {
-    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R> {
+    fn step(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> State<R> {
         let n = model.particle_count;
         let half = dt * R::lit(0.5);
         let (x0, v0) = (&state.x, &state.v);
@@ -87,7 +94,11 @@ impl<R: Real> Integrator<R> for Rk4 {
         let (x4, v4) = stage(tape, &v3, &a3, dt);
         let a4 = model.eval_accelerations(tape, &particles(&x4, &v4), control);
         let (x, v) = new_xv(n);
-        tape.launch(rk4_combine, n, (x0, v0, &v2, &v3, &v4, &a1, &a2, &a3, &a4, dt, &x, &v));
+        tape.launch(
+            rk4_combine,
+            n,
+            (x0, v0, &v2, &v3, &v4, &a1, &a2, &a3, &a4, dt, &x, &v),
+        );
         let bodies = step_bodies(model, tape, state, control, dt);
         State { x, v, bodies }
     }

@@ -32,16 +32,45 @@ pub fn integrate_particles<R: Real>(
 pub struct SemiImplicitEuler;
 
 impl<R: Real> Integrator<R> for SemiImplicitEuler {
-    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R> {
+    fn step(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> State<R> {
         let n = model.particle_count;
         let f = model.eval_forces(tape, state, control);
         let x = Array::zeros(n).named("x");
         let v = Array::zeros(n).named("v");
-        tape.launch(integrate_particles, n, (&state.x, &state.v, &f, &model.particle_inv_mass, model.gravity, dt, &x, &v));
-        let bodies = model.eval_body_forces(tape, state, control).map(|(bf, bt)| {
-            let b = model.bodies.as_ref().expect("bodies");
-            b.integrate(tape, state.bodies.as_ref().expect("body state"), &bf, &bt, model.gravity, dt)
-        });
+        tape.launch(
+            integrate_particles,
+            n,
+            (
+                &state.x,
+                &state.v,
+                &f,
+                &model.particle_inv_mass,
+                model.gravity,
+                dt,
+                &x,
+                &v,
+            ),
+        );
+        let bodies = model
+            .eval_body_forces(tape, state, control)
+            .map(|(bf, bt)| {
+                let b = model.bodies.as_ref().expect("bodies");
+                b.integrate(
+                    tape,
+                    state.bodies.as_ref().expect("body state"),
+                    &bf,
+                    &bt,
+                    model.gravity,
+                    dt,
+                )
+            });
         State { x, v, bodies }
     }
 }

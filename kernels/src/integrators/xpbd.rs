@@ -22,7 +22,13 @@ use crate::xpbd::velocity_from_positions;
 /// Prediction of particle `tid` (a semi-implicit Euler step): `x_pred = x + (v + a h) h`
 /// (`a` in m/s^2, `h` in s).
 #[diff_kernel]
-pub fn xpbd_predict<R: Real>(x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, a: &Array<Vec3<R>>, h: R, x_pred: &Array<Vec3<R>>) {
+pub fn xpbd_predict<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    a: &Array<Vec3<R>>,
+    h: R,
+    x_pred: &Array<Vec3<R>>,
+) {
     let t = tid();
     x_pred[t] = x[t] + (v[t] + a[t] * h) * h;
 }
@@ -73,7 +79,14 @@ impl Xpbd {
 }
 
 impl<R: Real> Integrator<R> for Xpbd {
-    fn step(&self, model: &Model<R>, tape: &mut Tape, state: &State<R>, control: Option<&Control<R>>, dt: R) -> State<R> {
+    fn step(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> State<R> {
         assert!(self.substeps > 0, "Xpbd: substeps must be at least 1");
         let n = model.particle_count;
         let h = dt / R::lit(self.substeps as f64);
@@ -86,7 +99,8 @@ impl<R: Real> Integrator<R> for Xpbd {
             if let Some(c) = &model.distance_constraints {
                 let mut lambda = c.zero_lambda();
                 for _ in 0..self.iterations {
-                    (xc, lambda) = c.iterate(tape, &xc, &model.particle_inv_mass, &lambda, h, relax);
+                    (xc, lambda) =
+                        c.iterate(tape, &xc, &model.particle_inv_mass, &lambda, h, relax);
                 }
             }
             let vn = Array::zeros(n).named("v");
@@ -96,6 +110,10 @@ impl<R: Real> Integrator<R> for Xpbd {
         }
         let x_out = x.named("x");
         let bodies = step_bodies(model, tape, state, control, dt);
-        State { x: x_out, v, bodies }
+        State {
+            x: x_out,
+            v,
+            bodies,
+        }
     }
 }

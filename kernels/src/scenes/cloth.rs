@@ -75,13 +75,21 @@ impl<R: Real> ModelBuilder<R> {
     pub fn add_cloth_grid(&mut self, c: &ClothGrid<R>) -> u32 {
         let first = self.particle_count() as u32;
         let (ni, nj) = (c.ni, c.nj);
-        let o = Vec3::new(c.origin.x.to_f64(), c.origin.y.to_f64(), c.origin.z.to_f64());
+        let o = Vec3::new(
+            c.origin.x.to_f64(),
+            c.origin.y.to_f64(),
+            c.origin.z.to_f64(),
+        );
         for i in 0..ni {
             for j in 0..nj {
                 // Positions in f64, rounded once (as the reference builds them).
                 let p = Vec3::new(o.x + i as f64 * c.spacing, o.y, o.z + j as f64 * c.spacing);
                 let p = Vec3::new(R::lit(p.x), R::lit(p.y), R::lit(p.z));
-                let mass = if c.pinned.contains(&(i, j)) { R::lit(0.0) } else { c.mass };
+                let mass = if c.pinned.contains(&(i, j)) {
+                    R::lit(0.0)
+                } else {
+                    c.mass
+                };
                 self.add_particle(p, Vec3::zeros(), mass);
             }
         }
@@ -154,13 +162,25 @@ pub fn build<R: Real>(n: usize) -> Cloth<R> {
     let model = b.finalize();
     let initial = model.state();
     let _ = initial.v.clone().requires_grad();
-    let _ = model.springs.as_ref().expect("springs").ke.clone().requires_grad();
+    let _ = model
+        .springs
+        .as_ref()
+        .expect("springs")
+        .ke
+        .clone()
+        .requires_grad();
     Cloth { n, model, initial }
 }
 
 /// The scene's loss: `loss[0] += scale |x - x0 - target|^2` for particle `tid`.
 #[diff_kernel]
-pub fn displacement_loss<R: Real>(x: &Array<Vec3<R>>, x0: &Array<Vec3<R>>, target: Vec3<R>, scale: R, loss: &Array<R>) {
+pub fn displacement_loss<R: Real>(
+    x: &Array<Vec3<R>>,
+    x0: &Array<Vec3<R>>,
+    target: Vec3<R>,
+    scale: R,
+    loss: &Array<R>,
+) {
     let t = tid();
     let d = x[t] - x0[t] - target;
     loss.atomic_add(0, dot(d, d) * scale);
@@ -174,7 +194,11 @@ pub fn forward<R: Real>(scene: &Cloth<R>, tape: &mut Tape, steps: usize) -> (Sta
     let loss = Array::zeros(1).named("loss");
     let n2 = (scene.n * scene.n) as f64;
     let target = Vec3::new(R::lit(0.0), R::lit(-0.1), R::lit(0.0));
-    tape.launch(displacement_loss, s.x.len(), (&s.x, &scene.initial.x, target, R::lit(1.0 / n2), &loss));
+    tape.launch(
+        displacement_loss,
+        s.x.len(),
+        (&s.x, &scene.initial.x, target, R::lit(1.0 / n2), &loss),
+    );
     (s, loss)
 }
 
@@ -196,10 +220,20 @@ pub struct ClothResult<R: Real> {
 /// Runs the scene for `steps` steps on a fresh tape and, if `backward`, differentiates the
 /// loss with respect to the initial velocities and the spring stiffnesses (gradients from
 /// earlier calls are cleared first). The entry point of the benchmark.
-pub fn rollout<R: Real>(scene: &Cloth<R>, steps: usize, backward: bool) -> Result<ClothResult<R>, Error> {
+pub fn rollout<R: Real>(
+    scene: &Cloth<R>,
+    steps: usize,
+    backward: bool,
+) -> Result<ClothResult<R>, Error> {
     let mut tape = Tape::new();
     let (_, loss) = forward(scene, &mut tape, steps);
-    let mut out = ClothResult { loss: loss.get(0).to_f64(), grad_v0: Vec::new(), grad_ke: Vec::new(), grad_v0_norm: 0.0, grad_ke_norm: 0.0 };
+    let mut out = ClothResult {
+        loss: loss.get(0).to_f64(),
+        grad_v0: Vec::new(),
+        grad_ke: Vec::new(),
+        grad_v0_norm: 0.0,
+        grad_ke_norm: 0.0,
+    };
     if backward {
         let ke = &scene.model.springs.as_ref().expect("springs").ke;
         scene.initial.v.zero_grad();
@@ -207,8 +241,18 @@ pub fn rollout<R: Real>(scene: &Cloth<R>, steps: usize, backward: bool) -> Resul
         tape.backward(&loss)?;
         out.grad_v0 = scene.initial.v.grad()?.to_vec();
         out.grad_ke = ke.grad()?.to_vec();
-        out.grad_v0_norm = out.grad_v0.iter().map(|g| g.iter().map(|c| c.to_f64().powi(2)).sum::<f64>()).sum::<f64>().sqrt();
-        out.grad_ke_norm = out.grad_ke.iter().map(|g| g.to_f64().powi(2)).sum::<f64>().sqrt();
+        out.grad_v0_norm = out
+            .grad_v0
+            .iter()
+            .map(|g| g.iter().map(|c| c.to_f64().powi(2)).sum::<f64>())
+            .sum::<f64>()
+            .sqrt();
+        out.grad_ke_norm = out
+            .grad_ke
+            .iter()
+            .map(|g| g.to_f64().powi(2))
+            .sum::<f64>()
+            .sqrt();
     }
     Ok(out)
 }

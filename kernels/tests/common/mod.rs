@@ -22,14 +22,23 @@ impl Rng {
         (0..n).map(|_| self.uniform(lo, hi)).collect()
     }
     pub fn vec3(&mut self, lo: f64, hi: f64) -> Vec3<f64> {
-        Vec3::new(self.uniform(lo, hi), self.uniform(lo, hi), self.uniform(lo, hi))
+        Vec3::new(
+            self.uniform(lo, hi),
+            self.uniform(lo, hi),
+            self.uniform(lo, hi),
+        )
     }
     pub fn vec3s(&mut self, n: usize, lo: f64, hi: f64) -> Vec<Vec3<f64>> {
         (0..n).map(|_| self.vec3(lo, hi)).collect()
     }
     /// A random unit quaternion.
     pub fn quat(&mut self) -> Quat<f64> {
-        let q = Quat::new(self.uniform(-1.0, 1.0), self.uniform(-1.0, 1.0), self.uniform(-1.0, 1.0), self.uniform(-1.0, 1.0));
+        let q = Quat::new(
+            self.uniform(-1.0, 1.0),
+            self.uniform(-1.0, 1.0),
+            self.uniform(-1.0, 1.0),
+            self.uniform(-1.0, 1.0),
+        );
         q / q.norm()
     }
 }

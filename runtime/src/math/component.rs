@@ -6,7 +6,6 @@ use nalgebra::{Matrix2, Matrix3, Quaternion, Vector2, Vector3, Vector4};
 
 use crate::{Real, Value};
 
-
 /// Component access of a value with index type `K`: vectors and quaternions by `usize`
 /// (quaternions in storage order x, y, z, w), matrices by `(row, col)`, and arrays `[T; N]`.
 pub trait ComponentRule<K: Copy>: Value {

@@ -1,0 +1,13 @@
+//! Benchmarks and charts of adflex. The binary (`src/main.rs`) is the entry point:
+//! `cargo run --release -p adflex-bench -- <scatter|kernels|cloth|peers|charts> ...`.
+
+pub mod charts;
+pub mod cloth;
+pub mod gen;
+pub mod hand;
+pub mod kernels_cmp;
+pub mod overhead;
+pub mod peers;
+pub mod scatter;
+pub mod timing;
+pub mod topo;
