@@ -230,12 +230,7 @@ impl<'a> Emitter<'a> {
                     span,
                 } => {
                     if mode == Replay::Forward {
-                        let (w, i, x) = (view(*param), v(*index), v(*value));
-                        out.extend(match kind {
-                            StoreKind::Store => quote_spanned!(*span=> #w.store(#i, #x);),
-                            StoreKind::AtomicAdd => quote_spanned!(*span=> #w.add(#i, #x);),
-                            StoreKind::AtomicSub => quote_spanned!(*span=> #w.sub(#i, #x);),
-                        });
+                        out.extend(store_call(view(*param), *kind, v(*index), v(*value), *span));
                     }
                 }
                 Stmt::If {
@@ -529,12 +524,13 @@ impl<'a> Emitter<'a> {
                     kind,
                     span,
                 } => {
-                    let (t, i, dx) = (tangent_view(*param), v(*index), d(*value));
-                    out.extend(match kind {
-                        StoreKind::Store => quote_spanned!(*span=> #t.store(#i, #dx);),
-                        StoreKind::AtomicAdd => quote_spanned!(*span=> #t.add(#i, #dx);),
-                        StoreKind::AtomicSub => quote_spanned!(*span=> #t.sub(#i, #dx);),
-                    });
+                    out.extend(store_call(
+                        tangent_view(*param),
+                        *kind,
+                        v(*index),
+                        d(*value),
+                        *span,
+                    ));
                 }
                 Stmt::If {
                     cond,
@@ -626,6 +622,16 @@ impl<'a> Emitter<'a> {
                 quote!(#fwd let #dx = #rt::zero_like(&#x);)
             }
         }
+    }
+}
+
+/// `view.store(i, x)`, `view.add(i, x)` or `view.sub(i, x)`: a write of the forward (values) or
+/// of the tangent (tangents), through the matching view.
+fn store_call(view: Ident, kind: StoreKind, i: Ident, x: Ident, span: Span) -> TokenStream {
+    match kind {
+        StoreKind::Store => quote_spanned!(span=> #view.store(#i, #x);),
+        StoreKind::AtomicAdd => quote_spanned!(span=> #view.add(#i, #x);),
+        StoreKind::AtomicSub => quote_spanned!(span=> #view.sub(#i, #x);),
     }
 }
 

@@ -652,14 +652,9 @@ impl<'a> Lowerer<'a> {
                 t.span(),
                 "tuples are not supported in kernels (except as a matrix index `m[(r, c)]`)",
             ),
-            Expr::Array(a) => self.error_value(
+            Expr::Array(_) | Expr::Repeat(_) => self.error_value(
                 out,
-                a.span(),
-                "array literals are not supported in kernels; build vectors with vec2/vec3/vec4",
-            ),
-            Expr::Repeat(a) => self.error_value(
-                out,
-                a.span(),
+                span,
                 "array literals are not supported in kernels; build vectors with vec2/vec3/vec4",
             ),
             Expr::Struct(s) => self.error_value(
