@@ -1,0 +1,290 @@
+//! The gradient checker (a copy of `tests/common/mod.rs`: adjoint against central finite
+//! differences in f64, tangent against adjoint by the dot-product test) and the corpus driver:
+//! runs each generated kernel, moves the inputs when a mismatch is only a branch boundary, and
+//! reports every other mismatch with the kernel's source.
+#![allow(dead_code)]
+
+use std::panic::{catch_unwind, AssertUnwindSafe};
+
+use adflex::prelude::*;
+use adflex::runtime::kernel::{Exec, Kernel, KernelBody};
+
+/// Tolerance of the adjoint against central differences (relative, as in tests/common).
+pub const TOL: f64 = 1e-6;
+/// Tolerance of the dot-product test.
+pub const DOT_TOL: f64 = 1e-10;
+/// Tolerance of the f32 forward against the f64 forward (relative to max(|f64|, 1)).
+pub const F32_TOL: f64 = 1e-3;
+/// Inputs are drawn from `[LO, HI)`.
+pub const LO: f64 = 0.5;
+pub const HI: f64 = 1.5;
+/// How far the inputs are moved to tell a branch boundary from a wrong derivative.
+pub const NEAR: f64 = 1e-4;
+/// Input seeds tried per kernel before a failure that only ever shows at boundaries is reported.
+pub const ATTEMPTS: u64 = 4;
+
+/// A deterministic xorshift generator (tests need no rand dependency for this).
+pub struct Rng(pub u64);
+
+impl Rng {
+    pub fn next_f64(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    /// Uniform in `[lo, hi)`.
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.next_f64()
+    }
+    pub fn vec(&mut self, n: usize, lo: f64, hi: f64) -> Vec<f64> {
+        (0..n).map(|_| self.uniform(lo, hi)).collect()
+    }
+}
+
+/// Result of a gradient check.
+#[derive(Debug)]
+pub struct Checked {
+    /// Worst relative error of the adjoint against central differences.
+    pub adjoint_err: f64,
+    /// Where it is: (input array, index, adjoint, central difference).
+    pub worst: (usize, usize, f64, f64),
+    /// Relative error of the dot-product test `<J v, w> = <v, J^T w>`.
+    pub dot_err: f64,
+    /// `<J v, w>` (tangent) and `<v, J^T w>` (adjoint).
+    pub dot: (f64, f64),
+    /// The adjoint gradient (of `<w, outputs>` with respect to each input).
+    pub grad: Vec<Vec<f64>>,
+}
+
+fn rel(a: f64, b: f64) -> f64 {
+    (a - b).abs() / a.abs().max(b.abs()).max(1.0)
+}
+
+/// Checks one kernel: `run(mode)` launches it on `inputs` (read) and `outputs` (written).
+///
+/// The loss is `<w, outputs>` for a random `w`. The adjoint gradient is compared with central
+/// differences (h = 1e-6) of the loss for every input entry, and the tangent `J v` for a random
+/// `v` with the adjoint by the dot-product test.
+/// (`run` is a `&dyn Fn`, so this is compiled once, not once per kernel.)
+pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: &dyn Fn(Mode)) -> Checked {
+    let mut rng = Rng(seed | 1);
+    let forward = || -> Vec<Vec<f64>> {
+        for o in outputs {
+            o.fill(0.0);
+        }
+        run(Mode::Forward);
+        outputs.iter().map(|o| o.to_vec()).collect()
+    };
+    let w: Vec<Vec<f64>> = outputs.iter().map(|o| rng.vec(o.len(), -1.0, 1.0)).collect();
+    let loss = |ys: &[Vec<f64>]| -> f64 { ys.iter().zip(&w).map(|(y, w)| y.iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).sum() };
+    forward();
+    // Adjoint.
+    for (o, w) in outputs.iter().zip(&w) {
+        o.ensure_grad().assign(w);
+    }
+    for i in inputs {
+        i.ensure_grad().fill(0.0);
+    }
+    run(Mode::Adjoint);
+    let grad: Vec<Vec<f64>> = inputs.iter().map(|i| i.grad().unwrap().to_vec()).collect();
+    // Central differences.
+    let h = 1e-6;
+    let mut adjoint_err: f64 = 0.0;
+    let mut worst = (0, 0, 0.0, 0.0);
+    for (ai, (a, g)) in inputs.iter().zip(&grad).enumerate() {
+        for k in 0..a.len() {
+            let x0 = a.get(k);
+            a.set(k, x0 + h);
+            let lp = loss(&forward());
+            a.set(k, x0 - h);
+            let lm = loss(&forward());
+            a.set(k, x0);
+            let fd = (lp - lm) / (2.0 * h);
+            let e = rel(fd, g[k]);
+            // NaN counts as the worst error
+            if e > adjoint_err || e.is_nan() && !adjoint_err.is_nan() {
+                adjoint_err = e;
+                worst = (ai, k, g[k], fd);
+            }
+        }
+    }
+    // Tangent and the dot-product test.
+    let v: Vec<Vec<f64>> = inputs.iter().map(|i| rng.vec(i.len(), -1.0, 1.0)).collect();
+    for (i, v) in inputs.iter().zip(&v) {
+        i.set_tangent(Some(Array::from_vec(v.clone())));
+    }
+    for o in outputs {
+        o.ensure_tangent().fill(0.0);
+    }
+    forward();
+    run(Mode::Tangent);
+    let jv: f64 = outputs.iter().zip(&w).map(|(o, w)| o.tangent_buffer().unwrap().to_vec().iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).sum();
+    let vjtw: f64 = v.iter().zip(&grad).map(|(v, g)| v.iter().zip(g).map(|(a, b)| a * b).sum::<f64>()).sum();
+    for i in inputs {
+        i.set_tangent(None);
+    }
+    Checked { adjoint_err, worst, dot_err: rel(jv, vjtw), dot: (jv, vjtw), grad }
+}
+
+/// Runs `kernel` over thread ids `0..dim` in `mode` the way `launch_mode` does for launches
+/// this small (one chunk, in thread-id order, scattering directly), without going through
+/// `launch_mode`'s generic thread-pool code, which would be compiled once per kernel and
+/// argument type and dominate the corpus' compile time.
+pub fn run_direct<K, A>(mode: Mode, kernel: K, dim: usize, args: A)
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    assert!(dim < adflex::runtime::launch::SERIAL_BELOW);
+    RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let owned = K::to_owned(&args);
+    let _ = kernel.run(mode, &owned, 0..dim, &Exec::direct());
+}
+
+/// The inputs as f64 arrays.
+pub fn arrays_f64(xs: &[Vec<f64>]) -> Vec<Array<f64>> {
+    xs.iter().map(|v| Array::from_vec(v.clone())).collect()
+}
+
+/// The inputs as f32 arrays.
+pub fn arrays_f32(xs: &[Vec<f64>]) -> Vec<Array<f32>> {
+    xs.iter().map(|v| Array::from_vec(v.iter().map(|&x| x as f32).collect())).collect()
+}
+
+/// Kernel runs so far (all threads of the test binary).
+pub static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// What one run of a kernel gives: the f64 check, and its forward in f64 and in f32.
+pub struct Outcome {
+    pub checked: Checked,
+    pub y64: Vec<f64>,
+    pub y32: Vec<f32>,
+}
+
+/// One generated kernel.
+pub struct Case {
+    pub name: &'static str,
+    /// Number of input arrays (each `LEN` long).
+    pub inputs: usize,
+    /// Seed of its first inputs.
+    pub seed: u64,
+    /// Builds the arrays from the inputs, checks the kernel in f64 and runs it in f32.
+    pub run: fn(&[Vec<f64>], u64) -> Outcome,
+    /// The kernel's source.
+    pub src: &'static str,
+    /// The functions it calls (directly or not): indices into `FUNC_SRC`.
+    pub funcs: &'static [usize],
+}
+
+fn inputs(case: &Case, seed: u64) -> Vec<Vec<f64>> {
+    let mut rng = Rng(seed | 1);
+    (0..case.inputs).map(|_| rng.vec(super::LEN, LO, HI)).collect()
+}
+
+/// Runs the checks on inputs `xs`; `Err` says what failed.
+fn evaluate(case: &Case, xs: &[Vec<f64>], seed: u64) -> Result<(), String> {
+    let o = catch_unwind(AssertUnwindSafe(|| (case.run)(xs, seed))).map_err(|p| {
+        let msg = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()));
+        format!("panicked: {}", msg.unwrap_or_default())
+    })?;
+    let c = &o.checked;
+    if let Some(y) = o.y64.iter().find(|y| !y.is_finite()) {
+        return Err(format!("the f64 forward is not finite: {y}"));
+    }
+    if !(c.adjoint_err <= TOL) {
+        let (a, k, g, fd) = c.worst;
+        return Err(format!(
+            "adjoint vs central differences: relative error {:e} > {TOL:e} at x{a}[{k}]: adjoint {g:e}, central difference {fd:e}",
+            c.adjoint_err
+        ));
+    }
+    if !(c.dot_err <= DOT_TOL) {
+        return Err(format!(
+            "tangent vs adjoint (dot-product test): relative error {:e} > {DOT_TOL:e}: <J v, w> = {:e}, <v, J^T w> = {:e}",
+            c.dot_err, c.dot.0, c.dot.1
+        ));
+    }
+    if !c.grad.iter().flatten().any(|g| *g != 0.0) {
+        return Err("the gradient is identically zero: the check cannot fail".into());
+    }
+    for (k, (a, b)) in o.y32.iter().zip(&o.y64).enumerate() {
+        if !((*a as f64 - b).abs() <= F32_TOL * b.abs().max(1.0)) {
+            return Err(format!("f32 forward disagrees with f64 at y[{k}]: {a} vs {b}"));
+        }
+    }
+    Ok(())
+}
+
+/// Whether a failure at `xs` is local: it disappears when the inputs move by at most `NEAR`
+/// (so `xs` is within `NEAR` of a branch boundary or a kink, where central differences
+/// straddle two branches). A wrong derivative fails on a whole neighbourhood.
+fn near_boundary(case: &Case, xs: &[Vec<f64>], seed: u64) -> bool {
+    let mut rng = Rng(seed.rotate_left(17) | 1);
+    (0..6).any(|_| {
+        let moved: Vec<Vec<f64>> = xs.iter().map(|v| v.iter().map(|x| x + rng.uniform(-NEAR, NEAR)).collect()).collect();
+        evaluate(case, &moved, seed).is_ok()
+    })
+}
+
+/// How a case ended.
+pub enum Verdict {
+    /// Passed after `moved` input moves away from boundaries.
+    Pass { moved: u64 },
+    /// A mismatch that persists: a bug.
+    Bug(String),
+}
+
+pub fn run_case(case: &Case) -> Verdict {
+    let mut boundary_msgs = Vec::new();
+    for attempt in 0..ATTEMPTS {
+        let seed = case.seed.wrapping_add(attempt.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let xs = inputs(case, seed);
+        match evaluate(case, &xs, seed) {
+            Ok(()) => return Verdict::Pass { moved: attempt },
+            Err(e) => {
+                if near_boundary(case, &xs, seed) {
+                    eprintln!("{}: inputs (seed {seed:#x}) within {NEAR:e} of a branch boundary ({e}); moving them", case.name);
+                    boundary_msgs.push(e);
+                    continue;
+                }
+                return Verdict::Bug(format!(
+                    "{}: {e}\n  (persists when the inputs move by up to {NEAR:e}; input seed {seed:#x}; inputs {xs:?})",
+                    case.name
+                ));
+            }
+        }
+    }
+    Verdict::Bug(format!(
+        "{}: every one of {ATTEMPTS} input seeds was near a branch boundary (suspicious): {boundary_msgs:?}",
+        case.name
+    ))
+}
+
+/// Runs a group of cases and panics naming every failing kernel, with its source.
+pub fn run_group(cases: &[Case]) {
+    let start = std::time::Instant::now();
+    let mut bugs = Vec::new();
+    let mut moved = 0;
+    for case in cases {
+        match run_case(case) {
+            Verdict::Pass { moved: m } => moved += m,
+            Verdict::Bug(msg) => {
+                let funcs: String = case.funcs.iter().map(|&f| format!("{}\n", super::FUNC_SRC[f])).collect();
+                bugs.push(format!("{msg}\n---- source of {} ----\n{funcs}{}", case.name, case.src))
+            }
+        }
+    }
+    eprintln!(
+        "{} kernels ({}..{}): {} passed, {} failed, {moved} input moves away from boundaries, {} kernel runs, {:.3} s",
+        cases.len(),
+        cases.first().map_or("", |c| c.name),
+        cases.last().map_or("", |c| c.name),
+        cases.len() - bugs.len(),
+        bugs.len(),
+        RUNS.load(std::sync::atomic::Ordering::Relaxed),
+        start.elapsed().as_secs_f64()
+    );
+    if !bugs.is_empty() {
+        panic!("{} of {} kernels fail their gradient check:\n\n{}", bugs.len(), cases.len(), bugs.join("\n\n"));
+    }
+}
