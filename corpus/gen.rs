@@ -67,7 +67,10 @@ pub struct Iv {
 }
 
 fn iv(lo: f64, hi: f64) -> Iv {
-    assert!(lo <= hi && lo.is_finite() && hi.is_finite(), "bad interval [{lo}, {hi}]");
+    assert!(
+        lo <= hi && lo.is_finite() && hi.is_finite(),
+        "bad interval [{lo}, {hi}]"
+    );
     Iv { lo, hi }
 }
 
@@ -85,8 +88,16 @@ impl Iv {
         iv(-self.hi, -self.lo)
     }
     fn mul(self, o: Iv) -> Iv {
-        let c = [self.lo * o.lo, self.lo * o.hi, self.hi * o.lo, self.hi * o.hi];
-        iv(c.iter().cloned().fold(f64::INFINITY, f64::min), c.iter().cloned().fold(f64::NEG_INFINITY, f64::max))
+        let c = [
+            self.lo * o.lo,
+            self.lo * o.hi,
+            self.hi * o.lo,
+            self.hi * o.hi,
+        ];
+        iv(
+            c.iter().cloned().fold(f64::INFINITY, f64::min),
+            c.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+        )
     }
     fn scale(self, c: f64) -> Iv {
         self.mul(Iv::pt(c))
@@ -155,9 +166,21 @@ pub struct Sizes {
 
 impl Sizes {
     /// The checked-in corpus (compiles in under 2 minutes on 2 cores).
-    pub const DEFAULT: Sizes = Sizes { kernel_stmts: (2, 4), func_stmts: (1, 2), leaf_p: 0.55, linalg_every: 6, stmt_depth: 2 };
+    pub const DEFAULT: Sizes = Sizes {
+        kernel_stmts: (2, 4),
+        func_stmts: (1, 2),
+        leaf_p: 0.55,
+        linalg_every: 6,
+        stmt_depth: 2,
+    };
     /// Larger programs, for bug hunting with other seeds (`ADFLEX_CORPUS_SIZE=big`).
-    pub const BIG: Sizes = Sizes { kernel_stmts: (5, 10), func_stmts: (2, 4), leaf_p: 0.35, linalg_every: 2, stmt_depth: 3 };
+    pub const BIG: Sizes = Sizes {
+        kernel_stmts: (5, 10),
+        func_stmts: (2, 4),
+        leaf_p: 0.35,
+        linalg_every: 2,
+        stmt_depth: 3,
+    };
 }
 
 static SIZES: std::sync::OnceLock<Sizes> = std::sync::OnceLock::new();
@@ -386,11 +409,19 @@ impl<'a> Gen<'a> {
     }
 
     fn declare(&mut self, name: &str, ty: Ty, mutable: bool) {
-        self.scopes.last_mut().unwrap().push(Var { name: name.to_string(), ty, mutable });
+        self.scopes.last_mut().unwrap().push(Var {
+            name: name.to_string(),
+            ty,
+            mutable,
+        });
     }
 
     fn declare_int(&mut self, name: &str, safe: bool, unrolled: bool) {
-        self.ints.last_mut().unwrap().push(IntVar { name: name.to_string(), safe, unrolled });
+        self.ints.last_mut().unwrap().push(IntVar {
+            name: name.to_string(),
+            safe,
+            unrolled,
+        });
     }
 
     /// The visible variables (a shadowed one only in its newest binding).
@@ -482,7 +513,10 @@ impl<'a> Gen<'a> {
         }
         self.feat.hit("squash");
         let b = 5.0;
-        S { s: self.sq_call(&e.s, "5.0"), iv: e.iv.inc(|x| b * (x / b).tanh()) }
+        S {
+            s: self.sq_call(&e.s, "5.0"),
+            iv: e.iv.inc(|x| b * (x / b).tanh()),
+        }
     }
 
     /// `e` squashed into the interval `into` (a `let mut` envelope or a parameter's range).
@@ -508,7 +542,10 @@ impl<'a> Gen<'a> {
         } else {
             format!("sqi({}, {ms}, {rs})", e.s)
         };
-        S { s, iv: e.iv.inc(|x| mv + rv * ((x - mv) / rv).tanh()) }
+        S {
+            s,
+            iv: e.iv.inc(|x| mv + rv * ((x - mv) / rv).tanh()),
+        }
     }
 
     /// A scalar bounded away from zero: `[>= 0.3, <= CAP]`.
@@ -520,16 +557,34 @@ impl<'a> Gen<'a> {
         match self.rng.below(6) {
             0 if e.iv.mag() <= 2.5 => {
                 let s = self.share(&e.s, |s| format!("1.0 + {s} * {s}"));
-                S { s: format!("({s})"), iv: e.iv.sqr().add(Iv::pt(1.0)) }
+                S {
+                    s: format!("({s})"),
+                    iv: e.iv.sqr().add(Iv::pt(1.0)),
+                }
             }
-            0 | 1 => S { s: format!("exp(tanh({}))", e.s), iv: e.iv.inc(|x| x.tanh().exp()) },
-            2 => S { s: format!("(2.0 + sin({}))", e.s), iv: iv(1.0, 3.0) },
-            3 => S { s: format!("(1.5 + tanh({}))", e.s), iv: e.iv.inc(|x| 1.5 + x.tanh()) },
+            0 | 1 => S {
+                s: format!("exp(tanh({}))", e.s),
+                iv: e.iv.inc(|x| x.tanh().exp()),
+            },
+            2 => S {
+                s: format!("(2.0 + sin({}))", e.s),
+                iv: iv(1.0, 3.0),
+            },
+            3 => S {
+                s: format!("(1.5 + tanh({}))", e.s),
+                iv: e.iv.inc(|x| 1.5 + x.tanh()),
+            },
             4 if e.iv.mag() <= 2.5 => {
                 let s = self.share(&e.s, |s| format!("{s} * {s} + 0.5"));
-                S { s: format!("sqrt({s})"), iv: e.iv.sqr().add(Iv::pt(0.5)).inc(f64::sqrt) }
+                S {
+                    s: format!("sqrt({s})"),
+                    iv: e.iv.sqr().add(Iv::pt(0.5)).inc(f64::sqrt),
+                }
             }
-            _ => S { s: format!("(1.2 + cos({}))", e.s), iv: iv(0.2, 2.2) },
+            _ => S {
+                s: format!("(1.2 + cos({}))", e.s),
+                iv: iv(0.2, 2.2),
+            },
         }
     }
 
@@ -540,17 +595,31 @@ impl<'a> Gen<'a> {
             return e;
         }
         let (bs, bv) = lit(b);
-        S { s: self.sq_call(&e.s, &bs), iv: e.iv.inc(|x| bv * (x / bv).tanh()) }
+        S {
+            s: self.sq_call(&e.s, &bs),
+            iv: e.iv.inc(|x| bv * (x / bv).tanh()),
+        }
     }
 
     fn leaf(&mut self) -> S {
         loop {
-            match self.rng.weighted(&[if self.kernel { 8 } else { 0 }, 8, 2, 2, 1, 1, if self.kernel { 1 } else { 0 }]) {
+            match self.rng.weighted(&[
+                if self.kernel { 8 } else { 0 },
+                8,
+                2,
+                2,
+                1,
+                1,
+                if self.kernel { 1 } else { 0 },
+            ]) {
                 0 => {
                     let j = self.rng.below(self.n_inputs);
                     let i = self.index();
                     self.feat.hit("array read");
-                    return S { s: format!("x{j}[{i}]"), iv: INPUT };
+                    return S {
+                        s: format!("x{j}[{i}]"),
+                        iv: INPUT,
+                    };
                 }
                 1 => {
                     if let Some(v) = self.pick_var(|v| matches!(v.ty, Ty::S(_))) {
@@ -570,15 +639,24 @@ impl<'a> Gen<'a> {
                         return match self.rng.below(3) {
                             0 => {
                                 let k = self.rng.below(3);
-                                S { s: format!("{}.{}", v.name, ["x", "y", "z"][k]), iv: c[k] }
+                                S {
+                                    s: format!("{}.{}", v.name, ["x", "y", "z"][k]),
+                                    iv: c[k],
+                                }
                             }
                             1 if !ints.is_empty() => {
                                 let k = &ints[self.rng.below(ints.len())];
-                                S { s: format!("{}[{} % 3]", v.name, k.name), iv: c[0].hull(c[1]).hull(c[2]) }
+                                S {
+                                    s: format!("{}[{} % 3]", v.name, k.name),
+                                    iv: c[0].hull(c[1]).hull(c[2]),
+                                }
                             }
                             _ => {
                                 let k = self.rng.below(3);
-                                S { s: format!("{}[{k}]", v.name), iv: c[k] }
+                                S {
+                                    s: format!("{}[{k}]", v.name),
+                                    iv: c[k],
+                                }
                             }
                         };
                     }
@@ -588,20 +666,29 @@ impl<'a> Gen<'a> {
                         let Ty::M(c) = v.ty else { unreachable!() };
                         let (r, k) = (self.rng.below(3), self.rng.below(3));
                         self.feat.hit("matrix component read");
-                        return S { s: format!("{}[({r}, {k})]", v.name), iv: c[r * 3 + k] };
+                        return S {
+                            s: format!("{}[({r}, {k})]", v.name),
+                            iv: c[r * 3 + k],
+                        };
                     }
                 }
                 5 => {
                     if let Some(v) = self.pick_var(|v| matches!(v.ty, Ty::Q)) {
                         let k = self.rng.below(4);
                         self.feat.hit("quaternion component read");
-                        return S { s: format!("{}.{}", v.name, ["x", "y", "z", "w"][k]), iv: UNIT };
+                        return S {
+                            s: format!("{}.{}", v.name, ["x", "y", "z", "w"][k]),
+                            iv: UNIT,
+                        };
                     }
                 }
                 _ => {
                     if let Some(i) = self.int_subject() {
                         self.feat.hit("int as float");
-                        return S { s: format!("({i} as R * 0.1)"), iv: iv(0.0, 1.6) };
+                        return S {
+                            s: format!("({i} as R * 0.1)"),
+                            iv: iv(0.0, 1.6),
+                        };
                     }
                 }
             }
@@ -618,57 +705,83 @@ impl<'a> Gen<'a> {
 
     fn unary(&mut self, f: &'static str, a: S, r: Iv) -> S {
         self.feat.hit(f);
-        S { s: format!("{f}({})", a.s), iv: r }
+        S {
+            s: format!("{f}({})", a.s),
+            iv: r,
+        }
     }
 
     fn scalar_op(&mut self, d: u32) -> S {
         let w = [
-            8, // 0 + -
-            6, // 1 *
-            3, // 2 /
-            2, // 3 neg
-            8, // 4 smooth unary
-            4, // 5 sqrt/ln/log
-            3, // 6 pow/powi
-            2, // 7 atan2
-            4, // 8 min/max/clamp
-            2, // 9 abs/sign/floor/...
-            3, // 10 select / if-expr
-            2, // 11 match-expr
-            5, // 12 vector-derived
+            8,                                // 0 + -
+            6,                                // 1 *
+            3,                                // 2 /
+            2,                                // 3 neg
+            8,                                // 4 smooth unary
+            4,                                // 5 sqrt/ln/log
+            3,                                // 6 pow/powi
+            2,                                // 7 atan2
+            4,                                // 8 min/max/clamp
+            2,                                // 9 abs/sign/floor/...
+            3,                                // 10 select / if-expr
+            2,                                // 11 match-expr
+            5,                                // 12 vector-derived
             if !self.linalg { 0 } else { 8 }, // 13 matrix-derived
             if !self.linalg { 0 } else { 5 }, // 14 quaternion-derived
-            if self.funcs.is_empty() || self.no_calls { 0 } else { 3 }, // 15 call
-            2, // 16 no_grad
-            2, // 17 lerp/smoothstep/step
-            2, // 18 vec2 / vec4 / mat22
-            1, // 19 block expression
+            if self.funcs.is_empty() || self.no_calls {
+                0
+            } else {
+                3
+            }, // 15 call
+            2,                                // 16 no_grad
+            2,                                // 17 lerp/smoothstep/step
+            2,                                // 18 vec2 / vec4 / mat22
+            1,                                // 19 block expression
         ];
         match self.rng.weighted(&w) {
             0 => {
                 let a = self.scalar(d - 1);
                 let b = self.scalar(d - 1);
                 if self.rng.chance(0.5) {
-                    S { s: format!("{} + {}", a.s, b.s), iv: a.iv.add(b.iv) }.paren()
+                    S {
+                        s: format!("{} + {}", a.s, b.s),
+                        iv: a.iv.add(b.iv),
+                    }
+                    .paren()
                 } else {
-                    S { s: format!("{} - {}", a.s, b.s), iv: a.iv.sub(b.iv) }.paren()
+                    S {
+                        s: format!("{} - {}", a.s, b.s),
+                        iv: a.iv.sub(b.iv),
+                    }
+                    .paren()
                 }
             }
             1 => {
                 let a = self.scalar(d - 1);
                 let b = self.scalar(d - 1);
-                S { s: format!("{} * {}", a.s, b.s), iv: a.iv.mul(b.iv) }.paren()
+                S {
+                    s: format!("{} * {}", a.s, b.s),
+                    iv: a.iv.mul(b.iv),
+                }
+                .paren()
             }
             2 => {
                 let a = self.scalar(d - 1);
                 let b = self.pos(d - 1);
                 self.feat.hit("div");
-                S { s: format!("{} / {}", a.s, b.s), iv: a.iv.div(b.iv) }.paren()
+                S {
+                    s: format!("{} / {}", a.s, b.s),
+                    iv: a.iv.div(b.iv),
+                }
+                .paren()
             }
             3 => {
                 let a = self.scalar(d - 1);
                 self.feat.hit("neg");
-                S { s: format!("(-{})", a.s), iv: a.iv.neg() }
+                S {
+                    s: format!("(-{})", a.s),
+                    iv: a.iv.neg(),
+                }
             }
             4 => {
                 let a = self.scalar(d - 1);
@@ -684,7 +797,11 @@ impl<'a> Gen<'a> {
                         self.unary("atan", a, r)
                     }
                     4 => {
-                        let a = if a.iv.hi <= 2.0 && a.iv.lo >= -CAP { a } else { self.bounded_from(a, 2.0) };
+                        let a = if a.iv.hi <= 2.0 && a.iv.lo >= -CAP {
+                            a
+                        } else {
+                            self.bounded_from(a, 2.0)
+                        };
                         let r = a.iv.inc(f64::exp);
                         self.unary("exp", a, r)
                     }
@@ -700,15 +817,24 @@ impl<'a> Gen<'a> {
                     }
                     6 => {
                         self.feat.hit("tan");
-                        S { s: format!("tan(tanh({}))", a.s), iv: a.iv.inc(|x| x.tanh().tan()) }
+                        S {
+                            s: format!("tan(tanh({}))", a.s),
+                            iv: a.iv.inc(|x| x.tanh().tan()),
+                        }
                     }
                     7 => {
                         self.feat.hit("asin");
-                        S { s: format!("asin(0.9 * tanh({}))", a.s), iv: a.iv.inc(|x| (0.9 * x.tanh()).asin()) }
+                        S {
+                            s: format!("asin(0.9 * tanh({}))", a.s),
+                            iv: a.iv.inc(|x| (0.9 * x.tanh()).asin()),
+                        }
                     }
                     _ => {
                         self.feat.hit("acos");
-                        S { s: format!("acos(0.9 * sin({}))", a.s), iv: iv(0.0, std::f64::consts::PI) }
+                        S {
+                            s: format!("acos(0.9 * sin({}))", a.s),
+                            iv: iv(0.0, std::f64::consts::PI),
+                        }
                     }
                 }
             }
@@ -737,7 +863,11 @@ impl<'a> Gen<'a> {
             6 => {
                 if self.rng.chance(0.6) {
                     let base = self.pos(d - 1);
-                    let base = if base.iv.hi <= 4.0 { base } else { self.bounded_from(base, 4.0) };
+                    let base = if base.iv.hi <= 4.0 {
+                        base
+                    } else {
+                        self.bounded_from(base, 4.0)
+                    };
                     let (es, eiv) = if self.rng.chance(0.5) {
                         let (s, v) = lit(self.rng.range(-1.5, 2.5));
                         (s, Iv::pt(v))
@@ -748,13 +878,23 @@ impl<'a> Gen<'a> {
                     let lb = base.iv.inc(f64::ln);
                     let r = lb.mul(eiv).inc(f64::exp);
                     self.feat.hit("pow");
-                    S { s: format!("pow({}, {es})", base.s), iv: r }
+                    S {
+                        s: format!("pow({}, {es})", base.s),
+                        iv: r,
+                    }
                 } else {
                     let a = self.bounded(d - 1, 2.5);
                     let n = self.rng.int(2, 3) as i32;
                     self.feat.hit("powi");
-                    let r = if n == 2 { a.iv.sqr() } else { a.iv.inc(|x| x.powi(3)) };
-                    S { s: format!("powi({}, {n})", a.s), iv: r }
+                    let r = if n == 2 {
+                        a.iv.sqr()
+                    } else {
+                        a.iv.inc(|x| x.powi(3))
+                    };
+                    S {
+                        s: format!("powi({}, {n})", a.s),
+                        iv: r,
+                    }
                 }
             }
             7 => {
@@ -763,9 +903,15 @@ impl<'a> Gen<'a> {
                 self.feat.hit("atan2");
                 let half = std::f64::consts::FRAC_PI_2;
                 if self.rng.chance(0.5) {
-                    S { s: format!("atan2({}, {})", a.s, b.s), iv: iv(-half, half) }
+                    S {
+                        s: format!("atan2({}, {})", a.s, b.s),
+                        iv: iv(-half, half),
+                    }
                 } else {
-                    S { s: format!("atan2({}, {})", b.s, a.s), iv: iv(0.0, std::f64::consts::PI) }
+                    S {
+                        s: format!("atan2({}, {})", b.s, a.s),
+                        iv: iv(0.0, std::f64::consts::PI),
+                    }
                 }
             }
             8 => {
@@ -774,26 +920,38 @@ impl<'a> Gen<'a> {
                     0 => {
                         let b = self.scalar(d - 1);
                         self.feat.hit("min");
-                        S { s: format!("min({}, {})", a.s, b.s), iv: iv(a.iv.lo.min(b.iv.lo), a.iv.hi.min(b.iv.hi)) }
+                        S {
+                            s: format!("min({}, {})", a.s, b.s),
+                            iv: iv(a.iv.lo.min(b.iv.lo), a.iv.hi.min(b.iv.hi)),
+                        }
                     }
                     1 => {
                         let b = self.scalar(d - 1);
                         self.feat.hit("max");
-                        S { s: format!("max({}, {})", a.s, b.s), iv: iv(a.iv.lo.max(b.iv.lo), a.iv.hi.max(b.iv.hi)) }
+                        S {
+                            s: format!("max({}, {})", a.s, b.s),
+                            iv: iv(a.iv.lo.max(b.iv.lo), a.iv.hi.max(b.iv.hi)),
+                        }
                     }
                     _ => {
                         self.feat.hit("clamp");
                         if self.rng.chance(0.5) {
                             let (l, lv) = self.lit_in(a.iv);
                             let (h, hv) = lit(lv + self.rng.range(0.1, 1.5));
-                            S { s: format!("clamp({}, {l}, {h})", a.s), iv: iv(lv, hv) }
+                            S {
+                                s: format!("clamp({}, {l}, {h})", a.s),
+                                iv: iv(lv, hv),
+                            }
                         } else {
                             let lo = self.scalar(d - 1);
                             let w = self.pos(0);
                             let hi_iv = lo.iv.add(w.iv);
                             S {
                                 s: format!("clamp({}, {lo}, {lo} + {w})", a.s, lo = lo.s, w = w.s),
-                                iv: iv(lo.iv.lo.max(a.iv.lo.min(hi_iv.lo)), hi_iv.hi.min(a.iv.hi.max(lo.iv.hi))),
+                                iv: iv(
+                                    lo.iv.lo.max(a.iv.lo.min(hi_iv.lo)),
+                                    hi_iv.hi.min(a.iv.hi.max(lo.iv.hi)),
+                                ),
                             }
                         }
                     }
@@ -804,28 +962,43 @@ impl<'a> Gen<'a> {
                 match self.rng.below(5) {
                     0 | 1 => {
                         self.feat.hit("abs");
-                        S { s: format!("abs({})", a.s), iv: iv(a.iv.mig(), a.iv.mag()) }
+                        S {
+                            s: format!("abs({})", a.s),
+                            iv: iv(a.iv.mig(), a.iv.mag()),
+                        }
                     }
                     2 => {
                         let b = self.scalar(d - 1);
                         self.feat.hit("sign");
                         let m = b.iv.mag();
-                        S { s: format!("(sign({}) * {})", a.s, b.s), iv: iv(-m, m) }
+                        S {
+                            s: format!("(sign({}) * {})", a.s, b.s),
+                            iv: iv(-m, m),
+                        }
                     }
                     3 => {
                         self.feat.hit("floor");
                         let s = self.share(&a.s, |s| format!("floor({s}) * 0.5 + {s}"));
-                        S { s: format!("({s})"), iv: a.iv.inc(f64::floor).scale(0.5).add(a.iv) }
+                        S {
+                            s: format!("({s})"),
+                            iv: a.iv.inc(f64::floor).scale(0.5).add(a.iv),
+                        }
                     }
                     _ => {
                         if self.rng.chance(0.5) {
                             self.feat.hit("round");
                             let s = self.share(&a.s, |s| format!("round({s}) * 0.25 + {s}"));
-                            S { s: format!("({s})"), iv: a.iv.inc(f64::round).scale(0.25).add(a.iv) }
+                            S {
+                                s: format!("({s})"),
+                                iv: a.iv.inc(f64::round).scale(0.25).add(a.iv),
+                            }
                         } else {
                             self.feat.hit("ceil");
                             let s = self.share(&a.s, |s| format!("ceil({s}) * 0.25 - {s}"));
-                            S { s: format!("({s})"), iv: a.iv.inc(f64::ceil).scale(0.25).sub(a.iv) }
+                            S {
+                                s: format!("({s})"),
+                                iv: a.iv.inc(f64::ceil).scale(0.25).sub(a.iv),
+                            }
                         }
                     }
                 }
@@ -836,22 +1009,33 @@ impl<'a> Gen<'a> {
                 let b = self.scalar(d - 1);
                 if self.rng.chance(0.5) {
                     self.feat.hit("select");
-                    S { s: format!("select({c}, {}, {})", a.s, b.s), iv: a.iv.hull(b.iv) }
+                    S {
+                        s: format!("select({c}, {}, {})", a.s, b.s),
+                        iv: a.iv.hull(b.iv),
+                    }
                 } else if self.rng.chance(0.6) {
                     self.feat.hit("if expression");
-                    S { s: format!("(if {c} {{ {} }} else {{ {} }})", a.s, b.s), iv: a.iv.hull(b.iv) }
+                    S {
+                        s: format!("(if {c} {{ {} }} else {{ {} }})", a.s, b.s),
+                        iv: a.iv.hull(b.iv),
+                    }
                 } else {
                     let c2 = self.cond(d - 1);
                     let e = self.scalar(d - 1);
                     self.feat.hit("if else-if expression");
                     S {
-                        s: format!("(if {c} {{ {} }} else if {c2} {{ {} }} else {{ {} }})", a.s, b.s, e.s),
+                        s: format!(
+                            "(if {c} {{ {} }} else if {c2} {{ {} }} else {{ {} }})",
+                            a.s, b.s, e.s
+                        ),
                         iv: a.iv.hull(b.iv).hull(e.iv),
                     }
                 }
             }
             11 => {
-                let Some(subj) = self.int_subject() else { return self.leaf() };
+                let Some(subj) = self.int_subject() else {
+                    return self.leaf();
+                };
                 let a = self.scalar(d - 1);
                 let b = self.scalar(d - 1);
                 let c = self.scalar(d - 1);
@@ -862,7 +1046,10 @@ impl<'a> Gen<'a> {
                     1 => format!("0 | 2 => {}, 1 => {}, _ => {}", a.s, b.s, c.s),
                     _ => format!("0..=1 => {}, 2 => {}, _ => {}", a.s, b.s, c.s),
                 };
-                S { s: format!("(match {subj} % {m} {{ {arms} }})"), iv: a.iv.hull(b.iv).hull(c.iv) }
+                S {
+                    s: format!("(match {subj} % {m} {{ {arms} }})"),
+                    iv: a.iv.hull(b.iv).hull(c.iv),
+                }
             }
             12 => {
                 let v = self.vec(d - 1);
@@ -870,21 +1057,35 @@ impl<'a> Gen<'a> {
                     0 | 1 => {
                         let w = self.vec(d - 1);
                         self.feat.hit("dot");
-                        let r = (0..3).map(|k| v.c[k].mul(w.c[k])).fold(Iv::pt(0.0), Iv::add);
-                        S { s: format!("dot({}, {})", v.s, w.s), iv: r }
+                        let r = (0..3)
+                            .map(|k| v.c[k].mul(w.c[k]))
+                            .fold(Iv::pt(0.0), Iv::add);
+                        S {
+                            s: format!("dot({}, {})", v.s, w.s),
+                            iv: r,
+                        }
                     }
                     2 if v.nlo >= 0.2 => {
                         self.feat.hit("length");
-                        S { s: format!("length({})", v.s), iv: iv(v.nlo, vnhi(&v.c)) }
+                        S {
+                            s: format!("length({})", v.s),
+                            iv: iv(v.nlo, vnhi(&v.c)),
+                        }
                     }
                     3 => {
                         self.feat.hit("length_sq");
-                        S { s: format!("length_sq({})", v.s), iv: iv(v.nlo * v.nlo, vnhi(&v.c).powi(2)) }
+                        S {
+                            s: format!("length_sq({})", v.s),
+                            iv: iv(v.nlo * v.nlo, vnhi(&v.c).powi(2)),
+                        }
                     }
                     _ => {
                         let k = self.rng.below(3);
                         self.feat.hit("component of an expression");
-                        S { s: format!("{}.{}", v.paren_s(), ["x", "y", "z"][k]), iv: v.c[k] }
+                        S {
+                            s: format!("{}.{}", v.paren_s(), ["x", "y", "z"][k]),
+                            iv: v.c[k],
+                        }
                     }
                 }
             }
@@ -894,24 +1095,40 @@ impl<'a> Gen<'a> {
                     0 => {
                         self.feat.hit("determinant");
                         let dom = dominance(&m.c);
-                        let rows: f64 = (0..3).map(|r| (0..3).map(|k| m.c[r * 3 + k].mag()).sum::<f64>()).product();
+                        let rows: f64 = (0..3)
+                            .map(|r| (0..3).map(|k| m.c[r * 3 + k].mag()).sum::<f64>())
+                            .product();
                         let lo = if dom > 0.0 { dom.powi(3) } else { -rows };
-                        S { s: format!("determinant({})", m.s), iv: iv(lo, rows) }
+                        S {
+                            s: format!("determinant({})", m.s),
+                            iv: iv(lo, rows),
+                        }
                     }
                     1 => {
                         self.feat.hit("trace");
-                        S { s: format!("trace({})", m.s), iv: m.c[0].add(m.c[4]).add(m.c[8]) }
+                        S {
+                            s: format!("trace({})", m.s),
+                            iv: m.c[0].add(m.c[4]).add(m.c[8]),
+                        }
                     }
                     2 => {
                         let n = self.mat(d - 1);
                         self.feat.hit("ddot");
-                        let r = (0..9).map(|k| m.c[k].mul(n.c[k])).fold(Iv::pt(0.0), Iv::add);
-                        S { s: format!("ddot({}, {})", m.s, n.s), iv: r }
+                        let r = (0..9)
+                            .map(|k| m.c[k].mul(n.c[k]))
+                            .fold(Iv::pt(0.0), Iv::add);
+                        S {
+                            s: format!("ddot({}, {})", m.s, n.s),
+                            iv: r,
+                        }
                     }
                     _ => {
                         let (r, k) = (self.rng.below(3), self.rng.below(3));
                         self.feat.hit("matrix component of an expression");
-                        S { s: format!("{}[({r}, {k})]", m.paren_s()), iv: m.c[r * 3 + k] }
+                        S {
+                            s: format!("{}[({r}, {k})]", m.paren_s()),
+                            iv: m.c[r * 3 + k],
+                        }
                     }
                 }
             }
@@ -919,16 +1136,23 @@ impl<'a> Gen<'a> {
                 let q = self.quat(d - 1);
                 if self.rng.chance(0.3) {
                     self.feat.hit("quat_length");
-                    S { s: format!("quat_length({})", q.s), iv: iv(0.99, 1.01) }
+                    S {
+                        s: format!("quat_length({})", q.s),
+                        iv: iv(0.99, 1.01),
+                    }
                 } else {
                     let k = self.rng.below(4);
                     self.feat.hit("quaternion component of an expression");
-                    S { s: format!("{}.{}", q.paren_s(), ["x", "y", "z", "w"][k]), iv: UNIT }
+                    S {
+                        s: format!("{}.{}", q.paren_s(), ["x", "y", "z", "w"][k]),
+                        iv: UNIT,
+                    }
                 }
             }
             15 => {
-                let cands: Vec<usize> =
-                    (0..self.funcs.len()).filter(|&i| matches!(self.funcs[i].ret, Ty::S(_))).collect();
+                let cands: Vec<usize> = (0..self.funcs.len())
+                    .filter(|&i| matches!(self.funcs[i].ret, Ty::S(_)))
+                    .collect();
                 if cands.is_empty() {
                     return self.leaf();
                 }
@@ -938,7 +1162,10 @@ impl<'a> Gen<'a> {
                 self.called.insert(fi);
                 self.feat.hit("diff_func call");
                 let Ty::S(r) = f.ret else { unreachable!() };
-                S { s: format!("{}({args})", f.name), iv: r }
+                S {
+                    s: format!("{}({args})", f.name),
+                    iv: r,
+                }
             }
             16 => {
                 let a = self.no_grad_arg(d - 1);
@@ -953,11 +1180,17 @@ impl<'a> Gen<'a> {
                     },
                     1 => {
                         let m = b.iv.mag();
-                        S { s: format!("(no_grad(step({})) * {})", a.s, b.s), iv: iv(-m, m).hull(Iv::pt(0.0)) }
+                        S {
+                            s: format!("(no_grad(step({})) * {})", a.s, b.s),
+                            iv: iv(-m, m).hull(Iv::pt(0.0)),
+                        }
                     }
                     _ => {
                         let s = self.share(&a.s, |s| format!("no_grad({s}.floor() - {s}.floor())"));
-                        S { s: format!("({s} + {})", b.s), iv: b.iv }
+                        S {
+                            s: format!("({s} + {})", b.s),
+                            iv: b.iv,
+                        }
                     }
                 }
             }
@@ -969,19 +1202,28 @@ impl<'a> Gen<'a> {
                         let t = self.scalar(d - 1);
                         self.feat.hit("lerp");
                         let r = a.iv.add(b.iv.sub(a.iv).mul(t.iv));
-                        S { s: format!("lerp({}, {}, {})", a.s, b.s, t.s), iv: r }
+                        S {
+                            s: format!("lerp({}, {}, {})", a.s, b.s, t.s),
+                            iv: r,
+                        }
                     }
                     1 => {
                         self.feat.hit("smoothstep");
                         let (e0, v0) = self.lit_in(a.iv);
                         let (e1, _) = lit(v0 + self.rng.range(0.2, 2.0));
-                        S { s: format!("smoothstep({e0}, {e1}, {})", a.s), iv: iv(0.0, 1.0) }
+                        S {
+                            s: format!("smoothstep({e0}, {e1}, {})", a.s),
+                            iv: iv(0.0, 1.0),
+                        }
                     }
                     _ => {
                         let b = self.scalar(d - 1);
                         self.feat.hit("step");
                         let m = b.iv.mag();
-                        S { s: format!("(step({}) * {})", a.s, b.s), iv: iv(-m, m) }
+                        S {
+                            s: format!("(step({}) * {})", a.s, b.s),
+                            iv: iv(-m, m),
+                        }
                     }
                 }
             }
@@ -993,15 +1235,24 @@ impl<'a> Gen<'a> {
                         let p = self.pos(0);
                         self.feat.hit("vec2");
                         let hi = (a.iv.mag().powi(2) + p.iv.hi.powi(2)).sqrt();
-                        S { s: format!("length(vec2({}, {}))", a.s, p.s), iv: iv(p.iv.lo, hi) }
+                        S {
+                            s: format!("length(vec2({}, {}))", a.s, p.s),
+                            iv: iv(p.iv.lo, hi),
+                        }
                     }
                     1 => {
                         let c = self.bounded(0, 3.0);
                         let e = self.bounded(0, 3.0);
                         self.feat.hit("vec4");
-                        let r = a.iv.mul(c.iv).add(b.iv.mul(e.iv)).add(a.iv.mul(e.iv)).add(Iv::pt(0.5).mul(b.iv));
+                        let r =
+                            a.iv.mul(c.iv)
+                                .add(b.iv.mul(e.iv))
+                                .add(a.iv.mul(e.iv))
+                                .add(Iv::pt(0.5).mul(b.iv));
                         let (bs, es) = (b.s.clone(), e.s.clone());
-                        let inner = self.share(&bs, |b| format!("dot(vec4(ZA, {b}, ZA, 0.5), vec4({}, ZE, ZE, {b}))", c.s));
+                        let inner = self.share(&bs, |b| {
+                            format!("dot(vec4(ZA, {b}, ZA, 0.5), vec4({}, ZE, ZE, {b}))", c.s)
+                        });
                         let inner = self.share(&a.s, |a| inner.replace("ZA", a));
                         let s = self.share(&es, |e| inner.replace("ZE", e));
                         S { s, iv: r }
@@ -1012,7 +1263,13 @@ impl<'a> Gen<'a> {
                         let e = self.bounded(0, 3.0);
                         let r = a.iv.mul(e.iv).sub(b.iv.mul(c.iv));
                         match self.rng.below(3) {
-                            0 => S { s: format!("determinant(mat22({}, {}, {}, {}))", a.s, b.s, c.s, e.s), iv: r },
+                            0 => S {
+                                s: format!(
+                                    "determinant(mat22({}, {}, {}, {}))",
+                                    a.s, b.s, c.s, e.s
+                                ),
+                                iv: r,
+                            },
                             1 => {
                                 // trace(I + [a c; b e]) = 2 + a + e
                                 self.feat.hit("mat22_cols");
@@ -1024,7 +1281,13 @@ impl<'a> Gen<'a> {
                             _ => {
                                 self.feat.hit("mat22 * vec2");
                                 let r2 = a.iv.mul(c.iv).add(b.iv.mul(e.iv));
-                                S { s: format!("(mat22({}, {}, 0.5, 0.25) * vec2({}, {})).x", a.s, b.s, c.s, e.s), iv: r2 }
+                                S {
+                                    s: format!(
+                                        "(mat22({}, {}, 0.5, 0.25) * vec2({}, {})).x",
+                                        a.s, b.s, c.s, e.s
+                                    ),
+                                    iv: r2,
+                                }
                             }
                         }
                     }
@@ -1037,7 +1300,10 @@ impl<'a> Gen<'a> {
                             format!("inverse(mat22_rows(vec2(4.5 + tanh(ZA), {b}), vec2(ZA * 0.5, 5.0 + sin({b}))))[({r}, {k})]")
                         });
                         let s = self.share(&a.s, |a| inner.replace("ZA", a));
-                        S { s: format!("({s})"), iv: iv(-2.0, 2.0) }
+                        S {
+                            s: format!("({s})"),
+                            iv: iv(-2.0, 2.0),
+                        }
                     }
                 }
             }
@@ -1047,7 +1313,11 @@ impl<'a> Gen<'a> {
                 let name = self.fresh("b");
                 let b = self.scalar(d - 1);
                 self.feat.hit("block expression");
-                S { s: format!("{{ let {name} = {}; {name} * {} }}", a.s, b.s), iv: a.iv.mul(b.iv) }.paren()
+                S {
+                    s: format!("{{ let {name} = {}; {name} * {} }}", a.s, b.s),
+                    iv: a.iv.mul(b.iv),
+                }
+                .paren()
             }
         }
     }
@@ -1077,7 +1347,10 @@ impl<'a> Gen<'a> {
             return a;
         }
         let (bs, bv) = lit(b);
-        S { s: self.sq_call(&a.s, &bs), iv: a.iv.inc(|x| bv * (x / bv).tanh()) }
+        S {
+            s: self.sq_call(&a.s, &bs),
+            iv: a.iv.inc(|x| bv * (x / bv).tanh()),
+        }
     }
 
     fn call_args(&mut self, f: &FuncSig, d: u32) -> String {
@@ -1101,7 +1374,11 @@ impl<'a> Gen<'a> {
                         args.push(format!("vec3({}, {}, {})", cs[0], cs[1], cs[2]));
                     } else {
                         let v = self.vec(d);
-                        let v = if vmag(&v.c) <= c[0].hi { v } else { self.vsquash(v) };
+                        let v = if vmag(&v.c) <= c[0].hi {
+                            v
+                        } else {
+                            self.vsquash(v)
+                        };
                         args.push(v.s);
                     }
                 }
@@ -1125,7 +1402,9 @@ impl<'a> Gen<'a> {
                 }
             }
             1 => {
-                let Some(i) = self.int_subject() else { return self.cond(d) };
+                let Some(i) = self.int_subject() else {
+                    return self.cond(d);
+                };
                 self.feat.hit("integer condition");
                 match self.rng.below(3) {
                     0 => format!("{i} % 2 == {}", self.rng.below(2)),
@@ -1175,16 +1454,26 @@ impl<'a> Gen<'a> {
         });
         let nlo = g(v.nlo).min(g(nhi)).min(5.0);
         let s = if self.no_calls {
-            let s = self.share(&v.s, |w| format!("{w} * (1.0 / (1.0 + length_sq({w}) * 0.01))"));
+            let s = self.share(&v.s, |w| {
+                format!("{w} * (1.0 / (1.0 + length_sq({w}) * 0.01))")
+            });
             format!("({s})")
         } else {
             format!("vsq({})", v.s)
         };
-        V { s, c, nlo: nlo.min(vnhi(&c)) }
+        V {
+            s,
+            c,
+            nlo: nlo.min(vnhi(&c)),
+        }
     }
 
     fn vec(&mut self, d: u32) -> V {
-        let v = if d == 0 || self.rng.chance(0.25) { self.vec_leaf(d) } else { self.vec_op(d) };
+        let v = if d == 0 || self.rng.chance(0.25) {
+            self.vec_leaf(d)
+        } else {
+            self.vec_op(d)
+        };
         if vmag(&v.c) > CAP {
             self.vsquash(v)
         } else {
@@ -1203,7 +1492,10 @@ impl<'a> Gen<'a> {
         let b = self.scalar(d.min(1));
         let c = self.scalar(d.min(1));
         self.feat.hit("vec3");
-        v_of(format!("vec3({}, {}, {})", a.s, b.s, c.s), [a.iv, b.iv, c.iv])
+        v_of(
+            format!("vec3({}, {}, {})", a.s, b.s, c.s),
+            [a.iv, b.iv, c.iv],
+        )
     }
 
     /// A vector with length bounded away from 0.
@@ -1218,19 +1510,31 @@ impl<'a> Gen<'a> {
         let b = self.scalar(d.min(1));
         let c = self.pos(0);
         self.feat.hit("vec3");
-        v_of(format!("vec3({}, {}, {})", a.s, b.s, c.s), [a.iv, b.iv, c.iv])
+        v_of(
+            format!("vec3({}, {}, {})", a.s, b.s, c.s),
+            [a.iv, b.iv, c.iv],
+        )
     }
 
     fn vec_op(&mut self, d: u32) -> V {
         let nm = if self.linalg { 1 } else { 0 };
-        match self.rng.weighted(&[6, 4, 2, 3, 3, 2, 3 * nm, 2 * nm, 2, 1, 2, 2, 1]) {
+        match self
+            .rng
+            .weighted(&[6, 4, 2, 3, 3, 2, 3 * nm, 2 * nm, 2, 1, 2, 2, 1])
+        {
             0 => {
                 let a = self.vec(d - 1);
                 let b = self.vec(d - 1);
                 if self.rng.chance(0.5) {
-                    v_of(format!("({} + {})", a.s, b.s), [0, 1, 2].map(|k| a.c[k].add(b.c[k])))
+                    v_of(
+                        format!("({} + {})", a.s, b.s),
+                        [0, 1, 2].map(|k| a.c[k].add(b.c[k])),
+                    )
                 } else {
-                    v_of(format!("({} - {})", a.s, b.s), [0, 1, 2].map(|k| a.c[k].sub(b.c[k])))
+                    v_of(
+                        format!("({} - {})", a.s, b.s),
+                        [0, 1, 2].map(|k| a.c[k].sub(b.c[k])),
+                    )
                 }
             }
             1 => {
@@ -1238,7 +1542,11 @@ impl<'a> Gen<'a> {
                 let s = self.scalar(d - 1);
                 let c = [0, 1, 2].map(|k| a.c[k].mul(s.iv));
                 let nlo = a.nlo * s.iv.mig();
-                let st = if self.rng.chance(0.5) { format!("({} * {})", a.s, s.s) } else { format!("({} * {})", s.s, a.s) };
+                let st = if self.rng.chance(0.5) {
+                    format!("({} * {})", a.s, s.s)
+                } else {
+                    format!("({} * {})", s.s, a.s)
+                };
                 let mut v = v_of(st, c);
                 v.nlo = v.nlo.max(nlo);
                 v
@@ -1276,34 +1584,57 @@ impl<'a> Gen<'a> {
                         UNIT
                     }
                 });
-                V { s: format!("normalize({})", a.s), c, nlo: 0.99 }
+                V {
+                    s: format!("normalize({})", a.s),
+                    c,
+                    nlo: 0.99,
+                }
             }
             5 => {
                 let a = self.vec(d - 1);
                 self.feat.hit("vector neg");
-                V { s: format!("(-{})", a.s), c: a.c.map(Iv::neg), nlo: a.nlo }
+                V {
+                    s: format!("(-{})", a.s),
+                    c: a.c.map(Iv::neg),
+                    nlo: a.nlo,
+                }
             }
             6 => {
                 let m = self.mat(d - 1);
                 let a = self.vec(d - 1);
                 self.feat.hit("matrix * vector");
-                let c = [0, 1, 2].map(|r| (0..3).map(|k| m.c[r * 3 + k].mul(a.c[k])).fold(Iv::pt(0.0), Iv::add));
+                let c = [0, 1, 2].map(|r| {
+                    (0..3)
+                        .map(|k| m.c[r * 3 + k].mul(a.c[k]))
+                        .fold(Iv::pt(0.0), Iv::add)
+                });
                 v_of(format!("({} * {})", m.s, a.s), c)
             }
             7 => {
                 let q = self.quat(d - 1);
                 let a = self.vec(d - 1);
                 let n = vnhi(&a.c);
-                let f = if self.rng.chance(0.5) { "quat_rotate" } else { "quat_rotate_inv" };
+                let f = if self.rng.chance(0.5) {
+                    "quat_rotate"
+                } else {
+                    "quat_rotate_inv"
+                };
                 self.feat.hit(f);
-                V { s: format!("{f}({}, {})", q.s, a.s), c: [iv(-n, n); 3], nlo: a.nlo * 0.99 }
+                V {
+                    s: format!("{f}({}, {})", q.s, a.s),
+                    c: [iv(-n, n); 3],
+                    nlo: a.nlo * 0.99,
+                }
             }
             8 => {
                 let a = self.vec(d - 1);
                 let b = self.vec(d - 1);
                 if self.rng.chance(0.5) {
                     self.feat.hit("cw_mul");
-                    v_of(format!("cw_mul({}, {})", a.s, b.s), [0, 1, 2].map(|k| a.c[k].mul(b.c[k])))
+                    v_of(
+                        format!("cw_mul({}, {})", a.s, b.s),
+                        [0, 1, 2].map(|k| a.c[k].mul(b.c[k])),
+                    )
                 } else {
                     let x = self.pos(0);
                     let y = self.pos(0);
@@ -1378,9 +1709,12 @@ impl<'a> Gen<'a> {
     fn msquash(&mut self, m: M) -> M {
         self.feat.hit("matrix squash");
         // each entry keeps its sign and shrinks, to at most 5 in magnitude
-        let c = m.c.map(|x| iv(x.lo.max(-5.0).min(0.0), x.hi.min(5.0).max(0.0)));
+        let c =
+            m.c.map(|x| iv(x.lo.max(-5.0).min(0.0), x.hi.min(5.0).max(0.0)));
         let s = if self.no_calls {
-            let s = self.share(&m.s, |w| format!("{w} * (1.0 / (1.0 + ddot({w}, {w}) * 0.01))"));
+            let s = self.share(&m.s, |w| {
+                format!("{w} * (1.0 / (1.0 + ddot({w}, {w}) * 0.01))")
+            });
             format!("({s})")
         } else {
             format!("msq({})", m.s)
@@ -1389,7 +1723,11 @@ impl<'a> Gen<'a> {
     }
 
     fn mat(&mut self, d: u32) -> M {
-        let m = if d == 0 || self.rng.chance(0.25) { self.mat_leaf(d) } else { self.mat_op(d) };
+        let m = if d == 0 || self.rng.chance(0.25) {
+            self.mat_leaf(d)
+        } else {
+            self.mat_op(d)
+        };
         if mmag(&m.c) > CAP {
             self.msquash(m)
         } else {
@@ -1409,7 +1747,10 @@ impl<'a> Gen<'a> {
                 let a = self.vec(d.min(1));
                 self.feat.hit("diag");
                 let z = Iv::pt(0.0);
-                M { s: format!("diag({})", a.s), c: [a.c[0], z, z, z, a.c[1], z, z, z, a.c[2]] }
+                M {
+                    s: format!("diag({})", a.s),
+                    c: [a.c[0], z, z, z, a.c[1], z, z, z, a.c[2]],
+                }
             }
             1 => {
                 let a = self.vec(d.min(1));
@@ -1421,14 +1762,18 @@ impl<'a> Gen<'a> {
                         c[r * 3 + k] = a.c[r].mul(b.c[k]);
                     }
                 }
-                M { s: format!("outer({}, {})", a.s, b.s), c }
+                M {
+                    s: format!("outer({}, {})", a.s, b.s),
+                    c,
+                }
             }
             2 => {
                 let a = self.vec(d.min(1));
                 let b = self.vec(d.min(1));
                 let e = self.vec(d.min(1));
                 let rows = self.rng.chance(0.5);
-                self.feat.hit(if rows { "mat33_rows" } else { "mat33_cols" });
+                self.feat
+                    .hit(if rows { "mat33_rows" } else { "mat33_cols" });
                 let vs = [&a, &b, &e];
                 let mut c = [Iv::pt(0.0); 9];
                 for r in 0..3 {
@@ -1436,23 +1781,43 @@ impl<'a> Gen<'a> {
                         c[r * 3 + k] = if rows { vs[r].c[k] } else { vs[k].c[r] };
                     }
                 }
-                M { s: format!("{}({}, {}, {})", if rows { "mat33_rows" } else { "mat33_cols" }, a.s, b.s, e.s), c }
+                M {
+                    s: format!(
+                        "{}({}, {}, {})",
+                        if rows { "mat33_rows" } else { "mat33_cols" },
+                        a.s,
+                        b.s,
+                        e.s
+                    ),
+                    c,
+                }
             }
             3 => {
                 let q = self.quat(d.min(1));
                 self.feat.hit("quat_to_mat33");
-                M { s: format!("quat_to_mat33({})", q.s), c: [UNIT; 9] }
+                M {
+                    s: format!("quat_to_mat33({})", q.s),
+                    c: [UNIT; 9],
+                }
             }
             _ => {
                 let mut es = Vec::new();
                 let mut c = [Iv::pt(0.0); 9];
                 for k in 0..9 {
-                    let e = if self.rng.chance(0.5) { self.leaf() } else { let (s, v) = lit(self.rng.range(-1.0, 1.0)); S { s, iv: Iv::pt(v) } };
+                    let e = if self.rng.chance(0.5) {
+                        self.leaf()
+                    } else {
+                        let (s, v) = lit(self.rng.range(-1.0, 1.0));
+                        S { s, iv: Iv::pt(v) }
+                    };
                     c[k] = e.iv;
                     es.push(e.s);
                 }
                 self.feat.hit("mat33");
-                M { s: format!("mat33({})", es.join(", ")), c }
+                M {
+                    s: format!("mat33({})", es.join(", ")),
+                    c,
+                }
             }
         }
     }
@@ -1475,7 +1840,14 @@ impl<'a> Gen<'a> {
             c[r * 3 + r] = c[r * 3 + r].add(k);
         }
         self.feat.hit("diagonally dominant matrix");
-        M { s: format!("(mat33_identity() * (2.5 + tanh({})) + {} * {fs})", s.s, m.paren_s()), c }
+        M {
+            s: format!(
+                "(mat33_identity() * (2.5 + tanh({})) + {} * {fs})",
+                s.s,
+                m.paren_s()
+            ),
+            c,
+        }
     }
 
     fn mat_op(&mut self, d: u32) -> M {
@@ -1484,16 +1856,25 @@ impl<'a> Gen<'a> {
                 let a = self.mat(d - 1);
                 let b = self.mat(d - 1);
                 if self.rng.chance(0.5) {
-                    M { s: format!("({} + {})", a.s, b.s), c: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| a.c[k].add(b.c[k])) }
+                    M {
+                        s: format!("({} + {})", a.s, b.s),
+                        c: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| a.c[k].add(b.c[k])),
+                    }
                 } else {
-                    M { s: format!("({} - {})", a.s, b.s), c: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| a.c[k].sub(b.c[k])) }
+                    M {
+                        s: format!("({} - {})", a.s, b.s),
+                        c: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| a.c[k].sub(b.c[k])),
+                    }
                 }
             }
             1 => {
                 let a = self.mat(d - 1);
                 let s = self.scalar(d - 1);
                 self.feat.hit("matrix * scalar");
-                M { s: format!("({} * {})", a.s, s.s), c: a.c.map(|x| x.mul(s.iv)) }
+                M {
+                    s: format!("({} * {})", a.s, s.s),
+                    c: a.c.map(|x| x.mul(s.iv)),
+                }
             }
             2 => {
                 let a = self.mat(d - 1);
@@ -1502,16 +1883,24 @@ impl<'a> Gen<'a> {
                 let mut c = [Iv::pt(0.0); 9];
                 for r in 0..3 {
                     for k in 0..3 {
-                        c[r * 3 + k] = (0..3).map(|j| a.c[r * 3 + j].mul(b.c[j * 3 + k])).fold(Iv::pt(0.0), Iv::add);
+                        c[r * 3 + k] = (0..3)
+                            .map(|j| a.c[r * 3 + j].mul(b.c[j * 3 + k]))
+                            .fold(Iv::pt(0.0), Iv::add);
                     }
                 }
-                M { s: format!("({} * {})", a.s, b.s), c }
+                M {
+                    s: format!("({} * {})", a.s, b.s),
+                    c,
+                }
             }
             3 => {
                 let a = self.mat(d - 1);
                 self.feat.hit("transpose");
                 let c = [0, 3, 6, 1, 4, 7, 2, 5, 8].map(|k| a.c[k]);
-                M { s: format!("transpose({})", a.s), c }
+                M {
+                    s: format!("transpose({})", a.s),
+                    c,
+                }
             }
             4 => {
                 let a = self.mat_dd(d - 1);
@@ -1519,13 +1908,29 @@ impl<'a> Gen<'a> {
                 assert!(dom >= 0.4, "{dom}");
                 self.feat.hit("inverse");
                 let b = 1.0 / dom;
-                M { s: format!("inverse({})", a.s), c: [iv(-b, b); 9] }
+                M {
+                    s: format!("inverse({})", a.s),
+                    c: [iv(-b, b); 9],
+                }
             }
             5 => {
                 let a = self.vec(d - 1);
                 self.feat.hit("skew");
                 let z = Iv::pt(0.0);
-                M { s: format!("skew({})", a.s), c: [z, a.c[2].neg(), a.c[1], a.c[2], z, a.c[0].neg(), a.c[1].neg(), a.c[0], z] }
+                M {
+                    s: format!("skew({})", a.s),
+                    c: [
+                        z,
+                        a.c[2].neg(),
+                        a.c[1],
+                        a.c[2],
+                        z,
+                        a.c[0].neg(),
+                        a.c[1].neg(),
+                        a.c[0],
+                        z,
+                    ],
+                }
             }
             6 => {
                 let a = self.mat_dd(d - 1);
@@ -1536,7 +1941,10 @@ impl<'a> Gen<'a> {
                 let a = self.mat(d - 1);
                 let b = self.mat(d - 1);
                 self.feat.hit("select matrix");
-                M { s: format!("select({c}, {}, {})", a.s, b.s), c: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| a.c[k].hull(b.c[k])) }
+                M {
+                    s: format!("select({c}, {}, {})", a.s, b.s),
+                    c: [0, 1, 2, 3, 4, 5, 6, 7, 8].map(|k| a.c[k].hull(b.c[k])),
+                }
             }
         }
     }
@@ -1557,44 +1965,60 @@ impl<'a> Gen<'a> {
                 let c = self.scalar(d - 1);
                 let w = self.pos(d - 1);
                 self.feat.hit("quat_normalize");
-                Q { s: format!("quat_normalize(quat({}, {}, {}, {}))", a.s, b.s, c.s, w.s) }
+                Q {
+                    s: format!("quat_normalize(quat({}, {}, {}, {}))", a.s, b.s, c.s, w.s),
+                }
             }
             1 => {
                 let axis = self.vec_safe(d - 1);
                 let angle = self.scalar(d - 1);
                 self.feat.hit("quat_from_axis_angle");
-                Q { s: format!("quat_from_axis_angle(normalize({}), {})", axis.s, angle.s) }
+                Q {
+                    s: format!("quat_from_axis_angle(normalize({}), {})", axis.s, angle.s),
+                }
             }
             2 => {
                 let p = self.quat(d - 1);
                 let q = self.quat(d - 1);
                 if self.rng.chance(0.5) {
                     self.feat.hit("quat_mul");
-                    Q { s: format!("quat_mul({}, {})", p.s, q.s) }
+                    Q {
+                        s: format!("quat_mul({}, {})", p.s, q.s),
+                    }
                 } else {
                     self.feat.hit("quaternion * quaternion");
-                    Q { s: format!("({} * {})", p.s, q.s) }
+                    Q {
+                        s: format!("({} * {})", p.s, q.s),
+                    }
                 }
             }
             3 => {
                 let p = self.quat(d - 1);
                 self.feat.hit("quat_inverse");
-                Q { s: format!("quat_inverse({})", p.s) }
+                Q {
+                    s: format!("quat_inverse({})", p.s),
+                }
             }
             4 => {
                 let p = self.quat(d - 1);
                 self.feat.hit("quat_conjugate");
-                Q { s: format!("quat_conjugate({})", p.s) }
+                Q {
+                    s: format!("quat_conjugate({})", p.s),
+                }
             }
             _ => {
                 if self.rng.chance(0.5) {
                     self.feat.hit("quat_identity");
                     let p = self.quat(d - 1);
-                    Q { s: format!("quat_mul(quat_identity(), {})", p.s) }
+                    Q {
+                        s: format!("quat_mul(quat_identity(), {})", p.s),
+                    }
                 } else {
                     let p = self.quat(d - 1);
                     self.feat.hit("quat_normalize");
-                    Q { s: format!("quat_normalize({})", p.s) }
+                    Q {
+                        s: format!("quat_normalize({})", p.s),
+                    }
                 }
             }
         }
@@ -1605,7 +2029,10 @@ impl<'a> Gen<'a> {
     /// The envelope of a new `let mut` scalar initialised with a value in `x`.
     fn envelope(&mut self, x: Iv) -> Iv {
         if x.lo >= 0.3 && self.rng.chance(0.5) {
-            iv(round_down(x.lo * 0.5).max(0.1), round_up(x.hi.max(3.0) * 1.5).min(CAP))
+            iv(
+                round_down(x.lo * 0.5).max(0.1),
+                round_up(x.hi.max(3.0) * 1.5).min(CAP),
+            )
         } else {
             let b = round_up(x.mag().max(3.0)).min(CAP);
             iv(-b, b)
@@ -1650,8 +2077,12 @@ impl<'a> Gen<'a> {
     /// A `let mut` scalar declared outside the innermost scope.
     fn outer_mutable_scalar(&mut self) -> Option<(String, Iv)> {
         let n = self.scopes.len();
-        let vs: Vec<Var> =
-            self.scopes[..n - 1].iter().flatten().filter(|v| v.mutable && matches!(v.ty, Ty::S(_))).cloned().collect();
+        let vs: Vec<Var> = self.scopes[..n - 1]
+            .iter()
+            .flatten()
+            .filter(|v| v.mutable && matches!(v.ty, Ty::S(_)))
+            .cloned()
+            .collect();
         if vs.is_empty() {
             return None;
         }
@@ -1664,7 +2095,9 @@ impl<'a> Gen<'a> {
     /// scalar, so the block's values reach the output (and loops carry them).
     fn fold_locals(&mut self, indent: usize, out: &mut String) {
         let locals: Vec<Var> = self.scopes.last().unwrap().clone();
-        let Some((name, env)) = self.outer_mutable_scalar() else { return };
+        let Some((name, env)) = self.outer_mutable_scalar() else {
+            return;
+        };
         if locals.is_empty() {
             if !self.loops.is_empty() && self.rng.chance(0.5) {
                 self.assign_scalar(&name, env, indent, out);
@@ -1673,7 +2106,10 @@ impl<'a> Gen<'a> {
         }
         let sum = self.sum_of(&locals, false);
         let (c, cv) = lit(self.rng.range(0.2, 0.8));
-        let e = S { s: format!("{name} * {c} + tanh({})", sum.s), iv: env.scale(cv).add(sum.iv.inc(f64::tanh)) };
+        let e = S {
+            s: format!("{name} * {c} + tanh({})", sum.s),
+            iv: env.scale(cv).add(sum.iv.inc(f64::tanh)),
+        };
         let e = self.squash_into(e, env);
         self.feat.hit("fold block locals");
         writeln!(out, "{}{name} = {};", ind(indent), e.s).unwrap();
@@ -1717,7 +2153,13 @@ impl<'a> Gen<'a> {
                         writeln!(out, "{i}{name} /= {};", p.s).unwrap();
                         self.feat.hit("compound assignment");
                         let r = env.div(p.iv);
-                        let sq = self.squash_into(S { s: name.to_string(), iv: r }, env);
+                        let sq = self.squash_into(
+                            S {
+                                s: name.to_string(),
+                                iv: r,
+                            },
+                            env,
+                        );
                         if sq.s != name {
                             writeln!(out, "{i}{name} = {};", sq.s).unwrap();
                         }
@@ -1726,7 +2168,13 @@ impl<'a> Gen<'a> {
                 };
                 self.feat.hit("compound assignment");
                 writeln!(out, "{i}{name} {op} {};", e.s).unwrap();
-                let sq = self.squash_into(S { s: name.to_string(), iv: r }, env);
+                let sq = self.squash_into(
+                    S {
+                        s: name.to_string(),
+                        iv: r,
+                    },
+                    env,
+                );
                 if sq.s != name {
                     writeln!(out, "{i}{name} = {};", sq.s).unwrap();
                 }
@@ -1736,19 +2184,37 @@ impl<'a> Gen<'a> {
                 let e = self.scalar(d - 1);
                 let (c, cv) = lit(self.rng.range(0.3, 0.9));
                 let r = env.scale(cv).add(e.iv.inc(f64::tanh));
-                let sq = self.squash_into(S { s: format!("{name} * {c} + tanh({})", e.s), iv: r }, env);
+                let sq = self.squash_into(
+                    S {
+                        s: format!("{name} * {c} + tanh({})", e.s),
+                        iv: r,
+                    },
+                    env,
+                );
                 writeln!(out, "{i}{name} = {};", sq.s).unwrap();
             }
             4 => {
                 let e = self.scalar(d - 1);
                 let r = env.mul(UNIT).add(UNIT);
-                let sq = self.squash_into(S { s: format!("{name} * sin({}) + cos({name})", e.s), iv: r }, env);
+                let sq = self.squash_into(
+                    S {
+                        s: format!("{name} * sin({}) + cos({name})", e.s),
+                        iv: r,
+                    },
+                    env,
+                );
                 writeln!(out, "{i}{name} = {};", sq.s).unwrap();
             }
             _ => {
                 let e = self.scalar(d);
                 let r = env.add(e.iv).scale(0.5);
-                let sq = self.squash_into(S { s: format!("({name} + {}) * 0.5", e.s), iv: r }, env);
+                let sq = self.squash_into(
+                    S {
+                        s: format!("({name} + {}) * 0.5", e.s),
+                        iv: r,
+                    },
+                    env,
+                );
                 writeln!(out, "{i}{name} = {};", sq.s).unwrap();
             }
         }
@@ -1758,21 +2224,30 @@ impl<'a> Gen<'a> {
         self.budget -= 1;
         let i = ind(indent);
         let in_loop = !self.loops.is_empty();
-        let dyn_ok = self.loops.iter().filter(|l| **l == LoopKind::Dynamic).count() < 2;
+        let dyn_ok = self
+            .loops
+            .iter()
+            .filter(|l| **l == LoopKind::Dynamic)
+            .count()
+            < 2;
         let w = [
-            6,                                     // 0 let scalar
-            5,                                     // 1 let mut scalar
-            8,                                     // 2 assign mutable scalar
-            3,                                     // 3 let vec
-            3,                                     // 4 mutable vec / component assignment
-            if !self.linalg { 0 } else { 5 },      // 5 matrices
-            if !self.linalg { 0 } else { 4 },      // 6 quaternions
-            if depth > 0 { 5 } else { 0 },         // 7 if
-            if depth > 0 { 2 } else { 0 },         // 8 match
-            if depth > 0 { 3 } else { 0 },         // 9 const for
-            if depth > 0 && dyn_ok && !exp("nodyn") { 4 } else { 0 }, // 10 dynamic loop
-            if in_loop { 7 } else { 0 },           // 11 break / continue
-            1,                                     // 12 early return
+            6,                                // 0 let scalar
+            5,                                // 1 let mut scalar
+            8,                                // 2 assign mutable scalar
+            3,                                // 3 let vec
+            3,                                // 4 mutable vec / component assignment
+            if !self.linalg { 0 } else { 5 }, // 5 matrices
+            if !self.linalg { 0 } else { 4 }, // 6 quaternions
+            if depth > 0 { 5 } else { 0 },    // 7 if
+            if depth > 0 { 2 } else { 0 },    // 8 match
+            if depth > 0 { 3 } else { 0 },    // 9 const for
+            if depth > 0 && dyn_ok && !exp("nodyn") {
+                4
+            } else {
+                0
+            }, // 10 dynamic loop
+            if in_loop { 7 } else { 0 },      // 11 break / continue
+            1,                                // 12 early return
             if self.kernel && self.atomic { 3 } else { 0 }, // 13 atomic
             if self.funcs.is_empty() { 0 } else { 2 }, // 14 call into a local
         ];
@@ -1781,11 +2256,18 @@ impl<'a> Gen<'a> {
                 let d = self.rng.int(1, sizes().stmt_depth) as u32;
                 let e = self.scalar(d);
                 // sometimes shadow an existing immutable scalar (`let a = .. a ..;`)
-                let shadow = if self.rng.chance(0.15) { self.pick_var(|v| !v.mutable && matches!(v.ty, Ty::S(_))) } else { None };
+                let shadow = if self.rng.chance(0.15) {
+                    self.pick_var(|v| !v.mutable && matches!(v.ty, Ty::S(_)))
+                } else {
+                    None
+                };
                 if let Some(old) = shadow {
                     let Ty::S(x) = old.ty else { unreachable!() };
                     let (c, cv) = lit(self.rng.range(0.3, 0.9));
-                    let e = self.squash(S { s: format!("{} * {c} + {}", old.name, e.s), iv: x.scale(cv).add(e.iv) });
+                    let e = self.squash(S {
+                        s: format!("{} * {c} + {}", old.name, e.s),
+                        iv: x.scale(cv).add(e.iv),
+                    });
                     writeln!(out, "{i}let {} = {};", old.name, e.s).unwrap();
                     self.feat.hit("shadowing let");
                     self.declare(&old.name, Ty::S(e.iv), false);
@@ -1838,11 +2320,18 @@ impl<'a> Gen<'a> {
                                 let comp = ["x", "y", "z"][k];
                                 let e = self.scalar(1);
                                 writeln!(out, "{i}{name}.{comp} += {};", e.s).unwrap();
-                                let sq = self.squash_into(S { s: format!("{name}.{comp}"), iv: c[k].add(e.iv) }, c[k]);
+                                let sq = self.squash_into(
+                                    S {
+                                        s: format!("{name}.{comp}"),
+                                        iv: c[k].add(e.iv),
+                                    },
+                                    c[k],
+                                );
                                 writeln!(out, "{i}{name}.{comp} = {};", sq.s).unwrap();
                                 self.feat.hit("component compound assignment");
                             } else if self.rng.chance(0.5) {
-                                writeln!(out, "{i}{name}.{} = {};", ["x", "y", "z"][k], e.s).unwrap();
+                                writeln!(out, "{i}{name}.{} = {};", ["x", "y", "z"][k], e.s)
+                                    .unwrap();
                             } else {
                                 writeln!(out, "{i}{name}[{k}] = {};", e.s).unwrap();
                             }
@@ -1863,12 +2352,19 @@ impl<'a> Gen<'a> {
                         }
                     }
                 } else {
-                    let v = if self.rng.chance(0.5) { self.vec_safe(1) } else { self.vec(1) };
+                    let v = if self.rng.chance(0.5) {
+                        self.vec_safe(1)
+                    } else {
+                        self.vec(1)
+                    };
                     let name = self.fresh("u");
                     // envelope: the initial range widened, symmetric or positive
                     let c = v.c.map(|x| {
                         if x.lo >= 0.3 {
-                            iv(round_down(x.lo * 0.5), round_up(x.hi.max(2.0) * 1.5).min(CAP))
+                            iv(
+                                round_down(x.lo * 0.5),
+                                round_up(x.hi.max(2.0) * 1.5).min(CAP),
+                            )
                         } else {
                             let b = round_up(x.mag().max(2.0)).min(CAP);
                             iv(-b, b)
@@ -1891,7 +2387,11 @@ impl<'a> Gen<'a> {
                     } else {
                         let m = self.mat(1);
                         self.feat.hit("matrix reassignment");
-                        let prod = if self.rng.chance(0.5) { format!("{name} * {}", m.paren_s()) } else { format!("transpose({name}) + {}", m.paren_s()) };
+                        let prod = if self.rng.chance(0.5) {
+                            format!("{name} * {}", m.paren_s())
+                        } else {
+                            format!("transpose({name}) + {}", m.paren_s())
+                        };
                         writeln!(out, "{i}{name} = msq({prod});").unwrap();
                     }
                 } else if self.rng.chance(0.5) {
@@ -1902,7 +2402,11 @@ impl<'a> Gen<'a> {
                     self.declare(&name, Ty::M(m.c), false);
                 } else {
                     let m = self.mat(1);
-                    let m = if mmag(&m.c) <= 1.0 { m } else { self.msquash(m) };
+                    let m = if mmag(&m.c) <= 1.0 {
+                        m
+                    } else {
+                        self.msquash(m)
+                    };
                     let name = self.fresh("m");
                     writeln!(out, "{i}let mut {name} = {};", m.s).unwrap();
                     self.feat.hit("let mut matrix");
@@ -1914,13 +2418,24 @@ impl<'a> Gen<'a> {
                 if let Some(var) = self.pick_var(|v| v.mutable && matches!(v.ty, Ty::Q)) {
                     let q = self.quat(1);
                     self.feat.hit("quaternion reassignment");
-                    writeln!(out, "{i}{} = quat_normalize(quat_mul({}, {}));", var.name, var.name, q.s).unwrap();
+                    writeln!(
+                        out,
+                        "{i}{} = quat_normalize(quat_mul({}, {}));",
+                        var.name, var.name, q.s
+                    )
+                    .unwrap();
                 } else {
                     let r_ = self.rng.int(1, sizes().stmt_depth) as u32;
                     let q = self.quat(r_);
                     let mutable = self.rng.chance(0.5);
                     let name = self.fresh("q");
-                    writeln!(out, "{i}let {}{name} = {};", if mutable { "mut " } else { "" }, q.s).unwrap();
+                    writeln!(
+                        out,
+                        "{i}let {}{name} = {};",
+                        if mutable { "mut " } else { "" },
+                        q.s
+                    )
+                    .unwrap();
                     self.declare(&name, Ty::Q, mutable);
                 }
             }
@@ -1974,7 +2489,11 @@ impl<'a> Gen<'a> {
             9 => {
                 let k = self.fresh("k");
                 let (lo, hi, incl) = (self.rng.below(2), self.rng.int(2, 4), self.rng.chance(0.25));
-                let range = if incl { format!("{lo}..={}", hi - 1) } else { format!("{lo}..{hi}") };
+                let range = if incl {
+                    format!("{lo}..={}", hi - 1)
+                } else {
+                    format!("{lo}..{hi}")
+                };
                 self.feat.hit("for loop (constant bounds)");
                 self.loops.push(LoopKind::Const);
                 self.push_scope();
@@ -1987,8 +2506,13 @@ impl<'a> Gen<'a> {
             10 => self.dyn_loop(depth, indent, out),
             11 => {
                 let c = self.cond(1);
-                let kw = if self.rng.chance(0.5) { "break" } else { "continue" };
-                self.feat.hit(if kw == "break" { "break" } else { "continue" });
+                let kw = if self.rng.chance(0.5) {
+                    "break"
+                } else {
+                    "continue"
+                };
+                self.feat
+                    .hit(if kw == "break" { "break" } else { "continue" });
                 writeln!(out, "{i}if {c} {{\n{i}    {kw};\n{i}}}").unwrap();
             }
             12 => {
@@ -2028,19 +2552,43 @@ impl<'a> Gen<'a> {
     }
 
     /// Writes `name = w` for a vector `w` (held in `tmp`) squashed into `name`'s envelope.
-    fn vec_back_into_named(&mut self, name: &str, tmp: &str, env: &[Iv; 3], w: [Iv; 3], indent: usize, out: &mut String) {
+    fn vec_back_into_named(
+        &mut self,
+        name: &str,
+        tmp: &str,
+        env: &[Iv; 3],
+        w: [Iv; 3],
+        indent: usize,
+        out: &mut String,
+    ) {
         let i = ind(indent);
         if (0..3).all(|k| w[k].within(env[k])) {
             writeln!(out, "{i}{name} = {tmp};").unwrap();
             return;
         }
         let cs: Vec<String> = (0..3)
-            .map(|k| self.squash_into(S { s: format!("{tmp}.{}", ["x", "y", "z"][k]), iv: w[k] }, env[k]).s)
+            .map(|k| {
+                self.squash_into(
+                    S {
+                        s: format!("{tmp}.{}", ["x", "y", "z"][k]),
+                        iv: w[k],
+                    },
+                    env[k],
+                )
+                .s
+            })
             .collect();
         writeln!(out, "{i}{name} = vec3({}, {}, {});", cs[0], cs[1], cs[2]).unwrap();
     }
 
-    fn vec_back_into(&mut self, name: &str, env: &[Iv; 3], now: [Iv; 3], indent: usize, out: &mut String) {
+    fn vec_back_into(
+        &mut self,
+        name: &str,
+        env: &[Iv; 3],
+        now: [Iv; 3],
+        indent: usize,
+        out: &mut String,
+    ) {
         if (0..3).all(|k| now[k].within(env[k])) {
             return;
         }
@@ -2062,7 +2610,9 @@ impl<'a> Gen<'a> {
     fn dyn_loop(&mut self, depth: u32, indent: usize, out: &mut String) {
         let i = ind(indent);
         let kernel = self.kernel;
-        let choice = self.rng.weighted(&[if kernel { 4 } else { 0 }, 3, 2, if kernel { 1 } else { 0 }]);
+        let choice =
+            self.rng
+                .weighted(&[if kernel { 4 } else { 0 }, 3, 2, if kernel { 1 } else { 0 }]);
         self.loops.push(LoopKind::Dynamic);
         self.push_scope();
         match choice {
@@ -2077,7 +2627,11 @@ impl<'a> Gen<'a> {
             1 => {
                 // while with a counter (incremented first, so `continue` cannot skip it)
                 let c = self.fresh("i");
-                let bound = if kernel { "n".to_string() } else { format!("{}", self.rng.int(2, 4)) };
+                let bound = if kernel {
+                    "n".to_string()
+                } else {
+                    format!("{}", self.rng.int(2, 4))
+                };
                 self.feat.hit("while loop");
                 // the condition first: it can only use what is declared before the loop
                 let extra = if self.rng.chance(0.3) {
@@ -2094,7 +2648,11 @@ impl<'a> Gen<'a> {
             }
             2 => {
                 let c = self.fresh("i");
-                let bound = if kernel { "n".to_string() } else { format!("{}", self.rng.int(2, 4)) };
+                let bound = if kernel {
+                    "n".to_string()
+                } else {
+                    format!("{}", self.rng.int(2, 4))
+                };
                 self.feat.hit("loop with break");
                 self.declare_int(&c, false, false);
                 let body = self.loop_body(depth, indent + 1);
@@ -2132,22 +2690,38 @@ impl<'a> Gen<'a> {
     fn sum_of(&mut self, vars: &[Var], extra: bool) -> S {
         let mut terms: Vec<S> = Vec::new();
         for v in vars.iter().cloned() {
-            let (c, cv) = lit(self.rng.range(0.2, 1.0) * if self.rng.chance(0.3) { -1.0 } else { 1.0 });
+            let (c, cv) =
+                lit(self.rng.range(0.2, 1.0) * if self.rng.chance(0.3) { -1.0 } else { 1.0 });
             let t = match v.ty {
-                Ty::S(x) => S { s: format!("{} * {c}", v.name), iv: x.scale(cv) },
+                Ty::S(x) => S {
+                    s: format!("{} * {c}", v.name),
+                    iv: x.scale(cv),
+                },
                 Ty::V(x, _) => {
                     if self.rng.chance(0.5) {
                         let k = self.rng.below(3);
-                        S { s: format!("{}.{} * {c}", v.name, ["x", "y", "z"][k]), iv: x[k].scale(cv) }
+                        S {
+                            s: format!("{}.{} * {c}", v.name, ["x", "y", "z"][k]),
+                            iv: x[k].scale(cv),
+                        }
                     } else {
                         let r = (0..3).map(|k| x[k].sqr()).fold(Iv::pt(0.0), Iv::add);
-                        S { s: format!("dot({n}, {n}) * {c}", n = v.name), iv: r.scale(cv) }
+                        S {
+                            s: format!("dot({n}, {n}) * {c}", n = v.name),
+                            iv: r.scale(cv),
+                        }
                     }
                 }
-                Ty::M(x) => S { s: format!("trace({}) * {c}", v.name), iv: x[0].add(x[4]).add(x[8]).scale(cv) },
+                Ty::M(x) => S {
+                    s: format!("trace({}) * {c}", v.name),
+                    iv: x[0].add(x[4]).add(x[8]).scale(cv),
+                },
                 Ty::Q => {
                     let k = self.rng.below(4);
-                    S { s: format!("{}.{} * {c}", v.name, ["x", "y", "z", "w"][k]), iv: UNIT.scale(cv) }
+                    S {
+                        s: format!("{}.{} * {c}", v.name, ["x", "y", "z", "w"][k]),
+                        iv: UNIT.scale(cv),
+                    }
                 }
             };
             let t = if t.iv.mag() > 10.0 { self.squash(t) } else { t };
@@ -2157,7 +2731,14 @@ impl<'a> Gen<'a> {
             terms.push(self.scalar(2));
         }
         let iv = terms.iter().fold(Iv::pt(0.0), |a, t| a.add(t.iv));
-        S { s: terms.iter().map(|t| t.s.clone()).collect::<Vec<_>>().join(" + "), iv }
+        S {
+            s: terms
+                .iter()
+                .map(|t| t.s.clone())
+                .collect::<Vec<_>>()
+                .join(" + "),
+            iv,
+        }
     }
 
     /// The kernel's write of its output (before an early return, and at the end).
@@ -2167,7 +2748,10 @@ impl<'a> Gen<'a> {
         // and an input, so the output always depends on the inputs
         let j = self.rng.below(self.n_inputs);
         let (c, cv) = lit(self.rng.range(0.2, 1.0));
-        e = S { s: format!("{} + x{j}[t] * {c}", e.s), iv: e.iv.add(INPUT.scale(cv)) };
+        e = S {
+            s: format!("{} + x{j}[t] * {c}", e.s),
+            iv: e.iv.add(INPUT.scale(cv)),
+        };
         if self.atomic {
             let idx = self.index();
             if self.rng.chance(0.5) {
@@ -2180,7 +2764,10 @@ impl<'a> Gen<'a> {
             let c = self.cond(1);
             let e2 = self.live_sum();
             self.feat.hit("store in both branches");
-            format!("{i}if {c} {{\n{i}    y[t] = {};\n{i}}} else {{\n{i}    y[t] = {};\n{i}}}\n", e.s, e2.s)
+            format!(
+                "{i}if {c} {{\n{i}    y[t] = {};\n{i}}} else {{\n{i}    y[t] = {};\n{i}}}\n",
+                e.s, e2.s
+            )
         } else {
             format!("{i}y[t] = {};\n", e.s)
         }
@@ -2196,7 +2783,11 @@ impl<'a> Gen<'a> {
             }
             Ty::V(..) => {
                 let v = self.vec(d);
-                let v = if vmag(&v.c) <= 6.0 { v } else { self.vsquash(v) };
+                let v = if vmag(&v.c) <= 6.0 {
+                    v
+                } else {
+                    self.vsquash(v)
+                };
                 self.merge_ret(RetIv::V(v.c, v.nlo));
                 v.s
             }
@@ -2208,7 +2799,9 @@ impl<'a> Gen<'a> {
         self.ret_iv = Some(match (self.ret_iv.take(), r) {
             (None, r) => r,
             (Some(RetIv::S(a)), RetIv::S(b)) => RetIv::S(a.hull(b)),
-            (Some(RetIv::V(a, n)), RetIv::V(b, m)) => RetIv::V([0, 1, 2].map(|k| a[k].hull(b[k])), n.min(m)),
+            (Some(RetIv::V(a, n)), RetIv::V(b, m)) => {
+                RetIv::V([0, 1, 2].map(|k| a[k].hull(b[k])), n.min(m))
+            }
             _ => unreachable!(),
         });
     }
@@ -2216,7 +2809,10 @@ impl<'a> Gen<'a> {
 
 impl S {
     fn paren(self) -> S {
-        S { s: format!("({})", self.s), iv: self.iv }
+        S {
+            s: format!("({})", self.s),
+            iv: self.iv,
+        }
     }
 }
 
@@ -2297,11 +2893,19 @@ pub fn gen_func(idx: usize, seed: u64, earlier: &[FuncSig], feat: &mut Features)
         if mutable {
             g.feat.hit("mut parameter");
         }
-        decl.push(format!("{}{pname}: {}", if mutable { "mut " } else { "" }, ty_str(&ty)));
+        decl.push(format!(
+            "{}{pname}: {}",
+            if mutable { "mut " } else { "" },
+            ty_str(&ty)
+        ));
         g.declare(pname, ty.clone(), mutable);
         params.push(ty);
     }
-    let ret = if g.rng.chance(0.75) { Ty::S(iv(0.0, 0.0)) } else { Ty::V([Iv::pt(0.0); 3], 0.0) };
+    let ret = if g.rng.chance(0.75) {
+        Ty::S(iv(0.0, 0.0))
+    } else {
+        Ty::V([Iv::pt(0.0); 3], 0.0)
+    };
     g.ret = Some(ret.clone());
     g.budget = g.rng.int(sizes().func_stmts.0, sizes().func_stmts.1) as i32;
     let mut body = String::new();
@@ -2319,7 +2923,15 @@ pub fn gen_func(idx: usize, seed: u64, earlier: &[FuncSig], feat: &mut Features)
         ty_str(&ret)
     );
     let calls = g.called.clone();
-    Func { sig: FuncSig { name, params, ret: ret_ty }, src, calls }
+    Func {
+        sig: FuncSig {
+            name,
+            params,
+            ret: ret_ty,
+        },
+        src,
+        calls,
+    }
 }
 
 /// A generated kernel.
@@ -2343,12 +2955,18 @@ pub fn gen_kernel(idx: usize, seed: u64, funcs: &[FuncSig], feat: &mut Features)
     let mut g = Gen::new(Rng::new(seed), feat, funcs);
     g.kernel = true;
     g.linalg = idx % sizes().linalg_every == 0;
-    g.n_inputs = if g.rng.chance(0.8) { 2 } else { g.rng.int(3, 4) };
+    g.n_inputs = if g.rng.chance(0.8) {
+        2
+    } else {
+        g.rng.int(3, 4)
+    };
     g.atomic = g.rng.chance(0.3);
     g.has_idx = g.atomic || g.rng.chance(0.25);
     g.value_param = g.rng.chance(0.25);
     let name = format!("k{idx:03}");
-    let mut params: Vec<String> = (0..g.n_inputs).map(|j| format!("x{j}: &Array<R>")).collect();
+    let mut params: Vec<String> = (0..g.n_inputs)
+        .map(|j| format!("x{j}: &Array<R>"))
+        .collect();
     if g.has_idx {
         params.push("idx: &Array<u32>".into());
     }
@@ -2358,7 +2976,11 @@ pub fn gen_kernel(idx: usize, seed: u64, funcs: &[FuncSig], feat: &mut Features)
         g.declare("p", Ty::S(Iv::pt(VALUE_PARAM)), false);
         g.feat.hit("value parameter");
     }
-    params.push(if g.atomic { "f: &Array<R>".into() } else { "y: &Array<R>".into() });
+    params.push(if g.atomic {
+        "f: &Array<R>".into()
+    } else {
+        "y: &Array<R>".into()
+    });
     let ids: Vec<u32> = (0..LEN).map(|_| g.rng.below(LEN) as u32).collect();
     g.budget = g.rng.int(sizes().kernel_stmts.0, sizes().kernel_stmts.1) as i32;
     let mut body = String::new();
@@ -2373,7 +2995,10 @@ pub fn gen_kernel(idx: usize, seed: u64, funcs: &[FuncSig], feat: &mut Features)
     if g.atomic {
         g.feat.hit("atomic kernel");
     }
-    let src = format!("#[diff_kernel]\nfn {name}<R: Real>({}) {{\n{body}}}\n", params.join(", "));
+    let src = format!(
+        "#[diff_kernel]\nfn {name}<R: Real>({}) {{\n{body}}}\n",
+        params.join(", ")
+    );
     Kernel {
         name,
         src,

@@ -37,20 +37,35 @@ fn meta_wrong<R: Real>(x0: &Array<R>, x1: &Array<R>, n: usize, y: &Array<R>) {
 fn run_meta_wrong(xs: &[Vec<f64>], seed: u64) -> Outcome {
     let a = arrays_f64(xs);
     let y: Array<f64> = Array::zeros(LEN);
-    let checked = check(&[&a[0], &a[1]], &[&y], seed, &|m| run_direct(m, meta_wrong, LEN, (&a[0], &a[1], LEN, &y)));
+    let checked = check(&[&a[0], &a[1]], &[&y], seed, &|m| {
+        run_direct(m, meta_wrong, LEN, (&a[0], &a[1], LEN, &y))
+    });
     let y64: Array<f64> = Array::zeros(LEN);
     run_direct(Mode::Forward, meta_wrong, LEN, (&a[0], &a[1], LEN, &y64));
     let b = arrays_f32(xs);
     let y32: Array<f32> = Array::zeros(LEN);
     run_direct(Mode::Forward, meta_wrong, LEN, (&b[0], &b[1], LEN, &y32));
-    Outcome { checked, y64: y64.to_vec(), y32: y32.to_vec() }
+    Outcome {
+        checked,
+        y64: y64.to_vec(),
+        y32: y32.to_vec(),
+    }
 }
 
 #[test]
 fn checker_reports_a_wrong_derivative() {
-    let case = Case { name: "meta_wrong", inputs: 2, seed: 5, run: run_meta_wrong, src: "", funcs: &[] };
+    let case = Case {
+        name: "meta_wrong",
+        inputs: 2,
+        seed: 5,
+        run: run_meta_wrong,
+        src: "",
+        funcs: &[],
+    };
     match support::run_case(&case) {
-        support::Verdict::Bug(msg) => assert!(msg.contains("adjoint vs central differences"), "{msg}"),
+        support::Verdict::Bug(msg) => {
+            assert!(msg.contains("adjoint vs central differences"), "{msg}")
+        }
         support::Verdict::Pass { .. } => panic!("a wrong adjoint passed the check"),
     }
 }
@@ -73,20 +88,40 @@ fn run_meta_kink(xs: &[Vec<f64>], seed: u64) -> Outcome {
     let c = kink_at();
     let a = arrays_f64(xs);
     let y: Array<f64> = Array::zeros(LEN);
-    let checked = check(&[&a[0], &a[1]], &[&y], seed, &|m| run_direct(m, meta_kink, LEN, (&a[0], &a[1], c, &y)));
+    let checked = check(&[&a[0], &a[1]], &[&y], seed, &|m| {
+        run_direct(m, meta_kink, LEN, (&a[0], &a[1], c, &y))
+    });
     let y64: Array<f64> = Array::zeros(LEN);
     run_direct(Mode::Forward, meta_kink, LEN, (&a[0], &a[1], c, &y64));
     let b = arrays_f32(xs);
     let y32: Array<f32> = Array::zeros(LEN);
-    run_direct(Mode::Forward, meta_kink, LEN, (&b[0], &b[1], c as f32, &y32));
-    Outcome { checked, y64: y64.to_vec(), y32: y32.to_vec() }
+    run_direct(
+        Mode::Forward,
+        meta_kink,
+        LEN,
+        (&b[0], &b[1], c as f32, &y32),
+    );
+    Outcome {
+        checked,
+        y64: y64.to_vec(),
+        y32: y32.to_vec(),
+    }
 }
 
 #[test]
 fn checker_moves_inputs_off_a_kink() {
-    let case = Case { name: "meta_kink", inputs: 2, seed: KINK_SEED, run: run_meta_kink, src: "", funcs: &[] };
+    let case = Case {
+        name: "meta_kink",
+        inputs: 2,
+        seed: KINK_SEED,
+        run: run_meta_kink,
+        src: "",
+        funcs: &[],
+    };
     match support::run_case(&case) {
-        support::Verdict::Pass { moved } => assert_eq!(moved, 1, "the first inputs sit on the kink"),
+        support::Verdict::Pass { moved } => {
+            assert_eq!(moved, 1, "the first inputs sit on the kink")
+        }
         support::Verdict::Bug(msg) => panic!("a kink was reported as a bug: {msg}"),
     }
 }

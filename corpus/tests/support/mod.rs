@@ -67,7 +67,12 @@ fn rel(a: f64, b: f64) -> f64 {
 /// differences (h = 1e-6) of the loss for every input entry, and the tangent `J v` for a random
 /// `v` with the adjoint by the dot-product test.
 /// (`run` is a `&dyn Fn`, so this is compiled once, not once per kernel.)
-pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: &dyn Fn(Mode)) -> Checked {
+pub fn check(
+    inputs: &[&Array<f64>],
+    outputs: &[&Array<f64>],
+    seed: u64,
+    run: &dyn Fn(Mode),
+) -> Checked {
     let mut rng = Rng(seed | 1);
     let forward = || -> Vec<Vec<f64>> {
         for o in outputs {
@@ -76,8 +81,16 @@ pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: &d
         run(Mode::Forward);
         outputs.iter().map(|o| o.to_vec()).collect()
     };
-    let w: Vec<Vec<f64>> = outputs.iter().map(|o| rng.vec(o.len(), -1.0, 1.0)).collect();
-    let loss = |ys: &[Vec<f64>]| -> f64 { ys.iter().zip(&w).map(|(y, w)| y.iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).sum() };
+    let w: Vec<Vec<f64>> = outputs
+        .iter()
+        .map(|o| rng.vec(o.len(), -1.0, 1.0))
+        .collect();
+    let loss = |ys: &[Vec<f64>]| -> f64 {
+        ys.iter()
+            .zip(&w)
+            .map(|(y, w)| y.iter().zip(w).map(|(a, b)| a * b).sum::<f64>())
+            .sum()
+    };
     forward();
     // Adjoint.
     for (o, w) in outputs.iter().zip(&w) {
@@ -119,12 +132,34 @@ pub fn check(inputs: &[&Array<f64>], outputs: &[&Array<f64>], seed: u64, run: &d
     }
     forward();
     run(Mode::Tangent);
-    let jv: f64 = outputs.iter().zip(&w).map(|(o, w)| o.tangent_buffer().unwrap().to_vec().iter().zip(w).map(|(a, b)| a * b).sum::<f64>()).sum();
-    let vjtw: f64 = v.iter().zip(&grad).map(|(v, g)| v.iter().zip(g).map(|(a, b)| a * b).sum::<f64>()).sum();
+    let jv: f64 = outputs
+        .iter()
+        .zip(&w)
+        .map(|(o, w)| {
+            o.tangent_buffer()
+                .unwrap()
+                .to_vec()
+                .iter()
+                .zip(w)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+        })
+        .sum();
+    let vjtw: f64 = v
+        .iter()
+        .zip(&grad)
+        .map(|(v, g)| v.iter().zip(g).map(|(a, b)| a * b).sum::<f64>())
+        .sum();
     for i in inputs {
         i.set_tangent(None);
     }
-    Checked { adjoint_err, worst, dot_err: rel(jv, vjtw), dot: (jv, vjtw), grad }
+    Checked {
+        adjoint_err,
+        worst,
+        dot_err: rel(jv, vjtw),
+        dot: (jv, vjtw),
+        grad,
+    }
 }
 
 /// Runs `kernel` over thread ids `0..dim` in `mode` the way `launch_mode` does for launches
@@ -148,7 +183,9 @@ pub fn arrays_f64(xs: &[Vec<f64>]) -> Vec<Array<f64>> {
 
 /// The inputs as f32 arrays.
 pub fn arrays_f32(xs: &[Vec<f64>]) -> Vec<Array<f32>> {
-    xs.iter().map(|v| Array::from_vec(v.iter().map(|&x| x as f32).collect())).collect()
+    xs.iter()
+        .map(|v| Array::from_vec(v.iter().map(|&x| x as f32).collect()))
+        .collect()
 }
 
 /// Kernel runs so far (all threads of the test binary).
@@ -178,13 +215,18 @@ pub struct Case {
 
 fn inputs(case: &Case, seed: u64) -> Vec<Vec<f64>> {
     let mut rng = Rng(seed | 1);
-    (0..case.inputs).map(|_| rng.vec(super::LEN, LO, HI)).collect()
+    (0..case.inputs)
+        .map(|_| rng.vec(super::LEN, LO, HI))
+        .collect()
 }
 
 /// Runs the checks on inputs `xs`; `Err` says what failed.
 fn evaluate(case: &Case, xs: &[Vec<f64>], seed: u64) -> Result<(), String> {
     let o = catch_unwind(AssertUnwindSafe(|| (case.run)(xs, seed))).map_err(|p| {
-        let msg = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()));
+        let msg = p
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()));
         format!("panicked: {}", msg.unwrap_or_default())
     })?;
     let c = &o.checked;
@@ -209,7 +251,9 @@ fn evaluate(case: &Case, xs: &[Vec<f64>], seed: u64) -> Result<(), String> {
     }
     for (k, (a, b)) in o.y32.iter().zip(&o.y64).enumerate() {
         if !((*a as f64 - b).abs() <= F32_TOL * b.abs().max(1.0)) {
-            return Err(format!("f32 forward disagrees with f64 at y[{k}]: {a} vs {b}"));
+            return Err(format!(
+                "f32 forward disagrees with f64 at y[{k}]: {a} vs {b}"
+            ));
         }
     }
     Ok(())
@@ -221,7 +265,10 @@ fn evaluate(case: &Case, xs: &[Vec<f64>], seed: u64) -> Result<(), String> {
 fn near_boundary(case: &Case, xs: &[Vec<f64>], seed: u64) -> bool {
     let mut rng = Rng(seed.rotate_left(17) | 1);
     (0..6).any(|_| {
-        let moved: Vec<Vec<f64>> = xs.iter().map(|v| v.iter().map(|x| x + rng.uniform(-NEAR, NEAR)).collect()).collect();
+        let moved: Vec<Vec<f64>> = xs
+            .iter()
+            .map(|v| v.iter().map(|x| x + rng.uniform(-NEAR, NEAR)).collect())
+            .collect();
         evaluate(case, &moved, seed).is_ok()
     })
 }
@@ -237,7 +284,9 @@ pub enum Verdict {
 pub fn run_case(case: &Case) -> Verdict {
     let mut boundary_msgs = Vec::new();
     for attempt in 0..ATTEMPTS {
-        let seed = case.seed.wrapping_add(attempt.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let seed = case
+            .seed
+            .wrapping_add(attempt.wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let xs = inputs(case, seed);
         match evaluate(case, &xs, seed) {
             Ok(()) => return Verdict::Pass { moved: attempt },
@@ -269,8 +318,15 @@ pub fn run_group(cases: &[Case]) {
         match run_case(case) {
             Verdict::Pass { moved: m } => moved += m,
             Verdict::Bug(msg) => {
-                let funcs: String = case.funcs.iter().map(|&f| format!("{}\n", super::FUNC_SRC[f])).collect();
-                bugs.push(format!("{msg}\n---- source of {} ----\n{funcs}{}", case.name, case.src))
+                let funcs: String = case
+                    .funcs
+                    .iter()
+                    .map(|&f| format!("{}\n", super::FUNC_SRC[f]))
+                    .collect();
+                bugs.push(format!(
+                    "{msg}\n---- source of {} ----\n{funcs}{}",
+                    case.name, case.src
+                ))
             }
         }
     }
@@ -285,6 +341,11 @@ pub fn run_group(cases: &[Case]) {
         start.elapsed().as_secs_f64()
     );
     if !bugs.is_empty() {
-        panic!("{} of {} kernels fail their gradient check:\n\n{}", bugs.len(), cases.len(), bugs.join("\n\n"));
+        panic!(
+            "{} of {} kernels fail their gradient check:\n\n{}",
+            bugs.len(),
+            cases.len(),
+            bugs.join("\n\n")
+        );
     }
 }
