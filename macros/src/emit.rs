@@ -312,13 +312,7 @@ impl<'a> Emitter<'a> {
             quote!()
         };
         let body = self.replay(&l.body, inner_mode);
-        let exit = match l.exit {
-            Some(x) => {
-                let x = v(x);
-                quote!(if #x { break; })
-            }
-            None => quote!(),
-        };
+        let exit = loop_exit(l);
         let stack_decl = if mode == Replay::Top {
             quote!(let mut #st = ::std::vec::Vec::new();)
         } else {
@@ -563,13 +557,7 @@ impl<'a> Emitter<'a> {
                         None => quote!(),
                     };
                     let body = self.tangent(&l.body);
-                    let exit = match l.exit {
-                        Some(x) => {
-                            let x = v(x);
-                            quote!(if #x { break; })
-                        }
-                        None => quote!(),
-                    };
+                    let exit = loop_exit(l);
                     out.extend(quote! {
                         let mut #c = (#(#inits,)*);
                         #header {
@@ -632,6 +620,17 @@ fn store_call(view: Ident, kind: StoreKind, i: Ident, x: Ident, span: Span) -> T
         StoreKind::Store => quote_spanned!(span=> #view.store(#i, #x);),
         StoreKind::AtomicAdd => quote_spanned!(span=> #view.add(#i, #x);),
         StoreKind::AtomicSub => quote_spanned!(span=> #view.sub(#i, #x);),
+    }
+}
+
+/// `if exit { break; }` after a loop body whose `break` or `return` set the exit flag.
+fn loop_exit(l: &Loop) -> TokenStream {
+    match l.exit {
+        Some(x) => {
+            let x = v(x);
+            quote!(if #x { break; })
+        }
+        None => quote!(),
     }
 }
 

@@ -587,30 +587,16 @@ impl<'a> Lowerer<'a> {
                 None
             }
             Expr::Break(b) => {
-                if let Some(l) = &b.label {
-                    self.errors
-                        .push(l.span(), "labelled `break` is not supported in kernels");
-                } else if let Some(v) = &b.expr {
+                if let Some(v) = &b.expr {
                     self.errors
                         .push(v.span(), "`break` with a value is not supported in kernels");
-                } else if self.loop_depth == 0 {
-                    self.errors.push(span, "`break` outside of a loop");
-                } else {
-                    let t = self.const_flag(true, out);
-                    self.assign(BRK, t);
+                    return None;
                 }
+                self.lower_loop_exit("break", b.label.as_ref(), BRK, span, out);
                 None
             }
             Expr::Continue(c) => {
-                if let Some(l) = &c.label {
-                    self.errors
-                        .push(l.span(), "labelled `continue` is not supported in kernels");
-                } else if self.loop_depth == 0 {
-                    self.errors.push(span, "`continue` outside of a loop");
-                } else {
-                    let t = self.const_flag(true, out);
-                    self.assign(CONT, t);
-                }
+                self.lower_loop_exit("continue", c.label.as_ref(), CONT, span, out);
                 None
             }
             Expr::Return(r) => {
@@ -1004,6 +990,29 @@ impl<'a> Lowerer<'a> {
             m.method.span(),
             format!("method calls are not differentiable in kernels: `.{method}(..)`; {hint}"),
         )
+    }
+
+    /// `break` or `continue`: sets the loop's `flag`, which guards what follows.
+    fn lower_loop_exit(
+        &mut self,
+        keyword: &str,
+        label: Option<&syn::Lifetime>,
+        flag: &str,
+        span: Span,
+        out: &mut Block,
+    ) {
+        if let Some(l) = label {
+            self.errors.push(
+                l.span(),
+                format!("labelled `{keyword}` is not supported in kernels"),
+            );
+        } else if self.loop_depth == 0 {
+            self.errors
+                .push(span, format!("`{keyword}` outside of a loop"));
+        } else {
+            let t = self.const_flag(true, out);
+            self.assign(flag, t);
+        }
     }
 
     fn lower_if(&mut self, i: &syn::ExprIf, out: &mut Block) -> Option<ValueId> {
