@@ -374,8 +374,13 @@ impl<'a> Emitter<'a> {
                 span,
             } => {
                 let (g, i, ax) = (grad_view(*param), v(*index), a(*value));
+                let t = tid();
                 match kind {
-                    StoreKind::Store | StoreKind::AtomicAdd => {
+                    // Takes the gradient: an earlier store to the element was overwritten.
+                    StoreKind::Store => {
+                        quote_spanned!(*span=> #rt::acc(&mut #ax, #g.take(#t, #i));)
+                    }
+                    StoreKind::AtomicAdd => {
                         quote_spanned!(*span=> #rt::acc(&mut #ax, #g.get(#i));)
                     }
                     StoreKind::AtomicSub => {
@@ -616,8 +621,9 @@ impl<'a> Emitter<'a> {
 /// `view.store(i, x)`, `view.add(i, x)` or `view.sub(i, x)`: a write of the forward (values) or
 /// of the tangent (tangents), through the matching view.
 fn store_call(view: Ident, kind: StoreKind, i: Ident, x: Ident, span: Span) -> TokenStream {
+    let t = tid();
     match kind {
-        StoreKind::Store => quote_spanned!(span=> #view.store(#i, #x);),
+        StoreKind::Store => quote_spanned!(span=> #view.store(#t, #i, #x);),
         StoreKind::AtomicAdd => quote_spanned!(span=> #view.add(#i, #x);),
         StoreKind::AtomicSub => quote_spanned!(span=> #view.sub(#i, #x);),
     }

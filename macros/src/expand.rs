@@ -231,6 +231,7 @@ fn kernel_mode(
     mode: Mode,
 ) -> TokenStream {
     let kname = sig.name.to_string();
+    let at_tid = body.stores_at_tid(sig.params.len());
     let mut views = TokenStream::new();
     let mut finish = Vec::new();
     for (p, (param, u)) in sig.params.iter().zip(uses).enumerate() {
@@ -254,10 +255,11 @@ fn kernel_mode(
                 Mode::Forward => {}
             }
         } else if u.store.is_some() {
+            let distinct = at_tid[p];
             views.extend(match mode {
-                Mode::Forward => quote!(let #vw = #k::writer(#arr, #site);),
-                Mode::Adjoint => quote!(let #gv = #k::grad_reader(#arr, #site);),
-                Mode::Tangent => quote!(let #tv = #k::tangent_writer(#arr, #site);),
+                Mode::Forward => quote!(let #vw = #k::writer(#arr, #site, #distinct);),
+                Mode::Adjoint => quote!(let #gv = #k::grad_taker(#arr, #site, #distinct);),
+                Mode::Tangent => quote!(let #tv = #k::tangent_writer(#arr, #site, #distinct);),
             });
         } else if u.atomic.is_some() {
             match mode {

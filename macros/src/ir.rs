@@ -136,3 +136,49 @@ pub struct Body {
     pub block: Block,
     pub ret: Option<ValueId>,
 }
+
+impl Body {
+    /// For each of `params` parameters: whether every `a[i] = v` into it indexes with the
+    /// thread id itself (`tid()`, or a `let` bound to it), so that no two threads of a launch
+    /// can store to one element. Other stores are checked at run time.
+    pub fn stores_at_tid(&self, params: usize) -> Vec<bool> {
+        fn tids(b: &Block, out: &mut Vec<ValueId>) {
+            for s in &b.stmts {
+                match s {
+                    Stmt::Let(Let {
+                        id, op: Op::Tid, ..
+                    }) => out.push(*id),
+                    Stmt::If { then_b, else_b, .. } => {
+                        tids(then_b, out);
+                        tids(else_b, out);
+                    }
+                    Stmt::Loop(l) => tids(&l.body, out),
+                    _ => {}
+                }
+            }
+        }
+        fn check(b: &Block, tid: &[ValueId], ok: &mut [bool]) {
+            for s in &b.stmts {
+                match s {
+                    Stmt::Store {
+                        param,
+                        index,
+                        kind: StoreKind::Store,
+                        ..
+                    } if !tid.contains(index) => ok[*param] = false,
+                    Stmt::If { then_b, else_b, .. } => {
+                        check(then_b, tid, ok);
+                        check(else_b, tid, ok);
+                    }
+                    Stmt::Loop(l) => check(&l.body, tid, ok),
+                    _ => {}
+                }
+            }
+        }
+        let mut tid = Vec::new();
+        tids(&self.block, &mut tid);
+        let mut ok = vec![true; params];
+        check(&self.block, &tid, &mut ok);
+        ok
+    }
+}

@@ -60,6 +60,9 @@ impl Errors {
     pub fn is_empty(&self) -> bool {
         self.0.is_empty()
     }
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
     pub fn to_compile_errors(&self) -> proc_macro2::TokenStream {
         self.0.iter().map(syn::Error::to_compile_error).collect()
     }

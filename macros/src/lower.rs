@@ -21,8 +21,12 @@ use crate::ir::*;
 use crate::signature::{ParamKind, Signature};
 use crate::Errors;
 
-/// Loops with constant bounds and at most this many iterations are unrolled.
+/// Loops with constant bounds and at most this many iterations are unrolled...
 const UNROLL_MAX: u64 = 16;
+/// ...as long as the bodies of a nest of unrolled loops stay at most this many copies (a
+/// 16 x 16 nest unrolled to 256 bodies overflowed rustc's stack in a debug build): an inner
+/// loop that would exceed it stays a loop.
+const UNROLL_TOTAL_MAX: u64 = 64;
 
 #[derive(Clone)]
 struct Binding {
@@ -51,6 +55,9 @@ pub struct Lowerer<'a> {
     errors: &'a mut Errors,
     next_value: ValueId,
     next_loop: usize,
+    /// How many copies of the current statement the enclosing unrolled loops make (1 outside
+    /// them).
+    unrolled_copies: u64,
     env: Vec<Vec<Binding>>,
     const_bool: HashMap<ValueId, bool>,
     no_grad: usize,
@@ -72,6 +79,7 @@ impl<'a> Lowerer<'a> {
             errors,
             next_value: 0,
             next_loop: 0,
+            unrolled_copies: 1,
             env: vec![Vec::new()],
             const_bool: HashMap::new(),
             no_grad: 0,
@@ -415,10 +423,23 @@ impl<'a> Lowerer<'a> {
             Pat::Type(pt) => (&*pt.pat, Some(&*pt.ty)),
             p => (p, None),
         };
-        let Some(v) = self.lower_expr(&init.expr, out) else {
-            self.errors
-                .push(init.expr.span(), "this expression has no value to bind");
-            return;
+        let before = self.errors.len();
+        let v = match self.lower_expr(&init.expr, out) {
+            Some(v) => v,
+            None => {
+                if self.errors.len() == before {
+                    let msg = if diverges(&init.expr) {
+                        "a `let` cannot bind an `if` whose branch leaves with `continue`, `break` \
+                         or `return` in a kernel; leave before the `let`: \
+                         `if c { continue; } let x = ..;`"
+                    } else {
+                        "this expression has no value to bind"
+                    };
+                    self.errors.push(init.expr.span(), msg);
+                }
+                // Bind the names anyway, so that their uses give no follow-on errors.
+                self.push(out, Op::Zero, init.expr.span())
+            }
         };
         match pat {
             Pat::Ident(pi) if pi.by_ref.is_none() && pi.subpat.is_none() => {
@@ -489,16 +510,7 @@ impl<'a> Lowerer<'a> {
                     return Some(self.push(out, Op::Read { param: p, index }, span));
                 }
                 let base = self.lower_value(&i.expr, out)?;
-                let index = match &*i.index {
-                    Expr::Tuple(t) => {
-                        let mut items = Vec::new();
-                        for el in &t.elems {
-                            items.push(self.lower_value(el, out)?);
-                        }
-                        self.push(out, Op::Tuple(items), t.span())
-                    }
-                    idx => self.lower_value(idx, out)?,
-                };
+                let index = self.lower_component_index(&i.index, out)?;
                 Some(self.push(
                     out,
                     Op::Builtin {
@@ -1167,6 +1179,21 @@ impl<'a> Lowerer<'a> {
 
     // ---- assignments -------------------------------------------------------------------
 
+    /// The index of a local's component: `v[k]`, or a matrix's `m[(r, c)]` (the one place a
+    /// tuple is allowed), read or assigned.
+    fn lower_component_index(&mut self, index: &Expr, out: &mut Block) -> Option<ValueId> {
+        match index {
+            Expr::Tuple(t) => {
+                let mut items = Vec::new();
+                for el in &t.elems {
+                    items.push(self.lower_value(el, out)?);
+                }
+                Some(self.push(out, Op::Tuple(items), t.span()))
+            }
+            idx => self.lower_value(idx, out),
+        }
+    }
+
     fn lower_assign(&mut self, lhs: &Expr, op: Option<&BinOp>, rhs: &Expr, out: &mut Block) {
         let span = lhs.span();
         let op_name = op.map(|o| match o {
@@ -1296,7 +1323,7 @@ impl<'a> Lowerer<'a> {
         let k = match &component {
             None => None,
             Some(Component::Const(k, s)) => Some(self.push(out, Op::Const(quote!(#k)), *s)),
-            Some(Component::Expr(e)) => match self.lower_value(e, out) {
+            Some(Component::Expr(e)) => match self.lower_component_index(e, out) {
                 Some(v) => Some(v),
                 None => return,
             },
@@ -1394,8 +1421,12 @@ impl<'a> Lowerer<'a> {
         let inclusive = matches!(r.limits, syn::RangeLimits::Closed(_));
         if let (Some(lo), Some(hi)) = (int_literal(start), int_literal(end)) {
             let hi = if inclusive { hi + 1 } else { hi };
-            if hi <= lo || hi - lo <= UNROLL_MAX {
+            let n = hi.saturating_sub(lo);
+            let total = self.unrolled_copies.saturating_mul(n);
+            if n <= UNROLL_MAX && total <= UNROLL_TOTAL_MAX {
+                let outer = std::mem::replace(&mut self.unrolled_copies, total.max(1));
                 self.lower_unrolled(lo, hi, index_name.as_deref(), &f.body, out);
+                self.unrolled_copies = outer;
                 return;
             }
         }
@@ -1748,4 +1779,27 @@ impl<'ast> Visit<'ast> for Assigned {
         syn::visit::visit_expr_return(self, r);
     }
     fn visit_expr_closure(&mut self, _: &'ast syn::ExprClosure) {}
+}
+
+/// Whether a branch of this `if` (or block) ends by leaving: `continue`, `break`, `return`.
+fn diverges(e: &Expr) -> bool {
+    fn block_leaves(b: &syn::Block) -> bool {
+        match b.stmts.last() {
+            Some(syn::Stmt::Expr(e, _)) => {
+                matches!(e, Expr::Continue(_) | Expr::Break(_) | Expr::Return(_)) || diverges(e)
+            }
+            _ => false,
+        }
+    }
+    match e {
+        Expr::If(i) => {
+            block_leaves(&i.then_branch)
+                || i.else_branch.as_ref().is_some_and(|(_, e)| {
+                    diverges(e) || matches!(&**e, Expr::Block(b) if block_leaves(&b.block))
+                })
+        }
+        Expr::Block(b) => block_leaves(&b.block),
+        Expr::Paren(p) => diverges(&p.expr),
+        _ => false,
+    }
 }

@@ -1,10 +1,12 @@
 //! `Array<T>`: a cheap shared handle over kernel data, with an optional gradient (adjoint)
 //! buffer, an optional tangent buffer and a version counter that every write bumps.
 
-use std::cell::UnsafeCell;
+use std::cell::{RefCell, UnsafeCell};
 use std::fmt;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, RwLock, RwLockReadGuard, RwLockWriteGuard};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::{
+    Arc, Mutex, MutexGuard, OnceLock, PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard,
+};
 
 use crate::error::Error;
 use crate::Value;
@@ -28,6 +30,43 @@ struct Inner<T> {
     requires_grad: AtomicBool,
     grad: Mutex<Option<Array<T>>>,
     tangent: Mutex<Option<Array<T>>>,
+    /// Which thread of the current launch stored to each element, for stores the macro could
+    /// not prove distinct (see [`Claims`]); allocated on first use.
+    claims: OnceLock<Box<[AtomicU64]>>,
+    /// Bumped by every launch that stores into the array: claims of older launches are void.
+    epoch: AtomicU32,
+}
+
+/// A mutex that a panic elsewhere does not poison for good: the data it guards (a name, a
+/// buffer handle) is always consistent.
+fn relock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+thread_local! {
+    /// The arrays whose access lock this thread holds: (id, for writing).
+    static HELD: RefCell<Vec<(u64, bool)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Refuses an access that would deadlock on this thread's own lock (a host read inside
+/// `modify` of the same array, a launch inside it, ...), naming the array.
+fn check_not_held(id: u64, label: impl FnOnce() -> String, write: bool, what: &str) {
+    let held = HELD.with(|h| h.borrow().iter().find(|(i, _)| *i == id).map(|&(_, w)| w));
+    if let Some(held_write) = held {
+        if write || held_write {
+            panic!(
+                "{what} array `{}` while this thread already holds it{} (inside `modify`, or a \
+                 launch): that would deadlock. Read what you need before `modify` (or use the \
+                 slice `modify` gives you), and launch outside it",
+                label(),
+                if held_write {
+                    " for writing"
+                } else {
+                    " for reading"
+                }
+            );
+        }
+    }
 }
 
 // SAFETY: `data` is only touched under `access` (host) or by launches that hold `access` for
@@ -84,6 +123,8 @@ impl<T: Element> Array<T> {
                 requires_grad: AtomicBool::new(false),
                 grad: Mutex::new(None),
                 tangent: Mutex::new(None),
+                claims: OnceLock::new(),
+                epoch: AtomicU32::new(0),
             }),
         }
     }
@@ -101,19 +142,19 @@ impl<T: Element> Array<T> {
     /// A copy of the data in a new array (new id, no gradient, same name).
     pub fn deep_clone(&self) -> Self {
         let a = Self::from_vec(self.to_vec());
-        *a.inner.name.lock().unwrap() = self.inner.name.lock().unwrap().clone();
+        *relock(&a.inner.name) = relock(&self.inner.name).clone();
         a
     }
 
     /// Gives the array a name used in error messages, DOT graphs and reports.
     pub fn named(self, name: impl Into<String>) -> Self {
-        *self.inner.name.lock().unwrap() = Some(Arc::from(name.into()));
+        *relock(&self.inner.name) = Some(Arc::from(name.into()));
         self
     }
 
     /// The name given by [`Array::named`], if any.
     pub fn name(&self) -> Option<Arc<str>> {
-        self.inner.name.lock().unwrap().clone()
+        relock(&self.inner.name).clone()
     }
 
     /// Marks the array as a gradient target and allocates its (zeroed) gradient buffer.
@@ -138,12 +179,12 @@ impl<T: Element> Array<T> {
 
     /// The gradient buffer if one exists.
     pub fn grad_buffer(&self) -> Option<Array<T>> {
-        self.inner.grad.lock().unwrap().clone()
+        relock(&self.inner.grad).clone()
     }
 
     /// Allocates a zeroed gradient buffer if there is none; returns it.
     pub fn ensure_grad(&self) -> Array<T> {
-        let mut g = self.inner.grad.lock().unwrap();
+        let mut g = relock(&self.inner.grad);
         g.get_or_insert_with(|| Array::zeros(self.len())).clone()
     }
 
@@ -156,7 +197,7 @@ impl<T: Element> Array<T> {
 
     /// The tangent buffer (forward mode) if one exists.
     pub fn tangent_buffer(&self) -> Option<Array<T>> {
-        self.inner.tangent.lock().unwrap().clone()
+        relock(&self.inner.tangent).clone()
     }
 
     /// Attaches `tangent` (same length) as this array's tangent buffer for forward-mode launches.
@@ -169,12 +210,12 @@ impl<T: Element> Array<T> {
                 self.label()
             );
         }
-        *self.inner.tangent.lock().unwrap() = tangent;
+        *relock(&self.inner.tangent) = tangent;
     }
 
     /// Allocates a zeroed tangent buffer if there is none; returns it.
     pub fn ensure_tangent(&self) -> Array<T> {
-        let mut g = self.inner.tangent.lock().unwrap();
+        let mut g = relock(&self.inner.tangent);
         g.get_or_insert_with(|| Array::zeros(self.len())).clone()
     }
 
@@ -190,14 +231,14 @@ impl<T: Element> Array<T> {
 
     /// A copy of the data.
     pub fn to_vec(&self) -> Vec<T> {
-        let _g = self.inner.access.read().unwrap();
+        let _g = self.host_lock(false);
         // SAFETY: under the read lock nobody writes (writers hold the write lock).
         unsafe { std::slice::from_raw_parts(self.data_ptr(), self.len()) }.to_vec()
     }
 
     /// Element `i` (panics with the array's name if out of bounds).
     pub fn get(&self, i: usize) -> T {
-        let _g = self.inner.access.read().unwrap();
+        let _g = self.host_lock(false);
         let len = self.len();
         if i >= len {
             panic!(
@@ -210,8 +251,11 @@ impl<T: Element> Array<T> {
     }
 
     /// Runs `f` on the data for writing, then bumps the version.
+    ///
+    /// Accessing the same array inside `f` (`y.modify(|d| d[0] = y.get(1))`) panics with a
+    /// message naming the array: it would deadlock.
     pub fn modify<U>(&self, f: impl FnOnce(&mut [T]) -> U) -> U {
-        let _g = self.inner.access.write().unwrap();
+        let _g = self.host_lock(true);
         // SAFETY: exclusive under the write lock.
         let out = f(unsafe { std::slice::from_raw_parts_mut(self.data_ptr(), self.len()) });
         self.bump_version();
@@ -253,6 +297,31 @@ impl<T: Element> Array<T> {
         self.inner.version.load(Ordering::Acquire)
     }
 
+    fn host_lock(&self, write: bool) -> ArrayLock<'_> {
+        let what = if write { "writing" } else { "reading" };
+        self.inner.acquire(write, || self.label(), what)
+    }
+
+    /// Starts a launch that stores into this array at indices the macro could not prove
+    /// distinct per thread: voids the claims of earlier launches.
+    pub(crate) fn new_claim_epoch(&self) {
+        if self.inner.epoch.fetch_add(1, Ordering::AcqRel) == u32::MAX {
+            // Wrapped around: clear so that no stale claim can match a new epoch.
+            if let Some(c) = self.inner.claims.get() {
+                c.iter().for_each(|e| e.store(0, Ordering::Relaxed));
+            }
+        }
+    }
+
+    /// The claim table and the current launch's epoch (see [`crate::kernel`]'s stores).
+    pub(crate) fn claims(&self) -> (&[AtomicU64], u32) {
+        let table = self
+            .inner
+            .claims
+            .get_or_init(|| (0..self.len()).map(|_| AtomicU64::new(0)).collect());
+        (table, self.inner.epoch.load(Ordering::Acquire))
+    }
+
     pub(crate) fn bump_version(&self) {
         self.inner.version.fetch_add(1, Ordering::AcqRel);
     }
@@ -271,12 +340,51 @@ impl<T: Element> Array<T> {
     }
 }
 
-/// The access lock a launch holds on one array.
-pub enum ArrayLock<'a> {
-    /// Held for reading.
-    Read(RwLockReadGuard<'a, ()>),
-    /// Held for writing.
-    Write(RwLockWriteGuard<'a, ()>),
+enum Guard<'a> {
+    Read(#[allow(dead_code)] RwLockReadGuard<'a, ()>),
+    Write(#[allow(dead_code)] RwLockWriteGuard<'a, ()>),
+}
+
+/// An array's access lock, held by a host access or a launch. Registered with the thread so
+/// that re-entrant access is refused instead of deadlocking. A panic while it is held for
+/// writing (a kernel's out-of-bounds index, caught with `catch_unwind`) leaves the data
+/// partly written: the version is bumped so that a tape which recorded a read of it refuses
+/// to differentiate through it, and the lock stays usable (no poisoning).
+pub struct ArrayLock<'a> {
+    id: u64,
+    version: &'a AtomicU64,
+    guard: Guard<'a>,
+}
+
+impl<T> Inner<T> {
+    fn acquire(&self, write: bool, label: impl FnOnce() -> String, what: &str) -> ArrayLock<'_> {
+        check_not_held(self.id, label, write, what);
+        let guard = if write {
+            Guard::Write(self.access.write().unwrap_or_else(PoisonError::into_inner))
+        } else {
+            Guard::Read(self.access.read().unwrap_or_else(PoisonError::into_inner))
+        };
+        HELD.with(|h| h.borrow_mut().push((self.id, write)));
+        ArrayLock {
+            id: self.id,
+            version: &self.version,
+            guard,
+        }
+    }
+}
+
+impl Drop for ArrayLock<'_> {
+    fn drop(&mut self) {
+        if matches!(self.guard, Guard::Write(_)) && std::thread::panicking() {
+            self.version.fetch_add(1, Ordering::AcqRel);
+        }
+        HELD.with(|h| {
+            let mut h = h.borrow_mut();
+            if let Some(k) = h.iter().rposition(|&(i, _)| i == self.id) {
+                h.remove(k);
+            }
+        });
+    }
 }
 
 /// An array with its element type erased: what tapes and checks hold.
@@ -317,6 +425,8 @@ pub trait AnyArray: Send + Sync {
     fn lock(&self, write: bool) -> ArrayLock<'_>;
     /// Bumps the version (after a launch wrote the array).
     fn mark_written(&self);
+    /// Voids the store claims of earlier launches (a launch that stores is starting).
+    fn new_claim_epoch(&self);
     /// The handle as [`std::any::Any`], to downcast to its `Array<T>`.
     fn as_any(&self) -> &dyn std::any::Any;
     /// Adds `src` (an array of the same element type and length) into this array element by
@@ -377,14 +487,14 @@ impl<T: Element> AnyArray for Array<T> {
             .position(|v| (0..T::DIM).any(|k| !v.component(k).is_finite()))
     }
     fn lock(&self, write: bool) -> ArrayLock<'_> {
-        if write {
-            ArrayLock::Write(self.inner.access.write().unwrap())
-        } else {
-            ArrayLock::Read(self.inner.access.read().unwrap())
-        }
+        self.inner
+            .acquire(write, || self.label(), "launching a kernel on")
     }
     fn mark_written(&self) {
         self.bump_version()
+    }
+    fn new_claim_epoch(&self) {
+        Array::new_claim_epoch(self)
     }
     fn as_any(&self) -> &dyn std::any::Any {
         self

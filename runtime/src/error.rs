@@ -45,6 +45,26 @@ pub enum Error {
         /// Forward or adjoint.
         pass: &'static str,
     },
+    /// A backward pass that reaches no array which requires grad: every gradient would stay
+    /// zero.
+    NothingToDifferentiate {
+        /// The labels of the seeds (the loss).
+        seeds: String,
+    },
+    /// An array was written off the tape (on the host) between the recorded step that wrote
+    /// it and a later recorded step that used it.
+    WrittenOffTape {
+        /// The array's label.
+        array: String,
+        /// The step that wrote it on the tape.
+        writer: String,
+        /// Its position on the tape.
+        writer_launch: usize,
+        /// The later step that used it.
+        user: String,
+        /// Its position on the tape.
+        user_launch: usize,
+    },
     /// Anything else, with a message.
     Other(String),
 }
@@ -71,6 +91,21 @@ impl fmt::Display for Error {
                 f,
                 "{pass} of kernel `{kernel}` (launch #{launch}) wrote a NaN/Inf into `{array}` \
                  (param `{param}`) at index {index}"
+            ),
+            Error::NothingToDifferentiate { seeds } => write!(
+                f,
+                "backward from {seeds} reaches no array that requires grad, so every gradient \
+                 would be zero: call `.requires_grad()` on the parameters before recording, and \
+                 record every step between them and the loss on this tape (a loss computed on \
+                 another tape, or from copies, is not connected)"
+            ),
+            Error::WrittenOffTape { array, writer, writer_launch, user, user_launch } => write!(
+                f,
+                "array `{array}` was written off the tape after launch #{writer_launch} \
+                 (`{writer}`) wrote it and before launch #{user_launch} (`{user}`) used it; the \
+                 tape cannot see that write, so `{writer}` would receive gradient for values that \
+                 were replaced. Make the write a step of the tape (a kernel, or `Tape::record_fn`), \
+                 or write into a new array"
             ),
             Error::Other(m) => f.write_str(m),
         }

@@ -6,7 +6,8 @@
 
 use std::any::Any;
 use std::ops::Range;
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use crate::array::{AnyArray, Array, Element};
 
@@ -206,6 +207,8 @@ pub struct OptReader<T> {
     ptr: Option<*const T>,
     len: usize,
     place: Place,
+    /// Keeps the buffer alive even if the array drops it meanwhile.
+    _buf: Option<Array<T>>,
 }
 
 impl<T: Element> OptReader<T> {
@@ -221,21 +224,132 @@ impl<T: Element> OptReader<T> {
     }
 }
 
-/// Stores into an array inside a kernel (`a[i] = v`); absent buffers ignore stores.
+/// The claims of one launch on an array it stores into at indices the macro could not prove
+/// distinct per thread (anything but `a[tid()] = v`): the first thread to store an element
+/// claims it for the launch, and a store to it from another thread is refused with a panic
+/// naming the kernel, the array, the index and both threads. So two threads never write one
+/// element (which would be a data race, and a result that depends on scheduling), and the
+/// adjoint, which hands each stored element's gradient to exactly one store, stays right.
+#[derive(Clone, Copy)]
+struct Claims {
+    table: *const AtomicU64,
+    epoch: u32,
+}
+
+impl Claims {
+    #[inline(always)]
+    fn claim(&self, i: usize, tid: usize, place: &Place) {
+        if tid > u32::MAX as usize {
+            claim_overflow(place, tid);
+        }
+        let me = (u64::from(self.epoch) << 32) | tid as u64;
+        // SAFETY: `i` is in bounds (checked by the caller); the table has one entry per
+        // element and lives as long as the array the view holds.
+        let e = unsafe { &*self.table.add(i) };
+        let cur = e.load(Ordering::Acquire);
+        if cur == me {
+            return;
+        }
+        if (cur >> 32) as u32 == self.epoch {
+            store_conflict(place, i, cur as u32 as usize, tid);
+        }
+        if let Err(now) = e.compare_exchange(cur, me, Ordering::AcqRel, Ordering::Acquire) {
+            if now != me {
+                store_conflict(place, i, now as u32 as usize, tid);
+            }
+        }
+    }
+}
+
+#[cold]
+#[inline(never)]
+fn store_conflict(place: &Place, i: usize, a: usize, b: usize) -> ! {
+    let (a, b) = (a.min(b), a.max(b));
+    let array = match &place.name {
+        Some(n) => format!("array `{n}` (parameter `{}`)", place.site.param),
+        None => format!("parameter `{}`", place.site.param),
+    };
+    panic!(
+        "kernel `{}`: threads {a} and {b} both store to {array} at index {i}; the result would \
+         depend on which runs last, and only one store can receive the gradient. Store at \
+         `tid()` (or an index only this thread writes), or accumulate with `atomic_add`",
+        place.site.kernel
+    )
+}
+
+#[cold]
+#[inline(never)]
+fn claim_overflow(place: &Place, tid: usize) -> ! {
+    panic!(
+        "kernel `{}`: thread {tid} stores to parameter `{}` at an index the macro cannot prove \
+         is the thread's own, and such stores are checked only for launches of up to 2^32 \
+         threads; store at `tid()` or split the launch",
+        place.site.kernel, place.site.param
+    )
+}
+
+/// Stores into an array inside a kernel (`a[i] = v`), or takes the gradient of a stored
+/// element in the adjoint; absent buffers ignore stores and read as zero.
 pub struct Writer<T> {
     ptr: Option<*mut T>,
     len: usize,
     place: Place,
+    claims: Option<Claims>,
+    /// Keeps the buffer (and its claim table) alive even if the array drops it meanwhile.
+    _buf: Option<Array<T>>,
 }
 
 impl<T: Element> Writer<T> {
-    /// `a[i] = v`.
+    fn new(of: &Array<T>, buf: Option<Array<T>>, site: &'static Site, distinct: bool) -> Self {
+        let claims = match (&buf, distinct) {
+            (Some(b), false) => {
+                let (table, epoch) = b.claims();
+                Some(Claims {
+                    table: table.as_ptr(),
+                    epoch,
+                })
+            }
+            _ => None,
+        };
+        Writer {
+            ptr: buf.as_ref().map(|b| b.data_ptr()),
+            len: of.len(),
+            place: Place::of(of, site),
+            claims,
+            _buf: buf,
+        }
+    }
+
     #[inline(always)]
-    pub fn store<I: ToIndex>(&self, i: I, v: T) {
+    fn slot<I: ToIndex>(&self, tid: usize, i: I) -> Option<*mut T> {
         let i = checked(i, self.len, &self.place);
-        if let Some(p) = self.ptr {
-            // SAFETY: in bounds; threads store to distinct indices (kernel contract).
-            unsafe { *p.add(i) = v }
+        let p = self.ptr?;
+        if let Some(c) = &self.claims {
+            c.claim(i, tid, &self.place);
+        }
+        // SAFETY: in bounds.
+        Some(unsafe { p.add(i) })
+    }
+
+    /// `a[i] = v` by thread `tid`.
+    #[inline(always)]
+    pub fn store<I: ToIndex>(&self, tid: usize, i: I, v: T) {
+        if let Some(p) = self.slot(tid, i) {
+            // SAFETY: only this thread writes element `i` in this launch: the macro proved
+            // the index is the thread id, or the claim above made it this thread's.
+            unsafe { *p = v }
+        }
+    }
+
+    /// The adjoint of `a[i] = v` by thread `tid`: returns the gradient of element `i` and
+    /// zeroes it, so that an earlier store to the same element (overwritten by this one)
+    /// receives nothing.
+    #[inline(always)]
+    pub fn take<I: ToIndex>(&self, tid: usize, i: I) -> T {
+        match self.slot(tid, i) {
+            // SAFETY: as in `store`.
+            Some(p) => unsafe { std::mem::replace(&mut *p, T::zeroed()) },
+            None => T::zeroed(),
         }
     }
 }
@@ -336,7 +450,7 @@ static LOG_POOL: Mutex<Vec<Box<dyn Any + Send>>> = Mutex::new(Vec::new());
 const LOG_POOL_MAX: usize = 128;
 
 fn take_log<T: Element>() -> Vec<(u32, T)> {
-    let mut pool = LOG_POOL.lock().unwrap_or_else(|e| e.into_inner());
+    let mut pool = LOG_POOL.lock().unwrap_or_else(PoisonError::into_inner);
     match pool.iter().rposition(|b| b.is::<Vec<(u32, T)>>()) {
         Some(k) => *pool.swap_remove(k).downcast().expect("checked by `is`"),
         None => Vec::new(),
@@ -348,7 +462,7 @@ fn give_log<T: Element>(mut log: Vec<(u32, T)>) {
         return;
     }
     log.clear();
-    let mut pool = LOG_POOL.lock().unwrap_or_else(|e| e.into_inner());
+    let mut pool = LOG_POOL.lock().unwrap_or_else(PoisonError::into_inner);
     if pool.len() < LOG_POOL_MAX {
         pool.push(Box::new(log));
     }
@@ -379,8 +493,8 @@ impl<T: Element> ApplyLog for TypedLog<T> {
 // SAFETY: the raw pointers in views point into arrays kept alive by the launch's owned
 // arguments; the launch contract (above) rules out conflicting access.
 unsafe impl<T: Send> Send for Reader<T> {}
-unsafe impl<T: Send> Send for OptReader<T> {}
-unsafe impl<T: Send> Send for Writer<T> {}
+unsafe impl<T: Element> Send for OptReader<T> {}
+unsafe impl<T: Element> Send for Writer<T> {}
 unsafe impl<T: Element> Send for Scatter<T> {}
 
 fn opt_reader<T: Element>(
@@ -389,9 +503,10 @@ fn opt_reader<T: Element>(
     site: &'static Site,
 ) -> OptReader<T> {
     OptReader {
-        ptr: buf.map(|b| b.data_ptr() as *const T),
+        ptr: buf.as_ref().map(|b| b.data_ptr() as *const T),
         len: of.len(),
         place: Place::of(of, site),
+        _buf: buf,
     }
 }
 
@@ -405,14 +520,18 @@ pub fn reader<T: Element>(a: &Array<T>, site: &'static Site) -> Reader<T> {
     }
 }
 
-/// A writer of `a`.
+/// A writer of `a`. `distinct`: the macro proved that every store indexes with the thread
+/// id, so threads never store to one element; otherwise stores are claimed (see [`Writer`]).
 #[inline]
-pub fn writer<T: Element>(a: &Array<T>, site: &'static Site) -> Writer<T> {
-    Writer {
-        ptr: Some(a.data_ptr()),
-        len: a.len(),
-        place: Place::of(a, site),
-    }
+pub fn writer<T: Element>(a: &Array<T>, site: &'static Site, distinct: bool) -> Writer<T> {
+    Writer::new(a, Some(a.clone()), site, distinct)
+}
+
+/// The adjoint view of a stored array: takes (reads and zeroes) the gradient of each stored
+/// element (a no-op reading zeros if it has no gradient).
+#[inline]
+pub fn grad_taker<T: Element>(a: &Array<T>, site: &'static Site, distinct: bool) -> Writer<T> {
+    Writer::new(a, a.grad_buffer(), site, distinct)
 }
 
 /// A scatter into `a`.
@@ -441,12 +560,8 @@ pub fn tangent_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReade
 
 /// A writer of `a`'s tangent (ignores stores if it has none).
 #[inline]
-pub fn tangent_writer<T: Element>(a: &Array<T>, site: &'static Site) -> Writer<T> {
-    Writer {
-        ptr: a.tangent_buffer().map(|t| t.data_ptr()),
-        len: a.len(),
-        place: Place::of(a, site),
-    }
+pub fn tangent_writer<T: Element>(a: &Array<T>, site: &'static Site, distinct: bool) -> Writer<T> {
+    Writer::new(a, a.tangent_buffer(), site, distinct)
 }
 
 /// A scatter into `a`'s tangent (a no-op if it has none).

@@ -12,7 +12,7 @@ use std::ops::Range;
 use rayon::prelude::*;
 
 use crate::array::AnyArray;
-use crate::kernel::{Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
+use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 
 /// Thread ids per chunk.
 pub const CHUNK: usize = 2048;
@@ -113,8 +113,32 @@ where
     run_bound(&kernel, &K::to_owned(&args), mode, dim)
 }
 
-/// Runs `f` with a thread pool of `threads` threads (launches inside use it).
+/// The largest pool [`with_threads`] builds: 4 threads per core, at least 64. More threads
+/// than that only add start-up time (each has its own stack) and contention.
+pub fn max_threads() -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (4 * cores).max(64)
+}
+
+/// Runs `f` with a thread pool of `threads` threads (launches inside use it). Results are
+/// bitwise the same for any number of threads.
+///
+/// ```
+/// use adflex_runtime::with_threads;
+/// assert_eq!(with_threads(2, rayon::current_num_threads), 2);
+/// ```
+///
+/// # Panics
+/// If `threads` is 0 or above [`max_threads`], with a message naming both.
 pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    let max = max_threads();
+    if threads == 0 || threads > max {
+        panic!(
+            "with_threads({threads}): the pool must have between 1 and {max} threads (4 per core \
+             of this machine, at least 64); launches use all the cores of the global pool by \
+             default"
+        );
+    }
     rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -124,7 +148,21 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 
 fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
     let arrays = K::arrays(args);
-    let _locks = lock_arrays(K::NAME, K::PARAMS, &arrays, mode);
+    let targets = lock_targets(K::NAME, K::PARAMS, &arrays, mode);
+    // In one global order (by id), so that two launches never wait for each other.
+    let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w)).collect();
+    for (p, a) in K::PARAMS.iter().zip(&arrays) {
+        if let (Access::Store, Some(a)) = (p.access, a) {
+            let buf = match mode {
+                Mode::Forward => Some(a.boxed()),
+                Mode::Adjoint => a.grad_any(),
+                Mode::Tangent => a.tangent_any(),
+            };
+            if let Some(b) = buf {
+                b.new_claim_epoch();
+            }
+        }
+    }
     let serial = dim < SERIAL_BELOW || rayon::current_num_threads() == 1;
     if serial {
         let logs = kernel.run(mode, args, 0..dim, &Exec::direct());
@@ -143,40 +181,59 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
     mark_written(K::PARAMS, &arrays, mode);
 }
 
-/// Locks every array of a launch: for writing those the launch writes (in forward mode; the
-/// other modes write only gradient and tangent buffers). Panics if one array is passed for two
-/// parameters and one of them writes it: the kernel would read its own output, or two writes
-/// would race.
-fn lock_arrays<'a>(
+/// What a launch must lock, sorted by id, each once (for writing if any use writes it): the
+/// arrays (written only in forward mode) and the gradient or tangent buffers the mode reads or
+/// writes. Panics if one array is passed for two parameters and one of them writes it: the
+/// kernel would read its own output, or two writes would race.
+fn lock_targets(
     kernel: &str,
     params: &[ParamInfo],
-    arrays: &'a [Option<&'a dyn AnyArray>],
+    arrays: &[Option<&dyn AnyArray>],
     mode: Mode,
-) -> Vec<crate::array::ArrayLock<'a>> {
-    let mut locks = Vec::new();
+) -> Vec<(Box<dyn AnyArray>, bool)> {
+    let mut targets: Vec<(Box<dyn AnyArray>, bool)> = Vec::new();
+    let mut add = |a: Box<dyn AnyArray>, write: bool| match targets
+        .iter_mut()
+        .find(|(b, _)| b.id() == a.id())
+    {
+        Some((_, w)) => *w |= write,
+        None => targets.push((a, write)),
+    };
     for (i, (p, a)) in params.iter().zip(arrays).enumerate() {
         let Some(a) = a else { continue };
         let writes = p.access.writes();
         for (q, b) in params.iter().zip(arrays).take(i) {
             if let Some(b) = b {
-                if a.id() == b.id() {
-                    if writes || q.access.writes() {
-                        panic!(
-                            "kernel `{kernel}`: array `{}` is passed as both `{}` and `{}`, and                              the kernel writes one of them; pass distinct arrays",
-                            a.label(),
-                            q.name,
-                            p.name
-                        );
-                    }
-                    continue;
+                if a.id() == b.id() && (writes || q.access.writes()) {
+                    panic!(
+                        "kernel `{kernel}`: array `{}` is passed as both `{}` and `{}`, and the \
+                         kernel writes one of them; pass distinct arrays",
+                        a.label(),
+                        q.name,
+                        p.name
+                    );
                 }
             }
         }
-        if !arrays[..i].iter().flatten().any(|b| b.id() == a.id()) {
-            locks.push(a.lock(writes && mode == Mode::Forward));
+        add(a.boxed(), writes && mode == Mode::Forward);
+        match mode {
+            Mode::Forward => {}
+            // Reads scatter into their gradients, stores take theirs, atomics read theirs.
+            Mode::Adjoint => {
+                if let Some(g) = a.grad_any() {
+                    add(g, p.access != Access::Atomic);
+                }
+            }
+            // Reads read their tangents, stores and atomics write theirs.
+            Mode::Tangent => {
+                if let Some(t) = a.tangent_any() {
+                    add(t, writes);
+                }
+            }
         }
     }
-    locks
+    targets.sort_by_key(|(a, _)| a.id());
+    targets
 }
 
 /// Bumps the versions of what the launch wrote: the arrays it writes in forward mode; in the

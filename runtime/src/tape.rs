@@ -25,6 +25,9 @@ struct Use {
     array: Box<dyn AnyArray>,
     /// Version when the step was recorded (before it ran).
     version: u64,
+    /// Version right after the step ran (for writes): a later step that finds another
+    /// version knows the array was written off the tape in between.
+    after: u64,
     atomic: bool,
 }
 
@@ -163,6 +166,7 @@ fn uses(
             param: p.name.to_string(),
             array: a.boxed(),
             version: a.version(),
+            after: 0,
             atomic: p.access == Access::Atomic,
         };
         match p.access {
@@ -279,6 +283,7 @@ impl Tape {
                     param: format!("{what} {i}"),
                     array: a.boxed(),
                     version: a.version(),
+                    after: 0,
                     atomic: false,
                 })
                 .collect::<Vec<_>>()
@@ -298,8 +303,12 @@ impl Tape {
         CustomStep { tape: self, index }
     }
 
-    /// Pushes a record and runs the forward NaN/Inf check; returns its index.
-    fn push(&mut self, record: Record) -> usize {
+    /// Pushes a record (whose step just ran) and runs the forward NaN/Inf check; returns its
+    /// index.
+    fn push(&mut self, mut record: Record) -> usize {
+        for u in &mut record.writes {
+            u.after = u.array.version();
+        }
         let index = self.records.len();
         self.records.push(record);
         if self.check_finite {
@@ -394,8 +403,56 @@ impl Tape {
         Ok(())
     }
 
-    /// Reach analysis and version check for a backward pass from `seeds`.
-    fn plan(&self, seeds: &HashSet<u64>, sources: &HashSet<u64>) -> Result<Plan, Error> {
+    /// The labels of the arrays with these ids (for errors).
+    fn labels(&self, ids: &HashSet<u64>) -> String {
+        let mut seen = HashSet::new();
+        let mut out = Vec::new();
+        for r in &self.records {
+            for u in r.reads.iter().chain(&r.writes) {
+                if ids.contains(&u.array.id()) && seen.insert(u.array.id()) {
+                    out.push(format!("`{}`", u.array.label()));
+                }
+            }
+        }
+        out.join(", ")
+    }
+
+    /// Refuses a backward pass through an array that was written off the tape (on the host)
+    /// after a recorded step wrote it and before a later recorded step used it: the tape
+    /// cannot see that write, so the writer's adjoint would receive gradient for values that
+    /// were replaced.
+    fn check_off_tape_writes(&self, run: &[bool]) -> Result<(), Error> {
+        // id -> (step that last wrote it, version right after)
+        let mut last: std::collections::HashMap<u64, (usize, u64)> = Default::default();
+        for (i, r) in self.records.iter().enumerate() {
+            for u in r.reads.iter().chain(&r.writes) {
+                if let Some(&(w, after)) = last.get(&u.array.id()) {
+                    if u.version != after && run[w] && run[i] {
+                        return Err(Error::WrittenOffTape {
+                            array: u.array.label(),
+                            writer: self.records[w].qualified(),
+                            writer_launch: w,
+                            user: r.qualified(),
+                            user_launch: i,
+                        });
+                    }
+                }
+            }
+            for u in &r.writes {
+                last.insert(u.array.id(), (i, u.after));
+            }
+        }
+        Ok(())
+    }
+
+    /// Reach analysis and version checks for a backward pass from `seeds`. With
+    /// `require_reach`, a pass that reaches no array requiring grad (nor a source) is an error.
+    fn plan(
+        &self,
+        seeds: &HashSet<u64>,
+        sources: &HashSet<u64>,
+        require_reach: bool,
+    ) -> Result<Plan, Error> {
         let (fwd, f) = self.forward_flags(sources);
         let mut b = seeds.clone();
         let mut run = vec![false; self.records.len()];
@@ -408,7 +465,23 @@ impl Tape {
         for i in (0..self.records.len()).filter(|&i| run[i]) {
             self.check_versions(i)?;
         }
+        self.check_off_tape_writes(&run)?;
         let grads: HashSet<u64> = f.intersection(&b).copied().collect();
+        if require_reach {
+            let leaf = |id: &u64| {
+                sources.contains(id)
+                    || self.records.iter().any(|r| {
+                        r.reads
+                            .iter()
+                            .any(|u| u.array.id() == *id && u.array.is_requires_grad())
+                    })
+            };
+            if !grads.iter().any(leaf) {
+                return Err(Error::NothingToDifferentiate {
+                    seeds: self.labels(seeds),
+                });
+            }
+        }
         let zeroed = self
             .records
             .iter()
@@ -443,8 +516,17 @@ impl Tape {
                 Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
                 Step::Custom { backward, .. } => backward(),
             }
+            let r = &self.records[i];
+            if let Step::Custom { .. } = r.step {
+                // The step replaced its outputs: an earlier writer of one gets no gradient
+                // (a launch's stores take theirs element by element, see `Writer::take`).
+                for u in &r.writes {
+                    if !r.reads.iter().any(|x| x.array.id() == u.array.id()) {
+                        u.array.zero_grad();
+                    }
+                }
+            }
             if self.check_finite {
-                let r = &self.records[i];
                 for u in &r.reads {
                     if let Some(k) = u.array.grad_any().and_then(|g| g.first_non_finite()) {
                         return Err(r.non_finite(i, u, k, "adjoint"));
@@ -483,7 +565,7 @@ impl Tape {
                 array: loss.label(),
             });
         }
-        let plan = self.plan(&HashSet::from([loss.id()]), sources)?;
+        let plan = self.plan(&HashSet::from([loss.id()]), sources, sources.is_empty())?;
         let mut one = T::zeroed();
         for k in 0..T::DIM {
             one.set_component(k, 1.0);
@@ -507,7 +589,9 @@ impl Tape {
                 return Err(Error::NoGrad { array: s.label() });
             }
         }
-        self.backward_seeded(seeds, &HashSet::new())
+        let ids = seeds.iter().map(|s| s.id()).collect();
+        let plan = self.plan(&ids, &HashSet::new(), true)?;
+        self.execute(&plan)
     }
 
     /// [`Tape::backward_with`] without the checks, with extra sources (by id).
@@ -517,7 +601,7 @@ impl Tape {
         sources: &HashSet<u64>,
     ) -> Result<(), Error> {
         let seeds = seeds.iter().map(|s| s.id()).collect();
-        let plan = self.plan(&seeds, sources)?;
+        let plan = self.plan(&seeds, sources, false)?;
         self.execute(&plan)
     }
 

@@ -48,10 +48,10 @@ impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
         let x = kernel::reader(&args.0, &X);
         match mode {
             Mode::Forward => {
-                let y = kernel::writer(&args.2, &Y);
+                let y = kernel::writer(&args.2, &Y, true);
                 for i in r {
                     let xi = x.get(i);
-                    y.store(i, a * xi * xi);
+                    y.store(i, i, a * xi * xi);
                 }
                 vec![]
             }
@@ -66,9 +66,9 @@ impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
             }
             Mode::Tangent => {
                 let dx = kernel::tangent_reader(&args.0, &X);
-                let dy = kernel::tangent_writer(&args.2, &Y);
+                let dy = kernel::tangent_writer(&args.2, &Y, true);
                 for i in r {
-                    dy.store(i, 2.0 * a * x.get(i) * dx.get(i));
+                    dy.store(i, i, 2.0 * a * x.get(i) * dx.get(i));
                 }
                 vec![]
             }
@@ -165,9 +165,9 @@ impl KernelBody<SqrtArgs> for Sqrt {
         let x = kernel::reader(&args.0, &X);
         match mode {
             Mode::Forward => {
-                let y = kernel::writer(&args.1, &Y);
+                let y = kernel::writer(&args.1, &Y, true);
                 for i in r {
-                    y.store(i, x.get(i).sqrt());
+                    y.store(i, i, x.get(i).sqrt());
                 }
                 vec![]
             }
@@ -181,9 +181,9 @@ impl KernelBody<SqrtArgs> for Sqrt {
             }
             Mode::Tangent => {
                 let dx = kernel::tangent_reader(&args.0, &X);
-                let dy = kernel::tangent_writer(&args.1, &Y);
+                let dy = kernel::tangent_writer(&args.1, &Y, true);
                 for i in r {
-                    dy.store(i, 0.5 / x.get(i).sqrt() * dx.get(i));
+                    dy.store(i, i, 0.5 / x.get(i).sqrt() * dx.get(i));
                 }
                 vec![]
             }
@@ -275,14 +275,14 @@ impl KernelBody<StepArgs> for Step {
         let pr = kernel::reader(&args.2, &P);
         match mode {
             Mode::Forward => {
-                let x2 = kernel::writer(&args.4, &X2);
-                let v2 = kernel::writer(&args.5, &V2);
+                let x2 = kernel::writer(&args.4, &X2, true);
+                let v2 = kernel::writer(&args.5, &V2, true);
                 for i in r {
                     let j = (i + 1) % n;
                     let d = x.get(i) - x.get(j);
                     let vn = v.get(i) - dt * pr.get(i % m) * d.sin();
-                    v2.store(i, vn);
-                    x2.store(i, x.get(i) + dt * vn);
+                    v2.store(i, i, vn);
+                    x2.store(i, i, x.get(i) + dt * vn);
                 }
                 vec![]
             }
@@ -311,8 +311,8 @@ impl KernelBody<StepArgs> for Step {
                 let dx = kernel::tangent_reader(&args.0, &X);
                 let dv = kernel::tangent_reader(&args.1, &V);
                 let dp = kernel::tangent_reader(&args.2, &P);
-                let dx2 = kernel::tangent_writer(&args.4, &X2);
-                let dv2 = kernel::tangent_writer(&args.5, &V2);
+                let dx2 = kernel::tangent_writer(&args.4, &X2, true);
+                let dv2 = kernel::tangent_writer(&args.5, &V2, true);
                 for i in r {
                     let j = (i + 1) % n;
                     let d = x.get(i) - x.get(j);
@@ -320,8 +320,8 @@ impl KernelBody<StepArgs> for Step {
                     let pi = pr.get(i % m);
                     let dacc = dp.get(i % m) * d.sin() + pi * d.cos() * dd;
                     let dvn = dv.get(i) - dt * dacc;
-                    dv2.store(i, dvn);
-                    dx2.store(i, dx.get(i) + dt * dvn);
+                    dv2.store(i, i, dvn);
+                    dx2.store(i, i, dx.get(i) + dt * dvn);
                 }
                 vec![]
             }
