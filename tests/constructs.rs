@@ -431,3 +431,65 @@ fn out_of_bounds_index_names_kernel_array_index_and_length() {
     let y = Array::zeros(2);
     launch(gather, 2, (&x, &idx, &y));
 }
+
+// ---- nests of literal loops, matrix entries assigned, repeated stores --------------------
+
+/// A 16 x 16 nest of literal loops: only as much is unrolled as keeps the body at 64 copies
+/// (unrolling all 256 overflowed rustc's stack in a debug build).
+#[diff_kernel]
+fn loop_nest<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
+    let t = tid();
+    let mut s = x[t] * 0.5;
+    for i in 0..16 {
+        for j in 0..16 {
+            s = s + sin(x[(t + i) % n] * x[(t + j) % n]) * 0.01;
+        }
+    }
+    y[t] = s;
+}
+
+#[test]
+fn a_large_nest_of_literal_loops_compiles_and_differentiates() {
+    check_kernel!(loop_nest, dim = 3, inputs = [x: inputs(3, 11)], outputs = [y: 3], extra = (3usize));
+}
+
+#[diff_kernel]
+fn matrix_entry_assign<R: Real>(x: &Array<R>, y: &Array<R>) {
+    let t = tid();
+    let a = x[t];
+    let mut m = mat33_identity() * a;
+    m[(0, 1)] = a * a;
+    m[(2, 0)] += sin(a);
+    y[t] = determinant(m) + m[(0, 1)] * m[(2, 0)];
+}
+
+#[test]
+fn matrix_entries_can_be_assigned() {
+    check_kernel!(matrix_entry_assign, dim = 4, inputs = [x: inputs(4, 12)], outputs = [y: 4]);
+}
+
+#[diff_kernel]
+fn stores_overwritten<R: Real>(x: &Array<R>, n: usize, y: &Array<R>) {
+    let t = tid();
+    let a = x[t];
+    y[t] = a * 5.0;
+    if a > 1.0 {
+        y[t] = a * a;
+    }
+    for k in 0..n {
+        if k == 1 {
+            y[t] = y_part(a);
+        }
+    }
+}
+
+#[diff_func]
+fn y_part<R: Real>(a: R) -> R {
+    a * a * a + a * 0.5
+}
+
+#[test]
+fn overwritten_stores_get_no_gradient() {
+    check_kernel!(stores_overwritten, dim = 6, inputs = [x: inputs(6, 13)], outputs = [y: 6], extra = (3usize));
+    check_kernel!(stores_overwritten, dim = 6, inputs = [x: inputs(6, 14)], outputs = [y: 6], extra = (1usize));
+}

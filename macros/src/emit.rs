@@ -123,6 +123,32 @@ fn vs(ids: &[ValueId]) -> Vec<Ident> {
 fn ds(ids: &[ValueId]) -> Vec<Ident> {
     ids.iter().map(|&i| d(i)).collect()
 }
+/// The arguments of a rule call, located at the user's expression: a type error in them
+/// (`dot(f64, Vec3)`) points there, not at the attribute.
+fn vs_at(ids: &[ValueId], span: Span) -> Vec<Ident> {
+    ids.iter().map(|&i| local("v", i, span)).collect()
+}
+fn ds_at(ids: &[ValueId], span: Span) -> Vec<Ident> {
+    ids.iter().map(|&i| local("d", i, span)).collect()
+}
+/// `tokens` located at `span` (hygiene unchanged), for paths such as the runtime's.
+fn located(tokens: &TokenStream, span: Span) -> TokenStream {
+    tokens
+        .clone()
+        .into_iter()
+        .map(|t| match t {
+            proc_macro2::TokenTree::Group(g) => {
+                let mut n = proc_macro2::Group::new(g.delimiter(), located(&g.stream(), span));
+                n.set_span(g.span().located_at(span));
+                proc_macro2::TokenTree::Group(n)
+            }
+            mut other => {
+                other.set_span(other.span().located_at(span));
+                other
+            }
+        })
+        .collect()
+}
 
 #[derive(Clone, Copy, PartialEq)]
 enum Replay {
@@ -147,7 +173,7 @@ impl<'a> Emitter<'a> {
             }
             Op::Builtin { name, args } => {
                 let f = Ident::new(name, span);
-                let args = vs(args);
+                let (rt, args) = (located(rt, span), vs_at(args, span));
                 quote_spanned!(span=> #rt::math::#f(#(#args),*))
             }
             Op::Func { path, args } => {
@@ -423,7 +449,8 @@ impl<'a> Emitter<'a> {
             Op::Builtin { args, .. } if args.is_empty() => quote!(),
             Op::Builtin { name, args } => {
                 let f = format_ident!("adj_{}", name, span = span);
-                let xs = vs(args);
+                let xs = vs_at(args, span);
+                let rt = &located(rt, span);
                 if args.len() == 1 {
                     let ax = a(args[0]);
                     quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::#f(#(#xs,)* #an));)
@@ -588,7 +615,8 @@ impl<'a> Emitter<'a> {
             Op::Builtin { name, args } if !args.is_empty() => {
                 let fwd = self.let_stmt(l);
                 let f = format_ident!("tan_{}", name, span = span);
-                let (xs, dxs) = (vs(args), ds(args));
+                let (xs, dxs) = (vs_at(args, span), ds_at(args, span));
+                let rt = &located(rt, span);
                 quote_spanned!(span=> #fwd let #dx = #rt::math::#f(#(#xs,)* #(#dxs),*);)
             }
             Op::Func { path, args } => {

@@ -12,6 +12,11 @@ use crate::{Real, Value};
 /// A differentiable value that is a vector space over its scalar: `R`, `Vec2/3/4<R>`,
 /// `Mat22/33<R>`, `Quat<R>`. `lin_inner` is the Euclidean inner product of the components
 /// (the Frobenius product for matrices), the one adjoints are taken against.
+#[diagnostic::on_unimplemented(
+    message = "`{Self}` is not a differentiable value of a kernel",
+    label = "this builtin takes a float scalar, vector, matrix or quaternion here",
+    note = "kernel values are f32, f64 or `R: Real`, `Vec2/3/4`, `Mat22/33`, `Quat` of one scalar type; integers are indices"
+)]
 pub trait Linear: Value {
     /// The scalar type (`f32` or `f64`).
     type Scalar: Real;
@@ -119,12 +124,21 @@ impl<R: Real> Linear for Quaternion<R> {
 }
 
 /// The vector types `Vec2/3/4<R>`: what `dot`, `length`, `length_sq` and `normalize` take.
+#[diagnostic::on_unimplemented(
+    message = "`{Self}` is not a vector: this builtin takes `Vec2`, `Vec3` or `Vec4`",
+    label = "expected a vector here",
+    note = "`dot`, `length`, `length_sq` and `normalize` take vectors of one scalar type (both arguments the same)"
+)]
 pub trait VectorValue: Linear {}
 impl<R: Real> VectorValue for Vector2<R> {}
 impl<R: Real> VectorValue for Vector3<R> {}
 impl<R: Real> VectorValue for Vector4<R> {}
 
 /// Totally ordered scalars: `R` and the integer types. What `min`, `max` and `clamp` take.
+#[diagnostic::on_unimplemented(
+    message = "`{Self}` is not an ordered scalar: `min`, `max` and `clamp` take two scalars of one type",
+    label = "expected a scalar (f32, f64, `R`, or an integer) here"
+)]
 pub trait Ordered: Value + PartialOrd {}
 impl<R: Real> Ordered for R {}
 macro_rules! ordered_int {

@@ -7,6 +7,10 @@ use super::linear::{zero, Linear};
 use crate::{Mat33, Real, Vec3};
 
 /// The square matrix types `Mat22<R>`, `Mat33<R>`.
+#[diagnostic::on_unimplemented(
+    message = "`{Self}` is not a square matrix: this builtin takes `Mat22` or `Mat33`",
+    label = "expected a matrix here"
+)]
 pub trait MatrixValue: Linear {
     /// `m^T`.
     fn mat_transpose(self) -> Self;

@@ -15,6 +15,11 @@ use crate::Real;
 // add, sub, neg: every `Linear` type, and integers.
 
 /// Rule of `a + b` (same types).
+#[diagnostic::on_unimplemented(
+    message = "cannot add these in a kernel: both sides of `+` must have the same type",
+    label = "`{Self}` + a different type",
+    note = "write float literals with a point (`x + 1.0`, not `x + 1`); in a kernel generic over `R: Real`, both sides are `R` (or vectors/matrices of `R`)"
+)]
 pub trait AddRule: Sized {
     /// `a + b`.
     fn add_fwd(self, b: Self) -> Self;
@@ -25,6 +30,11 @@ pub trait AddRule: Sized {
 }
 
 /// Rule of `a - b` (same types).
+#[diagnostic::on_unimplemented(
+    message = "cannot subtract these in a kernel: both sides of `-` must have the same type",
+    label = "`{Self}` - a different type",
+    note = "write float literals with a point (`x - 1.0`, not `x - 1`); in a kernel generic over `R: Real`, both sides are `R` (or vectors/matrices of `R`)"
+)]
 pub trait SubRule: Sized {
     /// `a - b`.
     fn sub_fwd(self, b: Self) -> Self;
@@ -143,6 +153,11 @@ pub fn tan_neg<T: NegRule>(a: T, da: T) -> T {
 // mul
 
 /// Rule of `a * b` for one pair of types.
+#[diagnostic::on_unimplemented(
+    message = "cannot multiply `{Self}` by `{B}` in a kernel",
+    label = "no rule for `{Self}` * `{B}`",
+    note = "`*` takes two scalars of one type, a vector or matrix and its scalar, a matrix and a vector or matrix, or two quaternions; write float literals with a point (`2.0 * x`, not `2 * x`), and in a kernel generic over `R: Real` use `R` throughout (an `f64` value times `R` has no rule: use a literal, a parameter of type `R`, or `cast`)"
+)]
 pub trait MulRule<B>: Sized {
     /// The product's type.
     type Out;
@@ -273,6 +288,11 @@ pub fn tan_mul<A: MulRule<B>, B>(a: A, b: B, da: A, db: B) -> A::Out {
 // div
 
 /// Rule of `a / b` for one pair of types.
+#[diagnostic::on_unimplemented(
+    message = "cannot divide `{Self}` by `{B}` in a kernel",
+    label = "no rule for `{Self}` / `{B}`",
+    note = "`/` takes two scalars of one type, or a vector or matrix and its scalar; write float literals with a point (`x / 2.0`)"
+)]
 pub trait DivRule<B>: Sized {
     /// The quotient's type.
     type Out;
@@ -338,6 +358,11 @@ pub fn tan_div<A: DivRule<B>, B>(a: A, b: B, da: A, db: B) -> A::Out {
 
 /// Rule of `a % b`: integers only, so that `%` on floats is a compile error rather than a
 /// silently wrong gradient.
+#[diagnostic::on_unimplemented(
+    message = "`%` on `{Self}`: in a kernel `%` is for integers (indices) only",
+    label = "`%` of a non-integer",
+    note = "a float remainder has a jump where its gradient is undefined; if you need a wrap, write it explicitly (`if x >= m { x - m } else { x }`)"
+)]
 pub trait RemRule: Sized {
     /// `a % b`.
     fn rem_fwd(self, b: Self) -> Self;
