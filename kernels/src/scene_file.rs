@@ -64,11 +64,11 @@ use crate::contact::ground::Ground;
 use crate::contact::particle::ParticleContact;
 use crate::contact::shapes::{Shape, ShapeKind};
 use crate::forces::bending::RestAngle;
-use crate::forces::fem_tet::{snh_lame, tet_rest};
-use crate::forces::fem_tri::triangle_rest;
+use crate::forces::fem_tet::snh_lame;
 use crate::forces::particle::Drag;
 use crate::model::ModelBuilder;
 use crate::scenes::cloth::ClothGrid;
+use crate::validation::precision;
 
 /// An error reading a scene file: what is wrong, where (line and column, 1-based, when
 /// known) and in which field (a path like `particles[2].mass`, when known).
@@ -594,38 +594,76 @@ impl Checker<'_> {
         }
     }
 
-    fn indices(&self, path: impl Fn() -> String, idx: &[u32], n: usize) -> Result<(), SceneError> {
-        for (k, &i) in idx.iter().enumerate() {
-            if i as usize >= n {
-                return Err(self.err(
-                    path(),
-                    format!("particle index {i} out of range ({n} particles)"),
-                ));
-            }
-            if idx[..k].contains(&i) {
-                return Err(self.err(path(), format!("particle {i} appears twice")));
-            }
+    /// A mass (kg) that is not 0 in the file must not round to 0 in `R` (that would pin the
+    /// particle or make the body static).
+    fn no_underflow<R: Real>(&self, path: impl Fn() -> String, v: f64) -> Result<(), SceneError> {
+        if v > 0.0 && R::lit(v).to_f64() == 0.0 {
+            Err(self.err(
+                path(),
+                format!(
+                    "{v:e} rounds to 0 in {} (which would pin it); give at least {:.1e}, or 0",
+                    precision::<R>(),
+                    min_positive::<R>()
+                ),
+            ))
+        } else {
+            Ok(())
         }
-        Ok(())
+    }
+
+    /// The first problem the builder recorded since it had `from`, as an error at the path
+    /// `path(param)` gives.
+    fn builder<R: Real>(
+        &self,
+        b: &ModelBuilder<R>,
+        from: usize,
+        path: impl Fn(Option<&str>) -> String,
+    ) -> Result<(), SceneError> {
+        match b.problems().get(from) {
+            None => Ok(()),
+            Some(p) => Err(self.err(path(p.param), p.message.clone())),
+        }
     }
 }
 
+fn min_positive<R: Real>() -> f64 {
+    if precision::<R>() == "f32" {
+        f32::from_bits(1) as f64
+    } else {
+        f64::from_bits(1)
+    }
+}
+
+/// `item.param`, or `item` for the element as a whole (and for `whole` parameters).
+fn sub(item: &str, param: Option<&str>, whole: &[&str]) -> String {
+    match param {
+        Some(p) if !whole.contains(&p) => format!("{item}.{p}"),
+        _ => item.to_string(),
+    }
+}
+
+/// Builds the scene with the builder, whose checks (see [`crate::validation`]) are the
+/// reader's: each builder problem is reported at the field of the file it comes from. Only
+/// what the builder cannot see is checked here (the file's own structure, values lost in the
+/// conversion to `R`, quaternions and normals before they are normalized).
 fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilder<R>, SceneError> {
     let c = Checker { src, format };
     let mut b = ModelBuilder::<R>::new();
     if let Some(g) = d.gravity {
-        c.finite(|| "gravity".into(), &g)?;
         b.gravity = v3(g);
     }
     if let Some(r) = d.particle_radius {
-        c.nonneg(|| "particle_radius".into(), r)?;
         b.particle_radius = R::lit(r);
     }
+    if let Err(e) = b.validate() {
+        let p = &e.problems[0];
+        return Err(c.err(p.item.clone(), p.message.clone()));
+    }
     for (k, p) in d.particles.iter().enumerate() {
-        c.finite(|| format!("particles[{k}].x"), &p.x)?;
-        c.finite(|| format!("particles[{k}].v"), &p.v)?;
-        c.nonneg(|| format!("particles[{k}].mass"), p.mass)?;
+        let n0 = b.problems().len();
+        c.no_underflow::<R>(|| format!("particles[{k}].mass"), p.mass)?;
         b.add_particle(v3(p.x), v3(p.v), R::lit(p.mass));
+        c.builder(&b, n0, |f| sub(&format!("particles[{k}]"), f, &[]))?;
     }
     for (k, g) in d.cloth_grids.iter().enumerate() {
         let path = |f: &str| format!("cloth_grids[{k}].{f}");
@@ -641,6 +679,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
         c.finite(|| path("origin"), &g.origin)?;
         c.positive(|| path("spacing"), g.spacing)?;
         c.nonneg(|| path("mass"), g.mass)?;
+        c.no_underflow::<R>(|| path("mass"), g.mass)?;
         c.nonneg(|| path("spring_ke"), g.spring_ke)?;
         c.nonneg(|| path("spring_kd"), g.spring_kd)?;
         c.nonneg(|| path("bend_kd"), g.bend_kd)?;
@@ -658,6 +697,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
                 ));
             }
         }
+        let n0 = b.problems().len();
         b.add_cloth_grid(&ClothGrid {
             ni: g.ni,
             nj: g.nj,
@@ -670,41 +710,25 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             bend: g.bend_ke.map(|ke| (R::lit(ke), R::lit(g.bend_kd))),
             bend_rest: g.bend_rest.into(),
         });
+        if let Some(p) = b.problems().get(n0) {
+            return Err(c.err(format!("cloth_grids[{k}]"), p.to_string()));
+        }
     }
     let n = b.particle_count();
     for (k, s) in d.springs.iter().enumerate() {
-        c.indices(|| format!("springs[{k}]"), &[s.i, s.j], n)?;
-        c.nonneg(|| format!("springs[{k}].ke"), s.ke)?;
-        c.nonneg(|| format!("springs[{k}].kd"), s.kd)?;
+        let n0 = b.problems().len();
         match s.rest {
-            Some(r) => {
-                c.nonneg(|| format!("springs[{k}].rest"), r)?;
-                b.add_spring_with_rest(s.i, s.j, R::lit(r), R::lit(s.ke), R::lit(s.kd));
-            }
-            None => {
-                b.add_spring(s.i, s.j, R::lit(s.ke), R::lit(s.kd));
-            }
-        }
+            Some(r) => b.add_spring_with_rest(s.i, s.j, R::lit(r), R::lit(s.ke), R::lit(s.kd)),
+            None => b.add_spring(s.i, s.j, R::lit(s.ke), R::lit(s.kd)),
+        };
+        c.builder(&b, n0, |f| sub(&format!("springs[{k}]"), f, &["indices"]))?;
     }
     let first_file_triangle = b.triangles().len();
-    let pos = |i: u32, b: &ModelBuilder<R>| {
-        let p = b.particle_position(i);
-        Vec3::new(p.x.to_f64(), p.y.to_f64(), p.z.to_f64())
-    };
     for (k, t) in d.triangles.iter().enumerate() {
         let [i, j, l] = t.indices;
-        c.indices(|| format!("triangles[{k}].indices"), &t.indices, n)?;
+        let n0 = b.problems().len();
         match (t.mu, t.lambda) {
             (Some(mu), Some(lambda)) => {
-                c.nonneg(|| format!("triangles[{k}].mu"), mu)?;
-                c.finite(|| format!("triangles[{k}].lambda"), &[lambda])?;
-                c.nonneg(|| format!("triangles[{k}].kd"), t.kd)?;
-                if triangle_rest(pos(i, &b), pos(j, &b), pos(l, &b)).is_none() {
-                    return Err(c.err(
-                        format!("triangles[{k}]"),
-                        "the triangle is degenerate (zero area)",
-                    ));
-                }
                 b.add_triangle_fem(i, j, l, R::lit(mu), R::lit(lambda), R::lit(t.kd));
             }
             (None, None) => {
@@ -723,13 +747,18 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
                 ))
             }
         }
+        c.builder(&b, n0, |f| sub(&format!("triangles[{k}]"), f, &[]))?;
     }
     if let Some(bd) = &d.bending {
-        c.nonneg(|| "bending.ke".into(), bd.ke)?;
-        c.nonneg(|| "bending.kd".into(), bd.kd)?;
         // Only the file's triangles (cloth grids have their own bending settings).
         let tris = b.triangles()[first_file_triangle..].to_vec();
-        let xs: Vec<Vec3<f64>> = (0..n as u32).map(|i| pos(i, &b)).collect();
+        let xs: Vec<Vec3<f64>> = (0..n as u32)
+            .map(|i| {
+                let p = b.particle_position(i);
+                Vec3::new(p.x.to_f64(), p.y.to_f64(), p.z.to_f64())
+            })
+            .collect();
+        let n0 = b.problems().len();
         for q in crate::forces::bending::bending_edges(&tris) {
             let rest = match bd.rest {
                 RestDesc::Flat => 0.0,
@@ -737,10 +766,10 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             };
             b.add_bending(q, R::lit(rest), R::lit(bd.ke), R::lit(bd.kd));
         }
+        c.builder(&b, n0, |f| sub("bending", f, &["indices"]))?;
     }
     for (k, t) in d.tets.iter().enumerate() {
         let path = |f: &str| format!("tets[{k}].{f}");
-        c.indices(|| path("indices"), &t.indices, n)?;
         let (mu, lambda) = match (t.mu, t.lambda, t.young, t.poisson) {
             (Some(mu), Some(lambda), None, None) => (mu, lambda),
             (None, None, Some(e), Some(nu)) => {
@@ -757,17 +786,10 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
                 ))
             }
         };
-        c.nonneg(|| path("mu"), mu)?;
-        c.positive(|| path("lambda"), lambda)?;
-        c.nonneg(|| path("kd"), t.kd)?;
-        if tet_rest(t.indices.map(|i| pos(i, &b))).is_none() {
-            return Err(c.err(
-                format!("tets[{k}]"),
-                "the tetrahedron is degenerate (zero volume)",
-            ));
-        }
         let [i, j, l, m] = t.indices;
+        let n0 = b.problems().len();
         b.add_tet(i, j, l, m, R::lit(mu), R::lit(lambda), R::lit(t.kd));
+        c.builder(&b, n0, |f| sub(&format!("tets[{k}]"), f, &[]))?;
     }
     if let Some(g) = &d.ground {
         c.finite(|| "ground.normal".into(), &g.normal)?;
@@ -775,11 +797,8 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
         if !nrm.norm().is_normal() {
             return Err(c.err("ground.normal".into(), "must be a nonzero vector"));
         }
-        c.finite(|| "ground.offset".into(), &[g.offset])?;
-        for (f, v) in [("ke", g.ke), ("kd", g.kd), ("mu", g.mu), ("leak", g.leak)] {
-            c.nonneg(|| format!("ground.{f}"), v)?;
-        }
         let nrm = nrm.normalize();
+        let n0 = b.problems().len();
         b.set_ground(Ground {
             normal: v3([nrm.x, nrm.y, nrm.z]),
             offset: R::lit(g.offset),
@@ -788,52 +807,42 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             mu: R::lit(g.mu),
             leak: R::lit(g.leak),
         });
+        c.builder(&b, n0, |f| sub("ground", f, &[]))?;
     }
     if let Some(dr) = &d.drag {
-        c.nonneg(|| "drag.kd".into(), dr.kd)?;
-        c.finite(|| "drag.wind".into(), &dr.wind)?;
+        let n0 = b.problems().len();
         b.set_drag(Drag {
             kd: R::lit(dr.kd),
             wind: v3(dr.wind),
         });
+        c.builder(&b, n0, |f| sub("drag", f, &[]))?;
     }
-    let contact = |name: &str, cd: &ContactDesc| -> Result<ParticleContact<R>, SceneError> {
-        for (f, v) in [
-            ("ke", cd.ke),
-            ("kd", cd.kd),
-            ("mu", cd.mu),
-            ("leak", cd.leak),
-            ("margin", cd.margin),
-        ] {
-            c.nonneg(|| format!("{name}.{f}"), v)?;
-        }
-        Ok(ParticleContact {
-            ke: R::lit(cd.ke),
-            kd: R::lit(cd.kd),
-            mu: R::lit(cd.mu),
-            leak: R::lit(cd.leak),
-            margin: R::lit(cd.margin),
-        })
+    let contact = |cd: &ContactDesc| ParticleContact {
+        ke: R::lit(cd.ke),
+        kd: R::lit(cd.kd),
+        mu: R::lit(cd.mu),
+        leak: R::lit(cd.leak),
+        margin: R::lit(cd.margin),
     };
     if let Some(cd) = &d.particle_contact {
-        b.set_particle_contact(contact("particle_contact", cd)?);
+        let n0 = b.problems().len();
+        b.set_particle_contact(contact(cd));
+        c.builder(&b, n0, |f| sub("particle_contact", f, &[]))?;
     }
     if let Some(cd) = &d.shape_contact {
-        b.set_shape_contact(contact("shape_contact", cd)?);
+        let n0 = b.problems().len();
+        b.set_shape_contact(contact(cd));
+        c.builder(&b, n0, |f| sub("shape_contact", f, &[]))?;
     }
     for (k, s) in d.shapes.iter().enumerate() {
         let path = |f: &str| format!("shapes[{k}].{f}");
-        c.finite(|| path("pos"), &s.pos)?;
         c.finite(|| path("rot"), &s.rot)?;
         let q = Quat::new(s.rot[3], s.rot[0], s.rot[1], s.rot[2]);
         if !q.norm().is_normal() {
             return Err(c.err(path("rot"), "must be a nonzero quaternion [x, y, z, w]"));
         }
         let need = |v: Option<f64>, f: &str| -> Result<f64, SceneError> {
-            let v =
-                v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))?;
-            c.positive(|| path(f), v)?;
-            Ok(v)
+            v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))
         };
         let kind = match s.kind {
             ShapeKindDesc::Sphere => ShapeKind::Sphere {
@@ -843,9 +852,6 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
                 let h = s
                     .half_extents
                     .ok_or_else(|| c.err(format!("shapes[{k}]"), "missing field `half_extents`"))?;
-                for v in h {
-                    c.positive(|| path("half_extents"), v)?;
-                }
                 ShapeKind::Box {
                     half_extents: v3(h),
                 }
@@ -856,19 +862,18 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             },
         };
         let q = q / q.norm();
+        let n0 = b.problems().len();
         b.add_shape(Shape {
             kind,
             pos: v3(s.pos),
             rot: Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
         });
+        c.builder(&b, n0, |f| sub(&format!("shapes[{k}]"), f, &[]))?;
     }
     for (k, bd) in d.bodies.iter().enumerate() {
         let path = |f: &str| format!("bodies[{k}].{f}");
-        c.finite(|| path("x"), &bd.x)?;
-        c.finite(|| path("v"), &bd.v)?;
-        c.finite(|| path("w"), &bd.w)?;
         c.finite(|| path("q"), &bd.q)?;
-        c.nonneg(|| path("mass"), bd.mass)?;
+        c.no_underflow::<R>(|| path("mass"), bd.mass)?;
         let q = Quat::new(bd.q[3], bd.q[0], bd.q[1], bd.q[2]);
         if !q.norm().is_normal() {
             return Err(c.err(path("q"), "must be a nonzero quaternion [x, y, z, w]"));
@@ -881,6 +886,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             }
         }
         let q = q / q.norm();
+        let n0 = b.problems().len();
         let id = b.add_body(
             v3(bd.x),
             Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
@@ -889,18 +895,19 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             R::lit(bd.mass),
             Mat33::from_diagonal(&v3(bd.inertia)),
         );
+        c.builder(&b, n0, |f| sub(&format!("bodies[{k}]"), f, &[]))?;
         for (m, p) in bd.contact_points.iter().enumerate() {
-            c.finite(|| format!("bodies[{k}].contact_points[{m}]"), p)?;
+            let n0 = b.problems().len();
             b.add_body_contact_point(id, v3(*p));
+            c.builder(&b, n0, |_| format!("bodies[{k}].contact_points[{m}]"))?;
         }
     }
     for (k, dc) in d.distance_constraints.iter().enumerate() {
-        c.indices(|| format!("distance_constraints[{k}]"), &[dc.i, dc.j], n)?;
-        c.nonneg(
-            || format!("distance_constraints[{k}].compliance"),
-            dc.compliance,
-        )?;
+        let n0 = b.problems().len();
         b.add_distance_constraint(dc.i, dc.j, R::lit(dc.compliance));
+        c.builder(&b, n0, |f| {
+            sub(&format!("distance_constraints[{k}]"), f, &["indices"])
+        })?;
     }
     Ok(b)
 }

@@ -33,7 +33,8 @@ pub struct Problem {
     /// `gravity`, `ground`.
     pub item: String,
     /// The parameter of the builder call that is wrong (`mass`, `ke`, `x`), if it is one
-    /// parameter (`None` for an element as a whole, e.g. a degenerate triangle or a bad index).
+    /// parameter (`indices` for the particle indices of an element; `None` for an element as a
+    /// whole, e.g. a degenerate triangle or a zero rest length).
     pub param: Option<&'static str>,
     /// What is wrong, and what to do about it.
     pub message: String,
@@ -171,19 +172,20 @@ impl Check<'_> {
         self.finite(param, &[v.x, v.y, v.z])
     }
 
-    /// Particle indices `idx` (named `names`) in range (`n` particles) and distinct.
+    /// Particle indices `idx` in range (`n` particles) and distinct (a problem with parameter
+    /// `indices` if not).
     pub(crate) fn particles(&mut self, n: usize, idx: &[u32]) -> bool {
         for (k, &i) in idx.iter().enumerate() {
             if i as usize >= n {
                 self.fail(
-                    None,
+                    Some("indices"),
                     format!("particle index {i} out of range ({n} particles)"),
                 );
                 return false;
             }
             if idx[..k].contains(&i) {
                 self.fail(
-                    None,
+                    Some("indices"),
                     format!("particle {i} appears twice in {idx:?}: an element needs distinct particles"),
                 );
                 return false;
