@@ -434,7 +434,8 @@ impl<R: Real> ModelBuilder<R> {
                             min_quality::<R>(), precision::<R>()),
                             );
                         } else if !dm_inv.iter().all(|v| v.to_f64().is_finite())
-                            || !(lit::<R>(area) > R::tiny())
+                            || lit::<R>(area).to_f64().partial_cmp(&R::tiny().to_f64())
+                                != Some(std::cmp::Ordering::Greater)
                         {
                             c.fail(
                                 None,
@@ -552,7 +553,10 @@ impl<R: Real> ModelBuilder<R> {
                                 precision::<R>()
                             ),
                         );
-                    } else if !finite || !(lit::<R>(vol) > R::tiny()) {
+                    } else if !finite
+                        || lit::<R>(vol).to_f64().partial_cmp(&R::tiny().to_f64())
+                            != Some(std::cmp::Ordering::Greater)
+                    {
                         c.fail(
                             None,
                             format!(
@@ -642,7 +646,7 @@ impl<R: Real> ModelBuilder<R> {
         c.finite3("x", &x);
         c.finite3("v", &v);
         c.finite3("w", &w);
-        if c.finite("q", &[q.i, q.j, q.k, q.w]) && !(q.norm().to_f64() > 0.0) {
+        if c.finite("q", &[q.i, q.j, q.k, q.w]) && q.norm().to_f64() == 0.0 {
             c.fail(Some("q"), "must be a nonzero quaternion".into());
         }
         let inertia_ok = c.finite("inertia", inertia.as_slice());
