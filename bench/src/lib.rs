@@ -9,5 +9,6 @@ pub mod kernels_cmp;
 pub mod overhead;
 pub mod peers;
 pub mod scatter;
+pub mod scene_file;
 pub mod timing;
 pub mod topo;

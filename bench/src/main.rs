@@ -7,6 +7,8 @@
 //!   JSON line
 //! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--no-python]
 //!   [--wait-each L]`: adflex and the peer scripts, as JSONL
+//! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
+//!   serde_json, time and peak RSS of each in its own process, as JSON lines
 //! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG
 //!
 //! Any command takes `--wait-load L`: first wait (up to 20 min) for the 1-minute load average
@@ -47,6 +49,22 @@ fn main() {
                 std::process::exit(2);
             }
         }
+        "scene-file" => {
+            if let Err(e) = scene_file::main(rest) {
+                eprintln!("scene-file: {e}");
+                std::process::exit(2);
+            }
+        }
+        "scene-file-case" => {
+            let arg = |k: usize| rest.get(k).map(String::as_str).unwrap_or("");
+            match scene_file::run_case(arg(0), arg(1)) {
+                Ok(line) => println!("{line}"),
+                Err(e) => {
+                    eprintln!("scene-file-case: {e}");
+                    std::process::exit(2);
+                }
+            }
+        }
         "cloth" => match cloth::parse(rest) {
             Ok(o) => println!("{}", cloth::run(&o)),
             Err(e) => {
@@ -55,7 +73,7 @@ fn main() {
             }
         },
         _ => {
-            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts> [options] (see src/main.rs)");
+            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file> [options] (see src/main.rs)");
             std::process::exit(2);
         }
     }

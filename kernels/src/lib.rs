@@ -39,10 +39,12 @@ pub mod model;
 pub mod rigid;
 pub mod scene_file;
 pub mod scenes;
+pub mod validation;
 pub mod xpbd;
 
 pub use integrators::{Integrator, SemiImplicitEuler};
 pub use model::{BodyState, Control, Model, ModelBuilder, State};
+pub use validation::{ModelError, Problem};
 
 /// The builder, model, state, integrators and component types in one import.
 pub mod prelude {

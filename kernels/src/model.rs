@@ -11,11 +11,14 @@ use crate::contact::ground::Ground;
 use crate::contact::particle::ParticleContact;
 use crate::contact::shapes::{Shape, Shapes};
 use crate::forces::bending::{bending_edges, dihedral_angle, Bending, RestAngle};
-use crate::forces::fem_tet::{tet_rest, TetFem};
-use crate::forces::fem_tri::{triangle_rest, TriangleFem};
+use crate::forces::fem_tet::{tet_quality, tet_rest, TetFem};
+use crate::forces::fem_tri::{triangle_quality, triangle_rest, TriangleFem};
 use crate::forces::particle::{accelerations, add_forces, Drag};
 use crate::forces::spring::Springs;
 use crate::rigid::RigidBodies;
+use crate::validation::{
+    max_of, min_quality, overflow_hint, precision, Check, ModelError, Problem,
+};
 use crate::xpbd::DistanceConstraints;
 
 fn lit<R: Real>(x: f64) -> R {
@@ -125,6 +128,13 @@ struct BodyDesc<R: Real> {
 /// Describes a scene element by element; [`ModelBuilder::finalize`] makes the [`Model`].
 ///
 /// Indices returned by the `add_*` methods are what later elements refer to.
+///
+/// Every method checks its inputs and what it derives from them (see
+/// [`crate::validation`]): bad input (an index out of range, a NaN or negative mass, a
+/// degenerate element, a coordinate that overflows `R`) is recorded as a [`Problem`] naming
+/// the item and parameter, never silently accepted and never a panic inside the method;
+/// [`ModelBuilder::try_finalize`] returns them all, [`ModelBuilder::finalize`] panics with
+/// the list.
 #[derive(Clone, Debug)]
 pub struct ModelBuilder<R: Real> {
     /// Gravity (m/s^2); default `(0, -9.8, 0)`.
@@ -165,6 +175,7 @@ pub struct ModelBuilder<R: Real> {
     dist_pairs: Vec<[u32; 2]>,
     dist_rest: Vec<R>,
     dist_compliance: Vec<R>,
+    problems: Vec<Problem>,
 }
 
 impl<R: Real> Default for ModelBuilder<R> {
@@ -213,6 +224,7 @@ impl<R: Real> ModelBuilder<R> {
             dist_pairs: Vec::new(),
             dist_rest: Vec::new(),
             dist_compliance: Vec::new(),
+            problems: Vec::new(),
         }
     }
 
@@ -221,55 +233,151 @@ impl<R: Real> ModelBuilder<R> {
         self.particle_x.len()
     }
 
-    /// Position (m) of particle `i`.
+    /// Position (m) of particle `i`. Panics if there is no particle `i`.
     pub fn particle_position(&self, i: u32) -> Vec3<R> {
         self.particle_x[i as usize]
     }
 
-    /// Adds a particle at `x` (m) with velocity `v` (m/s) and mass `mass` (kg; 0 = pinned:
-    /// inverse mass 0, so no force and no gravity moves it). Returns its index.
-    pub fn add_particle(&mut self, x: Vec3<R>, v: Vec3<R>, mass: R) -> u32 {
-        let m = mass.to_f64();
-        let inv = if m > 0.0 { 1.0 / m } else { 0.0 };
-        self.add_particle_inv_mass(x, v, lit(inv))
+    /// The problems recorded so far by the builder methods, in call order (see
+    /// [`crate::validation`]).
+    pub fn problems(&self) -> &[Problem] {
+        &self.problems
     }
 
-    /// Adds a particle with inverse mass `inv_mass` (1/kg; 0 = pinned). Returns its index.
-    pub fn add_particle_inv_mass(&mut self, x: Vec3<R>, v: Vec3<R>, inv_mass: R) -> u32 {
-        self.particle_x.push(x);
-        self.particle_v.push(v);
-        self.particle_inv_mass.push(inv_mass);
-        (self.particle_x.len() - 1) as u32
-    }
-
-    /// Sets the inverse mass (1/kg) of particle `i` (0 pins it).
-    pub fn set_particle_inv_mass(&mut self, i: u32, inv_mass: R) {
-        self.particle_inv_mass[i as usize] = inv_mass;
-    }
-
-    fn check_particles(&self, what: &str, idx: &[u32]) {
-        let n = self.particle_count();
-        for &i in idx {
-            assert!(
-                (i as usize) < n,
-                "{what}: particle index {i} out of range ({n} particles)"
-            );
+    /// The checks of item `kind[index]`.
+    fn check(&mut self, kind: &'static str, index: usize) -> Check<'_> {
+        Check {
+            out: &mut self.problems,
+            kind,
+            index: Some(index),
         }
     }
 
-    /// Adds a spring between particles `i` and `j` with rest length their current distance
-    /// (computed in `R`), stiffness `ke` (N/m) and damping `kd` (N s/m). Returns its index.
-    pub fn add_spring(&mut self, i: u32, j: u32, ke: R, kd: R) -> u32 {
-        self.check_particles("add_spring", &[i, j]);
-        let d = self.particle_x[i as usize] - self.particle_x[j as usize];
-        // The same sum order as numpy's norm of a 3-vector (the reference scene's rest lengths).
-        let rest = (d.x * d.x + d.y * d.y + d.z * d.z).sqrt();
-        self.add_spring_with_rest(i, j, rest, ke, kd)
+    /// Adds a particle at `x` (m) with velocity `v` (m/s) and mass `mass` (kg, finite and
+    /// `>= 0`; 0 = pinned: inverse mass 0, so no force and no gravity moves it). Returns its
+    /// index. `x`, `v` and the inverse mass `1 / mass` must be finite in `R` (a mass below
+    /// `1 / R::MAX`, e.g. 1e-320 kg, is a problem, not a pinned particle).
+    pub fn add_particle(&mut self, x: Vec3<R>, v: Vec3<R>, mass: R) -> u32 {
+        let k = self.particle_count();
+        let m = mass.to_f64();
+        let inv = if m > 0.0 { 1.0 / m } else { 0.0 };
+        let inv_r: R = lit(inv);
+        let mut c = self.check("particles", k);
+        if c.nonneg("mass", mass) && !inv_r.to_f64().is_finite() {
+            c.fail(
+                Some("mass"),
+                format!(
+                    "the inverse mass 1/{m:e} is not finite in {}: give a mass of at least \
+                     {:.1e} kg, or 0 to pin the particle",
+                    precision::<R>(),
+                    1.0 / max_of::<R>()
+                ),
+            );
+        }
+        self.push_particle(x, v, inv_r, false)
     }
 
-    /// Adds a spring with an explicit rest length (m). Returns its index.
+    /// Adds a particle with inverse mass `inv_mass` (1/kg, finite and `>= 0`; 0 = pinned).
+    /// Returns its index.
+    pub fn add_particle_inv_mass(&mut self, x: Vec3<R>, v: Vec3<R>, inv_mass: R) -> u32 {
+        self.push_particle(x, v, inv_mass, true)
+    }
+
+    fn push_particle(&mut self, x: Vec3<R>, v: Vec3<R>, inv_mass: R, check_inv: bool) -> u32 {
+        let k = self.particle_count();
+        let mut c = self.check("particles", k);
+        c.finite3("x", &x);
+        c.finite3("v", &v);
+        if check_inv {
+            c.nonneg("inv_mass", inv_mass);
+        }
+        self.particle_x.push(x);
+        self.particle_v.push(v);
+        self.particle_inv_mass.push(inv_mass);
+        k as u32
+    }
+
+    /// Sets the inverse mass (1/kg, finite and `>= 0`) of particle `i` (0 pins it).
+    pub fn set_particle_inv_mass(&mut self, i: u32, inv_mass: R) {
+        let n = self.particle_count();
+        let mut c = self.check("particles", i as usize);
+        if (i as usize) >= n {
+            c.fail(
+                None,
+                format!("set_particle_inv_mass: particle index {i} out of range ({n} particles)"),
+            );
+        } else if c.nonneg("inv_mass", inv_mass) {
+            self.particle_inv_mass[i as usize] = inv_mass;
+        }
+    }
+
+    /// Checks that `idx` are distinct particles of the scene (recording a problem of
+    /// `kind[index]` if not).
+    fn check_particles(&mut self, kind: &'static str, index: usize, idx: &[u32]) -> bool {
+        let n = self.particle_count();
+        self.check(kind, index).particles(n, idx)
+    }
+
+    /// `rest` (m) of `kind[index]` between particles `i`, `j`: finite and `> 0`.
+    fn check_rest(
+        &mut self,
+        kind: &'static str,
+        index: usize,
+        ij: [u32; 2],
+        rest: R,
+        derived: bool,
+    ) {
+        let r = rest.to_f64();
+        if r.is_finite() && r > 0.0 {
+            return;
+        }
+        let [i, j] = ij;
+        let why = if !derived {
+            String::new()
+        } else if r == 0.0 {
+            format!(": particles {i} and {j} are at the same position; move one")
+        } else {
+            format!(
+                ": the distance between particles {i} and {j} overflows{}",
+                overflow_hint::<R>()
+            )
+        };
+        self.check(kind, index).fail(
+            if derived { None } else { Some("rest") },
+            format!("the rest length must be finite and > 0 (got {r}){why}"),
+        );
+    }
+
+    /// Adds a spring between distinct particles `i` and `j` with rest length their current
+    /// distance (computed in `R`; it must be finite and `> 0`), stiffness `ke` (N/m) and
+    /// damping `kd` (N s/m), both finite and `>= 0`. Returns its index.
+    pub fn add_spring(&mut self, i: u32, j: u32, ke: R, kd: R) -> u32 {
+        let k = self.spring_count();
+        let rest = if self.check_particles("springs", k, &[i, j]) {
+            let d = self.particle_x[i as usize] - self.particle_x[j as usize];
+            // The same sum order as numpy's norm of a 3-vector (the reference scene's rest
+            // lengths).
+            let rest = (d.x * d.x + d.y * d.y + d.z * d.z).sqrt();
+            self.check_rest("springs", k, [i, j], rest, true);
+            rest
+        } else {
+            lit(1.0)
+        };
+        self.push_spring(i, j, rest, ke, kd)
+    }
+
+    /// Adds a spring with an explicit rest length (m, finite and `> 0`). Returns its index.
     pub fn add_spring_with_rest(&mut self, i: u32, j: u32, rest: R, ke: R, kd: R) -> u32 {
-        self.check_particles("add_spring", &[i, j]);
+        let k = self.spring_count();
+        self.check_particles("springs", k, &[i, j]);
+        self.check_rest("springs", k, [i, j], rest, false);
+        self.push_spring(i, j, rest, ke, kd)
+    }
+
+    fn push_spring(&mut self, i: u32, j: u32, rest: R, ke: R, kd: R) -> u32 {
+        let mut c = self.check("springs", self.spring_pairs.len());
+        c.nonneg("ke", ke);
+        c.nonneg("kd", kd);
         self.spring_pairs.push([i, j]);
         self.spring_rest.push(rest);
         self.spring_ke.push(ke);
@@ -284,8 +392,9 @@ impl<R: Real> ModelBuilder<R> {
 
     /// Adds a triangle to the surface topology (used by [`ModelBuilder::add_bending_edges`]);
     /// it exerts no force of its own (see [`ModelBuilder::add_triangle_fem`]).
+    /// Its vertices must be distinct particles.
     pub fn add_triangle(&mut self, i: u32, j: u32, k: u32) -> u32 {
-        self.check_particles("add_triangle", &[i, j, k]);
+        self.check_particles("triangles", self.triangles.len(), &[i, j, k]);
         self.triangles.push([i, j, k]);
         (self.triangles.len() - 1) as u32
     }
@@ -296,16 +405,71 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// Adds a StVK membrane triangle (also to the surface topology), rest shape from the current
-    /// positions; `mu`, `lambda` (N/m), `kd` (N s/m). Panics on a degenerate triangle.
+    /// positions; `mu` (N/m, `>= 0`), `lambda` (N/m, finite), `kd` (N s/m, `>= 0`). The
+    /// triangle must not be degenerate: quality (see
+    /// [`crate::forces::fem_tri::triangle_quality`]) at least
+    /// [`crate::validation::min_quality`], `Dm^-1` finite and area above `R::tiny()` in `R`;
+    /// otherwise a problem of `triangle_fem[k]` is recorded.
     pub fn add_triangle_fem(&mut self, i: u32, j: u32, k: u32, mu: R, lambda: R, kd: R) -> u32 {
-        self.add_triangle(i, j, k);
-        let p = |i: u32| wide(self.particle_x[i as usize]);
-        let (dm_inv, area) = triangle_rest(p(i), p(j), p(k)).unwrap_or_else(|| {
-            panic!("add_triangle_fem: triangle ({i}, {j}, {k}) is degenerate (zero area)")
-        });
+        let e = self.tri_fem.len();
+        let ok = self.check_particles("triangle_fem", e, &[i, j, k]);
+        self.triangles.push([i, j, k]);
+        let (dm_inv, area) =
+            if ok {
+                let p = |i: u32| wide(self.particle_x[i as usize]);
+                let (a, b, c) = (p(i), p(j), p(k));
+                match triangle_rest(a, b, c) {
+                    Some((dm_inv, area)) => {
+                        let dm_inv = dm_inv.map(lit::<R>);
+                        let q = triangle_quality(a, b, c);
+                        let what = format!("the triangle on particles ({i}, {j}, {k})");
+                        let mut c = self.check("triangle_fem", e);
+                        if q < min_quality::<R>() {
+                            c.fail(
+                                None,
+                                format!(
+                            "{what} is nearly degenerate (flat): quality {q:.1e} (1 for an \
+                             equilateral triangle) is below {:.1e} in {}; move its vertices \
+                             apart or remove it",
+                            min_quality::<R>(), precision::<R>()),
+                            );
+                        } else if !dm_inv.iter().all(|v| v.to_f64().is_finite())
+                            || lit::<R>(area).to_f64().partial_cmp(&R::tiny().to_f64())
+                                != Some(std::cmp::Ordering::Greater)
+                        {
+                            c.fail(
+                                None,
+                                format!(
+                                    "{what} is too small or too large for {} (area {area:e} m^2, \
+                             rest-shape inverse not finite or area below {:e}); rescale the scene",
+                                    precision::<R>(),
+                                    R::tiny().to_f64()
+                                ),
+                            );
+                        }
+                        (dm_inv, lit(area))
+                    }
+                    None => {
+                        self.check("triangle_fem", e).fail(
+                            None,
+                            format!(
+                                "the triangle on particles ({i}, {j}, {k}) is degenerate (zero or \
+                             non-finite area); move its vertices apart or remove it"
+                            ),
+                        );
+                        (Mat22::identity(), lit(1.0))
+                    }
+                }
+            } else {
+                (Mat22::identity(), lit(1.0))
+            };
+        let mut c = self.check("triangle_fem", e);
+        c.nonneg("mu", mu);
+        c.finite("lambda", &[lambda]);
+        c.nonneg("kd", kd);
         self.tri_fem.push([i, j, k]);
-        self.tri_dm_inv.push(dm_inv.map(lit));
-        self.tri_area.push(lit(area));
+        self.tri_dm_inv.push(dm_inv);
+        self.tri_area.push(area);
         self.tri_mu.push(mu);
         self.tri_lambda.push(lambda);
         self.tri_kd.push(kd);
@@ -313,9 +477,15 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// Adds a bending element `(o1, o2, e0, e1)` (opposite vertices, then the shared edge) with
-    /// rest angle `rest` (rad), stiffness `ke` (N m/rad) and damping `kd` (N m s/rad).
+    /// rest angle `rest` (rad, finite), stiffness `ke` (N m/rad) and damping `kd` (N m s/rad),
+    /// both finite and `>= 0`; the four particles must be distinct.
     pub fn add_bending(&mut self, quad: [u32; 4], rest: R, ke: R, kd: R) -> u32 {
-        self.check_particles("add_bending", &quad);
+        let k = self.bend_quads.len();
+        self.check_particles("bending", k, &quad);
+        let mut c = self.check("bending", k);
+        c.finite("rest", &[rest]);
+        c.nonneg("ke", ke);
+        c.nonneg("kd", kd);
         self.bend_quads.push(quad);
         self.bend_rest.push(rest);
         self.bend_ke.push(ke);
@@ -340,22 +510,71 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// Adds a stable Neo-Hookean tetrahedron, rest shape from the current positions; `mu`,
-    /// `lambda` (Pa, see [`crate::forces::fem_tet::snh_lame`]), `kd` (Pa s). A negatively
-    /// oriented tetrahedron is stored as `(i, k, j, l)`. Panics if it is degenerate.
+    /// `lambda` (Pa, see [`crate::forces::fem_tet::snh_lame`]), `kd` (Pa s): `mu`, `kd` finite
+    /// and `>= 0`, `lambda` finite and `> 0`. A negatively oriented tetrahedron is stored as
+    /// `(i, k, j, l)`. The four particles must be distinct and the tetrahedron not degenerate:
+    /// quality (see [`crate::forces::fem_tet::tet_quality`]) at least
+    /// [`crate::validation::min_quality`], `Dm^-1` finite and volume above `R::tiny()` in `R`;
+    /// otherwise a problem of `tets[k]` is recorded.
     #[allow(clippy::too_many_arguments)]
     pub fn add_tet(&mut self, i: u32, j: u32, k: u32, l: u32, mu: R, lambda: R, kd: R) -> u32 {
-        self.check_particles("add_tet", &[i, j, k, l]);
-        let p = |i: u32| wide(self.particle_x[i as usize]);
-        let (mut idx, (mut dm_inv, mut vol)) = (
-            [i, j, k, l],
-            tet_rest([p(i), p(j), p(k), p(l)]).unwrap_or_else(|| {
-                panic!("add_tet: tetrahedron ({i}, {j}, {k}, {l}) is degenerate (zero volume)")
-            }),
-        );
-        if vol < 0.0 {
-            idx = [i, k, j, l];
-            (dm_inv, vol) = tet_rest([p(i), p(k), p(j), p(l)]).expect("reoriented tetrahedron");
+        let e = self.tets.len();
+        let mut idx = [i, j, k, l];
+        let (mut dm_inv, mut vol) = (Mat33::identity(), 1.0);
+        if self.check_particles("tets", e, &idx) {
+            let p = |i: u32| wide(self.particle_x[i as usize]);
+            let what = format!("the tetrahedron on particles ({i}, {j}, {k}, {l})");
+            match tet_rest([p(i), p(j), p(k), p(l)]) {
+                None => self.check("tets", e).fail(
+                    None,
+                    format!(
+                        "{what} is degenerate (zero or non-finite volume); move a vertex off \
+                         the plane of the other three or remove it"
+                    ),
+                ),
+                Some(r) => {
+                    (dm_inv, vol) = r;
+                    if vol < 0.0 {
+                        idx = [i, k, j, l];
+                        (dm_inv, vol) =
+                            tet_rest([p(i), p(k), p(j), p(l)]).expect("reoriented tetrahedron");
+                    }
+                    let q = tet_quality([p(i), p(j), p(k), p(l)]);
+                    let finite = dm_inv.iter().all(|v| lit::<R>(*v).to_f64().is_finite());
+                    let mut c = self.check("tets", e);
+                    if q < min_quality::<R>() {
+                        c.fail(
+                            None,
+                            format!(
+                                "{what} is nearly degenerate (flat): quality {q:.1e} (1 for a \
+                             regular tetrahedron) is below {:.1e} in {}; move a vertex off the \
+                             plane of the other three or remove it",
+                                min_quality::<R>(),
+                                precision::<R>()
+                            ),
+                        );
+                    } else if !finite
+                        || lit::<R>(vol).to_f64().partial_cmp(&R::tiny().to_f64())
+                            != Some(std::cmp::Ordering::Greater)
+                    {
+                        c.fail(
+                            None,
+                            format!(
+                                "{what} is too small or too large for {} (volume {vol:e} m^3, \
+                             rest-shape inverse not finite or volume below {:e}); rescale the \
+                             scene",
+                                precision::<R>(),
+                                R::tiny().to_f64()
+                            ),
+                        );
+                    }
+                }
+            }
         }
+        let mut c = self.check("tets", e);
+        c.nonneg("mu", mu);
+        c.positive("lambda", lambda);
+        c.nonneg("kd", kd);
         self.tets.push(idx);
         self.tet_dm_inv.push(dm_inv.map(lit));
         self.tet_volume.push(lit(vol));
@@ -365,35 +584,55 @@ impl<R: Real> ModelBuilder<R> {
         (self.tets.len() - 1) as u32
     }
 
-    /// Sets the ground plane for particle and body contact.
+    /// The checks of the single item `kind`.
+    fn check_one(&mut self, kind: &'static str) -> Check<'_> {
+        Check {
+            out: &mut self.problems,
+            kind,
+            index: None,
+        }
+    }
+
+    /// Sets the ground plane for particle and body contact (unit normal; `ke`, `kd`, `mu`,
+    /// `leak` finite and `>= 0`).
     pub fn set_ground(&mut self, ground: Ground<R>) {
+        ground.check(&mut self.check_one("ground"));
         self.ground = Some(ground);
     }
 
-    /// Sets linear drag / wind on every particle.
+    /// Sets linear drag / wind on every particle (`kd` finite and `>= 0`, `wind` finite).
     pub fn set_drag(&mut self, drag: Drag<R>) {
+        drag.check(&mut self.check_one("drag"));
         self.drag = Some(drag);
     }
 
-    /// Enables particle-particle contact.
+    /// Enables particle-particle contact (every parameter finite and `>= 0`).
     pub fn set_particle_contact(&mut self, contact: ParticleContact<R>) {
+        contact.check(&mut self.check_one("particle_contact"));
         self.particle_contact = Some(contact);
     }
 
-    /// Adds a static analytic shape that particles collide with. Returns its index.
+    /// Adds a static analytic shape that particles collide with (finite position, unit
+    /// orientation, sizes `> 0`). Returns its index.
     pub fn add_shape(&mut self, shape: Shape<R>) -> u32 {
+        let k = self.shapes.len();
+        shape.check(&mut self.check("shapes", k));
         self.shapes.push(shape);
-        (self.shapes.len() - 1) as u32
+        k as u32
     }
 
-    /// Sets the contact parameters of particles against shapes (`margin` is unused).
+    /// Sets the contact parameters of particles against shapes (`margin` is unused; every
+    /// parameter finite and `>= 0`).
     pub fn set_shape_contact(&mut self, contact: ParticleContact<R>) {
+        contact.check(&mut self.check_one("shape_contact"));
         self.shape_contact = contact;
     }
 
     /// Adds a rigid body: centre of mass at `x` (m), orientation `q`, velocity `v` (m/s),
     /// angular velocity `w` (rad/s, world frame), mass (kg; 0 = static) and inertia about the
-    /// centre of mass in body frame (kg m^2). Returns its index.
+    /// centre of mass in body frame (kg m^2). Returns its index. `x`, `v`, `w`, `q` (nonzero)
+    /// and `inertia` must be finite, `mass` finite and `>= 0`; a dynamic body (`mass > 0`)
+    /// needs `1 / mass` finite in `R` and an invertible inertia with a finite inverse.
     pub fn add_body(
         &mut self,
         x: Vec3<R>,
@@ -403,6 +642,37 @@ impl<R: Real> ModelBuilder<R> {
         mass: R,
         inertia: Mat33<R>,
     ) -> u32 {
+        let mut c = self.check("bodies", self.bodies.len());
+        c.finite3("x", &x);
+        c.finite3("v", &v);
+        c.finite3("w", &w);
+        if c.finite("q", &[q.i, q.j, q.k, q.w]) && q.norm().to_f64() == 0.0 {
+            c.fail(Some("q"), "must be a nonzero quaternion".into());
+        }
+        let inertia_ok = c.finite("inertia", inertia.as_slice());
+        if c.nonneg("mass", mass) && mass.to_f64() > 0.0 {
+            if !(lit::<R>(1.0) / mass).to_f64().is_finite() {
+                c.fail(
+                    Some("mass"),
+                    format!(
+                        "the inverse mass 1/{:e} is not finite in {}; give a mass of at least \
+                         {:.1e} kg, or 0 for a static body",
+                        mass.to_f64(),
+                        precision::<R>(),
+                        1.0 / max_of::<R>()
+                    ),
+                );
+            }
+            let inv_ok = inertia
+                .try_inverse()
+                .is_some_and(|m| m.iter().all(|v| v.to_f64().is_finite()));
+            if inertia_ok && !inv_ok {
+                c.fail(
+                    Some("inertia"),
+                    "must be invertible (with a finite inverse) for a body with mass > 0".into(),
+                );
+            }
+        }
         self.bodies.push(BodyDesc {
             x,
             q: q.normalize(),
@@ -415,28 +685,81 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// Adds a contact point `p` (m, body frame) to body `body`, which then touches the ground.
+    /// `body` must exist and `p` be finite.
     pub fn add_body_contact_point(&mut self, body: u32, p: Vec3<R>) {
-        assert!(
-            (body as usize) < self.bodies.len(),
-            "add_body_contact_point: body {body} out of range ({} bodies)",
-            self.bodies.len()
-        );
+        let nb = self.bodies.len();
+        let mut c = self.check("body_contact_points", self.body_contacts.len());
+        if (body as usize) >= nb {
+            c.fail(
+                Some("body"),
+                format!("body {body} out of range ({nb} bodies)"),
+            );
+        }
+        c.finite3("p", &p);
         self.body_contacts.push((body, p));
     }
 
     /// Adds an XPBD distance constraint between particles `i` and `j`, rest distance their
-    /// current distance, compliance `compliance` (m/N; 0 = rigid). Returns its index.
+    /// current distance (finite and `> 0`), compliance `compliance` (m/N, finite and `>= 0`;
+    /// 0 = rigid). Returns its index.
     pub fn add_distance_constraint(&mut self, i: u32, j: u32, compliance: R) -> u32 {
-        self.check_particles("add_distance_constraint", &[i, j]);
-        let d = self.particle_x[i as usize] - self.particle_x[j as usize];
+        let k = self.dist_pairs.len();
+        let rest = if self.check_particles("distance_constraints", k, &[i, j]) {
+            let d = self.particle_x[i as usize] - self.particle_x[j as usize];
+            self.check_rest("distance_constraints", k, [i, j], d.norm(), true);
+            d.norm()
+        } else {
+            lit(1.0)
+        };
+        self.check("distance_constraints", k)
+            .nonneg("compliance", compliance);
         self.dist_pairs.push([i, j]);
-        self.dist_rest.push(d.norm());
+        self.dist_rest.push(rest);
         self.dist_compliance.push(compliance);
         (self.dist_pairs.len() - 1) as u32
     }
 
-    /// Builds the model: arrays for what the scene contains, nothing for the rest.
+    /// Builds the model: arrays for what the scene contains, nothing for the rest. Panics
+    /// with the full list of problems (see [`ModelBuilder::try_finalize`]) if there are any.
     pub fn finalize(&self) -> Model<R> {
+        self.try_finalize().unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// Every problem of the scene: those the builder methods recorded, and those of `gravity`
+    /// (must be finite) and `particle_radius` (finite and `>= 0`), set directly.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        let mut problems = self.problems.clone();
+        Check {
+            out: &mut problems,
+            kind: "gravity",
+            index: None,
+        }
+        .finite3("gravity", &self.gravity);
+        Check {
+            out: &mut problems,
+            kind: "particle_radius",
+            index: None,
+        }
+        .nonneg("particle_radius", self.particle_radius);
+        for p in &mut problems[self.problems.len()..] {
+            p.param = None; // `gravity.gravity` reads as `gravity`
+        }
+        if problems.is_empty() {
+            Ok(())
+        } else {
+            Err(ModelError { problems })
+        }
+    }
+
+    /// Builds the model, or returns every problem of the scene (see [`crate::validation`]):
+    /// bad inputs of the builder methods and bad derived values (inverse masses, rest lengths,
+    /// rest shapes), each naming its item (`springs[3]`, `tets[0]`) and parameter.
+    pub fn try_finalize(&self) -> Result<Model<R>, ModelError> {
+        self.validate()?;
+        Ok(self.build_model())
+    }
+
+    fn build_model(&self) -> Model<R> {
         let n = self.particle_count();
         let springs = (!self.spring_pairs.is_empty()).then(|| Springs {
             pairs: Array::from_vec(self.spring_pairs.clone()).named("spring_pairs"),

@@ -6,6 +6,13 @@
 //! is optional; unknown fields are errors (a typo is not silently ignored). Particles are
 //! numbered in file order: first `particles`, then the particles of each `cloth_grids` entry.
 //!
+//! Reading costs what the parser costs (`serde_json`, `toml`; the field path comes from
+//! `serde_path_to_error`, the line of a semantic error from one scan of the text when it is
+//! reported): linear in the size of the file. Nesting of `[` and `{` is bounded (JSON:
+//! [`MAX_NESTING`]; TOML: the `toml` crate's limit, 80), and since no part of the schema is
+//! nested more than five deep, deeper input is an error as soon as the parser reaches the first
+//! level the schema does not allow.
+//!
 //! ```
 //! use adflex_kernels::ModelBuilder;
 //! let json = r#"{
@@ -57,11 +64,11 @@ use crate::contact::ground::Ground;
 use crate::contact::particle::ParticleContact;
 use crate::contact::shapes::{Shape, ShapeKind};
 use crate::forces::bending::RestAngle;
-use crate::forces::fem_tet::{snh_lame, tet_rest};
-use crate::forces::fem_tri::triangle_rest;
+use crate::forces::fem_tet::snh_lame;
 use crate::forces::particle::Drag;
 use crate::model::ModelBuilder;
 use crate::scenes::cloth::ClothGrid;
+use crate::validation::precision;
 
 /// An error reading a scene file: what is wrong, where (line and column, 1-based, when
 /// known) and in which field (a path like `particles[2].mass`, when known).
@@ -319,41 +326,86 @@ struct DistanceDesc {
 }
 
 // ---- where things are in the text ----------------------------------------------------------
+//
+// Nothing is indexed up front: serde (through `serde_path_to_error`) gives the field path and
+// the parser the line of a deserialization error, and the semantic checks of `build`, which
+// know the path of what they reject, find it in the text only when they report an error (one
+// linear scan per error).
 
-/// The byte offset of every key and value of a text, by path (`a.b[2].c`), in document order.
-type Paths = Vec<(String, usize)>;
+/// How deep `[` and `{` may nest (serde_json's recursion limit; toml's is lower). Deeper input
+/// is rejected as soon as the parser reaches that depth.
+pub const MAX_NESTING: usize = 128;
 
-fn join(stack: &[Frame]) -> String {
-    let mut s = String::new();
-    for f in stack {
-        match f {
-            Frame::Object(Some(k)) => {
-                if !s.is_empty() {
-                    s.push('.');
-                }
-                s.push_str(k);
-            }
-            Frame::Object(None) => {}
-            Frame::Array(i) => s.push_str(&format!("[{i}]")),
-        }
-    }
-    s
+#[derive(Clone, Copy)]
+enum Format {
+    Json,
+    Toml,
 }
 
-enum Frame {
+/// One step of a field path: a key or an index.
+#[derive(PartialEq, Eq, Debug)]
+enum Seg<'a> {
+    Key(&'a str),
+    Index(usize),
+}
+
+/// `springs[3].ke` as `[Key(springs), Index(3), Key(ke)]`.
+fn segments(path: &str) -> Vec<Seg<'_>> {
+    let mut out = Vec::new();
+    for part in path.split('.') {
+        let (key, mut rest) = match part.find('[') {
+            Some(k) => (&part[..k], &part[k..]),
+            None => (part, ""),
+        };
+        if !key.is_empty() {
+            out.push(Seg::Key(key));
+        }
+        while let Some(r) = rest.strip_prefix('[') {
+            let close = r.find(']').unwrap_or(r.len());
+            out.push(Seg::Index(r[..close].parse().unwrap_or(usize::MAX)));
+            rest = r.get(close + 1..).unwrap_or("");
+        }
+    }
+    out
+}
+
+enum Frame<'a> {
     /// An object and its current key.
-    Object(Option<String>),
+    Object(Option<&'a str>),
     /// An array and the current index.
     Array(usize),
 }
 
-/// Paths of a JSON text (tolerant of malformed input: it only reads up to where it can), and
-/// the span `(path, start, end, is_object)` of every object and array.
-fn json_paths(src: &str) -> (Paths, Vec<(String, usize, usize, bool)>) {
+fn frames_match(stack: &[Frame], key: Option<&str>, target: &[Seg]) -> bool {
+    let depth = stack
+        .iter()
+        .filter(|f| !matches!(f, Frame::Object(None)))
+        .count();
+    if depth + usize::from(key.is_some()) != target.len() {
+        return false;
+    }
+    let mut t = target.iter();
+    for f in stack {
+        let ok = match f {
+            Frame::Object(Some(k)) => t.next() == Some(&Seg::Key(k)),
+            Frame::Object(None) => true,
+            Frame::Array(i) => t.next() == Some(&Seg::Index(*i)),
+        };
+        if !ok {
+            return false;
+        }
+    }
+    match key {
+        Some(k) => t.next() == Some(&Seg::Key(k)),
+        None => true,
+    }
+}
+
+/// The byte offset in a JSON text of the field `target` (of its key if it has one, else of
+/// its value), if it is there. One pass; tolerant of malformed text. Only called on the error
+/// path, after serde has accepted the text (so the nesting is at most [`MAX_NESTING`]).
+fn json_locate(src: &str, target: &[Seg]) -> Option<usize> {
     let b = src.as_bytes();
-    let mut out = Vec::new();
-    let mut objects = Vec::new();
-    let mut open: Vec<(String, usize)> = Vec::new();
     let mut stack: Vec<Frame> = Vec::new();
     let mut expect_key = false;
     let mut i = 0;
@@ -370,8 +422,12 @@ fn json_paths(src: &str) -> (Paths, Vec<(String, usize, usize, bool)>) {
                 i += 1;
             }
             b'{' | b'[' => {
-                out.push((join(&stack), i));
-                open.push((join(&stack), i));
+                if frames_match(&stack, None, target) {
+                    return Some(i);
+                }
+                if stack.len() > MAX_NESTING {
+                    return None;
+                }
                 stack.push(if c == b'{' {
                     Frame::Object(None)
                 } else {
@@ -381,10 +437,6 @@ fn json_paths(src: &str) -> (Paths, Vec<(String, usize, usize, bool)>) {
                 i += 1;
             }
             b'}' | b']' => {
-                let is_object = matches!(stack.last(), Some(Frame::Object(_)));
-                if let Some((p, start)) = open.pop() {
-                    objects.push((p, start, i, is_object));
-                }
                 stack.pop();
                 expect_key = false;
                 i += 1;
@@ -392,80 +444,83 @@ fn json_paths(src: &str) -> (Paths, Vec<(String, usize, usize, bool)>) {
             b'"' => {
                 let start = i;
                 i += 1;
-                let mut s = Vec::new();
                 while i < b.len() && b[i] != b'"' {
-                    if b[i] == b'\\' {
-                        i += 1;
-                    }
-                    if i < b.len() {
-                        s.push(b[i]);
-                    }
-                    i += 1;
+                    i += if b[i] == b'\\' { 2 } else { 1 };
                 }
+                let text = src.get(start + 1..i.min(b.len())).unwrap_or("");
                 i += 1;
                 if expect_key {
-                    if let Some(Frame::Object(k)) = stack.last_mut() {
-                        *k = Some(String::from_utf8_lossy(&s).into_owned());
-                    }
                     expect_key = false;
+                    if frames_match(&stack, Some(text), target) {
+                        return Some(start);
+                    }
+                    if let Some(Frame::Object(k)) = stack.last_mut() {
+                        *k = Some(text);
+                    }
+                } else if frames_match(&stack, None, target) {
+                    return Some(start);
                 }
-                out.push((join(&stack), start));
             }
             _ => {
-                out.push((join(&stack), i));
+                if frames_match(&stack, None, target) {
+                    return Some(i);
+                }
                 while i < b.len() && !b",]} \t\r\n".contains(&b[i]) {
                     i += 1;
                 }
             }
         }
     }
-    (out, objects)
+    None
 }
 
-/// Paths of a TOML text: table headers (`[a]`, `[[a]]` counted per name) and `key = value`
-/// lines (the key path under the current table). Values inside inline tables and arrays are
-/// located at their key.
-fn toml_paths(src: &str) -> Paths {
-    let mut out = Vec::new();
-    let mut counts: Vec<(String, usize)> = Vec::new();
-    let mut prefix = String::new();
+fn toml_header(name: &str) -> Vec<Seg<'_>> {
+    name.trim()
+        .split('.')
+        .map(|k| Seg::Key(k.trim().trim_matches('"')))
+        .collect()
+}
+
+/// The byte offset in a TOML text of the field `target`: a table header (`[a]`, `[[a]]`
+/// counted per name) or a `key = value` line under the current table. Values inside inline
+/// tables and arrays are located at their key (their parent is found instead).
+fn toml_locate(src: &str, target: &[Seg]) -> Option<usize> {
+    let mut counts: std::collections::HashMap<&str, usize> = Default::default();
+    let mut prefix: Vec<Seg> = Vec::new();
     let mut offset = 0;
     for line in src.split_inclusive('\n') {
         let t = line.trim();
-        let lead = line.len() - line.trim_start().len();
+        let at = offset + line.len() - line.trim_start().len();
+        offset += line.len();
         if let Some(name) = t.strip_prefix("[[").and_then(|r| r.split("]]").next()) {
-            let name = name.trim().to_string();
-            let n = match counts.iter_mut().find(|(k, _)| *k == name) {
-                Some((_, n)) => {
-                    *n += 1;
-                    *n - 1
-                }
-                None => {
-                    counts.push((name.clone(), 1));
-                    0
-                }
-            };
-            prefix = format!("{name}[{n}]");
-            out.push((prefix.clone(), offset + lead));
+            let n = counts.entry(name.trim()).or_insert(0);
+            *n += 1;
+            prefix = toml_header(name);
+            prefix.push(Seg::Index(*n - 1));
+            if prefix == target {
+                return Some(at);
+            }
         } else if let Some(name) = t.strip_prefix('[').and_then(|r| r.split(']').next()) {
-            prefix = name.trim().to_string();
-            out.push((prefix.clone(), offset + lead));
+            prefix = toml_header(name);
+            if prefix == target {
+                return Some(at);
+            }
         } else if let Some((key, _)) = t.split_once('=') {
             let key = key.trim().trim_matches('"');
-            if !key.is_empty() && !key.starts_with('#') {
-                let path = if prefix.is_empty() {
-                    key.to_string()
-                } else {
-                    format!("{prefix}.{key}")
-                };
-                out.push((path, offset + lead));
+            if !key.is_empty()
+                && !key.starts_with('#')
+                && target.len() == prefix.len() + 1
+                && target[..prefix.len()] == prefix[..]
+                && target[prefix.len()] == Seg::Key(key)
+            {
+                return Some(at);
             }
         }
-        offset += line.len();
     }
-    out
+    None
 }
 
+/// Line and column (1-based) of a byte offset.
 fn line_col(src: &str, offset: usize) -> (usize, usize) {
     let offset = offset.min(src.len());
     let before = &src.as_bytes()[..offset];
@@ -479,45 +534,14 @@ fn line_col(src: &str, offset: usize) -> (usize, usize) {
     (line, col)
 }
 
-fn offset_of(src: &str, line: usize, col: usize) -> usize {
-    let mut off = 0;
-    for (n, l) in src.split_inclusive('\n').enumerate() {
-        if n + 1 == line {
-            return (off + col.saturating_sub(1)).min(src.len());
-        }
-        off += l.len();
-    }
-    src.len()
-}
-
-/// The path of the field an error at `offset` is about: the last key or value that starts at
-/// or before it. For a missing field, the object that lacks it.
-fn field_at(paths: &Paths, offset: usize, message: &str) -> Option<String> {
-    let p = paths.iter().rev().find(|(_, o)| *o <= offset)?.0.clone();
-    if message.starts_with("missing field") {
-        // The error points at the end of the object: name the object.
-        return Some(match (p.rfind('.'), p.rfind('[')) {
-            (Some(d), Some(b)) if b > d => p,
-            (Some(d), _) => p[..d].to_string(),
-            _ => p,
-        });
-    }
-    Some(p)
-}
-
-/// A semantic error about `path`, located in the text if the path (or its nearest parent) is
-/// there.
-fn at(src: &str, paths: &Paths, path: String, message: impl Into<String>) -> SceneError {
-    let mut probe = path.as_str();
-    let found = loop {
-        if let Some((_, o)) = paths.iter().find(|(p, _)| p == probe) {
-            break Some(*o);
-        }
-        match probe.rfind(['.', '[']) {
-            Some(k) => probe = &probe[..k],
-            None => break None,
-        }
-    };
+/// A semantic error about `path`, located in the text at the field or, if it is not written
+/// there (a default), at its nearest parent that is.
+fn at(src: &str, format: Format, path: String, message: impl Into<String>) -> SceneError {
+    let segs = segments(&path);
+    let found = (1..=segs.len()).rev().find_map(|n| match format {
+        Format::Json => json_locate(src, &segs[..n]),
+        Format::Toml => toml_locate(src, &segs[..n]),
+    });
     let (line, column) = match found.map(|o| line_col(src, o)) {
         Some((l, c)) => (Some(l), Some(c)),
         None => (None, None),
@@ -538,12 +562,12 @@ fn v3<R: Real>(a: [f64; 3]) -> Vec3<R> {
 
 struct Checker<'a> {
     src: &'a str,
-    paths: &'a Paths,
+    format: Format,
 }
 
 impl Checker<'_> {
     fn err(&self, path: String, message: impl Into<String>) -> SceneError {
-        at(self.src, self.paths, path, message)
+        at(self.src, self.format, path, message)
     }
 
     fn finite(&self, path: impl Fn() -> String, vals: &[f64]) -> Result<(), SceneError> {
@@ -570,38 +594,76 @@ impl Checker<'_> {
         }
     }
 
-    fn indices(&self, path: impl Fn() -> String, idx: &[u32], n: usize) -> Result<(), SceneError> {
-        for (k, &i) in idx.iter().enumerate() {
-            if i as usize >= n {
-                return Err(self.err(
-                    path(),
-                    format!("particle index {i} out of range ({n} particles)"),
-                ));
-            }
-            if idx[..k].contains(&i) {
-                return Err(self.err(path(), format!("particle {i} appears twice")));
-            }
+    /// A mass (kg) that is not 0 in the file must not round to 0 in `R` (that would pin the
+    /// particle or make the body static).
+    fn no_underflow<R: Real>(&self, path: impl Fn() -> String, v: f64) -> Result<(), SceneError> {
+        if v > 0.0 && R::lit(v).to_f64() == 0.0 {
+            Err(self.err(
+                path(),
+                format!(
+                    "{v:e} rounds to 0 in {} (which would pin it); give at least {:.1e}, or 0",
+                    precision::<R>(),
+                    min_positive::<R>()
+                ),
+            ))
+        } else {
+            Ok(())
         }
-        Ok(())
+    }
+
+    /// The first problem the builder recorded since it had `from`, as an error at the path
+    /// `path(param)` gives.
+    fn builder<R: Real>(
+        &self,
+        b: &ModelBuilder<R>,
+        from: usize,
+        path: impl Fn(Option<&str>) -> String,
+    ) -> Result<(), SceneError> {
+        match b.problems().get(from) {
+            None => Ok(()),
+            Some(p) => Err(self.err(path(p.param), p.message.clone())),
+        }
     }
 }
 
-fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder<R>, SceneError> {
-    let c = Checker { src, paths };
+fn min_positive<R: Real>() -> f64 {
+    if precision::<R>() == "f32" {
+        f32::from_bits(1) as f64
+    } else {
+        f64::from_bits(1)
+    }
+}
+
+/// `item.param`, or `item` for the element as a whole (and for `whole` parameters).
+fn sub(item: &str, param: Option<&str>, whole: &[&str]) -> String {
+    match param {
+        Some(p) if !whole.contains(&p) => format!("{item}.{p}"),
+        _ => item.to_string(),
+    }
+}
+
+/// Builds the scene with the builder, whose checks (see [`crate::validation`]) are the
+/// reader's: each builder problem is reported at the field of the file it comes from. Only
+/// what the builder cannot see is checked here (the file's own structure, values lost in the
+/// conversion to `R`, quaternions and normals before they are normalized).
+fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilder<R>, SceneError> {
+    let c = Checker { src, format };
     let mut b = ModelBuilder::<R>::new();
     if let Some(g) = d.gravity {
-        c.finite(|| "gravity".into(), &g)?;
         b.gravity = v3(g);
     }
     if let Some(r) = d.particle_radius {
-        c.nonneg(|| "particle_radius".into(), r)?;
         b.particle_radius = R::lit(r);
     }
+    if let Err(e) = b.validate() {
+        let p = &e.problems[0];
+        return Err(c.err(p.item.clone(), p.message.clone()));
+    }
     for (k, p) in d.particles.iter().enumerate() {
-        c.finite(|| format!("particles[{k}].x"), &p.x)?;
-        c.finite(|| format!("particles[{k}].v"), &p.v)?;
-        c.nonneg(|| format!("particles[{k}].mass"), p.mass)?;
+        let n0 = b.problems().len();
+        c.no_underflow::<R>(|| format!("particles[{k}].mass"), p.mass)?;
         b.add_particle(v3(p.x), v3(p.v), R::lit(p.mass));
+        c.builder(&b, n0, |f| sub(&format!("particles[{k}]"), f, &[]))?;
     }
     for (k, g) in d.cloth_grids.iter().enumerate() {
         let path = |f: &str| format!("cloth_grids[{k}].{f}");
@@ -617,6 +679,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
         c.finite(|| path("origin"), &g.origin)?;
         c.positive(|| path("spacing"), g.spacing)?;
         c.nonneg(|| path("mass"), g.mass)?;
+        c.no_underflow::<R>(|| path("mass"), g.mass)?;
         c.nonneg(|| path("spring_ke"), g.spring_ke)?;
         c.nonneg(|| path("spring_kd"), g.spring_kd)?;
         c.nonneg(|| path("bend_kd"), g.bend_kd)?;
@@ -634,6 +697,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
                 ));
             }
         }
+        let n0 = b.problems().len();
         b.add_cloth_grid(&ClothGrid {
             ni: g.ni,
             nj: g.nj,
@@ -646,41 +710,25 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             bend: g.bend_ke.map(|ke| (R::lit(ke), R::lit(g.bend_kd))),
             bend_rest: g.bend_rest.into(),
         });
+        if let Some(p) = b.problems().get(n0) {
+            return Err(c.err(format!("cloth_grids[{k}]"), p.to_string()));
+        }
     }
     let n = b.particle_count();
     for (k, s) in d.springs.iter().enumerate() {
-        c.indices(|| format!("springs[{k}]"), &[s.i, s.j], n)?;
-        c.nonneg(|| format!("springs[{k}].ke"), s.ke)?;
-        c.nonneg(|| format!("springs[{k}].kd"), s.kd)?;
+        let n0 = b.problems().len();
         match s.rest {
-            Some(r) => {
-                c.nonneg(|| format!("springs[{k}].rest"), r)?;
-                b.add_spring_with_rest(s.i, s.j, R::lit(r), R::lit(s.ke), R::lit(s.kd));
-            }
-            None => {
-                b.add_spring(s.i, s.j, R::lit(s.ke), R::lit(s.kd));
-            }
-        }
+            Some(r) => b.add_spring_with_rest(s.i, s.j, R::lit(r), R::lit(s.ke), R::lit(s.kd)),
+            None => b.add_spring(s.i, s.j, R::lit(s.ke), R::lit(s.kd)),
+        };
+        c.builder(&b, n0, |f| sub(&format!("springs[{k}]"), f, &["indices"]))?;
     }
     let first_file_triangle = b.triangles().len();
-    let pos = |i: u32, b: &ModelBuilder<R>| {
-        let p = b.particle_position(i);
-        Vec3::new(p.x.to_f64(), p.y.to_f64(), p.z.to_f64())
-    };
     for (k, t) in d.triangles.iter().enumerate() {
         let [i, j, l] = t.indices;
-        c.indices(|| format!("triangles[{k}].indices"), &t.indices, n)?;
+        let n0 = b.problems().len();
         match (t.mu, t.lambda) {
             (Some(mu), Some(lambda)) => {
-                c.nonneg(|| format!("triangles[{k}].mu"), mu)?;
-                c.finite(|| format!("triangles[{k}].lambda"), &[lambda])?;
-                c.nonneg(|| format!("triangles[{k}].kd"), t.kd)?;
-                if triangle_rest(pos(i, &b), pos(j, &b), pos(l, &b)).is_none() {
-                    return Err(c.err(
-                        format!("triangles[{k}]"),
-                        "the triangle is degenerate (zero area)",
-                    ));
-                }
                 b.add_triangle_fem(i, j, l, R::lit(mu), R::lit(lambda), R::lit(t.kd));
             }
             (None, None) => {
@@ -699,13 +747,18 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
                 ))
             }
         }
+        c.builder(&b, n0, |f| sub(&format!("triangles[{k}]"), f, &[]))?;
     }
     if let Some(bd) = &d.bending {
-        c.nonneg(|| "bending.ke".into(), bd.ke)?;
-        c.nonneg(|| "bending.kd".into(), bd.kd)?;
         // Only the file's triangles (cloth grids have their own bending settings).
         let tris = b.triangles()[first_file_triangle..].to_vec();
-        let xs: Vec<Vec3<f64>> = (0..n as u32).map(|i| pos(i, &b)).collect();
+        let xs: Vec<Vec3<f64>> = (0..n as u32)
+            .map(|i| {
+                let p = b.particle_position(i);
+                Vec3::new(p.x.to_f64(), p.y.to_f64(), p.z.to_f64())
+            })
+            .collect();
+        let n0 = b.problems().len();
         for q in crate::forces::bending::bending_edges(&tris) {
             let rest = match bd.rest {
                 RestDesc::Flat => 0.0,
@@ -713,10 +766,10 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             };
             b.add_bending(q, R::lit(rest), R::lit(bd.ke), R::lit(bd.kd));
         }
+        c.builder(&b, n0, |f| sub("bending", f, &["indices"]))?;
     }
     for (k, t) in d.tets.iter().enumerate() {
         let path = |f: &str| format!("tets[{k}].{f}");
-        c.indices(|| path("indices"), &t.indices, n)?;
         let (mu, lambda) = match (t.mu, t.lambda, t.young, t.poisson) {
             (Some(mu), Some(lambda), None, None) => (mu, lambda),
             (None, None, Some(e), Some(nu)) => {
@@ -733,17 +786,10 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
                 ))
             }
         };
-        c.nonneg(|| path("mu"), mu)?;
-        c.positive(|| path("lambda"), lambda)?;
-        c.nonneg(|| path("kd"), t.kd)?;
-        if tet_rest(t.indices.map(|i| pos(i, &b))).is_none() {
-            return Err(c.err(
-                format!("tets[{k}]"),
-                "the tetrahedron is degenerate (zero volume)",
-            ));
-        }
         let [i, j, l, m] = t.indices;
+        let n0 = b.problems().len();
         b.add_tet(i, j, l, m, R::lit(mu), R::lit(lambda), R::lit(t.kd));
+        c.builder(&b, n0, |f| sub(&format!("tets[{k}]"), f, &[]))?;
     }
     if let Some(g) = &d.ground {
         c.finite(|| "ground.normal".into(), &g.normal)?;
@@ -751,11 +797,8 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
         if !nrm.norm().is_normal() {
             return Err(c.err("ground.normal".into(), "must be a nonzero vector"));
         }
-        c.finite(|| "ground.offset".into(), &[g.offset])?;
-        for (f, v) in [("ke", g.ke), ("kd", g.kd), ("mu", g.mu), ("leak", g.leak)] {
-            c.nonneg(|| format!("ground.{f}"), v)?;
-        }
         let nrm = nrm.normalize();
+        let n0 = b.problems().len();
         b.set_ground(Ground {
             normal: v3([nrm.x, nrm.y, nrm.z]),
             offset: R::lit(g.offset),
@@ -764,52 +807,42 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             mu: R::lit(g.mu),
             leak: R::lit(g.leak),
         });
+        c.builder(&b, n0, |f| sub("ground", f, &[]))?;
     }
     if let Some(dr) = &d.drag {
-        c.nonneg(|| "drag.kd".into(), dr.kd)?;
-        c.finite(|| "drag.wind".into(), &dr.wind)?;
+        let n0 = b.problems().len();
         b.set_drag(Drag {
             kd: R::lit(dr.kd),
             wind: v3(dr.wind),
         });
+        c.builder(&b, n0, |f| sub("drag", f, &[]))?;
     }
-    let contact = |name: &str, cd: &ContactDesc| -> Result<ParticleContact<R>, SceneError> {
-        for (f, v) in [
-            ("ke", cd.ke),
-            ("kd", cd.kd),
-            ("mu", cd.mu),
-            ("leak", cd.leak),
-            ("margin", cd.margin),
-        ] {
-            c.nonneg(|| format!("{name}.{f}"), v)?;
-        }
-        Ok(ParticleContact {
-            ke: R::lit(cd.ke),
-            kd: R::lit(cd.kd),
-            mu: R::lit(cd.mu),
-            leak: R::lit(cd.leak),
-            margin: R::lit(cd.margin),
-        })
+    let contact = |cd: &ContactDesc| ParticleContact {
+        ke: R::lit(cd.ke),
+        kd: R::lit(cd.kd),
+        mu: R::lit(cd.mu),
+        leak: R::lit(cd.leak),
+        margin: R::lit(cd.margin),
     };
     if let Some(cd) = &d.particle_contact {
-        b.set_particle_contact(contact("particle_contact", cd)?);
+        let n0 = b.problems().len();
+        b.set_particle_contact(contact(cd));
+        c.builder(&b, n0, |f| sub("particle_contact", f, &[]))?;
     }
     if let Some(cd) = &d.shape_contact {
-        b.set_shape_contact(contact("shape_contact", cd)?);
+        let n0 = b.problems().len();
+        b.set_shape_contact(contact(cd));
+        c.builder(&b, n0, |f| sub("shape_contact", f, &[]))?;
     }
     for (k, s) in d.shapes.iter().enumerate() {
         let path = |f: &str| format!("shapes[{k}].{f}");
-        c.finite(|| path("pos"), &s.pos)?;
         c.finite(|| path("rot"), &s.rot)?;
         let q = Quat::new(s.rot[3], s.rot[0], s.rot[1], s.rot[2]);
         if !q.norm().is_normal() {
             return Err(c.err(path("rot"), "must be a nonzero quaternion [x, y, z, w]"));
         }
         let need = |v: Option<f64>, f: &str| -> Result<f64, SceneError> {
-            let v =
-                v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))?;
-            c.positive(|| path(f), v)?;
-            Ok(v)
+            v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))
         };
         let kind = match s.kind {
             ShapeKindDesc::Sphere => ShapeKind::Sphere {
@@ -819,9 +852,6 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
                 let h = s
                     .half_extents
                     .ok_or_else(|| c.err(format!("shapes[{k}]"), "missing field `half_extents`"))?;
-                for v in h {
-                    c.positive(|| path("half_extents"), v)?;
-                }
                 ShapeKind::Box {
                     half_extents: v3(h),
                 }
@@ -832,19 +862,18 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             },
         };
         let q = q / q.norm();
+        let n0 = b.problems().len();
         b.add_shape(Shape {
             kind,
             pos: v3(s.pos),
             rot: Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
         });
+        c.builder(&b, n0, |f| sub(&format!("shapes[{k}]"), f, &[]))?;
     }
     for (k, bd) in d.bodies.iter().enumerate() {
         let path = |f: &str| format!("bodies[{k}].{f}");
-        c.finite(|| path("x"), &bd.x)?;
-        c.finite(|| path("v"), &bd.v)?;
-        c.finite(|| path("w"), &bd.w)?;
         c.finite(|| path("q"), &bd.q)?;
-        c.nonneg(|| path("mass"), bd.mass)?;
+        c.no_underflow::<R>(|| path("mass"), bd.mass)?;
         let q = Quat::new(bd.q[3], bd.q[0], bd.q[1], bd.q[2]);
         if !q.norm().is_normal() {
             return Err(c.err(path("q"), "must be a nonzero quaternion [x, y, z, w]"));
@@ -857,6 +886,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             }
         }
         let q = q / q.norm();
+        let n0 = b.problems().len();
         let id = b.add_body(
             v3(bd.x),
             Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
@@ -865,18 +895,19 @@ fn build<R: Real>(d: SceneDesc, src: &str, paths: &Paths) -> Result<ModelBuilder
             R::lit(bd.mass),
             Mat33::from_diagonal(&v3(bd.inertia)),
         );
+        c.builder(&b, n0, |f| sub(&format!("bodies[{k}]"), f, &[]))?;
         for (m, p) in bd.contact_points.iter().enumerate() {
-            c.finite(|| format!("bodies[{k}].contact_points[{m}]"), p)?;
+            let n0 = b.problems().len();
             b.add_body_contact_point(id, v3(*p));
+            c.builder(&b, n0, |_| format!("bodies[{k}].contact_points[{m}]"))?;
         }
     }
     for (k, dc) in d.distance_constraints.iter().enumerate() {
-        c.indices(|| format!("distance_constraints[{k}]"), &[dc.i, dc.j], n)?;
-        c.nonneg(
-            || format!("distance_constraints[{k}].compliance"),
-            dc.compliance,
-        )?;
+        let n0 = b.problems().len();
         b.add_distance_constraint(dc.i, dc.j, R::lit(dc.compliance));
+        c.builder(&b, n0, |f| {
+            sub(&format!("distance_constraints[{k}]"), f, &["indices"])
+        })?;
     }
     Ok(b)
 }
@@ -889,58 +920,65 @@ fn strip_position(msg: &str) -> String {
     }
 }
 
+/// The field path of a deserialization error (`None` at the root).
+fn field_of(path: &serde_path_to_error::Path) -> Option<String> {
+    let p = path.to_string();
+    (p != ".").then_some(p)
+}
+
+fn json_error(field: Option<String>, e: serde_json::Error) -> SceneError {
+    let mut message = strip_position(&e.to_string());
+    if message == "recursion limit exceeded" {
+        message = format!("nested deeper than {MAX_NESTING} levels of `[` and `{{`");
+    }
+    let line = e.line();
+    SceneError {
+        message,
+        field,
+        line: (line > 0).then_some(line),
+        column: (line > 0).then_some(e.column()),
+    }
+}
+
+fn toml_error(src: &str, field: Option<String>, e: &toml::de::Error) -> SceneError {
+    let mut message = e.message().trim().to_string();
+    if message.contains("max recursion depth") {
+        message = format!("{message} (arrays and inline tables nested too deep)");
+    }
+    let (line, column) = match e.span() {
+        Some(span) => {
+            let (l, c) = line_col(src, span.start);
+            (Some(l), Some(c))
+        }
+        None => (None, None),
+    };
+    SceneError {
+        message,
+        field,
+        line,
+        column,
+    }
+}
+
 impl<R: Real> ModelBuilder<R> {
-    /// Reads a scene from JSON (schema in [`crate::scene_file`]).
+    /// Reads a scene from JSON (schema in [`crate::scene_file`]). Time and memory are those of
+    /// `serde_json` on the file; `[` and `{` nested deeper than [`MAX_NESTING`] are an error.
     pub fn from_json_str(src: &str) -> Result<Self, SceneError> {
-        let (paths, objects) = json_paths(src);
-        let desc: SceneDesc = serde_json::from_str(src).map_err(|e| {
-            let message = strip_position(&e.to_string());
-            let (line, column) = (e.line(), e.column());
-            let offset = offset_of(src, line, column).saturating_sub(1);
-            let field = if line == 0 {
-                None
-            } else if message.starts_with("missing field") || message.starts_with("invalid length")
-            {
-                // The error is at the end of the object (array) that lacks a field (an
-                // element): name the innermost one around it.
-                let object = message.starts_with("missing field");
-                objects
-                    .iter()
-                    .filter(|(_, s, e, o)| *s <= offset && offset <= *e && (*o || !object))
-                    .max_by_key(|(_, s, _, _)| *s)
-                    .map(|o| o.0.clone())
-            } else {
-                field_at(&paths, offset, &message)
-            };
-            SceneError {
-                message,
-                field: field.filter(|f| !f.is_empty()),
-                line: (line > 0).then_some(line),
-                column: (line > 0).then_some(column),
-            }
-        })?;
-        build(desc, src, &paths)
+        let mut de = serde_json::Deserializer::from_str(src);
+        let desc: SceneDesc = serde_path_to_error::deserialize(&mut de)
+            .map_err(|e| json_error(field_of(e.path()), e.into_inner()))?;
+        de.end().map_err(|e| json_error(None, e))?;
+        build(desc, src, Format::Json)
     }
 
-    /// Reads a scene from TOML (schema in [`crate::scene_file`]).
+    /// Reads a scene from TOML (schema in [`crate::scene_file`]). Arrays and inline tables
+    /// nested deeper than the `toml` crate's limit (80) are an error.
     pub fn from_toml_str(src: &str) -> Result<Self, SceneError> {
-        let paths = toml_paths(src);
-        let desc: SceneDesc = toml::from_str(src).map_err(|e| {
-            let message = e.message().trim().to_string();
-            let (mut line, mut column, mut field) = (None, None, None);
-            if let Some(span) = e.span() {
-                let (l, c) = line_col(src, span.start);
-                line = Some(l);
-                column = Some(c);
-                field = field_at(&paths, span.start, &message).filter(|f| !f.is_empty());
-            }
-            SceneError {
-                message,
-                field,
-                line,
-                column,
-            }
+        let de = toml::Deserializer::parse(src).map_err(|e| toml_error(src, None, &e))?;
+        let desc: SceneDesc = serde_path_to_error::deserialize(de).map_err(|e| {
+            let field = field_of(e.path());
+            toml_error(src, field, e.inner())
         })?;
-        build(desc, src, &paths)
+        build(desc, src, Format::Toml)
     }
 }

@@ -95,6 +95,31 @@ pub struct Ground<R: Real> {
     pub leak: R,
 }
 
+impl<R: Real> Ground<R> {
+    /// The builder's checks: a finite unit normal (length within 1e-3 of 1), a finite
+    /// offset, and `ke`, `kd`, `mu`, `leak` finite and `>= 0`.
+    pub(crate) fn check(&self, c: &mut crate::validation::Check) {
+        if c.finite3("normal", &self.normal) {
+            let l = self.normal.norm().to_f64();
+            if (l - 1.0).abs() > 1e-3 {
+                c.fail(
+                    Some("normal"),
+                    format!("must be a unit vector (length {l}); normalize it"),
+                );
+            }
+        }
+        c.finite("offset", &[self.offset]);
+        for (p, v) in [
+            ("ke", self.ke),
+            ("kd", self.kd),
+            ("mu", self.mu),
+            ("leak", self.leak),
+        ] {
+            c.nonneg(p, v);
+        }
+    }
+}
+
 impl<R: Real> Default for Ground<R> {
     fn default() -> Self {
         Ground {

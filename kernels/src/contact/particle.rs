@@ -53,6 +53,21 @@ pub struct ParticleContact<R: Real> {
     pub margin: R,
 }
 
+impl<R: Real> ParticleContact<R> {
+    /// The builder's checks: `ke`, `kd`, `mu`, `leak`, `margin` finite and `>= 0`.
+    pub(crate) fn check(&self, c: &mut crate::validation::Check) {
+        for (p, v) in [
+            ("ke", self.ke),
+            ("kd", self.kd),
+            ("mu", self.mu),
+            ("leak", self.leak),
+            ("margin", self.margin),
+        ] {
+            c.nonneg(p, v);
+        }
+    }
+}
+
 impl<R: Real> Default for ParticleContact<R> {
     fn default() -> Self {
         ParticleContact {

@@ -138,6 +138,41 @@ pub struct Shape<R: Real> {
 }
 
 impl<R: Real> Shape<R> {
+    /// The builder's checks: a finite position, a finite unit orientation (norm within 1e-3
+    /// of 1), sizes (radius, half extents, half length) finite and `> 0`.
+    pub(crate) fn check(&self, c: &mut crate::validation::Check) {
+        c.finite3("pos", &self.pos);
+        let q = &self.rot;
+        if c.finite("rot", &[q.i, q.j, q.k, q.w]) {
+            let l = q.norm().to_f64();
+            if (l - 1.0).abs() > 1e-3 {
+                c.fail(
+                    Some("rot"),
+                    format!("must be a unit quaternion (norm {l}); normalize it"),
+                );
+            }
+        }
+        match self.kind {
+            ShapeKind::Sphere { radius } => {
+                c.positive("radius", radius);
+            }
+            ShapeKind::Box { half_extents: h } => {
+                for v in [h.x, h.y, h.z] {
+                    if !c.positive("half_extents", v) {
+                        break;
+                    }
+                }
+            }
+            ShapeKind::Capsule {
+                radius,
+                half_length,
+            } => {
+                c.positive("radius", radius);
+                c.positive("half_length", half_length);
+            }
+        }
+    }
+
     /// A shape at `pos` with the identity orientation.
     pub fn new(kind: ShapeKind<R>, pos: Vec3<R>) -> Self {
         Shape {

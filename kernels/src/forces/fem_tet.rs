@@ -186,6 +186,20 @@ pub fn snh_lame(young: f64, poisson: f64) -> (f64, f64) {
     (4.0 / 3.0 * mu, lambda + 5.0 / 6.0 * mu)
 }
 
+/// Shape quality of a tetrahedron: `6 sqrt(2) |volume| / l^3` with `l` the root mean square of
+/// its six edge lengths, 1 for a regular tetrahedron, 0 for a flat one (scale-free).
+pub fn tet_quality(p: [Vec3<f64>; 4]) -> f64 {
+    let vol = Mat33::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]).determinant() / 6.0;
+    let mut l2 = 0.0;
+    for a in 0..4 {
+        for b in a + 1..4 {
+            l2 += (p[b] - p[a]).norm_squared();
+        }
+    }
+    let l = (l2 / 6.0).sqrt();
+    6.0 * 2f64.sqrt() * vol.abs() / (l * l * l)
+}
+
 /// Rest data of a tetrahedron with corners `p` (m): the inverse rest edge matrix and the rest
 /// volume, which is negative if the corners are negatively oriented. `None` if degenerate.
 pub fn tet_rest(p: [Vec3<f64>; 4]) -> Option<(Mat33<f64>, f64)> {

@@ -162,6 +162,14 @@ impl<R: Real> TriangleFem<R> {
     }
 }
 
+/// Shape quality of a triangle: `4 sqrt(3) area / (sum of squared edge lengths)`, 1 for an
+/// equilateral triangle, 0 for a degenerate one (scale-free).
+pub fn triangle_quality(p0: Vec3<f64>, p1: Vec3<f64>, p2: Vec3<f64>) -> f64 {
+    let area = 0.5 * (p1 - p0).cross(&(p2 - p0)).norm();
+    let l2 = (p1 - p0).norm_squared() + (p2 - p1).norm_squared() + (p0 - p2).norm_squared();
+    4.0 * 3f64.sqrt() * area / l2
+}
+
 /// Rest data of a triangle with corners `p0, p1, p2` (m): the inverse of its edge matrix in an
 /// orthonormal frame of its plane (first axis along `p1 - p0`) and its area. `None` if the
 /// triangle is degenerate (zero area).

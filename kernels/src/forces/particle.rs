@@ -56,6 +56,14 @@ pub struct Drag<R: Real> {
 }
 
 impl<R: Real> Drag<R> {
+    /// The builder's checks: `kd` finite and `>= 0`, `wind` finite.
+    pub(crate) fn check(&self, c: &mut crate::validation::Check) {
+        c.nonneg("kd", self.kd);
+        c.finite3("wind", &self.wind);
+    }
+}
+
+impl<R: Real> Drag<R> {
     /// Records [`eval_drag`] on `tape`, accumulating into `f`.
     pub fn eval(&self, tape: &mut Tape, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
         tape.launch(eval_drag, v.len(), (v, self.kd, self.wind, f));
