@@ -200,6 +200,11 @@ fn write_part(
         writeln!(t, "    let a = arrays_f64(xs);").unwrap();
         writeln!(t, "    let y: Array<f64> = Array::zeros(LEN);").unwrap();
         writeln!(t, "    let checked = check(&[{ins}], &[&y], seed, &|m| run_direct(m, {name}, LEN, ({ins}, {idx}LEN{pv64}, &y)));").unwrap();
+        // Two launches writing one array (the second on inputs moved within their range).
+        let xs_ins: Vec<String> = (0..n).map(|j| format!("&xs[{j}]")).collect();
+        let xs_ins = xs_ins.join(", ");
+        writeln!(t, "    let moved: Vec<Vec<f64>> = xs.iter().map(|v| v.iter().rev().map(|x| 2.0 - x).collect()).collect();").unwrap();
+        writeln!(t, "    let relaunch_err = relaunch_err(&arrays_f64(xs), &arrays_f64(&moved), seed, &|m, xs: &[Array<f64>], y: &Array<f64>| run_direct(m, {name}, LEN, ({xs_ins}, {idx}LEN{pv64}, y)));").unwrap();
         writeln!(t, "    let a = arrays_f64(xs);").unwrap();
         writeln!(t, "    let y64: Array<f64> = Array::zeros(LEN);").unwrap();
         writeln!(
@@ -216,7 +221,7 @@ fn write_part(
         .unwrap();
         writeln!(
             t,
-            "    Outcome {{ checked, y64: y64.to_vec(), y32: y32.to_vec() }}"
+            "    Outcome {{ checked, relaunch_err, y64: y64.to_vec(), y32: y32.to_vec() }}"
         )
         .unwrap();
         writeln!(t, "}}\n").unwrap();

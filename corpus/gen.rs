@@ -145,6 +145,9 @@ const MUL_UNROLLED_INDEX: bool = false;
 /// Generate calls of `#[diff_func]`s inside `no_grad(..)` (do not compile: "expected function,
 /// found `f35`"; reported, off until fixed).
 const CALL_IN_NO_GRAD: bool = false;
+/// Generate stores to `y[t]` that a later store overwrites (`y[t] = a; .. y[t] = b;`, or a
+/// store in a loop or a branch): only the last store of an element may receive its gradient.
+const REPEATED_STORE: bool = true;
 
 /// Sizes of the generated programs. They set the compile time: the macro emits ~10
 /// statements per operation over the forward, adjoint and tangent kernels, each compiled in f32
@@ -169,8 +172,8 @@ impl Sizes {
     pub const DEFAULT: Sizes = Sizes {
         kernel_stmts: (2, 4),
         func_stmts: (1, 2),
-        leaf_p: 0.55,
-        linalg_every: 6,
+        leaf_p: 0.6,
+        linalg_every: 8,
         stmt_depth: 2,
     };
     /// Larger programs, for bug hunting with other seeds (`ADFLEX_CORPUS_SIZE=big`).
@@ -301,6 +304,8 @@ struct IntVar {
     safe: bool,
     /// The index of an unrolled loop: a constant, whose integer type Rust infers from use.
     unrolled: bool,
+    /// A `let mut` index (`j = (j + c) % n` keeps it in `0..n`).
+    mutable: bool,
 }
 
 /// A generated `#[diff_func]`'s signature.
@@ -357,6 +362,12 @@ pub struct Gen<'a> {
     linalg: bool,
     /// The kernel has a value parameter `p: R` (passed `VALUE_PARAM`).
     pub value_param: bool,
+    /// `let mut` booleans in scope (per scope).
+    bools: Vec<Vec<String>>,
+    /// The index of every store to `y`: `t`, or a shift `(t + c) % n` that the macro cannot
+    /// prove is the thread's own (a run-time checked store). One per kernel, so that each
+    /// thread stores to one element.
+    store_index: String,
 }
 
 #[derive(Clone)]
@@ -390,6 +401,8 @@ impl<'a> Gen<'a> {
             no_calls: false,
             linalg: true,
             value_param: false,
+            bools: vec![Vec::new()],
+            store_index: "t".into(),
         }
     }
 
@@ -401,11 +414,17 @@ impl<'a> Gen<'a> {
     fn push_scope(&mut self) {
         self.scopes.push(Vec::new());
         self.ints.push(Vec::new());
+        self.bools.push(Vec::new());
     }
 
     fn pop_scope(&mut self) {
         self.scopes.pop();
         self.ints.pop();
+        self.bools.pop();
+    }
+
+    fn bool_vars(&self) -> Vec<String> {
+        self.bools.iter().flatten().cloned().collect()
     }
 
     fn declare(&mut self, name: &str, ty: Ty, mutable: bool) {
@@ -421,6 +440,7 @@ impl<'a> Gen<'a> {
             name: name.to_string(),
             safe,
             unrolled,
+            mutable: false,
         });
     }
 
@@ -1389,9 +1409,27 @@ impl<'a> Gen<'a> {
     }
 
     fn cond(&mut self, d: u32) -> String {
-        match self.rng.weighted(&[10, 3, 2, 1, 1]) {
+        let nb = if self.bool_vars().is_empty() { 0 } else { 2 };
+        match self.rng.weighted(&[10, 3, 2, 1, 1, nb]) {
+            5 => {
+                let bs = self.bool_vars();
+                let b = bs[self.rng.below(bs.len())].clone();
+                self.feat.hit("bool variable read");
+                if self.rng.chance(0.5) {
+                    b
+                } else {
+                    format!("!{b}")
+                }
+            }
             0 => {
-                let a = self.scalar(d);
+                // (a literal would make a constant condition: draw again)
+                let mut a = self.scalar(d);
+                for _ in 0..3 {
+                    if a.iv.lo < a.iv.hi {
+                        break;
+                    }
+                    a = self.scalar(d);
+                }
                 let (c, _) = self.lit_in(a.iv);
                 let op = [">", "<", ">=", "<="][self.rng.below(4)];
                 if self.rng.chance(0.3) {
@@ -2250,6 +2288,13 @@ impl<'a> Gen<'a> {
             1,                                // 12 early return
             if self.kernel && self.atomic { 3 } else { 0 }, // 13 atomic
             if self.funcs.is_empty() { 0 } else { 2 }, // 14 call into a local
+            if self.kernel { 2 } else { 0 },  // 15 carried integer index
+            2,                                // 16 carried bool
+            if self.kernel && !self.atomic && REPEATED_STORE {
+                2
+            } else {
+                0
+            }, // 17 store again
         ];
         match self.rng.weighted(&w) {
             0 => {
@@ -2538,6 +2583,50 @@ impl<'a> Gen<'a> {
                     _ => writeln!(out, "{i}f[{idx}] -= {};", e.s).unwrap(),
                 }
             }
+            15 => {
+                let js: Vec<IntVar> = self.int_vars().into_iter().filter(|v| v.mutable).collect();
+                if js.is_empty() {
+                    let j = self.fresh("j");
+                    let c = self.rng.below(LEN);
+                    writeln!(out, "{i}let mut {j} = (t + {c}) % n;").unwrap();
+                    self.ints.last_mut().unwrap().push(IntVar {
+                        name: j,
+                        safe: true,
+                        unrolled: false,
+                        mutable: true,
+                    });
+                    self.feat.hit("let mut index");
+                } else {
+                    let j = &js[self.rng.below(js.len())].name;
+                    let c = self.rng.int(1, LEN - 1);
+                    writeln!(out, "{i}{j} = ({j} + {c}) % n;").unwrap();
+                    self.feat.hit("index reassignment");
+                }
+            }
+            16 => {
+                let bs = self.bool_vars();
+                let c = self.cond(1);
+                if bs.is_empty() {
+                    let b = self.fresh("f");
+                    writeln!(out, "{i}let mut {b} = {c};").unwrap();
+                    self.bools.last_mut().unwrap().push(b);
+                    self.feat.hit("let mut bool");
+                } else {
+                    let b = bs[self.rng.below(bs.len())].clone();
+                    if self.rng.chance(0.5) {
+                        writeln!(out, "{i}{b} = {c};").unwrap();
+                    } else {
+                        writeln!(out, "{i}if {c} {{\n{i}    {b} = !{b};\n{i}}}").unwrap();
+                    }
+                    self.feat.hit("bool reassignment");
+                }
+            }
+            17 => {
+                // a store that a later one overwrites (the adjoint must not count it)
+                let w = self.output_write(indent);
+                out.push_str(&w);
+                self.feat.hit("repeated store");
+            }
             _ => {
                 let fi = self.rng.below(self.funcs.len());
                 let f = self.funcs[fi].clone();
@@ -2765,11 +2854,13 @@ impl<'a> Gen<'a> {
             let e2 = self.live_sum();
             self.feat.hit("store in both branches");
             format!(
-                "{i}if {c} {{\n{i}    y[t] = {};\n{i}}} else {{\n{i}    y[t] = {};\n{i}}}\n",
-                e.s, e2.s
+                "{i}if {c} {{\n{i}    y[{y}] = {};\n{i}}} else {{\n{i}    y[{y}] = {};\n{i}}}\n",
+                e.s,
+                e2.s,
+                y = self.store_index
             )
         } else {
-            format!("{i}y[t] = {};\n", e.s)
+            format!("{i}y[{}] = {};\n", self.store_index, e.s)
         }
     }
 
@@ -2843,6 +2934,408 @@ impl Q {
         } else {
             format!("({})", self.s)
         }
+    }
+}
+
+/// The builtins every kernel `i` uses one of (`FOCUS[i % FOCUS.len()]`), so each appears in
+/// the corpus a few times whatever the random choices.
+pub const FOCUS: &[&str] = &[
+    "sqrt",
+    "sin",
+    "cos",
+    "tan",
+    "asin",
+    "acos",
+    "atan",
+    "atan2",
+    "sinh",
+    "cosh",
+    "tanh",
+    "exp",
+    "ln",
+    "log2",
+    "log10",
+    "pow",
+    "powi",
+    "abs",
+    "sign",
+    "floor",
+    "ceil",
+    "round",
+    "min",
+    "max",
+    "clamp",
+    "lerp",
+    "select",
+    "step",
+    "smoothstep",
+    "rem",
+    "dot",
+    "cross",
+    "length",
+    "length_sq",
+    "normalize",
+    "outer",
+    "cw_mul",
+    "cw_div",
+    "transpose",
+    "determinant",
+    "inverse",
+    "trace",
+    "ddot",
+    "skew",
+    "diag",
+    "vec2",
+    "vec4",
+    "mat22",
+    "mat33",
+    "mat22_cols",
+    "mat33_cols",
+    "mat22_rows",
+    "mat33_rows",
+    "mat22_identity",
+    "mat33_identity",
+    "quat",
+    "quat_identity",
+    "quat_mul",
+    "quat_conjugate",
+    "quat_inverse",
+    "quat_normalize",
+    "quat_rotate",
+    "quat_rotate_inv",
+    "quat_from_axis_angle",
+    "quat_to_mat33",
+    "quat_length",
+    "replace",
+];
+
+impl<'a> Gen<'a> {
+    /// A scalar expression that uses builtin `f` (with arguments in its safe domain).
+    fn focus_expr(&mut self, f: &str) -> S {
+        self.feat.hit("focus builtin");
+        let any = |g: &mut Self| g.scalar(1);
+        let unit_q = |g: &mut Self| g.quat(1).s;
+        match f {
+            "sqrt" | "ln" | "log2" | "log10" => {
+                let a = self.pos(1);
+                let r = match f {
+                    "sqrt" => a.iv.inc(f64::sqrt),
+                    "ln" => a.iv.inc(f64::ln),
+                    "log2" => a.iv.inc(f64::log2),
+                    _ => a.iv.inc(f64::log10),
+                };
+                S {
+                    s: format!("{f}({})", a.s),
+                    iv: r,
+                }
+            }
+            "sin" | "cos" => S {
+                s: format!("{f}({})", any(self).s),
+                iv: UNIT,
+            },
+            "tanh" | "atan" => S {
+                s: format!("{f}({})", any(self).s),
+                iv: iv(-1.6, 1.6),
+            },
+            "tan" => S {
+                s: format!("tan(tanh({}))", any(self).s),
+                iv: iv(-1.6, 1.6),
+            },
+            "asin" => S {
+                s: format!("asin(0.9 * tanh({}))", any(self).s),
+                iv: iv(-1.2, 1.2),
+            },
+            "acos" => S {
+                s: format!("acos(0.9 * sin({}))", any(self).s),
+                iv: iv(0.0, 3.2),
+            },
+            "sinh" | "cosh" | "exp" => {
+                let a = self.bounded(1, 2.0);
+                S {
+                    s: format!("{f}({})", a.s),
+                    iv: iv(-7.4, 7.4),
+                }
+            }
+            "atan2" => {
+                let (a, b) = (any(self), self.pos(1));
+                S {
+                    s: format!("atan2({}, {})", a.s, b.s),
+                    iv: iv(-1.6, 1.6),
+                }
+            }
+            "pow" => {
+                let a = self.bounded(1, 1.0);
+                let (e, _) = lit(self.rng.range(-1.5, 2.5));
+                S {
+                    s: format!("pow(1.5 + {}, {e})", a.s),
+                    iv: iv(0.0, 11.2),
+                }
+                .paren_sq(self)
+            }
+            "powi" => {
+                let a = self.bounded(1, 2.0);
+                S {
+                    s: format!("powi({}, 3)", a.s),
+                    iv: iv(-8.0, 8.0),
+                }
+            }
+            "abs" | "floor" | "ceil" | "round" | "step" => {
+                let a = self.bounded(1, 3.0);
+                S {
+                    s: format!("({f}({s}) * 0.5 + {s})", s = a.s),
+                    iv: iv(-4.5, 4.5),
+                }
+            }
+            "sign" => {
+                let (a, b) = (self.bounded(1, 3.0), self.bounded(1, 3.0));
+                S {
+                    s: format!("(sign({}) * {})", a.s, b.s),
+                    iv: iv(-3.0, 3.0),
+                }
+            }
+            "min" | "max" => {
+                let (a, b) = (self.bounded(1, 3.0), self.bounded(1, 3.0));
+                S {
+                    s: format!("{f}({}, {})", a.s, b.s),
+                    iv: iv(-3.0, 3.0),
+                }
+            }
+            "clamp" => {
+                let a = self.bounded(1, 3.0);
+                S {
+                    s: format!("clamp({}, -0.5, 1.25)", a.s),
+                    iv: iv(-0.5, 1.25),
+                }
+            }
+            "lerp" => {
+                let (a, b, t) = (
+                    self.bounded(1, 3.0),
+                    self.bounded(1, 3.0),
+                    self.bounded(1, 1.0),
+                );
+                S {
+                    s: format!("lerp({}, {}, {})", a.s, b.s, t.s),
+                    iv: iv(-9.0, 9.0),
+                }
+                .paren_sq(self)
+            }
+            "select" => {
+                let c = self.cond(1);
+                let (a, b) = (self.bounded(1, 3.0), self.bounded(1, 3.0));
+                S {
+                    s: format!("select({c}, {}, {})", a.s, b.s),
+                    iv: iv(-3.0, 3.0),
+                }
+            }
+            "smoothstep" => {
+                let a = self.bounded(1, 3.0);
+                S {
+                    s: format!("smoothstep(0.25, 1.75, {})", a.s),
+                    iv: iv(0.0, 1.0),
+                }
+            }
+            "rem" => {
+                let a = self.bounded(1, 3.0);
+                S {
+                    s: format!("((t % 4) as R * {})", a.s),
+                    iv: iv(-9.0, 9.0),
+                }
+                .paren_sq(self)
+            }
+            "dot" | "length_sq" => {
+                let (a, b) = (self.vec(1), self.vec(1));
+                let s = if f == "dot" {
+                    format!("dot({}, {})", a.s, b.s)
+                } else {
+                    format!("length_sq({})", a.s)
+                };
+                S {
+                    s,
+                    iv: iv(-200.0, 200.0),
+                }
+                .paren_sq(self)
+            }
+            "cross" => {
+                let (a, b) = (self.vec(1), self.vec(1));
+                S {
+                    s: format!("cross({}, {}).y", a.s, b.s),
+                    iv: iv(-200.0, 200.0),
+                }
+                .paren_sq(self)
+            }
+            "length" => {
+                let a = self.vec_safe(1);
+                S {
+                    s: format!("length({})", a.s),
+                    iv: iv(0.0, 14.0),
+                }
+                .paren_sq(self)
+            }
+            "normalize" => {
+                let a = self.vec_safe(1);
+                S {
+                    s: format!("normalize({}).z", a.s),
+                    iv: UNIT,
+                }
+            }
+            "outer" | "cw_mul" => {
+                let (a, b) = (self.vec(1), self.vec(1));
+                let s = if f == "outer" {
+                    format!("outer({}, {})[(1, 2)]", a.s, b.s)
+                } else {
+                    format!("cw_mul({}, {}).x", a.s, b.s)
+                };
+                S {
+                    s,
+                    iv: iv(-64.0, 64.0),
+                }
+                .paren_sq(self)
+            }
+            "cw_div" => {
+                let a = self.vec(1);
+                let (x, y) = (self.pos(0), self.pos(0));
+                S {
+                    s: format!("cw_div({}, vec3({}, {}, 2.0)).y", a.s, x.s, y.s),
+                    iv: iv(-40.0, 40.0),
+                }
+                .paren_sq(self)
+            }
+            "transpose" | "trace" | "ddot" | "skew" | "diag" | "mat33" | "mat33_cols"
+            | "mat33_rows" | "mat33_identity" => {
+                let (a, b) = (self.vec(1), self.vec(1));
+                let x = any(self);
+                let s = match f {
+                    "transpose" => format!("transpose(outer({}, {}))[(0, 2)]", a.s, b.s),
+                    "trace" => format!("trace(outer({}, {}))", a.s, b.s),
+                    "ddot" => format!("ddot(outer({}, {}), diag({}))", a.s, b.s, a.s),
+                    "skew" => format!("(skew({}) * {}).z", a.s, b.s),
+                    "diag" => format!("(diag({}) * {}).x", a.s, b.s),
+                    "mat33" => format!(
+                        "trace(mat33({x}, 1.0, 0.5, -0.25, {x}, 2.0, 0.75, 0.5, {x}))",
+                        x = x.s
+                    ),
+                    "mat33_cols" => format!("mat33_cols({}, {}, {})[(2, 0)]", a.s, b.s, a.s),
+                    "mat33_rows" => format!("mat33_rows({}, {}, {})[(2, 0)]", a.s, b.s, a.s),
+                    _ => format!(
+                        "(mat33_identity() * {} + outer({}, {}))[(1, 1)]",
+                        x.s, a.s, b.s
+                    ),
+                };
+                S {
+                    s,
+                    iv: iv(-500.0, 500.0),
+                }
+                .paren_sq(self)
+            }
+            "determinant" | "inverse" => {
+                let m = self.mat_dd(1);
+                let dom = dominance(&m.c);
+                let s = if f == "determinant" {
+                    format!("ln(determinant({}))", m.s)
+                } else {
+                    format!("inverse({})[(0, 1)]", m.s)
+                };
+                // ln(det) for a dominant matrix: det in [dom^3, 5^3 * 27]
+                S {
+                    s,
+                    iv: iv(-(1.0 / dom).max(3.0 * dom.ln().abs()), 8.0),
+                }
+                .paren_sq(self)
+            }
+            "vec2" | "mat22" | "mat22_cols" | "mat22_rows" | "mat22_identity" => {
+                let (a, b) = (self.bounded(1, 2.0), self.bounded(1, 2.0));
+                let s = match f {
+                    "vec2" => format!("dot(vec2({}, {}), vec2(0.5, -1.5))", a.s, b.s),
+                    "mat22" => format!("determinant(mat22({}, {}, -0.5, 1.5))", a.s, b.s),
+                    "mat22_cols" => {
+                        format!("mat22_cols(vec2({}, {}), vec2(1.0, 2.0))[(1, 0)]", a.s, b.s)
+                    }
+                    "mat22_rows" => format!(
+                        "(mat22_rows(vec2({}, 0.5), vec2({}, 2.0)) * vec2(1.0, -1.0)).y",
+                        a.s, b.s
+                    ),
+                    _ => format!(
+                        "trace(mat22_identity() * {} + mat22({}, 1.0, 0.5, {}))",
+                        a.s, b.s, a.s
+                    ),
+                };
+                S {
+                    s,
+                    iv: iv(-20.0, 20.0),
+                }
+                .paren_sq(self)
+            }
+            "vec4" => {
+                let (a, b) = (self.bounded(1, 2.0), self.bounded(1, 2.0));
+                S {
+                    s: format!("length_sq(vec4({}, {}, 0.5, {}))", a.s, b.s, a.s),
+                    iv: iv(0.0, 8.5),
+                }
+            }
+            "quat" | "quat_normalize" | "quat_length" => {
+                let (a, b) = (self.bounded(1, 2.0), self.pos(1));
+                let q = format!("quat({}, 0.25, {}, 1.0)", a.s, b.s);
+                let s = match f {
+                    "quat_length" => format!("quat_length({q})"),
+                    "quat" => format!("quat_normalize({q}).w"),
+                    _ => format!("quat_normalize({q}).x"),
+                };
+                S {
+                    s,
+                    iv: iv(-10.0, 10.0),
+                }
+                .paren_sq(self)
+            }
+            "quat_identity" | "quat_mul" | "quat_conjugate" | "quat_inverse" | "quat_to_mat33" => {
+                let (p, q) = (unit_q(self), unit_q(self));
+                let s = match f {
+                    "quat_identity" => format!("quat_mul(quat_identity(), {p}).y"),
+                    "quat_mul" => format!("quat_mul({p}, {q}).z"),
+                    "quat_conjugate" => format!("quat_conjugate({p}).x"),
+                    "quat_inverse" => format!("quat_inverse({p}).y"),
+                    _ => format!("quat_to_mat33({p})[(0, 1)]"),
+                };
+                S { s, iv: UNIT }
+            }
+            "quat_rotate" | "quat_rotate_inv" | "quat_from_axis_angle" => {
+                let v = self.vec(1);
+                let n = vnhi(&v.c);
+                let s = match f {
+                    "quat_from_axis_angle" => {
+                        let axis = self.vec_safe(0);
+                        let angle = any(self);
+                        format!(
+                            "quat_rotate(quat_from_axis_angle(normalize({}), {}), {}).x",
+                            axis.s, angle.s, v.s
+                        )
+                    }
+                    _ => format!("{f}({}, {}).z", unit_q(self), v.s),
+                };
+                S { s, iv: iv(-n, n) }.paren_sq(self)
+            }
+            _ => {
+                // "replace": a component assignment through a block
+                let v = self.vec(1);
+                let x = any(self);
+                let w = self.fresh("w");
+                S {
+                    s: format!(
+                        "{{ let mut {w} = {}; {w}.y = {}; dot({w}, {w}) }}",
+                        v.s, x.s
+                    ),
+                    iv: iv(0.0, 300.0),
+                }
+                .paren_sq(self)
+            }
+        }
+    }
+}
+
+impl S {
+    /// Parenthesised, and squashed if it may exceed the cap.
+    fn paren_sq(self, g: &mut Gen) -> S {
+        let e = self.paren();
+        g.squash(e)
     }
 }
 
@@ -2963,6 +3456,12 @@ pub fn gen_kernel(idx: usize, seed: u64, funcs: &[FuncSig], feat: &mut Features)
     g.atomic = g.rng.chance(0.3);
     g.has_idx = g.atomic || g.rng.chance(0.25);
     g.value_param = g.rng.chance(0.25);
+    // (its own generator, so that the rest of the kernel is drawn as before)
+    let mut shift = Rng::new(seed ^ 0x5707_E5EE_D000_0001);
+    if !g.atomic && shift.chance(0.25) {
+        g.store_index = format!("(t + {}) % n", shift.int(1, LEN - 1));
+        g.feat.hit("store at a shifted index");
+    }
     let name = format!("k{idx:03}");
     let mut params: Vec<String> = (0..g.n_inputs)
         .map(|j| format!("x{j}: &Array<R>"))
@@ -2987,6 +3486,31 @@ pub fn gen_kernel(idx: usize, seed: u64, funcs: &[FuncSig], feat: &mut Features)
     writeln!(body, "    let t = tid();").unwrap();
     for _ in 0..g.rng.int(1, 2) {
         g.accumulator(1, &mut body);
+    }
+    // the kernel's focus builtin, into a local that the output reads
+    let e = g.focus_expr(FOCUS[idx % FOCUS.len()]);
+    let local = g.fresh("a");
+    writeln!(body, "    let {local} = {};", e.s).unwrap();
+    g.declare(&local, Ty::S(e.iv), false);
+    // sometimes an index and a flag that branches and loops update (carried non-float values)
+    if g.rng.chance(0.3) {
+        let j = g.fresh("j");
+        let c = g.rng.below(LEN);
+        writeln!(body, "    let mut {j} = (t + {c}) % n;").unwrap();
+        g.ints.last_mut().unwrap().push(IntVar {
+            name: j,
+            safe: true,
+            unrolled: false,
+            mutable: true,
+        });
+        g.feat.hit("let mut index");
+    }
+    if g.rng.chance(0.3) {
+        let b = g.fresh("f");
+        let c = g.cond(1);
+        writeln!(body, "    let mut {b} = {c};").unwrap();
+        g.bools.last_mut().unwrap().push(b);
+        g.feat.hit("let mut bool");
     }
     let n = g.budget as usize;
     g.stmts(n, 2, 1, &mut body);

@@ -153,56 +153,6 @@ fn raw_scatter(
     std::hint::black_box(&fs_.log);
 }
 
-/// The runtime's own views (reader, scatter) with plain nalgebra arithmetic.
-fn runtime_views(g: &crate::kernels_cmp::GenArrays<f32>, kd: f32) {
-    use adflex_runtime::kernel::{reader, scatter, Exec, Site};
-    static S: Site = Site {
-        kernel: "k",
-        param: "p",
-    };
-    let xr = reader(&g.x, &S);
-    let vr = reader(&g.v, &S);
-    let pr = reader(&g.pairs, &S);
-    let rr = reader(&g.rest, &S);
-    let kr = reader(&g.ke, &S);
-    let mut fs_ = scatter(&g.f, &Exec::direct(), &S);
-    for t in 0..g.pairs.len() {
-        let [i, j] = pr.get(t);
-        let xij = xr.get(i) - xr.get(j);
-        let vij = vr.get(i) - vr.get(j);
-        let l = xij.norm();
-        let d = xij / l;
-        let fs = d * (kr.get(t) * (l - rr.get(t)) + kd * d.dot(&vij));
-        fs_.sub(i, fs);
-        fs_.add(j, fs);
-    }
-    std::hint::black_box(fs_.finish());
-}
-
-/// The runtime's readers, plain slice writes.
-fn runtime_readers(g: &crate::kernels_cmp::GenArrays<f32>, kd: f32, f: &mut [Vec3]) {
-    use adflex_runtime::kernel::{reader, Site};
-    static S: Site = Site {
-        kernel: "k",
-        param: "p",
-    };
-    let xr = reader(&g.x, &S);
-    let vr = reader(&g.v, &S);
-    let pr = reader(&g.pairs, &S);
-    let rr = reader(&g.rest, &S);
-    let kr = reader(&g.ke, &S);
-    for t in 0..g.pairs.len() {
-        let [i, j] = pr.get(t);
-        let xij = xr.get(i) - xr.get(j);
-        let vij = vr.get(i) - vr.get(j);
-        let l = xij.norm();
-        let d = xij / l;
-        let fs = d * (kr.get(t) * (l - rr.get(t)) + kd * d.dot(&vij));
-        f[i as usize] -= fs;
-        f[j as usize] += fs;
-    }
-}
-
 /// The runtime's math rules (what the macro emits) on slices.
 fn runtime_math(
     x: &[Vec3],
@@ -235,7 +185,7 @@ pub fn main() {
     let kd = KD as f32;
     let g = crate::kernels_cmp::GenArrays::new(&p);
     let mut f = vec![Vec3::zeros(); p.x.len()];
-    let (mut f2, mut f3, mut f4, mut f5) = (f.clone(), f.clone(), f.clone(), f.clone());
+    let (mut f2, mut f3, mut f4) = (f.clone(), f.clone(), f.clone());
     let direct = std::hint::black_box(true);
     with_threads(1, || {
         let mut cases = vec![
@@ -250,14 +200,6 @@ pub fn main() {
             Case::new("hand, raw pointers + runtime-like scatter", || {
                 f3.fill(Vec3::zeros());
                 raw_scatter(&p.x, &p.v, &t.springs, &t.rest, &p.ke, kd, &mut f3, direct)
-            }),
-            Case::new("runtime views (reader, scatter), plain math", || {
-                g.f.fill(Vec3::zeros());
-                runtime_views(&g, kd)
-            }),
-            Case::new("runtime readers, slice writes, plain math", || {
-                f5.fill(Vec3::zeros());
-                runtime_readers(&g, kd, &mut f5)
             }),
             Case::new("slices, runtime math rules", || {
                 f4.fill(Vec3::zeros());

@@ -6,7 +6,7 @@
 mod support;
 
 use adflex::prelude::*;
-use support::{arrays_f32, arrays_f64, check, run_direct, run_group, Case, Outcome};
+use support::{arrays_f32, arrays_f64, check, relaunch_err, run_direct, run_group, Case, Outcome};
 
 include!(concat!(env!("OUT_DIR"), "/corpus.rs"));
 include!(concat!(env!("OUT_DIR"), "/corpus_tests.rs"));
@@ -47,6 +47,7 @@ fn run_meta_wrong(xs: &[Vec<f64>], seed: u64) -> Outcome {
     run_direct(Mode::Forward, meta_wrong, LEN, (&b[0], &b[1], LEN, &y32));
     Outcome {
         checked,
+        relaunch_err: 0.0,
         y64: y64.to_vec(),
         y32: y32.to_vec(),
     }
@@ -103,6 +104,7 @@ fn run_meta_kink(xs: &[Vec<f64>], seed: u64) -> Outcome {
     );
     Outcome {
         checked,
+        relaunch_err: 0.0,
         y64: y64.to_vec(),
         y32: y32.to_vec(),
     }
@@ -124,4 +126,41 @@ fn checker_moves_inputs_off_a_kink() {
         }
         support::Verdict::Bug(msg) => panic!("a kink was reported as a bug: {msg}"),
     }
+}
+
+/// A store overwritten by a later launch (or a later store) must not receive the gradient of
+/// the element: the two-launch check catches an adjoint that reads the gradient of a store
+/// without taking it (the bug the first corpus missed, because it never stored twice).
+#[diff_kernel]
+fn meta_store<R: Real>(x0: &Array<R>, x1: &Array<R>, n: usize, y: &Array<R>) {
+    let t = tid();
+    y[t] = x0[t] * x1[(t + 1) % n];
+}
+
+#[test]
+fn relaunch_check_catches_an_adjoint_that_keeps_the_gradient_of_a_store() {
+    let xs = [
+        vec![0.7, 1.1, 0.9, 1.3, 0.6, 1.2],
+        vec![1.4, 0.8, 1.0, 0.5, 1.25, 0.95],
+    ];
+    assert_eq!(xs[0].len(), LEN);
+    let moved: Vec<Vec<f64>> = xs
+        .iter()
+        .map(|v| v.iter().rev().map(|x| 2.0 - x).collect())
+        .collect();
+    let right = |m: Mode, xs: &[Array<f64>], y: &Array<f64>| {
+        run_direct(m, meta_store, LEN, (&xs[0], &xs[1], LEN, y))
+    };
+    // The old adjoint: `adj_v += y.grad[i]` without zeroing it.
+    let keeps = |m: Mode, xs: &[Array<f64>], y: &Array<f64>| {
+        let before = y.grad_buffer().map(|g| g.to_vec());
+        right(m, xs, y);
+        if let (Mode::Adjoint, Some(g)) = (m, before) {
+            y.grad().unwrap().assign(&g);
+        }
+    };
+    let ok = relaunch_err(&arrays_f64(&xs), &arrays_f64(&moved), 7, &right);
+    assert!(ok <= support::TOL, "{ok:e}");
+    let bad = relaunch_err(&arrays_f64(&xs), &arrays_f64(&moved), 7, &keeps);
+    assert!(bad > 1e-2, "the check cannot tell: {bad:e}");
 }

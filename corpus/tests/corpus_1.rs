@@ -5,7 +5,7 @@
 mod support;
 
 use adflex::prelude::*;
-use support::{arrays_f32, arrays_f64, check, run_direct, run_group, Case, Outcome};
+use support::{arrays_f32, arrays_f64, check, relaunch_err, run_direct, run_group, Case, Outcome};
 
 include!(concat!(env!("OUT_DIR"), "/corpus_1.rs"));
 include!(concat!(env!("OUT_DIR"), "/corpus_tests_1.rs"));

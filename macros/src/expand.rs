@@ -245,21 +245,25 @@ fn kernel_mode(
         let arr = quote!(&__args.#i);
         let k = quote!(#rt::kernel);
         if u.read.is_some() {
-            views.extend(quote!(let #vw = #k::reader(#arr, #site);));
+            views.extend(quote!(let #vw = #k::reader(#arr, __exec, #site);));
             match mode {
                 Mode::Adjoint => {
                     views.extend(quote!(let mut #gv = #k::grad_scatter(#arr, __exec, #site);));
                     finish.push(quote!(#gv.finish()));
                 }
-                Mode::Tangent => views.extend(quote!(let #tv = #k::tangent_reader(#arr, #site);)),
+                Mode::Tangent => {
+                    views.extend(quote!(let #tv = #k::tangent_reader(#arr, __exec, #site);))
+                }
                 Mode::Forward => {}
             }
         } else if u.store.is_some() {
             let distinct = at_tid[p];
             views.extend(match mode {
-                Mode::Forward => quote!(let #vw = #k::writer(#arr, #site, #distinct);),
-                Mode::Adjoint => quote!(let #gv = #k::grad_taker(#arr, #site, #distinct);),
-                Mode::Tangent => quote!(let #tv = #k::tangent_writer(#arr, #site, #distinct);),
+                Mode::Forward => quote!(let #vw = #k::writer(#arr, __exec, #site, #distinct);),
+                Mode::Adjoint => quote!(let #gv = #k::grad_taker(#arr, __exec, #site, #distinct);),
+                Mode::Tangent => {
+                    quote!(let #tv = #k::tangent_writer(#arr, __exec, #site, #distinct);)
+                }
             });
         } else if u.atomic.is_some() {
             match mode {
@@ -267,7 +271,9 @@ fn kernel_mode(
                     views.extend(quote!(let mut #vw = #k::scatter(#arr, __exec, #site);));
                     finish.push(quote!(#vw.finish()));
                 }
-                Mode::Adjoint => views.extend(quote!(let #gv = #k::grad_reader(#arr, #site);)),
+                Mode::Adjoint => {
+                    views.extend(quote!(let #gv = #k::grad_reader(#arr, __exec, #site);))
+                }
                 Mode::Tangent => {
                     views.extend(quote!(let mut #tv = #k::tangent_scatter(#arr, __exec, #site);));
                     finish.push(quote!(#tv.finish()));

@@ -37,6 +37,15 @@ struct Inner<T> {
     epoch: AtomicU32,
 }
 
+mod sealed {
+    /// Proof that the caller is the runtime: what launches alone may do to an array (lock it
+    /// for a launch, bump its version, start a store-claim epoch) takes one, and code outside
+    /// the crate cannot name this type. So no user code can bump a version behind a tape.
+    #[derive(Clone, Copy)]
+    pub struct Token(pub(crate) ());
+}
+pub(crate) use sealed::Token;
+
 /// A mutex that a panic elsewhere does not poison for good: the data it guards (a name, a
 /// buffer handle) is always consistent.
 fn relock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -422,11 +431,12 @@ pub trait AnyArray: Send + Sync {
     /// First index whose element has a NaN or infinite component.
     fn first_non_finite(&self) -> Option<usize>;
     /// Holds the access lock while a launch runs: for writing if the launch writes the array.
-    fn lock(&self, write: bool) -> ArrayLock<'_>;
+    /// (Only the runtime can call it: `Token` cannot be named outside.)
+    fn lock(&self, write: bool, _: Token) -> ArrayLock<'_>;
     /// Bumps the version (after a launch wrote the array).
-    fn mark_written(&self);
+    fn mark_written(&self, _: Token);
     /// Voids the store claims of earlier launches (a launch that stores is starting).
-    fn new_claim_epoch(&self);
+    fn new_claim_epoch(&self, _: Token);
     /// The handle as [`std::any::Any`], to downcast to its `Array<T>`.
     fn as_any(&self) -> &dyn std::any::Any;
     /// Adds `src` (an array of the same element type and length) into this array element by
@@ -486,14 +496,14 @@ impl<T: Element> AnyArray for Array<T> {
             .iter()
             .position(|v| (0..T::DIM).any(|k| !v.component(k).is_finite()))
     }
-    fn lock(&self, write: bool) -> ArrayLock<'_> {
+    fn lock(&self, write: bool, _: Token) -> ArrayLock<'_> {
         self.inner
             .acquire(write, || self.label(), "launching a kernel on")
     }
-    fn mark_written(&self) {
+    fn mark_written(&self, _: Token) {
         self.bump_version()
     }
-    fn new_claim_epoch(&self) {
+    fn new_claim_epoch(&self, _: Token) {
         Array::new_claim_epoch(self)
     }
     fn as_any(&self) -> &dyn std::any::Any {

@@ -167,21 +167,44 @@ fn checked<I: ToIndex>(i: I, len: usize, place: &Place) -> usize {
 }
 
 /// How a chunk of a launch runs: writing scatters directly (one chunk in thread-id order) or
-/// into logs that the launch applies afterwards in thread-id order.
-#[derive(Debug, Clone, Copy)]
-pub struct Exec {
+/// into logs that the launch applies afterwards in thread-id order; and what the launch
+/// locked.
+///
+/// Only a launch makes one (there is no public constructor), and every view of an array
+/// needs one: so views exist only inside a launch, over buffers it holds locked (for
+/// reading to read, for writing to write), and safe code cannot race through them.
+#[derive(Debug)]
+pub struct Exec<'a> {
     pub(crate) direct: bool,
+    /// (buffer id, locked for writing) of every buffer the launch holds.
+    locked: &'a [(u64, bool)],
 }
 
-impl Exec {
-    /// Scatters write straight into their targets (single-chunk launches).
-    pub fn direct() -> Self {
-        Exec { direct: true }
+impl<'a> Exec<'a> {
+    pub(crate) fn new(direct: bool, locked: &'a [(u64, bool)]) -> Self {
+        Exec { direct, locked }
     }
-    /// Scatters are logged and applied after all chunks ran.
-    pub fn logged() -> Self {
-        Exec { direct: false }
+
+    /// Panics unless the launch holds `buf` locked for writing (`write`) or for reading.
+    fn check<T: Element>(&self, buf: Option<&Array<T>>, write: bool, site: &Site) {
+        let Some(b) = buf else { return };
+        if !self.locked.contains(&(b.id(), write)) {
+            unlocked_view(site, &b.label(), write);
+        }
     }
+}
+
+#[cold]
+#[inline(never)]
+fn unlocked_view(site: &Site, label: &str, write: bool) -> ! {
+    panic!(
+        "kernel `{}`, parameter `{}`: a view {} `{label}`, which the launch does not hold \
+         locked {}; views are made only by generated code, over the launch's own arguments",
+        site.kernel,
+        site.param,
+        if write { "writing" } else { "reading" },
+        if write { "for writing" } else { "for reading" },
+    )
 }
 
 /// Reads an array inside a kernel (`a[i]`).
@@ -279,6 +302,16 @@ fn store_conflict(place: &Place, i: usize, a: usize, b: usize) -> ! {
 
 #[cold]
 #[inline(never)]
+fn not_own_index(place: &Place, i: usize, tid: usize) -> ! {
+    panic!(
+        "kernel `{}`: thread {tid} stores to parameter `{}` at index {i} through a view for \
+         stores at the thread's own index",
+        place.site.kernel, place.site.param
+    )
+}
+
+#[cold]
+#[inline(never)]
 fn claim_overflow(place: &Place, tid: usize) -> ! {
     panic!(
         "kernel `{}`: thread {tid} stores to parameter `{}` at an index the macro cannot prove \
@@ -324,8 +357,11 @@ impl<T: Element> Writer<T> {
     fn slot<I: ToIndex>(&self, tid: usize, i: I) -> Option<*mut T> {
         let i = checked(i, self.len, &self.place);
         let p = self.ptr?;
-        if let Some(c) = &self.claims {
-            c.claim(i, tid, &self.place);
+        match &self.claims {
+            Some(c) => c.claim(i, tid, &self.place),
+            // The macro proved the index is the thread id; this makes it so for any caller.
+            None if i != tid => not_own_index(&self.place, i, tid),
+            None => {}
         }
         // SAFETY: in bounds.
         Some(unsafe { p.add(i) })
@@ -500,8 +536,10 @@ unsafe impl<T: Element> Send for Scatter<T> {}
 fn opt_reader<T: Element>(
     of: &Array<T>,
     buf: Option<Array<T>>,
+    exec: &Exec,
     site: &'static Site,
 ) -> OptReader<T> {
+    exec.check(buf.as_ref(), false, site);
     OptReader {
         ptr: buf.as_ref().map(|b| b.data_ptr() as *const T),
         len: of.len(),
@@ -510,9 +548,31 @@ fn opt_reader<T: Element>(
     }
 }
 
+fn writer_of<T: Element>(
+    of: &Array<T>,
+    buf: Option<Array<T>>,
+    exec: &Exec,
+    site: &'static Site,
+    distinct: bool,
+) -> Writer<T> {
+    exec.check(buf.as_ref(), true, site);
+    Writer::new(of, buf, site, distinct)
+}
+
+fn scatter_of<T: Element>(
+    of: &Array<T>,
+    buf: Option<Array<T>>,
+    exec: &Exec,
+    site: &'static Site,
+) -> Scatter<T> {
+    exec.check(buf.as_ref(), true, site);
+    Scatter::new(buf, exec, Place::of(of, site), of.len())
+}
+
 /// A reader of `a`.
 #[inline]
-pub fn reader<T: Element>(a: &Array<T>, site: &'static Site) -> Reader<T> {
+pub fn reader<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Reader<T> {
+    exec.check(Some(a), false, site);
     Reader {
         ptr: a.data_ptr(),
         len: a.len(),
@@ -521,51 +581,67 @@ pub fn reader<T: Element>(a: &Array<T>, site: &'static Site) -> Reader<T> {
 }
 
 /// A writer of `a`. `distinct`: the macro proved that every store indexes with the thread
-/// id, so threads never store to one element; otherwise stores are claimed (see [`Writer`]).
+/// id, so threads never store to one element (checked: a store elsewhere panics); otherwise
+/// stores are claimed (see [`Writer`]).
 #[inline]
-pub fn writer<T: Element>(a: &Array<T>, site: &'static Site, distinct: bool) -> Writer<T> {
-    Writer::new(a, Some(a.clone()), site, distinct)
+pub fn writer<T: Element>(
+    a: &Array<T>,
+    exec: &Exec,
+    site: &'static Site,
+    distinct: bool,
+) -> Writer<T> {
+    writer_of(a, Some(a.clone()), exec, site, distinct)
 }
 
 /// The adjoint view of a stored array: takes (reads and zeroes) the gradient of each stored
 /// element (a no-op reading zeros if it has no gradient).
 #[inline]
-pub fn grad_taker<T: Element>(a: &Array<T>, site: &'static Site, distinct: bool) -> Writer<T> {
-    Writer::new(a, a.grad_buffer(), site, distinct)
+pub fn grad_taker<T: Element>(
+    a: &Array<T>,
+    exec: &Exec,
+    site: &'static Site,
+    distinct: bool,
+) -> Writer<T> {
+    writer_of(a, a.grad_buffer(), exec, site, distinct)
 }
 
 /// A scatter into `a`.
 #[inline]
 pub fn scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    Scatter::new(Some(a.clone()), exec, Place::of(a, site), a.len())
+    scatter_of(a, Some(a.clone()), exec, site)
 }
 
 /// A reader of `a`'s gradient (zeros if it has none).
 #[inline]
-pub fn grad_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReader<T> {
-    opt_reader(a, a.grad_buffer(), site)
+pub fn grad_reader<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> OptReader<T> {
+    opt_reader(a, a.grad_buffer(), exec, site)
 }
 
 /// A scatter into `a`'s gradient (a no-op if it has none).
 #[inline]
 pub fn grad_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    Scatter::new(a.grad_buffer(), exec, Place::of(a, site), a.len())
+    scatter_of(a, a.grad_buffer(), exec, site)
 }
 
 /// A reader of `a`'s tangent (zeros if it has none).
 #[inline]
-pub fn tangent_reader<T: Element>(a: &Array<T>, site: &'static Site) -> OptReader<T> {
-    opt_reader(a, a.tangent_buffer(), site)
+pub fn tangent_reader<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> OptReader<T> {
+    opt_reader(a, a.tangent_buffer(), exec, site)
 }
 
 /// A writer of `a`'s tangent (ignores stores if it has none).
 #[inline]
-pub fn tangent_writer<T: Element>(a: &Array<T>, site: &'static Site, distinct: bool) -> Writer<T> {
-    Writer::new(a, a.tangent_buffer(), site, distinct)
+pub fn tangent_writer<T: Element>(
+    a: &Array<T>,
+    exec: &Exec,
+    site: &'static Site,
+    distinct: bool,
+) -> Writer<T> {
+    writer_of(a, a.tangent_buffer(), exec, site, distinct)
 }
 
 /// A scatter into `a`'s tangent (a no-op if it has none).
 #[inline]
 pub fn tangent_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    Scatter::new(a.tangent_buffer(), exec, Place::of(a, site), a.len())
+    scatter_of(a, a.tangent_buffer(), exec, site)
 }

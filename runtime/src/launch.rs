@@ -11,7 +11,7 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use crate::array::AnyArray;
+use crate::array::{AnyArray, Token};
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 
 /// Thread ids per chunk.
@@ -148,10 +148,53 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 
 fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
     let arrays = K::arrays(args);
-    let targets = lock_targets(K::NAME, K::PARAMS, &arrays, mode);
-    // In one global order (by id), so that two launches never wait for each other.
-    let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w)).collect();
-    for (p, a) in K::PARAMS.iter().zip(&arrays) {
+    with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
+        let serial = dim < SERIAL_BELOW || rayon::current_num_threads() == 1;
+        if serial {
+            let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked));
+            debug_assert!(logs.iter().all(|l| l.0.is_none()));
+        } else {
+            let chunks: Vec<Range<usize>> = (0..dim)
+                .step_by(CHUNK)
+                .map(|s| s..(s + CHUNK).min(dim))
+                .collect();
+            let logs: Vec<Vec<ScatterLog>> = chunks
+                .into_par_iter()
+                .map(|r| kernel.run(mode, args, r, &Exec::new(false, locked)))
+                .collect();
+            apply_logs(logs);
+        }
+    });
+}
+
+/// Runs `kernel` in `mode` over `0..dim` on the calling thread only, in thread-id order (the
+/// same bits as [`launch_mode`]). It compiles less code per kernel than [`launch_mode`] (no
+/// thread-pool path): for programs with very many small kernels, such as generated tests.
+pub fn launch_serial<K, A>(mode: Mode, kernel: K, dim: usize, args: A)
+where
+    K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
+{
+    let owned = K::to_owned(&args);
+    let arrays = K::arrays(&owned);
+    with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
+        let _ = kernel.run(mode, &owned, 0..dim, &Exec::new(true, locked));
+    });
+}
+
+/// Locks what a launch uses (in one global order, by id, so that two launches never wait for
+/// each other), starts a new store-claim epoch on what it stores into, runs `run` with the
+/// locked buffers, and bumps the versions of what it wrote.
+fn with_locks(
+    kernel: &str,
+    params: &[ParamInfo],
+    arrays: &[Option<&dyn AnyArray>],
+    mode: Mode,
+    run: &mut dyn FnMut(&[(u64, bool)]),
+) {
+    let targets = lock_targets(kernel, params, arrays, mode);
+    let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w, Token(()))).collect();
+    let locked: Vec<(u64, bool)> = targets.iter().map(|(a, w)| (a.id(), *w)).collect();
+    for (p, a) in params.iter().zip(arrays) {
         if let (Access::Store, Some(a)) = (p.access, a) {
             let buf = match mode {
                 Mode::Forward => Some(a.boxed()),
@@ -159,26 +202,12 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                 Mode::Tangent => a.tangent_any(),
             };
             if let Some(b) = buf {
-                b.new_claim_epoch();
+                b.new_claim_epoch(Token(()));
             }
         }
     }
-    let serial = dim < SERIAL_BELOW || rayon::current_num_threads() == 1;
-    if serial {
-        let logs = kernel.run(mode, args, 0..dim, &Exec::direct());
-        debug_assert!(logs.iter().all(|l| l.0.is_none()));
-    } else {
-        let chunks: Vec<Range<usize>> = (0..dim)
-            .step_by(CHUNK)
-            .map(|s| s..(s + CHUNK).min(dim))
-            .collect();
-        let logs: Vec<Vec<ScatterLog>> = chunks
-            .into_par_iter()
-            .map(|r| kernel.run(mode, args, r, &Exec::logged()))
-            .collect();
-        apply_logs(logs);
-    }
-    mark_written(K::PARAMS, &arrays, mode);
+    run(&locked);
+    mark_written(params, arrays, mode);
 }
 
 /// What a launch must lock, sorted by id, each once (for writing if any use writes it): the
@@ -244,7 +273,7 @@ fn mark_written(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mo
     }
     for (p, a) in params.iter().zip(arrays) {
         if let (true, Some(a)) = (p.access.writes(), a) {
-            a.mark_written();
+            a.mark_written(Token(()));
         }
     }
 }

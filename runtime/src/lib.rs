@@ -23,7 +23,9 @@ pub use array::{AnyArray, Array, Element};
 pub use error::Error;
 pub use func::DiffFunc;
 pub use kernel::{Kernel, KernelBody, Mode};
-pub use launch::{launch, launch_adjoint, launch_mode, launch_tangent, with_threads};
+pub use launch::{
+    launch, launch_adjoint, launch_mode, launch_serial, launch_tangent, with_threads,
+};
 pub use real::{Mat22, Mat33, Quat, Real, Vec2, Vec3, Vec4};
 pub use tape::{BackwardStats, Tape};
 pub use value::{acc, acc_neg, zero_like, Value};

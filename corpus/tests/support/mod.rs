@@ -7,7 +7,7 @@
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use adflex::prelude::*;
-use adflex::runtime::kernel::{Exec, Kernel, KernelBody};
+use adflex::runtime::kernel::{Kernel, KernelBody};
 
 /// Tolerance of the adjoint against central differences (relative, as in tests/common).
 pub const TOL: f64 = 1e-6;
@@ -162,18 +162,62 @@ pub fn check(
     }
 }
 
-/// Runs `kernel` over thread ids `0..dim` in `mode` the way `launch_mode` does for launches
-/// this small (one chunk, in thread-id order, scattering directly), without going through
-/// `launch_mode`'s generic thread-pool code, which would be compiled once per kernel and
-/// argument type and dominate the corpus' compile time.
+/// Two launches of one kernel writing one output array, the second on other inputs (`b`),
+/// as on a tape that overwrites (or accumulates into) an array: the loss `<w, y>` after both,
+/// its gradient by the two adjoints in reverse order against central differences, for the
+/// inputs of both launches. Only the stores of the second launch may receive the gradient of
+/// an element it overwrote. Returns the worst relative error.
+/// (`run(mode, inputs, y)` runs one launch; a `&dyn Fn`, compiled once.)
+pub fn relaunch_err(
+    a: &[Array<f64>],
+    b: &[Array<f64>],
+    seed: u64,
+    run: &dyn Fn(Mode, &[Array<f64>], &Array<f64>),
+) -> f64 {
+    let mut rng = Rng(seed.rotate_left(29) | 1);
+    let y = Array::<f64>::zeros(super::LEN);
+    let w = rng.vec(super::LEN, -1.0, 1.0);
+    let loss = || -> f64 {
+        y.fill(0.0);
+        run(Mode::Forward, a, &y);
+        run(Mode::Forward, b, &y);
+        y.to_vec().iter().zip(&w).map(|(y, w)| y * w).sum()
+    };
+    loss();
+    for x in a.iter().chain(b) {
+        x.ensure_grad().fill(0.0);
+    }
+    y.ensure_grad().assign(&w);
+    run(Mode::Adjoint, b, &y);
+    run(Mode::Adjoint, a, &y);
+    let h = 1e-6;
+    let mut worst: f64 = 0.0;
+    for x in a.iter().chain(b) {
+        let g = x.grad().unwrap().to_vec();
+        for (k, gk) in g.iter().enumerate() {
+            let x0 = x.get(k);
+            x.set(k, x0 + h);
+            let lp = loss();
+            x.set(k, x0 - h);
+            let lm = loss();
+            x.set(k, x0);
+            worst = worst.max(rel((lp - lm) / (2.0 * h), *gk));
+        }
+    }
+    worst
+}
+
+/// Runs `kernel` over thread ids `0..dim` in `mode` on this thread (`launch_serial`: the same
+/// bits as `launch_mode` for launches this small), without `launch_mode`'s thread-pool code,
+/// which would be compiled once per kernel and argument type and dominate the corpus' compile
+/// time.
 pub fn run_direct<K, A>(mode: Mode, kernel: K, dim: usize, args: A)
 where
     K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
 {
     assert!(dim < adflex::runtime::launch::SERIAL_BELOW);
     RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let owned = K::to_owned(&args);
-    let _ = kernel.run(mode, &owned, 0..dim, &Exec::direct());
+    adflex::runtime::launch_serial(mode, kernel, dim, args);
 }
 
 /// The inputs as f64 arrays.
@@ -194,6 +238,8 @@ pub static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize
 /// What one run of a kernel gives: the f64 check, and its forward in f64 and in f32.
 pub struct Outcome {
     pub checked: Checked,
+    /// See [`relaunch_err`].
+    pub relaunch_err: f64,
     pub y64: Vec<f64>,
     pub y32: Vec<f32>,
 }
@@ -238,6 +284,12 @@ fn evaluate(case: &Case, xs: &[Vec<f64>], seed: u64) -> Result<(), String> {
         return Err(format!(
             "adjoint vs central differences: relative error {:e} > {TOL:e} at x{a}[{k}]: adjoint {g:e}, central difference {fd:e}",
             c.adjoint_err
+        ));
+    }
+    if !(o.relaunch_err <= TOL) {
+        return Err(format!(
+            "two launches writing one array: adjoint vs central differences, relative error {:e} > {TOL:e}",
+            o.relaunch_err
         ));
     }
     if !(c.dot_err <= DOT_TOL) {

@@ -361,7 +361,7 @@ pub fn tan_div<A: DivRule<B>, B>(a: A, b: B, da: A, db: B) -> A::Out {
 #[diagnostic::on_unimplemented(
     message = "`%` on `{Self}`: in a kernel `%` is for integers (indices) only",
     label = "`%` of a non-integer",
-    note = "a float remainder has a jump where its gradient is undefined; if you need a wrap, write it explicitly (`if x >= m { x - m } else { x }`)"
+    note = "a float remainder has a jump where its gradient is undefined; if you need a wrap, write it explicitly (`if x >= m {{ x - m }} else {{ x }}`)"
 )]
 pub trait RemRule: Sized {
     /// `a % b`.

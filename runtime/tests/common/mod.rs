@@ -45,10 +45,10 @@ impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
             param: "y",
         };
         let a = args.1;
-        let x = kernel::reader(&args.0, &X);
+        let x = kernel::reader(&args.0, exec, &X);
         match mode {
             Mode::Forward => {
-                let y = kernel::writer(&args.2, &Y, true);
+                let y = kernel::writer(&args.2, exec, &Y, true);
                 for i in r {
                     let xi = x.get(i);
                     y.store(i, i, a * xi * xi);
@@ -56,17 +56,17 @@ impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
                 vec![]
             }
             Mode::Adjoint => {
-                let adj_y = kernel::grad_reader(&args.2, &Y);
+                let adj_y = kernel::grad_taker(&args.2, exec, &Y, true);
                 let mut adj_x = kernel::grad_scatter(&args.0, exec, &X);
                 let k = if W { 3.0 } else { 2.0 };
                 for i in r {
-                    adj_x.add(i, k * a * x.get(i) * adj_y.get(i));
+                    adj_x.add(i, k * a * x.get(i) * adj_y.take(i, i));
                 }
                 vec![adj_x.finish()]
             }
             Mode::Tangent => {
-                let dx = kernel::tangent_reader(&args.0, &X);
-                let dy = kernel::tangent_writer(&args.2, &Y, true);
+                let dx = kernel::tangent_reader(&args.0, exec, &X);
+                let dy = kernel::tangent_writer(&args.2, exec, &Y, true);
                 for i in r {
                     dy.store(i, i, 2.0 * a * x.get(i) * dx.get(i));
                 }
@@ -104,7 +104,7 @@ impl KernelBody<SumSqArgs> for SumSq {
             kernel: "sum_sq",
             param: "loss",
         };
-        let x = kernel::reader(&args.0, &X);
+        let x = kernel::reader(&args.0, exec, &X);
         match mode {
             Mode::Forward => {
                 let mut loss = kernel::scatter(&args.1, exec, &L);
@@ -115,7 +115,7 @@ impl KernelBody<SumSqArgs> for SumSq {
                 vec![loss.finish()]
             }
             Mode::Adjoint => {
-                let adj_loss = kernel::grad_reader(&args.1, &L);
+                let adj_loss = kernel::grad_reader(&args.1, exec, &L);
                 let mut adj_x = kernel::grad_scatter(&args.0, exec, &X);
                 for i in r {
                     adj_x.add(i, 2.0 * x.get(i) * adj_loss.get(0usize));
@@ -123,7 +123,7 @@ impl KernelBody<SumSqArgs> for SumSq {
                 vec![adj_x.finish()]
             }
             Mode::Tangent => {
-                let dx = kernel::tangent_reader(&args.0, &X);
+                let dx = kernel::tangent_reader(&args.0, exec, &X);
                 let mut dl = kernel::tangent_scatter(&args.1, exec, &L);
                 for i in r {
                     dl.add(0usize, 2.0 * x.get(i) * dx.get(i));
@@ -162,26 +162,26 @@ impl KernelBody<SqrtArgs> for Sqrt {
             kernel: "sqrt",
             param: "y",
         };
-        let x = kernel::reader(&args.0, &X);
+        let x = kernel::reader(&args.0, exec, &X);
         match mode {
             Mode::Forward => {
-                let y = kernel::writer(&args.1, &Y, true);
+                let y = kernel::writer(&args.1, exec, &Y, true);
                 for i in r {
                     y.store(i, i, x.get(i).sqrt());
                 }
                 vec![]
             }
             Mode::Adjoint => {
-                let adj_y = kernel::grad_reader(&args.1, &Y);
+                let adj_y = kernel::grad_taker(&args.1, exec, &Y, true);
                 let mut adj_x = kernel::grad_scatter(&args.0, exec, &X);
                 for i in r {
-                    adj_x.add(i, 0.5 / x.get(i).sqrt() * adj_y.get(i));
+                    adj_x.add(i, 0.5 / x.get(i).sqrt() * adj_y.take(i, i));
                 }
                 vec![adj_x.finish()]
             }
             Mode::Tangent => {
-                let dx = kernel::tangent_reader(&args.0, &X);
-                let dy = kernel::tangent_writer(&args.1, &Y, true);
+                let dx = kernel::tangent_reader(&args.0, exec, &X);
+                let dy = kernel::tangent_writer(&args.1, exec, &Y, true);
                 for i in r {
                     dy.store(i, i, 0.5 / x.get(i).sqrt() * dx.get(i));
                 }
@@ -270,13 +270,13 @@ impl KernelBody<StepArgs> for Step {
             param: "v2",
         };
         let (n, m, dt) = (args.0.len(), args.2.len(), args.3);
-        let x = kernel::reader(&args.0, &X);
-        let v = kernel::reader(&args.1, &V);
-        let pr = kernel::reader(&args.2, &P);
+        let x = kernel::reader(&args.0, exec, &X);
+        let v = kernel::reader(&args.1, exec, &V);
+        let pr = kernel::reader(&args.2, exec, &P);
         match mode {
             Mode::Forward => {
-                let x2 = kernel::writer(&args.4, &X2, true);
-                let v2 = kernel::writer(&args.5, &V2, true);
+                let x2 = kernel::writer(&args.4, exec, &X2, true);
+                let v2 = kernel::writer(&args.5, exec, &V2, true);
                 for i in r {
                     let j = (i + 1) % n;
                     let d = x.get(i) - x.get(j);
@@ -287,8 +287,8 @@ impl KernelBody<StepArgs> for Step {
                 vec![]
             }
             Mode::Adjoint => {
-                let ax2 = kernel::grad_reader(&args.4, &X2);
-                let av2 = kernel::grad_reader(&args.5, &V2);
+                let ax2 = kernel::grad_taker(&args.4, exec, &X2, true);
+                let av2 = kernel::grad_taker(&args.5, exec, &V2, true);
                 let mut ax = kernel::grad_scatter(&args.0, exec, &X);
                 let mut av = kernel::grad_scatter(&args.1, exec, &V);
                 let mut ap = kernel::grad_scatter(&args.2, exec, &P);
@@ -296,23 +296,24 @@ impl KernelBody<StepArgs> for Step {
                     let j = (i + 1) % n;
                     let d = x.get(i) - x.get(j);
                     let pi = pr.get(i % m);
-                    let g_v2 = av2.get(i) + dt * ax2.get(i);
+                    let g_x2 = ax2.take(i, i);
+                    let g_v2 = av2.take(i, i) + dt * g_x2;
                     av.add(i, g_v2);
                     let g_acc = -dt * g_v2;
                     ap.add(i % m, g_acc * d.sin());
                     let g_d = g_acc * pi * d.cos();
-                    ax.add(i, ax2.get(i));
+                    ax.add(i, g_x2);
                     ax.add(i, g_d);
                     ax.sub(j, g_d);
                 }
                 vec![ax.finish(), av.finish(), ap.finish()]
             }
             Mode::Tangent => {
-                let dx = kernel::tangent_reader(&args.0, &X);
-                let dv = kernel::tangent_reader(&args.1, &V);
-                let dp = kernel::tangent_reader(&args.2, &P);
-                let dx2 = kernel::tangent_writer(&args.4, &X2, true);
-                let dv2 = kernel::tangent_writer(&args.5, &V2, true);
+                let dx = kernel::tangent_reader(&args.0, exec, &X);
+                let dv = kernel::tangent_reader(&args.1, exec, &V);
+                let dp = kernel::tangent_reader(&args.2, exec, &P);
+                let dx2 = kernel::tangent_writer(&args.4, exec, &X2, true);
+                let dv2 = kernel::tangent_writer(&args.5, exec, &V2, true);
                 for i in r {
                     let j = (i + 1) % n;
                     let d = x.get(i) - x.get(j);
@@ -365,8 +366,8 @@ impl KernelBody<GsArgs> for GatherScatter {
             kernel: "gather_scatter",
             param: "out",
         };
-        let x = kernel::reader(&args.0, &X);
-        let idx = kernel::reader(&args.1, &I);
+        let x = kernel::reader(&args.0, exec, &X);
+        let idx = kernel::reader(&args.1, exec, &I);
         match mode {
             Mode::Forward => {
                 let mut out = kernel::scatter(&args.2, exec, &O);
@@ -377,7 +378,7 @@ impl KernelBody<GsArgs> for GatherScatter {
                 vec![out.finish()]
             }
             Mode::Adjoint => {
-                let adj_out = kernel::grad_reader(&args.2, &O);
+                let adj_out = kernel::grad_reader(&args.2, exec, &O);
                 let mut adj_x = kernel::grad_scatter(&args.0, exec, &X);
                 for i in r {
                     let k = idx.get(i);
@@ -386,7 +387,7 @@ impl KernelBody<GsArgs> for GatherScatter {
                 vec![adj_x.finish()]
             }
             Mode::Tangent => {
-                let dx = kernel::tangent_reader(&args.0, &X);
+                let dx = kernel::tangent_reader(&args.0, exec, &X);
                 let mut dout = kernel::tangent_scatter(&args.2, exec, &O);
                 for i in r {
                     let k = idx.get(i);
