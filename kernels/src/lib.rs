@@ -25,7 +25,7 @@
 //! let mut tape = Tape::new();
 //! let mut state = model.state();
 //! for _ in 0..10 {
-//!     state = SemiImplicitEuler.step(&model, &mut tape, &state, None, 1e-3);
+//!     state = SemiImplicitEuler.step(&model, &mut tape, &state, None, 1e-3).unwrap();
 //! }
 //! assert!(state.x.get(1).y < 1.0);
 //! ```
