@@ -297,6 +297,12 @@ fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
     100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
 }
 
+/// Whether a residual meets a tolerance: never if the residual is NaN or infinite (an
+/// infinite tolerance, from an infinite scale, would otherwise accept an infinite residual).
+fn within(residual: f64, tolerance: f64) -> bool {
+    residual.is_finite() && (residual <= tolerance || residual == 0.0)
+}
+
 /// `max |v_k|`, NaN if any `v_k` is NaN (`f64::max` would skip it and hide a NaN residual).
 fn max_abs(v: &[f64]) -> f64 {
     v.iter().fold(0.0, |m: f64, x| {
@@ -486,8 +492,8 @@ impl ImplicitEuler {
                 .max(sys.dt * free_max(&p.a_val));
             stats.residual = max_abs(&e);
             stats.tolerance = tol * scale;
-            // Written so that a NaN residual (or scale) is never converged.
-            if stats.residual <= tol * scale || stats.residual == 0.0 {
+            // A NaN or infinite residual (or scale) is never converged.
+            if within(stats.residual, tol * scale) {
                 stats.converged = true;
                 break;
             }
@@ -507,7 +513,7 @@ impl ImplicitEuler {
             stats.linear_iterations += info.iterations;
             stats.fallbacks += fell_back as usize;
             sys.mask(&mut d);
-            if stats.residual <= roundoff_floor::<R>(sys, &e, &d) {
+            if within(stats.residual, roundoff_floor::<R>(sys, &e, &d)) {
                 stats.converged = true;
                 break;
             }
@@ -568,7 +574,8 @@ impl ImplicitEuler {
                 }
                 // No decrease either way: at the attainable precision (or stuck).
                 None => {
-                    stats.converged = stats.residual <= 10.0 * roundoff_floor::<R>(sys, &e, &d);
+                    stats.converged =
+                        within(stats.residual, 10.0 * roundoff_floor::<R>(sys, &e, &d));
                     break;
                 }
             }
