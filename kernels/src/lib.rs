@@ -52,7 +52,7 @@ pub mod prelude {
     pub use crate::forces::bending::RestAngle;
     pub use crate::forces::particle::Drag;
     pub use crate::integrators::{
-        ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+        ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
     };
     pub use crate::model::{BodyState, Control, Model, ModelBuilder, State};
     pub use crate::scenes::cloth::ClothGrid;
