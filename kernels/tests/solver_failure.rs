@@ -396,3 +396,26 @@ fn implicit_euler_tet_fem_gradients_match_finite_differences() {
     let t = model.tets.as_ref().unwrap();
     check_implicit("tet FEM", &model, &[&t.mu, &t.lambda, &t.kd], 0.02, 5);
 }
+
+/// Forward mode too: a capped tangent solve cannot return an error through `tape.tangent()`
+/// (its tangent closures return nothing), so under `SolverPolicy::Error` it panics with the
+/// solver's message rather than give a wrong tangent.
+#[test]
+#[should_panic(
+    expected = "ImplicitEuler tangent linear solve (CG, then BiCGSTAB) did not converge"
+)]
+fn capped_tangent_solve_panics_with_the_solver_message() {
+    let model = spring_system(400.0);
+    let s0 = model.state();
+    let integ = ImplicitEuler {
+        adjoint_linear: Some(SolveSettings {
+            max_iter: 2,
+            ..SolveSettings::default()
+        }),
+        ..ImplicitEuler::default()
+    };
+    let mut tape = Tape::new();
+    integ.step(&model, &mut tape, &s0, None, 0.05).unwrap();
+    s0.v.set_tangent(Some(Array::from_vec(vec![Vec3::new(0.3, -0.2, 0.1); 4])));
+    let _ = tape.tangent();
+}
