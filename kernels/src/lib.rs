@@ -25,7 +25,7 @@
 //! let mut tape = Tape::new();
 //! let mut state = model.state();
 //! for _ in 0..10 {
-//!     state = SemiImplicitEuler.step(&model, &mut tape, &state, None, 1e-3);
+//!     state = SemiImplicitEuler.step(&model, &mut tape, &state, None, 1e-3).unwrap();
 //! }
 //! assert!(state.x.get(1).y < 1.0);
 //! ```
@@ -54,7 +54,7 @@ pub mod prelude {
     pub use crate::forces::bending::RestAngle;
     pub use crate::forces::particle::Drag;
     pub use crate::integrators::{
-        ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+        ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
     };
     pub use crate::model::{BodyState, Control, Model, ModelBuilder, State};
     pub use crate::scenes::cloth::ClothGrid;

@@ -59,7 +59,9 @@ fn a_full_json_scene_builds_and_steps() {
     assert_eq!(m.ground.unwrap().leak, 0.01);
     assert_eq!(m.particle_inv_mass.get(0), 0.0);
     let mut tape = Tape::new();
-    let s = SemiImplicitEuler.step(&m, &mut tape, &m.state(), None, 1e-3);
+    let s = SemiImplicitEuler
+        .step(&m, &mut tape, &m.state(), None, 1e-3)
+        .unwrap();
     assert!(s.x.to_vec().iter().all(|p| p.iter().all(|c| c.is_finite())));
     assert!(s.bodies.unwrap().x.get(0).y < 3.0);
 }

@@ -133,6 +133,7 @@ fn flagged<S: Checkpoint>(s: &S, flags: &[bool]) -> HashSet<u64> {
 ///             let d = yb.grad_buffer().unwrap().get(0);
 ///             g.modify(|g| g[0] += 2.0 * d);
 ///         }
+///         Ok(())
 ///     });
 ///     y
 /// };

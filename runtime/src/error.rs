@@ -65,8 +65,73 @@ pub enum Error {
         /// Its position on the tape.
         user_launch: usize,
     },
+    /// An iterative solver (a Newton iteration, a Krylov linear solve, a constraint
+    /// projection) stopped before it met its tolerance, or its iterate became non-finite.
+    /// Its result is not the answer the method promises, so it is reported instead of used.
+    NotConverged {
+        /// The solver, e.g. `"ImplicitEuler Newton"`, `"ImplicitEuler adjoint linear solve"`,
+        /// `"Xpbd constraint solve"`.
+        solver: String,
+        /// Where: the tape step (`scope/name`, launch index), time step, substep, ...
+        context: String,
+        /// Iterations run.
+        iterations: usize,
+        /// The residual reached (NaN or infinite if the iterate is not finite).
+        residual: f64,
+        /// The tolerance the residual had to meet.
+        tolerance: f64,
+        /// What to change to make it converge (the solver's own settings).
+        hint: String,
+    },
+    /// An input cannot be computed with: a NaN, infinite or non-positive time step, a NaN
+    /// parameter, a NaN initial state.
+    InvalidInput {
+        /// The input, e.g. `"dt"`, `"spring_ke[3]"` (array label and index).
+        what: String,
+        /// What is wrong with it and what is expected.
+        message: String,
+    },
     /// Anything else, with a message.
     Other(String),
+}
+
+impl Error {
+    /// This error, with `context` prepended to where it happened (for the solver errors'
+    /// `context`, e.g. the tape step that ran the solve; other errors get it as a prefix of
+    /// their message).
+    pub fn in_context(self, context: impl AsRef<str>) -> Error {
+        let ctx = context.as_ref();
+        let join = |c: String| {
+            if c.is_empty() {
+                ctx.to_string()
+            } else {
+                format!("{ctx}, {c}")
+            }
+        };
+        match self {
+            Error::NotConverged {
+                solver,
+                context,
+                iterations,
+                residual,
+                tolerance,
+                hint,
+            } => Error::NotConverged {
+                solver,
+                context: join(context),
+                iterations,
+                residual,
+                tolerance,
+                hint,
+            },
+            Error::InvalidInput { what, message } => Error::InvalidInput {
+                what,
+                message: format!("{message} (in {ctx})"),
+            },
+            Error::Other(m) => Error::Other(format!("{ctx}: {m}")),
+            e => e,
+        }
+    }
 }
 
 impl fmt::Display for Error {
@@ -107,6 +172,30 @@ impl fmt::Display for Error {
                  were replaced. Make the write a step of the tape (a kernel, or `Tape::record_fn`), \
                  or write into a new array"
             ),
+            Error::NotConverged { solver, context, iterations, residual, tolerance, hint } => {
+                write!(f, "{solver} did not converge")?;
+                if !context.is_empty() {
+                    write!(f, " ({context})")?;
+                }
+                if residual.is_finite() {
+                    write!(
+                        f,
+                        ": residual {residual:.3e} > tolerance {tolerance:.3e} after {iterations} \
+                         iterations"
+                    )?;
+                } else {
+                    write!(
+                        f,
+                        ": the iterate became non-finite (residual {residual}) after {iterations} \
+                         iterations; tolerance {tolerance:.3e}"
+                    )?;
+                }
+                if !hint.is_empty() {
+                    write!(f, ". To fix: {hint}")?;
+                }
+                Ok(())
+            }
+            Error::InvalidInput { what, message } => write!(f, "invalid input `{what}`: {message}"),
             Error::Other(m) => f.write_str(m),
         }
     }

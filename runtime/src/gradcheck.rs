@@ -310,6 +310,7 @@ impl GradCheck {
     ///                 if let Some(g) = xb.grad_buffer() {
     ///                     g.modify(|g| g.iter_mut().zip(xs).for_each(|(g, x)| *g += 3.0 * x * x * d));
     ///                 }
+    ///                 Ok(())
     ///             },
     ///         );
     ///         loss
@@ -519,6 +520,7 @@ fn outputs_of(outs: &[Box<dyn AnyArray>]) -> Vec<&dyn AnyArray> {
 ///             if let Some(g) = xb.grad_buffer() {
 ///                 g.modify(|g| g[0] += gy.get(0) + 2.0 * x * gy.get(1));
 ///             }
+///             Ok(())
 ///         });
 ///     vec![y.boxed()]
 /// };

@@ -18,6 +18,9 @@ use crate::kernel::{Access, Kernel, KernelBody, Mode};
 use crate::launch::{bind, BoundLaunch};
 
 type StepFn = Box<dyn FnMut() + Send + Sync>;
+/// The backward of a custom step: fails if it cannot produce a right gradient (e.g. its
+/// adjoint linear solve did not converge).
+type BackwardFn = Box<dyn FnMut() -> Result<(), Error> + Send + Sync>;
 
 /// One array a recorded step read or wrote.
 struct Use {
@@ -38,7 +41,7 @@ enum Step {
     },
     Custom {
         name: String,
-        backward: StepFn,
+        backward: BackwardFn,
         tangent: Option<StepFn>,
     },
 }
@@ -119,6 +122,7 @@ struct Plan {
 ///         if let Some(gx) = xb.grad_buffer() {
 ///             gx.modify(|g| g.iter_mut().zip(&gy).for_each(|(g, d)| *g += 3.0 * d));
 ///         }
+///         Ok(()) // or an `Error`, which `backward` returns, naming this step
 ///     },
 /// );
 /// tape.backward(&y).unwrap(); // seeds y.grad with ones
@@ -265,6 +269,11 @@ impl Tape {
     /// `input 0`, `input 1`, ...). Give it a tangent with [`CustomStep::with_tangent`] to use
     /// it in [`Tape::tangent`].
     ///
+    /// `backward` returns `Ok(())`, or an [`Error`] when it cannot produce a right gradient
+    /// (e.g. its adjoint linear solve did not converge): [`Tape::backward`] then stops and
+    /// returns that error with the step's name (`scope/name`) and position on the tape in its
+    /// context ([`Error::in_context`]); the gradients accumulated so far are incomplete.
+    ///
     /// Panics like [`Tape::launch`] if [`Tape::check_finite`] is on and an output is not finite.
     /// See the example on [`Tape`].
     pub fn record_fn(
@@ -273,7 +282,7 @@ impl Tape {
         inputs: &[&dyn AnyArray],
         outputs: &[&dyn AnyArray],
         forward: impl FnOnce(),
-        backward: impl FnMut() + Send + Sync + 'static,
+        backward: impl FnMut() -> Result<(), Error> + Send + Sync + 'static,
     ) -> CustomStep<'_> {
         let side = |arrays: &[&dyn AnyArray], what: &str| {
             arrays
@@ -514,7 +523,14 @@ impl Tape {
             self.last.run += 1;
             match &mut self.records[i].step {
                 Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
-                Step::Custom { backward, .. } => backward(),
+                Step::Custom { backward, .. } => {
+                    if let Err(e) = backward() {
+                        let step = self.records[i].qualified();
+                        return Err(
+                            e.in_context(format!("custom step `{step}` (#{i} on the tape)"))
+                        );
+                    }
+                }
             }
             let r = &self.records[i];
             if let Step::Custom { .. } = r.step {
@@ -549,7 +565,8 @@ impl Tape {
     ///
     /// Errors: [`Error::NotOnTape`] if no recorded step wrote `loss`; [`Error::ArrayChanged`]
     /// (before anything runs) if an array read by a step whose adjoint would run was written
-    /// since; [`Error::NonFinite`] in [`Tape::check_finite`] mode.
+    /// since; [`Error::NonFinite`] in [`Tape::check_finite`] mode; the error of a custom
+    /// step's backward (e.g. [`Error::NotConverged`]), see [`Tape::record_fn`].
     pub fn backward<T: Element>(&mut self, loss: &Array<T>) -> Result<(), Error> {
         self.backward_sources(loss, &HashSet::new())
     }

@@ -107,6 +107,7 @@ fn f32_values_restore_exactly() {
                         if let Some(g) = xb.grad_buffer() {
                             g.modify(|g| g.iter_mut().for_each(|g| *g += d));
                         }
+                        Ok(())
                     },
                 );
                 l

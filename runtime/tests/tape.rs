@@ -343,8 +343,62 @@ fn tangent_over_the_tape() {
     // A custom step without a tangent is an error, not a silent zero.
     let mut tape = Tape::new();
     let y = Array::<f64>::zeros(4);
-    tape.record_fn("no tangent", &[&x], &[&y], || {}, || {});
+    tape.record_fn("no tangent", &[&x], &[&y], || {}, || Ok(()));
     assert!(matches!(tape.tangent(), Err(Error::Other(m)) if m.contains("no tangent")));
+}
+
+/// A custom step whose backward fails (e.g. an adjoint solve that did not converge): the error
+/// reaches `tape.backward`, with the step's scoped name and position in its context, instead
+/// of a silently wrong gradient.
+#[test]
+fn custom_step_backward_error_reaches_backward() {
+    let x = Array::from_vec(vec![1.0f64, 2.0])
+        .requires_grad()
+        .named("x");
+    let y = Array::<f64>::zeros(2).named("y");
+    let mut tape = Tape::new();
+    let (xb, yb) = (x.clone(), y.clone());
+    tape.scope("step 7", |tape| {
+        tape.record_fn(
+            "solve",
+            &[&x],
+            &[&y],
+            || y.assign(&x.to_vec()),
+            move || {
+                let _ = (&xb, &yb);
+                Err(Error::NotConverged {
+                    solver: "test adjoint CG".into(),
+                    context: String::new(),
+                    iterations: 3,
+                    residual: 0.5,
+                    tolerance: 1e-10,
+                    hint: "raise the iteration cap".into(),
+                })
+            },
+        );
+    });
+    let err = tape.backward(&y).unwrap_err();
+    match &err {
+        Error::NotConverged {
+            solver,
+            context,
+            iterations,
+            ..
+        } => {
+            assert_eq!(solver, "test adjoint CG");
+            assert!(
+                context.contains("step 7/solve") && context.contains("#0"),
+                "{context}"
+            );
+            assert_eq!(*iterations, 3);
+        }
+        other => panic!("expected NotConverged, got {other:?}"),
+    }
+    let msg = err.to_string();
+    assert!(
+        msg.contains("did not converge") && msg.contains("raise the iteration cap"),
+        "{msg}"
+    );
 }
 
 #[test]

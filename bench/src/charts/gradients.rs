@@ -40,7 +40,9 @@ fn chain<R: Real>() -> Model<R> {
 /// Records the rollout and the loss `sum |x_T - x_0 - (0, -0.3, 0)|^2`.
 fn chain_loss<R: Real>(model: &Model<R>, tape: &mut Tape) -> Array<R> {
     let s0 = model.state();
-    let s = SemiImplicitEuler.rollout(model, tape, &s0, None, R::lit(CHAIN_DT), CHAIN_STEPS);
+    let s = SemiImplicitEuler
+        .rollout(model, tape, &s0, None, R::lit(CHAIN_DT), CHAIN_STEPS)
+        .unwrap();
     let loss = Array::zeros(1).named("loss");
     let target = Vec3::new(R::lit(0.0), R::lit(-0.3), R::lit(0.0));
     tape.launch(
@@ -286,7 +288,9 @@ fn grad_v0(
     steps: usize,
 ) -> Result<(f64, f64), Error> {
     let mut tape = Tape::new();
-    let s = SemiImplicitEuler.rollout(model, &mut tape, s0, None, 1e-3, steps);
+    let s = SemiImplicitEuler
+        .rollout(model, &mut tape, s0, None, 1e-3, steps)
+        .unwrap();
     let loss = Array::zeros(1).named("loss");
     let target = Vec3::new(0.0, -0.1, 0.0);
     tape.launch(

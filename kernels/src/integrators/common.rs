@@ -2,7 +2,7 @@
 //! integrator advances the bodies with the semi-implicit kernel of [`crate::rigid`]) and a
 //! state built from new particle arrays.
 
-use adflex_runtime::{Array, Real, Tape, Vec3};
+use adflex_runtime::{Array, Error, Real, Tape, Vec3};
 
 use crate::model::{BodyState, Control, Model, State};
 
@@ -38,4 +38,20 @@ pub(crate) fn particles<R: Real>(x: &Array<Vec3<R>>, v: &Array<Vec3<R>>) -> Stat
 /// New, zeroed particle arrays named `x` and `v`, for a step's output.
 pub(crate) fn new_xv<R: Real>(n: usize) -> (Array<Vec3<R>>, Array<Vec3<R>>) {
     (Array::zeros(n).named("x"), Array::zeros(n).named("v"))
+}
+
+/// Checks a step's `dt` (s): finite and positive, or [`Error::InvalidInput`] naming
+/// `integrator`. Returns it in f64.
+pub(crate) fn check_dt<R: Real>(integrator: &str, dt: R) -> Result<f64, Error> {
+    let d = dt.to_f64();
+    if d.is_finite() && d > 0.0 {
+        Ok(d)
+    } else {
+        Err(Error::InvalidInput {
+            what: "dt".into(),
+            message: format!(
+                "{integrator}: the time step must be finite and positive (seconds), got {d}"
+            ),
+        })
+    }
 }

@@ -10,7 +10,7 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use super::common::{new_xv, step_bodies};
-use super::Integrator;
+use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
 /// Explicit Euler update of particle `tid`: `x_new = x + v dt`, `v_new = v + a dt` (`a` in
@@ -48,7 +48,8 @@ impl<R: Real> Integrator<R> for ExplicitEuler {
         state: &State<R>,
         control: Option<&Control<R>>,
         dt: R,
-    ) -> State<R> {
+    ) -> Result<State<R>, Error> {
+        check_dt("ExplicitEuler", dt)?;
         let a = model.eval_accelerations(tape, state, control);
         let (x, v) = new_xv(model.particle_count);
         tape.launch(
@@ -57,6 +58,6 @@ impl<R: Real> Integrator<R> for ExplicitEuler {
             (&state.x, &state.v, &a, dt, &x, &v),
         );
         let bodies = step_bodies(model, tape, state, control, dt);
-        State { x, v, bodies }
+        Ok(State { x, v, bodies })
     }
 }

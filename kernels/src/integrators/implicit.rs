@@ -35,6 +35,17 @@
 //!
 //! The scratch evaluations run on private copies of the model's parameter arrays, so the
 //! matrix-vector products never touch the gradients or tangents of the real ones.
+//!
+//! # Failures
+//!
+//! A step whose Newton iteration stops short of its tolerance, or whose adjoint (or tangent)
+//! linear solve does, is handled by [`ImplicitEuler::on_failure`]: by default
+//! ([`SolverPolicy::Error`]) `step` returns [`Error::NotConverged`] naming
+//! `"ImplicitEuler Newton"` (and records nothing), and `tape.backward` returns it naming
+//! `"ImplicitEuler adjoint linear solve"` and the tape step. A NaN residual never counts as
+//! converged. A NaN, infinite or non-positive `dt`, or a NaN/Inf in the state or in a
+//! parameter array the forces read, is [`Error::InvalidInput`] naming the array and index,
+//! whatever the policy.
 
 use std::sync::Arc;
 
@@ -42,8 +53,8 @@ use adflex_runtime::prelude::*;
 use adflex_runtime::Element;
 
 use super::common::{particles, step_bodies};
-use super::linsolve::{self, SolveSettings};
-use super::Integrator;
+use super::linsolve::{self, SolveInfo, SolveSettings};
+use super::{check_dt, Integrator, SolverPolicy};
 use crate::model::{Control, Model, State};
 
 /// Implicit (backward) Euler, solved by Newton-CG with a line search; first order,
@@ -60,6 +71,9 @@ use crate::model::{Control, Model, State};
 /// semi-implicit body step. The tape records a step per call, however many Newton iterations
 /// it took. Contact and friction make the force non-smooth: Newton still converges in
 /// practice but the gradient is that of the active contact set.
+///
+/// A solve that misses its tolerance is an error by default (see [`ImplicitEuler::on_failure`]
+/// and the module's "Failures").
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImplicitEuler {
     /// Maximum Newton iterations per step (default 30).
@@ -67,13 +81,26 @@ pub struct ImplicitEuler {
     /// Newton stops when `max |v' - v - dt a| <= tolerance * scale` (m/s), `scale` the
     /// largest of `|v|`, `|v'|`, `dt |a|`. `None` (default): `1e-10` in f64, `1e-4` in f32.
     pub tolerance: Option<f64>,
-    /// Stopping rule of the linear solves (Newton and adjoint; default: relative `1e-10`,
-    /// 1000 iterations).
+    /// Stopping rule of the linear solves (Newton, and adjoint/tangent unless
+    /// `adjoint_linear` is set; default: relative `1e-10`, 1000 iterations). A Newton linear
+    /// solve that misses it is not an error by itself (inexact Newton): the Newton residual
+    /// decides.
     pub linear: SolveSettings,
+    /// Stopping rule of the gradient's linear solves (the IFT adjoint solve of
+    /// `tape.backward` and the tangent solve of `tape.tangent`); `None` (default): `linear`.
+    /// Their error is the gradient's error, so a solve that misses it fails per `on_failure`.
+    pub adjoint_linear: Option<SolveSettings>,
     /// Backtracking line search on the residual (default on). Off, every Newton step is full.
     pub line_search: bool,
     /// Maximum halvings of the step in the line search (default 20).
     pub max_backtracks: usize,
+    /// What a solve that misses its tolerance does (default [`SolverPolicy::Error`]): the
+    /// Newton iteration of `step` (an [`Error::NotConverged`] from `step`, nothing recorded),
+    /// the adjoint solve of `tape.backward` (an error from `backward`), the tangent solve of
+    /// `tape.tangent` (a panic with the same message: a tangent cannot return an error).
+    /// [`SolverPolicy::Warn`] prints the figures to stderr and uses the result;
+    /// [`SolverPolicy::Continue`] uses it silently.
+    pub on_failure: SolverPolicy,
 }
 
 impl Default for ImplicitEuler {
@@ -84,6 +111,8 @@ impl Default for ImplicitEuler {
             linear: SolveSettings::default(),
             line_search: true,
             max_backtracks: 20,
+            adjoint_linear: None,
+            on_failure: SolverPolicy::Error,
         }
     }
 }
@@ -101,9 +130,11 @@ pub struct NewtonStats {
     pub backtracks: usize,
     /// Linear solves where CG failed and BiCGSTAB took over.
     pub fallbacks: usize,
-    /// Final `max |v' - v - dt a|` over free particles (m/s).
+    /// Final `max |v' - v - dt a|` over free particles (m/s; NaN if the iterate is not finite).
     pub residual: f64,
-    /// Whether the tolerance was met.
+    /// The tolerance `residual` was held to, `tolerance * scale` (m/s).
+    pub tolerance: f64,
+    /// Whether the tolerance was met (never for a NaN residual).
     pub converged: bool,
 }
 
@@ -266,8 +297,21 @@ fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
     100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
 }
 
+/// Whether a residual meets a tolerance: never if the residual is NaN or infinite (an
+/// infinite tolerance, from an infinite scale, would otherwise accept an infinite residual).
+fn within(residual: f64, tolerance: f64) -> bool {
+    residual.is_finite() && (residual <= tolerance || residual == 0.0)
+}
+
+/// `max |v_k|`, NaN if any `v_k` is NaN (`f64::max` would skip it and hide a NaN residual).
 fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0, |m, x| m.max(x.abs()))
+    v.iter().fold(0.0, |m: f64, x| {
+        if m.is_nan() || x.is_nan() {
+            f64::NAN
+        } else {
+            m.max(x.abs())
+        }
+    })
 }
 
 /// One step's system: `G(v') = M (v' - v0 - dt a(x0 + dt v', v'))` over the free DOFs.
@@ -447,7 +491,9 @@ impl ImplicitEuler {
                 .max(free_max(&p.v_val))
                 .max(sys.dt * free_max(&p.a_val));
             stats.residual = max_abs(&e);
-            if stats.residual <= tol * scale || stats.residual == 0.0 {
+            stats.tolerance = tol * scale;
+            // A NaN or infinite residual (or scale) is never converged.
+            if within(stats.residual, tol * scale) {
                 stats.converged = true;
                 break;
             }
@@ -467,7 +513,7 @@ impl ImplicitEuler {
             stats.linear_iterations += info.iterations;
             stats.fallbacks += fell_back as usize;
             sys.mask(&mut d);
-            if stats.residual <= roundoff_floor::<R>(sys, &e, &d) {
+            if within(stats.residual, roundoff_floor::<R>(sys, &e, &d)) {
                 stats.converged = true;
                 break;
             }
@@ -528,7 +574,8 @@ impl ImplicitEuler {
                 }
                 // No decrease either way: at the attainable precision (or stuck).
                 None => {
-                    stats.converged = stats.residual <= 10.0 * roundoff_floor::<R>(sys, &e, &d);
+                    stats.converged =
+                        within(stats.residual, 10.0 * roundoff_floor::<R>(sys, &e, &d));
                     break;
                 }
             }
@@ -601,11 +648,23 @@ impl ImplicitEuler {
     /// b.add_spring(a, c, 1e6, 0.0);
     /// let model = b.finalize();
     /// let mut tape = Tape::new();
-    /// let (s, stats) = ImplicitEuler::default().step_with_stats(&model, &mut tape, &model.state(), None, 0.1);
+    /// let (s, stats) = ImplicitEuler::default()
+    ///     .step_with_stats(&model, &mut tape, &model.state(), None, 0.1)
+    ///     .unwrap();
     /// assert!(stats.converged);
     /// assert!((s.x.get(1).norm() - 1.0).abs() < 1e-3);
     /// assert_eq!(tape.len(), 1); // one custom step, however many Newton iterations
+    ///
+    /// // One Newton iteration is not enough: an error by default, naming the solve.
+    /// let capped = ImplicitEuler { max_newton: 1, ..ImplicitEuler::default() };
+    /// let err = capped.step_with_stats(&model, &mut tape, &model.state(), None, 0.1).unwrap_err();
+    /// assert!(err.to_string().contains("ImplicitEuler Newton did not converge"));
     /// ```
+    ///
+    /// Errors as [`Integrator::step`]: [`Error::InvalidInput`] for a bad `dt` or a NaN/Inf in
+    /// the state or a parameter (any policy), [`Error::NotConverged`] if Newton stopped short of
+    /// its tolerance under [`SolverPolicy::Error`] (under `Warn`/`Continue` the step is recorded
+    /// and `stats.converged` is false).
     pub fn step_with_stats<R: Real>(
         &self,
         model: &Model<R>,
@@ -613,10 +672,10 @@ impl ImplicitEuler {
         state: &State<R>,
         control: Option<&Control<R>>,
         dt: R,
-    ) -> (State<R>, NewtonStats) {
+    ) -> Result<(State<R>, NewtonStats), Error> {
         let n = model.particle_count;
         let mut stats = NewtonStats::default();
-        let dtf = dt.to_f64();
+        let dtf = check_dt("ImplicitEuler", dt)?;
         let inv_mass = model.particle_inv_mass.to_vec();
         let (x0, v0) = (flat(&state.x), flat(&state.v));
         let sys = System::new(
@@ -626,11 +685,34 @@ impl ImplicitEuler {
             &inv_mass,
             dtf,
         );
+        check_inputs(model, state, &sys.c.links)?;
         let v1 = if n == 0 {
+            stats.converged = true;
             Vec::new()
         } else {
             self.newton(&sys, &mut stats)
         };
+        if !stats.converged {
+            self.on_fail(Error::NotConverged {
+                solver: "ImplicitEuler Newton".into(),
+                context: format!(
+                    "time step of dt = {dtf} s that would be step #{} on the tape; {} force \
+                     evaluations, {} line-search halvings, {} BiCGSTAB fallbacks",
+                    tape.len(),
+                    stats.force_evaluations,
+                    stats.backtracks,
+                    stats.fallbacks
+                ),
+                iterations: stats.newton_iterations,
+                residual: stats.residual,
+                tolerance: stats.tolerance,
+                hint: format!(
+                    "raise `max_newton` (now {}), loosen `tolerance`, take a smaller dt, or set \
+                     `on_failure` to SolverPolicy::Warn or Continue to accept the unconverged step",
+                    self.max_newton
+                ),
+            })?;
+        }
         let x1v: Vec<f64> = x0.iter().zip(&v1).map(|(x, v)| x + dtf * v).collect();
 
         let x1 = Array::zeros(n).named("x");
@@ -663,17 +745,90 @@ impl ImplicitEuler {
             },
             move || sb.backward(),
         )
-        .with_tangent(move || st.tangent());
+        .with_tangent(move || {
+            if let Err(e) = st.tangent() {
+                panic!("{e}");
+            }
+        });
         let bodies = step_bodies(model, tape, state, control, dt);
-        (
+        Ok((
             State {
                 x: x1,
                 v: v1a,
                 bodies,
             },
             stats,
-        )
+        ))
     }
+
+    /// Applies [`ImplicitEuler::on_failure`] to a failed solve: the error, or a warning.
+    fn on_fail(&self, err: Error) -> Result<(), Error> {
+        match self.on_failure {
+            SolverPolicy::Error => Err(err),
+            SolverPolicy::Warn => {
+                eprintln!("warning: {err} [continuing: on_failure = SolverPolicy::Warn]");
+                Ok(())
+            }
+            SolverPolicy::Continue => Ok(()),
+        }
+    }
+
+    /// The settings of the adjoint and tangent solves.
+    fn gradient_settings(&self) -> &SolveSettings {
+        self.adjoint_linear.as_ref().unwrap_or(&self.linear)
+    }
+
+    /// Checks a gradient solve (adjoint or tangent) per the policy.
+    fn check_gradient_solve(&self, what: &str, info: &SolveInfo) -> Result<(), Error> {
+        if info.converged {
+            return Ok(());
+        }
+        let s = self.gradient_settings();
+        self.on_fail(Error::NotConverged {
+            solver: format!("ImplicitEuler {what} linear solve (CG, then BiCGSTAB)"),
+            context: String::new(),
+            iterations: info.iterations,
+            residual: info.residual,
+            tolerance: info.tolerance,
+            hint: format!(
+                "raise `max_iter` (now {}) or loosen `rel_tol` (now {:e}) of \
+                 `adjoint_linear` (or `linear`), take a smaller dt, or set `on_failure` to \
+                 SolverPolicy::Warn or Continue to accept the approximate gradient",
+                s.max_iter, s.rel_tol
+            ),
+        })
+    }
+}
+
+/// [`Error::InvalidInput`] for the first NaN/Inf in the state or in a parameter array the
+/// forces read (named by label and index), or in the gravity.
+fn check_inputs<R: Real>(
+    model: &Model<R>,
+    state: &State<R>,
+    links: &[Box<dyn Link>],
+) -> Result<(), Error> {
+    let arrays = [&state.x as &dyn AnyArray, &state.v]
+        .into_iter()
+        .chain(links.iter().map(|l| l.original()));
+    for a in arrays {
+        if let Some(k) = a.first_non_finite() {
+            return Err(Error::InvalidInput {
+                what: format!("{}[{k}]", a.label()),
+                message: "ImplicitEuler: a NaN or infinite value in the state or a parameter; \
+                          every force and the Newton residual would be NaN. Fix the value \
+                          (or whatever computed it)"
+                    .into(),
+            });
+        }
+    }
+    let g = model.gravity;
+    if ![g.x, g.y, g.z].iter().all(|c| c.to_f64().is_finite()) {
+        return Err(Error::InvalidInput {
+            what: "gravity".into(),
+            message: "ImplicitEuler: the model's gravity is not finite".into(),
+        });
+    }
+    Ok(())
 }
 
 /// What the backward and tangent of a step need.
@@ -703,11 +858,12 @@ impl<R: Real> Shared<R> {
         )
     }
 
-    /// Reverse mode by the implicit function theorem (see the module docs).
-    fn backward(&self) {
+    /// Reverse mode by the implicit function theorem (see the module docs). Fails per the
+    /// policy if the adjoint solve misses its tolerance (nothing is accumulated then).
+    fn backward(&self) -> Result<(), Error> {
         let (gx1, gv1) = (self.x1.grad_buffer(), self.v1.grad_buffer());
         if gx1.is_none() && gv1.is_none() {
-            return;
+            return Ok(());
         }
         let m = self.x0_val.len();
         let gx1 = gx1.map_or_else(|| vec![0.0; m], |g| flat(&g));
@@ -719,13 +875,14 @@ impl<R: Real> Shared<R> {
         let mut rhs = b.clone();
         sys.mask(&mut rhs);
         let mut lambda = vec![0.0; m];
-        linsolve::solve(
+        let (info, _) = linsolve::solve(
             |u, out| sys.apply_t(&mut p, u, out),
             &rhs,
             &mut lambda,
             Some(&sys.precond),
-            &self.integrator.linear,
+            self.integrator.gradient_settings(),
         );
+        self.integrator.check_gradient_solve("adjoint", &info)?;
         sys.mask(&mut lambda);
         // The products accumulated into the copies' gradients: start them over.
         for l in &sys.c.links {
@@ -749,11 +906,13 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.add_grad();
         }
+        Ok(())
     }
 
     /// Forward mode: `A dv' = M (dv + dt a_dot)`, `a_dot` the tangent of the accelerations
-    /// for the input tangents at fixed `v'`.
-    fn tangent(&self) {
+    /// for the input tangents at fixed `v'`. Fails per the policy if the solve misses its
+    /// tolerance.
+    fn tangent(&self) -> Result<(), Error> {
         let m = self.x0_val.len();
         let dt = self.dt;
         let dx0 = self
@@ -787,13 +946,14 @@ impl<R: Real> Shared<R> {
             .collect();
         sys.mask(&mut rhs);
         let mut dv1 = vec![0.0; m];
-        linsolve::solve(
+        let (info, _) = linsolve::solve(
             |u, out| sys.apply(&mut p, u, out),
             &rhs,
             &mut dv1,
             Some(&sys.precond),
-            &self.integrator.linear,
+            self.integrator.gradient_settings(),
         );
+        self.integrator.check_gradient_solve("tangent", &info)?;
         for k in 0..m {
             if !sys.free[k] {
                 dv1[k] = dv0[k];
@@ -806,6 +966,7 @@ impl<R: Real> Shared<R> {
         if let Some(t) = self.v1.tangent_buffer() {
             t.assign(&unflat::<R>(&dv1));
         }
+        Ok(())
     }
 }
 
@@ -825,7 +986,7 @@ impl<R: Real> Integrator<R> for ImplicitEuler {
         state: &State<R>,
         control: Option<&Control<R>>,
         dt: R,
-    ) -> State<R> {
-        self.step_with_stats(model, tape, state, control, dt).0
+    ) -> Result<State<R>, Error> {
+        Ok(self.step_with_stats(model, tape, state, control, dt)?.0)
     }
 }

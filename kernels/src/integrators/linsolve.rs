@@ -47,8 +47,11 @@ pub struct SolveInfo {
     /// Iterations run (matrix-vector products, plus one for the initial residual in CG; two
     /// per iteration in BiCGSTAB).
     pub iterations: usize,
-    /// Final residual norm `|b - A x|` (as the recurrence tracks it).
+    /// Final residual norm `|b - A x|` (as the recurrence tracks it; NaN if the iterate is
+    /// not finite).
     pub residual: f64,
+    /// The tolerance `rel_tol |b| + abs_tol` it had to meet.
+    pub tolerance: f64,
     /// Whether the tolerance was met.
     pub converged: bool,
     /// CG only: a direction of non-positive curvature `p^T A p <= 0` was met (the matrix is
@@ -107,6 +110,7 @@ pub fn cg(
     let mut info = SolveInfo {
         iterations,
         residual: rn,
+        tolerance: tol,
         converged: rn <= tol,
         negative_curvature: false,
     };
@@ -167,6 +171,7 @@ pub fn bicgstab(
     let mut info = SolveInfo {
         iterations: 0,
         residual: f64::INFINITY,
+        tolerance: tol,
         converged: false,
         negative_curvature: false,
     };

@@ -4,6 +4,23 @@
 //! [`Model::eval_accelerations`] (with gravity and inverse masses),
 //! [`Model::eval_body_forces`] (rigid bodies), and the components' own arrays (e.g.
 //! `model.distance_constraints` for position-based methods).
+//!
+//! # Errors
+//!
+//! [`Integrator::step`] and [`Integrator::rollout`] return a `Result`: no integrator hands back
+//! a state it knows to be wrong.
+//!
+//! - [`Error::InvalidInput`] (every integrator): `dt` is NaN, infinite, zero or negative; or
+//!   (implicit Euler) a parameter or the state holds a NaN/Inf, named with its array label and
+//!   index (e.g. `spring_ke[3]`). Fix the input.
+//! - [`Error::NotConverged`]: an iterative solve stopped short of its tolerance.
+//!   [`ImplicitEuler`]'s Newton iteration (solver `"ImplicitEuler Newton"`): raise
+//!   `max_newton`, loosen `tolerance`, take a smaller `dt`, or accept the unconverged step
+//!   with [`ImplicitEuler::on_failure`] ([`SolverPolicy`]). Its adjoint linear solve (solver
+//!   `"ImplicitEuler adjoint linear solve"`) is reported by `tape.backward`: raise
+//!   `linear.max_iter` / loosen `linear.rel_tol` (or `adjoint_linear`). [`Xpbd`]'s
+//!   constraint solve diverging (solver `"Xpbd constraint solve"`, naming the substep and the
+//!   kernel): lower `relaxation`, or use more substeps.
 
 mod common;
 pub mod explicit;
@@ -14,20 +31,45 @@ pub mod rk4;
 pub mod semi_implicit;
 pub mod xpbd;
 
-use adflex_runtime::{Real, Tape};
+use adflex_runtime::{Error, Real, Tape};
 
 use crate::model::{Control, Model, State};
 
+pub(crate) use common::check_dt;
 pub use explicit::ExplicitEuler;
 pub use implicit::{ImplicitEuler, NewtonStats};
 pub use rk4::Rk4;
 pub use semi_implicit::SemiImplicitEuler;
 pub use xpbd::Xpbd;
 
+/// What an integrator with an iterative solve ([`ImplicitEuler`]) does when the solve stops
+/// before meeting its tolerance (iteration cap reached, no descent, non-finite iterate).
+///
+/// Invalid input ([`Error::InvalidInput`]: NaN `dt`, NaN parameter) is an error under every
+/// policy.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum SolverPolicy {
+    /// Return [`Error::NotConverged`] (from `step`, or from `tape.backward` for the adjoint
+    /// solve). The default: a result that missed its tolerance is never used silently.
+    #[default]
+    Error,
+    /// Print the solver, the step and the figures (iterations, residual, tolerance) to
+    /// stderr, once per failing solve, and use the unconverged result.
+    Warn,
+    /// Use the unconverged result silently (e.g. a fixed iteration budget on purpose; check
+    /// the figures with [`ImplicitEuler::step_with_stats`]).
+    Continue,
+}
+
 /// A time stepping scheme.
 pub trait Integrator<R: Real> {
-    /// Records one step of `dt` seconds from `state` on `tape` and returns the new state, whose
-    /// arrays are new (the tape keeps the old ones for backward).
+    /// Records one step of `dt` seconds (finite, `> 0`) from `state` on `tape` and returns the
+    /// new state, whose arrays are new (the tape keeps the old ones for backward).
+    ///
+    /// Errors (see the [module docs](self)): [`Error::InvalidInput`] for a NaN, infinite or
+    /// non-positive `dt` (every integrator) or a non-finite parameter; [`Error::NotConverged`]
+    /// if the integrator's solve failed (implicit Euler's Newton under
+    /// [`SolverPolicy::Error`], XPBD's constraint solve diverging).
     fn step(
         &self,
         model: &Model<R>,
@@ -35,9 +77,10 @@ pub trait Integrator<R: Real> {
         state: &State<R>,
         control: Option<&Control<R>>,
         dt: R,
-    ) -> State<R>;
+    ) -> Result<State<R>, Error>;
 
-    /// Records `steps` steps from `state` with the same control; returns the final state.
+    /// Records `steps` steps from `state` with the same control; returns the final state, or
+    /// the first step's error with `rollout step k of n` added to its context.
     fn rollout(
         &self,
         model: &Model<R>,
@@ -46,11 +89,13 @@ pub trait Integrator<R: Real> {
         control: Option<&Control<R>>,
         dt: R,
         steps: usize,
-    ) -> State<R> {
+    ) -> Result<State<R>, Error> {
         let mut s = state.clone();
-        for _ in 0..steps {
-            s = self.step(model, tape, &s, control, dt);
+        for k in 0..steps {
+            s = self
+                .step(model, tape, &s, control, dt)
+                .map_err(|e| e.in_context(format!("rollout step {k} of {steps}")))?;
         }
-        s
+        Ok(s)
     }
 }

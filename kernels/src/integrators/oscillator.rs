@@ -228,6 +228,9 @@ impl Oscillator {
 
     /// Runs `steps` steps of `dt` (s) of [`Oscillator::model`] with `integrator` (each step on
     /// a fresh tape, so memory stays flat) and returns the trajectory.
+    ///
+    /// Panics with the integrator's error if a step fails (e.g. implicit Euler's Newton did
+    /// not converge): a trajectory with a wrong step is never returned.
     pub fn simulate<I: Integrator<f64> + ?Sized>(
         &self,
         integrator: &I,
@@ -261,9 +264,11 @@ impl Oscillator {
         record(&mut tr, 0, state.x.get(1), state.v.get(1));
         let start = Instant::now();
         let mut samples = Vec::with_capacity(steps);
-        for _ in 0..steps {
+        for k in 0..steps {
             let mut tape = Tape::new();
-            state = integrator.step(model, &mut tape, &state, None, dt);
+            state = integrator
+                .step(model, &mut tape, &state, None, dt)
+                .unwrap_or_else(|e| panic!("Oscillator: step {k} failed: {e}"));
             samples.push((state.x.get(1), state.v.get(1)));
         }
         tr.seconds = start.elapsed().as_secs_f64();

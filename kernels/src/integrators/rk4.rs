@@ -12,7 +12,7 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use super::common::{new_xv, particles, step_bodies};
-use super::Integrator;
+use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
 /// A Runge-Kutta stage of particle `tid`: `xs = x0 + vk c`, `vs = v0 + ak c` (`c` in s).
@@ -76,7 +76,8 @@ impl<R: Real> Integrator<R> for Rk4 {
         state: &State<R>,
         control: Option<&Control<R>>,
         dt: R,
-    ) -> State<R> {
+    ) -> Result<State<R>, Error> {
+        check_dt("Rk4", dt)?;
         let n = model.particle_count;
         let half = dt * R::lit(0.5);
         let (x0, v0) = (&state.x, &state.v);
@@ -100,6 +101,6 @@ impl<R: Real> Integrator<R> for Rk4 {
             (x0, v0, &v2, &v3, &v4, &a1, &a2, &a3, &a4, dt, &x, &v),
         );
         let bodies = step_bodies(model, tape, state, control, dt);
-        State { x, v, bodies }
+        Ok(State { x, v, bodies })
     }
 }

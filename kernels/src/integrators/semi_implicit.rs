@@ -3,7 +3,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::Integrator;
+use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
 /// `v' = v + (f w + g [w > 0]) dt`, `x' = x + v' dt` for particle `tid` (`w` the inverse mass
@@ -39,7 +39,8 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
         state: &State<R>,
         control: Option<&Control<R>>,
         dt: R,
-    ) -> State<R> {
+    ) -> Result<State<R>, Error> {
+        check_dt("SemiImplicitEuler", dt)?;
         let n = model.particle_count;
         let f = model.eval_forces(tape, state, control);
         let x = Array::zeros(n).named("x");
@@ -71,6 +72,6 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
                     dt,
                 )
             });
-        State { x, v, bodies }
+        Ok(State { x, v, bodies })
     }
 }

@@ -188,9 +188,13 @@ pub fn displacement_loss<R: Real>(
 
 /// Records `steps` semi-implicit Euler steps of `dt = 1e-3` s from the initial state and the
 /// loss `(1/N^2) sum |x_T - x_0 - (0, -0.1, 0)|^2`; returns the final state and the loss array.
-pub fn forward<R: Real>(scene: &Cloth<R>, tape: &mut Tape, steps: usize) -> (State<R>, Array<R>) {
+pub fn forward<R: Real>(
+    scene: &Cloth<R>,
+    tape: &mut Tape,
+    steps: usize,
+) -> Result<(State<R>, Array<R>), Error> {
     let dt = R::lit(DT);
-    let s = SemiImplicitEuler.rollout(&scene.model, tape, &scene.initial, None, dt, steps);
+    let s = SemiImplicitEuler.rollout(&scene.model, tape, &scene.initial, None, dt, steps)?;
     let loss = Array::zeros(1).named("loss");
     let n2 = (scene.n * scene.n) as f64;
     let target = Vec3::new(R::lit(0.0), R::lit(-0.1), R::lit(0.0));
@@ -199,7 +203,7 @@ pub fn forward<R: Real>(scene: &Cloth<R>, tape: &mut Tape, steps: usize) -> (Sta
         s.x.len(),
         (&s.x, &scene.initial.x, target, R::lit(1.0 / n2), &loss),
     );
-    (s, loss)
+    Ok((s, loss))
 }
 
 /// What [`rollout`] returns.
@@ -226,7 +230,7 @@ pub fn rollout<R: Real>(
     backward: bool,
 ) -> Result<ClothResult<R>, Error> {
     let mut tape = Tape::new();
-    let (_, loss) = forward(scene, &mut tape, steps);
+    let (_, loss) = forward(scene, &mut tape, steps)?;
     let mut out = ClothResult {
         loss: loss.get(0).to_f64(),
         grad_v0: Vec::new(),

@@ -427,6 +427,7 @@ pub fn double_on_host(tape: &mut adflex_runtime::Tape, x: &Array<f64>) -> Array<
             if let Some(gx) = xb.grad_buffer() {
                 gx.modify(|g| g.iter_mut().zip(&gy).for_each(|(g, d)| *g += 2.0 * d));
             }
+            Ok(())
         },
     )
     .with_tangent(move || {
