@@ -142,7 +142,9 @@ fn a_nearly_flat_tet_is_an_error_naming_it_and_its_vertices() {
         .unwrap()
         .try_finalize()
         .unwrap();
-    let s = SemiImplicitEuler.step(&m, &mut Tape::new(), &m.state(), None, 1e-3);
+    let s = SemiImplicitEuler
+        .step(&m, &mut Tape::new(), &m.state(), None, 1e-3)
+        .unwrap();
     assert!(s.x.to_vec().iter().all(|p| p.iter().all(|c| c.is_finite())));
 }
 

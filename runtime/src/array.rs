@@ -444,6 +444,11 @@ pub trait AnyArray: Send + Sync {
     fn add_from(&self, src: &dyn AnyArray);
     /// The tangent buffer, boxed, if present.
     fn tangent_any(&self) -> Option<Box<dyn AnyArray>>;
+    /// A copy of the data in a new array (see [`Array::deep_clone`]), boxed.
+    fn deep_clone_any(&self) -> Box<dyn AnyArray>;
+    /// Copies `src` (an array of the same element type and length) into this array (bumps
+    /// the version). Panics on a type or length mismatch.
+    fn copy_from(&self, src: &dyn AnyArray);
     /// Allocates a zeroed tangent buffer, or zeroes the existing one.
     fn reset_tangent(&self);
 }
@@ -535,5 +540,22 @@ impl<T: Element> AnyArray for Array<T> {
     }
     fn reset_tangent(&self) {
         self.ensure_tangent().fill(T::zeroed())
+    }
+    fn deep_clone_any(&self) -> Box<dyn AnyArray> {
+        Box::new(self.deep_clone())
+    }
+    fn copy_from(&self, src: &dyn AnyArray) {
+        let src = src
+            .as_any()
+            .downcast_ref::<Array<T>>()
+            .unwrap_or_else(|| {
+                panic!(
+                    "copy `{}` into `{}`: element types differ",
+                    src.label(),
+                    self.label()
+                )
+            })
+            .to_vec();
+        self.assign(&src)
     }
 }

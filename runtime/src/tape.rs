@@ -133,6 +133,9 @@ pub struct Tape {
     scopes: Vec<String>,
     check_finite: bool,
     last: BackwardStats,
+    /// Arrays whose gradient with respect to their final value is kept (see
+    /// [`Tape::retain_grad`]).
+    retained: HashSet<u64>,
 }
 
 impl Default for Tape {
@@ -190,7 +193,44 @@ impl Tape {
             scopes: Vec::new(),
             check_finite: false,
             last: BackwardStats::default(),
+            retained: HashSet::new(),
         }
+    }
+
+    /// Keeps, after each [`Tape::backward`], the gradient of the loss with respect to the
+    /// **final** value of `array` (an intermediate some recorded step wrote) in its gradient
+    /// buffer, like PyTorch's `retain_grad`.
+    ///
+    /// Without it, the adjoint of each store takes the gradient of the element it wrote (so
+    /// that an earlier, overwritten store gets none), and after backward the buffer of an
+    /// array that launches stored into holds the gradient with respect to its value *before*
+    /// those stores: zero where they overwrote it. Retaining costs a copy of the buffer.
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// use adflex_macros::diff_kernel;
+    /// #[diff_kernel]
+    /// fn square(x: &Array<f64>, y: &Array<f64>) {
+    ///     let t = tid();
+    ///     y[t] = x[t] * x[t];
+    /// }
+    /// #[diff_kernel]
+    /// fn total(y: &Array<f64>, loss: &Array<f64>) {
+    ///     loss.atomic_add(0, y[tid()]);
+    /// }
+    /// let x = Array::from_vec(vec![3.0]).requires_grad();
+    /// let (y, loss) = (Array::zeros(1), Array::zeros(1));
+    /// let mut tape = Tape::new();
+    /// tape.launch(square, 1, (&x, &y));
+    /// tape.launch(total, 1, (&y, &loss));
+    /// tape.retain_grad(&y);
+    /// tape.backward(&loss)?;
+    /// assert_eq!(y.grad()?.to_vec(), vec![1.0]); // dloss/dy
+    /// assert_eq!(x.grad()?.to_vec(), vec![6.0]);
+    /// # Ok::<(), Error>(())
+    /// ```
+    pub fn retain_grad(&mut self, array: &dyn AnyArray) {
+        self.retained.insert(array.id());
     }
 
     /// Number of recorded steps (launches and custom steps).
@@ -515,12 +555,22 @@ impl Tape {
             }
         }
         self.last = BackwardStats::default();
+        // Retained gradients, copied before the adjoint of the step that wrote them last.
+        let mut kept: Vec<(Box<dyn AnyArray>, Box<dyn AnyArray>)> = Vec::new();
         for i in (0..self.records.len()).rev() {
             if !plan.run[i] {
                 self.last.skipped += 1;
                 continue;
             }
             self.last.run += 1;
+            for u in &self.records[i].writes {
+                let id = u.array.id();
+                if self.retained.contains(&id) && !kept.iter().any(|(a, _)| a.id() == id) {
+                    if let Some(g) = u.array.grad_any() {
+                        kept.push((u.array.boxed(), g.deep_clone_any()));
+                    }
+                }
+            }
             match &mut self.records[i].step {
                 Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
                 Step::Custom { backward, .. } => {
@@ -548,6 +598,11 @@ impl Tape {
                         return Err(r.non_finite(i, u, k, "adjoint"));
                     }
                 }
+            }
+        }
+        for (a, copy) in kept {
+            if let Some(g) = a.grad_any() {
+                g.copy_from(&*copy);
             }
         }
         Ok(())

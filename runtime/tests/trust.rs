@@ -320,3 +320,20 @@ fn array_passed_twice_message_is_clean() {
     assert!(msg.contains("passed as both `src` and `dst`"), "{msg}");
     assert!(!msg.contains("  "), "a run of spaces: {msg:?}");
 }
+
+#[test]
+fn retain_grad_keeps_the_gradient_of_an_intermediate_final_value() {
+    let x = Array::from_vec(vec![1.0f64, 2.0]).requires_grad();
+    let c = Array::from_vec(vec![10.0f64, 20.0]).requires_grad();
+    let (y, loss) = (Array::zeros(2), Array::zeros(1));
+    let mut tape = Tape::new();
+    tape.launch(scale, 2, (&x, 2.0, &y));
+    tape.launch(scale, 2, (&c, 3.0, &y));
+    tape.launch(sum_sq, 2, (&y, &loss));
+    tape.retain_grad(&y);
+    tape.backward(&loss).unwrap();
+    // dloss/dy = 2 y (y = 3c), and still no gradient for x (its store was overwritten).
+    assert_eq!(y.grad().unwrap().to_vec(), vec![60.0, 120.0]);
+    assert_eq!(x.grad().unwrap().to_vec(), vec![0.0, 0.0]);
+    assert_eq!(c.grad().unwrap().to_vec(), vec![180.0, 360.0]);
+}
