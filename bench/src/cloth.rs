@@ -1,4 +1,4 @@
-//! `cloth`: the cloth benchmark of `shared/bench/SCENES.md` on the kernels crate's scene
+//! `cloth`: the cloth benchmark of `docs/scenes.md` on the kernels crate's scene
 //! (`adflex_kernels::scenes::cloth`), one JSON line per run.
 
 use std::time::Instant;
@@ -66,7 +66,7 @@ fn run_typed<R: Real>(o: &Opts) -> serde_json::Value {
     })
 }
 
-/// Runs the benchmark; returns the JSON object (fields in the order of SCENES.md).
+/// Runs the benchmark; returns the JSON object (fields in the order of docs/scenes.md).
 pub fn run(o: &Opts) -> serde_json::Value {
     with_threads(o.threads.max(1), || {
         if o.f64 {

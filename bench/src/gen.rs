@@ -1,4 +1,4 @@
-//! The cloth force kernels of `shared/peers/warp_cloth.py` written with `#[diff_kernel]`, with
+//! The cloth force kernels of `bench/peers/warp_cloth.py` written with `#[diff_kernel]`, with
 //! Warp's signatures (scalar `kd`, bending `ke` and `kd`), for the comparison with the
 //! hand-written kernels of [`crate::hand`].
 

@@ -1,7 +1,7 @@
 //! The cloth spring and bending kernels written by hand, with hand-derived adjoints: the
 //! baseline that the generated kernels of [`crate::gen`] are measured against.
 //!
-//! Same formulas as `eval_springs` and `eval_bending` of `shared/peers/warp_cloth.py`. The
+//! Same formulas as `eval_springs` and `eval_bending` of `bench/peers/warp_cloth.py`. The
 //! adjoints recompute the forward quantities they need and run the chain rule by hand,
 //! simplified where a human would (e.g. the adjoint of `d = xij / |xij|` in one expression).
 //! Plain loops over slices, one thread.

@@ -1,5 +1,5 @@
 //! `peers`: the cloth benchmark of adflex (1 and 2 threads) and of the peer scripts
-//! (`shared/peers/*_cloth.py`: Warp, Taichi, JAX) at several sizes, in one run, as JSONL.
+//! (`bench/peers/*_cloth.py`: Warp, Taichi, JAX) at several sizes, in one run, as JSONL.
 //!
 //! The peers run with `~/.cache/peers-venv/bin/python` (or `--python`) when it exists and are
 //! skipped otherwise. Each line: `system, n, steps, threads, fwd_s_per_step,
@@ -37,7 +37,7 @@ fn default_peers_dir() -> PathBuf {
     std::env::var_os("ADFLEX_PEERS_DIR")
         .map(PathBuf::from)
         .unwrap_or_else(|| {
-            let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/peers");
+            let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("peers");
             p.canonicalize().unwrap_or(p)
         })
 }

@@ -1,5 +1,5 @@
-//! The cloth topology of `shared/bench/SCENES.md`, in the order of
-//! `shared/peers/warp_cloth_scene.py` (particles, springs, bending elements, inverse masses).
+//! The cloth topology of `docs/scenes.md`, in the order of
+//! `bench/peers/warp_cloth_scene.py` (particles, springs, bending elements, inverse masses).
 
 use std::collections::HashMap;
 
