@@ -5,6 +5,13 @@
 //! `corpus_1.rs`, ... (and `corpus_tests.rs`, `corpus_tests_1.rs`, ...), one per test crate
 //! (`tests/corpus.rs`, `tests/corpus_1.rs`, ...), which cargo compiles in parallel.
 
+// The generator favours index loops and explicit bounds that mirror the generated code.
+#[allow(
+    clippy::needless_range_loop,
+    clippy::manual_clamp,
+    clippy::let_and_return,
+    clippy::unnecessary_map_or
+)]
 #[path = "gen.rs"]
 mod gen;
 

@@ -9,6 +9,10 @@
 //!
 //! The language and its errors are documented in docs/guide.md of the repository.
 
+// The overview above links the internal modules, for contributors reading
+// `cargo doc --document-private-items`.
+#![allow(rustdoc::private_intra_doc_links)]
+
 use proc_macro2::Span;
 
 mod attr;

@@ -177,8 +177,7 @@ impl Signature {
                             .flat_map(|w| &w.predicates)
                             .any(|p| match p {
                                 syn::WherePredicate::Type(pt) => {
-                                    pt.bounded_ty.to_token_stream().to_string()
-                                        == tp.ident.to_string()
+                                    tp.ident == pt.bounded_ty.to_token_stream().to_string()
                                         && pt.bounds.iter().any(is_real_bound)
                                 }
                                 _ => false,

@@ -189,7 +189,7 @@ fn with_locks(
     params: &[ParamInfo],
     arrays: &[Option<&dyn AnyArray>],
     mode: Mode,
-    run: &mut dyn FnMut(&[(u64, bool)]),
+    run: &mut LockedRun,
 ) {
     let targets = lock_targets(kernel, params, arrays, mode);
     let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w, Token(()))).collect();
@@ -210,6 +210,12 @@ fn with_locks(
     mark_written(params, arrays, mode);
 }
 
+/// The body of a launch, given the (id, for writing) of every buffer it holds locked.
+type LockedRun<'a> = dyn FnMut(&[(u64, bool)]) + 'a;
+
+/// Buffers a launch locks, each with whether for writing.
+type LockTargets = Vec<(Box<dyn AnyArray>, bool)>;
+
 /// What a launch must lock, sorted by id, each once (for writing if any use writes it): the
 /// arrays (written only in forward mode) and the gradient or tangent buffers the mode reads or
 /// writes. Panics if one array is passed for two parameters and one of them writes it: the
@@ -219,8 +225,8 @@ fn lock_targets(
     params: &[ParamInfo],
     arrays: &[Option<&dyn AnyArray>],
     mode: Mode,
-) -> Vec<(Box<dyn AnyArray>, bool)> {
-    let mut targets: Vec<(Box<dyn AnyArray>, bool)> = Vec::new();
+) -> LockTargets {
+    let mut targets: LockTargets = Vec::new();
     let mut add = |a: Box<dyn AnyArray>, write: bool| match targets
         .iter_mut()
         .find(|(b, _)| b.id() == a.id())

@@ -81,7 +81,7 @@ pub fn check(
     let h = 1e-6;
     let mut adjoint_err: f64 = 0.0;
     for (a, g) in inputs.iter().zip(&grad) {
-        for k in 0..a.len() {
+        for (k, &gk) in g.iter().enumerate() {
             let x0 = a.get(k);
             a.set(k, x0 + h);
             let lp = loss(&forward());
@@ -89,7 +89,7 @@ pub fn check(
             let lm = loss(&forward());
             a.set(k, x0);
             let fd = (lp - lm) / (2.0 * h);
-            let e = rel(fd, g[k]);
+            let e = rel(fd, gk);
             if e > adjoint_err {
                 adjoint_err = e;
             }
