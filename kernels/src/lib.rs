@@ -32,7 +32,6 @@
 
 // `!(residual <= tolerance)` is how a NaN residual counts as a failure, on purpose.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
-
 #![warn(missing_docs)]
 
 pub mod contact;
