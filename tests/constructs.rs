@@ -493,3 +493,118 @@ fn overwritten_stores_get_no_gradient() {
     check_kernel!(stores_overwritten, dim = 6, inputs = [x: inputs(6, 13)], outputs = [y: 6], extra = (3usize));
     check_kernel!(stores_overwritten, dim = 6, inputs = [x: inputs(6, 14)], outputs = [y: 6], extra = (1usize));
 }
+
+// ---- a user's function named like a builtin is the one called ----------------------------
+
+mod shadowing {
+    use super::common::{assert_checked, check};
+    use adflex::prelude::*;
+
+    /// Not the builtin `lerp` (`a + (b - a) t`): this one squares `t`.
+    #[diff_func]
+    fn lerp<R: Real>(a: R, b: R, t: R) -> R {
+        a + (b - a) * t * t
+    }
+
+    #[diff_kernel]
+    fn blend<R: Real>(x: &Array<R>, y: &Array<R>) {
+        let t = tid();
+        y[t] = lerp(x[t] * 0.0, x[t] * 0.0 + 1.0, x[t]);
+    }
+
+    #[test]
+    fn a_user_function_named_like_a_builtin_is_called_not_replaced() {
+        let x = Array::from_vec(vec![0.5f64, 0.25]);
+        let y = Array::zeros(2);
+        launch(blend, 2, (&x, &y));
+        assert_eq!(y.to_vec(), vec![0.25, 0.0625]); // the builtin would give 0.5, 0.25
+                                                    // and its derivative is the user's: d/dt (t^2) = 2t
+        let c = check(&[&x], &[&y], 3, |m| launch_mode(m, blend, 2, (&x, &y)));
+        assert_checked(&c, 1e-6);
+    }
+
+    mod builtin_still_there {
+        use adflex::prelude::*;
+
+        #[diff_kernel]
+        fn blend<R: Real>(x: &Array<R>, y: &Array<R>) {
+            let t = tid();
+            y[t] = lerp(x[t] * 0.0, x[t] * 0.0 + 1.0, x[t]);
+        }
+
+        #[test]
+        fn without_the_user_function_the_builtin_is_called() {
+            let x = Array::from_vec(vec![0.5f64, 0.25]);
+            let y = Array::zeros(2);
+            launch(blend, 2, (&x, &y));
+            assert_eq!(y.to_vec(), vec![0.5, 0.25]);
+        }
+    }
+}
+
+// ---- the list of builtins exists once: the guide and the math docs are checked against it ---
+
+#[test]
+fn the_guides_builtin_list_is_the_runtimes() {
+    use adflex::runtime::math::items::{BUILTINS, CONSTANTS};
+    let guide = include_str!("../docs/guide.md");
+    let start = guide
+        .find("### Builtins")
+        .expect("the guide has a Builtins section");
+    let section = &guide[start..];
+    let section = &section[..section.find("**Singular points**").unwrap()];
+    // The list items ("- group: `names ...`", continued on indented lines).
+    let mut items: Vec<String> = Vec::new();
+    for line in section.lines() {
+        if let Some(rest) = line.strip_prefix("- ") {
+            items.push(rest.to_string());
+        } else if line.starts_with("  ") && !items.is_empty() {
+            items.last_mut().unwrap().push_str(line);
+        }
+    }
+    let names = |item: &str| -> Vec<String> {
+        let spans: Vec<&str> = item.split('`').skip(1).step_by(2).collect();
+        spans
+            .iter()
+            .flat_map(|s| s.split_whitespace())
+            .map(String::from)
+            .collect()
+    };
+    let operators: Vec<String> = items
+        .iter()
+        .filter(|i| i.starts_with("operators:"))
+        .flat_map(|i| names(i))
+        .collect();
+    let mut listed: Vec<String> = items
+        .iter()
+        .filter(|i| !i.starts_with("operators:"))
+        .flat_map(|i| names(i))
+        .collect();
+    let mut code: Vec<String> = BUILTINS
+        .iter()
+        .chain(CONSTANTS)
+        .map(|s| s.to_string())
+        .collect();
+    code.sort_unstable();
+    listed.sort_unstable();
+    assert_eq!(
+        listed, code,
+        "docs/guide.md's builtins vs adflex::math::items"
+    );
+    // The operators the macro emits by name.
+    let table = include_str!("../macros/src/builtins.rs");
+    for op in &operators {
+        assert!(
+            table.contains(&format!("(\"{op}\", ")),
+            "operator `{op}` not in the macro's table"
+        );
+    }
+    // Every builtin is documented in adflex::math's docs.
+    let math_docs = include_str!("../runtime/src/math/mod.rs");
+    for name in &code {
+        assert!(
+            math_docs.contains(&format!("[`{name}`]")),
+            "`{name}` missing from adflex::math's docs"
+        );
+    }
+}

@@ -1,87 +1,21 @@
-//! The builtins of the kernel language: names the macro emits as calls into
-//! `adflex_runtime::math` (with their `adj_` and `tan_` rules), and their arities.
+//! What the macro calls by a fixed name: the operators and component access, each a rule of
+//! `adflex_runtime::math` (`mul`, `adj_mul`, `tan_mul`, ...).
+//!
+//! The builtin *functions* (`sqrt`, `dot`, `lerp`, ...) are not listed here: they are items of
+//! the runtime (`adflex_runtime::math::items`, the one list of them), and a call `f(..)` in a
+//! kernel is emitted as a call of whatever `f` names in the user's scope, so that a user's
+//! `#[diff_func] fn lerp` is called where Rust says it is, not replaced by the builtin.
 
-/// `(name, arity)` of every builtin. The runtime's `math` module implements each.
+/// `(name, arity)` of every operation the macro emits by name.
 pub const BUILTINS: &[(&str, usize)] = &[
-    // arithmetic (also what the operators lower to)
+    // arithmetic (what the operators lower to; also callable by name)
     ("add", 2),
     ("sub", 2),
     ("mul", 2),
     ("div", 2),
     ("neg", 1),
     ("rem", 2),
-    // scalar functions
-    ("sqrt", 1),
-    ("sin", 1),
-    ("cos", 1),
-    ("tan", 1),
-    ("asin", 1),
-    ("acos", 1),
-    ("atan", 1),
-    ("atan2", 2),
-    ("sinh", 1),
-    ("cosh", 1),
-    ("tanh", 1),
-    ("exp", 1),
-    ("ln", 1),
-    ("log2", 1),
-    ("log10", 1),
-    ("pow", 2),
-    ("powi", 2),
-    ("abs", 1),
-    ("sign", 1),
-    ("floor", 1),
-    ("ceil", 1),
-    ("round", 1),
-    ("min", 2),
-    ("max", 2),
-    ("clamp", 3),
-    ("lerp", 3),
-    ("select", 3),
-    ("step", 1),
-    ("smoothstep", 3),
-    // vectors
-    ("dot", 2),
-    ("cross", 2),
-    ("length", 1),
-    ("length_sq", 1),
-    ("normalize", 1),
-    ("outer", 2),
-    ("cw_mul", 2),
-    ("cw_div", 2),
-    // matrices
-    ("transpose", 1),
-    ("determinant", 1),
-    ("inverse", 1),
-    ("trace", 1),
-    ("ddot", 2),
-    ("skew", 1),
-    ("diag", 1),
-    // constructors
-    ("vec2", 2),
-    ("vec3", 3),
-    ("vec4", 4),
-    ("mat22", 4),
-    ("mat33", 9),
-    ("mat22_cols", 2),
-    ("mat33_cols", 3),
-    ("mat22_rows", 2),
-    ("mat33_rows", 3),
-    ("quat", 4),
-    ("mat22_identity", 0),
-    ("mat33_identity", 0),
-    ("quat_identity", 0),
-    // quaternions
-    ("quat_mul", 2),
-    ("quat_conjugate", 1),
-    ("quat_inverse", 1),
-    ("quat_normalize", 1),
-    ("quat_rotate", 2),
-    ("quat_rotate_inv", 2),
-    ("quat_from_axis_angle", 2),
-    ("quat_to_mat33", 1),
-    ("quat_length", 1),
-    // components (also what `v.x`, `v[k]` and `v.x = e` lower to)
+    // components (what `v.x`, `v[k]` and `v.x = e` lower to)
     ("extract", 2),
     ("replace", 3),
 ];

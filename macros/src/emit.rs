@@ -131,6 +131,15 @@ fn vs_at(ids: &[ValueId], span: Span) -> Vec<Ident> {
 fn ds_at(ids: &[ValueId], span: Span) -> Vec<Ident> {
     ids.iter().map(|&i| local("d", i, span)).collect()
 }
+/// The `DiffFunc` a call `path(..)` calls: what `path` names in the user's scope *as a type*,
+/// so that a `#[diff_func]` (a unit struct) and a builtin (a braced struct of the runtime's
+/// prelude, beside the function of the same name) resolve alike, and the user's own function
+/// shadows the prelude's builtin where Rust says it does.
+fn func_value(path: &TokenStream, span: Span) -> TokenStream {
+    let path = located(path, span);
+    quote_spanned!(span=> <#path as ::core::default::Default>::default())
+}
+
 /// `tokens` located at `span` (hygiene unchanged), for paths such as the runtime's.
 fn located(tokens: &TokenStream, span: Span) -> TokenStream {
     tokens
@@ -178,7 +187,10 @@ impl<'a> Emitter<'a> {
             }
             Op::Func { path, args } => {
                 let args = vs(args);
-                quote_spanned!(span=> #rt::func::call((#(#args,)*), &#path))
+                {
+                    let f = func_value(path, span);
+                    quote_spanned!(span=> #rt::func::call((#(#args,)*), &#f))
+                }
             }
             Op::Cast { arg, ty } => {
                 let x = v(*arg);
@@ -467,12 +479,13 @@ impl<'a> Emitter<'a> {
             }
             Op::Func { path, args } => {
                 let xs = vs(args);
+                let f = func_value(path, span);
                 let gs: Vec<_> = (0..args.len())
                     .map(|i| local("__g", i, Span::call_site()))
                     .collect();
                 let axs = args.iter().map(|&x| a(x));
                 quote_spanned! {span=>
-                    let (#(#gs,)*) = #rt::func::call_adjoint((#(#xs,)*), #an, &#path);
+                    let (#(#gs,)*) = #rt::func::call_adjoint((#(#xs,)*), #an, &#f);
                     #(#rt::acc(&mut #axs, #gs);)*
                 }
             }
@@ -621,7 +634,10 @@ impl<'a> Emitter<'a> {
             }
             Op::Func { path, args } => {
                 let (xs, dxs) = (vs(args), ds(args));
-                quote_spanned!(span=> let (#x, #dx) = #rt::func::call_tangent((#(#xs,)*), (#(#dxs,)*), &#path);)
+                {
+                    let f = func_value(path, span);
+                    quote_spanned!(span=> let (#x, #dx) = #rt::func::call_tangent((#(#xs,)*), (#(#dxs,)*), &#f);)
+                }
             }
             Op::Cast { arg, ty } => {
                 let fwd = self.let_stmt(l);

@@ -6,10 +6,11 @@
 /// Adjoints and tangents have the types of the values they belong to, so `adjoint` returns one
 /// adjoint per argument as a tuple of the argument types.
 #[diagnostic::on_unimplemented(
-    message = "`{Self}` is not a #[diff_func] that takes arguments `{Args}`",
-    label = "called from differentiable code here",
-    note = "inside #[diff_kernel] and #[diff_func], a call must be to a builtin of adflex::math, \
-            to a #[diff_func] with matching arguments, or wrapped in no_grad(..) to have zero derivative"
+    message = "`{Self}` cannot be called in a kernel with arguments `{Args}`",
+    label = "no builtin or #[diff_func] of this name takes these arguments",
+    note = "the `help` below shows the arguments it takes; in #[diff_kernel] and #[diff_func] a \
+            call must be to a builtin of adflex::math, to a #[diff_func], or wrapped in \
+            no_grad(..) to have zero derivative"
 )]
 pub trait DiffFunc<Args, Out> {
     /// The function itself.

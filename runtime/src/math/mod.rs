@@ -68,7 +68,7 @@
 //! - [`quat`](fn@quat)`(x, y, z, w)`: a quaternion from its components.
 //! - [`mat22_identity`]`()`, [`mat33_identity`]`()`, [`quat_identity`]`()`: constants.
 //!
-//! # Quaternions ([`quat`](mod@quat))
+//! # Quaternions ([`quaternion`])
 //! - [`quat_mul`]`(p, q)`: Hamilton product (same as `mul(p, q)`).
 //! - [`quat_conjugate`]`(q)`, [`quat_inverse`]`(q)`: conjugate, and `conj(q) / |q|^2` (zero
 //!   at `q == 0`).
@@ -90,10 +90,11 @@
 pub mod cast;
 pub mod component;
 pub mod construct;
+pub mod items;
 pub mod linear;
 pub mod matrix;
 pub mod ops;
-pub mod quat;
+pub mod quaternion;
 pub mod scalar;
 pub mod vector;
 
@@ -105,9 +106,12 @@ mod tests;
 pub use cast::*;
 pub use component::*;
 pub use construct::*;
+// The builtins' items live in the type namespace, beside the functions of the same name.
+#[doc(hidden)]
+pub use items::*;
 pub use linear::*;
 pub use matrix::*;
 pub use ops::*;
-pub use quat::*;
+pub use quaternion::*;
 pub use scalar::*;
 pub use vector::*;
