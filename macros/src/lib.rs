@@ -29,7 +29,7 @@ pub fn diff_kernel(
     args: proc_macro::TokenStream,
     item: proc_macro::TokenStream,
 ) -> proc_macro::TokenStream {
-    expand::expand(args.into(), item.into(), true).into()
+    expand::expand(args.into(), item.into(), Kind::Kernel).into()
 }
 
 /// Compiles a differentiable function that kernels (and other functions) can call.
@@ -43,7 +43,25 @@ pub fn diff_func(
     args: proc_macro::TokenStream,
     item: proc_macro::TokenStream,
 ) -> proc_macro::TokenStream {
-    expand::expand(args.into(), item.into(), false).into()
+    expand::expand(args.into(), item.into(), Kind::Func).into()
+}
+
+/// What the attribute compiles: a kernel (`#[diff_kernel]`, launched once per thread id) or a
+/// differentiable function (`#[diff_func]`, called from kernels and functions).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub(crate) enum Kind {
+    Kernel,
+    Func,
+}
+
+impl Kind {
+    /// The attribute as messages name it.
+    pub fn attr(self) -> &'static str {
+        match self {
+            Kind::Kernel => "#[diff_kernel]",
+            Kind::Func => "#[diff_func]",
+        }
+    }
 }
 
 /// Errors collected while expanding, each at its span.

@@ -19,7 +19,7 @@ use syn::{BinOp, Expr, Lit, Pat, UnOp};
 use crate::builtins;
 use crate::ir::*;
 use crate::signature::{ParamKind, Signature};
-use crate::Errors;
+use crate::{Errors, Kind};
 
 /// Loops with constant bounds and at most this many iterations are unrolled...
 const UNROLL_MAX: u64 = 16;
@@ -28,17 +28,45 @@ const UNROLL_MAX: u64 = 16;
 /// loop that would exceed it stays a loop.
 const UNROLL_TOTAL_MAX: u64 = 64;
 
+/// A control flag: set by `break`, `continue` or `return`, it guards what follows.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+enum Flag {
+    Break,
+    Continue,
+    Return,
+}
+
+/// What a binding binds: a local (or value parameter) by its name, a control flag, or the value
+/// a `return` has set (funcs).
+#[derive(Clone, PartialEq, Eq, Hash, Debug)]
+enum Name {
+    Var(String),
+    Flag(Flag),
+    ReturnValue,
+}
+
+impl From<&str> for Name {
+    fn from(s: &str) -> Name {
+        Name::Var(s.to_string())
+    }
+}
+impl From<&String> for Name {
+    fn from(s: &String) -> Name {
+        Name::Var(s.clone())
+    }
+}
+impl From<Flag> for Name {
+    fn from(f: Flag) -> Name {
+        Name::Flag(f)
+    }
+}
+
 #[derive(Clone)]
 struct Binding {
-    name: String,
+    name: Name,
     value: ValueId,
     mutable: bool,
 }
-
-const BRK: &str = "#brk";
-const CONT: &str = "#cont";
-const RET: &str = "#ret";
-const RETVAL: &str = "#retval";
 
 /// How a kernel uses one array parameter (spans of the first read, store, accumulation).
 #[derive(Default, Clone)]
@@ -51,7 +79,7 @@ pub struct ArrayUse {
 pub struct Lowerer<'a> {
     sig: &'a Signature,
     rt: &'a TokenStream,
-    is_kernel: bool,
+    kind: Kind,
     errors: &'a mut Errors,
     next_value: ValueId,
     next_loop: usize,
@@ -69,13 +97,13 @@ impl<'a> Lowerer<'a> {
     pub fn new(
         sig: &'a Signature,
         rt: &'a TokenStream,
-        is_kernel: bool,
+        kind: Kind,
         errors: &'a mut Errors,
     ) -> Self {
         Lowerer {
             sig,
             rt,
-            is_kernel,
+            kind,
             errors,
             next_value: 0,
             next_loop: 0,
@@ -93,11 +121,11 @@ impl<'a> Lowerer<'a> {
         let mut params = Vec::new();
         for p in &self.sig.params {
             match &p.kind {
-                ParamKind::Array { .. } => params.push(u32::MAX),
+                ParamKind::Array { .. } => params.push(None),
                 ParamKind::Value { mutable, .. } => {
                     let v = self.fresh();
                     self.bind(&p.name.to_string(), v, *mutable);
-                    params.push(v);
+                    params.push(Some(v));
                 }
             }
         }
@@ -105,18 +133,18 @@ impl<'a> Lowerer<'a> {
         let mut block = Block::default();
         if has_return {
             let f = self.const_flag(false, &mut block);
-            self.bind(RET, f, true);
-            if !self.is_kernel {
+            self.bind(Flag::Return, f, true);
+            if self.kind == Kind::Func {
                 let z = self.push(&mut block, Op::Zero, Span::call_site());
-                self.bind(RETVAL, z, true);
+                self.bind(Name::ReturnValue, z, true);
             }
         }
         let tail = self.lower_block_value(&body.stmts, &mut block);
-        let ret = if self.is_kernel {
+        let ret = if self.kind == Kind::Kernel {
             None
         } else if has_return {
-            let flag = self.lookup(RET).unwrap().value;
-            let retval = self.lookup(RETVAL).unwrap().value;
+            let flag = self.lookup(Flag::Return).unwrap().value;
+            let retval = self.lookup(Name::ReturnValue).unwrap().value;
             match tail {
                 Some(t) => self.branches(
                     flag,
@@ -146,7 +174,7 @@ impl<'a> Lowerer<'a> {
             }
             tail
         };
-        if self.is_kernel {
+        if self.kind == Kind::Kernel {
             self.check_array_uses();
         }
         (Body { params, block, ret }, self.uses)
@@ -202,15 +230,16 @@ impl<'a> Lowerer<'a> {
         v
     }
 
-    fn bind(&mut self, name: &str, value: ValueId, mutable: bool) {
+    fn bind(&mut self, name: impl Into<Name>, value: ValueId, mutable: bool) {
         self.env.last_mut().unwrap().push(Binding {
-            name: name.to_string(),
+            name: name.into(),
             value,
             mutable,
         });
     }
 
-    fn lookup(&self, name: &str) -> Option<&Binding> {
+    fn lookup(&self, name: impl Into<Name>) -> Option<&Binding> {
+        let name = name.into();
         self.env
             .iter()
             .rev()
@@ -218,7 +247,8 @@ impl<'a> Lowerer<'a> {
             .find(|b| b.name == name)
     }
 
-    fn lookup_mut(&mut self, name: &str) -> Option<&mut Binding> {
+    fn lookup_mut(&mut self, name: impl Into<Name>) -> Option<&mut Binding> {
+        let name = name.into();
         self.env
             .iter_mut()
             .rev()
@@ -226,7 +256,7 @@ impl<'a> Lowerer<'a> {
             .find(|b| b.name == name)
     }
 
-    fn assign(&mut self, name: &str, value: ValueId) {
+    fn assign(&mut self, name: impl Into<Name>, value: ValueId) {
         self.lookup_mut(name).expect("assign to a bound name").value = value;
     }
 
@@ -294,7 +324,7 @@ impl<'a> Lowerer<'a> {
 
     fn active_condition(&mut self, out: &mut Block) -> Active {
         let mut terms = Vec::new();
-        for flag in [BRK, CONT, RET] {
+        for flag in [Flag::Break, Flag::Continue, Flag::Return] {
             if let Some(b) = self.lookup(flag) {
                 match self.const_bool.get(&b.value) {
                     Some(false) => {}
@@ -455,7 +485,7 @@ impl<'a> Lowerer<'a> {
                     match p {
                         Pat::Ident(pi) if pi.by_ref.is_none() && pi.subpat.is_none() => {
                             let kv = self.push(out, Op::Const(quote!(#k)), p.span());
-                            let e = self.push(out, Op::Builtin { name: "extract".into(), args: vec![v, kv] }, p.span());
+                            let e = self.push(out, Op::Builtin { f: Builtin::Extract, args: vec![v, kv] }, p.span());
                             self.bind(&pi.ident.to_string(), e, pi.mutability.is_some());
                         }
                         Pat::Wild(_) => {}
@@ -486,7 +516,7 @@ impl<'a> Lowerer<'a> {
                     UnOp::Neg(_) => Some(self.push(
                         out,
                         Op::Builtin {
-                            name: "neg".into(),
+                            f: Builtin::Neg,
                             args: vec![a],
                         },
                         span,
@@ -514,7 +544,7 @@ impl<'a> Lowerer<'a> {
                 Some(self.push(
                     out,
                     Op::Builtin {
-                        name: "extract".into(),
+                        f: Builtin::Extract,
                         args: vec![base, index],
                     },
                     span,
@@ -530,7 +560,7 @@ impl<'a> Lowerer<'a> {
                 Some(self.push(
                     out,
                     Op::Builtin {
-                        name: "extract".into(),
+                        f: Builtin::Extract,
                         args: vec![base, kv],
                     },
                     span,
@@ -604,30 +634,30 @@ impl<'a> Lowerer<'a> {
                         .push(v.span(), "`break` with a value is not supported in kernels");
                     return None;
                 }
-                self.lower_loop_exit("break", b.label.as_ref(), BRK, span, out);
+                self.lower_loop_exit("break", b.label.as_ref(), Flag::Break, span, out);
                 None
             }
             Expr::Continue(c) => {
-                self.lower_loop_exit("continue", c.label.as_ref(), CONT, span, out);
+                self.lower_loop_exit("continue", c.label.as_ref(), Flag::Continue, span, out);
                 None
             }
             Expr::Return(r) => {
-                match (&r.expr, self.is_kernel) {
-                    (Some(v), true) => self
+                match (&r.expr, self.kind) {
+                    (Some(v), Kind::Kernel) => self
                         .errors
                         .push(v.span(), "a #[diff_kernel] returns no value; use `return;`"),
-                    (None, false) => self
+                    (None, Kind::Func) => self
                         .errors
                         .push(span, "a #[diff_func] must return a value: `return x;`"),
-                    (Some(v), false) => {
+                    (Some(v), Kind::Func) => {
                         if let Some(v) = self.lower_value(v, out) {
-                            self.assign(RETVAL, v);
+                            self.assign(Name::ReturnValue, v);
                         }
                     }
-                    (None, true) => {}
+                    (None, Kind::Kernel) => {}
                 }
                 let t = self.const_flag(true, out);
-                self.assign(RET, t);
+                self.assign(Flag::Return, t);
                 None
             }
             Expr::Closure(c) => self.error_value(
@@ -753,11 +783,11 @@ impl<'a> Lowerer<'a> {
     fn lower_binary(&mut self, b: &syn::ExprBinary, out: &mut Block) -> Option<ValueId> {
         let span = b.span();
         let arith = |op: &BinOp| match op {
-            BinOp::Add(_) | BinOp::AddAssign(_) => Some("add"),
-            BinOp::Sub(_) | BinOp::SubAssign(_) => Some("sub"),
-            BinOp::Mul(_) | BinOp::MulAssign(_) => Some("mul"),
-            BinOp::Div(_) | BinOp::DivAssign(_) => Some("div"),
-            BinOp::Rem(_) | BinOp::RemAssign(_) => Some("rem"),
+            BinOp::Add(_) | BinOp::AddAssign(_) => Some(Builtin::Add),
+            BinOp::Sub(_) | BinOp::SubAssign(_) => Some(Builtin::Sub),
+            BinOp::Mul(_) | BinOp::MulAssign(_) => Some(Builtin::Mul),
+            BinOp::Div(_) | BinOp::DivAssign(_) => Some(Builtin::Div),
+            BinOp::Rem(_) | BinOp::RemAssign(_) => Some(Builtin::Rem),
             _ => None,
         };
         match b.op {
@@ -800,10 +830,10 @@ impl<'a> Lowerer<'a> {
                 let a = self.lower_value(&b.left, out)?;
                 let c = self.lower_value(&b.right, out)?;
                 match arith(op) {
-                    Some(name) => Some(self.push(
+                    Some(f) => Some(self.push(
                         out,
                         Op::Builtin {
-                            name: name.into(),
+                            f,
                             args: vec![a, c],
                         },
                         span,
@@ -837,7 +867,7 @@ impl<'a> Lowerer<'a> {
         let single = fp.path.get_ident().map(|i| i.to_string());
         match single.as_deref() {
             Some("tid") => {
-                if !self.is_kernel {
+                if self.kind == Kind::Func {
                     return self.error_value(out, span, "`tid()` is only available in a #[diff_kernel]; pass the index to the function");
                 }
                 if !c.args.is_empty() {
@@ -876,7 +906,7 @@ impl<'a> Lowerer<'a> {
                     return Some(self.push(
                         out,
                         Op::Builtin {
-                            name: name.into(),
+                            f: Builtin::Named(name.into()),
                             args,
                         },
                         span,
@@ -1009,7 +1039,7 @@ impl<'a> Lowerer<'a> {
         &mut self,
         keyword: &str,
         label: Option<&syn::Lifetime>,
-        flag: &str,
+        flag: Flag,
         span: Span,
         out: &mut Block,
     ) {
@@ -1197,11 +1227,11 @@ impl<'a> Lowerer<'a> {
     fn lower_assign(&mut self, lhs: &Expr, op: Option<&BinOp>, rhs: &Expr, out: &mut Block) {
         let span = lhs.span();
         let op_name = op.map(|o| match o {
-            BinOp::AddAssign(_) => Ok("add"),
-            BinOp::SubAssign(_) => Ok("sub"),
-            BinOp::MulAssign(_) => Ok("mul"),
-            BinOp::DivAssign(_) => Ok("div"),
-            BinOp::RemAssign(_) => Ok("rem"),
+            BinOp::AddAssign(_) => Ok(Builtin::Add),
+            BinOp::SubAssign(_) => Ok(Builtin::Sub),
+            BinOp::MulAssign(_) => Ok(Builtin::Mul),
+            BinOp::DivAssign(_) => Ok(Builtin::Div),
+            BinOp::RemAssign(_) => Ok(Builtin::Rem),
             other => Err(other.to_token_stream()),
         });
         // Array element stores.
@@ -1209,8 +1239,8 @@ impl<'a> Lowerer<'a> {
             if let Some(p) = self.array_param(&ix.expr) {
                 let kind = match op_name {
                     None => StoreKind::Store,
-                    Some(Ok("add")) => StoreKind::AtomicAdd,
-                    Some(Ok("sub")) => StoreKind::AtomicSub,
+                    Some(Ok(Builtin::Add)) => StoreKind::AtomicAdd,
+                    Some(Ok(Builtin::Sub)) => StoreKind::AtomicSub,
                     Some(_) => {
                         let o = op.unwrap().to_token_stream();
                         self.errors.push(
@@ -1307,7 +1337,7 @@ impl<'a> Lowerer<'a> {
             let is_param = self.sig.param_index(&name).is_some()
                 && self.env[0]
                     .iter()
-                    .any(|x| x.name == name && x.value == b.value);
+                    .any(|x| x.name == Name::from(&name) && x.value == b.value);
             let msg = if is_param && component.is_some() {
                 format!("cannot store to `{name}`: it is a value parameter, not an `&Array`")
             } else if is_param {
@@ -1336,7 +1366,7 @@ impl<'a> Lowerer<'a> {
             Some(k) => self.push(
                 out,
                 Op::Builtin {
-                    name: "extract".into(),
+                    f: Builtin::Extract,
                     args: vec![b.value, k],
                 },
                 span,
@@ -1344,10 +1374,10 @@ impl<'a> Lowerer<'a> {
         };
         let new = match op_name {
             None => r,
-            Some(Ok(name)) => self.push(
+            Some(Ok(f)) => self.push(
                 out,
                 Op::Builtin {
-                    name: name.into(),
+                    f,
                     args: vec![current, r],
                 },
                 span,
@@ -1373,7 +1403,7 @@ impl<'a> Lowerer<'a> {
             Some(k) => self.push(
                 out,
                 Op::Builtin {
-                    name: "replace".into(),
+                    f: Builtin::Replace,
                     args: vec![b.value, k, new],
                 },
                 span,
@@ -1456,7 +1486,7 @@ impl<'a> Lowerer<'a> {
         let may_leave = exits_loop(body) || contains_return(body);
         self.env.push(Vec::new());
         let f = self.const_flag(false, out);
-        self.bind(BRK, f, true);
+        self.bind(Flag::Break, f, true);
         for k in lo..hi {
             let iteration = |s: &mut Self, b: &mut Block| {
                 s.env.push(Vec::new());
@@ -1466,7 +1496,7 @@ impl<'a> Lowerer<'a> {
                     s.bind(name, kv, false);
                 }
                 let c = s.const_flag(false, b);
-                s.bind(CONT, c, true);
+                s.bind(Flag::Continue, c, true);
                 s.loop_depth += 1;
                 s.lower_block_value(&body.stmts, b);
                 s.loop_depth -= 1;
@@ -1539,9 +1569,9 @@ impl<'a> Lowerer<'a> {
             v
         });
         let f = self.const_flag(false, &mut body_b);
-        self.bind(BRK, f, true);
+        self.bind(Flag::Break, f, true);
         let f = self.const_flag(false, &mut body_b);
-        self.bind(CONT, f, true);
+        self.bind(Flag::Continue, f, true);
         self.loop_depth += 1;
         if let Some(c) = cond {
             if let Some(cv) = self.lower_value(c, &mut body_b) {
@@ -1553,7 +1583,7 @@ impl<'a> Lowerer<'a> {
                     },
                     c.span(),
                 );
-                self.assign(BRK, nb);
+                self.assign(Flag::Break, nb);
             }
             self.lower_guarded(&body.stmts, &mut body_b);
         } else {
@@ -1561,7 +1591,7 @@ impl<'a> Lowerer<'a> {
         }
         self.loop_depth -= 1;
         let mut exit_terms = Vec::new();
-        for flag in [BRK, RET] {
+        for flag in [Flag::Break, Flag::Return] {
             if let Some(b) = self.lookup(flag) {
                 if self.const_bool.get(&b.value) != Some(&false) {
                     exit_terms.push(b.value);
@@ -1722,8 +1752,8 @@ impl<'ast> Visit<'ast> for Returns {
     fn visit_expr_closure(&mut self, _: &'ast syn::ExprClosure) {}
 }
 
-/// Names a loop body assigns (its carried values); `#ret`/`#retval` if it returns.
-fn assigned_names(body: &syn::Block) -> HashSet<String> {
+/// Names a loop body assigns (its carried values); the return flag and value if it returns.
+fn assigned_names(body: &syn::Block) -> HashSet<Name> {
     let mut v = Assigned::default();
     v.visit_block(body);
     v.names
@@ -1731,7 +1761,7 @@ fn assigned_names(body: &syn::Block) -> HashSet<String> {
 
 #[derive(Default)]
 struct Assigned {
-    names: HashSet<String>,
+    names: HashSet<Name>,
 }
 
 impl Assigned {
@@ -1739,7 +1769,7 @@ impl Assigned {
         match e {
             Expr::Path(p) => {
                 if let Some(id) = p.path.get_ident() {
-                    self.names.insert(id.to_string());
+                    self.names.insert(Name::Var(id.to_string()));
                 }
             }
             Expr::Field(f) => self.root(&f.base),
@@ -1774,8 +1804,8 @@ impl<'ast> Visit<'ast> for Assigned {
         syn::visit::visit_expr_binary(self, b);
     }
     fn visit_expr_return(&mut self, r: &'ast syn::ExprReturn) {
-        self.names.insert(RET.to_string());
-        self.names.insert(RETVAL.to_string());
+        self.names.insert(Name::Flag(Flag::Return));
+        self.names.insert(Name::ReturnValue);
         syn::visit::visit_expr_return(self, r);
     }
     fn visit_expr_closure(&mut self, _: &'ast syn::ExprClosure) {}

@@ -3,6 +3,7 @@
 use quote::quote;
 
 use crate::expand::expand;
+use crate::Kind;
 
 #[test]
 fn expand_dir_writes_the_generated_code() {
@@ -16,7 +17,7 @@ fn expand_dir_writes_the_generated_code() {
                 y[t] = x[t] * s;
             }
         },
-        true,
+        Kind::Kernel,
     );
     std::env::remove_var("ADFLEX_EXPAND_DIR");
     let text = std::fs::read_to_string(dir.join("scale.rs")).expect("the dump file exists");
@@ -43,7 +44,7 @@ fn errors_become_compile_errors_with_a_stub() {
                 y[tid()] = x[tid()].norm();
             }
         },
-        true,
+        Kind::Kernel,
     )
     .to_string();
     assert_eq!(out.matches("compile_error").count(), 2, "{out}");
@@ -70,7 +71,7 @@ fn while_loop_lowers_to_a_loop_with_an_exit() {
                 s
             }
         },
-        false,
+        Kind::Func,
     )
     .to_string();
     // The adjoint pops each iteration's carried values off a stack.
