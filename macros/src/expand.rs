@@ -5,6 +5,7 @@ use quote::{format_ident, quote, ToTokens};
 use syn::spanned::Spanned;
 
 use crate::attr::Attr;
+use crate::check;
 use crate::emit::{self, Emitter};
 use crate::ir::Body;
 use crate::lower::{ArrayUse, Lowerer};
@@ -26,15 +27,17 @@ pub fn expand(args: TokenStream, item: TokenStream, kind: Kind) -> TokenStream {
     let sig = Signature::parse(&f, kind, &mut errors);
     let passthrough = passthrough_attrs(&f, &mut errors);
     let custom = attr.adjoint.is_some();
-    let (body, uses) = Lowerer::new(&sig, &rt, kind, &mut errors).lower_body(&f.block);
-    if !errors.is_empty() {
+    // Lowering assumes a body in the kernel language: it runs only if the check passed.
+    let lowered = check::check_body(&f.block, kind, &mut errors)
+        .then(|| Lowerer::new(&sig, &rt, kind, &mut errors).lower_body(&f.block));
+    let Some((body, uses)) = lowered.filter(|_| errors.is_empty()) else {
         let stub = match kind {
             Kind::Kernel => kernel_stub(&sig, &rt, &passthrough),
             Kind::Func => func_stub(&sig, &rt, &passthrough),
         };
         let errs = errors.to_compile_errors();
         return quote!(#errs #stub);
-    }
+    };
     let items = match kind {
         Kind::Kernel => kernel_items(&sig, &rt, &body, &uses, &passthrough),
         Kind::Func => {

@@ -13,11 +13,13 @@ use proc_macro2::Span;
 
 mod attr;
 mod builtins;
+mod check;
 mod emit;
 mod expand;
 mod ir;
 mod lower;
 mod signature;
+mod syntax;
 
 /// Compiles a kernel: a fn whose body runs once per thread id (`tid()`), reading `&Array<T>`
 /// parameters (`x[i]`), storing (`y[i] = v`) and accumulating (`f.atomic_add(i, v)`).
