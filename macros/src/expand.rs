@@ -1,4 +1,5 @@
-//! Expansion: parse -> validate/lower -> emit the items of a kernel or a function.
+//! Expansion: parse -> check -> lower -> emit, and the items of a kernel or a function
+//! assembled around the emitted code (or a stub beside the errors).
 
 use proc_macro2::TokenStream;
 use quote::{format_ident, quote, ToTokens};

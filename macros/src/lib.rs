@@ -1,11 +1,26 @@
 //! `#[diff_kernel]` and `#[diff_func]`: plain Rust functions become a forward kernel, its
 //! adjoint (reverse mode) and its tangent (forward mode).
 //!
-//! The pipeline, each step a module: [`attr`] and [`signature`] parse what is around the body;
-//! [`lower`] validates the body against the kernel language (collecting every error at its
-//! span) and lowers it to the SSA of [`ir`]; [`emit`] writes the three bodies; [`expand`]
-//! assembles the items. The macro knows no types: every operation is a call to a rule in
-//! `adflex_runtime::math`, which type inference resolves.
+//! The pipeline, one module per step ([`expand`] runs them in order):
+//!
+//! 1. **parse**: [`attr`] reads the attribute's arguments, [`signature`] the fn's parameters
+//!    (arrays or values), generics and return type.
+//! 2. **check**: [`check`] walks the body once and refuses every construct outside the kernel
+//!    language (closures, macros, references, labels, ..), each at its span.
+//! 3. **lower**: [`lower`] turns a checked body into the SSA of [`ir`]: locals become values,
+//!    `if`/`match` merge through phis, loops carry values, and `break`/`continue`/`return`
+//!    become flags. It reports what needs names resolved (unknown names, assignments to
+//!    immutables, array stores, builtin arities).
+//! 4. **emit**: [`emit`] writes the forward, adjoint and tangent code of the SSA; [`expand`]
+//!    assembles it into the items (a unit struct implementing the runtime's traits).
+//!
+//! Errors from every step are collected in one [`Errors`] and become `compile_error!`s beside
+//! a stub of the item, so that the user's other code still type-checks. [`Kind`] says whether a
+//! kernel or a function is compiled. [`builtins`] lists the builtin functions, [`syntax`] holds
+//! the syntactic queries check and lower share.
+//!
+//! The macro knows no types: every operation is a call to a rule in `adflex_runtime::math`
+//! (`add`, `adj_add`, `tan_add`, ..), which type inference resolves.
 //!
 //! The language and its errors are documented in docs/guide.md of the repository.
 
@@ -66,7 +81,7 @@ impl Kind {
     }
 }
 
-/// Errors collected while expanding, each at its span.
+/// Errors collected while expanding, each at its span: the one error context of every step.
 #[derive(Default)]
 pub(crate) struct Errors(Vec<syn::Error>);
 

@@ -22,6 +22,7 @@ pub fn is_compound_assign(op: &BinOp) -> bool {
     )
 }
 
+/// The component a member names: `.x`, `.y`, `.z`, `.w` are 0 to 3.
 pub fn component_index(m: &syn::Member) -> Option<usize> {
     match m {
         syn::Member::Named(id) => match id.to_string().as_str() {
@@ -35,10 +36,12 @@ pub fn component_index(m: &syn::Member) -> Option<usize> {
     }
 }
 
+/// Whether a `match` pattern matches everything: `_` or a name.
 pub fn is_catch_all(p: &Pat) -> bool {
     matches!(p, Pat::Wild(_)) || matches!(p, Pat::Ident(pi) if pi.subpat.is_none())
 }
 
+/// The value of an integer literal (in parentheses or not).
 pub fn int_literal(e: &Expr) -> Option<u64> {
     match e {
         Expr::Lit(syn::ExprLit {
@@ -50,6 +53,7 @@ pub fn int_literal(e: &Expr) -> Option<u64> {
     }
 }
 
+/// The error for a macro call in a kernel.
 pub fn macro_message(m: &syn::Macro) -> String {
     let name = m.path.to_token_stream().to_string();
     format!(
@@ -81,6 +85,7 @@ pub fn exits_loop(body: &syn::Block) -> bool {
     v.found
 }
 
+/// Whether `body` has a `return` anywhere.
 pub fn contains_return(body: &syn::Block) -> bool {
     let mut v = Returns(false);
     v.visit_block(body);

@@ -1,4 +1,4 @@
-//! Lowering of expressions: literals, names, operators, calls of builtins and #[diff_func]s,
+//! Lowering of expressions: literals, names, operators, calls of builtins and `#[diff_func]`s,
 //! array reads, and components of vectors and matrices.
 
 use quote::{quote, quote_spanned, ToTokens};
@@ -252,7 +252,7 @@ impl Lowerer<'_> {
         }
     }
 
-    /// A call: `tid()`, `no_grad(..)`, a builtin, a #[diff_func], a constant (`R::zero()`), or
+    /// A call: `tid()`, `no_grad(..)`, a builtin, a `#[diff_func]`, a constant (`R::zero()`), or
     /// a plain call inside `no_grad(..)`.
     pub(super) fn lower_call(&mut self, c: &syn::ExprCall, out: &mut Block) -> Option<ValueId> {
         let span = c.span();
