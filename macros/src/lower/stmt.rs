@@ -204,7 +204,7 @@ impl Lowerer<'_> {
             let is_param = self.sig.param_index(&name).is_some()
                 && self.env[0]
                     .iter()
-                    .any(|x| x.name == Name::from(&name) && x.value == b.value);
+                    .any(|x| matches!(&x.name, Name::Var(n) if *n == name) && x.value == b.value);
             let msg = if is_param && component.is_some() {
                 format!("cannot store to `{name}`: it is a value parameter, not an `&Array`")
             } else if is_param {
