@@ -4,7 +4,7 @@ use proc_macro2::TokenStream;
 use syn::parse::Parser;
 use syn::spanned::Spanned;
 
-use crate::Errors;
+use crate::{Errors, Kind};
 
 #[derive(Default)]
 pub struct Attr {
@@ -17,7 +17,7 @@ pub struct Attr {
 }
 
 impl Attr {
-    pub fn parse(args: TokenStream, is_kernel: bool, errors: &mut Errors) -> Attr {
+    pub fn parse(args: TokenStream, kind: Kind, errors: &mut Errors) -> Attr {
         let mut attr = Attr::default();
         let parser = syn::meta::parser(|meta| {
             let key = meta
@@ -30,7 +30,7 @@ impl Attr {
                     let s: syn::LitStr = meta.value()?.parse()?;
                     attr.krate = Some(s.parse()?);
                 }
-                "adjoint" | "tangent" if !is_kernel => {
+                "adjoint" | "tangent" if kind == Kind::Func => {
                     let p: syn::Path = meta.value()?.parse()?;
                     if key == "adjoint" {
                         attr.adjoint = Some(p);
@@ -44,7 +44,7 @@ impl Attr {
                     ))
                 }
                 _ => {
-                    return Err(meta.error(if is_kernel {
+                    return Err(meta.error(if kind == Kind::Kernel {
                         "unknown argument; #[diff_kernel] accepts `crate = \"path\"`"
                     } else {
                         "unknown argument; #[diff_func] accepts `adjoint = path`, `tangent = path`, \

@@ -180,8 +180,8 @@ impl<'a> Emitter<'a> {
                 let t = tid();
                 quote!(#t)
             }
-            Op::Builtin { name, args } => {
-                let f = Ident::new(name, span);
+            Op::Builtin { f, args } => {
+                let f = Ident::new(f.name(), span);
                 let (rt, args) = (located(rt, span), vs_at(args, span));
                 quote_spanned!(span=> #rt::math::#f(#(#args),*))
             }
@@ -459,8 +459,8 @@ impl<'a> Emitter<'a> {
         let an = a(l.id);
         match &l.op {
             Op::Builtin { args, .. } if args.is_empty() => quote!(),
-            Op::Builtin { name, args } => {
-                let f = format_ident!("adj_{}", name, span = span);
+            Op::Builtin { f, args } => {
+                let f = format_ident!("adj_{}", f.name(), span = span);
                 let xs = vs_at(args, span);
                 let rt = &located(rt, span);
                 if args.len() == 1 {
@@ -625,9 +625,9 @@ impl<'a> Emitter<'a> {
         let span = l.span;
         let (x, dx) = (v(l.id), d(l.id));
         match &l.op {
-            Op::Builtin { name, args } if !args.is_empty() => {
+            Op::Builtin { f, args } if !args.is_empty() => {
                 let fwd = self.let_stmt(l);
-                let f = format_ident!("tan_{}", name, span = span);
+                let f = format_ident!("tan_{}", f.name(), span = span);
                 let (xs, dxs) = (vs_at(args, span), ds_at(args, span));
                 let rt = &located(rt, span);
                 quote_spanned!(span=> #fwd let #dx = #rt::math::#f(#(#xs,)* #(#dxs),*);)

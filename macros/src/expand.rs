@@ -1,55 +1,55 @@
-//! Expansion: parse -> validate/lower -> emit the items of a kernel or a function.
+//! Expansion: parse -> check -> lower -> emit, and the items of a kernel or a function
+//! assembled around the emitted code (or a stub beside the errors).
 
 use proc_macro2::TokenStream;
 use quote::{format_ident, quote, ToTokens};
 use syn::spanned::Spanned;
 
 use crate::attr::Attr;
+use crate::check;
 use crate::emit::{self, Emitter};
 use crate::ir::Body;
 use crate::lower::{ArrayUse, Lowerer};
 use crate::signature::{ParamKind, Signature};
-use crate::Errors;
+use crate::{Errors, Kind};
 
-/// Expands `#[diff_kernel]` (`is_kernel`) or `#[diff_func]` on `item`.
-pub fn expand(args: TokenStream, item: TokenStream, is_kernel: bool) -> TokenStream {
+/// Expands `#[diff_kernel]` or `#[diff_func]` (as `kind` says) on `item`.
+pub fn expand(args: TokenStream, item: TokenStream, kind: Kind) -> TokenStream {
     let mut errors = Errors::default();
     let f: syn::ItemFn = match syn::parse2(item) {
         Ok(f) => f,
         Err(e) => {
-            let what = if is_kernel {
-                "#[diff_kernel]"
-            } else {
-                "#[diff_func]"
-            };
+            let what = kind.attr();
             return syn::Error::new(e.span(), format!("{what} applies to a fn")).to_compile_error();
         }
     };
-    let attr = Attr::parse(args, is_kernel, &mut errors);
+    let attr = Attr::parse(args, kind, &mut errors);
     let rt = runtime_path(&attr);
-    let sig = Signature::parse(&f, is_kernel, &mut errors);
+    let sig = Signature::parse(&f, kind, &mut errors);
     let passthrough = passthrough_attrs(&f, &mut errors);
     let custom = attr.adjoint.is_some();
-    let (body, uses) = Lowerer::new(&sig, &rt, is_kernel, &mut errors).lower_body(&f.block);
-    if !errors.is_empty() {
-        let stub = if is_kernel {
-            kernel_stub(&sig, &rt, &passthrough)
-        } else {
-            func_stub(&sig, &rt, &passthrough)
+    // Lowering assumes a body in the kernel language: it runs only if the check passed.
+    let lowered = check::check_body(&f.block, kind, &mut errors)
+        .then(|| Lowerer::new(&sig, &rt, kind, &mut errors).lower_body(&f.block));
+    let Some((body, uses)) = lowered.filter(|_| errors.is_empty()) else {
+        let stub = match kind {
+            Kind::Kernel => kernel_stub(&sig, &rt, &passthrough),
+            Kind::Func => func_stub(&sig, &rt, &passthrough),
         };
         let errs = errors.to_compile_errors();
         return quote!(#errs #stub);
-    }
-    let items = if is_kernel {
-        kernel_items(&sig, &rt, &body, &uses, &passthrough)
-    } else {
-        let custom = custom.then(|| {
-            (
-                attr.adjoint.as_ref().unwrap(),
-                attr.tangent.as_ref().unwrap(),
-            )
-        });
-        func_items(&sig, &rt, &body, custom, &passthrough)
+    };
+    let items = match kind {
+        Kind::Kernel => kernel_items(&sig, &rt, &body, &uses, &passthrough),
+        Kind::Func => {
+            let custom = custom.then(|| {
+                (
+                    attr.adjoint.as_ref().unwrap(),
+                    attr.tangent.as_ref().unwrap(),
+                )
+            });
+            func_items(&sig, &rt, &body, custom, &passthrough)
+        }
     };
     dump(&sig.name.to_string(), &items);
     items
@@ -282,10 +282,8 @@ fn kernel_mode(
         }
     }
     let mut prologue = TokenStream::new();
-    for (p, (param, &val)) in sig.params.iter().zip(&body.params).enumerate() {
-        if param.is_array() {
-            continue;
-        }
+    for (p, val) in body.params.iter().enumerate() {
+        let Some(val) = *val else { continue }; // an array: read through its view
         let i = syn::Index::from(p);
         let (x, ax, dx) = emit::names(val);
         prologue.extend(quote!(let #x = __args.#i;));
@@ -354,9 +352,16 @@ fn func_items(
     let strukt = struct_item(sig, attrs);
     let lints = lints();
     let args_ty = quote!((#(#tys,)*));
-    let xs: Vec<_> = body.params.iter().map(|&p| emit::names(p).0).collect();
-    let axs: Vec<_> = body.params.iter().map(|&p| emit::names(p).1).collect();
-    let dxs: Vec<_> = body.params.iter().map(|&p| emit::names(p).2).collect();
+    // A function's parameters are all values (the signature refuses arrays).
+    let vals: Vec<_> = body
+        .params
+        .iter()
+        .flatten()
+        .map(|&p| emit::names(p))
+        .collect();
+    let xs: Vec<_> = vals.iter().map(|n| n.0.clone()).collect();
+    let axs: Vec<_> = vals.iter().map(|n| n.1.clone()).collect();
+    let dxs: Vec<_> = vals.iter().map(|n| n.2.clone()).collect();
     let r = body.ret.unwrap();
     let (rv, _, rd) = emit::names(r);
     let (adjoint, tangent) = match custom {

@@ -19,7 +19,7 @@ pub enum Op {
     /// The thread id of a kernel.
     Tid,
     /// A builtin of `adflex::math` (rules `name`, `adj_name`, `tan_name`).
-    Builtin { name: String, args: Vec<ValueId> },
+    Builtin { f: Builtin, args: Vec<ValueId> },
     /// A call to a `#[diff_func]` (through `adflex::DiffFunc`).
     Func {
         path: TokenStream,
@@ -56,6 +56,48 @@ pub enum Op {
         method: TokenStream,
         args: Vec<ValueId>,
     },
+}
+
+/// A builtin rule of `adflex_runtime::math`: the operations the macro itself lowers to, or a
+/// builtin the user calls by name. Emitted as `name(..)`, `adj_name(..)` and `tan_name(..)`.
+#[derive(Clone, PartialEq, Eq, Debug)]
+pub enum Builtin {
+    /// `a + b` and `a += b`.
+    Add,
+    /// `a - b` and `a -= b`.
+    Sub,
+    /// `a * b` and `a *= b`.
+    Mul,
+    /// `a / b` and `a /= b`.
+    Div,
+    /// `a % b` and `a %= b`.
+    Rem,
+    /// `-a`.
+    Neg,
+    /// A component of a vector, matrix or index array: `v.x`, `v[k]`, `m[(r, c)]`,
+    /// `let [i, j] = pairs[t];`.
+    Extract,
+    /// A vector with one component replaced: `v.x = e`, `v[k] = e`.
+    Replace,
+    /// A builtin called by name in the kernel (`dot(a, b)`); see [`crate::builtins`].
+    Named(String),
+}
+
+impl Builtin {
+    /// The name of the rule in `adflex_runtime::math`.
+    pub fn name(&self) -> &str {
+        match self {
+            Builtin::Add => "add",
+            Builtin::Sub => "sub",
+            Builtin::Mul => "mul",
+            Builtin::Div => "div",
+            Builtin::Rem => "rem",
+            Builtin::Neg => "neg",
+            Builtin::Extract => "extract",
+            Builtin::Replace => "replace",
+            Builtin::Named(name) => name,
+        }
+    }
 }
 
 /// `let v<id> = op;`
@@ -132,7 +174,8 @@ pub struct Block {
 
 /// A lowered body: its parameters' values, the body, and the returned value (funcs).
 pub struct Body {
-    pub params: Vec<ValueId>,
+    /// The value of each parameter, `None` for an array (read through its view, not a value).
+    pub params: Vec<Option<ValueId>>,
     pub block: Block,
     pub ret: Option<ValueId>,
 }

@@ -1,11 +1,26 @@
 //! `#[diff_kernel]` and `#[diff_func]`: plain Rust functions become a forward kernel, its
 //! adjoint (reverse mode) and its tangent (forward mode).
 //!
-//! The pipeline, each step a module: [`attr`] and [`signature`] parse what is around the body;
-//! [`lower`] validates the body against the kernel language (collecting every error at its
-//! span) and lowers it to the SSA of [`ir`]; [`emit`] writes the three bodies; [`expand`]
-//! assembles the items. The macro knows no types: every operation is a call to a rule in
-//! `adflex_runtime::math`, which type inference resolves.
+//! The pipeline, one module per step ([`expand`] runs them in order):
+//!
+//! 1. **parse**: [`attr`] reads the attribute's arguments, [`signature`] the fn's parameters
+//!    (arrays or values), generics and return type.
+//! 2. **check**: [`check`] walks the body once and refuses every construct outside the kernel
+//!    language (closures, macros, references, labels, ..), each at its span.
+//! 3. **lower**: [`lower`] turns a checked body into the SSA of [`ir`]: locals become values,
+//!    `if`/`match` merge through phis, loops carry values, and `break`/`continue`/`return`
+//!    become flags. It reports what needs names resolved (unknown names, assignments to
+//!    immutables, array stores, builtin arities).
+//! 4. **emit**: [`emit`] writes the forward, adjoint and tangent code of the SSA; [`expand`]
+//!    assembles it into the items (a unit struct implementing the runtime's traits).
+//!
+//! Errors from every step are collected in one [`Errors`] and become `compile_error!`s beside
+//! a stub of the item, so that the user's other code still type-checks. [`Kind`] says whether a
+//! kernel or a function is compiled. [`builtins`] lists the builtin functions, [`syntax`] holds
+//! the syntactic queries check and lower share.
+//!
+//! The macro knows no types: every operation is a call to a rule in `adflex_runtime::math`
+//! (`add`, `adj_add`, `tan_add`, ..), which type inference resolves.
 //!
 //! The language and its errors are documented in docs/guide.md of the repository.
 
@@ -17,11 +32,13 @@ use proc_macro2::Span;
 
 mod attr;
 mod builtins;
+mod check;
 mod emit;
 mod expand;
 mod ir;
 mod lower;
 mod signature;
+mod syntax;
 
 /// Compiles a kernel: a fn whose body runs once per thread id (`tid()`), reading `&Array<T>`
 /// parameters (`x[i]`), storing (`y[i] = v`) and accumulating (`f.atomic_add(i, v)`).
@@ -33,7 +50,7 @@ pub fn diff_kernel(
     args: proc_macro::TokenStream,
     item: proc_macro::TokenStream,
 ) -> proc_macro::TokenStream {
-    expand::expand(args.into(), item.into(), true).into()
+    expand::expand(args.into(), item.into(), Kind::Kernel).into()
 }
 
 /// Compiles a differentiable function that kernels (and other functions) can call.
@@ -47,10 +64,28 @@ pub fn diff_func(
     args: proc_macro::TokenStream,
     item: proc_macro::TokenStream,
 ) -> proc_macro::TokenStream {
-    expand::expand(args.into(), item.into(), false).into()
+    expand::expand(args.into(), item.into(), Kind::Func).into()
 }
 
-/// Errors collected while expanding, each at its span.
+/// What the attribute compiles: a kernel (`#[diff_kernel]`, launched once per thread id) or a
+/// differentiable function (`#[diff_func]`, called from kernels and functions).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub(crate) enum Kind {
+    Kernel,
+    Func,
+}
+
+impl Kind {
+    /// The attribute as messages name it.
+    pub fn attr(self) -> &'static str {
+        match self {
+            Kind::Kernel => "#[diff_kernel]",
+            Kind::Func => "#[diff_func]",
+        }
+    }
+}
+
+/// Errors collected while expanding, each at its span: the one error context of every step.
 #[derive(Default)]
 pub(crate) struct Errors(Vec<syn::Error>);
 

@@ -6,7 +6,7 @@ use quote::ToTokens;
 use syn::spanned::Spanned;
 use syn::{FnArg, GenericParam, Ident, Pat, ReturnType, Type, TypeParamBound};
 
-use crate::Errors;
+use crate::{Errors, Kind};
 
 /// A parameter of a kernel or function.
 pub struct Param {
@@ -44,13 +44,9 @@ pub struct Signature {
 }
 
 impl Signature {
-    pub fn parse(f: &syn::ItemFn, is_kernel: bool, errors: &mut Errors) -> Signature {
+    pub fn parse(f: &syn::ItemFn, kind: Kind, errors: &mut Errors) -> Signature {
         let sig = &f.sig;
-        let what = if is_kernel {
-            "#[diff_kernel]"
-        } else {
-            "#[diff_func]"
-        };
+        let what = kind.attr();
         if let Some(c) = &sig.constness {
             errors.push(c.span(), format!("a {what} cannot be `const`"));
         }
@@ -92,7 +88,7 @@ impl Signature {
                                     ),
                                 );
                             }
-                            if !is_kernel {
+                            if kind == Kind::Func {
                                 errors.push(
                                     r.span(),
                                     "a #[diff_func] takes values only; read array elements in \
@@ -151,7 +147,7 @@ impl Signature {
                 ty => Some(ty.clone()),
             },
         };
-        if is_kernel {
+        if kind == Kind::Kernel {
             if let Some(ty) = &ret {
                 errors.push(
                     ty.span(),

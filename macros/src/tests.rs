@@ -3,6 +3,7 @@
 use quote::quote;
 
 use crate::expand::expand;
+use crate::Kind;
 
 #[test]
 fn expand_dir_writes_the_generated_code() {
@@ -16,7 +17,7 @@ fn expand_dir_writes_the_generated_code() {
                 y[t] = x[t] * s;
             }
         },
-        true,
+        Kind::Kernel,
     );
     std::env::remove_var("ADFLEX_EXPAND_DIR");
     let text = std::fs::read_to_string(dir.join("scale.rs")).expect("the dump file exists");
@@ -43,7 +44,7 @@ fn errors_become_compile_errors_with_a_stub() {
                 y[tid()] = x[tid()].norm();
             }
         },
-        true,
+        Kind::Kernel,
     )
     .to_string();
     assert_eq!(out.matches("compile_error").count(), 2, "{out}");
@@ -70,10 +71,192 @@ fn while_loop_lowers_to_a_loop_with_an_exit() {
                 s
             }
         },
-        false,
+        Kind::Func,
     )
     .to_string();
     // The adjoint pops each iteration's carried values off a stack.
     assert!(out.contains("__stack"), "{out}");
     assert!(out.contains("pop"), "{out}");
+}
+
+/// Every construct outside the kernel language is refused by the check pass with its one
+/// message (and lowering, which then does not run, adds nothing).
+#[test]
+fn check_refuses_each_construct_once() {
+    let cases: &[(Kind, proc_macro2::TokenStream, &str)] = &[
+        (
+            Kind::Kernel,
+            quote!(let c = |a: f32| a;),
+            "closures are not supported",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let v = vec![1.0];),
+            "macro calls are not supported",
+        ),
+        (
+            Kind::Kernel,
+            quote!(println!("{}", 1);),
+            "macro calls are not supported",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let r = &s;),
+            "references are not supported",
+        ),
+        (Kind::Kernel, quote!(let r = *s;), "references and pointers"),
+        (
+            Kind::Kernel,
+            quote!(let Some(a) = s else { return; };),
+            "`let .. else`",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let t = (s, s);),
+            "tuples are not supported",
+        ),
+        (Kind::Kernel, quote!(let p = P { a: s };), "struct literals"),
+        (Kind::Kernel, quote!(let a = [s, s];), "array literals"),
+        (
+            Kind::Kernel,
+            quote!(let r = 0..3;),
+            "ranges are only supported",
+        ),
+        (Kind::Kernel, quote!('a: for i in 0..3 {}), "loop labels"),
+        (
+            Kind::Kernel,
+            quote!(for i in 0..3 {
+                break 'a;
+            }),
+            "labelled `break`",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let b = 'a: { 1.0 };),
+            "labelled blocks",
+        ),
+        (
+            Kind::Kernel,
+            quote!(loop {
+                let a = s;
+            }),
+            "`loop` without `break`",
+        ),
+        (Kind::Kernel, quote!(break;), "`break` outside of a loop"),
+        (
+            Kind::Kernel,
+            quote!(for i in 0..3 {
+                continue 'a;
+            }),
+            "labelled `continue`",
+        ),
+        (
+            Kind::Kernel,
+            quote!(loop {
+                break s;
+            }),
+            "`break` with a value",
+        ),
+        (
+            Kind::Kernel,
+            quote!(while let Some(a) = s {}),
+            "`while let`",
+        ),
+        (Kind::Kernel, quote!(if let Some(a) = s {}), "`if let`"),
+        (
+            Kind::Kernel,
+            quote!(let a = s.sqrt();),
+            "method calls are not differentiable",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let a = Vec3::new(s, s, s);),
+            "is not differentiable",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let a = <f32 as T>::f(s);),
+            "qualified paths",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let a = no_grad(s, s);),
+            "`no_grad` takes one expression",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let a = tid(s);),
+            "`tid()` takes no arguments",
+        ),
+        (Kind::Kernel, quote!(let a = s.q;), "only the components"),
+        (
+            Kind::Kernel,
+            quote!(let a = "s";),
+            "only numeric and boolean literals",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let (a, b) = s;),
+            "this pattern is not supported",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let [a, (b)] = s;),
+            "destructure into names",
+        ),
+        (Kind::Kernel, quote!(let a;), "declare locals with a value"),
+        (
+            Kind::Kernel,
+            quote!(
+                fn g() {}
+            ),
+            "items (fn, use, const, struct ..)",
+        ),
+        (
+            Kind::Kernel,
+            quote!(for (i, j) in 0..3 {}),
+            "binds a plain name",
+        ),
+        (Kind::Kernel, quote!(for i in s {}), "integer ranges only"),
+        (Kind::Kernel, quote!(for i in 0.. {}), "needs both bounds"),
+        (
+            Kind::Kernel,
+            quote!(let a = match 1 { 0 => s, 1 => s };),
+            "must end with a `_ =>`",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let a = match 1 { ..=3 => s, _ => s };),
+            "need both bounds",
+        ),
+        (
+            Kind::Kernel,
+            quote!(let a = match 1 { Some(x) => s, _ => s };),
+            "takes integer literals",
+        ),
+        (Kind::Kernel, quote!(return s;), "returns no value"),
+        (
+            Kind::Kernel,
+            quote!(let a = unsafe { s };),
+            "`unsafe` blocks",
+        ),
+        (
+            Kind::Func,
+            quote!(let a = tid();),
+            "`tid()` is only available",
+        ),
+    ];
+    for (kind, stmts, msg) in cases {
+        let item = match kind {
+            Kind::Kernel => quote!(fn k(s: f32, y: &Array<f32>) { #stmts }),
+            Kind::Func => quote!(fn f(s: f32) -> f32 { #stmts s }),
+        };
+        let out = expand(quote!(), item, *kind).to_string();
+        assert_eq!(
+            out.matches("compile_error").count(),
+            1,
+            "{stmts}: one error expected: {out}"
+        );
+        assert!(out.contains(msg), "{stmts}: `{msg}` expected: {out}");
+    }
 }
