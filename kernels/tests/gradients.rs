@@ -236,7 +236,7 @@ fn triangle_membranes() {
         );
     }
     let m = b.finalize();
-    let t = m.tri_fem.as_ref().unwrap();
+    let t = m.tri_fem().unwrap();
     let x = arr(rest_x.iter().map(|p| p + r.vec3(-0.1, 0.1)).collect(), "x");
     let v = arr(r.vec3s(9, -1.0, 1.0), "v");
     let f = zeros3(9, "f");
@@ -284,7 +284,7 @@ fn two_tets(r: &mut Rng) -> (adflex_kernels::Model<f64>, Array<Vec3<f64>>) {
 fn tetrahedra() {
     let mut r = Rng(16);
     let (m, x) = two_tets(&mut r);
-    let t = m.tets.as_ref().unwrap();
+    let t = m.tets().unwrap();
     let v = arr(r.vec3s(5, -1.0, 1.0), "v");
     let act = arr(r.scalars(2, -0.2, 0.2), "activation");
     let f = zeros3(5, "f");
