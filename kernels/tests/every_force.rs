@@ -187,6 +187,38 @@ fn the_scene_has_every_library_force() {
 
 /// `loss += |x - x0|^2 / dt^2 + <v, w>` over the particles: of the order of the forces'
 /// effect, so that central differences are not swamped by the rounding of `|x|`.
+/// The differentiable parameter arrays of each library force (the guide's table): a visitor
+/// that drops one would silently drop it from ImplicitEuler's copies and from the gradient
+/// checks below, which both iterate the visitor, so the list is pinned here.
+const PARAMS: &[(&str, &[&str])] = &[
+    ("springs", &["rest", "ke", "kd"]),
+    ("bending", &["rest", "ke", "kd"]),
+    ("triangle_fem", &["dm_inv", "area", "mu", "lambda", "kd"]),
+    (
+        "tets",
+        &["dm_inv", "rest_volume", "mu", "lambda", "kd", "activation"],
+    ),
+    ("ground", &[]),
+    ("particle_contact", &[]),
+    ("shape_contact", &["pos", "rot", "size"]),
+    ("drag", &[]),
+    ("anchors", &["anchor", "ke"]),
+];
+
+#[test]
+fn every_parameter_is_visited() {
+    let m = every_force();
+    for f in &m.forces {
+        let got: Vec<&str> = f.params().iter().map(|(p, _)| *p).collect();
+        let want = PARAMS
+            .iter()
+            .find(|(n, _)| *n == f.name())
+            .unwrap_or_else(|| panic!("no parameter list for `{}` in PARAMS", f.name()))
+            .1;
+        assert_eq!(got, want, "parameters visited by `{}`", f.name());
+    }
+}
+
 #[diff_kernel]
 fn rollout_loss(
     x: &Array<Vec3<f64>>,
