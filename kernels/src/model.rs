@@ -8,6 +8,7 @@
 use adflex_runtime::checkpoint::Checkpoint;
 use adflex_runtime::{AnyArray, Array, Mat22, Mat33, Quat, Real, Tape, Vec3};
 
+use crate::constraints::DistanceConstraints;
 use crate::contact::ground::Ground;
 use crate::contact::particle::ParticleContact;
 use crate::contact::shapes::{Shape, Shapes};
@@ -21,7 +22,6 @@ use crate::rigid::RigidBodies;
 use crate::validation::{
     max_of, min_quality, overflow_hint, precision, Check, ModelError, Problem,
 };
-use crate::xpbd::DistanceConstraints;
 
 fn lit<R: Real>(x: f64) -> R {
     R::lit(x)

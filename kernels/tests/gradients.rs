@@ -4,6 +4,10 @@
 
 mod common;
 
+use adflex_kernels::constraints::{
+    apply_corrections, distance_constraint_energy, solve_distance_constraints,
+    velocity_from_positions,
+};
 use adflex_kernels::contact::ground::eval_ground;
 use adflex_kernels::contact::particle::{eval_particle_contact, find_pairs};
 use adflex_kernels::contact::shapes::{eval_shape_contact, ShapeKind};
@@ -15,10 +19,6 @@ use adflex_kernels::forces::spring::{eval_springs, spring_energy};
 use adflex_kernels::integrators::semi_implicit::integrate_particles;
 use adflex_kernels::rigid::{body_kinetic_energy, eval_body_ground, integrate_bodies};
 use adflex_kernels::scenes::cloth::displacement_loss;
-use adflex_kernels::xpbd::{
-    apply_corrections, distance_constraint_energy, solve_distance_constraints,
-    velocity_from_positions,
-};
 use adflex_kernels::ModelBuilder;
 use adflex_runtime::{Array, Mat33, Quat, Vec3};
 use common::{arr, check_kernel, Rng};
