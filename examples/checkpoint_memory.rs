@@ -31,7 +31,7 @@ fn main() -> Result<(), Error> {
     let n = 64;
     let scene = cloth::build::<f32>(n);
     let model = &scene.model;
-    let ke = &model.springs.as_ref().expect("the cloth has springs").ke;
+    let ke = &model.springs().expect("the cloth has springs").ke;
     let target = Vec3::new(0.0, -0.1, 0.0);
     let scale = 1.0 / (n * n) as f32;
     let x0 = scene.initial.x.clone();

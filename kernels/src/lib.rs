@@ -34,6 +34,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 #![warn(missing_docs)]
 
+pub mod constraints;
 pub mod contact;
 pub mod forces;
 pub mod integrators;
@@ -42,7 +43,9 @@ pub mod rigid;
 pub mod scene_file;
 pub mod scenes;
 pub mod validation;
-pub mod xpbd;
+/// The constraints' old module name (`constraints` beside `integrators::xpbd`).
+#[doc(hidden)]
+pub use constraints as xpbd;
 
 pub use integrators::{Integrator, SemiImplicitEuler};
 pub use model::{BodyState, Control, Model, ModelBuilder, State};

@@ -1,12 +1,14 @@
 //! The scene description ([`ModelBuilder`]), the simulation model it produces ([`Model`]),
 //! the time-varying [`State`] and the per-step actuation [`Control`].
 //!
-//! A `Model` holds arrays only for the components the scene has (each an `Option`), and
-//! [`Model::eval_forces`] launches only their kernels: a scene costs only what it contains.
+//! A `Model` holds arrays only for the components the scene has (its forces are a list of
+//! [`Force`] components, see [`crate::forces`]), and [`Model::eval_forces`] launches only
+//! their kernels: a scene costs only what it contains.
 
 use adflex_runtime::checkpoint::Checkpoint;
 use adflex_runtime::{AnyArray, Array, Mat22, Mat33, Quat, Real, Tape, Vec3};
 
+use crate::constraints::DistanceConstraints;
 use crate::contact::ground::Ground;
 use crate::contact::particle::ParticleContact;
 use crate::contact::shapes::{Shape, Shapes};
@@ -15,11 +17,11 @@ use crate::forces::fem_tet::{tet_quality, tet_rest, TetFem};
 use crate::forces::fem_tri::{triangle_quality, triangle_rest, TriangleFem};
 use crate::forces::particle::{accelerations, add_forces, Drag};
 use crate::forces::spring::Springs;
+use crate::forces::{Force, ForceContext};
 use crate::rigid::RigidBodies;
 use crate::validation::{
     max_of, min_quality, overflow_hint, precision, Check, ModelError, Problem,
 };
-use crate::xpbd::DistanceConstraints;
 
 fn lit<R: Real>(x: f64) -> R {
     R::lit(x)
@@ -175,8 +177,18 @@ pub struct ModelBuilder<R: Real> {
     dist_pairs: Vec<[u32; 2]>,
     dist_rest: Vec<R>,
     dist_compliance: Vec<R>,
+    forces: AddedForces<R>,
     problems: Vec<Problem>,
 }
+
+/// The forces added with [`ModelBuilder::add_force`]. The builder only clones them (array
+/// handles), so a panic inside a builder method cannot leave them half-updated: the builder
+/// stays unwind-safe (as it was before forces held arrays, whose `UnsafeCell` is not).
+#[derive(Clone, Debug, Default)]
+struct AddedForces<R: Real>(Vec<Box<dyn Force<R>>>);
+
+impl<R: Real> std::panic::UnwindSafe for AddedForces<R> {}
+impl<R: Real> std::panic::RefUnwindSafe for AddedForces<R> {}
 
 impl<R: Real> Default for ModelBuilder<R> {
     fn default() -> Self {
@@ -224,6 +236,7 @@ impl<R: Real> ModelBuilder<R> {
             dist_pairs: Vec::new(),
             dist_rest: Vec::new(),
             dist_compliance: Vec::new(),
+            forces: AddedForces::default(),
             problems: Vec::new(),
         }
     }
@@ -719,6 +732,21 @@ impl<R: Real> ModelBuilder<R> {
         (self.dist_pairs.len() - 1) as u32
     }
 
+    /// Adds a force component (see [`crate::forces`]): a force of the library built by hand,
+    /// or one written outside it. The model evaluates it after the library's forces, in the
+    /// order added; every integrator steps it, and its parameter arrays
+    /// ([`Force::params_mut`]) get gradients like the library's. Returns its index among the
+    /// added forces.
+    pub fn add_force(&mut self, force: impl Force<R> + 'static) -> usize {
+        self.add_force_boxed(Box::new(force))
+    }
+
+    /// [`ModelBuilder::add_force`] for a boxed force.
+    pub fn add_force_boxed(&mut self, force: Box<dyn Force<R>>) -> usize {
+        self.forces.0.push(force);
+        self.forces.0.len() - 1
+    }
+
     /// Builds the model: arrays for what the scene contains, nothing for the rest. Panics
     /// with the full list of problems (see [`ModelBuilder::try_finalize`]) if there are any.
     pub fn finalize(&self) -> Model<R> {
@@ -850,6 +878,25 @@ impl<R: Real> ModelBuilder<R> {
             rest: Array::from_vec(self.dist_rest.clone()).named("dist_rest"),
             compliance: Array::from_vec(self.dist_compliance.clone()).named("dist_compliance"),
         });
+        // The library's forces, in the order of `forces::BUILTIN_FORCES`, then the added ones.
+        let ground = self.ground;
+        let particle_contact = self.particle_contact;
+        let drag = self.drag;
+        let builtin: [Option<Box<dyn Force<R>>>; 8] = [
+            springs.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            bending.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            triangles.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            tets.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            ground.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            particle_contact.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            shapes.map(|f| Box::new(f) as Box<dyn Force<R>>),
+            drag.map(|f| Box::new(f) as Box<dyn Force<R>>),
+        ];
+        let forces = builtin
+            .into_iter()
+            .flatten()
+            .chain(self.forces.0.iter().cloned())
+            .collect();
         Model {
             particle_count: n,
             particle_x: Array::from_vec(self.particle_x.clone()).named("x0"),
@@ -858,14 +905,7 @@ impl<R: Real> ModelBuilder<R> {
             gravity: self.gravity,
             particle_radius: self.particle_radius,
             triangles: self.triangles.clone(),
-            springs,
-            bending,
-            tri_fem: triangles,
-            tets,
-            ground: self.ground,
-            drag: self.drag,
-            particle_contact: self.particle_contact,
-            shapes,
+            forces,
             bodies,
             distance_constraints,
         }
@@ -890,22 +930,11 @@ pub struct Model<R: Real> {
     pub particle_radius: R,
     /// The surface triangles (topology, for output and bending; host only).
     pub triangles: Vec<[u32; 3]>,
-    /// Springs.
-    pub springs: Option<Springs<R>>,
-    /// Dihedral bending elements.
-    pub bending: Option<Bending<R>>,
-    /// StVK membrane triangles.
-    pub tri_fem: Option<TriangleFem<R>>,
-    /// Stable Neo-Hookean tetrahedra.
-    pub tets: Option<TetFem<R>>,
-    /// Ground plane.
-    pub ground: Option<Ground<R>>,
-    /// Drag / wind.
-    pub drag: Option<Drag<R>>,
-    /// Particle-particle contact.
-    pub particle_contact: Option<ParticleContact<R>>,
-    /// Analytic shapes.
-    pub shapes: Option<Shapes<R>>,
+    /// The forces on the particles (see [`crate::forces`]): the library's the scene has, in
+    /// the order of [`crate::forces::BUILTIN_FORCES`], then those added with
+    /// [`ModelBuilder::add_force`]. [`Model::eval_forces`], [`Model::elastic_energy`],
+    /// [`Model::params`] and the integrators iterate this list.
+    pub forces: Vec<Box<dyn Force<R>>>,
     /// Rigid bodies.
     pub bodies: Option<RigidBodies<R>>,
     /// XPBD distance constraints (used by position-based integrators; no force).
@@ -923,10 +952,84 @@ impl<R: Real> Model<R> {
         }
     }
 
-    /// Records the force kernels of every particle component the scene has and returns the
-    /// total force on each particle (N), in a new array: springs, bending, membranes,
-    /// tetrahedra, ground, particle and shape contact, drag, and the control's external
-    /// forces. Gravity is not a force here (see [`Model::eval_accelerations`]).
+    /// The first force of type `T`, if the model has one (`model.force::<Springs<f64>>()`).
+    pub fn force<T: 'static>(&self) -> Option<&T> {
+        self.forces.iter().find_map(|f| f.downcast_ref::<T>())
+    }
+
+    /// The first force named `name` ([`Force::name`]), if any.
+    pub fn force_named(&self, name: &str) -> Option<&dyn Force<R>> {
+        self.forces.iter().find(|f| f.name() == name).map(|f| &**f)
+    }
+
+    /// The springs, if the model has any.
+    pub fn springs(&self) -> Option<&Springs<R>> {
+        self.force()
+    }
+    /// The dihedral bending elements, if any.
+    pub fn bending(&self) -> Option<&Bending<R>> {
+        self.force()
+    }
+    /// The StVK membrane triangles, if any.
+    pub fn tri_fem(&self) -> Option<&TriangleFem<R>> {
+        self.force()
+    }
+    /// The stable Neo-Hookean tetrahedra, if any.
+    pub fn tets(&self) -> Option<&TetFem<R>> {
+        self.force()
+    }
+    /// The ground plane (particle and body contact), if any.
+    pub fn ground(&self) -> Option<Ground<R>> {
+        self.force().copied()
+    }
+    /// Drag / wind, if set.
+    pub fn drag(&self) -> Option<Drag<R>> {
+        self.force().copied()
+    }
+    /// Particle-particle contact, if enabled.
+    pub fn particle_contact(&self) -> Option<ParticleContact<R>> {
+        self.force().copied()
+    }
+    /// The analytic shapes, if any.
+    pub fn shapes(&self) -> Option<&Shapes<R>> {
+        self.force()
+    }
+
+    /// Every differentiable parameter array of the forces, as `(force, parameter, array)`
+    /// (handles sharing the model's data): the forces' [`Force::params_mut`] visitors in the
+    /// order of [`Model::forces`].
+    pub fn params(&self) -> Vec<(&'static str, &'static str, Box<dyn AnyArray>)> {
+        self.forces
+            .iter()
+            .flat_map(|f| {
+                let force = f.name();
+                f.params().into_iter().map(move |(p, a)| (force, p, a))
+            })
+            .collect()
+    }
+
+    /// Marks parameter `param` of every force named `force` as requiring a gradient (see
+    /// [`Model::params`]); returns how many arrays it marked (0: no such parameter).
+    pub fn requires_grad(&self, force: &str, param: &str) -> usize {
+        let mut marked = 0;
+        for f in &self.forces {
+            if f.name() != force {
+                continue;
+            }
+            let mut handle = f.clone();
+            handle.params_mut(&mut |name, p| {
+                if name == param {
+                    p.set_requires_grad();
+                    marked += 1;
+                }
+            });
+        }
+        marked
+    }
+
+    /// Records the force kernels of every force of the model ([`Model::forces`], in order)
+    /// and returns the total force on each particle (N), in a new array, with the control's
+    /// external forces. Gravity is not a force here (see [`Model::eval_accelerations`]).
     pub fn eval_forces(
         &self,
         tape: &mut Tape,
@@ -934,36 +1037,9 @@ impl<R: Real> Model<R> {
         control: Option<&Control<R>>,
     ) -> Array<Vec3<R>> {
         let f = Array::zeros(self.particle_count).named("f");
-        let (x, v) = (&state.x, &state.v);
-        if let Some(s) = &self.springs {
-            s.eval(tape, x, v, &f);
-        }
-        if let Some(b) = &self.bending {
-            b.eval(tape, x, v, &f);
-        }
-        if let Some(t) = &self.tri_fem {
-            t.eval(tape, x, v, &f);
-        }
-        if let Some(t) = &self.tets {
-            t.eval(
-                tape,
-                x,
-                v,
-                control.and_then(|c| c.tet_activation.as_ref()),
-                &f,
-            );
-        }
-        if let Some(g) = &self.ground {
-            g.eval(tape, x, v, self.particle_radius, &f);
-        }
-        if let Some(c) = &self.particle_contact {
-            c.eval(tape, x, v, self.particle_radius, &f);
-        }
-        if let Some(s) = &self.shapes {
-            s.eval(tape, x, v, self.particle_radius, &f);
-        }
-        if let Some(d) = &self.drag {
-            d.eval(tape, v, &f);
+        let cx = self.context(state, control);
+        for force in &self.forces {
+            force.eval(&cx, tape, &f);
         }
         if let Some(fext) = control.and_then(|c| c.particle_f.as_ref()) {
             tape.launch(add_forces, self.particle_count, (fext, &f));
@@ -1006,7 +1082,7 @@ impl<R: Real> Model<R> {
         let n = bodies.len();
         let f = Array::zeros(n).named("body_f");
         let t = Array::zeros(n).named("body_t");
-        if let Some(g) = &self.ground {
+        if let Some(g) = &self.ground() {
             bodies.eval_ground(tape, s, g, &f, &t);
         }
         if let Some(c) = control {
@@ -1020,8 +1096,23 @@ impl<R: Real> Model<R> {
         Some((f, t))
     }
 
-    /// Records the elastic potential energy of the springs, membranes and tetrahedra (J) and
-    /// returns it as a one-element array (for tests and energy-based integrators).
+    /// What the forces read: the state, the control, the particle radius.
+    pub fn context<'a>(
+        &self,
+        state: &'a State<R>,
+        control: Option<&'a Control<R>>,
+    ) -> ForceContext<'a, R> {
+        ForceContext {
+            x: &state.x,
+            v: &state.v,
+            control,
+            particle_radius: self.particle_radius,
+        }
+    }
+
+    /// Records the elastic potential energy of the forces that have one ([`Force::energy`]:
+    /// springs, membranes, tetrahedra, and any added force with a potential) (J) and returns
+    /// it as a one-element array (for tests and energy-based integrators).
     pub fn elastic_energy(
         &self,
         tape: &mut Tape,
@@ -1029,19 +1120,9 @@ impl<R: Real> Model<R> {
         control: Option<&Control<R>>,
     ) -> Array<R> {
         let e = Array::zeros(1).named("energy");
-        if let Some(s) = &self.springs {
-            s.energy(tape, &state.x, &e);
-        }
-        if let Some(t) = &self.tri_fem {
-            t.energy(tape, &state.x, &e);
-        }
-        if let Some(t) = &self.tets {
-            t.energy(
-                tape,
-                &state.x,
-                control.and_then(|c| c.tet_activation.as_ref()),
-                &e,
-            );
+        let cx = self.context(state, control);
+        for force in &self.forces {
+            force.energy(&cx, tape, &e);
         }
         e
     }

@@ -25,7 +25,7 @@
 //!     "ground": {}
 //! }"#;
 //! let model = ModelBuilder::<f32>::from_json_str(json).unwrap().finalize();
-//! assert_eq!(model.springs.unwrap().len(), 1);
+//! assert_eq!(model.springs().unwrap().len(), 1);
 //!
 //! let bad = "[[particles]]\nx = [0, 1, 0]\nmass = \"heavy\"\n";
 //! let err = ModelBuilder::<f32>::from_toml_str(bad).unwrap_err();

@@ -17,7 +17,7 @@ fn rel(a: f64, b: f64) -> f64 {
 fn topology_matches_reference_builder() {
     let n = 4;
     let scene = cloth::build::<f32>(n);
-    let s = scene.model.springs.as_ref().unwrap();
+    let s = scene.model.springs().unwrap();
     // 2 n (n-1) structural + 2 (n-1)^2 shear springs; the first few in reference order.
     assert_eq!(s.len(), 2 * n * (n - 1) + 2 * (n - 1) * (n - 1));
     assert_eq!(
@@ -25,7 +25,7 @@ fn topology_matches_reference_builder() {
         &[[0, 4], [0, 1], [0, 5], [4, 1], [1, 5], [1, 2]]
     );
     // Edges shared by two triangles: 3 (n-1)^2 - 2 (n-1) interior edges.
-    let b = scene.model.bending.as_ref().unwrap();
+    let b = scene.model.bending().unwrap();
     assert_eq!(b.len(), 3 * (n - 1) * (n - 1) - 2 * (n - 1));
     // From warp_cloth_scene.build(4): bends[:4].
     assert_eq!(

@@ -4,6 +4,10 @@
 
 mod common;
 
+use adflex_kernels::constraints::{
+    apply_corrections, distance_constraint_energy, solve_distance_constraints,
+    velocity_from_positions,
+};
 use adflex_kernels::contact::ground::eval_ground;
 use adflex_kernels::contact::particle::{eval_particle_contact, find_pairs};
 use adflex_kernels::contact::shapes::{eval_shape_contact, ShapeKind};
@@ -15,10 +19,6 @@ use adflex_kernels::forces::spring::{eval_springs, spring_energy};
 use adflex_kernels::integrators::semi_implicit::integrate_particles;
 use adflex_kernels::rigid::{body_kinetic_energy, eval_body_ground, integrate_bodies};
 use adflex_kernels::scenes::cloth::displacement_loss;
-use adflex_kernels::xpbd::{
-    apply_corrections, distance_constraint_energy, solve_distance_constraints,
-    velocity_from_positions,
-};
 use adflex_kernels::ModelBuilder;
 use adflex_runtime::{Array, Mat33, Quat, Vec3};
 use common::{arr, check_kernel, Rng};
@@ -236,7 +236,7 @@ fn triangle_membranes() {
         );
     }
     let m = b.finalize();
-    let t = m.tri_fem.as_ref().unwrap();
+    let t = m.tri_fem().unwrap();
     let x = arr(rest_x.iter().map(|p| p + r.vec3(-0.1, 0.1)).collect(), "x");
     let v = arr(r.vec3s(9, -1.0, 1.0), "v");
     let f = zeros3(9, "f");
@@ -284,7 +284,7 @@ fn two_tets(r: &mut Rng) -> (adflex_kernels::Model<f64>, Array<Vec3<f64>>) {
 fn tetrahedra() {
     let mut r = Rng(16);
     let (m, x) = two_tets(&mut r);
-    let t = m.tets.as_ref().unwrap();
+    let t = m.tets().unwrap();
     let v = arr(r.vec3s(5, -1.0, 1.0), "v");
     let act = arr(r.scalars(2, -0.2, 0.2), "activation");
     let f = zeros3(5, "f");

@@ -102,7 +102,7 @@ fn check_integrator<I: Integrator<f64>>(
     let s0 = model.state();
     let (x0, v0) = (s0.x.named("x0"), s0.v.named("v0"));
     let mut params: Vec<&dyn AnyArray> = vec![&x0, &v0];
-    let springs = model.springs.as_ref();
+    let springs = model.springs();
     if let Some(s) = springs {
         params.extend([&s.ke as &dyn AnyArray, &s.rest, &s.kd]);
     }
@@ -202,7 +202,7 @@ fn xpbd_averaged_gradients() {
         bend: None,
         ..adflex_kernels::scenes::cloth::ClothGrid::benchmark(3)
     });
-    let pairs = b.finalize().springs.unwrap().pairs.to_vec();
+    let pairs = b.finalize().springs().unwrap().pairs.to_vec();
     for (k, [i, j]) in pairs.into_iter().enumerate() {
         b.add_distance_constraint(i, j, 1e-3 * (1.0 + 0.1 * k as f64));
     }
@@ -412,15 +412,7 @@ fn implicit_euler_cloth_f32_with_contact() {
     );
     tape.backward(&loss).unwrap();
     let gv = scene.initial.v.grad().unwrap().to_vec();
-    let gk = scene
-        .model
-        .springs
-        .as_ref()
-        .unwrap()
-        .ke
-        .grad()
-        .unwrap()
-        .to_vec();
+    let gk = scene.model.springs().unwrap().ke.grad().unwrap().to_vec();
     let norm = |v: &[f32]| v.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt();
     let gv_flat: Vec<f32> = gv.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
     let (nv, nk) = (norm(&gv_flat), norm(&gk));

@@ -69,7 +69,7 @@ fn flat_cloth_at_rest_has_finite_gradients_and_tangents() {
 
     // The bending kernel alone on the flat, resting sheet: zero force, finite derivatives.
     let m = &scene.model;
-    let b = m.bending.as_ref().unwrap();
+    let b = m.bending().unwrap();
     let (x, v) = (m.particle_x.deep_clone(), m.particle_v.deep_clone());
     let f: Array<Vec3<f64>> = Array::zeros(16);
     assert_finite_derivatives!(
@@ -199,7 +199,7 @@ fn degenerate_elements_have_finite_derivatives() {
     }
     b.add_tet(0, 1, 2, 3, 100.0, 300.0, 1.0);
     let m = b.finalize();
-    let t = m.tets.as_ref().unwrap();
+    let t = m.tets().unwrap();
     for z in [-0.5, 0.0] {
         let x = arr(
             vec![
@@ -304,16 +304,16 @@ fn component_forces(m: &Model<f64>, s: &State<f64>) -> Vec<(&'static str, Vec<Ve
         out.push((name, f.to_vec()));
     };
     one("springs", &|t, f| {
-        m.springs.as_ref().unwrap().eval(t, &s.x, &s.v, f)
+        m.springs().unwrap().eval(t, &s.x, &s.v, f)
     });
     one("bending", &|t, f| {
-        m.bending.as_ref().unwrap().eval(t, &s.x, &s.v, f)
+        m.bending().unwrap().eval(t, &s.x, &s.v, f)
     });
     one("triangles", &|t, f| {
-        m.tri_fem.as_ref().unwrap().eval(t, &s.x, &s.v, f)
+        m.tri_fem().unwrap().eval(t, &s.x, &s.v, f)
     });
     one("tetrahedra", &|t, f| {
-        m.tets.as_ref().unwrap().eval(t, &s.x, &s.v, None, f)
+        m.tets().unwrap().eval(t, &s.x, &s.v, None, f)
     });
     out
 }
@@ -480,7 +480,7 @@ fn checkpointed_cloth_gradients_equal_the_plain_tape() {
     let scene = cloth::build::<f64>(5);
     let plain = cloth::rollout(&scene, 20, true).unwrap();
     scene.initial.v.zero_grad();
-    scene.model.springs.as_ref().unwrap().ke.zero_grad();
+    scene.model.springs().unwrap().ke.zero_grad();
     let m = &scene.model;
     let x0 = scene.initial.x.clone();
     let out = checkpointed(
@@ -502,15 +502,7 @@ fn checkpointed_cloth_gradients_equal_the_plain_tape() {
     assert_eq!(out.loss.get(0), plain.loss);
     assert_eq!(scene.initial.v.grad().unwrap().to_vec(), plain.grad_v0);
     assert_eq!(
-        scene
-            .model
-            .springs
-            .as_ref()
-            .unwrap()
-            .ke
-            .grad()
-            .unwrap()
-            .to_vec(),
+        scene.model.springs().unwrap().ke.grad().unwrap().to_vec(),
         plain.grad_ke
     );
 }

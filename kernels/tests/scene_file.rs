@@ -47,16 +47,16 @@ fn a_full_json_scene_builds_and_steps() {
     let b = ModelBuilder::<f64>::from_json_str(FULL_JSON).unwrap();
     let m = b.finalize();
     assert_eq!(m.particle_count, 5);
-    assert_eq!(m.springs.as_ref().unwrap().len(), 2);
-    assert_eq!(m.springs.as_ref().unwrap().rest.get(1), 0.9);
-    assert_eq!(m.tri_fem.as_ref().unwrap().len(), 1);
+    assert_eq!(m.springs().unwrap().len(), 2);
+    assert_eq!(m.springs().unwrap().rest.get(1), 0.9);
+    assert_eq!(m.tri_fem().unwrap().len(), 1);
     assert_eq!(m.triangles.len(), 2);
-    assert_eq!(m.bending.as_ref().unwrap().len(), 1);
-    assert_eq!(m.tets.as_ref().unwrap().len(), 1);
-    assert_eq!(m.shapes.as_ref().unwrap().kind.to_vec(), vec![0, 1, 2]);
+    assert_eq!(m.bending().unwrap().len(), 1);
+    assert_eq!(m.tets().unwrap().len(), 1);
+    assert_eq!(m.shapes().unwrap().kind.to_vec(), vec![0, 1, 2]);
     assert_eq!(m.bodies.as_ref().unwrap().len(), 1);
     assert_eq!(m.distance_constraints.as_ref().unwrap().len(), 1);
-    assert_eq!(m.ground.unwrap().leak, 0.01);
+    assert_eq!(m.ground().unwrap().leak, 0.01);
     assert_eq!(m.particle_inv_mass.get(0), 0.0);
     let mut tape = Tape::new();
     let s = SemiImplicitEuler
@@ -89,14 +89,14 @@ bend_ke = 0.01
     let r = &reference.model;
     assert_eq!(m.particle_x.to_vec(), r.particle_x.to_vec());
     assert_eq!(m.particle_inv_mass.to_vec(), r.particle_inv_mass.to_vec());
-    let (s, rs) = (m.springs.as_ref().unwrap(), r.springs.as_ref().unwrap());
+    let (s, rs) = (m.springs().unwrap(), r.springs().unwrap());
     assert_eq!(s.pairs.to_vec(), rs.pairs.to_vec());
     assert_eq!(s.rest.to_vec(), rs.rest.to_vec());
     assert_eq!(
-        m.bending.as_ref().unwrap().quads.to_vec(),
-        r.bending.as_ref().unwrap().quads.to_vec()
+        m.bending().unwrap().quads.to_vec(),
+        r.bending().unwrap().quads.to_vec()
     );
-    assert_eq!(m.ground, r.ground);
+    assert_eq!(m.ground(), r.ground());
 }
 
 fn json_err(src: &str) -> SceneError {

@@ -255,7 +255,7 @@ fn bad_dt_is_an_error_for_every_integrator() {
 #[test]
 fn nan_stiffness_is_an_error_naming_it() {
     let model = spring_system(100.0);
-    model.springs.as_ref().unwrap().ke.set(2, f64::NAN);
+    model.springs().unwrap().ke.set(2, f64::NAN);
     for policy in [SolverPolicy::Error, SolverPolicy::Continue] {
         let integ = ImplicitEuler {
             on_failure: policy,
@@ -360,7 +360,7 @@ fn implicit_euler_bending_gradients_match_finite_differences() {
     }
     b.add_bending([o1, o2, e0, e1], 0.3, 4.0, 0.2);
     let model = b.finalize();
-    let bend = model.bending.as_ref().unwrap();
+    let bend = model.bending().unwrap();
     check_implicit(
         "bending hinge",
         &model,
@@ -379,7 +379,7 @@ fn implicit_euler_triangle_fem_gradients_match_finite_differences() {
     let p2 = b.add_particle(Vec3::new(0.2, 1.1, 0.9), Vec3::new(-0.1, 0.2, 0.4), 0.7);
     b.add_triangle_fem(p0, p1, p2, 40.0, 25.0, 0.3);
     let model = b.finalize();
-    let t = model.tri_fem.as_ref().unwrap();
+    let t = model.tri_fem().unwrap();
     check_implicit("triangle FEM", &model, &[&t.mu, &t.lambda, &t.kd], 0.02, 5);
 }
 
@@ -393,7 +393,7 @@ fn implicit_euler_tet_fem_gradients_match_finite_differences() {
     let p3 = b.add_particle(Vec3::new(0.2, 1.1, 1.0), Vec3::new(0.0, -0.2, 0.3), 0.6);
     b.add_tet(p0, p1, p2, p3, 60.0, 90.0, 0.4);
     let model = b.finalize();
-    let t = model.tets.as_ref().unwrap();
+    let t = model.tets().unwrap();
     check_implicit("tet FEM", &model, &[&t.mu, &t.lambda, &t.kd], 0.02, 5);
 }
 

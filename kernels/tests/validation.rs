@@ -255,11 +255,8 @@ fn a_good_scene_finalizes_bitwise_as_before() {
             .collect();
         assert_eq!(inv, want);
         let d: f64 = (0.2f64 * 0.2 + 0.3 * 0.3 + 0.9 * 0.9).sqrt();
-        assert_eq!(
-            m.springs.as_ref().unwrap().rest.get(0).to_bits(),
-            d.to_bits()
-        );
-        let t = m.tets.as_ref().unwrap();
+        assert_eq!(m.springs().unwrap().rest.get(0).to_bits(), d.to_bits());
+        let t = m.tets().unwrap();
         // Negatively oriented: stored as (i, k, j, l), with a positive volume.
         assert_eq!(t.tets.get(0), [0, 1, 2, 3]);
         assert_eq!(t.rest_volume.get(0).to_bits(), (0.9f64 / 6.0).to_bits());

@@ -19,7 +19,7 @@ fn constrained_cloth(n: usize) -> Model<f64> {
     b.particle_radius = 0.01;
     b.add_cloth_grid(&ClothGrid::benchmark(n));
     b.set_ground(Ground::default());
-    let pairs = b.finalize().springs.unwrap().pairs.to_vec();
+    let pairs = b.finalize().springs().unwrap().pairs.to_vec();
     for [i, j] in pairs {
         b.add_distance_constraint(i, j, 0.0);
     }

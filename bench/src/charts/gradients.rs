@@ -54,7 +54,7 @@ fn chain_loss<R: Real>(model: &Model<R>, tape: &mut Tape) -> Array<R> {
 }
 
 fn ke<R: Real>(m: &Model<R>) -> Array<R> {
-    m.springs.as_ref().expect("springs").ke.clone()
+    m.springs().expect("springs").ke.clone()
 }
 
 /// Best wall time of 3 runs of `f`, and its last result.

@@ -4,6 +4,8 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use crate::forces::{Force, ForceContext, Param};
+
 /// Penetration depth `min(d, 0)` (m) with a leaky derivative: `1` for `d < 0` (in contact),
 /// `leak` for `d >= 0` (out of contact, where the true derivative is 0).
 ///
@@ -160,4 +162,16 @@ impl<R: Real> Ground<R> {
             ),
         );
     }
+}
+
+/// Ground contact of the particles. Its parameters are scalars (not differentiable), so it has
+/// no parameter arrays.
+impl<R: Real> Force<R> for Ground<R> {
+    fn name(&self) -> &'static str {
+        crate::forces::GROUND
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        Ground::eval(self, tape, cx.x, cx.v, cx.particle_radius, f);
+    }
+    fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }

@@ -8,6 +8,8 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
+use crate::forces::{Force, ForceContext, Param};
+
 use super::ground::{contact_depth, contact_force};
 
 /// Contact force of pair `tid = (i, j)` of particles of radius `radius` (m): with
@@ -157,4 +159,16 @@ pub fn find_pairs<R: Real>(x: &[Vec3<R>], cutoff: R) -> Vec<[u32; 2]> {
     }
     pairs.sort_unstable();
     pairs
+}
+
+/// Particle-particle contact. Its parameters are scalars (not differentiable), so it has no
+/// parameter arrays.
+impl<R: Real> Force<R> for ParticleContact<R> {
+    fn name(&self) -> &'static str {
+        crate::forces::PARTICLE_CONTACT
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        ParticleContact::eval(self, tape, cx.x, cx.v, cx.particle_radius, f);
+    }
+    fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }

@@ -5,6 +5,8 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use crate::forces::{Force, ForceContext, Param};
+
 use super::ground::{contact_depth, contact_force};
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
@@ -223,5 +225,20 @@ impl<R: Real> Shapes<R> {
                 self.mu, self.leak, f,
             ),
         );
+    }
+}
+
+/// Contact of the particles with the shapes; the shapes' poses and sizes are differentiable.
+impl<R: Real> Force<R> for Shapes<R> {
+    fn name(&self) -> &'static str {
+        crate::forces::SHAPE_CONTACT
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        Shapes::eval(self, tape, cx.x, cx.v, cx.particle_radius, f);
+    }
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+        visit("pos", &mut self.pos);
+        visit("rot", &mut self.rot);
+        visit("size", &mut self.size);
     }
 }

@@ -7,6 +7,8 @@ use std::collections::HashMap;
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use super::{Force, ForceContext, Param};
+
 /// `-1` if `a < 0`, else `1` (zero derivative). Warp's `sign`: unlike [`sign`] it is `1` at
 /// zero, which matters for a flat cloth, whose `cos_theta` may round to just below 1 while
 /// the sign test is exactly 0.
@@ -164,4 +166,18 @@ pub fn dihedral_angle(x: &[Vec3<f64>], q: [u32; 4]) -> f64 {
         1.0
     };
     c.acos() * s
+}
+
+impl<R: Real> Force<R> for Bending<R> {
+    fn name(&self) -> &'static str {
+        super::BENDING
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        Bending::eval(self, tape, cx.x, cx.v, f);
+    }
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+        visit("rest", &mut self.rest);
+        visit("ke", &mut self.ke);
+        visit("kd", &mut self.kd);
+    }
 }

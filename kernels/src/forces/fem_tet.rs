@@ -13,6 +13,8 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
+use super::{Force, ForceContext, Param};
+
 /// Accumulates the force of tetrahedron `tid` into `f`. `mu`, `lambda` (Pa), `kd` (Pa s),
 /// `activation` (dimensionless, 0 = passive).
 #[diff_kernel]
@@ -209,4 +211,28 @@ pub fn tet_rest(p: [Vec3<f64>; 4]) -> Option<(Mat33<f64>, f64)> {
         return None;
     }
     Some((dm.try_inverse()?, vol))
+}
+
+impl<R: Real> Force<R> for TetFem<R> {
+    fn name(&self) -> &'static str {
+        super::TETS
+    }
+    /// Reads the control's `tet_activation` if it has one, else [`TetFem::activation`].
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        let act = cx.control.and_then(|c| c.tet_activation.as_ref());
+        TetFem::eval(self, tape, cx.x, cx.v, act, f);
+    }
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        let act = cx.control.and_then(|c| c.tet_activation.as_ref());
+        TetFem::energy(self, tape, cx.x, act, energy);
+        true
+    }
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+        visit("dm_inv", &mut self.dm_inv);
+        visit("rest_volume", &mut self.rest_volume);
+        visit("mu", &mut self.mu);
+        visit("lambda", &mut self.lambda);
+        visit("kd", &mut self.kd);
+        visit("activation", &mut self.activation);
+    }
 }

@@ -10,6 +10,8 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
+use super::{Force, ForceContext, Param};
+
 /// Accumulates the membrane force of triangle `tid` into `f`. `mu`, `lambda` (Pa m, i.e.
 /// N/m: 2D Lame parameters), `kd` (N s/m: strain-rate damping).
 #[diff_kernel]
@@ -184,4 +186,24 @@ pub fn triangle_rest(p0: Vec3<f64>, p1: Vec3<f64>, p2: Vec3<f64>) -> Option<(Mat
     let w = n.cross(&e1).normalize();
     let dm = Mat22::new(e1.dot(&u), e2.dot(&u), e1.dot(&w), e2.dot(&w));
     Some((dm.try_inverse()?, area))
+}
+
+impl<R: Real> Force<R> for TriangleFem<R> {
+    fn name(&self) -> &'static str {
+        super::TRIANGLE_FEM
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        TriangleFem::eval(self, tape, cx.x, cx.v, f);
+    }
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        TriangleFem::energy(self, tape, cx.x, energy);
+        true
+    }
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+        visit("dm_inv", &mut self.dm_inv);
+        visit("area", &mut self.area);
+        visit("mu", &mut self.mu);
+        visit("lambda", &mut self.lambda);
+        visit("kd", &mut self.kd);
+    }
 }

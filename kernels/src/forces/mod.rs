@@ -1,12 +1,261 @@
-//! Internal forces on particles: springs, dihedral bending, triangle membranes (StVK), stable
-//! Neo-Hookean tetrahedra, and per-particle forces (drag, wind, external forces, gravity).
+//! Forces on particles, as components: every force is one type implementing [`Force`], in its
+//! own file, and a [`Model`](crate::Model) holds a list of them
+//! ([`Model::forces`](crate::Model::forces)). The model's force evaluation, its elastic
+//! energy, the private parameter copies of
+//! [`ImplicitEuler`](crate::integrators::ImplicitEuler) (and so its implicit-function-theorem
+//! gradient) and gradient checks all iterate that list and each force's parameter visitor
+//! ([`Force::params_mut`]): a force written outside this crate and added with
+//! [`ModelBuilder::add_force`](crate::ModelBuilder::add_force) works with every integrator.
 //!
-//! Each component is a struct holding its arrays, with an `eval` method that records its
-//! kernel on a tape and accumulates into a force array (`atomic_add`), and `energy` kernels
-//! where the force derives from a potential (tests check `force = -dE/dx` through them).
+//! The library's forces: springs, dihedral bending, triangle membranes (StVK), stable
+//! Neo-Hookean tetrahedra, drag / wind ([`particle`]), and the contact forces of
+//! [`crate::contact`] (ground, particle-particle, analytic shapes). [`BUILTIN_FORCES`] lists
+//! their names.
+//!
+//! Each component is a struct holding its arrays; its `eval` records its kernel on a tape and
+//! accumulates into a force array (`atomic_add`), and its `energy` (where the force derives
+//! from a potential) adds its energy (tests check `force = -dE/dx` through them).
+//!
+//! # Adding a force
+//!
+//! ```
+//! use adflex_kernels::forces::{Force, ForceContext, Param};
+//! use adflex_kernels::prelude::*;
+//! use adflex_macros::diff_kernel;
+//! use adflex_runtime::prelude::*;
+//!
+//! /// A constant force `f0[i]` on each particle (N).
+//! #[diff_kernel]
+//! fn push<R: Real>(f0: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
+//!     let i = tid();
+//!     f.atomic_add(i, f0[i]);
+//! }
+//!
+//! #[derive(Clone, Debug)]
+//! struct Push<R: Real> {
+//!     f0: Array<Vec3<R>>,
+//! }
+//!
+//! impl<R: Real> Force<R> for Push<R> {
+//!     fn name(&self) -> &'static str {
+//!         "push"
+//!     }
+//!     fn eval(&self, _cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+//!         tape.launch(push, self.f0.len(), (&self.f0, f));
+//!     }
+//!     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+//!         visit("f0", &mut self.f0);
+//!     }
+//! }
+//!
+//! let mut b = ModelBuilder::<f64>::new();
+//! b.add_particle(Vec3::zeros(), Vec3::zeros(), 1.0);
+//! b.gravity = Vec3::zeros();
+//! b.add_force(Push { f0: Array::from_vec(vec![Vec3::new(2.0, 0.0, 0.0)]) });
+//! let model = b.finalize();
+//! let mut tape = Tape::new();
+//! let s = SemiImplicitEuler.step(&model, &mut tape, &model.state(), None, 0.5).unwrap();
+//! assert_eq!(s.v.get(0).x, 1.0);
+//! let (force, param, _) = &model.params()[0];
+//! assert_eq!((*force, *param), ("push", "f0"));
+//! assert_eq!(model.requires_grad("push", "f0"), 1);
+//! ```
+
+use std::any::Any;
+use std::fmt::Debug;
+
+use adflex_runtime::{AnyArray, Array, Element, Real, Tape, Vec3};
+
+use crate::model::Control;
 
 pub mod bending;
 pub mod fem_tet;
 pub mod fem_tri;
 pub mod particle;
 pub mod spring;
+
+/// The names ([`Force::name`]) of every force type the library has, in the order
+/// [`ModelBuilder::finalize`](crate::ModelBuilder::finalize) adds them to a model. Each
+/// library force's `name` returns its entry here (tests check that a scene with every force
+/// lists exactly these).
+pub const BUILTIN_FORCES: &[&str] = &[
+    SPRINGS,
+    BENDING,
+    TRIANGLE_FEM,
+    TETS,
+    GROUND,
+    PARTICLE_CONTACT,
+    SHAPE_CONTACT,
+    DRAG,
+];
+
+/// [`spring::Springs`].
+pub const SPRINGS: &str = "springs";
+/// [`bending::Bending`].
+pub const BENDING: &str = "bending";
+/// [`fem_tri::TriangleFem`].
+pub const TRIANGLE_FEM: &str = "triangle_fem";
+/// [`fem_tet::TetFem`].
+pub const TETS: &str = "tets";
+/// [`crate::contact::ground::Ground`].
+pub const GROUND: &str = "ground";
+/// [`crate::contact::particle::ParticleContact`].
+pub const PARTICLE_CONTACT: &str = "particle_contact";
+/// [`crate::contact::shapes::Shapes`].
+pub const SHAPE_CONTACT: &str = "shape_contact";
+/// [`particle::Drag`].
+pub const DRAG: &str = "drag";
+
+/// What a force reads besides its own arrays: the state and the step's control.
+#[derive(Clone, Copy, Debug)]
+pub struct ForceContext<'a, R: Real> {
+    /// Particle positions (m).
+    pub x: &'a Array<Vec3<R>>,
+    /// Particle velocities (m/s).
+    pub v: &'a Array<Vec3<R>>,
+    /// The step's control, if any.
+    pub control: Option<&'a Control<R>>,
+    /// The model's particle radius for contact (m).
+    pub particle_radius: R,
+}
+
+/// A force on the particles: a component of a [`Model`](crate::Model).
+///
+/// Implement it once, for a `Clone + Debug` struct holding the force's arrays (clones are
+/// array handles, which share the data): [`Force::name`], [`Force::eval`], and
+/// [`Force::params_mut`], the visitor over every differentiable parameter array the force
+/// reads. The visitor is the single list that
+/// [`ImplicitEuler`](crate::integrators::ImplicitEuler) copies (it evaluates the force with
+/// private copies substituted through the visitor and maps their gradients back), that
+/// [`Model::params`](crate::Model::params) and gradient checks perturb, and that
+/// [`Model::requires_grad`](crate::Model::requires_grad) finds by name: a parameter the
+/// visitor misses gets no gradient through `ImplicitEuler`.
+///
+/// The force must be differentiable through the tape, i.e. record `#[diff_kernel]` launches
+/// (or `record_fn` steps with a backward and a tangent): `ImplicitEuler` needs the adjoint and
+/// the tangent of the force.
+pub trait Force<R: Real>: ForceClone<R> + Debug + Send + Sync {
+    /// A short name (`"springs"`): what [`Model::force_named`](crate::Model::force_named)
+    /// and [`Model::requires_grad`](crate::Model::requires_grad) look for.
+    fn name(&self) -> &'static str;
+
+    /// Records the force's kernels on `tape`, accumulating the force on each particle (N)
+    /// into `f` (with `atomic_add`: other forces accumulate into the same array).
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>);
+
+    /// Records the force's potential energy (J), added into `energy[0]`, and returns `true`;
+    /// the default (a force without a potential: damping, contact, drag) records nothing and
+    /// returns `false`.
+    fn energy(&self, _cx: &ForceContext<'_, R>, _tape: &mut Tape, _energy: &Array<R>) -> bool {
+        false
+    }
+
+    /// Calls `visit(name, array)` for every differentiable parameter array the force reads
+    /// (not index arrays, not scalars), in a fixed order. `visit` may replace the array
+    /// ([`Param::substitute`]): the force must then read the replacement.
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param));
+}
+
+/// Cloning and downcasting of a boxed [`Force`]; implemented for every `Force + Clone`.
+pub trait ForceClone<R: Real> {
+    /// A clone (array handles shared) in a box.
+    fn clone_box(&self) -> Box<dyn Force<R>>;
+    /// The force as [`Any`], to downcast to its type.
+    fn as_any(&self) -> &dyn Any;
+}
+
+impl<R: Real, T: Force<R> + Clone + 'static> ForceClone<R> for T {
+    fn clone_box(&self) -> Box<dyn Force<R>> {
+        Box::new(self.clone())
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+impl<R: Real> Clone for Box<dyn Force<R>> {
+    fn clone(&self) -> Self {
+        self.clone_box()
+    }
+}
+
+impl<R: Real> dyn Force<R> {
+    /// Handles of the parameter arrays ([`Force::params_mut`]), with their names. They share
+    /// the force's data and gradients: perturbing one perturbs the force.
+    pub fn params(&self) -> Vec<(&'static str, Box<dyn AnyArray>)> {
+        let mut copy = self.clone_box();
+        let mut out = Vec::new();
+        copy.params_mut(&mut |name, p| out.push((name, p.array().boxed())));
+        out
+    }
+
+    /// The force as a `T`, if it is one.
+    pub fn downcast_ref<T: 'static>(&self) -> Option<&T> {
+        self.as_any().downcast_ref()
+    }
+}
+
+/// A parameter array as [`Force::params_mut`] shows it: implemented by every
+/// [`Array<T>`](Array).
+pub trait Param: Send + Sync {
+    /// The array.
+    fn array(&self) -> &dyn AnyArray;
+    /// Marks the array as requiring a gradient ([`Array::requires_grad`]).
+    fn set_requires_grad(&self);
+    /// Replaces the array by a private copy of its data (requiring a gradient if `grads`) and
+    /// returns the pair.
+    fn substitute(&mut self, grads: bool) -> Box<dyn ParamCopy>;
+}
+
+/// A parameter array and the private copy that replaced it ([`Param::substitute`]).
+pub trait ParamCopy: Send + Sync {
+    /// The original array.
+    fn original(&self) -> &dyn AnyArray;
+    /// Adds the copy's gradient into the original's (if both have one).
+    fn add_grad(&self);
+    /// Zeroes the copy's gradient.
+    fn zero_copy_grad(&self);
+    /// Gives the copy the original's tangent buffer (`true`) or none (`false`).
+    fn share_tangent(&self, on: bool);
+}
+
+impl<T: Element> Param for Array<T> {
+    fn array(&self) -> &dyn AnyArray {
+        self
+    }
+    fn set_requires_grad(&self) {
+        let _ = self.clone().requires_grad();
+    }
+    fn substitute(&mut self, grads: bool) -> Box<dyn ParamCopy> {
+        let copy = self.deep_clone();
+        let copy = if grads { copy.requires_grad() } else { copy };
+        let original = std::mem::replace(self, copy.clone());
+        Box::new(Substituted { original, copy })
+    }
+}
+
+struct Substituted<T: Element> {
+    original: Array<T>,
+    copy: Array<T>,
+}
+
+impl<T: Element> ParamCopy for Substituted<T> {
+    fn original(&self) -> &dyn AnyArray {
+        &self.original
+    }
+    fn add_grad(&self) {
+        if let (Some(g), Some(c)) = (self.original.grad_buffer(), self.copy.grad_buffer()) {
+            AnyArray::add_from(&g, &c);
+        }
+    }
+    fn zero_copy_grad(&self) {
+        self.copy.zero_grad();
+    }
+    fn share_tangent(&self, on: bool) {
+        self.copy.set_tangent(if on {
+            self.original.tangent_buffer()
+        } else {
+            None
+        });
+    }
+}

@@ -7,6 +7,8 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
+use super::{Force, ForceContext, Param};
+
 /// Linear drag relative to the air: `f -= kd (v - v_air)` (`kd` in N s/m, `v_air` in m/s).
 /// With `v_air = 0` it is plain linear drag; otherwise wind.
 #[diff_kernel]
@@ -68,4 +70,15 @@ impl<R: Real> Drag<R> {
     pub fn eval(&self, tape: &mut Tape, v: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
         tape.launch(eval_drag, v.len(), (v, self.kd, self.wind, f));
     }
+}
+
+/// Drag has no parameter arrays (`kd` and `wind` are scalars, not differentiable).
+impl<R: Real> Force<R> for Drag<R> {
+    fn name(&self) -> &'static str {
+        super::DRAG
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        Drag::eval(self, tape, cx.v, f);
+    }
+    fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }

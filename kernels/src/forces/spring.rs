@@ -4,6 +4,8 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use super::{Force, ForceContext, Param};
+
 /// Force of one damped spring on its second particle (the first gets the opposite).
 ///
 /// `xij = x_i - x_j`, `vij = v_i - v_j` (m, m/s); `rest` (m), `ke` (N/m), `kd` (N s/m). The
@@ -97,5 +99,23 @@ impl<R: Real> Springs<R> {
             self.len(),
             (x, &self.pairs, &self.rest, &self.ke, energy),
         );
+    }
+}
+
+impl<R: Real> Force<R> for Springs<R> {
+    fn name(&self) -> &'static str {
+        super::SPRINGS
+    }
+    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        Springs::eval(self, tape, cx.x, cx.v, f);
+    }
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        Springs::energy(self, tape, cx.x, energy);
+        true
+    }
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+        visit("rest", &mut self.rest);
+        visit("ke", &mut self.ke);
+        visit("kd", &mut self.kd);
     }
 }

@@ -50,11 +50,11 @@
 use std::sync::Arc;
 
 use adflex_runtime::prelude::*;
-use adflex_runtime::Element;
 
 use super::common::{particles, step_bodies};
 use super::linsolve::{self, SolveInfo, SolveSettings};
 use super::{check_dt, Integrator, SolverPolicy};
+use crate::forces::{Param, ParamCopy};
 use crate::model::{Control, Model, State};
 
 /// Implicit (backward) Euler, solved by Newton-CG with a line search; first order,
@@ -142,58 +142,14 @@ pub struct NewtonStats {
 // Private copies of the parameter arrays.
 
 /// A parameter array of the model and its private copy.
-trait Link: Send + Sync {
-    fn original(&self) -> &dyn AnyArray;
-    /// Adds the copy's gradient into the original's (if both have one).
-    fn add_grad(&self);
-    /// Zeroes the copy's gradient.
-    fn zero_copy_grad(&self);
-    /// Gives the copy the original's tangent buffer (`true`) or none (`false`).
-    fn share_tangent(&self, on: bool);
-}
-
-struct TypedLink<T: Element> {
-    original: Array<T>,
-    copy: Array<T>,
-}
-
-impl<T: Element> Link for TypedLink<T> {
-    fn original(&self) -> &dyn AnyArray {
-        &self.original
-    }
-    fn add_grad(&self) {
-        if let (Some(g), Some(c)) = (self.original.grad_buffer(), self.copy.grad_buffer()) {
-            AnyArray::add_from(&g, &c);
-        }
-    }
-    fn zero_copy_grad(&self) {
-        self.copy.zero_grad();
-    }
-    fn share_tangent(&self, on: bool) {
-        self.copy.set_tangent(if on {
-            self.original.tangent_buffer()
-        } else {
-            None
-        });
-    }
-}
+type Link = Box<dyn ParamCopy>;
 
 /// The model and control with every differentiable array the particle forces read replaced
 /// by a private copy (with a gradient buffer if `grads`).
 struct Copies<R: Real> {
     model: Model<R>,
     control: Option<Control<R>>,
-    links: Vec<Box<dyn Link>>,
-}
-
-fn swap<T: Element>(a: &mut Array<T>, grads: bool, links: &mut Vec<Box<dyn Link>>) {
-    let copy = a.deep_clone();
-    let copy = if grads { copy.requires_grad() } else { copy };
-    links.push(Box::new(TypedLink {
-        original: a.clone(),
-        copy: copy.clone(),
-    }));
-    *a = copy;
+    links: Vec<Link>,
 }
 
 /// A clone of `model` (array handles) without its host-side triangle list, which the forces
@@ -204,47 +160,23 @@ fn forces_only<R: Real>(model: &Model<R>) -> Model<R> {
     m
 }
 
+/// The copies: the inverse masses, every force's parameter arrays (its
+/// [`Force::params_mut`](crate::forces::Force::params_mut) visitor, so a force added outside
+/// the library is covered), and the control's arrays.
 fn copies<R: Real>(model: &Model<R>, control: Option<&Control<R>>, grads: bool) -> Copies<R> {
     let mut m = forces_only(model);
     let mut c = control.cloned();
     let mut l = Vec::new();
-    swap(&mut m.particle_inv_mass, grads, &mut l);
-    if let Some(s) = &mut m.springs {
-        swap(&mut s.rest, grads, &mut l);
-        swap(&mut s.ke, grads, &mut l);
-        swap(&mut s.kd, grads, &mut l);
-    }
-    if let Some(b) = &mut m.bending {
-        swap(&mut b.rest, grads, &mut l);
-        swap(&mut b.ke, grads, &mut l);
-        swap(&mut b.kd, grads, &mut l);
-    }
-    if let Some(t) = &mut m.tri_fem {
-        swap(&mut t.dm_inv, grads, &mut l);
-        swap(&mut t.area, grads, &mut l);
-        swap(&mut t.mu, grads, &mut l);
-        swap(&mut t.lambda, grads, &mut l);
-        swap(&mut t.kd, grads, &mut l);
-    }
-    if let Some(t) = &mut m.tets {
-        swap(&mut t.dm_inv, grads, &mut l);
-        swap(&mut t.rest_volume, grads, &mut l);
-        swap(&mut t.mu, grads, &mut l);
-        swap(&mut t.lambda, grads, &mut l);
-        swap(&mut t.kd, grads, &mut l);
-        swap(&mut t.activation, grads, &mut l);
-    }
-    if let Some(s) = &mut m.shapes {
-        swap(&mut s.pos, grads, &mut l);
-        swap(&mut s.rot, grads, &mut l);
-        swap(&mut s.size, grads, &mut l);
+    l.push(m.particle_inv_mass.substitute(grads));
+    for force in &mut m.forces {
+        force.params_mut(&mut |_, p| l.push(p.substitute(grads)));
     }
     if let Some(c) = &mut c {
         if let Some(f) = &mut c.particle_f {
-            swap(f, grads, &mut l);
+            l.push(f.substitute(grads));
         }
         if let Some(a) = &mut c.tet_activation {
-            swap(a, grads, &mut l);
+            l.push(a.substitute(grads));
         }
     }
     Copies {
@@ -802,11 +734,7 @@ impl ImplicitEuler {
 
 /// [`Error::InvalidInput`] for the first NaN/Inf in the state or in a parameter array the
 /// forces read (named by label and index), or in the gravity.
-fn check_inputs<R: Real>(
-    model: &Model<R>,
-    state: &State<R>,
-    links: &[Box<dyn Link>],
-) -> Result<(), Error> {
+fn check_inputs<R: Real>(model: &Model<R>, state: &State<R>, links: &[Link]) -> Result<(), Error> {
     let arrays = [&state.x as &dyn AnyArray, &state.v]
         .into_iter()
         .chain(links.iter().map(|l| l.original()));

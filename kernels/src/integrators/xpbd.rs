@@ -5,21 +5,21 @@
 //! 1. a prediction with the forces of the model and gravity: `v* = v + a(x, v) h`,
 //!    `x* = x + v* h` ([`xpbd_predict`]);
 //! 2. `iterations` Jacobi passes over the model's distance constraints, the multipliers
-//!    starting from zero: averaged ([`crate::xpbd::DistanceConstraints::iterate_averaged`],
-//!    the default) or summed ([`crate::xpbd::DistanceConstraints::iterate`]);
+//!    starting from zero: averaged ([`crate::constraints::DistanceConstraints::iterate_averaged`],
+//!    the default) or summed ([`crate::constraints::DistanceConstraints::iterate`]);
 //! 3. a check that the solve did not diverge (on the host, not on the tape);
 //! 4. the velocity from the corrected positions, `v = (x - x_prev) / h`.
 //!
 //! Every pass is a kernel launch on the tape, so the step is differentiable in both modes.
-//! The constraint kernels are those of [`crate::xpbd`]; this module only schedules them.
+//! The constraint kernels are those of [`crate::constraints`]; this module only schedules them.
 
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use super::common::{particles, step_bodies};
 use super::{check_dt, Integrator};
+use crate::constraints::velocity_from_positions;
 use crate::model::{Control, Model, State};
-use crate::xpbd::velocity_from_positions;
 
 /// Prediction of particle `tid` (a semi-implicit Euler step): `x_pred = x + (v + a h) h`
 /// (`a` in m/s^2, `h` in s).

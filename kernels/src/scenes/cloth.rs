@@ -162,13 +162,7 @@ pub fn build<R: Real>(n: usize) -> Cloth<R> {
     let model = b.finalize();
     let initial = model.state();
     let _ = initial.v.clone().requires_grad();
-    let _ = model
-        .springs
-        .as_ref()
-        .expect("springs")
-        .ke
-        .clone()
-        .requires_grad();
+    let _ = model.springs().expect("springs").ke.clone().requires_grad();
     Cloth { n, model, initial }
 }
 
@@ -239,7 +233,7 @@ pub fn rollout<R: Real>(
         grad_ke_norm: 0.0,
     };
     if backward {
-        let ke = &scene.model.springs.as_ref().expect("springs").ke;
+        let ke = &scene.model.springs().expect("springs").ke;
         scene.initial.v.zero_grad();
         ke.zero_grad();
         tape.backward(&loss)?;
