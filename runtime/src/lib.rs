@@ -12,6 +12,9 @@ pub mod checkpoint;
 mod error;
 pub mod func;
 pub mod gradcheck;
+/// The code-generation contract (what `#[diff_kernel]` emits calls to): views of arrays that
+/// exist only inside a launch. Not for users; hidden from the docs.
+#[doc(hidden)]
 pub mod kernel;
 pub mod launch;
 pub mod math;
@@ -34,7 +37,7 @@ pub use value::{acc, acc_neg, zero_like, Value};
 pub mod prelude {
     pub use crate::checkpoint::{checkpointed, Checkpoint};
     pub use crate::gradcheck::{gradcheck, gradcheck_kernel, GradCheck};
-    pub use crate::math::*;
+    pub use crate::math::items::builtins_prelude::*;
     pub use crate::{launch, launch_adjoint, launch_mode, launch_tangent, with_threads, Mode};
     pub use crate::{AnyArray, Tape};
     pub use crate::{Array, DiffFunc, Error, Mat22, Mat33, Quat, Real, Value, Vec2, Vec3, Vec4};

@@ -9,7 +9,7 @@ use adflex_runtime::prelude::*;
 
 use super::{Force, ForceContext, Param};
 
-/// `-1` if `a < 0`, else `1` (zero derivative). Warp's `sign`: unlike [`sign`] it is `1` at
+/// `-1` if `a < 0`, else `1` (zero derivative). Warp's `sign`: unlike [`sign`](fn@sign) it is `1` at
 /// zero, which matters for a flat cloth, whose `cos_theta` may round to just below 1 while
 /// the sign test is exactly 0.
 #[diff_func]

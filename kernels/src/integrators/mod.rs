@@ -26,7 +26,7 @@ mod common;
 pub mod explicit;
 pub mod implicit;
 pub mod linsolve;
-/// A test fixture (a mass-spring oscillator with its exact solution), not API.
+// A test fixture (a mass-spring oscillator with its exact solution), not API.
 #[doc(hidden)]
 pub mod oscillator;
 pub mod rk4;

@@ -39,7 +39,7 @@ macro_rules! items {
         $f:ident, $adj:ident, $tan:ident [$($gen:tt)*] ($($a:ident $da:ident : $t:ty),*) -> $o:ty;
     )*) => {
         $(
-            #[doc = concat!("The builtin [`", stringify!($f), "`](super::", stringify!($f),
+            #[doc = concat!("The builtin [`", stringify!($f), "`](fn@super::", stringify!($f),
                 ") as an item: its `DiffFunc` (forward, adjoint, tangent) for kernels.")]
             #[derive(Clone, Copy, Debug, Default)]
             pub struct $f {}
@@ -64,13 +64,25 @@ macro_rules! items {
         /// Every builtin function of the kernel language (operators excepted), in the order of
         /// the guide's table.
         pub const BUILTINS: &[&str] = &[$(stringify!($f)),*];
+
+        /// What the prelude brings of the math: each builtin's function (for plain Rust) and
+        /// item (for kernels), and nothing of the rules (`adj_*`, `tan_*`, the rule traits),
+        /// which only generated code calls.
+        pub mod builtins_prelude {
+            $(pub use crate::math::$f;)*
+            pub use super::constants_prelude::*;
+        }
     };
 }
 
 /// A zero-argument builtin (a constant): no rules.
 macro_rules! constants {
-    ($($f:ident [$($gen:tt)*] -> $o:ty;)*) => {$(
-        #[doc = concat!("The builtin [`", stringify!($f), "`](super::", stringify!($f),
+    ($($f:ident [$($gen:tt)*] -> $o:ty;)*) => {
+        mod constants_prelude {
+            $(pub use crate::math::$f;)*
+        }
+        $(
+        #[doc = concat!("The builtin [`", stringify!($f), "`](fn@super::", stringify!($f),
             ") as an item (a constant).")]
         #[derive(Clone, Copy, Debug, Default)]
         pub struct $f {}

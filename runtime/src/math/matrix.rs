@@ -95,12 +95,12 @@ impl<R: Real> MatrixValue for Matrix3<R> {
 pub fn transpose<M: MatrixValue>(m: M) -> M {
     m.mat_transpose()
 }
-/// Adjoint of [`transpose`]: `adj^T`.
+/// Adjoint of [`transpose`](fn@transpose): `adj^T`.
 #[inline]
 pub fn adj_transpose<M: MatrixValue>(_m: M, adj: M) -> M {
     adj.mat_transpose()
 }
-/// Tangent of [`transpose`]: `dm^T`.
+/// Tangent of [`transpose`](fn@transpose): `dm^T`.
 #[inline]
 pub fn tan_transpose<M: MatrixValue>(_m: M, dm: M) -> M {
     dm.mat_transpose()
@@ -111,12 +111,12 @@ pub fn tan_transpose<M: MatrixValue>(_m: M, dm: M) -> M {
 pub fn determinant<M: MatrixValue>(m: M) -> M::Scalar {
     m.mat_det()
 }
-/// Adjoint of [`determinant`]: `adj * cof(m)` (`= adj det(m) m^-T` when invertible).
+/// Adjoint of [`determinant`](fn@determinant): `adj * cof(m)` (`= adj det(m) m^-T` when invertible).
 #[inline]
 pub fn adj_determinant<M: MatrixValue>(m: M, adj: M::Scalar) -> M {
     m.mat_cofactor().lin_scale(adj)
 }
-/// Tangent of [`determinant`]: `cof(m) : dm`.
+/// Tangent of [`determinant`](fn@determinant): `cof(m) : dm`.
 #[inline]
 pub fn tan_determinant<M: MatrixValue>(m: M, dm: M) -> M::Scalar {
     m.mat_cofactor().lin_inner(dm)
@@ -133,13 +133,13 @@ pub fn inverse<M: MatrixValue>(m: M) -> M {
         M::zeroed()
     }
 }
-/// Adjoint of [`inverse`]: `-B^T adj B^T` with `B = m^-1`; zero for singular `m`.
+/// Adjoint of [`inverse`](fn@inverse): `-B^T adj B^T` with `B = m^-1`; zero for singular `m`.
 #[inline]
 pub fn adj_inverse<M: MatrixValue>(m: M, adj: M) -> M {
     let b = inverse(m).mat_transpose();
     b.mat_mul(adj).mat_mul(b).lin_neg()
 }
-/// Tangent of [`inverse`]: `-B dm B` with `B = m^-1`; zero for singular `m`.
+/// Tangent of [`inverse`](fn@inverse): `-B dm B` with `B = m^-1`; zero for singular `m`.
 #[inline]
 pub fn tan_inverse<M: MatrixValue>(m: M, dm: M) -> M {
     let b = inverse(m);
@@ -151,12 +151,12 @@ pub fn tan_inverse<M: MatrixValue>(m: M, dm: M) -> M {
 pub fn trace<M: MatrixValue>(m: M) -> M::Scalar {
     m.mat_trace()
 }
-/// Adjoint of [`trace`]: `adj I`.
+/// Adjoint of [`trace`](fn@trace): `adj I`.
 #[inline]
 pub fn adj_trace<M: MatrixValue>(_m: M, adj: M::Scalar) -> M {
     M::mat_identity().lin_scale(adj)
 }
-/// Tangent of [`trace`]: `tr(dm)`.
+/// Tangent of [`trace`](fn@trace): `tr(dm)`.
 #[inline]
 pub fn tan_trace<M: MatrixValue>(_m: M, dm: M) -> M::Scalar {
     dm.mat_trace()
@@ -167,18 +167,18 @@ pub fn tan_trace<M: MatrixValue>(_m: M, dm: M) -> M::Scalar {
 pub fn ddot<M: MatrixValue>(a: M, b: M) -> M::Scalar {
     a.lin_inner(b)
 }
-/// Adjoint of [`ddot`]: `(adj b, adj a)`.
+/// Adjoint of [`ddot`](fn@ddot): `(adj b, adj a)`.
 #[inline]
 pub fn adj_ddot<M: MatrixValue>(a: M, b: M, adj: M::Scalar) -> (M, M) {
     (b.lin_scale(adj), a.lin_scale(adj))
 }
-/// Tangent of [`ddot`]: `da : b + a : db`.
+/// Tangent of [`ddot`](fn@ddot): `da : b + a : db`.
 #[inline]
 pub fn tan_ddot<M: MatrixValue>(a: M, b: M, da: M, db: M) -> M::Scalar {
     da.lin_inner(b) + a.lin_inner(db)
 }
 
-/// The vector `w` with `<g, skew(w)> = g . w` for every 3x3 `g`: the adjoint of [`skew`].
+/// The vector `w` with `<g, skew(w)> = g . w` for every 3x3 `g`: the adjoint of [`skew`](fn@skew).
 #[inline]
 pub(crate) fn unskew<R: Real>(g: Mat33<R>) -> Vec3<R> {
     Vec3::new(
@@ -194,12 +194,12 @@ pub fn skew<R: Real>(a: Vec3<R>) -> Mat33<R> {
     let z = R::zero();
     Mat33::new(z, -a.z, a.y, a.z, z, -a.x, -a.y, a.x, z)
 }
-/// Adjoint of [`skew`]: `(adj_21 - adj_12, adj_02 - adj_20, adj_10 - adj_01)`.
+/// Adjoint of [`skew`](fn@skew): `(adj_21 - adj_12, adj_02 - adj_20, adj_10 - adj_01)`.
 #[inline]
 pub fn adj_skew<R: Real>(_a: Vec3<R>, adj: Mat33<R>) -> Vec3<R> {
     unskew(adj)
 }
-/// Tangent of [`skew`]: `skew(da)`.
+/// Tangent of [`skew`](fn@skew): `skew(da)`.
 #[inline]
 pub fn tan_skew<R: Real>(_a: Vec3<R>, da: Vec3<R>) -> Mat33<R> {
     skew(da)
@@ -237,12 +237,12 @@ diag_impl!((Vector2, Matrix2), (Vector3, Matrix3));
 pub fn diag<V: DiagRule>(v: V) -> V::Out {
     v.diag_fwd()
 }
-/// Adjoint of [`diag`]: the diagonal of `adj`.
+/// Adjoint of [`diag`](fn@diag): the diagonal of `adj`.
 #[inline]
 pub fn adj_diag<V: DiagRule>(_v: V, adj: V::Out) -> V {
     V::diag_of(adj)
 }
-/// Tangent of [`diag`]: `diag(dv)`.
+/// Tangent of [`diag`](fn@diag): `diag(dv)`.
 #[inline]
 pub fn tan_diag<V: DiagRule>(_v: V, dv: V) -> V::Out {
     dv.diag_fwd()

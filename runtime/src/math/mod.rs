@@ -30,53 +30,53 @@
 //! - [`rem`]`(a, b)`: `%` on integers only (no float `%`, so no wrong gradient).
 //!
 //! # Scalar functions ([`scalar`])
-//! - [`sqrt`], [`sin`], [`cos`], [`tan`], [`asin`], [`acos`], [`atan`], [`sinh`], [`cosh`],
-//!   [`tanh`], [`exp`], [`ln`], [`log2`], [`log10`]`(x)`: the elementary functions
+//! - [`sqrt`](fn@sqrt), [`sin`](fn@sin), [`cos`](fn@cos), [`tan`](fn@tan), [`asin`](fn@asin), [`acos`](fn@acos), [`atan`](fn@atan), [`sinh`](fn@sinh), [`cosh`](fn@cosh),
+//!   [`tanh`](fn@tanh), [`exp`](fn@exp), [`ln`](fn@ln), [`log2`](fn@log2), [`log10`](fn@log10)`(x)`: the elementary functions
 //!   (`sqrt'(0) = 0`; `asin`, `acos` clamp to `[-1, 1]` and have derivative 0 at `|x| >= 1`).
-//! - [`atan2`]`(y, x)`: angle of `(x, y)`, zero gradient at the origin.
-//! - [`pow`]`(x, y)`: `x^y` for real `y`; [`powi`]`(x, n)`: `x^n` for `n: i32`.
-//! - [`abs`]`(x)`, [`sign`]`(x)`: absolute value (`abs'(0) = 0`) and sign (`sign(0) = 0`,
+//! - [`atan2`](fn@atan2)`(y, x)`: angle of `(x, y)`, zero gradient at the origin.
+//! - [`pow`](fn@pow)`(x, y)`: `x^y` for real `y`; [`powi`](fn@powi)`(x, n)`: `x^n` for `n: i32`.
+//! - [`abs`](fn@abs)`(x)`, [`sign`](fn@sign)`(x)`: absolute value (`abs'(0) = 0`) and sign (`sign(0) = 0`,
 //!   zero derivative); also for signed integers.
-//! - [`floor`], [`ceil`], [`round`]`(x)`: rounding, zero derivative.
-//! - [`min`]`(a, b)`, [`max`]`(a, b)`, [`clamp`]`(x, lo, hi)`: ties send the gradient to `b`,
+//! - [`floor`](fn@floor), [`ceil`](fn@ceil), [`round`](fn@round)`(x)`: rounding, zero derivative.
+//! - [`min`](fn@min)`(a, b)`, [`max`](fn@max)`(a, b)`, [`clamp`](fn@clamp)`(x, lo, hi)`: ties send the gradient to `b`,
 //!   `b`, `x`; also for integers.
-//! - [`lerp`]`(a, b, t)`: `a (1 - t) + b t` for `a`, `b` of type `R`, `V`, `M` or `Q`.
-//! - [`select`]`(c, a, b)`: `a` if `c` else `b`, any value type.
-//! - [`step`]`(x)`: 1 if `x >= 0` else 0; [`smoothstep`]`(e0, e1, x)`: Hermite smoothstep.
+//! - [`lerp`](fn@lerp)`(a, b, t)`: `a (1 - t) + b t` for `a`, `b` of type `R`, `V`, `M` or `Q`.
+//! - [`select`](fn@select)`(c, a, b)`: `a` if `c` else `b`, any value type.
+//! - [`step`](fn@step)`(x)`: 1 if `x >= 0` else 0; [`smoothstep`](fn@smoothstep)`(e0, e1, x)`: Hermite smoothstep.
 //!
 //! # Vectors ([`vector`])
-//! - [`dot`]`(a, b)`: inner product of two `V`.
-//! - [`cross`]`(a, b)`: cross product of two `Vec3`.
-//! - [`length`]`(v)`, [`length_sq`]`(v)`: norm and squared norm (`length` has gradient 0 at 0).
-//! - [`normalize`]`(v)`: `v / |v|`, the zero vector (gradient 0) at 0.
-//! - [`outer`]`(a, b)`: `a b^T`, `Vec2 -> Mat22`, `Vec3 -> Mat33`.
-//! - [`cw_mul`]`(a, b)`, [`cw_div`]`(a, b)`: componentwise product and quotient of `V` or `M`.
+//! - [`dot`](fn@dot)`(a, b)`: inner product of two `V`.
+//! - [`cross`](fn@cross)`(a, b)`: cross product of two `Vec3`.
+//! - [`length`](fn@length)`(v)`, [`length_sq`](fn@length_sq)`(v)`: norm and squared norm (`length` has gradient 0 at 0).
+//! - [`normalize`](fn@normalize)`(v)`: `v / |v|`, the zero vector (gradient 0) at 0.
+//! - [`outer`](fn@outer)`(a, b)`: `a b^T`, `Vec2 -> Mat22`, `Vec3 -> Mat33`.
+//! - [`cw_mul`](fn@cw_mul)`(a, b)`, [`cw_div`](fn@cw_div)`(a, b)`: componentwise product and quotient of `V` or `M`.
 //!
 //! # Matrices ([`matrix`])
-//! - [`transpose`]`(m)`, [`trace`]`(m)`, [`determinant`]`(m)`: the usual (determinant's
+//! - [`transpose`](fn@transpose)`(m)`, [`trace`](fn@trace)`(m)`, [`determinant`](fn@determinant)`(m)`: the usual (determinant's
 //!   gradient is the cofactor matrix, finite everywhere).
-//! - [`inverse`]`(m)`: `m^-1`, the zero matrix (gradient 0) when `det(m) == 0`.
-//! - [`ddot`]`(a, b)`: the Frobenius inner product `sum a_ij b_ij`.
-//! - [`skew`]`(a)`: the `Mat33` with `skew(a) * b == cross(a, b)`.
-//! - [`diag`]`(v)`: the diagonal matrix of `Vec2` or `Vec3`.
+//! - [`inverse`](fn@inverse)`(m)`: `m^-1`, the zero matrix (gradient 0) when `det(m) == 0`.
+//! - [`ddot`](fn@ddot)`(a, b)`: the Frobenius inner product `sum a_ij b_ij`.
+//! - [`skew`](fn@skew)`(a)`: the `Mat33` with `skew(a) * b == cross(a, b)`.
+//! - [`diag`](fn@diag)`(v)`: the diagonal matrix of `Vec2` or `Vec3`.
 //!
 //! # Constructors ([`construct`])
-//! - [`vec2`]`(x, y)`, [`vec3`]`(x, y, z)`, [`vec4`]`(x, y, z, w)`: vectors from scalars.
-//! - [`mat22`]`(4 scalars)`, [`mat33`]`(9 scalars)`: matrices from entries, row-major.
-//! - [`mat22_cols`]`(c0, c1)`, [`mat33_cols`]`(c0, c1, c2)`: matrices from columns.
-//! - [`mat22_rows`]`(r0, r1)`, [`mat33_rows`]`(r0, r1, r2)`: matrices from rows.
+//! - [`vec2`](fn@vec2)`(x, y)`, [`vec3`](fn@vec3)`(x, y, z)`, [`vec4`](fn@vec4)`(x, y, z, w)`: vectors from scalars.
+//! - [`mat22`](fn@mat22)`(4 scalars)`, [`mat33`](fn@mat33)`(9 scalars)`: matrices from entries, row-major.
+//! - [`mat22_cols`](fn@mat22_cols)`(c0, c1)`, [`mat33_cols`](fn@mat33_cols)`(c0, c1, c2)`: matrices from columns.
+//! - [`mat22_rows`](fn@mat22_rows)`(r0, r1)`, [`mat33_rows`](fn@mat33_rows)`(r0, r1, r2)`: matrices from rows.
 //! - [`quat`](fn@quat)`(x, y, z, w)`: a quaternion from its components.
-//! - [`mat22_identity`]`()`, [`mat33_identity`]`()`, [`quat_identity`]`()`: constants.
+//! - [`mat22_identity`](fn@mat22_identity)`()`, [`mat33_identity`](fn@mat33_identity)`()`, [`quat_identity`](fn@quat_identity)`()`: constants.
 //!
 //! # Quaternions ([`quaternion`])
-//! - [`quat_mul`]`(p, q)`: Hamilton product (same as `mul(p, q)`).
-//! - [`quat_conjugate`]`(q)`, [`quat_inverse`]`(q)`: conjugate, and `conj(q) / |q|^2` (zero
+//! - [`quat_mul`](fn@quat_mul)`(p, q)`: Hamilton product (same as `mul(p, q)`).
+//! - [`quat_conjugate`](fn@quat_conjugate)`(q)`, [`quat_inverse`](fn@quat_inverse)`(q)`: conjugate, and `conj(q) / |q|^2` (zero
 //!   at `q == 0`).
-//! - [`quat_length`]`(q)`, [`quat_normalize`]`(q)`: norm, and `q / |q|` (zero at `q == 0`).
-//! - [`quat_rotate`]`(q, v)`, [`quat_rotate_inv`]`(q, v)`: rotate a `Vec3` by a unit `q`, or by
+//! - [`quat_length`](fn@quat_length)`(q)`, [`quat_normalize`](fn@quat_normalize)`(q)`: norm, and `q / |q|` (zero at `q == 0`).
+//! - [`quat_rotate`](fn@quat_rotate)`(q, v)`, [`quat_rotate_inv`](fn@quat_rotate_inv)`(q, v)`: rotate a `Vec3` by a unit `q`, or by
 //!   its conjugate.
-//! - [`quat_from_axis_angle`]`(axis, angle)`: rotation about a unit axis.
-//! - [`quat_to_mat33`]`(q)`: rotation matrix of a unit `q`.
+//! - [`quat_from_axis_angle`](fn@quat_from_axis_angle)`(axis, angle)`: rotation about a unit axis.
+//! - [`quat_to_mat33`](fn@quat_to_mat33)`(q)`: rotation matrix of a unit `q`.
 //!
 //! # Components ([`component`])
 //! - [`extract`]`(v, k)`: component `k` of a `V`, `Q` (x, y, z, w) or `[T; N]` (`k: usize`),

@@ -249,7 +249,7 @@ mul_matrix!(
     (Matrix3, Matrix3)
 );
 
-/// Quaternion times quaternion: the Hamilton product, the rule of [`quat_mul`].
+/// Quaternion times quaternion: the Hamilton product, the rule of [`quat_mul`](fn@quat_mul).
 impl<R: Real> MulRule<Quaternion<R>> for Quaternion<R> {
     type Out = Quaternion<R>;
     #[inline(always)]

@@ -20,12 +20,12 @@ fn conj<R: Real>(q: Quat<R>) -> Quat<R> {
 pub fn quat_mul<R: Real>(p: Quat<R>, q: Quat<R>) -> Quat<R> {
     p * q
 }
-/// Adjoint of [`quat_mul`]: `(adj conj(q), conj(p) adj)`.
+/// Adjoint of [`quat_mul`](fn@quat_mul): `(adj conj(q), conj(p) adj)`.
 #[inline]
 pub fn adj_quat_mul<R: Real>(p: Quat<R>, q: Quat<R>, adj: Quat<R>) -> (Quat<R>, Quat<R>) {
     (adj * conj(q), conj(p) * adj)
 }
-/// Tangent of [`quat_mul`]: `dp q + p dq`.
+/// Tangent of [`quat_mul`](fn@quat_mul): `dp q + p dq`.
 #[inline]
 pub fn tan_quat_mul<R: Real>(p: Quat<R>, q: Quat<R>, dp: Quat<R>, dq: Quat<R>) -> Quat<R> {
     dp * q + p * dq
@@ -36,12 +36,12 @@ pub fn tan_quat_mul<R: Real>(p: Quat<R>, q: Quat<R>, dp: Quat<R>, dq: Quat<R>) -
 pub fn quat_conjugate<R: Real>(q: Quat<R>) -> Quat<R> {
     conj(q)
 }
-/// Adjoint of [`quat_conjugate`]: `conj(adj)`.
+/// Adjoint of [`quat_conjugate`](fn@quat_conjugate): `conj(adj)`.
 #[inline]
 pub fn adj_quat_conjugate<R: Real>(_q: Quat<R>, adj: Quat<R>) -> Quat<R> {
     conj(adj)
 }
-/// Tangent of [`quat_conjugate`]: `conj(dq)`.
+/// Tangent of [`quat_conjugate`](fn@quat_conjugate): `conj(dq)`.
 #[inline]
 pub fn tan_quat_conjugate<R: Real>(_q: Quat<R>, dq: Quat<R>) -> Quat<R> {
     conj(dq)
@@ -53,7 +53,7 @@ pub fn tan_quat_conjugate<R: Real>(_q: Quat<R>, dq: Quat<R>) -> Quat<R> {
 pub fn quat_length<R: Real>(q: Quat<R>) -> R {
     q.coords.norm()
 }
-/// Adjoint of [`quat_length`]: `adj q / |q|`; 0 for `|q| <= R::tiny()`.
+/// Adjoint of [`quat_length`](fn@quat_length): `adj q / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn adj_quat_length<R: Real>(q: Quat<R>, adj: R) -> Quat<R> {
     let l = quat_length(q);
@@ -63,7 +63,7 @@ pub fn adj_quat_length<R: Real>(q: Quat<R>, adj: R) -> Quat<R> {
         Quat::zeroed()
     }
 }
-/// Tangent of [`quat_length`]: `q . dq / |q|`; 0 for `|q| <= R::tiny()`.
+/// Tangent of [`quat_length`](fn@quat_length): `q . dq / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn tan_quat_length<R: Real>(q: Quat<R>, dq: Quat<R>) -> R {
     let l = quat_length(q);
@@ -85,7 +85,7 @@ pub fn quat_normalize<R: Real>(q: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
-/// Adjoint of [`quat_normalize`]: `(adj - n (n . adj)) / |q|`; 0 for `|q| <= R::tiny()`.
+/// Adjoint of [`quat_normalize`](fn@quat_normalize): `(adj - n (n . adj)) / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn adj_quat_normalize<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
     let l = quat_length(q);
@@ -96,7 +96,7 @@ pub fn adj_quat_normalize<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
-/// Tangent of [`quat_normalize`]: `(dq - n (n . dq)) / |q|`; 0 for `|q| <= R::tiny()`.
+/// Tangent of [`quat_normalize`](fn@quat_normalize): `(dq - n (n . dq)) / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn tan_quat_normalize<R: Real>(q: Quat<R>, dq: Quat<R>) -> Quat<R> {
     adj_quat_normalize(q, dq)
@@ -113,7 +113,7 @@ pub fn quat_inverse<R: Real>(q: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
-/// Adjoint of [`quat_inverse`]: `conj(adj) / n - 2 (adj . conj(q)) q / n^2` with `n = |q|^2`;
+/// Adjoint of [`quat_inverse`](fn@quat_inverse): `conj(adj) / n - 2 (adj . conj(q)) q / n^2` with `n = |q|^2`;
 /// 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn adj_quat_inverse<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
@@ -125,7 +125,7 @@ pub fn adj_quat_inverse<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
-/// Tangent of [`quat_inverse`]: `conj(dq) / n - 2 (q . dq) conj(q) / n^2`; 0 for
+/// Tangent of [`quat_inverse`](fn@quat_inverse): `conj(dq) / n - 2 (q . dq) conj(q) / n^2`; 0 for
 /// `|q| <= R::tiny()`.
 #[inline]
 pub fn tan_quat_inverse<R: Real>(q: Quat<R>, dq: Quat<R>) -> Quat<R> {
@@ -149,7 +149,7 @@ pub fn quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>) -> Vec3<R> {
     let t = a * w + u.cross(&a);
     v + t + t
 }
-/// Adjoint of [`quat_rotate`] (of the formula as written, any `q`).
+/// Adjoint of [`quat_rotate`](fn@quat_rotate) (of the formula as written, any `q`).
 #[inline]
 pub fn adj_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, adj: Vec3<R>) -> (Quat<R>, Vec3<R>) {
     let (u, w) = (q.imag(), q.w);
@@ -162,7 +162,7 @@ pub fn adj_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, adj: Vec3<R>) -> (Quat<R
     let adj_v = adj + adj_a.cross(&u);
     (Quat::from_parts(adj_w, adj_u), adj_v)
 }
-/// Tangent of [`quat_rotate`] (of the formula as written, any `q`).
+/// Tangent of [`quat_rotate`](fn@quat_rotate) (of the formula as written, any `q`).
 #[inline]
 pub fn tan_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, dq: Quat<R>, dv: Vec3<R>) -> Vec3<R> {
     let (u, w) = (q.imag(), q.w);
@@ -179,13 +179,13 @@ pub fn tan_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, dq: Quat<R>, dv: Vec3<R>
 pub fn quat_rotate_inv<R: Real>(q: Quat<R>, v: Vec3<R>) -> Vec3<R> {
     quat_rotate(conj(q), v)
 }
-/// Adjoint of [`quat_rotate_inv`].
+/// Adjoint of [`quat_rotate_inv`](fn@quat_rotate_inv).
 #[inline]
 pub fn adj_quat_rotate_inv<R: Real>(q: Quat<R>, v: Vec3<R>, adj: Vec3<R>) -> (Quat<R>, Vec3<R>) {
     let (aq, av) = adj_quat_rotate(conj(q), v, adj);
     (conj(aq), av)
 }
-/// Tangent of [`quat_rotate_inv`].
+/// Tangent of [`quat_rotate_inv`](fn@quat_rotate_inv).
 #[inline]
 pub fn tan_quat_rotate_inv<R: Real>(q: Quat<R>, v: Vec3<R>, dq: Quat<R>, dv: Vec3<R>) -> Vec3<R> {
     tan_quat_rotate(conj(q), v, conj(dq), dv)
@@ -198,7 +198,7 @@ pub fn quat_from_axis_angle<R: Real>(axis: Vec3<R>, angle: R) -> Quat<R> {
     let h = angle * R::lit(0.5);
     Quat::from_parts(h.cos(), axis * h.sin())
 }
-/// Adjoint of [`quat_from_axis_angle`]: `(s adj_u, (c axis . adj_u - s adj_w) / 2)` with
+/// Adjoint of [`quat_from_axis_angle`](fn@quat_from_axis_angle): `(s adj_u, (c axis . adj_u - s adj_w) / 2)` with
 /// `s, c = sin, cos(angle/2)`.
 #[inline]
 pub fn adj_quat_from_axis_angle<R: Real>(axis: Vec3<R>, angle: R, adj: Quat<R>) -> (Vec3<R>, R) {
@@ -207,7 +207,7 @@ pub fn adj_quat_from_axis_angle<R: Real>(axis: Vec3<R>, angle: R, adj: Quat<R>) 
     let au = adj.imag();
     (au * s, (c * axis.dot(&au) - s * adj.w) * R::lit(0.5))
 }
-/// Tangent of [`quat_from_axis_angle`]: `(daxis s + axis c dangle/2, -s dangle/2)`.
+/// Tangent of [`quat_from_axis_angle`](fn@quat_from_axis_angle): `(daxis s + axis c dangle/2, -s dangle/2)`.
 #[inline]
 pub fn tan_quat_from_axis_angle<R: Real>(
     axis: Vec3<R>,
@@ -233,7 +233,7 @@ pub fn quat_to_mat33<R: Real>(q: Quat<R>) -> Mat33<R> {
         + u * u.transpose() * two
         + skew(u) * (two * w)
 }
-/// Adjoint of [`quat_to_mat33`] (of the formula as written, any `q`).
+/// Adjoint of [`quat_to_mat33`](fn@quat_to_mat33) (of the formula as written, any `q`).
 #[inline]
 pub fn adj_quat_to_mat33<R: Real>(q: Quat<R>, adj: Mat33<R>) -> Quat<R> {
     let (u, w) = (q.imag(), q.w);
@@ -243,7 +243,7 @@ pub fn adj_quat_to_mat33<R: Real>(q: Quat<R>, adj: Mat33<R>) -> Quat<R> {
         u * (R::lit(-4.0) * adj.trace()) + (adj + adj.transpose()) * u * two + s * (two * w);
     Quat::from_parts(two * u.dot(&s), adj_u)
 }
-/// Tangent of [`quat_to_mat33`] (of the formula as written, any `q`).
+/// Tangent of [`quat_to_mat33`](fn@quat_to_mat33) (of the formula as written, any `q`).
 #[inline]
 pub fn tan_quat_to_mat33<R: Real>(q: Quat<R>, dq: Quat<R>) -> Mat33<R> {
     let (u, w) = (q.imag(), q.w);

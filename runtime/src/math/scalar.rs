@@ -109,7 +109,7 @@ unary! {
 pub fn atan2<R: Real>(y: R, x: R) -> R {
     y.atan2(x)
 }
-/// Adjoint of [`atan2`]: `adj * (x, -y) / (x^2 + y^2)` (for `y`, `x`); zero at `(0, 0)`.
+/// Adjoint of [`atan2`](fn@atan2): `adj * (x, -y) / (x^2 + y^2)` (for `y`, `x`); zero at `(0, 0)`.
 #[inline]
 pub fn adj_atan2<R: Real>(y: R, x: R, adj: R) -> (R, R) {
     let d = x * x + y * y;
@@ -119,7 +119,7 @@ pub fn adj_atan2<R: Real>(y: R, x: R, adj: R) -> (R, R) {
         (R::zero(), R::zero())
     }
 }
-/// Tangent of [`atan2`]: `(x dy - y dx) / (x^2 + y^2)`; zero at `(0, 0)`.
+/// Tangent of [`atan2`](fn@atan2): `(x dy - y dx) / (x^2 + y^2)`; zero at `(0, 0)`.
 #[inline]
 pub fn tan_atan2<R: Real>(y: R, x: R, dy: R, dx: R) -> R {
     let d = x * x + y * y;
@@ -159,13 +159,13 @@ fn d_pow<R: Real>(x: R, y: R) -> (R, R) {
 pub fn pow<R: Real>(x: R, y: R) -> R {
     x.powf(y)
 }
-/// Adjoint of [`pow`]: `adj * (y x^(y-1), ln(x) x^y)`, with the conventions of [`pow`].
+/// Adjoint of [`pow`](fn@pow): `adj * (y x^(y-1), ln(x) x^y)`, with the conventions of [`pow`](fn@pow).
 #[inline]
 pub fn adj_pow<R: Real>(x: R, y: R, adj: R) -> (R, R) {
     let (dx, dy) = d_pow(x, y);
     (adj * dx, adj * dy)
 }
-/// Tangent of [`pow`]: `y x^(y-1) dx + ln(x) x^y dy`, with the conventions of [`pow`].
+/// Tangent of [`pow`](fn@pow): `y x^(y-1) dx + ln(x) x^y dy`, with the conventions of [`pow`](fn@pow).
 #[inline]
 pub fn tan_pow<R: Real>(x: R, y: R, dx: R, dy: R) -> R {
     let (gx, gy) = d_pow(x, y);
@@ -188,12 +188,12 @@ fn d_powi<R: Real>(x: R, n: i32) -> R {
 pub fn powi<R: Real>(x: R, n: i32) -> R {
     x.powi(n)
 }
-/// Adjoint of [`powi`]: `(adj n x^(n-1), 0)`.
+/// Adjoint of [`powi`](fn@powi): `(adj n x^(n-1), 0)`.
 #[inline]
 pub fn adj_powi<R: Real>(x: R, n: i32, adj: R) -> (R, i32) {
     (adj * d_powi(x, n), 0)
 }
-/// Tangent of [`powi`]: `n x^(n-1) dx`.
+/// Tangent of [`powi`](fn@powi): `n x^(n-1) dx`.
 #[inline]
 pub fn tan_powi<R: Real>(x: R, n: i32, dx: R, _dn: i32) -> R {
     dx * d_powi(x, n)
@@ -252,12 +252,12 @@ signed_int!(i8, i16, i32, i64, isize);
 pub fn abs<T: SignedRule>(x: T) -> T {
     x.abs_fwd()
 }
-/// Adjoint of [`abs`]: `adj * sign(x)` (0 at `x == 0`).
+/// Adjoint of [`abs`](fn@abs): `adj * sign(x)` (0 at `x == 0`).
 #[inline(always)]
 pub fn adj_abs<T: SignedRule>(x: T, adj: T) -> T {
     x.abs_adj(adj)
 }
-/// Tangent of [`abs`]: `dx * sign(x)` (0 at `x == 0`).
+/// Tangent of [`abs`](fn@abs): `dx * sign(x)` (0 at `x == 0`).
 #[inline(always)]
 pub fn tan_abs<T: SignedRule>(x: T, dx: T) -> T {
     x.abs_adj(dx)
@@ -269,12 +269,12 @@ pub fn tan_abs<T: SignedRule>(x: T, dx: T) -> T {
 pub fn sign<T: SignedRule>(x: T) -> T {
     x.sign_fwd()
 }
-/// Adjoint of [`sign`]: zero.
+/// Adjoint of [`sign`](fn@sign): zero.
 #[inline(always)]
 pub fn adj_sign<T: SignedRule>(_x: T, _adj: T) -> T {
     T::zeroed()
 }
-/// Tangent of [`sign`]: zero.
+/// Tangent of [`sign`](fn@sign): zero.
 #[inline(always)]
 pub fn tan_sign<T: SignedRule>(_x: T, _dx: T) -> T {
     T::zeroed()
@@ -292,7 +292,7 @@ pub fn min<T: Ordered>(a: T, b: T) -> T {
         b
     }
 }
-/// Adjoint of [`min`]: `adj` to the argument returned (`b` on a tie).
+/// Adjoint of [`min`](fn@min): `adj` to the argument returned (`b` on a tie).
 #[inline]
 pub fn adj_min<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
     if a < b {
@@ -301,7 +301,7 @@ pub fn adj_min<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
         (T::zeroed(), adj)
     }
 }
-/// Tangent of [`min`]: the tangent of the argument returned (`b` on a tie).
+/// Tangent of [`min`](fn@min): the tangent of the argument returned (`b` on a tie).
 #[inline]
 pub fn tan_min<T: Ordered>(a: T, b: T, da: T, db: T) -> T {
     if a < b {
@@ -320,7 +320,7 @@ pub fn max<T: Ordered>(a: T, b: T) -> T {
         b
     }
 }
-/// Adjoint of [`max`]: `adj` to the argument returned (`b` on a tie).
+/// Adjoint of [`max`](fn@max): `adj` to the argument returned (`b` on a tie).
 #[inline]
 pub fn adj_max<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
     if a > b {
@@ -329,7 +329,7 @@ pub fn adj_max<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
         (T::zeroed(), adj)
     }
 }
-/// Tangent of [`max`]: the tangent of the argument returned (`b` on a tie).
+/// Tangent of [`max`](fn@max): the tangent of the argument returned (`b` on a tie).
 #[inline]
 pub fn tan_max<T: Ordered>(a: T, b: T, da: T, db: T) -> T {
     if a > b {
@@ -351,7 +351,7 @@ pub fn clamp<T: Ordered>(x: T, lo: T, hi: T) -> T {
         x
     }
 }
-/// Adjoint of [`clamp`]: `adj` to the argument returned (`x` on ties).
+/// Adjoint of [`clamp`](fn@clamp): `adj` to the argument returned (`x` on ties).
 #[inline]
 pub fn adj_clamp<T: Ordered>(x: T, lo: T, hi: T, adj: T) -> (T, T, T) {
     let z = T::zeroed();
@@ -363,7 +363,7 @@ pub fn adj_clamp<T: Ordered>(x: T, lo: T, hi: T, adj: T) -> (T, T, T) {
         (adj, z, z)
     }
 }
-/// Tangent of [`clamp`]: the tangent of the argument returned (`x` on ties).
+/// Tangent of [`clamp`](fn@clamp): the tangent of the argument returned (`x` on ties).
 #[inline]
 pub fn tan_clamp<T: Ordered>(x: T, lo: T, hi: T, dx: T, dlo: T, dhi: T) -> T {
     if x < lo {
@@ -384,7 +384,7 @@ pub fn tan_clamp<T: Ordered>(x: T, lo: T, hi: T, dx: T, dlo: T, dhi: T) -> T {
 pub fn lerp<T: Linear>(a: T, b: T, t: T::Scalar) -> T {
     a.lin_scale(one::<T::Scalar>() - t).lin_add(b.lin_scale(t))
 }
-/// Adjoint of [`lerp`]: `(adj (1 - t), adj t, <adj, b - a>)`.
+/// Adjoint of [`lerp`](fn@lerp): `(adj (1 - t), adj t, <adj, b - a>)`.
 #[inline]
 pub fn adj_lerp<T: Linear>(a: T, b: T, t: T::Scalar, adj: T) -> (T, T, T::Scalar) {
     (
@@ -393,7 +393,7 @@ pub fn adj_lerp<T: Linear>(a: T, b: T, t: T::Scalar, adj: T) -> (T, T, T::Scalar
         adj.lin_inner(b.lin_sub(a)),
     )
 }
-/// Tangent of [`lerp`]: `da (1 - t) + db t + (b - a) dt`.
+/// Tangent of [`lerp`](fn@lerp): `da (1 - t) + db t + (b - a) dt`.
 #[inline]
 pub fn tan_lerp<T: Linear>(a: T, b: T, t: T::Scalar, da: T, db: T, dt: T::Scalar) -> T {
     lerp(da, db, t).lin_add(b.lin_sub(a).lin_scale(dt))
@@ -409,7 +409,7 @@ pub fn select<T: Value>(c: bool, a: T, b: T) -> T {
         b
     }
 }
-/// Adjoint of [`select`]: `(false, adj, 0)` if `c`, else `(false, 0, adj)`.
+/// Adjoint of [`select`](fn@select): `(false, adj, 0)` if `c`, else `(false, 0, adj)`.
 #[inline]
 pub fn adj_select<T: Value>(c: bool, _a: T, _b: T, adj: T) -> (bool, T, T) {
     if c {
@@ -418,7 +418,7 @@ pub fn adj_select<T: Value>(c: bool, _a: T, _b: T, adj: T) -> (bool, T, T) {
         (false, T::zeroed(), adj)
     }
 }
-/// Tangent of [`select`]: `da` if `c`, else `db`.
+/// Tangent of [`select`](fn@select): `da` if `c`, else `db`.
 #[inline]
 pub fn tan_select<T: Value>(c: bool, _a: T, _b: T, _dc: bool, da: T, db: T) -> T {
     if c {
@@ -456,14 +456,14 @@ pub fn smoothstep<R: Real>(e0: R, e1: R, x: R) -> R {
     let t = smoothstep_t(e0, e1, x).0;
     t * t * (R::lit(3.0) - R::lit(2.0) * t)
 }
-/// Adjoint of [`smoothstep`]: `adj 6t(1-t) dt/d(e0, e1, x)`.
+/// Adjoint of [`smoothstep`](fn@smoothstep): `adj 6t(1-t) dt/d(e0, e1, x)`.
 #[inline]
 pub fn adj_smoothstep<R: Real>(e0: R, e1: R, x: R, adj: R) -> (R, R, R) {
     let (t, t0, t1, tx) = smoothstep_t(e0, e1, x);
     let g = adj * R::lit(6.0) * t * (R::one() - t);
     (g * t0, g * t1, g * tx)
 }
-/// Tangent of [`smoothstep`]: `6t(1-t) (dt/de0 de0 + dt/de1 de1 + dt/dx dx)`.
+/// Tangent of [`smoothstep`](fn@smoothstep): `6t(1-t) (dt/de0 de0 + dt/de1 de1 + dt/dx dx)`.
 #[inline]
 pub fn tan_smoothstep<R: Real>(e0: R, e1: R, x: R, de0: R, de1: R, dx: R) -> R {
     let (t, t0, t1, tx) = smoothstep_t(e0, e1, x);
