@@ -4,150 +4,15 @@
 
 use adflex::prelude::*;
 
-/// A deterministic xorshift generator (tests need no rand dependency for this).
-pub struct Rng(pub u64);
+pub use adflex_testkit::{assert_checked, Checked, Rng};
 
-impl Rng {
-    pub fn next_f64(&mut self) -> f64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    /// Uniform in `[lo, hi)`.
-    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.next_f64()
-    }
-    pub fn vec(&mut self, n: usize, lo: f64, hi: f64) -> Vec<f64> {
-        (0..n).map(|_| self.uniform(lo, hi)).collect()
-    }
-}
-
-/// Result of a gradient check.
-#[derive(Debug)]
-pub struct Checked {
-    /// Worst relative error of the adjoint against central differences.
-    pub adjoint_err: f64,
-    /// Relative error of the dot-product test `<J v, w> = <v, J^T w>`.
-    pub dot_err: f64,
-    /// The adjoint gradient (of `<w, outputs>` with respect to each input).
-    pub grad: Vec<Vec<f64>>,
-}
-
-fn rel(a: f64, b: f64) -> f64 {
-    (a - b).abs() / a.abs().max(b.abs()).max(1.0)
-}
-
-/// Checks one kernel: `run(mode)` launches it on `inputs` (read) and `outputs` (written).
-///
-/// The loss is `<w, outputs>` for a random `w`. The adjoint gradient is compared with central
-/// differences (h = 1e-6) of the loss for every input entry, and the tangent `J v` for a random
-/// `v` with the adjoint by the dot-product test.
+/// Checks one kernel (see [`adflex_testkit::check`]): `run(mode)` launches it on `inputs` (read)
+/// and `outputs` (written).
 pub fn check(
     inputs: &[&Array<f64>],
     outputs: &[&Array<f64>],
     seed: u64,
     run: impl Fn(Mode),
 ) -> Checked {
-    let mut rng = Rng(seed | 1);
-    let forward = || -> Vec<Vec<f64>> {
-        for o in outputs {
-            o.fill(0.0);
-        }
-        run(Mode::Forward);
-        outputs.iter().map(|o| o.to_vec()).collect()
-    };
-    let w: Vec<Vec<f64>> = outputs
-        .iter()
-        .map(|o| rng.vec(o.len(), -1.0, 1.0))
-        .collect();
-    let loss = |ys: &[Vec<f64>]| -> f64 {
-        ys.iter()
-            .zip(&w)
-            .map(|(y, w)| y.iter().zip(w).map(|(a, b)| a * b).sum::<f64>())
-            .sum()
-    };
-    forward();
-    // Adjoint.
-    for (o, w) in outputs.iter().zip(&w) {
-        o.ensure_grad().assign(w);
-    }
-    for i in inputs {
-        i.ensure_grad().fill(0.0);
-    }
-    run(Mode::Adjoint);
-    let grad: Vec<Vec<f64>> = inputs.iter().map(|i| i.grad().unwrap().to_vec()).collect();
-    // Central differences.
-    let h = 1e-6;
-    let mut adjoint_err: f64 = 0.0;
-    for (a, g) in inputs.iter().zip(&grad) {
-        for (k, &gk) in g.iter().enumerate() {
-            let x0 = a.get(k);
-            a.set(k, x0 + h);
-            let lp = loss(&forward());
-            a.set(k, x0 - h);
-            let lm = loss(&forward());
-            a.set(k, x0);
-            let fd = (lp - lm) / (2.0 * h);
-            let e = rel(fd, gk);
-            if e > adjoint_err {
-                adjoint_err = e;
-            }
-        }
-    }
-    // Tangent and the dot-product test.
-    let v: Vec<Vec<f64>> = inputs.iter().map(|i| rng.vec(i.len(), -1.0, 1.0)).collect();
-    for (i, v) in inputs.iter().zip(&v) {
-        i.set_tangent(Some(Array::from_vec(v.clone())));
-    }
-    for o in outputs {
-        o.ensure_tangent().fill(0.0);
-    }
-    forward();
-    run(Mode::Tangent);
-    let jv: f64 = outputs
-        .iter()
-        .zip(&w)
-        .map(|(o, w)| {
-            o.tangent_buffer()
-                .unwrap()
-                .to_vec()
-                .iter()
-                .zip(w)
-                .map(|(a, b)| a * b)
-                .sum::<f64>()
-        })
-        .sum();
-    let vjtw: f64 = v
-        .iter()
-        .zip(&grad)
-        .map(|(v, g)| v.iter().zip(g).map(|(a, b)| a * b).sum::<f64>())
-        .sum();
-    for i in inputs {
-        i.set_tangent(None);
-    }
-    Checked {
-        adjoint_err,
-        dot_err: rel(jv, vjtw),
-        grad,
-    }
-}
-
-/// Asserts the check passed: adjoint within `tol` of central differences, dot test to 1e-10.
-#[track_caller]
-pub fn assert_checked(c: &Checked, tol: f64) {
-    assert!(
-        c.adjoint_err <= tol,
-        "adjoint vs central differences: relative error {:e} > {tol:e}",
-        c.adjoint_err
-    );
-    assert!(
-        c.dot_err <= 1e-10,
-        "tangent vs adjoint (dot-product test): relative error {:e}",
-        c.dot_err
-    );
-    assert!(
-        c.grad.iter().flatten().any(|g| *g != 0.0),
-        "the gradient is identically zero: the check cannot fail"
-    );
+    adflex_testkit::check(inputs, outputs, seed, &run)
 }

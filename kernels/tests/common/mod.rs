@@ -4,44 +4,7 @@
 
 use adflex_runtime::{Array, Mat22, Mat33, Quat, Vec3};
 
-/// xorshift64: deterministic random numbers without a dependency.
-pub struct Rng(pub u64);
-
-impl Rng {
-    pub fn next_f64(&mut self) -> f64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    /// Uniform in `[lo, hi)`.
-    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.next_f64()
-    }
-    pub fn scalars(&mut self, n: usize, lo: f64, hi: f64) -> Vec<f64> {
-        (0..n).map(|_| self.uniform(lo, hi)).collect()
-    }
-    pub fn vec3(&mut self, lo: f64, hi: f64) -> Vec3<f64> {
-        Vec3::new(
-            self.uniform(lo, hi),
-            self.uniform(lo, hi),
-            self.uniform(lo, hi),
-        )
-    }
-    pub fn vec3s(&mut self, n: usize, lo: f64, hi: f64) -> Vec<Vec3<f64>> {
-        (0..n).map(|_| self.vec3(lo, hi)).collect()
-    }
-    /// A random unit quaternion.
-    pub fn quat(&mut self) -> Quat<f64> {
-        let q = Quat::new(
-            self.uniform(-1.0, 1.0),
-            self.uniform(-1.0, 1.0),
-            self.uniform(-1.0, 1.0),
-            self.uniform(-1.0, 1.0),
-        );
-        q / q.norm()
-    }
-}
+pub use adflex_testkit::Rng;
 
 pub fn arr<T: adflex_runtime::Element>(v: Vec<T>, name: &str) -> Array<T> {
     Array::from_vec(v).named(name)
