@@ -115,7 +115,7 @@ pub fn check(
     let mut adjoint_err: f64 = 0.0;
     let mut worst = (0, 0, 0.0, 0.0);
     for (ai, (a, g)) in inputs.iter().zip(&grad).enumerate() {
-        for k in 0..a.len() {
+        for (k, &gk) in g.iter().enumerate() {
             let x0 = a.get(k);
             a.set(k, x0 + h);
             let lp = loss(&forward());
@@ -123,11 +123,11 @@ pub fn check(
             let lm = loss(&forward());
             a.set(k, x0);
             let fd = (lp - lm) / (2.0 * h);
-            let e = rel(fd, g[k]);
+            let e = rel(fd, gk);
             // NaN counts as the worst error
             if e > adjoint_err || e.is_nan() && !adjoint_err.is_nan() {
                 adjoint_err = e;
-                worst = (ai, k, g[k], fd);
+                worst = (ai, k, gk, fd);
             }
         }
     }
