@@ -48,7 +48,8 @@ pub mod validation;
 pub use constraints as xpbd;
 
 pub use integrators::{Integrator, SemiImplicitEuler};
-pub use model::{BodyState, Control, Model, ModelBuilder, State};
+pub use model::{Control, Model, ModelBuilder, State};
+pub use rigid::BodyState;
 pub use validation::{ModelError, Problem};
 
 /// The builder, model, state, integrators and component types in one import.
@@ -61,6 +62,7 @@ pub mod prelude {
     pub use crate::integrators::{
         ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
     };
-    pub use crate::model::{BodyState, Control, Model, ModelBuilder, State};
+    pub use crate::model::{Control, Model, ModelBuilder, State};
+    pub use crate::rigid::BodyState;
     pub use crate::scenes::cloth::ClothGrid;
 }

@@ -18,7 +18,7 @@ use crate::forces::fem_tri::{triangle_quality, triangle_rest, TriangleFem};
 use crate::forces::particle::{accelerations, add_forces, Drag};
 use crate::forces::spring::Springs;
 use crate::forces::{Force, ForceContext};
-use crate::rigid::RigidBodies;
+use crate::rigid::{BodyState, RigidBodies};
 use crate::validation::{
     max_of, min_quality, overflow_hint, precision, Check, ModelError, Problem,
 };
@@ -29,32 +29,6 @@ fn lit<R: Real>(x: f64) -> R {
 
 fn wide<R: Real>(v: Vec3<R>) -> Vec3<f64> {
     Vec3::new(v.x.to_f64(), v.y.to_f64(), v.z.to_f64())
-}
-
-/// The state of the rigid bodies: centre of mass position (m), orientation (unit quaternion),
-/// linear velocity (m/s) and angular velocity (rad/s, world frame).
-#[derive(Clone, Debug)]
-pub struct BodyState<R: Real> {
-    /// Position of the centre of mass (m).
-    pub x: Array<Vec3<R>>,
-    /// Orientation, body to world (unit quaternion).
-    pub q: Array<Quat<R>>,
-    /// Linear velocity (m/s).
-    pub v: Array<Vec3<R>>,
-    /// Angular velocity in world frame (rad/s).
-    pub w: Array<Vec3<R>>,
-}
-
-impl<R: Real> BodyState<R> {
-    /// New arrays with the same values (no gradients).
-    pub fn deep_clone(&self) -> Self {
-        BodyState {
-            x: self.x.deep_clone(),
-            q: self.q.deep_clone(),
-            v: self.v.deep_clone(),
-            w: self.w.deep_clone(),
-        }
-    }
 }
 
 /// Everything that changes from step to step: particle positions (m) and velocities (m/s),

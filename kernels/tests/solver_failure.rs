@@ -6,7 +6,7 @@
 //!
 //! Run with `--nocapture` to see the figures.
 
-use adflex_kernels::integrators::linsolve::SolveSettings;
+use adflex_kernels::integrators::krylov::SolveSettings;
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
 };

@@ -4,7 +4,8 @@
 
 use adflex_runtime::{Array, Error, Real, Tape, Vec3};
 
-use crate::model::{BodyState, Control, Model, State};
+use crate::model::{Control, Model, State};
+use crate::rigid::BodyState;
 
 /// Advances the rigid bodies of `state` (if any) by `dt` (s) with
 /// [`crate::rigid::RigidBodies::integrate`] (semi-implicit Euler), recording on `tape`.

@@ -12,7 +12,7 @@
 //!
 //! and its Jacobian `A = M - dt^2 df/dx - dt df/dv` (symmetric for springs, membranes,
 //! tetrahedra, bending and drag). Each Newton iteration solves `A d = -G` by
-//! [`linsolve::cg`] (falling back to BiCGSTAB if CG meets negative curvature, e.g. from
+//! [`krylov::cg`] (falling back to BiCGSTAB if CG meets negative curvature, e.g. from
 //! compressed springs, or from friction, which makes `A` unsymmetric). The matrix is never
 //! formed: `A u` is one pass of the **tangent** kernels of the force model, recorded once per
 //! iterate on a scratch tape, with the tangents `dt u` on `x'` and `u` on `v'`
@@ -52,7 +52,7 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use super::common::{particles, step_bodies};
-use super::linsolve::{self, SolveInfo, SolveSettings};
+use super::krylov::{self, SolveInfo, SolveSettings};
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::{Param, ParamCopy};
 use crate::model::{Control, Model, State};
@@ -435,7 +435,7 @@ impl ImplicitEuler {
             stats.newton_iterations += 1;
             let rhs: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| -m * e).collect();
             let mut d = vec![0.0; rhs.len()];
-            let (info, fell_back) = linsolve::solve(
+            let (info, fell_back) = krylov::solve(
                 |u, out| sys.apply(&mut p, u, out),
                 &rhs,
                 &mut d,
@@ -530,7 +530,7 @@ impl ImplicitEuler {
         let g: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
         let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
         let mut d = vec![0.0; g.len()];
-        let info = linsolve::cg(
+        let info = krylov::cg(
             |u, out| sys.apply(p, u, out),
             &rhs,
             &mut d,
@@ -803,7 +803,7 @@ impl<R: Real> Shared<R> {
         let mut rhs = b.clone();
         sys.mask(&mut rhs);
         let mut lambda = vec![0.0; m];
-        let (info, _) = linsolve::solve(
+        let (info, _) = krylov::solve(
             |u, out| sys.apply_t(&mut p, u, out),
             &rhs,
             &mut lambda,
@@ -874,7 +874,7 @@ impl<R: Real> Shared<R> {
             .collect();
         sys.mask(&mut rhs);
         let mut dv1 = vec![0.0; m];
-        let (info, _) = linsolve::solve(
+        let (info, _) = krylov::solve(
             |u, out| sys.apply(&mut p, u, out),
             &rhs,
             &mut dv1,

@@ -25,7 +25,9 @@
 mod common;
 pub mod explicit;
 pub mod implicit;
-pub mod linsolve;
+pub mod krylov;
+#[doc(hidden)]
+pub use krylov as linsolve;
 // A test fixture (a mass-spring oscillator with its exact solution), not API.
 #[doc(hidden)]
 pub mod oscillator;

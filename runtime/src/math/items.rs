@@ -14,10 +14,10 @@
 
 #![allow(non_camel_case_types)]
 
-use super::linear::{Linear, Ordered, VectorValue};
 use super::matrix::{DiagRule, MatrixValue};
 use super::scalar::SignedRule;
 use super::vector::{Componentwise, OuterRule};
+use super::vector_space::{Linear, Ordered, VectorValue};
 use crate::func::DiffFunc;
 use crate::{Mat22, Mat33, Quat, Real, Value, Vec2, Vec3, Vec4};
 

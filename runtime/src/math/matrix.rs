@@ -3,7 +3,7 @@
 
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
-use super::linear::{zero, Linear};
+use super::vector_space::{zero, Linear};
 use crate::{Mat33, Real, Vec3};
 
 /// The square matrix types `Mat22<R>`, `Mat33<R>`.

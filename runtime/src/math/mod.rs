@@ -91,12 +91,12 @@ pub mod cast;
 pub mod component;
 pub mod construct;
 pub mod items;
-pub mod linear;
 pub mod matrix;
 pub mod ops;
 pub mod quaternion;
 pub mod scalar;
 pub mod vector;
+pub mod vector_space;
 
 #[cfg(test)]
 pub(crate) mod check;
@@ -109,9 +109,9 @@ pub use construct::*;
 // The builtins' items live in the type namespace, beside the functions of the same name.
 #[doc(hidden)]
 pub use items::*;
-pub use linear::*;
 pub use matrix::*;
 pub use ops::*;
 pub use quaternion::*;
 pub use scalar::*;
 pub use vector::*;
+pub use vector_space::*;

@@ -7,8 +7,8 @@
 
 use nalgebra::{Matrix2, Matrix3, Quaternion, Vector2, Vector3, Vector4};
 
-use super::linear::Linear;
 use super::quaternion::{adj_quat_mul, quat_mul, tan_quat_mul};
+use super::vector_space::Linear;
 use crate::Real;
 
 // ---------------------------------------------------------------------------------------------

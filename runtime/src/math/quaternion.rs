@@ -6,8 +6,8 @@
 //! polynomials in the components and are differentiated as written, so their gradients are
 //! exact for any quaternion; for a non-unit `q` they are just not rotations.
 
-use super::linear::Linear;
 use super::matrix::{skew, unskew};
+use super::vector_space::Linear;
 use crate::{Mat33, Quat, Real, Value, Vec3};
 
 #[inline(always)]

@@ -4,7 +4,7 @@
 //! Every rule is finite at the function's singular points wherever the function itself is
 //! finite there; the convention chosen is in each function's docs (they follow NVIDIA Warp).
 
-use super::linear::{one, Linear, Ordered};
+use super::vector_space::{one, Linear, Ordered};
 use crate::{Real, Value};
 
 /// `(forward, adjoint, tangent)` of a one-argument scalar function from its value and its

@@ -3,7 +3,7 @@
 
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3, Vector4};
 
-use super::linear::{zero, Linear, VectorValue};
+use super::vector_space::{zero, Linear, VectorValue};
 use crate::{Real, Vec3};
 
 /// `a . b` for `Vec2/3/4`. No singular points.

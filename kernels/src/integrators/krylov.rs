@@ -8,7 +8,7 @@
 //! `f64` slices (three components per particle), whatever the scalar of the model.
 //!
 //! ```
-//! use adflex_kernels::integrators::linsolve::{cg, SolveSettings};
+//! use adflex_kernels::integrators::krylov::{cg, SolveSettings};
 //! // A = [[4, 1], [1, 3]], b = [1, 2]: x = [1/11, 7/11].
 //! let a = |u: &[f64], out: &mut [f64]| {
 //!     out[0] = 4.0 * u[0] + u[1];
