@@ -196,13 +196,10 @@ fn with_locks(
     let locked: Vec<(u64, bool)> = targets.iter().map(|(a, w)| (a.id(), *w)).collect();
     for (p, a) in params.iter().zip(arrays) {
         if let (Access::Store, Some(a)) = (p.access, a) {
-            let buf = match mode {
-                Mode::Forward => Some(a.boxed()),
-                Mode::Adjoint => a.grad_any(),
-                Mode::Tangent => a.tangent_any(),
-            };
-            if let Some(b) = buf {
-                b.new_claim_epoch(Token(()));
+            match mode {
+                Mode::Forward => a.new_claim_epoch(Token(())),
+                Mode::Adjoint => a.grad_any().map_or((), |g| g.new_claim_epoch(Token(()))),
+                Mode::Tangent => a.tangent_any().map_or((), |t| t.new_claim_epoch(Token(()))),
             }
         }
     }
@@ -213,27 +210,42 @@ fn with_locks(
 /// The body of a launch, given the (id, for writing) of every buffer it holds locked.
 type LockedRun<'a> = dyn FnMut(&[(u64, bool)]) + 'a;
 
+/// A buffer a launch locks: one of its arrays, or a gradient or tangent buffer (owned: the
+/// array hands out a new handle).
+enum Target<'a> {
+    Array(&'a dyn AnyArray),
+    Buffer(Box<dyn AnyArray>),
+}
+
+impl<'a> std::ops::Deref for Target<'a> {
+    type Target = dyn AnyArray + 'a;
+    fn deref(&self) -> &(dyn AnyArray + 'a) {
+        match self {
+            Target::Array(a) => *a,
+            Target::Buffer(b) => &**b,
+        }
+    }
+}
+
 /// Buffers a launch locks, each with whether for writing.
-type LockTargets = Vec<(Box<dyn AnyArray>, bool)>;
+type LockTargets<'a> = Vec<(Target<'a>, bool)>;
 
 /// What a launch must lock, sorted by id, each once (for writing if any use writes it): the
 /// arrays (written only in forward mode) and the gradient or tangent buffers the mode reads or
 /// writes. Panics if one array is passed for two parameters and one of them writes it: the
 /// kernel would read its own output, or two writes would race.
-fn lock_targets(
+fn lock_targets<'a>(
     kernel: &str,
     params: &[ParamInfo],
-    arrays: &[Option<&dyn AnyArray>],
+    arrays: &[Option<&'a dyn AnyArray>],
     mode: Mode,
-) -> LockTargets {
-    let mut targets: LockTargets = Vec::new();
-    let mut add = |a: Box<dyn AnyArray>, write: bool| match targets
-        .iter_mut()
-        .find(|(b, _)| b.id() == a.id())
-    {
-        Some((_, w)) => *w |= write,
-        None => targets.push((a, write)),
-    };
+) -> LockTargets<'a> {
+    let mut targets: LockTargets = Vec::with_capacity(2 * arrays.len());
+    let mut add =
+        |a: Target<'a>, write: bool| match targets.iter_mut().find(|(b, _)| b.id() == a.id()) {
+            Some((_, w)) => *w |= write,
+            None => targets.push((a, write)),
+        };
     for (i, (p, a)) in params.iter().zip(arrays).enumerate() {
         let Some(a) = a else { continue };
         let writes = p.access.writes();
@@ -250,19 +262,19 @@ fn lock_targets(
                 }
             }
         }
-        add(a.boxed(), writes && mode == Mode::Forward);
+        add(Target::Array(*a), writes && mode == Mode::Forward);
         match mode {
             Mode::Forward => {}
             // Reads scatter into their gradients, stores take theirs, atomics read theirs.
             Mode::Adjoint => {
                 if let Some(g) = a.grad_any() {
-                    add(g, p.access != Access::Atomic);
+                    add(Target::Buffer(g), p.access != Access::Atomic);
                 }
             }
             // Reads read their tangents, stores and atomics write theirs.
             Mode::Tangent => {
                 if let Some(t) = a.tangent_any() {
-                    add(t, writes);
+                    add(Target::Buffer(t), writes);
                 }
             }
         }

@@ -517,14 +517,15 @@ impl Tape {
         self.check_off_tape_writes(&run)?;
         let grads: HashSet<u64> = f.intersection(&b).copied().collect();
         if require_reach {
-            let leaf = |id: &u64| {
-                sources.contains(id)
-                    || self.records.iter().any(|r| {
-                        r.reads
-                            .iter()
-                            .any(|u| u.array.id() == *id && u.array.is_requires_grad())
-                    })
-            };
+            let leaves: HashSet<u64> = self
+                .records
+                .iter()
+                .flat_map(|r| &r.reads)
+                .filter(|u| u.array.is_requires_grad())
+                .map(|u| u.array.id())
+                .chain(sources.iter().copied())
+                .collect();
+            let leaf = |id: &u64| leaves.contains(id);
             if !grads.iter().any(leaf) {
                 return Err(Error::NothingToDifferentiate {
                     seeds: self.labels(seeds),
