@@ -113,14 +113,24 @@ fn up() -> [f64; 3] {
 fn identity_quat() -> [f64; 4] {
     [0.0, 0.0, 0.0, 1.0]
 }
-fn d1000() -> f64 {
-    1000.0
+// The defaults of the components' `Default` impls (one source).
+fn ground_ke() -> f64 {
+    Ground::<f64>::default().ke
 }
-fn d1() -> f64 {
-    1.0
+fn ground_kd() -> f64 {
+    Ground::<f64>::default().kd
 }
-fn d05() -> f64 {
-    0.5
+fn ground_mu() -> f64 {
+    Ground::<f64>::default().mu
+}
+fn contact_ke() -> f64 {
+    ParticleContact::<f64>::default().ke
+}
+fn contact_kd() -> f64 {
+    ParticleContact::<f64>::default().kd
+}
+fn contact_mu() -> f64 {
+    ParticleContact::<f64>::default().mu
 }
 
 #[derive(Deserialize)]
@@ -247,11 +257,11 @@ struct GroundDesc {
     normal: [f64; 3],
     #[serde(default)]
     offset: f64,
-    #[serde(default = "d1000")]
+    #[serde(default = "ground_ke")]
     ke: f64,
-    #[serde(default = "d1")]
+    #[serde(default = "ground_kd")]
     kd: f64,
-    #[serde(default = "d05")]
+    #[serde(default = "ground_mu")]
     mu: f64,
     #[serde(default)]
     leak: f64,
@@ -268,11 +278,11 @@ struct DragDesc {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ContactDesc {
-    #[serde(default = "d1000")]
+    #[serde(default = "contact_ke")]
     ke: f64,
-    #[serde(default = "d1")]
+    #[serde(default = "contact_kd")]
     kd: f64,
-    #[serde(default = "d05")]
+    #[serde(default = "contact_mu")]
     mu: f64,
     #[serde(default)]
     leak: f64,

@@ -291,3 +291,20 @@ fn a_large_scene_reads_in_linear_time_and_errors_name_the_line() {
     let e = quick(5.0, "5 MB scene with an error", || json_err(&bad));
     expect(&e, &format!("particles[{}].mass", n - 3), n - 3 + 3, ">= 0");
 }
+
+#[test]
+fn scene_file_defaults_are_the_components_defaults() {
+    use adflex_kernels::contact::particle::ParticleContact;
+    use adflex_kernels::prelude::*;
+    let json = r#"{
+        "particles": [ { "x": [0, 1, 0], "mass": 1 }, { "x": [1, 1, 0], "mass": 1 } ],
+        "ground": {}, "particle_contact": {}
+    }"#;
+    let m = ModelBuilder::<f64>::from_json_str(json).unwrap().finalize();
+    assert_eq!(m.ground().unwrap(), Ground::default());
+    assert_eq!(m.particle_contact().unwrap(), ParticleContact::default());
+    // Every component a user configures has a documented Default.
+    let cloth = adflex_kernels::scenes::cloth::ClothGrid::<f32>::default();
+    assert_eq!((cloth.ni, cloth.nj), (16, 16));
+    assert_eq!(Drag::<f64>::default().wind, adflex_runtime::Vec3::zeros());
+}

@@ -55,6 +55,20 @@ pub struct ParticleContact<R: Real> {
     pub margin: R,
 }
 
+/// `ke = 1000` N/m, `kd = 1` N s/m, `mu = 0.5`, `leak = 0` (exact gradients), `margin = 0` m
+/// (the scene file's defaults are these).
+impl<R: Real> Default for ParticleContact<R> {
+    fn default() -> Self {
+        ParticleContact {
+            ke: R::lit(1000.0),
+            kd: R::lit(1.0),
+            mu: R::lit(0.5),
+            leak: R::lit(0.0),
+            margin: R::lit(0.0),
+        }
+    }
+}
+
 impl<R: Real> ParticleContact<R> {
     /// The builder's checks: `ke`, `kd`, `mu`, `leak`, `margin` finite and `>= 0`.
     pub(crate) fn check(&self, c: &mut crate::validation::Check) {
@@ -66,18 +80,6 @@ impl<R: Real> ParticleContact<R> {
             ("margin", self.margin),
         ] {
             c.nonneg(p, v);
-        }
-    }
-}
-
-impl<R: Real> Default for ParticleContact<R> {
-    fn default() -> Self {
-        ParticleContact {
-            ke: R::lit(1000.0),
-            kd: R::lit(1.0),
-            mu: R::lit(0.5),
-            leak: R::lit(0.0),
-            margin: R::lit(0.0),
         }
     }
 }

@@ -57,6 +57,16 @@ pub struct Drag<R: Real> {
     pub wind: Vec3<R>,
 }
 
+/// Plain drag `kd = 0.1` N s/m (a light air resistance for particles of about 10 g), no wind.
+impl<R: Real> Default for Drag<R> {
+    fn default() -> Self {
+        Drag {
+            kd: R::lit(0.1),
+            wind: Vec3::zeros(),
+        }
+    }
+}
+
 impl<R: Real> Drag<R> {
     /// The builder's checks: `kd` finite and `>= 0`, `wind` finite.
     pub(crate) fn check(&self, c: &mut crate::validation::Check) {

@@ -49,6 +49,14 @@ pub struct ClothGrid<R: Real> {
     pub bend_rest: RestAngle,
 }
 
+/// [`ClothGrid::benchmark`]`(16)`: a 16 x 16 sheet of 1 m, at 0.03 m, 0.01 kg per particle,
+/// pinned at two corners, springs `ke = 50` N/m, `kd = 0.1` N s/m, bending `ke = 0.01`.
+impl<R: Real> Default for ClothGrid<R> {
+    fn default() -> Self {
+        ClothGrid::benchmark(16)
+    }
+}
+
 impl<R: Real> ClothGrid<R> {
     /// The `cloth` scene's sheet with `n` particles per side: spacing `1/(n-1)`, at height
     /// 0.03 m, mass 0.01 kg, pinned at `(0, 0)` and `(n-1, 0)`, springs `ke = 50`, `kd = 0.1`,

@@ -18,11 +18,13 @@ pub trait CastRule<B>: Sized {
 pub fn cast<A: CastRule<B>, B>(a: A) -> B {
     a.cast_fwd()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`cast`]: `adj as A` between floats, 0 otherwise.
 #[inline(always)]
 pub fn adj_cast<A: CastRule<B>, B>(a: A, adj: B) -> A {
     a.cast_adj(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`cast`]: `da as B` between floats, 0 otherwise.
 #[inline(always)]
 pub fn tan_cast<A: CastRule<B>, B>(a: A, da: A) -> B {

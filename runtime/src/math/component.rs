@@ -91,11 +91,13 @@ impl<T: Value + Default, const N: usize> ComponentRule<usize> for [T; N] {
 pub fn extract<V: ComponentRule<K>, K: Copy>(v: V, k: K) -> V::Out {
     v.comp_get(k)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`extract`]: `(adj` in component `k` and zero elsewhere`, 0)`.
 #[inline]
 pub fn adj_extract<V: ComponentRule<K>, K: Copy>(_v: V, k: K, adj: V::Out) -> (V, K) {
     (V::zeroed().comp_set(k, adj), V::ZERO_INDEX)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`extract`]: component `k` of `dv`.
 #[inline]
 pub fn tan_extract<V: ComponentRule<K>, K: Copy>(_v: V, k: K, dv: V, _dk: K) -> V::Out {
@@ -107,6 +109,7 @@ pub fn tan_extract<V: ComponentRule<K>, K: Copy>(_v: V, k: K, dv: V, _dk: K) -> 
 pub fn replace<V: ComponentRule<K>, K: Copy>(v: V, k: K, x: V::Out) -> V {
     v.comp_set(k, x)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`replace`]: `(adj` with component `k` zeroed`, 0, adj[k])`.
 #[inline]
 pub fn adj_replace<V: ComponentRule<K>, K: Copy>(
@@ -121,6 +124,7 @@ pub fn adj_replace<V: ComponentRule<K>, K: Copy>(
         adj.comp_get(k),
     )
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`replace`]: `dv` with component `k` replaced by `dx`.
 #[inline]
 pub fn tan_replace<V: ComponentRule<K>, K: Copy>(

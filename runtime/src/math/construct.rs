@@ -13,11 +13,13 @@ use crate::{Mat22, Mat33, Quat, Real, Vec2, Vec3, Vec4};
 pub fn vec2<R: Real>(x: R, y: R) -> Vec2<R> {
     Vec2::new(x, y)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`vec2`](fn@vec2): the components of `adj`.
 #[inline]
 pub fn adj_vec2<R: Real>(_x: R, _y: R, adj: Vec2<R>) -> (R, R) {
     (adj.x, adj.y)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`vec2`](fn@vec2): `(dx, dy)`.
 #[inline]
 pub fn tan_vec2<R: Real>(_x: R, _y: R, dx: R, dy: R) -> Vec2<R> {
@@ -31,11 +33,13 @@ pub fn tan_vec2<R: Real>(_x: R, _y: R, dx: R, dy: R) -> Vec2<R> {
 pub fn vec3<R: Real>(x: R, y: R, z: R) -> Vec3<R> {
     Vec3::new(x, y, z)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`vec3`](fn@vec3): the components of `adj`.
 #[inline]
 pub fn adj_vec3<R: Real>(_x: R, _y: R, _z: R, adj: Vec3<R>) -> (R, R, R) {
     (adj.x, adj.y, adj.z)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`vec3`](fn@vec3): `(dx, dy, dz)`.
 #[inline]
 pub fn tan_vec3<R: Real>(_x: R, _y: R, _z: R, dx: R, dy: R, dz: R) -> Vec3<R> {
@@ -49,11 +53,13 @@ pub fn tan_vec3<R: Real>(_x: R, _y: R, _z: R, dx: R, dy: R, dz: R) -> Vec3<R> {
 pub fn vec4<R: Real>(x: R, y: R, z: R, w: R) -> Vec4<R> {
     Vec4::new(x, y, z, w)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`vec4`](fn@vec4): the components of `adj`.
 #[inline]
 pub fn adj_vec4<R: Real>(_x: R, _y: R, _z: R, _w: R, adj: Vec4<R>) -> (R, R, R, R) {
     (adj.x, adj.y, adj.z, adj.w)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`vec4`](fn@vec4): `(dx, dy, dz, dw)`.
 #[allow(clippy::too_many_arguments)]
 #[inline]
@@ -68,11 +74,13 @@ pub fn tan_vec4<R: Real>(_x: R, _y: R, _z: R, _w: R, dx: R, dy: R, dz: R, dw: R)
 pub fn mat22<R: Real>(m00: R, m01: R, m10: R, m11: R) -> Mat22<R> {
     Mat22::new(m00, m01, m10, m11)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mat22`](fn@mat22): the entries of `adj`, row-major.
 #[inline]
 pub fn adj_mat22<R: Real>(_m00: R, _m01: R, _m10: R, _m11: R, adj: Mat22<R>) -> (R, R, R, R) {
     (adj[(0, 0)], adj[(0, 1)], adj[(1, 0)], adj[(1, 1)])
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mat22`](fn@mat22): the matrix of the tangents.
 #[allow(clippy::too_many_arguments)]
 #[inline]
@@ -108,6 +116,7 @@ pub fn mat33<R: Real>(
 ) -> Mat33<R> {
     Mat33::new(m00, m01, m02, m10, m11, m12, m20, m21, m22)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mat33`](fn@mat33): the entries of `adj`, row-major.
 #[allow(clippy::too_many_arguments, clippy::type_complexity)]
 #[inline]
@@ -135,6 +144,7 @@ pub fn adj_mat33<R: Real>(
         adj[(2, 2)],
     )
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mat33`](fn@mat33): the matrix of the tangents.
 #[allow(clippy::too_many_arguments)]
 #[inline]
@@ -168,11 +178,13 @@ pub fn tan_mat33<R: Real>(
 pub fn mat22_cols<R: Real>(c0: Vec2<R>, c1: Vec2<R>) -> Mat22<R> {
     Mat22::from_columns(&[c0, c1])
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mat22_cols`](fn@mat22_cols): the columns of `adj`.
 #[inline]
 pub fn adj_mat22_cols<R: Real>(_c0: Vec2<R>, _c1: Vec2<R>, adj: Mat22<R>) -> (Vec2<R>, Vec2<R>) {
     (adj.column(0).into(), adj.column(1).into())
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mat22_cols`](fn@mat22_cols): the matrix with columns `dc0`, `dc1`.
 #[inline]
 pub fn tan_mat22_cols<R: Real>(_c0: Vec2<R>, _c1: Vec2<R>, d0: Vec2<R>, d1: Vec2<R>) -> Mat22<R> {
@@ -186,6 +198,7 @@ pub fn tan_mat22_cols<R: Real>(_c0: Vec2<R>, _c1: Vec2<R>, d0: Vec2<R>, d1: Vec2
 pub fn mat33_cols<R: Real>(c0: Vec3<R>, c1: Vec3<R>, c2: Vec3<R>) -> Mat33<R> {
     Mat33::from_columns(&[c0, c1, c2])
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mat33_cols`](fn@mat33_cols): the columns of `adj`.
 #[inline]
 pub fn adj_mat33_cols<R: Real>(
@@ -200,6 +213,7 @@ pub fn adj_mat33_cols<R: Real>(
         adj.column(2).into(),
     )
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mat33_cols`](fn@mat33_cols): the matrix with columns `dc0`, `dc1`, `dc2`.
 #[inline]
 pub fn tan_mat33_cols<R: Real>(
@@ -220,11 +234,13 @@ pub fn tan_mat33_cols<R: Real>(
 pub fn mat22_rows<R: Real>(r0: Vec2<R>, r1: Vec2<R>) -> Mat22<R> {
     Mat22::from_rows(&[r0.transpose(), r1.transpose()])
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mat22_rows`](fn@mat22_rows): the rows of `adj`.
 #[inline]
 pub fn adj_mat22_rows<R: Real>(_r0: Vec2<R>, _r1: Vec2<R>, adj: Mat22<R>) -> (Vec2<R>, Vec2<R>) {
     (adj.row(0).transpose(), adj.row(1).transpose())
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mat22_rows`](fn@mat22_rows): the matrix with rows `dr0`, `dr1`.
 #[inline]
 pub fn tan_mat22_rows<R: Real>(_r0: Vec2<R>, _r1: Vec2<R>, d0: Vec2<R>, d1: Vec2<R>) -> Mat22<R> {
@@ -238,6 +254,7 @@ pub fn tan_mat22_rows<R: Real>(_r0: Vec2<R>, _r1: Vec2<R>, d0: Vec2<R>, d1: Vec2
 pub fn mat33_rows<R: Real>(r0: Vec3<R>, r1: Vec3<R>, r2: Vec3<R>) -> Mat33<R> {
     Mat33::from_rows(&[r0.transpose(), r1.transpose(), r2.transpose()])
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mat33_rows`](fn@mat33_rows): the rows of `adj`.
 #[inline]
 pub fn adj_mat33_rows<R: Real>(
@@ -252,6 +269,7 @@ pub fn adj_mat33_rows<R: Real>(
         adj.row(2).transpose(),
     )
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mat33_rows`](fn@mat33_rows): the matrix with rows `dr0`, `dr1`, `dr2`.
 #[inline]
 pub fn tan_mat33_rows<R: Real>(
@@ -272,11 +290,13 @@ pub fn tan_mat33_rows<R: Real>(
 pub fn quat<R: Real>(x: R, y: R, z: R, w: R) -> Quat<R> {
     Quat::new(w, x, y, z)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat`](fn@quat): the components of `adj` (x, y, z, w).
 #[inline]
 pub fn adj_quat<R: Real>(_x: R, _y: R, _z: R, _w: R, adj: Quat<R>) -> (R, R, R, R) {
     (adj.i, adj.j, adj.k, adj.w)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat`](fn@quat): the quaternion of the tangents.
 #[allow(clippy::too_many_arguments)]
 #[inline]

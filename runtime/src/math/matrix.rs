@@ -95,11 +95,13 @@ impl<R: Real> MatrixValue for Matrix3<R> {
 pub fn transpose<M: MatrixValue>(m: M) -> M {
     m.mat_transpose()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`transpose`](fn@transpose): `adj^T`.
 #[inline]
 pub fn adj_transpose<M: MatrixValue>(_m: M, adj: M) -> M {
     adj.mat_transpose()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`transpose`](fn@transpose): `dm^T`.
 #[inline]
 pub fn tan_transpose<M: MatrixValue>(_m: M, dm: M) -> M {
@@ -111,11 +113,13 @@ pub fn tan_transpose<M: MatrixValue>(_m: M, dm: M) -> M {
 pub fn determinant<M: MatrixValue>(m: M) -> M::Scalar {
     m.mat_det()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`determinant`](fn@determinant): `adj * cof(m)` (`= adj det(m) m^-T` when invertible).
 #[inline]
 pub fn adj_determinant<M: MatrixValue>(m: M, adj: M::Scalar) -> M {
     m.mat_cofactor().lin_scale(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`determinant`](fn@determinant): `cof(m) : dm`.
 #[inline]
 pub fn tan_determinant<M: MatrixValue>(m: M, dm: M) -> M::Scalar {
@@ -133,12 +137,14 @@ pub fn inverse<M: MatrixValue>(m: M) -> M {
         M::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`inverse`](fn@inverse): `-B^T adj B^T` with `B = m^-1`; zero for singular `m`.
 #[inline]
 pub fn adj_inverse<M: MatrixValue>(m: M, adj: M) -> M {
     let b = inverse(m).mat_transpose();
     b.mat_mul(adj).mat_mul(b).lin_neg()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`inverse`](fn@inverse): `-B dm B` with `B = m^-1`; zero for singular `m`.
 #[inline]
 pub fn tan_inverse<M: MatrixValue>(m: M, dm: M) -> M {
@@ -151,11 +157,13 @@ pub fn tan_inverse<M: MatrixValue>(m: M, dm: M) -> M {
 pub fn trace<M: MatrixValue>(m: M) -> M::Scalar {
     m.mat_trace()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`trace`](fn@trace): `adj I`.
 #[inline]
 pub fn adj_trace<M: MatrixValue>(_m: M, adj: M::Scalar) -> M {
     M::mat_identity().lin_scale(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`trace`](fn@trace): `tr(dm)`.
 #[inline]
 pub fn tan_trace<M: MatrixValue>(_m: M, dm: M) -> M::Scalar {
@@ -167,11 +175,13 @@ pub fn tan_trace<M: MatrixValue>(_m: M, dm: M) -> M::Scalar {
 pub fn ddot<M: MatrixValue>(a: M, b: M) -> M::Scalar {
     a.lin_inner(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`ddot`](fn@ddot): `(adj b, adj a)`.
 #[inline]
 pub fn adj_ddot<M: MatrixValue>(a: M, b: M, adj: M::Scalar) -> (M, M) {
     (b.lin_scale(adj), a.lin_scale(adj))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`ddot`](fn@ddot): `da : b + a : db`.
 #[inline]
 pub fn tan_ddot<M: MatrixValue>(a: M, b: M, da: M, db: M) -> M::Scalar {
@@ -194,11 +204,13 @@ pub fn skew<R: Real>(a: Vec3<R>) -> Mat33<R> {
     let z = R::zero();
     Mat33::new(z, -a.z, a.y, a.z, z, -a.x, -a.y, a.x, z)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`skew`](fn@skew): `(adj_21 - adj_12, adj_02 - adj_20, adj_10 - adj_01)`.
 #[inline]
 pub fn adj_skew<R: Real>(_a: Vec3<R>, adj: Mat33<R>) -> Vec3<R> {
     unskew(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`skew`](fn@skew): `skew(da)`.
 #[inline]
 pub fn tan_skew<R: Real>(_a: Vec3<R>, da: Vec3<R>) -> Mat33<R> {
@@ -237,11 +249,13 @@ diag_impl!((Vector2, Matrix2), (Vector3, Matrix3));
 pub fn diag<V: DiagRule>(v: V) -> V::Out {
     v.diag_fwd()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`diag`](fn@diag): the diagonal of `adj`.
 #[inline]
 pub fn adj_diag<V: DiagRule>(_v: V, adj: V::Out) -> V {
     V::diag_of(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`diag`](fn@diag): `diag(dv)`.
 #[inline]
 pub fn tan_diag<V: DiagRule>(_v: V, dv: V) -> V::Out {

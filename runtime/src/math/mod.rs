@@ -6,6 +6,9 @@
 //!   tuple, for one-argument builtins);
 //! - `tan_f(a, b, dot_a, dot_b) -> dot_out`, its forward-mode rule.
 //!
+//! Only `f` is documented here: the rules are the code-generation contract, called by the code
+//! `#[diff_kernel]` emits (and by the finite-difference tests), not by users.
+//!
 //! Adjoints and tangents have the type of the value they belong to. Arguments that are not
 //! differentiable (indices, booleans) get a zero adjoint of their own type. Zero-argument
 //! builtins (the identities) are constants and have no rules.

@@ -105,11 +105,13 @@ impl<T: Linear> NegRule for T {
 pub fn add<T: AddRule>(a: T, b: T) -> T {
     a.add_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`add`]: `(adj, adj)`.
 #[inline(always)]
 pub fn adj_add<T: AddRule>(a: T, b: T, adj: T) -> (T, T) {
     a.add_adj(b, adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`add`]: `da + db`.
 #[inline(always)]
 pub fn tan_add<T: AddRule>(a: T, b: T, da: T, db: T) -> T {
@@ -122,11 +124,13 @@ pub fn tan_add<T: AddRule>(a: T, b: T, da: T, db: T) -> T {
 pub fn sub<T: SubRule>(a: T, b: T) -> T {
     a.sub_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`sub`]: `(adj, -adj)`.
 #[inline(always)]
 pub fn adj_sub<T: SubRule>(a: T, b: T, adj: T) -> (T, T) {
     a.sub_adj(b, adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`sub`]: `da - db`.
 #[inline(always)]
 pub fn tan_sub<T: SubRule>(a: T, b: T, da: T, db: T) -> T {
@@ -138,11 +142,13 @@ pub fn tan_sub<T: SubRule>(a: T, b: T, da: T, db: T) -> T {
 pub fn neg<T: NegRule>(a: T) -> T {
     a.neg_fwd()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`neg`]: `-adj`.
 #[inline(always)]
 pub fn adj_neg<T: NegRule>(a: T, adj: T) -> T {
     a.neg_adj(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`neg`]: `-da`.
 #[inline(always)]
 pub fn tan_neg<T: NegRule>(a: T, da: T) -> T {
@@ -273,11 +279,13 @@ impl<R: Real> MulRule<Quaternion<R>> for Quaternion<R> {
 pub fn mul<A: MulRule<B>, B>(a: A, b: B) -> A::Out {
     a.mul_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`mul`]: `(adj b^T, a^T adj)` in general (inner products for scalar factors).
 #[inline(always)]
 pub fn adj_mul<A: MulRule<B>, B>(a: A, b: B, adj: A::Out) -> (A, B) {
     a.mul_adj(b, adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`mul`]: `da b + a db`.
 #[inline(always)]
 pub fn tan_mul<A: MulRule<B>, B>(a: A, b: B, da: A, db: B) -> A::Out {
@@ -342,11 +350,13 @@ div_scalar!(
 pub fn div<A: DivRule<B>, B>(a: A, b: B) -> A::Out {
     a.div_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`div`]: `(adj / b, -<adj, a> / b^2)`.
 #[inline(always)]
 pub fn adj_div<A: DivRule<B>, B>(a: A, b: B, adj: A::Out) -> (A, B) {
     a.div_adj(b, adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`div`]: `(da - a db / b) / b`.
 #[inline(always)]
 pub fn tan_div<A: DivRule<B>, B>(a: A, b: B, da: A, db: B) -> A::Out {
@@ -373,11 +383,13 @@ pub trait RemRule: Sized {
 pub fn rem<T: RemRule>(a: T, b: T) -> T {
     a.rem_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`rem`]: zero.
 #[inline(always)]
 pub fn adj_rem<T: RemRule + Default>(_a: T, _b: T, _adj: T) -> (T, T) {
     (T::default(), T::default())
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`rem`]: zero.
 #[inline(always)]
 pub fn tan_rem<T: RemRule + Default>(_a: T, _b: T, _da: T, _db: T) -> T {

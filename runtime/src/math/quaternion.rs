@@ -20,11 +20,13 @@ fn conj<R: Real>(q: Quat<R>) -> Quat<R> {
 pub fn quat_mul<R: Real>(p: Quat<R>, q: Quat<R>) -> Quat<R> {
     p * q
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_mul`](fn@quat_mul): `(adj conj(q), conj(p) adj)`.
 #[inline]
 pub fn adj_quat_mul<R: Real>(p: Quat<R>, q: Quat<R>, adj: Quat<R>) -> (Quat<R>, Quat<R>) {
     (adj * conj(q), conj(p) * adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_mul`](fn@quat_mul): `dp q + p dq`.
 #[inline]
 pub fn tan_quat_mul<R: Real>(p: Quat<R>, q: Quat<R>, dp: Quat<R>, dq: Quat<R>) -> Quat<R> {
@@ -36,11 +38,13 @@ pub fn tan_quat_mul<R: Real>(p: Quat<R>, q: Quat<R>, dp: Quat<R>, dq: Quat<R>) -
 pub fn quat_conjugate<R: Real>(q: Quat<R>) -> Quat<R> {
     conj(q)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_conjugate`](fn@quat_conjugate): `conj(adj)`.
 #[inline]
 pub fn adj_quat_conjugate<R: Real>(_q: Quat<R>, adj: Quat<R>) -> Quat<R> {
     conj(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_conjugate`](fn@quat_conjugate): `conj(dq)`.
 #[inline]
 pub fn tan_quat_conjugate<R: Real>(_q: Quat<R>, dq: Quat<R>) -> Quat<R> {
@@ -53,6 +57,7 @@ pub fn tan_quat_conjugate<R: Real>(_q: Quat<R>, dq: Quat<R>) -> Quat<R> {
 pub fn quat_length<R: Real>(q: Quat<R>) -> R {
     q.coords.norm()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_length`](fn@quat_length): `adj q / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn adj_quat_length<R: Real>(q: Quat<R>, adj: R) -> Quat<R> {
@@ -63,6 +68,7 @@ pub fn adj_quat_length<R: Real>(q: Quat<R>, adj: R) -> Quat<R> {
         Quat::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_length`](fn@quat_length): `q . dq / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn tan_quat_length<R: Real>(q: Quat<R>, dq: Quat<R>) -> R {
@@ -85,6 +91,7 @@ pub fn quat_normalize<R: Real>(q: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_normalize`](fn@quat_normalize): `(adj - n (n . adj)) / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn adj_quat_normalize<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
@@ -96,6 +103,7 @@ pub fn adj_quat_normalize<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_normalize`](fn@quat_normalize): `(dq - n (n . dq)) / |q|`; 0 for `|q| <= R::tiny()`.
 #[inline]
 pub fn tan_quat_normalize<R: Real>(q: Quat<R>, dq: Quat<R>) -> Quat<R> {
@@ -113,6 +121,7 @@ pub fn quat_inverse<R: Real>(q: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_inverse`](fn@quat_inverse): `conj(adj) / n - 2 (adj . conj(q)) q / n^2` with `n = |q|^2`;
 /// 0 for `|q| <= R::tiny()`.
 #[inline]
@@ -125,6 +134,7 @@ pub fn adj_quat_inverse<R: Real>(q: Quat<R>, adj: Quat<R>) -> Quat<R> {
         Quat::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_inverse`](fn@quat_inverse): `conj(dq) / n - 2 (q . dq) conj(q) / n^2`; 0 for
 /// `|q| <= R::tiny()`.
 #[inline]
@@ -149,6 +159,7 @@ pub fn quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>) -> Vec3<R> {
     let t = a * w + u.cross(&a);
     v + t + t
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_rotate`](fn@quat_rotate) (of the formula as written, any `q`).
 #[inline]
 pub fn adj_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, adj: Vec3<R>) -> (Quat<R>, Vec3<R>) {
@@ -162,6 +173,7 @@ pub fn adj_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, adj: Vec3<R>) -> (Quat<R
     let adj_v = adj + adj_a.cross(&u);
     (Quat::from_parts(adj_w, adj_u), adj_v)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_rotate`](fn@quat_rotate) (of the formula as written, any `q`).
 #[inline]
 pub fn tan_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, dq: Quat<R>, dv: Vec3<R>) -> Vec3<R> {
@@ -179,12 +191,14 @@ pub fn tan_quat_rotate<R: Real>(q: Quat<R>, v: Vec3<R>, dq: Quat<R>, dv: Vec3<R>
 pub fn quat_rotate_inv<R: Real>(q: Quat<R>, v: Vec3<R>) -> Vec3<R> {
     quat_rotate(conj(q), v)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_rotate_inv`](fn@quat_rotate_inv).
 #[inline]
 pub fn adj_quat_rotate_inv<R: Real>(q: Quat<R>, v: Vec3<R>, adj: Vec3<R>) -> (Quat<R>, Vec3<R>) {
     let (aq, av) = adj_quat_rotate(conj(q), v, adj);
     (conj(aq), av)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_rotate_inv`](fn@quat_rotate_inv).
 #[inline]
 pub fn tan_quat_rotate_inv<R: Real>(q: Quat<R>, v: Vec3<R>, dq: Quat<R>, dv: Vec3<R>) -> Vec3<R> {
@@ -198,6 +212,7 @@ pub fn quat_from_axis_angle<R: Real>(axis: Vec3<R>, angle: R) -> Quat<R> {
     let h = angle * R::lit(0.5);
     Quat::from_parts(h.cos(), axis * h.sin())
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_from_axis_angle`](fn@quat_from_axis_angle): `(s adj_u, (c axis . adj_u - s adj_w) / 2)` with
 /// `s, c = sin, cos(angle/2)`.
 #[inline]
@@ -207,6 +222,7 @@ pub fn adj_quat_from_axis_angle<R: Real>(axis: Vec3<R>, angle: R, adj: Quat<R>) 
     let au = adj.imag();
     (au * s, (c * axis.dot(&au) - s * adj.w) * R::lit(0.5))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_from_axis_angle`](fn@quat_from_axis_angle): `(daxis s + axis c dangle/2, -s dangle/2)`.
 #[inline]
 pub fn tan_quat_from_axis_angle<R: Real>(
@@ -233,6 +249,7 @@ pub fn quat_to_mat33<R: Real>(q: Quat<R>) -> Mat33<R> {
         + u * u.transpose() * two
         + skew(u) * (two * w)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`quat_to_mat33`](fn@quat_to_mat33) (of the formula as written, any `q`).
 #[inline]
 pub fn adj_quat_to_mat33<R: Real>(q: Quat<R>, adj: Mat33<R>) -> Quat<R> {
@@ -243,6 +260,7 @@ pub fn adj_quat_to_mat33<R: Real>(q: Quat<R>, adj: Mat33<R>) -> Quat<R> {
         u * (R::lit(-4.0) * adj.trace()) + (adj + adj.transpose()) * u * two + s * (two * w);
     Quat::from_parts(two * u.dot(&s), adj_u)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`quat_to_mat33`](fn@quat_to_mat33) (of the formula as written, any `q`).
 #[inline]
 pub fn tan_quat_to_mat33<R: Real>(q: Quat<R>, dq: Quat<R>) -> Mat33<R> {

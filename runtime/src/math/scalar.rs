@@ -19,12 +19,14 @@ macro_rules! unary {
         pub fn $f<R: Real>($x: R) -> R {
             $val
         }
+        #[doc(hidden)] // a rule: only generated code calls it
         #[doc = concat!("Adjoint of [`", stringify!($f), "`]: `adj * ", stringify!($f), "'(x)`.")]
         #[inline]
         #[allow(unused_variables)]
         pub fn $adj<R: Real>($x: R, adj: R) -> R {
             adj * $d
         }
+        #[doc(hidden)] // a rule: only generated code calls it
         #[doc = concat!("Tangent of [`", stringify!($f), "`]: `dx * ", stringify!($f), "'(x)`.")]
         #[inline]
         #[allow(unused_variables)]
@@ -109,6 +111,7 @@ unary! {
 pub fn atan2<R: Real>(y: R, x: R) -> R {
     y.atan2(x)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`atan2`](fn@atan2): `adj * (x, -y) / (x^2 + y^2)` (for `y`, `x`); zero at `(0, 0)`.
 #[inline]
 pub fn adj_atan2<R: Real>(y: R, x: R, adj: R) -> (R, R) {
@@ -119,6 +122,7 @@ pub fn adj_atan2<R: Real>(y: R, x: R, adj: R) -> (R, R) {
         (R::zero(), R::zero())
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`atan2`](fn@atan2): `(x dy - y dx) / (x^2 + y^2)`; zero at `(0, 0)`.
 #[inline]
 pub fn tan_atan2<R: Real>(y: R, x: R, dy: R, dx: R) -> R {
@@ -159,12 +163,14 @@ fn d_pow<R: Real>(x: R, y: R) -> (R, R) {
 pub fn pow<R: Real>(x: R, y: R) -> R {
     x.powf(y)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`pow`](fn@pow): `adj * (y x^(y-1), ln(x) x^y)`, with the conventions of [`pow`](fn@pow).
 #[inline]
 pub fn adj_pow<R: Real>(x: R, y: R, adj: R) -> (R, R) {
     let (dx, dy) = d_pow(x, y);
     (adj * dx, adj * dy)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`pow`](fn@pow): `y x^(y-1) dx + ln(x) x^y dy`, with the conventions of [`pow`](fn@pow).
 #[inline]
 pub fn tan_pow<R: Real>(x: R, y: R, dx: R, dy: R) -> R {
@@ -188,11 +194,13 @@ fn d_powi<R: Real>(x: R, n: i32) -> R {
 pub fn powi<R: Real>(x: R, n: i32) -> R {
     x.powi(n)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`powi`](fn@powi): `(adj n x^(n-1), 0)`.
 #[inline]
 pub fn adj_powi<R: Real>(x: R, n: i32, adj: R) -> (R, i32) {
     (adj * d_powi(x, n), 0)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`powi`](fn@powi): `n x^(n-1) dx`.
 #[inline]
 pub fn tan_powi<R: Real>(x: R, n: i32, dx: R, _dn: i32) -> R {
@@ -252,11 +260,13 @@ signed_int!(i8, i16, i32, i64, isize);
 pub fn abs<T: SignedRule>(x: T) -> T {
     x.abs_fwd()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`abs`](fn@abs): `adj * sign(x)` (0 at `x == 0`).
 #[inline(always)]
 pub fn adj_abs<T: SignedRule>(x: T, adj: T) -> T {
     x.abs_adj(adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`abs`](fn@abs): `dx * sign(x)` (0 at `x == 0`).
 #[inline(always)]
 pub fn tan_abs<T: SignedRule>(x: T, dx: T) -> T {
@@ -269,11 +279,13 @@ pub fn tan_abs<T: SignedRule>(x: T, dx: T) -> T {
 pub fn sign<T: SignedRule>(x: T) -> T {
     x.sign_fwd()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`sign`](fn@sign): zero.
 #[inline(always)]
 pub fn adj_sign<T: SignedRule>(_x: T, _adj: T) -> T {
     T::zeroed()
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`sign`](fn@sign): zero.
 #[inline(always)]
 pub fn tan_sign<T: SignedRule>(_x: T, _dx: T) -> T {
@@ -292,6 +304,7 @@ pub fn min<T: Ordered>(a: T, b: T) -> T {
         b
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`min`](fn@min): `adj` to the argument returned (`b` on a tie).
 #[inline]
 pub fn adj_min<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
@@ -301,6 +314,7 @@ pub fn adj_min<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
         (T::zeroed(), adj)
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`min`](fn@min): the tangent of the argument returned (`b` on a tie).
 #[inline]
 pub fn tan_min<T: Ordered>(a: T, b: T, da: T, db: T) -> T {
@@ -320,6 +334,7 @@ pub fn max<T: Ordered>(a: T, b: T) -> T {
         b
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`max`](fn@max): `adj` to the argument returned (`b` on a tie).
 #[inline]
 pub fn adj_max<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
@@ -329,6 +344,7 @@ pub fn adj_max<T: Ordered>(a: T, b: T, adj: T) -> (T, T) {
         (T::zeroed(), adj)
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`max`](fn@max): the tangent of the argument returned (`b` on a tie).
 #[inline]
 pub fn tan_max<T: Ordered>(a: T, b: T, da: T, db: T) -> T {
@@ -351,6 +367,7 @@ pub fn clamp<T: Ordered>(x: T, lo: T, hi: T) -> T {
         x
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`clamp`](fn@clamp): `adj` to the argument returned (`x` on ties).
 #[inline]
 pub fn adj_clamp<T: Ordered>(x: T, lo: T, hi: T, adj: T) -> (T, T, T) {
@@ -363,6 +380,7 @@ pub fn adj_clamp<T: Ordered>(x: T, lo: T, hi: T, adj: T) -> (T, T, T) {
         (adj, z, z)
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`clamp`](fn@clamp): the tangent of the argument returned (`x` on ties).
 #[inline]
 pub fn tan_clamp<T: Ordered>(x: T, lo: T, hi: T, dx: T, dlo: T, dhi: T) -> T {
@@ -384,6 +402,7 @@ pub fn tan_clamp<T: Ordered>(x: T, lo: T, hi: T, dx: T, dlo: T, dhi: T) -> T {
 pub fn lerp<T: Linear>(a: T, b: T, t: T::Scalar) -> T {
     a.lin_scale(one::<T::Scalar>() - t).lin_add(b.lin_scale(t))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`lerp`](fn@lerp): `(adj (1 - t), adj t, <adj, b - a>)`.
 #[inline]
 pub fn adj_lerp<T: Linear>(a: T, b: T, t: T::Scalar, adj: T) -> (T, T, T::Scalar) {
@@ -393,6 +412,7 @@ pub fn adj_lerp<T: Linear>(a: T, b: T, t: T::Scalar, adj: T) -> (T, T, T::Scalar
         adj.lin_inner(b.lin_sub(a)),
     )
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`lerp`](fn@lerp): `da (1 - t) + db t + (b - a) dt`.
 #[inline]
 pub fn tan_lerp<T: Linear>(a: T, b: T, t: T::Scalar, da: T, db: T, dt: T::Scalar) -> T {
@@ -409,6 +429,7 @@ pub fn select<T: Value>(c: bool, a: T, b: T) -> T {
         b
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`select`](fn@select): `(false, adj, 0)` if `c`, else `(false, 0, adj)`.
 #[inline]
 pub fn adj_select<T: Value>(c: bool, _a: T, _b: T, adj: T) -> (bool, T, T) {
@@ -418,6 +439,7 @@ pub fn adj_select<T: Value>(c: bool, _a: T, _b: T, adj: T) -> (bool, T, T) {
         (false, T::zeroed(), adj)
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`select`](fn@select): `da` if `c`, else `db`.
 #[inline]
 pub fn tan_select<T: Value>(c: bool, _a: T, _b: T, _dc: bool, da: T, db: T) -> T {
@@ -456,6 +478,7 @@ pub fn smoothstep<R: Real>(e0: R, e1: R, x: R) -> R {
     let t = smoothstep_t(e0, e1, x).0;
     t * t * (R::lit(3.0) - R::lit(2.0) * t)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`smoothstep`](fn@smoothstep): `adj 6t(1-t) dt/d(e0, e1, x)`.
 #[inline]
 pub fn adj_smoothstep<R: Real>(e0: R, e1: R, x: R, adj: R) -> (R, R, R) {
@@ -463,6 +486,7 @@ pub fn adj_smoothstep<R: Real>(e0: R, e1: R, x: R, adj: R) -> (R, R, R) {
     let g = adj * R::lit(6.0) * t * (R::one() - t);
     (g * t0, g * t1, g * tx)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`smoothstep`](fn@smoothstep): `6t(1-t) (dt/de0 de0 + dt/de1 de1 + dt/dx dx)`.
 #[inline]
 pub fn tan_smoothstep<R: Real>(e0: R, e1: R, x: R, de0: R, de1: R, dx: R) -> R {

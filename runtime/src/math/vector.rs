@@ -11,11 +11,13 @@ use crate::{Real, Vec3};
 pub fn dot<V: VectorValue>(a: V, b: V) -> V::Scalar {
     a.lin_inner(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`dot`](fn@dot): `(adj b, adj a)`.
 #[inline]
 pub fn adj_dot<V: VectorValue>(a: V, b: V, adj: V::Scalar) -> (V, V) {
     (b.lin_scale(adj), a.lin_scale(adj))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`dot`](fn@dot): `da . b + a . db`.
 #[inline]
 pub fn tan_dot<V: VectorValue>(a: V, b: V, da: V, db: V) -> V::Scalar {
@@ -27,11 +29,13 @@ pub fn tan_dot<V: VectorValue>(a: V, b: V, da: V, db: V) -> V::Scalar {
 pub fn cross<R: Real>(a: Vec3<R>, b: Vec3<R>) -> Vec3<R> {
     a.cross(&b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`cross`](fn@cross): `(b x adj, adj x a)`.
 #[inline]
 pub fn adj_cross<R: Real>(a: Vec3<R>, b: Vec3<R>, adj: Vec3<R>) -> (Vec3<R>, Vec3<R>) {
     (b.cross(&adj), adj.cross(&a))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`cross`](fn@cross): `da x b + a x db`.
 #[inline]
 pub fn tan_cross<R: Real>(a: Vec3<R>, b: Vec3<R>, da: Vec3<R>, db: Vec3<R>) -> Vec3<R> {
@@ -44,6 +48,7 @@ pub fn tan_cross<R: Real>(a: Vec3<R>, b: Vec3<R>, da: Vec3<R>, db: Vec3<R>) -> V
 pub fn length<V: VectorValue>(v: V) -> V::Scalar {
     super::scalar::sqrt(v.lin_inner(v))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`length`](fn@length): `adj v / |v|`, 0 for `|v| <= R::tiny()`.
 #[inline]
 pub fn adj_length<V: VectorValue>(v: V, adj: V::Scalar) -> V {
@@ -54,6 +59,7 @@ pub fn adj_length<V: VectorValue>(v: V, adj: V::Scalar) -> V {
         V::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`length`](fn@length): `v . dv / |v|`, 0 for `|v| <= R::tiny()`.
 #[inline]
 pub fn tan_length<V: VectorValue>(v: V, dv: V) -> V::Scalar {
@@ -70,11 +76,13 @@ pub fn tan_length<V: VectorValue>(v: V, dv: V) -> V::Scalar {
 pub fn length_sq<V: VectorValue>(v: V) -> V::Scalar {
     v.lin_inner(v)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`length_sq`](fn@length_sq): `2 adj v`.
 #[inline]
 pub fn adj_length_sq<V: VectorValue>(v: V, adj: V::Scalar) -> V {
     v.lin_scale(adj + adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`length_sq`](fn@length_sq): `2 v . dv`.
 #[inline]
 pub fn tan_length_sq<V: VectorValue>(v: V, dv: V) -> V::Scalar {
@@ -93,6 +101,7 @@ pub fn normalize<V: VectorValue>(v: V) -> V {
         V::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`normalize`](fn@normalize): `(adj - n (n . adj)) / |v|` with `n = v / |v|`; 0 for
 /// `|v| <= R::tiny()`.
 #[inline]
@@ -105,6 +114,7 @@ pub fn adj_normalize<V: VectorValue>(v: V, adj: V) -> V {
         V::zeroed()
     }
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`normalize`](fn@normalize): `(dv - n (n . dv)) / |v|`; 0 for `|v| <= R::tiny()`.
 #[inline]
 pub fn tan_normalize<V: VectorValue>(v: V, dv: V) -> V {
@@ -149,11 +159,13 @@ outer_impl!((Vector2, Matrix2), (Vector3, Matrix3));
 pub fn outer<V: OuterRule>(a: V, b: V) -> V::Out {
     a.outer_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`outer`](fn@outer): `(adj b, adj^T a)`.
 #[inline]
 pub fn adj_outer<V: OuterRule>(a: V, b: V, adj: V::Out) -> (V, V) {
     a.outer_adj(b, adj)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`outer`](fn@outer): `da b^T + a db^T`.
 #[inline]
 pub fn tan_outer<V: OuterRule>(a: V, b: V, da: V, db: V) -> V::Out {
@@ -189,11 +201,13 @@ componentwise_impl!(Vector2, Vector3, Vector4, Matrix2, Matrix3);
 pub fn cw_mul<T: Componentwise>(a: T, b: T) -> T {
     a.cw_mul_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`cw_mul`](fn@cw_mul): `(adj * b, adj * a)` componentwise.
 #[inline]
 pub fn adj_cw_mul<T: Componentwise>(a: T, b: T, adj: T) -> (T, T) {
     (adj.cw_mul_fwd(b), adj.cw_mul_fwd(a))
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`cw_mul`](fn@cw_mul): `da * b + a * db` componentwise.
 #[inline]
 pub fn tan_cw_mul<T: Componentwise>(a: T, b: T, da: T, db: T) -> T {
@@ -206,12 +220,14 @@ pub fn tan_cw_mul<T: Componentwise>(a: T, b: T, da: T, db: T) -> T {
 pub fn cw_div<T: Componentwise>(a: T, b: T) -> T {
     a.cw_div_fwd(b)
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Adjoint of [`cw_div`](fn@cw_div): `(adj / b, -adj * a / b^2)` componentwise.
 #[inline]
 pub fn adj_cw_div<T: Componentwise>(a: T, b: T, adj: T) -> (T, T) {
     let ab = adj.cw_div_fwd(b);
     (ab, ab.cw_mul_fwd(a).cw_div_fwd(b).lin_neg())
 }
+#[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`cw_div`](fn@cw_div): `(da - a * db / b) / b` componentwise.
 #[inline]
 pub fn tan_cw_div<T: Componentwise>(a: T, b: T, da: T, db: T) -> T {
