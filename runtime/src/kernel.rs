@@ -178,11 +178,17 @@ pub struct Exec<'a> {
     pub(crate) direct: bool,
     /// (buffer id, locked for writing) of every buffer the launch holds.
     locked: &'a [(u64, bool)],
+    /// The thread ids of this chunk: a store claims only for these (chunks are disjoint).
+    range: Range<usize>,
 }
 
 impl<'a> Exec<'a> {
-    pub(crate) fn new(direct: bool, locked: &'a [(u64, bool)]) -> Self {
-        Exec { direct, locked }
+    pub(crate) fn new(direct: bool, locked: &'a [(u64, bool)], range: Range<usize>) -> Self {
+        Exec {
+            direct,
+            locked,
+            range,
+        }
     }
 
     /// Panics unless the launch holds `buf` locked for writing (`write`) or for reading.
@@ -262,10 +268,11 @@ struct Claims {
 impl Claims {
     #[inline(always)]
     fn claim(&self, i: usize, tid: usize, place: &Place) {
-        if tid > u32::MAX as usize {
+        // `tid + 1`, so that an entry's low half 0 means unclaimed in any epoch.
+        if tid >= u32::MAX as usize {
             claim_overflow(place, tid);
         }
-        let me = (u64::from(self.epoch) << 32) | tid as u64;
+        let me = (u64::from(self.epoch) << 32) | (tid as u64 + 1);
         // SAFETY: `i` is in bounds (checked by the caller); the table has one entry per
         // element and lives as long as the array the view holds.
         let e = unsafe { &*self.table.add(i) };
@@ -273,12 +280,12 @@ impl Claims {
         if cur == me {
             return;
         }
-        if (cur >> 32) as u32 == self.epoch {
-            store_conflict(place, i, cur as u32 as usize, tid);
+        if (cur >> 32) as u32 == self.epoch && cur as u32 != 0 {
+            store_conflict(place, i, cur as u32 as usize - 1, tid);
         }
         if let Err(now) = e.compare_exchange(cur, me, Ordering::AcqRel, Ordering::Acquire) {
             if now != me {
-                store_conflict(place, i, now as u32 as usize, tid);
+                store_conflict(place, i, (now as u32 as usize).saturating_sub(1), tid);
             }
         }
     }
@@ -328,12 +335,20 @@ pub struct Writer<T> {
     len: usize,
     place: Place,
     claims: Option<Claims>,
+    /// The chunk's thread ids (see [`Exec`]).
+    range: Range<usize>,
     /// Keeps the buffer (and its claim table) alive even if the array drops it meanwhile.
     _buf: Option<Array<T>>,
 }
 
 impl<T: Element> Writer<T> {
-    fn new(of: &Array<T>, buf: Option<Array<T>>, site: &'static Site, distinct: bool) -> Self {
+    fn new(
+        of: &Array<T>,
+        buf: Option<Array<T>>,
+        site: &'static Site,
+        distinct: bool,
+        range: Range<usize>,
+    ) -> Self {
         let claims = match (&buf, distinct) {
             (Some(b), false) => {
                 let (table, epoch) = b.claims();
@@ -349,6 +364,7 @@ impl<T: Element> Writer<T> {
             len: of.len(),
             place: Place::of(of, site),
             claims,
+            range,
             _buf: buf,
         }
     }
@@ -357,6 +373,9 @@ impl<T: Element> Writer<T> {
     fn slot<I: ToIndex>(&self, tid: usize, i: I) -> Option<*mut T> {
         let i = checked(i, self.len, &self.place);
         let p = self.ptr?;
+        if !self.range.contains(&tid) {
+            not_own_index(&self.place, i, tid);
+        }
         match &self.claims {
             Some(c) => c.claim(i, tid, &self.place),
             // The macro proved the index is the thread id; this makes it so for any caller.
@@ -556,7 +575,7 @@ fn writer_of<T: Element>(
     distinct: bool,
 ) -> Writer<T> {
     exec.check(buf.as_ref(), true, site);
-    Writer::new(of, buf, site, distinct)
+    Writer::new(of, buf, site, distinct, exec.range.clone())
 }
 
 fn scatter_of<T: Element>(

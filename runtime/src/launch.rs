@@ -151,7 +151,7 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
         let serial = dim < SERIAL_BELOW || rayon::current_num_threads() == 1;
         if serial {
-            let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked));
+            let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
         } else {
             let chunks: Vec<Range<usize>> = (0..dim)
@@ -160,7 +160,7 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                 .collect();
             let logs: Vec<Vec<ScatterLog>> = chunks
                 .into_par_iter()
-                .map(|r| kernel.run(mode, args, r, &Exec::new(false, locked)))
+                .map(|r| kernel.run(mode, args, r.clone(), &Exec::new(false, locked, r)))
                 .collect();
             apply_logs(logs);
         }
@@ -177,7 +177,7 @@ where
     let owned = K::to_owned(&args);
     let arrays = K::arrays(&owned);
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
-        let _ = kernel.run(mode, &owned, 0..dim, &Exec::new(true, locked));
+        let _ = kernel.run(mode, &owned, 0..dim, &Exec::new(true, locked, 0..dim));
     });
 }
 
@@ -192,19 +192,39 @@ fn with_locks(
     run: &mut LockedRun,
 ) {
     let targets = lock_targets(kernel, params, arrays, mode);
+    let stored = store_buffers(params, arrays, mode);
+    let claim: Vec<bool> = targets
+        .iter()
+        .map(|(t, _)| stored.contains(&t.id()))
+        .collect();
     let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w, Token(()))).collect();
     let locked: Vec<(u64, bool)> = targets.iter().map(|(a, w)| (a.id(), *w)).collect();
-    for (p, a) in params.iter().zip(arrays) {
-        if let (Access::Store, Some(a)) = (p.access, a) {
-            match mode {
-                Mode::Forward => a.new_claim_epoch(Token(())),
-                Mode::Adjoint => a.grad_any().map_or((), |g| g.new_claim_epoch(Token(()))),
-                Mode::Tangent => a.tangent_any().map_or((), |t| t.new_claim_epoch(Token(()))),
-            }
+    // Under the locks: the buffers the stores of this launch go to, as locked (a buffer
+    // swapped in meanwhile is refused by the views' lock check).
+    for ((t, _), p) in targets.iter().zip(&claim) {
+        if *p {
+            t.new_claim_epoch(Token(()));
         }
     }
     run(&locked);
     mark_written(params, arrays, mode);
+}
+
+/// The ids of the buffers the `Store` parameters of the launch write in `mode` (the array in
+/// forward mode, its gradient in the adjoint, its tangent in tangent mode).
+fn store_buffers(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mode) -> Vec<u64> {
+    params
+        .iter()
+        .zip(arrays)
+        .filter_map(|(p, a)| match (p.access, a) {
+            (Access::Store, Some(a)) => match mode {
+                Mode::Forward => Some(a.id()),
+                Mode::Adjoint => a.grad_any().map(|g| g.id()),
+                Mode::Tangent => a.tangent_any().map(|t| t.id()),
+            },
+            _ => None,
+        })
+        .collect()
 }
 
 /// The body of a launch, given the (id, for writing) of every buffer it holds locked.

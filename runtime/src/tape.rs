@@ -98,6 +98,10 @@ pub struct BackwardStats {
 /// start from zero (intermediates: written on the tape, not seeds).
 struct Plan {
     run: Vec<bool>,
+    /// Steps that depend on nothing differentiable but overwrite an array the loss depends
+    /// on: their adjoint runs only to take (clear) the gradient of what they overwrote, so
+    /// that an earlier writer of it gets none.
+    consume: Vec<bool>,
     grads: HashSet<u64>,
     zeroed: HashSet<u64>,
 }
@@ -470,7 +474,7 @@ impl Tape {
     /// after a recorded step wrote it and before a later recorded step used it: the tape
     /// cannot see that write, so the writer's adjoint would receive gradient for values that
     /// were replaced.
-    fn check_off_tape_writes(&self, run: &[bool]) -> Result<(), Error> {
+    fn check_off_tape_writes(&self, run: &[bool], consume: &[bool]) -> Result<(), Error> {
         // id -> (step that last wrote it, version right after)
         let mut last: std::collections::HashMap<u64, (usize, u64)> = Default::default();
         for (i, r) in self.records.iter().enumerate() {
@@ -487,8 +491,11 @@ impl Tape {
                     }
                 }
             }
-            for u in &r.writes {
-                last.insert(u.array.id(), (i, u.after));
+            // (a writer whose adjoint does not run cannot be confused, and hides nothing)
+            if run[i] || consume[i] {
+                for u in &r.writes {
+                    last.insert(u.array.id(), (i, u.after));
+                }
             }
         }
         Ok(())
@@ -505,16 +512,23 @@ impl Tape {
         let (fwd, f) = self.forward_flags(sources);
         let mut b = seeds.clone();
         let mut run = vec![false; self.records.len()];
+        let mut consume = vec![false; self.records.len()];
         for (i, r) in self.records.iter().enumerate().rev() {
             if fwd[i] && r.writes.iter().any(|u| b.contains(&u.array.id())) {
                 run[i] = true;
                 b.extend(r.reads.iter().map(|u| u.array.id()));
+            } else if r
+                .writes
+                .iter()
+                .any(|u| !u.atomic && b.contains(&u.array.id()))
+            {
+                consume[i] = true;
             }
         }
         for i in (0..self.records.len()).filter(|&i| run[i]) {
             self.check_versions(i)?;
         }
-        self.check_off_tape_writes(&run)?;
+        self.check_off_tape_writes(&run, &consume)?;
         let grads: HashSet<u64> = f.intersection(&b).copied().collect();
         if require_reach {
             let leaves: HashSet<u64> = self
@@ -539,7 +553,12 @@ impl Tape {
             .map(|u| u.array.id())
             .filter(|id| grads.contains(id) && !seeds.contains(id))
             .collect();
-        Ok(Plan { run, grads, zeroed })
+        Ok(Plan {
+            run,
+            consume,
+            grads,
+            zeroed,
+        })
     }
 
     /// Allocates the gradient buffers of the plan and runs its adjoints in reverse order.
@@ -559,6 +578,22 @@ impl Tape {
         // Retained gradients, copied before the adjoint of the step that wrote them last.
         let mut kept: Vec<(Box<dyn AnyArray>, Box<dyn AnyArray>)> = Vec::new();
         for i in (0..self.records.len()).rev() {
+            if plan.consume[i] {
+                // Only to take the gradient of what the step overwrote (see `Plan::consume`).
+                self.last.run += 1;
+                let r = &self.records[i];
+                match &r.step {
+                    Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
+                    Step::Custom { .. } => {
+                        for u in &r.writes {
+                            if !r.reads.iter().any(|x| x.array.id() == u.array.id()) {
+                                u.array.zero_grad();
+                            }
+                        }
+                    }
+                }
+                continue;
+            }
             if !plan.run[i] {
                 self.last.skipped += 1;
                 continue;

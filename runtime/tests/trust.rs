@@ -337,3 +337,27 @@ fn retain_grad_keeps_the_gradient_of_an_intermediate_final_value() {
     assert_eq!(x.grad().unwrap().to_vec(), vec![0.0, 0.0]);
     assert_eq!(c.grad().unwrap().to_vec(), vec![180.0, 360.0]);
 }
+
+#[diff_kernel]
+fn fill_const(c: f64, y: &Array<f64>) {
+    let t = tid();
+    y[t] = c;
+}
+
+#[test]
+fn an_overwrite_from_constants_cuts_the_gradient_too() {
+    // The second writer depends on nothing differentiable, so its adjoint has nothing to
+    // compute, but it must still take the gradient of what it overwrote.
+    let x = Array::from_vec(vec![1.0f64, 2.0]).requires_grad();
+    let (y, loss) = (Array::zeros(2), Array::zeros(1));
+    let mut tape = Tape::new();
+    tape.launch(scale, 2, (&x, 2.0, &y));
+    tape.launch(fill_const, 2, (0.5, &y));
+    tape.launch(sum_sq, 2, (&y, &loss));
+    // Reaches x only through y's overwritten values: nothing to differentiate... except that
+    // the loss does not depend on x at all; x.grad must be zero, not 2 * 2 * 0.5 * 2.
+    match tape.backward(&loss) {
+        Ok(()) => assert_eq!(x.grad().unwrap().to_vec(), vec![0.0, 0.0]),
+        Err(e) => assert!(matches!(e, Error::NothingToDifferentiate { .. }), "{e}"),
+    }
+}
