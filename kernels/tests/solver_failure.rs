@@ -6,6 +6,8 @@
 //!
 //! Run with `--nocapture` to see the figures.
 
+mod common;
+
 use adflex_kernels::integrators::krylov::SolveSettings;
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
@@ -14,6 +16,7 @@ use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;
 use adflex_runtime::gradcheck::GradCheck;
 use adflex_runtime::prelude::*;
+use common::spring_system;
 
 /// `loss += |x|^2 / 2 + <v, (1, 2, -0.5)>` over the particles.
 #[diff_kernel]
@@ -21,30 +24,6 @@ fn rollout_loss(x: &Array<Vec3<f64>>, v: &Array<Vec3<f64>>, loss: &Array<f64>) {
     let t = tid();
     let w = vec3(1.0, 2.0, -0.5);
     loss.atomic_add(0, 0.5 * dot(x[t], x[t]) + dot(v[t], w));
-}
-
-/// Four particles (one pinned) and five damped springs of stiffness about `ke` (N/m), none at
-/// rest, with gravity and initial velocities.
-fn spring_system(ke: f64) -> Model<f64> {
-    let mut b = ModelBuilder::<f64>::new();
-    let p0 = b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.1, 0.0, 0.0), 0.0);
-    let p1 = b.add_particle(Vec3::new(0.6, 1.1, 0.1), Vec3::new(0.0, 0.3, -0.2), 1.0);
-    let p2 = b.add_particle(Vec3::new(1.1, 0.8, -0.2), Vec3::new(-0.4, 0.0, 0.1), 0.5);
-    let p3 = b.add_particle(Vec3::new(0.5, 0.5, 0.3), Vec3::new(0.2, -0.1, 0.3), 2.0);
-    for (k, (i, j)) in [(p0, p1), (p1, p2), (p2, p3), (p1, p3), (p0, p3)]
-        .into_iter()
-        .enumerate()
-    {
-        let d = (b.particle_position(i) - b.particle_position(j)).norm();
-        b.add_spring_with_rest(
-            i,
-            j,
-            d * (0.85 + 0.07 * k as f64),
-            ke * (1.0 + 0.3 * k as f64),
-            0.2,
-        );
-    }
-    b.finalize()
 }
 
 fn loss_of(tape: &mut Tape, s: &State<f64>) -> Array<f64> {

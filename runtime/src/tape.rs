@@ -61,6 +61,17 @@ impl Record {
         }
     }
 
+    /// After a custom step's backward: the step replaced its outputs, so an earlier writer of
+    /// one gets no gradient (a launch's stores take theirs element by element, see
+    /// `Writer::take`). Outputs that are also inputs are updated in place and keep theirs.
+    fn clear_replaced_grads(&self) {
+        for u in &self.writes {
+            if !self.reads.iter().any(|x| x.array.id() == u.array.id()) {
+                u.array.zero_grad();
+            }
+        }
+    }
+
     /// The name as errors show it: `scope/name` inside a scope.
     fn qualified(&self) -> String {
         match &self.scope {
@@ -585,11 +596,7 @@ impl Tape {
                 match &r.step {
                     Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
                     Step::Custom { .. } => {
-                        for u in &r.writes {
-                            if !r.reads.iter().any(|x| x.array.id() == u.array.id()) {
-                                u.array.zero_grad();
-                            }
-                        }
+                        r.clear_replaced_grads();
                     }
                 }
                 continue;
@@ -620,13 +627,7 @@ impl Tape {
             }
             let r = &self.records[i];
             if let Step::Custom { .. } = r.step {
-                // The step replaced its outputs: an earlier writer of one gets no gradient
-                // (a launch's stores take theirs element by element, see `Writer::take`).
-                for u in &r.writes {
-                    if !r.reads.iter().any(|x| x.array.id() == u.array.id()) {
-                        u.array.zero_grad();
-                    }
-                }
+                r.clear_replaced_grads();
             }
             if self.check_finite {
                 for u in &r.reads {
