@@ -13,7 +13,9 @@ extern crate self as adflex;
 pub use adflex_kernels as kernels;
 pub use adflex_macros::{diff_func, diff_kernel};
 pub use adflex_runtime as runtime;
+pub use adflex_optim as optim;
 pub use adflex_runtime::math;
+pub use adflex_viz as viz;
 
 /// `use adflex::prelude::*;` brings the macros, the types, the math builtins, arrays, launches,
 /// the tape, and the physics library's builder, model, state and integrators.

@@ -1,0 +1,1 @@
+//! Optimization with the tape's gradients.
