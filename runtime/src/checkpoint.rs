@@ -14,7 +14,7 @@ use std::collections::HashSet;
 
 use crate::array::{AnyArray, Array, Element};
 use crate::error::Error;
-use crate::tape::Tape;
+use crate::tape::{ones, Tape};
 
 /// A simulation state that can be checkpointed: the arrays it holds, and a deep copy.
 ///
@@ -156,6 +156,176 @@ where
     G: FnMut(&mut Tape, &S) -> Array<L>,
 {
     assert!(every >= 1, "checkpointed: `every` must be at least 1");
+    run(
+        initial,
+        steps,
+        every,
+        &mut |tape, s, _| step(tape, s),
+        Loss::Final(&mut loss),
+        &Progress::hidden(),
+    )
+}
+
+/// Checkpointed rollouts with a loss on every state, the step index, and progress: the
+/// general form of [`checkpointed`].
+///
+/// `step(tape, s_t, t)` records step `t` (from 0) and returns `s_{t+1}`;
+/// `loss(tape, s_t, t, acc)` is called on every state `s_0 ..= s_T` and records the kernels
+/// that *add* that state's loss into `acc` (with `atomic_add`; doing nothing is fine). The
+/// rollout's loss is the sum of everything added: a trajectory loss, a loss of the final
+/// state only (`if t == steps`), or both. The gradients are those of a plain tape that adds
+/// every loss into one array, bit for bit; the loss value may differ from such a tape's in
+/// the last bits (segments are summed separately).
+///
+/// ```
+/// use adflex_runtime::prelude::*;
+/// use adflex_runtime::checkpoint::Checkpointed;
+///
+/// #[adflex_macros::diff_kernel]
+/// fn scale<R: Real>(x: &Array<R>, c: R, y: &Array<R>) { let i = tid(); y[i] = c * x[i]; }
+/// #[adflex_macros::diff_kernel]
+/// fn add_into<R: Real>(x: &Array<R>, acc: &Array<R>) { acc.atomic_add(0, x[tid()]); }
+///
+/// // x_{t+1} = 1.5 x_t for 6 steps; loss = sum over t of x_t: d loss / d x_0 = sum 1.5^t.
+/// let x0 = Array::from_vec(vec![1.0f64]).requires_grad();
+/// let out = Checkpointed::new(6)
+///     .every(2)
+///     .run(
+///         &x0,
+///         |tape, x, _t| {
+///             let y = Array::zeros(1);
+///             tape.launch(scale, 1, (x, 1.5, &y));
+///             y
+///         },
+///         |tape, x, _t, acc| tape.launch(add_into, 1, (x, acc)),
+///     )
+///     .unwrap();
+/// let expected: f64 = (0..=6).map(|t| 1.5f64.powi(t)).sum();
+/// assert!((out.loss.get(0) - expected).abs() < 1e-12);
+/// assert!((x0.grad().unwrap().get(0) - expected).abs() < 1e-12);
+/// ```
+#[derive(Clone, Debug)]
+pub struct Checkpointed {
+    steps: usize,
+    every: usize,
+    loss_len: usize,
+    progress: Option<String>,
+}
+
+impl Checkpointed {
+    /// A rollout of `steps` steps with a checkpoint every `ceil(sqrt(steps))` steps (the memory
+    /// optimum), a loss accumulator of one element, and no progress bar.
+    pub fn new(steps: usize) -> Self {
+        Checkpointed {
+            steps,
+            every: (steps as f64).sqrt().ceil().max(1.0) as usize,
+            loss_len: 1,
+            progress: None,
+        }
+    }
+
+    /// A checkpoint every `every` steps (at least 1; panics on 0).
+    pub fn every(mut self, every: usize) -> Self {
+        assert!(every >= 1, "Checkpointed::every: must be at least 1");
+        self.every = every;
+        self
+    }
+
+    /// Elements of the loss accumulator `acc` (default 1; the loss is the sum of them all).
+    pub fn loss_len(mut self, len: usize) -> Self {
+        self.loss_len = len;
+        self
+    }
+
+    /// Shows a progress bar on the terminal (stderr; hidden when it is not a terminal) for the
+    /// forward sweep and the backward segments, labelled `label`.
+    pub fn progress(mut self, label: impl Into<String>) -> Self {
+        self.progress = Some(label.into());
+        self
+    }
+
+    /// Runs the rollout forward and backward (see the [type docs](Checkpointed)).
+    ///
+    /// Errors: those of [`Tape::backward`] for each segment.
+    pub fn run<S, L, F, G>(&self, initial: &S, mut step: F, mut loss: G) -> Result<Rollout<L>, Error>
+    where
+        S: Checkpoint,
+        L: Element,
+        F: FnMut(&mut Tape, &S, usize) -> S,
+        G: FnMut(&mut Tape, &S, usize, &Array<L>),
+    {
+        let progress = match &self.progress {
+            Some(label) => Progress::bar(label, 2 * self.steps),
+            None => Progress::hidden(),
+        };
+        let out = run(
+            initial,
+            self.steps,
+            self.every,
+            &mut step,
+            Loss::Every(&mut loss, self.loss_len),
+            &progress,
+        );
+        progress.finish();
+        out
+    }
+}
+
+/// Where the loss of a rollout comes from.
+enum Loss<'a, S, L> {
+    /// One array computed from the final state ([`checkpointed`]).
+    Final(&'a mut dyn FnMut(&mut Tape, &S) -> Array<L>),
+    /// Added into an accumulator of the given length on every state ([`Checkpointed`]).
+    Every(&'a mut dyn FnMut(&mut Tape, &S, usize, &Array<L>), usize),
+}
+
+/// An optional terminal progress bar (indicatif).
+struct Progress(Option<indicatif::ProgressBar>);
+
+impl Progress {
+    fn hidden() -> Self {
+        Progress(None)
+    }
+    fn bar(label: &str, len: usize) -> Self {
+        let bar = indicatif::ProgressBar::new(len as u64);
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{prefix} {msg:8} [{bar:30}] {pos}/{len} steps {elapsed} (eta {eta})",
+        ) {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar.set_prefix(label.to_string());
+        Progress(Some(bar))
+    }
+    fn phase(&self, msg: &'static str) {
+        if let Some(b) = &self.0 {
+            b.set_message(msg);
+        }
+    }
+    fn tick(&self) {
+        if let Some(b) = &self.0 {
+            b.inc(1);
+        }
+    }
+    fn finish(&self) {
+        if let Some(b) = &self.0 {
+            b.finish_and_clear();
+        }
+    }
+}
+
+/// The checkpointed rollout both entry points share (see the [module docs](self)).
+fn run<S, L>(
+    initial: &S,
+    steps: usize,
+    every: usize,
+    step: &mut dyn FnMut(&mut Tape, &S, usize) -> S,
+    mut loss: Loss<'_, S, L>,
+    progress: &Progress,
+) -> Result<Rollout<L>, Error>
+where
+    S: Checkpoint,
+    L: Element,
+{
     let starts: Vec<usize> = if steps == 0 {
         vec![0]
     } else {
@@ -166,6 +336,7 @@ where
 
     // Forward sweep on throwaway tapes, keeping a snapshot at the start of every segment and,
     // for each of its arrays, whether it depends on something that requires grad.
+    progress.phase("forward");
     let flags0: Vec<bool> = initial
         .arrays()
         .iter()
@@ -179,8 +350,9 @@ where
             let s = cur.as_ref().unwrap_or(initial);
             let sources = flagged(s, &flags);
             let mut tape = Tape::new();
-            let next = step(&mut tape, s);
+            let next = step(&mut tape, s, t);
             steps_run += 1;
+            progress.tick();
             let reach = tape.forward_reach(&sources);
             flags = next
                 .arrays()
@@ -195,7 +367,13 @@ where
         }
     }
 
-    // Backward, segment by segment, last first.
+    // Backward, segment by segment, last first. Each segment adds its states' losses into a
+    // fresh accumulator (seeded with ones), summed into `total` on the host.
+    progress.phase("backward");
+    let total = match &loss {
+        Loss::Every(_, len) => Some(Array::<L>::zeros(*len).named("loss")),
+        Loss::Final(_) => None,
+    };
     let mut result = None;
     let mut later: Option<S> = None;
     for j in (0..starts.len()).rev() {
@@ -210,21 +388,31 @@ where
         let first = own.as_ref().unwrap_or(initial);
         let sources = flagged(first, &flags);
         let mut tape = Tape::new();
+        let acc = total.as_ref().map(|t| Array::<L>::zeros(t.len()).named("loss"));
+        if let (Loss::Every(f, _), Some(acc), 0) = (&mut loss, &acc, j) {
+            f(&mut tape, first, 0, acc);
+        }
         let mut cur: Option<S> = None;
-        for _ in starts[j]..end {
-            let next = step(&mut tape, cur.as_ref().unwrap_or(first));
+        for t in starts[j]..end {
+            let next = step(&mut tape, cur.as_ref().unwrap_or(first), t);
             steps_run += 1;
+            progress.tick();
+            if let (Loss::Every(f, _), Some(acc)) = (&mut loss, &acc) {
+                f(&mut tape, &next, t + 1, acc);
+            }
             cur = Some(next);
         }
         let last = cur.as_ref().unwrap_or(first);
+        let mut seeds = Vec::new();
         match later.take() {
             None => {
-                let l = loss(&mut tape, last);
-                tape.backward_sources(&l, &sources)?;
-                result = Some(l);
+                if let Loss::Final(f) = &mut loss {
+                    let l = f(&mut tape, last);
+                    tape.backward_sources(&l, &sources)?;
+                    result = Some(l);
+                }
             }
             Some(next_first) => {
-                let mut seeds = Vec::new();
                 for (a, n) in last.arrays().into_iter().zip(next_first.arrays()) {
                     if let Some(g) = n.grad_any() {
                         a.ensure_grad();
@@ -232,14 +420,27 @@ where
                         seeds.push(a);
                     }
                 }
-                tape.backward_seeded(&seeds, &sources)?;
             }
+        }
+        if let Some(acc) = &acc {
+            if tape.writes(acc.id()) {
+                acc.ensure_grad().fill(ones::<L>());
+                seeds.push(acc);
+            }
+        }
+        if !seeds.is_empty() {
+            tape.backward_seeded(&seeds, &sources)?;
+        }
+        if let (Some(total), Some(acc)) = (&total, &acc) {
+            total.add_from(acc);
         }
         drop(tape);
         later = own;
     }
     Ok(Rollout {
-        loss: result.expect("the last segment computes the loss"),
+        loss: result
+            .or(total)
+            .expect("the last segment computes the loss"),
         checkpoints: starts.len(),
         steps_run,
     })

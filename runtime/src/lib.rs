@@ -35,7 +35,7 @@ pub use value::{acc, acc_neg, zero_like, Value};
 
 /// Everything a kernel author needs: types, math builtins, arrays, launches, the tape.
 pub mod prelude {
-    pub use crate::checkpoint::{checkpointed, Checkpoint};
+    pub use crate::checkpoint::{checkpointed, Checkpoint, Checkpointed};
     pub use crate::gradcheck::{gradcheck, gradcheck_kernel, GradCheck};
     pub use crate::math::items::builtins_prelude::*;
     pub use crate::{launch, launch_adjoint, launch_mode, launch_tangent, with_threads, Mode};

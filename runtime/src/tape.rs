@@ -416,7 +416,7 @@ impl Tape {
         (!self.scopes.is_empty()).then(|| self.scopes.join("/"))
     }
 
-    fn writes(&self, id: u64) -> bool {
+    pub(crate) fn writes(&self, id: u64) -> bool {
         self.records
             .iter()
             .any(|r| r.writes.iter().any(|u| u.array.id() == id))
@@ -441,6 +441,19 @@ impl Tape {
             }
         }
         (fwd, f)
+    }
+
+    /// Whether the value of `output` depends on `input` through the recorded steps (reads
+    /// and writes, whatever the values; `output` itself counts). For a check such as "the loss
+    /// does not use this parameter" before an optimization.
+    pub fn depends(&self, output: &dyn AnyArray, input: &dyn AnyArray) -> bool {
+        let mut needed = HashSet::from([output.id()]);
+        for r in self.records.iter().rev() {
+            if r.writes.iter().any(|u| needed.contains(&u.array.id())) {
+                needed.extend(r.reads.iter().map(|u| u.array.id()));
+            }
+        }
+        needed.contains(&input.id())
     }
 
     /// The ids of the arrays on the tape that depend on an array that requires grad or on one
@@ -675,11 +688,7 @@ impl Tape {
             });
         }
         let plan = self.plan(&HashSet::from([loss.id()]), sources, sources.is_empty())?;
-        let mut one = T::zeroed();
-        for k in 0..T::DIM {
-            one.set_component(k, 1.0);
-        }
-        loss.ensure_grad().fill(one);
+        loss.ensure_grad().fill(ones::<T>());
         self.execute(&plan)
     }
 
@@ -901,4 +910,13 @@ impl CustomStep<'_> {
             *t = Some(Box::new(tangent));
         }
     }
+}
+
+/// The element with every differentiable component 1 (the seed of a loss).
+pub(crate) fn ones<T: Element>() -> T {
+    let mut one = T::zeroed();
+    for k in 0..T::DIM {
+        one.set_component(k, 1.0);
+    }
+    one
 }

@@ -2,7 +2,7 @@
 
 mod common;
 
-use adflex_runtime::checkpoint::{checkpointed, Checkpoint};
+use adflex_runtime::checkpoint::{checkpointed, Checkpoint, Checkpointed};
 use adflex_runtime::prelude::*;
 use common::{random, Step, SumSq};
 
@@ -159,4 +159,83 @@ fn checkpointed_reports_array_changes() {
         matches!(err, Error::ArrayChanged { ref array, .. } if array == "shared"),
         "{err}"
     );
+}
+
+#[adflex_macros::diff_kernel]
+fn add_scaled<R: Real>(x: &Array<R>, w: &Array<R>, acc: &Array<R>) {
+    let i = tid();
+    acc.atomic_add(i, w[i] * x[i]);
+}
+
+/// A trajectory loss: sum over states `t` of `w_t * |x_t|^2`, the weight depending on the
+/// step index so that a wrong index changes the gradient.
+fn trajectory_loss(tape: &mut Tape, s: &State, t: usize, acc: &Array<f64>) {
+    if t % 3 == 1 {
+        return; // states without a loss term
+    }
+    let w = Array::from_vec(vec![1.0 + t as f64; 1]);
+    let sq = Array::<f64>::zeros(1);
+    tape.launch(SumSq, N, (&s.x, &sq));
+    tape.launch(add_scaled, 1, (&sq, &w, acc));
+}
+
+fn plain_trajectory() -> (f64, [Vec<u64>; 4]) {
+    let s = setup();
+    let mut tape = Tape::new();
+    let acc = Array::<f64>::zeros(1);
+    let mut cur = s.s0.clone();
+    let mut f = step(&s.p);
+    trajectory_loss(&mut tape, &cur, 0, &acc);
+    for t in 0..T {
+        cur = f(&mut tape, &cur);
+        trajectory_loss(&mut tape, &cur, t + 1, &acc);
+    }
+    tape.backward(&acc).unwrap();
+    (acc.get(0), grads(&s))
+}
+
+#[test]
+fn per_step_losses_equal_a_plain_tape_bitwise() {
+    let (l_plain, g_plain) = plain_trajectory();
+    assert!(g_plain.iter().flatten().any(|&b| f64::from_bits(b) != 0.0));
+    for k in [1, 3, 7, T, T + 5] {
+        let s = setup();
+        let mut seen = Vec::new();
+        let mut f = step(&s.p);
+        let out = Checkpointed::new(T)
+            .every(k)
+            .run(
+                &s.s0,
+                |tape, st, t| {
+                    seen.push(t);
+                    f(tape, st)
+                },
+                trajectory_loss,
+            )
+            .unwrap();
+        let rel = (out.loss.get(0) - l_plain).abs() / l_plain.abs();
+        assert!(rel < 1e-14, "loss {} vs {l_plain}, k = {k}", out.loss.get(0));
+        assert_eq!(grads(&s), g_plain, "gradients, k = {k}");
+        // Every step index, in order within each pass: 0..last_start forward, then each
+        // segment's indices.
+        let last_start = (T - 1) / k * k;
+        assert_eq!(seen.len(), last_start + T, "k = {k}");
+        assert!(seen[..last_start].iter().copied().eq(0..last_start));
+        let mut segments: Vec<usize> = seen[last_start..].to_vec();
+        segments.sort_unstable();
+        assert!(segments.into_iter().eq(0..T), "k = {k}");
+    }
+}
+
+#[test]
+fn per_step_losses_with_a_progress_bar_and_the_default_spacing() {
+    let (_, g_plain) = plain_trajectory();
+    let s = setup();
+    let out = Checkpointed::new(T)
+        .progress("rollout")
+        .run(&s.s0, |tape, st, _| step(&s.p)(tape, st), trajectory_loss)
+        .unwrap();
+    // ceil(sqrt(20)) = 5 steps per segment.
+    assert_eq!(out.checkpoints, 4);
+    assert_eq!(grads(&s), g_plain);
 }

@@ -1,0 +1,157 @@
+//! L-BFGS through argmin: the loss is argmin's cost function (in the free variables of the
+//! bounds' change of variables), and the iterations are driven here so that every iteration
+//! reaches the observer (argmin's observers must be `'static`).
+
+use std::cell::RefCell;
+use std::time::Instant;
+
+use adflex_runtime::Error;
+use argmin::core::{
+    CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus,
+};
+use argmin::solver::linesearch::MoreThuenteLineSearch;
+use argmin::solver::quasinewton::LBFGS;
+
+use crate::{norm, Evaluate, Iteration, Observe, Params, Stop};
+
+/// The loss in the free variables, with the last evaluation cached (argmin asks for the cost
+/// and the gradient of one point separately) and the first error kept.
+struct Objective<'p, 'e> {
+    params: &'p Params,
+    evaluate: RefCell<&'p mut Evaluate<'e>>,
+    last: RefCell<Option<(Vec<f64>, f64, Vec<f64>)>>,
+    error: RefCell<Option<Error>>,
+    evaluations: RefCell<usize>,
+}
+
+impl Objective<'_, '_> {
+    fn eval(&self, u: &[f64]) -> Result<(f64, Vec<f64>), argmin::core::Error> {
+        if let Some((x, l, g)) = &*self.last.borrow() {
+            if x == u {
+                return Ok((*l, g.clone()));
+            }
+        }
+        let (p, dp) = self.params.from_free(u);
+        let result = (self.evaluate.borrow_mut())(&p);
+        match result {
+            Ok((l, g)) => {
+                *self.evaluations.borrow_mut() += 1;
+                let gu: Vec<f64> = g.iter().zip(&dp).map(|(g, d)| g * d).collect();
+                *self.last.borrow_mut() = Some((u.to_vec(), l, gu.clone()));
+                Ok((l, gu))
+            }
+            Err(e) => {
+                let msg = e.to_string();
+                self.error.borrow_mut().get_or_insert(e);
+                Err(argmin::core::Error::msg(msg))
+            }
+        }
+    }
+}
+
+impl CostFunction for Objective<'_, '_> {
+    type Param = Vec<f64>;
+    type Output = f64;
+    fn cost(&self, u: &Vec<f64>) -> Result<f64, argmin::core::Error> {
+        self.eval(u).map(|(l, _)| l)
+    }
+}
+
+impl Gradient for Objective<'_, '_> {
+    type Param = Vec<f64>;
+    type Gradient = Vec<f64>;
+    fn gradient(&self, u: &Vec<f64>) -> Result<Vec<f64>, argmin::core::Error> {
+        self.eval(u).map(|(_, g)| g)
+    }
+}
+
+/// Runs L-BFGS from `x0`; returns the best (loss, values) and why it stopped.
+pub(crate) fn run(
+    params: &Params,
+    x0: &[f64],
+    memory: usize,
+    max_iters: usize,
+    start: Instant,
+    evaluate: &mut Evaluate<'_>,
+    observe: &mut Observe<'_>,
+) -> Result<((f64, Vec<f64>), Stop), Error> {
+    let u0 = params.to_free(x0)?;
+    let objective = Objective {
+        params,
+        evaluate: RefCell::new(evaluate),
+        last: RefCell::new(None),
+        error: RefCell::new(None),
+        evaluations: RefCell::new(0),
+    };
+    let mut problem = Problem::new(objective);
+    let mut solver = LBFGS::new(MoreThuenteLineSearch::new(), memory.max(1))
+        .with_tolerance_grad(0.0)
+        .and_then(|s| s.with_tolerance_cost(0.0))
+        .map_err(argmin_error)?;
+    let state = IterState::new().param(u0).max_iters(max_iters as u64);
+    let taken = |problem: &mut Problem<Objective>, e: argmin::core::Error| -> Error {
+        let kept = problem
+            .problem
+            .as_ref()
+            .and_then(|o| o.error.borrow_mut().take());
+        kept.unwrap_or_else(|| argmin_error(e))
+    };
+    let (mut state, _) = match solver.init(&mut problem, state) {
+        Ok(s) => s,
+        Err(e) => return Err(taken(&mut problem, e)),
+    };
+    state.update();
+    let evals = |problem: &Problem<Objective>| {
+        problem
+            .problem
+            .as_ref()
+            .map_or(0, |o| *o.evaluations.borrow())
+    };
+    let grad_norm = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>, params: &Params| {
+        // The gradient w.r.t. the parameters, not the free variables.
+        let (_, dp) = params.from_free(s.get_param().expect("param"));
+        let gu = s.get_gradient().expect("L-BFGS keeps the gradient");
+        norm(&gu.iter().zip(&dp).map(|(g, d)| g / d).collect::<Vec<_>>())
+    };
+    let iteration = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
+                         problem: &Problem<Objective>| Iteration {
+        iter: s.get_iter() as usize,
+        loss: s.get_cost(),
+        grad_norm: grad_norm(s, params),
+        evaluations: evals(problem),
+        elapsed: start.elapsed(),
+    };
+    let best = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>| {
+        let u = s.get_best_param().expect("argmin keeps the best point");
+        (s.get_best_cost(), params.from_free(u).0)
+    };
+    if let Some(stop) = observe(iteration(&state, &problem)) {
+        return Ok((best(&state), stop));
+    }
+    loop {
+        if let TerminationStatus::Terminated(reason) = <LBFGS<_, _, _, _> as Solver<Objective, _>>::terminate_internal(&mut solver, &state) {
+            let stop = match state.get_iter() as usize >= max_iters {
+                true => Stop::MaxIterations,
+                false => Stop::Converged(reason.text().to_string()),
+            };
+            return Ok((best(&state), stop));
+        }
+        let (next, _) = match solver.next_iter(&mut problem, state) {
+            Ok(s) => s,
+            Err(e) => return Err(taken(&mut problem, e)),
+        };
+        state = next;
+        state.update();
+        state.increment_iter();
+        if let Some(stop) = observe(iteration(&state, &problem)) {
+            return Ok((best(&state), stop));
+        }
+        if let TerminationStatus::Terminated(reason) = state.get_termination_status() {
+            return Ok((best(&state), Stop::Converged(reason.text().to_string())));
+        }
+    }
+}
+
+fn argmin_error(e: argmin::core::Error) -> Error {
+    Error::Other(format!("L-BFGS (argmin): {e}"))
+}

@@ -1,0 +1,225 @@
+//! The optimizers on problems with known minimizers, their bounds, stops and errors.
+
+use std::ops::ControlFlow;
+
+use adflex_optim::{Bounds, Optimizer, Params, Stop};
+use adflex_runtime::checkpoint::checkpointed;
+use adflex_runtime::prelude::*;
+
+/// `loss += sum_i w_i |x_i - target_i|^2`.
+#[diff_kernel]
+fn weighted_sq<R: Real>(x: &Array<Vec3<R>>, target: &Array<Vec3<R>>, w: R, loss: &Array<R>) {
+    let i = tid();
+    let d = x[i] - target[i];
+    loss.atomic_add(0, w * dot(d, d));
+}
+
+/// `loss += (c_i - a_i)^2 (1 + c_i^2)`: a nonquadratic scalar problem, minimum at `c = a`.
+#[diff_kernel]
+fn bowl<R: Real>(c: &Array<R>, a: &Array<R>, loss: &Array<R>) {
+    let i = tid();
+    let d = c[i] - a[i];
+    loss.atomic_add(0, d * d * (1.0 + c[i] * c[i]));
+}
+
+use adflex_macros::diff_kernel;
+
+fn targets() -> Array<Vec3<f64>> {
+    Array::from_vec(vec![Vec3::new(1.0, -2.0, 0.5), Vec3::new(0.0, 3.0, -1.0)])
+}
+
+fn solve(opt: Optimizer<'_>) -> (Array<Vec3<f64>>, Array<f32>, adflex_optim::Report) {
+    let x = Array::from_vec(vec![Vec3::zeros(); 2]).named("x");
+    let c = Array::from_vec(vec![0.0f32, 0.0, 0.0]).named("c");
+    let a = Array::from_vec(vec![0.5f32, -1.5, 2.0]);
+    let target = targets();
+    let report = opt
+        .progress(false)
+        .minimize(&Params::new().with(&x).with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(weighted_sq, 2, (&x, &target, 2.0, &l));
+            let lc = Array::<f32>::zeros(1);
+            tape.launch(bowl, 3, (&c, &a, &lc));
+            // Both losses in one f64 array: the f32 one is summed through a host step.
+            let total = Array::<f64>::zeros(1);
+            let (lb, lcb, tb) = (l.clone(), lc.clone(), total.clone());
+            tape.record_fn(
+                "sum",
+                &[&l, &lc],
+                &[&total],
+                move || tb.set(0, lb.get(0) + lcb.get(0) as f64),
+                {
+                    let (l, lc, total) = (l.clone(), lc.clone(), total.clone());
+                    move || {
+                        let g = total.grad_buffer().unwrap().get(0);
+                        l.ensure_grad().modify(|v| v[0] += g);
+                        lc.ensure_grad().modify(|v| v[0] += g as f32);
+                        Ok(())
+                    }
+                },
+            );
+            Ok(total)
+        })
+        .unwrap();
+    (x, c, report)
+}
+
+fn assert_solved(x: &Array<Vec3<f64>>, c: &Array<f32>, tol: f64, what: &str) {
+    for (got, want) in x.to_vec().iter().zip(targets().to_vec()) {
+        assert!((got - want).norm() < tol, "{what}: x = {got:?}, want {want:?}");
+    }
+    for (got, want) in c.to_vec().iter().zip([0.5f32, -1.5, 2.0]) {
+        assert!(((got - want) as f64).abs() < tol, "{what}: c = {got}, want {want}");
+    }
+}
+
+#[test]
+fn lbfgs_adam_and_gradient_descent_find_the_minimum_of_vec3_and_f32_parameters() {
+    let (x, c, r) = solve(Optimizer::lbfgs().max_iters(50).grad_tol(1e-5));
+    assert_solved(&x, &c, 1e-3, "L-BFGS");
+    assert!(r.iterations < 30, "{r}");
+    assert_eq!(r.history.len(), r.iterations + 1);
+    assert!(r.loss < 1e-6 && r.initial_loss > 10.0, "{r}");
+
+    let (x, c, r) = solve(Optimizer::adam(0.05).max_iters(2000).grad_tol(1e-4));
+    assert_solved(&x, &c, 1e-2, "Adam");
+    assert_eq!(r.stop, Stop::GradientTolerance, "{r}");
+
+    let (x, c, r) = solve(Optimizer::gradient_descent(0.02).max_iters(3000).grad_tol(1e-4));
+    assert_solved(&x, &c, 1e-2, "gradient descent");
+    assert_eq!(r.stop, Stop::GradientTolerance, "{r}");
+    // The history's losses decrease for this convex problem and a small step.
+    let l = r.losses();
+    assert!(l.windows(2).all(|w| w[1] <= w[0] + 1e-12));
+}
+
+/// Minimizes `(c - a)^2 (1 + c^2)` with `c` bounded; returns the final `c`.
+fn bounded(opt: Optimizer<'_>, start: f64, a: f64, bounds: Bounds) -> Result<f64, Error> {
+    let c = Array::from_vec(vec![start]).named("c");
+    let a = Array::from_vec(vec![a]);
+    opt.progress(false)
+        .minimize(&Params::new().bounded(&c, bounds), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(bowl, 1, (&c, &a, &l));
+            Ok(l)
+        })?;
+    Ok(c.get(0))
+}
+
+#[test]
+fn bounds_keep_parameters_inside() {
+    for opt in [Optimizer::adam(0.1), Optimizer::gradient_descent(0.05)] {
+        // The unconstrained minimum (-1) is outside: projection ends on the bound.
+        let c = bounded(opt.max_iters(500), 1.0, -1.0, Bounds::positive()).unwrap();
+        assert!(c.abs() < 1e-9, "{c}");
+    }
+    // L-BFGS approaches the bound from inside, and finds interior minima exactly.
+    let c = bounded(Optimizer::lbfgs().max_iters(60), 1.0, -1.0, Bounds::positive()).unwrap();
+    assert!(c > 0.0 && c < 1e-3, "{c}");
+    let c = bounded(Optimizer::lbfgs(), 0.2, 0.7, Bounds::between(0.1, 0.9)).unwrap();
+    assert!((c - 0.7).abs() < 1e-6, "{c}");
+    let c = bounded(Optimizer::lbfgs(), -3.0, -1.5, Bounds::at_most(-0.5)).unwrap();
+    assert!((c + 1.5).abs() < 1e-6, "{c}");
+    // Starting on a bound is refused by L-BFGS, naming the component.
+    let err = bounded(Optimizer::lbfgs(), 0.0, 1.0, Bounds::positive()).unwrap_err();
+    assert!(err.to_string().contains("c[0]"), "{err}");
+}
+
+#[test]
+fn the_callback_sees_every_iteration_and_can_stop() {
+    let c = Array::from_vec(vec![3.0f64]);
+    let a = Array::from_vec(vec![0.0f64]);
+    let mut seen = Vec::new();
+    let r = Optimizer::adam(0.1)
+        .progress(false)
+        .on_iteration(|it| {
+            seen.push(it.iter);
+            if it.iter == 4 {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        })
+        .minimize(&Params::new().with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(bowl, 1, (&c, &a, &l));
+            Ok(l)
+        })
+        .unwrap();
+    assert_eq!(seen, vec![0, 1, 2, 3, 4]);
+    assert_eq!((r.stop, r.iterations, r.evaluations), (Stop::Callback, 4, 5));
+    // The parameter holds the best value, whose loss the report gives.
+    let l = c.get(0).powi(2) * (1.0 + c.get(0).powi(2));
+    assert_eq!(l, r.loss);
+    let r = Optimizer::lbfgs()
+        .progress(false)
+        .target_loss(1e-3)
+        .minimize(&Params::new().with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(bowl, 1, (&c, &a, &l));
+            Ok(l)
+        })
+        .unwrap();
+    assert_eq!(r.stop, Stop::TargetLoss);
+    assert!(r.loss <= 1e-3);
+}
+
+#[test]
+fn a_parameter_the_loss_ignores_and_a_diverging_loss_are_errors() {
+    let c = Array::from_vec(vec![1.0f64]).named("c");
+    let unused = Array::from_vec(vec![1.0f64]).named("unused");
+    let a = Array::from_vec(vec![0.0f64]);
+    let err = Optimizer::lbfgs()
+        .progress(false)
+        .minimize(&Params::new().with(&c).with(&unused), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(bowl, 1, (&c, &a, &l));
+            Ok(l)
+        })
+        .unwrap_err();
+    assert!(matches!(err, Error::NoGrad { ref array } if array.contains("unused")), "{err}");
+
+    let a = Array::from_vec(vec![f64::NAN]);
+    let err = Optimizer::adam(0.1)
+        .progress(false)
+        .minimize(&Params::new().with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(bowl, 1, (&c, &a, &l));
+            Ok(l)
+        })
+        .unwrap_err();
+    assert!(err.to_string().contains("loss (evaluation 1)"), "{err}");
+}
+
+#[test]
+fn minimize_with_takes_a_checkpointed_rollout() {
+    // x_{t+1} = k x_t for 12 steps from x_0 = 1; loss = (x_T - 2)^2; minimum at k = 2^(1/12).
+    #[diff_kernel]
+    fn scale<R: Real>(x: &Array<R>, k: &Array<R>, y: &Array<R>) {
+        y[0] = k[0] * x[0];
+    }
+    #[diff_kernel]
+    fn miss<R: Real>(x: &Array<R>, loss: &Array<R>) {
+        loss.atomic_add(0, (x[0] - 2.0) * (x[0] - 2.0));
+    }
+    let k = Array::from_vec(vec![1.0f64]).named("k");
+    let x0 = Array::from_vec(vec![1.0f64]);
+    let r = Optimizer::lbfgs()
+        .progress(false)
+        .grad_tol(1e-10)
+        .minimize_with(&Params::new().bounded(&k, Bounds::positive()), || {
+            let step = |tape: &mut Tape, x: &Array<f64>| {
+                let y = Array::zeros(1);
+                tape.launch(scale, 1, (x, &k, &y));
+                y
+            };
+            let out = checkpointed(&x0, 12, 4, step, |tape, x| {
+                let l = Array::zeros(1);
+                tape.launch(miss, 1, (x, &l));
+                l
+            })?;
+            Ok(out.loss.get(0))
+        })
+        .unwrap();
+    assert!((k.get(0) - 2f64.powf(1.0 / 12.0)).abs() < 1e-7, "{} {r}", k.get(0));
+}
