@@ -1,6 +1,6 @@
 //! Physics kernels of adflex, written with `#[diff_kernel]`: forces (springs, dihedral bending,
 //! triangle and tetrahedral FEM, drag and wind), contact (ground, particle-particle, analytic
-//! shapes), rigid bodies, XPBD constraints, integrators, and the model builder.
+//! shapes), rigid bodies, XPBD constraints, integrators, losses, and the model builder.
 //!
 //! A [`ModelBuilder`] describes a scene; [`ModelBuilder::finalize`] turns it into a [`Model`]
 //! that holds arrays only for what the scene contains, and whose [`Model::eval_forces`]
@@ -38,6 +38,7 @@ pub mod constraints;
 pub mod contact;
 pub mod forces;
 pub mod integrators;
+pub mod losses;
 pub mod model;
 pub mod rigid;
 pub mod scene_file;

@@ -6,7 +6,7 @@
 //! their kernels: a scene costs only what it contains.
 
 use adflex_runtime::checkpoint::Checkpoint;
-use adflex_runtime::{AnyArray, Array, Mat22, Mat33, Quat, Real, Tape, Vec3};
+use adflex_runtime::{AnyArray, Array, Element, Error, Mat22, Mat33, Quat, Real, Tape, Vec3};
 
 use crate::constraints::DistanceConstraints;
 use crate::contact::ground::Ground;
@@ -980,6 +980,57 @@ impl<R: Real> Model<R> {
                 f.params().into_iter().map(move |(p, a)| (force, p, a))
             })
             .collect()
+    }
+
+    /// The parameter array `param` of the force named `force` (a handle sharing the model's
+    /// data: the simulation reads what you write into it), for an optimizer
+    /// (`adflex::optim::Params`) or to read its gradient. The first such force if several
+    /// have the name. `docs/guide.md` lists every force's parameters and units.
+    ///
+    /// Errors: [`Error::InvalidInput`] naming the parameters the model has if there is no such
+    /// parameter, or if its element type is not `T`.
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_runtime::Vec3;
+    /// let mut b = ModelBuilder::<f64>::new();
+    /// let a = b.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    /// let c = b.add_particle(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), 1.0);
+    /// b.add_spring(a, c, 100.0, 0.1);
+    /// let model = b.finalize();
+    /// let rest = model.param::<f64>("springs", "rest").unwrap();
+    /// assert_eq!(rest.to_vec(), vec![1.0]);
+    /// let err = model.param::<f64>("springs", "length").unwrap_err();
+    /// assert!(err.to_string().contains("springs.rest"));
+    /// ```
+    pub fn param<T: Element>(&self, force: &str, param: &str) -> Result<Array<T>, Error> {
+        let all = self.params();
+        let Some((_, _, array)) = all.iter().find(|(f, p, _)| *f == force && *p == param) else {
+            let names: Vec<String> = all.iter().map(|(f, p, _)| format!("{f}.{p}")).collect();
+            return Err(Error::InvalidInput {
+                what: format!("{force}.{param}"),
+                message: format!(
+                    "the model has no such parameter array; it has: {}",
+                    if names.is_empty() {
+                        "none".to_string()
+                    } else {
+                        names.join(", ")
+                    }
+                ),
+            });
+        };
+        array
+            .as_any()
+            .downcast_ref::<Array<T>>()
+            .cloned()
+            .ok_or_else(|| Error::InvalidInput {
+                what: format!("{force}.{param}"),
+                message: format!(
+                    "is an array of {} components per element, not of `{}`",
+                    array.element_dim(),
+                    std::any::type_name::<T>()
+                ),
+            })
     }
 
     /// Marks parameter `param` of every force named `force` as requiring a gradient (see

@@ -6,9 +6,7 @@ use std::cell::RefCell;
 use std::time::Instant;
 
 use adflex_runtime::Error;
-use argmin::core::{
-    CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus,
-};
+use argmin::core::{CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus};
 use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
 
@@ -114,7 +112,7 @@ pub(crate) fn run(
         norm(&gu.iter().zip(&dp).map(|(g, d)| g / d).collect::<Vec<_>>())
     };
     let iteration = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
-                         problem: &Problem<Objective>| Iteration {
+                     problem: &Problem<Objective>| Iteration {
         iter: s.get_iter() as usize,
         loss: s.get_cost(),
         grad_norm: grad_norm(s, params),
@@ -129,7 +127,9 @@ pub(crate) fn run(
         return Ok((best(&state), stop));
     }
     loop {
-        if let TerminationStatus::Terminated(reason) = <LBFGS<_, _, _, _> as Solver<Objective, _>>::terminate_internal(&mut solver, &state) {
+        if let TerminationStatus::Terminated(reason) =
+            <LBFGS<_, _, _, _> as Solver<Objective, _>>::terminate_internal(&mut solver, &state)
+        {
             let stop = match state.get_iter() as usize >= max_iters {
                 true => Stop::MaxIterations,
                 false => Stop::Converged(reason.text().to_string()),

@@ -248,7 +248,9 @@ impl<'a> Optimizer<'a> {
             }
             tape.backward(&l)?;
             let dim = l.len() * L::DIM;
-            Ok((0..dim).map(|k| adflex_runtime::AnyArray::scalar(&l, k)).sum())
+            Ok((0..dim)
+                .map(|k| adflex_runtime::AnyArray::scalar(&l, k))
+                .sum())
         })
     }
 
@@ -352,7 +354,10 @@ fn check_finite(params: &Params, evaluation: usize, loss: f64, g: &[f64]) -> Res
     }
     if let Some(i) = g.iter().position(|x| !x.is_finite()) {
         return Err(Error::InvalidInput {
-            what: format!("gradient of {} (evaluation {evaluation})", params.component_name(i)),
+            what: format!(
+                "gradient of {} (evaluation {evaluation})",
+                params.component_name(i)
+            ),
             message: format!("is {}", g[i]),
         });
     }
@@ -361,9 +366,9 @@ fn check_finite(params: &Params, evaluation: usize, loss: f64, g: &[f64]) -> Res
 
 fn progress_bar(len: usize) -> indicatif::ProgressBar {
     let bar = indicatif::ProgressBar::new(len as u64);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "optimize [{bar:30}] {pos}/{len} {msg} {elapsed}",
-    ) {
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("optimize [{bar:30}] {pos}/{len} {msg} {elapsed}")
+    {
         bar.set_style(style.progress_chars("=> "));
     }
     bar

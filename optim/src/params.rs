@@ -226,7 +226,10 @@ impl Params {
 
     /// Names each component: `label[i]` or `label[i].k` (for error messages).
     pub(crate) fn component_name(&self, index: usize) -> String {
-        let (e, k) = self.components().nth(index).expect("component index in range");
+        let (e, k) = self
+            .components()
+            .nth(index)
+            .expect("component index in range");
         let d = e.array.element_dim().max(1);
         match d {
             1 => format!("{}[{}]", e.array.label(), k),
@@ -287,7 +290,10 @@ mod tests {
                 assert!((q - p).abs() < 1e-12, "{b:?} {p}");
                 let h = 1e-6;
                 let fd = (b.from_free(u + h).0 - b.from_free(u - h).0) / (2.0 * h);
-                assert!((fd - d).abs() < 1e-6 * (1.0 + d.abs()), "{b:?} {p}: {fd} {d}");
+                assert!(
+                    (fd - d).abs() < 1e-6 * (1.0 + d.abs()),
+                    "{b:?} {p}: {fd} {d}"
+                );
             }
         }
         assert_eq!(Bounds::positive().to_free(0.0), None);

@@ -66,10 +66,16 @@ fn solve(opt: Optimizer<'_>) -> (Array<Vec3<f64>>, Array<f32>, adflex_optim::Rep
 
 fn assert_solved(x: &Array<Vec3<f64>>, c: &Array<f32>, tol: f64, what: &str) {
     for (got, want) in x.to_vec().iter().zip(targets().to_vec()) {
-        assert!((got - want).norm() < tol, "{what}: x = {got:?}, want {want:?}");
+        assert!(
+            (got - want).norm() < tol,
+            "{what}: x = {got:?}, want {want:?}"
+        );
     }
     for (got, want) in c.to_vec().iter().zip([0.5f32, -1.5, 2.0]) {
-        assert!(((got - want) as f64).abs() < tol, "{what}: c = {got}, want {want}");
+        assert!(
+            ((got - want) as f64).abs() < tol,
+            "{what}: c = {got}, want {want}"
+        );
     }
 }
 
@@ -85,7 +91,11 @@ fn lbfgs_adam_and_gradient_descent_find_the_minimum_of_vec3_and_f32_parameters()
     assert_solved(&x, &c, 1e-2, "Adam");
     assert_eq!(r.stop, Stop::GradientTolerance, "{r}");
 
-    let (x, c, r) = solve(Optimizer::gradient_descent(0.02).max_iters(3000).grad_tol(1e-4));
+    let (x, c, r) = solve(
+        Optimizer::gradient_descent(0.02)
+            .max_iters(3000)
+            .grad_tol(1e-4),
+    );
     assert_solved(&x, &c, 1e-2, "gradient descent");
     assert_eq!(r.stop, Stop::GradientTolerance, "{r}");
     // The history's losses decrease for this convex problem and a small step.
@@ -114,7 +124,13 @@ fn bounds_keep_parameters_inside() {
         assert!(c.abs() < 1e-9, "{c}");
     }
     // L-BFGS approaches the bound from inside, and finds interior minima exactly.
-    let c = bounded(Optimizer::lbfgs().max_iters(60), 1.0, -1.0, Bounds::positive()).unwrap();
+    let c = bounded(
+        Optimizer::lbfgs().max_iters(60),
+        1.0,
+        -1.0,
+        Bounds::positive(),
+    )
+    .unwrap();
     assert!(c > 0.0 && c < 1e-3, "{c}");
     let c = bounded(Optimizer::lbfgs(), 0.2, 0.7, Bounds::between(0.1, 0.9)).unwrap();
     assert!((c - 0.7).abs() < 1e-6, "{c}");
@@ -147,7 +163,10 @@ fn the_callback_sees_every_iteration_and_can_stop() {
         })
         .unwrap();
     assert_eq!(seen, vec![0, 1, 2, 3, 4]);
-    assert_eq!((r.stop, r.iterations, r.evaluations), (Stop::Callback, 4, 5));
+    assert_eq!(
+        (r.stop, r.iterations, r.evaluations),
+        (Stop::Callback, 4, 5)
+    );
     // The parameter holds the best value, whose loss the report gives.
     let l = c.get(0).powi(2) * (1.0 + c.get(0).powi(2));
     assert_eq!(l, r.loss);
@@ -177,7 +196,10 @@ fn a_parameter_the_loss_ignores_and_a_diverging_loss_are_errors() {
             Ok(l)
         })
         .unwrap_err();
-    assert!(matches!(err, Error::NoGrad { ref array } if array.contains("unused")), "{err}");
+    assert!(
+        matches!(err, Error::NoGrad { ref array } if array.contains("unused")),
+        "{err}"
+    );
 
     let a = Array::from_vec(vec![f64::NAN]);
     let err = Optimizer::adam(0.1)
@@ -221,5 +243,9 @@ fn minimize_with_takes_a_checkpointed_rollout() {
             Ok(out.loss.get(0))
         })
         .unwrap();
-    assert!((k.get(0) - 2f64.powf(1.0 / 12.0)).abs() < 1e-7, "{} {r}", k.get(0));
+    assert!(
+        (k.get(0) - 2f64.powf(1.0 / 12.0)).abs() < 1e-7,
+        "{} {r}",
+        k.get(0)
+    );
 }

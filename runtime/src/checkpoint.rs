@@ -247,7 +247,12 @@ impl Checkpointed {
     /// Runs the rollout forward and backward (see the [type docs](Checkpointed)).
     ///
     /// Errors: those of [`Tape::backward`] for each segment.
-    pub fn run<S, L, F, G>(&self, initial: &S, mut step: F, mut loss: G) -> Result<Rollout<L>, Error>
+    pub fn run<S, L, F, G>(
+        &self,
+        initial: &S,
+        mut step: F,
+        mut loss: G,
+    ) -> Result<Rollout<L>, Error>
     where
         S: Checkpoint,
         L: Element,
@@ -388,7 +393,9 @@ where
         let first = own.as_ref().unwrap_or(initial);
         let sources = flagged(first, &flags);
         let mut tape = Tape::new();
-        let acc = total.as_ref().map(|t| Array::<L>::zeros(t.len()).named("loss"));
+        let acc = total
+            .as_ref()
+            .map(|t| Array::<L>::zeros(t.len()).named("loss"));
         if let (Loss::Every(f, _), Some(acc), 0) = (&mut loss, &acc, j) {
             f(&mut tape, first, 0, acc);
         }

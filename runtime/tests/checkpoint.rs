@@ -214,7 +214,11 @@ fn per_step_losses_equal_a_plain_tape_bitwise() {
             )
             .unwrap();
         let rel = (out.loss.get(0) - l_plain).abs() / l_plain.abs();
-        assert!(rel < 1e-14, "loss {} vs {l_plain}, k = {k}", out.loss.get(0));
+        assert!(
+            rel < 1e-14,
+            "loss {} vs {l_plain}, k = {k}",
+            out.loss.get(0)
+        );
         assert_eq!(grads(&s), g_plain, "gradients, k = {k}");
         // Every step index, in order within each pass: 0..last_start forward, then each
         // segment's indices.
