@@ -355,3 +355,37 @@ fn implicit_euler_reaches_every_parameter() {
         );
     }
 }
+
+/// docs/guide.md's "Gradient targets" table lists as *array* exactly the parameters
+/// `model.params()` gives for a scene with every library force.
+#[test]
+fn the_guides_parameter_table_is_the_models() {
+    let guide = include_str!("../../docs/guide.md");
+    let start = guide
+        .find("### Gradient targets: every parameter")
+        .expect("the guide's parameter section");
+    let mut in_guide = Vec::new();
+    for line in guide[start..].lines().skip(1) {
+        if line.starts_with("### ") {
+            break;
+        }
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        if cells.len() == 6 && cells[4] == "array" {
+            in_guide.push(format!(
+                "{}.{}",
+                cells[1].trim_matches('`'),
+                cells[2].trim_matches('`')
+            ));
+        }
+    }
+    let in_model: Vec<String> = every_force()
+        .params()
+        .iter()
+        .filter(|(f, _, _)| BUILTIN_FORCES.contains(f))
+        .map(|(f, p, _)| format!("{f}.{p}"))
+        .collect();
+    assert_eq!(
+        in_guide, in_model,
+        "docs/guide.md's parameter table vs model.params()"
+    );
+}

@@ -107,9 +107,13 @@ pub(crate) fn run(
     };
     let grad_norm = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>, params: &Params| {
         // The gradient w.r.t. the parameters, not the free variables.
-        let (_, dp) = params.from_free(s.get_param().expect("param"));
-        let gu = s.get_gradient().expect("L-BFGS keeps the gradient");
-        norm(&gu.iter().zip(&dp).map(|(g, d)| g / d).collect::<Vec<_>>())
+        match (s.get_param().or(s.get_best_param()), s.get_gradient()) {
+            (Some(u), Some(gu)) => {
+                let (_, dp) = params.from_free(u);
+                norm(&gu.iter().zip(&dp).map(|(g, d)| g / d).collect::<Vec<_>>())
+            }
+            _ => f64::NAN,
+        }
     };
     let iteration = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
                      problem: &Problem<Objective>| Iteration {

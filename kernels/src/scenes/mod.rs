@@ -1,3 +1,4 @@
-//! Ready-made scenes: the benchmark scenes of `bench/SCENES.md`, built with [`crate::ModelBuilder`].
+//! Ready-made scenes (the benchmark scenes of `docs/scenes.md`, the demos' scenes), built with [`crate::ModelBuilder`].
 
+pub mod cage;
 pub mod cloth;
