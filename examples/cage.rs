@@ -1,0 +1,108 @@
+//! The field's first demo: a mass-spring cage (a free particle joined to the 26 pinned points
+//! of a lattice around it) whose springs' rest lengths L-BFGS optimizes so that the centre
+//! comes to rest at a target after 2 seconds.
+//!
+//! Run: `cargo run --release --example cage` (pictures in `target/demos/cage/`).
+
+use adflex::kernels::{losses, scenes::cage};
+use adflex::optim::{Optimizer, Params, Report};
+use adflex::prelude::*;
+
+/// What the demo runs.
+pub struct Config {
+    /// Simulated time (s) and step (s).
+    pub duration: f64,
+    pub dt: f64,
+    pub target: Vec3<f64>,
+    pub max_iters: usize,
+    pub progress: bool,
+}
+
+impl Config {
+    pub fn full() -> Self {
+        Config {
+            duration: 2.0,
+            dt: 1e-2,
+            target: Vec3::new(0.2, -0.15, 0.1),
+            max_iters: 20,
+            progress: true,
+        }
+    }
+    /// The test's size (the same: the demo takes well under a second).
+    pub fn small() -> Self {
+        Config {
+            progress: false,
+            ..Self::full()
+        }
+    }
+}
+
+/// What it found.
+pub struct Outcome {
+    pub report: Report,
+    pub scene: cage::CageScene<f64>,
+    /// The centre's trajectory with the optimized rest lengths.
+    pub frames: Vec<State<f64>>,
+    /// Distance of the centre from the target at the end (m).
+    pub miss: f64,
+}
+
+pub fn run(cfg: &Config) -> Result<Outcome, Error> {
+    let scene = cage::build::<f64>(cage::Cage::default());
+    let model = &scene.model;
+    let rest = model.param::<f64>("springs", "rest")?;
+    let steps = (cfg.duration / cfg.dt).round() as usize;
+    let report = Optimizer::lbfgs()
+        .max_iters(cfg.max_iters)
+        .grad_tol(1e-9)
+        .progress(cfg.progress)
+        .minimize(&Params::new().with(&rest), |tape| {
+            let end =
+                SemiImplicitEuler.rollout(model, tape, &model.state(), None, cfg.dt, steps)?;
+            let loss = Array::zeros(1);
+            losses::distance_to_target(tape, &end.x, &[scene.center], cfg.target, 1.0, &loss);
+            Ok(loss)
+        })?;
+    let mut frames = vec![model.state()];
+    let mut tape = Tape::new();
+    for _ in 0..steps {
+        let next =
+            SemiImplicitEuler.step(model, &mut tape, frames.last().unwrap(), None, cfg.dt)?;
+        frames.push(next);
+    }
+    let miss = (frames.last().unwrap().x.get(scene.center as usize) - cfg.target).norm();
+    Ok(Outcome {
+        report,
+        scene,
+        frames,
+        miss,
+    })
+}
+
+#[allow(dead_code)]
+fn main() -> Result<(), Error> {
+    let start = std::time::Instant::now();
+    let cfg = Config::full();
+    let out = run(&cfg)?;
+    for it in &out.report.history {
+        println!(
+            "iteration {:2}: loss {:.3e}, |grad| {:.2e}",
+            it.iter, it.loss, it.grad_norm
+        );
+    }
+    println!("{}", out.report);
+    let c = out.frames.last().unwrap().x.get(out.scene.center as usize);
+    println!(
+        "centre at t = {} s: ({:.4}, {:.4}, {:.4}), target ({:.4}, {:.4}, {:.4}): miss {:.2e} m ({:.1} s)",
+        cfg.duration,
+        c.x,
+        c.y,
+        c.z,
+        cfg.target.x,
+        cfg.target.y,
+        cfg.target.z,
+        out.miss,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
