@@ -13,3 +13,37 @@ fn cage_centre_reaches_the_target_in_a_few_lbfgs_iterations() {
     let l = out.report.losses();
     assert!(l[3.min(l.len() - 1)] < 1e-4 * l[0], "{:?}", l);
 }
+
+#[path = "../examples/stiff_pendulum.rs"]
+#[allow(dead_code)]
+mod stiff_pendulum;
+
+#[test]
+fn stiff_pendulum_stability_matches_theory() {
+    let out = stiff_pendulum::run(&stiff_pendulum::Config::small()).unwrap();
+    assert_eq!(out.runs.len(), 16);
+    for r in &out.runs {
+        assert_eq!(
+            r.stable(),
+            stiff_pendulum::predicted_stable(r.method, r.dt),
+            "{} at dt = {}: max E/E0 = {}, error {:?}",
+            r.method,
+            r.dt,
+            r.max_energy_ratio,
+            r.error
+        );
+        if r.method == "explicit Euler" && r.dt <= 0.01 {
+            // The energy grows by the linear theory's factor per step (within 15%) while
+            // omega dt <= 1 (larger steps stretch the rod into its nonlinear range).
+            let g = r
+                .growth_per_step
+                .expect("explicit Euler's energy grows exponentially");
+            let p = stiff_pendulum::predicted_growth(r.dt);
+            assert!(
+                (g.ln() / p.ln() - 1.0).abs() < 0.15,
+                "dt {}: {g} vs {p}",
+                r.dt
+            );
+        }
+    }
+}
