@@ -1,3 +1,5 @@
-//! Ready-made scenes: the benchmark scenes of `bench/SCENES.md`, built with [`crate::ModelBuilder`].
+//! Ready-made scenes and scene builders, built with [`crate::ModelBuilder`]: the benchmark
+//! scenes of `bench/SCENES.md` ([`cloth`]) and soft bodies ([`soft::TetGrid`]).
 
 pub mod cloth;
+pub mod soft;
