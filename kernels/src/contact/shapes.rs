@@ -5,6 +5,7 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use crate::contact::particle::ParticleContact;
 use crate::forces::{Force, ForceContext, Param};
 
 use super::ground::{contact_depth, contact_force};
@@ -164,14 +165,17 @@ impl<R: Real> ShapeKind<R> {
     }
 }
 
-/// A static analytic shape in the world.
+/// A static analytic shape in the world. No `Default`: the geometry has to be given
+/// ([`Shape::new`] sets the identity orientation); the contact parameters of all shapes are
+/// one [`ParticleContact`] ([`crate::ModelBuilder::set_shape_contact`], default
+/// [`ParticleContact::default`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Shape<R: Real> {
     /// Geometry.
     pub kind: ShapeKind<R>,
     /// Position of the shape's origin (m).
     pub pos: Vec3<R>,
-    /// Orientation (unit quaternion).
+    /// Orientation (unit quaternion; [`Shape::new`]: the identity).
     pub rot: Quat<R>,
 }
 
@@ -232,13 +236,14 @@ pub struct Shapes<R: Real> {
     pub rot: Array<Quat<R>>,
     /// Size vector (m), see [`ShapeKind::code`].
     pub size: Array<Vec3<R>>,
-    /// Contact stiffness (N/m).
+    /// Contact stiffness (N/m; default 1000, [`ParticleContact`]'s default, as are the
+    /// others).
     pub ke: R,
-    /// Contact damping (N s/m).
+    /// Contact damping (N s/m; default 1), only in contact and while approaching.
     pub kd: R,
-    /// Friction coefficient.
+    /// Friction coefficient (dimensionless; default 0.5).
     pub mu: R,
-    /// Gradient leak out of contact; 0 = exact.
+    /// Gradient leak out of contact (dimensionless; default 0: exact gradients).
     pub leak: R,
 }
 
