@@ -123,10 +123,10 @@ impl<R: Real> ParticleContact<R> {
     ///
     /// ```
     /// use adflex_kernels::prelude::*;
-    /// let kd = ParticleContact::restitution_damping(1.0e4, 0.5, 0.5);
-    /// let c = ParticleContact { ke: 1.0e4, kd, ..ParticleContact::default() };
+    /// let kd = ParticleContact::<f64>::restitution_damping(1.0e4, 0.5, 0.5);
+    /// let c = ParticleContact::<f64> { ke: 1.0e4, kd, ..ParticleContact::default() };
     /// assert!((c.restitution(0.5) - 0.5).abs() < 1e-12);
-    /// assert_eq!(ParticleContact::restitution_damping(1.0e4, 1.0, 0.5), 0.0);
+    /// assert_eq!(ParticleContact::<f64>::restitution_damping(1.0e4, 1.0, 0.5), 0.0);
     /// ```
     pub fn restitution_damping(ke: R, e: R, m_eff: R) -> R {
         let (k, m) = (ke.to_f64(), m_eff.to_f64());
