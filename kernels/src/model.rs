@@ -115,9 +115,11 @@ struct BodyDesc<R: Real> {
 pub struct ModelBuilder<R: Real> {
     /// Gravity (m/s^2); default `(0, -9.8, 0)`.
     pub gravity: Vec3<R>,
-    /// Radius of every particle for contact (m); default 0.01.
+    /// Radius for contact (m) of every particle not given its own radius
+    /// ([`ModelBuilder::set_particle_radius`]); default 0.01.
     pub particle_radius: R,
     particle_x: Vec<Vec3<R>>,
+    particle_radii: Vec<Option<R>>,
     particle_v: Vec<Vec3<R>>,
     particle_inv_mass: Vec<R>,
     spring_pairs: Vec<[u32; 2]>,
@@ -177,6 +179,7 @@ impl<R: Real> ModelBuilder<R> {
             gravity: Vec3::new(lit(0.0), lit(-9.8), lit(0.0)),
             particle_radius: lit(0.01),
             particle_x: Vec::new(),
+            particle_radii: Vec::new(),
             particle_v: Vec::new(),
             particle_inv_mass: Vec::new(),
             spring_pairs: Vec::new(),
@@ -279,9 +282,42 @@ impl<R: Real> ModelBuilder<R> {
             c.nonneg("inv_mass", inv_mass);
         }
         self.particle_x.push(x);
+        self.particle_radii.push(None);
         self.particle_v.push(v);
         self.particle_inv_mass.push(inv_mass);
         k as u32
+    }
+
+    /// Adds a particle like [`ModelBuilder::add_particle`] with its own contact radius
+    /// `radius` (m, finite and `>= 0`; see [`ModelBuilder::set_particle_radius`]).
+    pub fn add_particle_with_radius(&mut self, x: Vec3<R>, v: Vec3<R>, mass: R, radius: R) -> u32 {
+        let i = self.add_particle(x, v, mass);
+        self.set_particle_radius(i, radius);
+        i
+    }
+
+    /// Gives particle `i` its own contact radius `radius` (m, finite and `>= 0`), used by the
+    /// ground and shape contact (`r_i`) and particle contact (`r_i + r_j`) in place of
+    /// [`ModelBuilder::particle_radius`]. The model keeps an array of radii
+    /// ([`Model::particle_radii`]) only if some particle's radius differs from
+    /// `particle_radius`.
+    pub fn set_particle_radius(&mut self, i: u32, radius: R) {
+        let n = self.particle_count();
+        let mut c = self.check("particles", i as usize);
+        if (i as usize) >= n {
+            c.fail(
+                None,
+                format!("set_particle_radius: particle index {i} out of range ({n} particles)"),
+            );
+        } else if c.nonneg("radius", radius) {
+            self.particle_radii[i as usize] = Some(radius);
+        }
+    }
+
+    /// The contact radius (m) of particle `i`: its own, or [`ModelBuilder::particle_radius`].
+    /// Panics if there is no particle `i`.
+    pub fn particle_radius_of(&self, i: u32) -> R {
+        self.particle_radii[i as usize].unwrap_or(self.particle_radius)
     }
 
     /// Sets the inverse mass (1/kg, finite and `>= 0`) of particle `i` (0 pins it).
@@ -569,6 +605,11 @@ impl<R: Real> ModelBuilder<R> {
         self.tet_lambda.push(lambda);
         self.tet_kd.push(kd);
         (self.tets.len() - 1) as u32
+    }
+
+    /// Number of tetrahedra added so far.
+    pub fn tet_count(&self) -> usize {
+        self.tets.len()
     }
 
     /// The checks of the single item `kind`.
@@ -878,6 +919,14 @@ impl<R: Real> ModelBuilder<R> {
             particle_inv_mass: Array::from_vec(self.particle_inv_mass.clone()).named("inv_mass"),
             gravity: self.gravity,
             particle_radius: self.particle_radius,
+            particle_radii: self
+                .particle_radii
+                .iter()
+                .any(|r| r.is_some_and(|r| r != self.particle_radius))
+                .then(|| {
+                    let radii = (0..n as u32).map(|i| self.particle_radius_of(i)).collect();
+                    Array::from_vec(radii).named("particle_radius")
+                }),
             triangles: self.triangles.clone(),
             forces,
             bodies,
@@ -900,8 +949,13 @@ pub struct Model<R: Real> {
     pub particle_inv_mass: Array<R>,
     /// Gravity (m/s^2).
     pub gravity: Vec3<R>,
-    /// Particle radius for contact (m).
+    /// Particle radius for contact (m): every particle's, unless [`Model::particle_radii`]
+    /// is present.
     pub particle_radius: R,
+    /// Per-particle contact radii (m), present only if some particle was given a radius other
+    /// than [`Model::particle_radius`] ([`ModelBuilder::set_particle_radius`]); the contact
+    /// kernels then read `r_i` from it (not a gradient target).
+    pub particle_radii: Option<Array<R>>,
     /// The surface triangles (topology, for output and bending; host only).
     pub triangles: Vec<[u32; 3]>,
     /// The forces on the particles (see [`crate::forces`]): the library's the scene has, in
@@ -1121,9 +1175,18 @@ impl<R: Real> Model<R> {
         Some((f, t))
     }
 
-    /// What the forces read: the state, the control, the particle radius.
+    /// The contact radius (m) of particle `i`. Panics if there is no particle `i`.
+    pub fn particle_radius_of(&self, i: usize) -> R {
+        assert!(i < self.particle_count, "no particle {i}");
+        match &self.particle_radii {
+            Some(r) => r.get(i),
+            None => self.particle_radius,
+        }
+    }
+
+    /// What the forces read: the state, the control, the particle radii.
     pub fn context<'a>(
-        &self,
+        &'a self,
         state: &'a State<R>,
         control: Option<&'a Control<R>>,
     ) -> ForceContext<'a, R> {
@@ -1132,6 +1195,7 @@ impl<R: Real> Model<R> {
             v: &state.v,
             control,
             particle_radius: self.particle_radius,
+            particle_radii: self.particle_radii.as_ref(),
         }
     }
 

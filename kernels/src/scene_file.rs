@@ -35,7 +35,8 @@
 //!
 //! The schema (units as in the rest of the crate; defaults in parentheses):
 //! - `gravity`: `[x, y, z]` (m/s^2; `[0, -9.8, 0]`); `particle_radius` (m; 0.01).
-//! - `particles`: `{ x, v ([0,0,0]), mass }` (m, m/s, kg; mass 0 pins).
+//! - `particles`: `{ x, v ([0,0,0]), mass, radius (particle_radius) }` (m, m/s, kg, m;
+//!   mass 0 pins; see [`ModelBuilder::set_particle_radius`]).
 //! - `cloth_grids`: `{ ni, nj, origin, spacing, mass, pinned ([]: [[i, j], ...]), spring_ke,
 //!   spring_kd (0), bend_ke, bend_kd (0), bend_rest ("flat" | "initial") }`, see
 //!   [`crate::scenes::cloth::ClothGrid`] (no bending without `bend_ke`).
@@ -168,6 +169,7 @@ struct ParticleDesc {
     #[serde(default = "zero3")]
     v: [f64; 3],
     mass: f64,
+    radius: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -672,7 +674,10 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
     for (k, p) in d.particles.iter().enumerate() {
         let n0 = b.problems().len();
         c.no_underflow::<R>(|| format!("particles[{k}].mass"), p.mass)?;
-        b.add_particle(v3(p.x), v3(p.v), R::lit(p.mass));
+        let i = b.add_particle(v3(p.x), v3(p.v), R::lit(p.mass));
+        if let Some(r) = p.radius {
+            b.set_particle_radius(i, R::lit(r));
+        }
         c.builder(&b, n0, |f| sub(&format!("particles[{k}]"), f, &[]))?;
     }
     for (k, g) in d.cloth_grids.iter().enumerate() {

@@ -80,7 +80,32 @@ pub fn eval_ground<R: Real>(
     f.atomic_add(t, contact_force(normal, c, v[t], ke, kd, mu));
 }
 
+/// [`eval_ground`] with a radius per particle: `radius[tid]` (m).
+#[diff_kernel]
+pub fn eval_ground_radii<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    normal: Vec3<R>,
+    offset: R,
+    radius: &Array<R>,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let c = contact_depth(dot(normal, x[t]) - offset - radius[t], leak);
+    f.atomic_add(t, contact_force(normal, c, v[t], ke, kd, mu));
+}
+
 /// A ground plane for particle (and rigid body point) contact.
+///
+/// Its damping `kd` acts on every particle moving towards the plane, in contact or not (see
+/// [`contact_force`]; dFlex's choice): a falling particle is braked by `kd v` before it lands.
+/// So [`crate::contact::particle::ParticleContact::restitution_damping`] does not give the
+/// ground a coefficient of restitution (it would overestimate the loss); with `kd = 0` a
+/// bounce is elastic up to the integrator's error.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ground<R: Real> {
     /// Unit normal, pointing out of the ground (default `+y`).
@@ -164,6 +189,35 @@ impl<R: Real> Ground<R> {
     }
 }
 
+impl<R: Real> Ground<R> {
+    /// Records [`eval_ground_radii`] for particles of radii `radii` (m), accumulating into `f`.
+    pub fn eval_radii(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radii: &Array<R>,
+        f: &Array<Vec3<R>>,
+    ) {
+        tape.launch(
+            eval_ground_radii,
+            x.len(),
+            (
+                x,
+                v,
+                self.normal,
+                self.offset,
+                radii,
+                self.ke,
+                self.kd,
+                self.mu,
+                self.leak,
+                f,
+            ),
+        );
+    }
+}
+
 /// Ground contact of the particles. Its parameters are scalars (not differentiable), so it has
 /// no parameter arrays.
 impl<R: Real> Force<R> for Ground<R> {
@@ -171,7 +225,10 @@ impl<R: Real> Force<R> for Ground<R> {
         crate::forces::GROUND
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
-        Ground::eval(self, tape, cx.x, cx.v, cx.particle_radius, f);
+        match cx.particle_radii {
+            Some(r) => self.eval_radii(tape, cx.x, cx.v, r, f),
+            None => Ground::eval(self, tape, cx.x, cx.v, cx.particle_radius, f),
+        }
     }
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }

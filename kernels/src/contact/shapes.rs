@@ -91,6 +91,42 @@ pub fn eval_shape_contact<R: Real>(
     f.atomic_add(p, contact_force(n, c, v[p], ke, kdc, mu));
 }
 
+/// [`eval_shape_contact`] with a radius per particle: `radius[tid / num_shapes]` (m).
+#[diff_kernel]
+pub fn eval_shape_contact_radii<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    kind: &Array<u32>,
+    pos: &Array<Vec3<R>>,
+    rot: &Array<Quat<R>>,
+    size: &Array<Vec3<R>>,
+    num_shapes: usize,
+    radius: &Array<R>,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let p = t / num_shapes;
+    let s = t % num_shapes;
+    let k = kind[s];
+    let q = rot[s];
+    let pl = quat_rotate_inv(q, x[p] - pos[s]);
+    let sz = size[s];
+    let mut g = sdf_sphere(pl, sz);
+    if k == 1 {
+        g = sdf_box(pl, sz);
+    } else if k == 2 {
+        g = sdf_capsule(pl, sz);
+    }
+    let n = quat_rotate(q, vec3(g.x, g.y, g.z));
+    let c = contact_depth(g.w - radius[p], leak);
+    let kdc = select(c < 0.0, kd, 0.0);
+    f.atomic_add(p, contact_force(n, c, v[p], ke, kdc, mu));
+}
+
 /// The geometry of an analytic shape.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum ShapeKind<R: Real> {
@@ -128,14 +164,17 @@ impl<R: Real> ShapeKind<R> {
     }
 }
 
-/// A static analytic shape in the world.
+/// A static analytic shape in the world. No `Default`: the geometry has to be given
+/// ([`Shape::new`] sets the identity orientation); the contact parameters of all shapes are
+/// one [`ParticleContact`](crate::contact::particle::ParticleContact) ([`crate::ModelBuilder::set_shape_contact`], default
+/// [`ParticleContact::default`](crate::contact::particle::ParticleContact)).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Shape<R: Real> {
     /// Geometry.
     pub kind: ShapeKind<R>,
     /// Position of the shape's origin (m).
     pub pos: Vec3<R>,
-    /// Orientation (unit quaternion).
+    /// Orientation (unit quaternion; [`Shape::new`]: the identity).
     pub rot: Quat<R>,
 }
 
@@ -196,13 +235,14 @@ pub struct Shapes<R: Real> {
     pub rot: Array<Quat<R>>,
     /// Size vector (m), see [`ShapeKind::code`].
     pub size: Array<Vec3<R>>,
-    /// Contact stiffness (N/m).
+    /// Contact stiffness (N/m; default 1000, [`ParticleContact`](crate::contact::particle::ParticleContact)'s default, as are the
+    /// others).
     pub ke: R,
-    /// Contact damping (N s/m).
+    /// Contact damping (N s/m; default 1), only in contact and while approaching.
     pub kd: R,
-    /// Friction coefficient.
+    /// Friction coefficient (dimensionless; default 0.5).
     pub mu: R,
-    /// Gradient leak out of contact; 0 = exact.
+    /// Gradient leak out of contact (dimensionless; default 0: exact gradients).
     pub leak: R,
 }
 
@@ -228,13 +268,38 @@ impl<R: Real> Shapes<R> {
     }
 }
 
+impl<R: Real> Shapes<R> {
+    /// Records [`eval_shape_contact_radii`] for particles of radii `radii` (m).
+    pub fn eval_radii(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radii: &Array<R>,
+        f: &Array<Vec3<R>>,
+    ) {
+        let ns = self.kind.len();
+        tape.launch(
+            eval_shape_contact_radii,
+            x.len() * ns,
+            (
+                x, v, &self.kind, &self.pos, &self.rot, &self.size, ns, radii, self.ke, self.kd,
+                self.mu, self.leak, f,
+            ),
+        );
+    }
+}
+
 /// Contact of the particles with the shapes; the shapes' poses and sizes are differentiable.
 impl<R: Real> Force<R> for Shapes<R> {
     fn name(&self) -> &'static str {
         crate::forces::SHAPE_CONTACT
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
-        Shapes::eval(self, tape, cx.x, cx.v, cx.particle_radius, f);
+        match cx.particle_radii {
+            Some(r) => self.eval_radii(tape, cx.x, cx.v, r, f),
+            None => Shapes::eval(self, tape, cx.x, cx.v, cx.particle_radius, f),
+        }
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("pos", &mut self.pos);

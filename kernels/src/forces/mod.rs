@@ -115,8 +115,11 @@ pub struct ForceContext<'a, R: Real> {
     pub v: &'a Array<Vec3<R>>,
     /// The step's control, if any.
     pub control: Option<&'a Control<R>>,
-    /// The model's particle radius for contact (m).
+    /// The model's particle radius for contact (m), every particle's unless `particle_radii`
+    /// is given.
     pub particle_radius: R,
+    /// Per-particle contact radii (m), if the model has them ([`crate::Model::particle_radii`]).
+    pub particle_radii: Option<&'a Array<R>>,
 }
 
 /// A force on the particles: a component of a [`Model`](crate::Model).

@@ -51,9 +51,9 @@ pub fn add_gravity_force<R: Real>(inv_mass: &Array<R>, g: Vec3<R>, f: &Array<Vec
 /// Linear drag / wind on every particle.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Drag<R: Real> {
-    /// Drag coefficient (N s/m).
+    /// Drag coefficient (N s/m; default 0.1).
     pub kd: R,
-    /// Air velocity (m/s): zero for plain drag, nonzero for wind.
+    /// Air velocity (m/s; default 0): zero for plain drag, nonzero for wind.
     pub wind: Vec3<R>,
 }
 

@@ -27,25 +27,26 @@ use crate::model::{Model, ModelBuilder, State};
 /// `(a, b, c)`, `(a, c, d)`; bending elements follow [`bending_edges`].
 #[derive(Clone, Debug)]
 pub struct ClothGrid<R: Real> {
-    /// Particles along the first axis.
+    /// Particles along the first axis (x; at least 2; default 16).
     pub ni: usize,
-    /// Particles along the second axis.
+    /// Particles along the second axis (z; at least 2; default 16).
     pub nj: usize,
-    /// Position of particle `(0, 0)` (m).
+    /// Position of particle `(0, 0)` (m; default `(0, 0.03, 0)`).
     pub origin: Vec3<R>,
-    /// Distance between neighbouring particles (m).
+    /// Distance between neighbouring particles (m; default `1/15`: a sheet of 1 m).
     pub spacing: f64,
-    /// Mass of each particle (kg).
+    /// Mass of each particle (kg; default 0.01).
     pub mass: R,
-    /// Particles `(i, j)` to pin (inverse mass 0).
+    /// Particles `(i, j)` to pin (inverse mass 0; default the corners `(0, 0)`, `(ni-1, 0)`).
     pub pinned: Vec<(usize, usize)>,
-    /// Spring stiffness (N/m).
+    /// Spring stiffness (N/m; default 50).
     pub spring_ke: R,
-    /// Spring damping (N s/m).
+    /// Spring damping (N s/m; default 0.1).
     pub spring_kd: R,
-    /// Bending stiffness (N m/rad); no bending elements if `None`.
+    /// Bending stiffness `ke` (N m/rad) and damping `kd` (N m s/rad); no bending elements if
+    /// `None` (default `Some((0.01, 0))`).
     pub bend: Option<(R, R)>,
-    /// Rest angle of the bending elements.
+    /// Rest angle of the bending elements (default [`RestAngle::Flat`]).
     pub bend_rest: RestAngle,
 }
 
