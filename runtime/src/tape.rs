@@ -499,12 +499,22 @@ impl Tape {
     /// cannot see that write, so the writer's adjoint would receive gradient for values that
     /// were replaced.
     fn check_off_tape_writes(&self, run: &[bool], consume: &[bool]) -> Result<(), Error> {
-        // id -> (step that last wrote it, version right after)
-        let mut last: std::collections::HashMap<u64, (usize, u64)> = Default::default();
+        // id -> the chain of on-tape writes of the array: its version right after the last
+        // one, the last writer whose adjoint runs (if any), and whether a host write broke
+        // the chain after such a writer.
+        struct Chain {
+            after: u64,
+            live: Option<usize>,
+            cut: bool,
+        }
+        let mut chains: std::collections::HashMap<u64, Chain> = Default::default();
         for (i, r) in self.records.iter().enumerate() {
             for u in r.reads.iter().chain(&r.writes) {
-                if let Some(&(w, after)) = last.get(&u.array.id()) {
-                    if u.version != after && run[w] && run[i] {
+                if let Some(c) = chains.get_mut(&u.array.id()) {
+                    if u.version != c.after && c.live.is_some() {
+                        c.cut = true;
+                    }
+                    if let (true, true, Some(w)) = (c.cut, run[i], c.live) {
                         return Err(Error::WrittenOffTape {
                             array: u.array.label(),
                             writer: self.records[w].qualified(),
@@ -515,11 +525,23 @@ impl Tape {
                     }
                 }
             }
-            // (a writer whose adjoint does not run cannot be confused, and hides nothing)
-            if run[i] || consume[i] {
-                for u in &r.writes {
-                    last.insert(u.array.id(), (i, u.after));
-                }
+            for u in &r.writes {
+                let runs = run[i] || consume[i];
+                let (live, cut) = match chains.get(&u.array.id()) {
+                    // A writer whose adjoint runs starts a fresh chain: what it overwrote
+                    // or accumulated onto is checked at its own read above.
+                    _ if runs => (Some(i), false),
+                    Some(c) => (c.live, c.cut),
+                    None => (None, false),
+                };
+                chains.insert(
+                    u.array.id(),
+                    Chain {
+                        after: u.after,
+                        live,
+                        cut,
+                    },
+                );
             }
         }
         Ok(())

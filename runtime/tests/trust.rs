@@ -156,6 +156,42 @@ fn a_host_write_between_a_writer_and_a_reader_is_refused() {
     assert_eq!(x.grad().unwrap().to_vec(), vec![0.0, 0.0]); // nothing ran
 }
 
+#[diff_kernel]
+fn add_scaled(x: &Array<f64>, s: f64, f: &Array<f64>) {
+    let t = tid();
+    f.atomic_add(t, x[t] * s);
+}
+
+/// Forces accumulated by a launch whose adjoint runs, then by one that reads only constants
+/// (its adjoint is skipped): the reader of the sum is on the chain, not written off the tape.
+#[test]
+fn an_accumulation_by_a_constant_launch_is_not_an_off_tape_write() {
+    let x = Array::from_vec(vec![1.0f64, 2.0])
+        .requires_grad()
+        .named("x");
+    let c = Array::from_vec(vec![5.0f64, 6.0]).named("c");
+    let f = Array::zeros(2).named("f");
+    let loss = Array::zeros(1).named("loss");
+    let mut tape = Tape::new();
+    tape.launch(add_scaled, 2, (&x, 2.0, &f));
+    tape.launch(add_scaled, 2, (&c, 1.0, &f));
+    tape.launch(sum_sq, 2, (&f, &loss));
+    tape.backward(&loss).unwrap();
+    // loss = sum (2 x + c)^2: d/dx = 4 (2 x + c).
+    assert_eq!(x.grad().unwrap().to_vec(), vec![28.0, 40.0]);
+
+    // A host write after the constant launch still cuts the running writer's path.
+    x.zero_grad();
+    let (f, loss) = (Array::zeros(2).named("f"), Array::zeros(1).named("loss"));
+    let mut tape = Tape::new();
+    tape.launch(add_scaled, 2, (&x, 2.0, &f));
+    f.set(1, 0.0);
+    tape.launch(add_scaled, 2, (&c, 1.0, &f));
+    tape.launch(sum_sq, 2, (&f, &loss));
+    let err = tape.backward(&loss).unwrap_err();
+    assert!(matches!(err, Error::WrittenOffTape { .. }), "{err}");
+}
+
 // ---- backward that reaches nothing -------------------------------------------------------
 
 #[test]
