@@ -12,8 +12,8 @@ extern crate self as adflex;
 
 pub use adflex_kernels as kernels;
 pub use adflex_macros::{diff_func, diff_kernel};
-pub use adflex_runtime as runtime;
 pub use adflex_optim as optim;
+pub use adflex_runtime as runtime;
 pub use adflex_runtime::math;
 pub use adflex_viz as viz;
 

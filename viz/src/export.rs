@@ -205,7 +205,11 @@ fn write_obj_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
 /// assert!(text.contains("element vertex 2") && text.contains("element edge 1"));
 /// # std::fs::remove_file(&path).ok();
 /// ```
-pub fn write_ply<R: Real>(path: impl AsRef<Path>, model: &Model<R>, state: &State<R>) -> Result<()> {
+pub fn write_ply<R: Real>(
+    path: impl AsRef<Path>,
+    model: &Model<R>,
+    state: &State<R>,
+) -> Result<()> {
     let mesh = Mesh::new(&Topology::of(model), &Frame::of(state));
     write_ply_mesh(path.as_ref(), &mesh, false)
 }
@@ -249,7 +253,11 @@ pub fn write_ply_binary<R: Real>(
 /// assert!(text.contains("\nl 1 2\n"));
 /// # std::fs::remove_file(&path).ok();
 /// ```
-pub fn write_obj<R: Real>(path: impl AsRef<Path>, model: &Model<R>, state: &State<R>) -> Result<()> {
+pub fn write_obj<R: Real>(
+    path: impl AsRef<Path>,
+    model: &Model<R>,
+    state: &State<R>,
+) -> Result<()> {
     let mesh = Mesh::new(&Topology::of(model), &Frame::of(state));
     write_obj_mesh(path.as_ref(), &mesh)
 }
@@ -400,7 +408,10 @@ pub fn write_usda<R: Real>(
         sampled_points(&mut s, ind, frames.iter().map(|f| f.x.clone()));
         let _ = writeln!(s, "{ind}uniform token subdivisionScheme = \"none\"");
         let _ = writeln!(s, "{ind}uniform bool doubleSided = 1");
-        let _ = writeln!(s, "{ind}color3f[] primvars:displayColor = [(0.35, 0.55, 0.8)]");
+        let _ = writeln!(
+            s,
+            "{ind}color3f[] primvars:displayColor = [(0.35, 0.55, 0.8)]"
+        );
         s.push_str("    }\n");
     } else if topo.particles > 0 {
         s.push_str("    def Points \"particles\"\n    {\n");
@@ -410,7 +421,10 @@ pub fn write_usda<R: Real>(
             "{ind}float[] widths = [{}] (\n{ind}    interpolation = \"constant\"\n{ind})",
             width as f32
         );
-        let _ = writeln!(s, "{ind}color3f[] primvars:displayColor = [(0.2, 0.3, 0.5)]");
+        let _ = writeln!(
+            s,
+            "{ind}color3f[] primvars:displayColor = [(0.2, 0.3, 0.5)]"
+        );
         s.push_str("    }\n");
         if !topo.edges.is_empty() {
             s.push_str("    def BasisCurves \"springs\"\n    {\n");
@@ -434,7 +448,10 @@ pub fn write_usda<R: Real>(
                 "{ind}float[] widths = [{}] (\n{ind}    interpolation = \"constant\"\n{ind})",
                 (width * 0.3) as f32
             );
-            let _ = writeln!(s, "{ind}color3f[] primvars:displayColor = [(0.4, 0.4, 0.45)]");
+            let _ = writeln!(
+                s,
+                "{ind}color3f[] primvars:displayColor = [(0.4, 0.4, 0.45)]"
+            );
             s.push_str("    }\n");
         }
     }
@@ -467,7 +484,10 @@ pub fn write_usda<R: Real>(
                 "{ind}    float[] widths = [{}] (\n{ind}        interpolation = \"constant\"\n{ind}    )",
                 (width.max(1e-3) * 2.0) as f32
             );
-            let _ = writeln!(s, "{ind}    color3f[] primvars:displayColor = [(0.8, 0.4, 0.2)]");
+            let _ = writeln!(
+                s,
+                "{ind}    color3f[] primvars:displayColor = [(0.8, 0.4, 0.2)]"
+            );
             let _ = writeln!(s, "{ind}}}");
         }
         s.push_str("    }\n");

@@ -216,4 +216,3 @@ where
     root.present().map_err(|x| e(&x))?;
     Ok(())
 }
-

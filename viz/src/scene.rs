@@ -154,13 +154,13 @@ impl Frame {
     pub fn of<R: Real>(state: &State<R>) -> Self {
         let x = state.x.to_vec().into_iter().map(wide).collect();
         let bodies = match &state.bodies {
-            Some(b) => b
-                .x
-                .to_vec()
-                .into_iter()
-                .zip(b.q.to_vec())
-                .map(|(x, q)| (wide(x), quat(q)))
-                .collect(),
+            Some(b) => {
+                b.x.to_vec()
+                    .into_iter()
+                    .zip(b.q.to_vec())
+                    .map(|(x, q)| (wide(x), quat(q)))
+                    .collect()
+            }
             None => Vec::new(),
         };
         Frame { x, bodies }
