@@ -9,13 +9,16 @@
 //!
 //! What a frame holds: the vertices are the particle positions (m), in particle order, then,
 //! for each rigid body, its contact points in world coordinates (bodies have no mesh in
-//! adflex: their contact points, joined pairwise by edges when a body has at most 12, show
-//! the pose). Faces are the model's triangles, then the boundary faces of its tetrahedra
+//! adflex: their contact points, joined by edges, show the pose: each point to the nearest
+//! point of its body in each body-axis direction that shares its other two coordinates, so
+//! contact points at a box's corners give the box's 12 edges; points that share no such
+//! line are each joined to their two nearest instead). Faces are the model's triangles, then the boundary faces of its tetrahedra
 //! (those not already among the triangles), oriented outwards. Edges are the springs, then
 //! the XPBD distance constraints, then the body edges.
 //!
 //! ```
 //! use adflex_kernels::prelude::*;
+//! use adflex_runtime::Vec3;
 //! use adflex_viz::export::{self, Format};
 //!
 //! let mut b = ModelBuilder::<f64>::new();
@@ -194,6 +197,7 @@ fn write_obj_mesh(path: &Path, mesh: &Mesh) -> Result<()> {
 ///
 /// ```
 /// use adflex_kernels::prelude::*;
+/// use adflex_runtime::Vec3;
 /// let mut b = ModelBuilder::<f64>::new();
 /// let p = b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 1.0);
 /// let q = b.add_particle(Vec3::new(1.0, 1.0, 0.0), Vec3::zeros(), 1.0);
@@ -219,6 +223,7 @@ pub fn write_ply<R: Real>(
 ///
 /// ```
 /// use adflex_kernels::prelude::*;
+/// use adflex_runtime::Vec3;
 /// let mut b = ModelBuilder::<f64>::new();
 /// b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 1.0);
 /// let model = b.finalize();
@@ -242,6 +247,7 @@ pub fn write_ply_binary<R: Real>(
 ///
 /// ```
 /// use adflex_kernels::prelude::*;
+/// use adflex_runtime::Vec3;
 /// let mut b = ModelBuilder::<f64>::new();
 /// let p = b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 1.0);
 /// let q = b.add_particle(Vec3::new(1.0, 1.0, 0.0), Vec3::zeros(), 1.0);
@@ -345,13 +351,15 @@ fn sampled_points(out: &mut String, indent: &str, frames: impl Iterator<Item = V
 ///   and, when the model has springs or distance constraints, `BasisCurves "springs"`
 ///   (linear, two time-sampled points per edge);
 /// - `Xform "body_<i>"` per rigid body with time-sampled `xformOp:translate` and
-///   `xformOp:orient` (`quatf`, `(w, x, y, z)`) and a child `Points "contacts"` holding its
-///   contact points in body frame.
+///   `xformOp:orient` (`quatf`, `(w, x, y, z)`), a child `Points "contacts"` holding its
+///   contact points in body frame and a child `BasisCurves "edges"` joining them (see the
+///   [module docs](self)).
 ///
 /// An empty `states` is an [`Error::Empty`]; `fps` must be finite and `> 0`.
 ///
 /// ```
 /// use adflex_kernels::prelude::*;
+/// use adflex_runtime::Vec3;
 /// let mut b = ModelBuilder::<f64>::new();
 /// b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 1.0);
 /// let model = b.finalize();
@@ -483,6 +491,32 @@ pub fn write_usda<R: Real>(
                 s,
                 "{ind}    float[] widths = [{}] (\n{ind}        interpolation = \"constant\"\n{ind}    )",
                 (width.max(1e-3) * 2.0) as f32
+            );
+            let _ = writeln!(
+                s,
+                "{ind}    color3f[] primvars:displayColor = [(0.8, 0.4, 0.2)]"
+            );
+            let _ = writeln!(s, "{ind}}}");
+        }
+        let edges = topo.body_edges_of(b);
+        if !edges.is_empty() {
+            let _ = writeln!(s, "\n{ind}def BasisCurves \"edges\"\n{ind}{{");
+            let _ = writeln!(s, "{ind}    uniform token type = \"linear\"");
+            let _ = write!(s, "{ind}    int[] curveVertexCounts = ");
+            int_list(&mut s, edges.iter().map(|_| 2));
+            s.push('\n');
+            let _ = write!(s, "{ind}    point3f[] points = ");
+            point_list(
+                &mut s,
+                edges
+                    .iter()
+                    .flat_map(|e| [pts[e[0] as usize], pts[e[1] as usize]]),
+            );
+            s.push('\n');
+            let _ = writeln!(
+                s,
+                "{ind}    float[] widths = [{}] (\n{ind}        interpolation = \"constant\"\n{ind}    )",
+                (width.max(1e-3) * 0.5) as f32
             );
             let _ = writeln!(
                 s,

@@ -13,6 +13,7 @@
 //!
 //! ```
 //! use adflex_kernels::prelude::*;
+//! use adflex_runtime::Tape;
 //! use adflex_kernels::scenes::cloth;
 //! use adflex_viz::{export, render};
 //!
@@ -27,6 +28,7 @@
 //!     states.push(s);
 //! }
 //! let dir = std::env::temp_dir().join(format!("adflex-viz-doc-lib-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
 //! export::write_usda(dir.join("cloth.usda"), &scene.model, &states, 60.0).unwrap();
 //! let opts = render::RenderOptions::default();
 //! render::render_png(dir.join("cloth.png"), &scene.model, states.last().unwrap(), &opts).unwrap();

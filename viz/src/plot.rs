@@ -102,6 +102,24 @@ pub fn curves(
     chart(path.as_ref(), title, x_label, y_label, series, true)
 }
 
+/// A short axis label: integers as integers, up to 4 significant digits, or scientific.
+fn tick(x: f64) -> String {
+    let a = x.abs();
+    if a == 0.0 {
+        "0".into()
+    } else if (1e-3..1e6).contains(&a) {
+        if (x - x.round()).abs() <= 1e-9 * a {
+            format!("{x:.0}")
+        } else {
+            let decimals = (3 - a.log10().floor() as i32).clamp(0, 6) as usize;
+            let s = format!("{x:.decimals$}");
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        }
+    } else {
+        format!("{x:.1e}")
+    }
+}
+
 fn padded(lo: f64, hi: f64) -> Range<f64> {
     if hi > lo {
         let pad = 0.04 * (hi - lo);
@@ -161,6 +179,20 @@ fn chart(
     std::fs::write(path, svg).map_err(|e| Error::io(path, e))
 }
 
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn ticks_are_short() {
+        use super::tick;
+        assert_eq!(tick(0.0), "0");
+        assert_eq!(tick(20.0), "20");
+        assert_eq!(tick(0.30000000000000004), "0.3");
+        assert_eq!(tick(0.001), "0.001");
+        assert_eq!(tick(2.5e-5), "2.5e-5");
+        assert_eq!(tick(-1.25), "-1.25");
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn draw<Y>(
     svg: &mut String,
@@ -191,6 +223,8 @@ where
         .x_desc(x_label)
         .y_desc(y_label)
         .light_line_style(RGBColor(235, 235, 235))
+        .x_label_formatter(&|x| tick(*x))
+        .y_label_formatter(&|y| tick(*y))
         .draw()
         .map_err(|x| e(&x))?;
     for (k, (name, pts)) in series.iter().enumerate() {

@@ -4,11 +4,12 @@
 //!
 //! What is drawn: particles as filled circles, springs (and distance constraints) as thin
 //! lines, triangles (and the boundary faces of tetrahedra) flat-shaded by a directional
-//! light (two-sided Lambert), rigid bodies as their contact points joined by edges plus a
-//! small axis frame (x red, y green, z blue) at the centre of mass, and the ground plane,
-//! if the model has one, as a grid. Everything is depth-sorted back to front (painter's
-//! algorithm), which is right for the light scenes adflex simulates but may draw
-//! intersecting triangles in the wrong order.
+//! light (two-sided Lambert), rigid bodies as their contact points joined by edges (as in
+//! [`crate::export`]: a box's corners give its edges) plus a small axis frame (x red, y
+//! green, z blue) at the centre of mass, and the ground plane, if the model has one, as a
+//! grid. Everything is depth-sorted back to front (painter's algorithm), which is right for
+//! the light scenes adflex simulates but may draw intersecting triangles in the wrong
+//! order.
 //!
 //! The [`Camera`] is either given in [`RenderOptions::camera`] or fitted to the scene
 //! ([`Camera::fit`]); a GIF fits one camera to the whole rollout so the view stays still.
@@ -731,6 +732,7 @@ fn ground_of<R: Real>(model: &Model<R>) -> Option<(Vec3<f64>, f64)> {
 ///
 /// ```
 /// use adflex_kernels::prelude::*;
+/// use adflex_runtime::{Tape, Vec3};
 /// use adflex_viz::render::{render_frame, RenderOptions};
 /// let mut b = ModelBuilder::<f64>::new();
 /// let p = b.add_particle(Vec3::new(0.0, 0.0, 0.0), Vec3::zeros(), 1.0);
@@ -792,6 +794,7 @@ pub fn render_png<R: Real>(
 ///
 /// ```
 /// use adflex_kernels::prelude::*;
+/// use adflex_runtime::{Tape, Vec3};
 /// use adflex_viz::render::{render_gif, RenderOptions};
 /// let mut b = ModelBuilder::<f64>::new();
 /// b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.0), 1.0);

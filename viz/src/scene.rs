@@ -6,8 +6,10 @@ use std::collections::HashMap;
 use adflex_kernels::model::{Model, State};
 use adflex_runtime::{Quat, Real, Vec3};
 
-/// Bodies with at most this many contact points get an edge between every pair of them.
-pub(crate) const MAX_BODY_POINTS_FOR_EDGES: usize = 12;
+/// Bodies with at most this many contact points get edges between them.
+pub(crate) const MAX_BODY_POINTS_FOR_EDGES: usize = 64;
+/// Points of a body that share no axis line are joined to this many nearest points.
+pub(crate) const BODY_NEIGHBOURS: usize = 2;
 
 pub(crate) fn wide<R: Real>(v: Vec3<R>) -> Vec3<f64> {
     Vec3::new(v.x.to_f64(), v.y.to_f64(), v.z.to_f64())
@@ -84,22 +86,69 @@ impl Topology {
     }
 
     /// Edges between the contact points of each body, as indices into
-    /// [`Frame::body_world_points`] order (body by body).
+    /// [`Frame::body_world_points`] order (body by body); see [`Topology::body_edges_of`].
     pub fn body_edges(&self) -> Vec<[u32; 2]> {
         let mut out = Vec::new();
         let mut first = 0u32;
-        for pts in &self.body_points {
-            let n = pts.len() as u32;
-            if pts.len() <= MAX_BODY_POINTS_FOR_EDGES {
-                for a in 0..n {
-                    for b in a + 1..n {
-                        out.push([first + a, first + b]);
+        for (b, pts) in self.body_points.iter().enumerate() {
+            out.extend(
+                self.body_edges_of(b)
+                    .into_iter()
+                    .map(|[i, j]| [first + i, first + j]),
+            );
+            first += pts.len() as u32;
+        }
+        out
+    }
+
+    /// The edges of body `b`, as indices into its own points: each point joined to the
+    /// nearest point in each body-axis direction (+ and -) whose other two coordinates are
+    /// the same (box corners give the box's edges, a lattice its lines); if that finds none,
+    /// each point joined to its [`BODY_NEIGHBOURS`] nearest. Bodies with more than
+    /// [`MAX_BODY_POINTS_FOR_EDGES`] points get none.
+    pub fn body_edges_of(&self, b: usize) -> Vec<[u32; 2]> {
+        let pts = &self.body_points[b];
+        let n = pts.len();
+        if n > MAX_BODY_POINTS_FOR_EDGES {
+            return Vec::new();
+        }
+        let size = pts.iter().map(|p| p.amax()).fold(0.0, f64::max);
+        let tol = 1e-6 * size.max(1e-12);
+        let mut pairs = std::collections::BTreeSet::new();
+        let key = |a: usize, j: usize| [a.min(j) as u32, a.max(j) as u32];
+        for a in 0..n {
+            for axis in 0..3 {
+                for sign in [-1.0, 1.0] {
+                    let best = (0..n)
+                        .filter(|&j| {
+                            let d = pts[j] - pts[a];
+                            (0..3).all(|c| c == axis || d[c].abs() <= tol) && sign * d[axis] > tol
+                        })
+                        .min_by(|&i, &j| {
+                            (pts[i][axis] - pts[a][axis])
+                                .abs()
+                                .total_cmp(&(pts[j][axis] - pts[a][axis]).abs())
+                        });
+                    if let Some(j) = best {
+                        pairs.insert(key(a, j));
                     }
                 }
             }
-            first += n;
         }
-        out
+        if pairs.is_empty() {
+            for a in 0..n {
+                let mut near: Vec<usize> = (0..n).filter(|&j| j != a).collect();
+                near.sort_by(|&i, &j| {
+                    (pts[i] - pts[a])
+                        .norm_squared()
+                        .total_cmp(&(pts[j] - pts[a]).norm_squared())
+                });
+                for &j in near.iter().take(BODY_NEIGHBOURS) {
+                    pairs.insert(key(a, j));
+                }
+            }
+        }
+        pairs.into_iter().collect()
     }
 }
 
@@ -193,6 +242,29 @@ impl Frame {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn box_corners_get_the_twelve_box_edges() {
+        let mut pts = Vec::new();
+        for x in [-0.2, 0.2] {
+            for y in [-0.1, 0.1] {
+                for z in [-0.15, 0.15] {
+                    pts.push(Vec3::new(x, y, z));
+                }
+            }
+        }
+        let topo = Topology {
+            body_points: vec![vec![Vec3::zeros()], pts.clone()],
+            ..Topology::default()
+        };
+        let e = topo.body_edges();
+        assert_eq!(e.len(), 12);
+        for [a, b] in e {
+            // Offset by the first body's single point; box edges change one coordinate.
+            let d = pts[a as usize - 1] - pts[b as usize - 1];
+            assert_eq!(d.iter().filter(|c| c.abs() > 1e-12).count(), 1);
+        }
+    }
 
     #[test]
     fn rotation_quarter_turn_about_z() {
