@@ -179,20 +179,6 @@ fn chart(
     std::fs::write(path, svg).map_err(|e| Error::io(path, e))
 }
 
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn ticks_are_short() {
-        use super::tick;
-        assert_eq!(tick(0.0), "0");
-        assert_eq!(tick(20.0), "20");
-        assert_eq!(tick(0.30000000000000004), "0.3");
-        assert_eq!(tick(0.001), "0.001");
-        assert_eq!(tick(2.5e-5), "2.5e-5");
-        assert_eq!(tick(-1.25), "-1.25");
-    }
-}
-
 #[allow(clippy::too_many_arguments)]
 fn draw<Y>(
     svg: &mut String,
@@ -249,4 +235,18 @@ where
     }
     root.present().map_err(|x| e(&x))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn ticks_are_short() {
+        use super::tick;
+        assert_eq!(tick(0.0), "0");
+        assert_eq!(tick(20.0), "20");
+        assert_eq!(tick(0.30000000000000004), "0.3");
+        assert_eq!(tick(0.001), "0.001");
+        assert_eq!(tick(2.5e-5), "2.5e-5");
+        assert_eq!(tick(-1.25), "-1.25");
+    }
 }

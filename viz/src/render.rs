@@ -203,7 +203,7 @@ impl Camera {
     /// use adflex_viz::render::Camera;
     /// let scene = cloth::build::<f64>(4);
     /// // Straight from above, +z up in the picture.
-    /// let cam = Camera::fit_from(&scene.model, &[scene.initial.clone()], Vec3::y(), Vec3::z());
+    /// let cam = Camera::fit_from(&scene.model, std::slice::from_ref(&scene.initial), Vec3::y(), Vec3::z());
     /// assert!(cam.eye.y > 1.0);
     /// ```
     pub fn fit_from<R: Real>(
@@ -352,7 +352,7 @@ impl View {
     /// The point in pixels with its depth, if in front of the camera and finite.
     fn point(&self, p: Vec3<f64>) -> Option<((f32, f32), f64)> {
         let c = self.cam(p);
-        if !(c.z > self.near) || !c.iter().all(|v| v.is_finite()) {
+        if !c.iter().all(|v| v.is_finite()) || c.z <= self.near {
             return None;
         }
         let (x, y) = self.screen(c);

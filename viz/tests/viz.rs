@@ -718,7 +718,14 @@ fn bad_options_are_errors() {
         ..RenderOptions::default()
     };
     assert!(matches!(
-        render::render_gif(dir.path("w.gif"), &model, &[s.clone()], &wide, 10.0, 1),
+        render::render_gif(
+            dir.path("w.gif"),
+            &model,
+            std::slice::from_ref(&s),
+            &wide,
+            10.0,
+            1
+        ),
         Err(Error::Invalid(_))
     ));
     assert!(matches!(
