@@ -83,7 +83,8 @@ struct Mesh {
 }
 
 impl Mesh {
-    fn new(topo: &Topology, frame: &Frame) -> Self {
+    fn new(topo: &Topology, frame: &Frame, index: Option<usize>) -> Result<Self> {
+        frame.check(topo, index)?;
         let mut vertices = frame.x.clone();
         let first = vertices.len() as u32;
         vertices.extend(frame.body_world_points(topo));
@@ -93,11 +94,11 @@ impl Mesh {
                 .into_iter()
                 .map(|[a, b]| [a + first, b + first]),
         );
-        Mesh {
+        Ok(Mesh {
             vertices,
             faces: topo.faces.clone(),
             edges,
-        }
+        })
     }
 }
 
@@ -214,7 +215,7 @@ pub fn write_ply<R: Real>(
     model: &Model<R>,
     state: &State<R>,
 ) -> Result<()> {
-    let mesh = Mesh::new(&Topology::of(model), &Frame::of(state));
+    let mesh = Mesh::new(&Topology::of(model), &Frame::of(state), None)?;
     write_ply_mesh(path.as_ref(), &mesh, false)
 }
 
@@ -238,7 +239,7 @@ pub fn write_ply_binary<R: Real>(
     model: &Model<R>,
     state: &State<R>,
 ) -> Result<()> {
-    let mesh = Mesh::new(&Topology::of(model), &Frame::of(state));
+    let mesh = Mesh::new(&Topology::of(model), &Frame::of(state), None)?;
     write_ply_mesh(path.as_ref(), &mesh, true)
 }
 
@@ -264,7 +265,7 @@ pub fn write_obj<R: Real>(
     model: &Model<R>,
     state: &State<R>,
 ) -> Result<()> {
-    let mesh = Mesh::new(&Topology::of(model), &Frame::of(state));
+    let mesh = Mesh::new(&Topology::of(model), &Frame::of(state), None)?;
     write_obj_mesh(path.as_ref(), &mesh)
 }
 
@@ -291,7 +292,7 @@ pub fn write_sequence<R: Real>(
     let mut paths = Vec::with_capacity(states.len());
     for (k, s) in states.iter().enumerate() {
         let path = dir.join(format!("frame_{k:04}.{}", format.extension()));
-        let mesh = Mesh::new(&topo, &Frame::of(s));
+        let mesh = Mesh::new(&topo, &Frame::of(s), Some(k))?;
         match format {
             Format::Ply => write_ply_mesh(&path, &mesh, false)?,
             Format::PlyBinary => write_ply_mesh(&path, &mesh, true)?,
@@ -391,6 +392,9 @@ pub fn write_usda<R: Real>(
     }
     let topo = Topology::of(model);
     let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
+    for (k, f) in frames.iter().enumerate() {
+        f.check(&topo, Some(k))?;
+    }
     let mut s = String::new();
     let _ = write!(
         s,

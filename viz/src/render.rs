@@ -492,6 +492,7 @@ fn draw(
             o.width, o.height
         ))
     })?;
+    frame.check(topo, None)?;
     let bg = o.background;
     pm.fill(tiny_skia::Color::from_rgba8(bg.r, bg.g, bg.b, bg.a));
     let view = cam.view(o.width, o.height).ok_or_else(|| {

@@ -215,6 +215,20 @@ impl Frame {
         Frame { x, bodies }
     }
 
+    /// An [`crate::Error::Invalid`] if the state does not fit the model (fewer particles
+    /// than the model has), naming the state by `index` if given.
+    pub fn check(&self, topo: &Topology, index: Option<usize>) -> crate::Result<()> {
+        if self.x.len() < topo.particles {
+            let which = index.map_or("the state".to_string(), |k| format!("state {k}"));
+            return Err(crate::Error::Invalid(format!(
+                "{which} has {} particles, the model {}: is it a state of this model?",
+                self.x.len(),
+                topo.particles
+            )));
+        }
+        Ok(())
+    }
+
     /// The contact points of every body in world coordinates, body by body.
     pub fn body_world_points(&self, topo: &Topology) -> Vec<Vec3<f64>> {
         let mut out = Vec::new();

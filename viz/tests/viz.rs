@@ -711,7 +711,20 @@ fn bad_options_are_errors() {
         render::render_frame(&model, &s, &degenerate),
         Err(Error::Invalid(_))
     ));
+    // A state of another model.
+    let other = tet_model().state();
+    let (cloth_model, _) = cloth_states();
+    let e = render::render_frame(&cloth_model, &other, &RenderOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("4 particles, the model 16"), "{e}");
     let dir = TempDir::new("badopt");
+    assert!(matches!(
+        export::write_ply(dir.path("o.ply"), &cloth_model, &other),
+        Err(Error::Invalid(_))
+    ));
+    assert!(matches!(
+        export::write_usda(dir.path("o.usda"), &cloth_model, &[other], 30.0),
+        Err(Error::Invalid(_))
+    ));
     let wide = RenderOptions {
         width: 70000,
         height: 1,
