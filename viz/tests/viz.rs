@@ -1,0 +1,748 @@
+//! Files written by adflex-viz read back: PLY, OBJ, USDA, PNG, GIF, SVG; and the errors.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use adflex_kernels::prelude::*;
+use adflex_kernels::scenes::cloth;
+use adflex_runtime::{Mat33, Quat, Tape, Vec3};
+use adflex_viz::export::{self, Format};
+use adflex_viz::render::{self, Camera, RenderOptions};
+use adflex_viz::{plot, Error};
+
+/// A fresh directory under the system temp dir, removed on drop.
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(tag: &str) -> Self {
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let k = N.fetch_add(1, Ordering::Relaxed);
+        let p =
+            std::env::temp_dir().join(format!("adflex-viz-test-{tag}-{}-{k}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        TempDir(p)
+    }
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn rollout(model: &Model<f64>, initial: &State<f64>, steps: usize, dt: f64) -> Vec<State<f64>> {
+    let mut tape = Tape::new();
+    let mut states = vec![initial.clone()];
+    for _ in 0..steps {
+        let s = SemiImplicitEuler
+            .step(model, &mut tape, states.last().unwrap(), None, dt)
+            .unwrap();
+        states.push(s);
+    }
+    states
+}
+
+/// The 4 x 4 cloth and 6 states of it falling.
+fn cloth_states() -> (Model<f64>, Vec<State<f64>>) {
+    let scene = cloth::build::<f64>(4);
+    let states = rollout(&scene.model, &scene.initial, 5, 2e-2);
+    (scene.model, states)
+}
+
+/// One tetrahedron, no triangles.
+fn tet_model() -> Model<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    let p = [
+        Vec3::new(0.0, 1.0, 0.0),
+        Vec3::new(1.0, 1.0, 0.0),
+        Vec3::new(0.0, 2.0, 0.0),
+        Vec3::new(0.0, 1.0, 1.0),
+    ];
+    for x in p {
+        b.add_particle(x, Vec3::zeros(), 1.0);
+    }
+    b.add_tet(0, 1, 2, 3, 100.0, 100.0, 0.0);
+    b.finalize()
+}
+
+/// Three particles joined by springs, no triangles.
+fn spring_model() -> Model<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    for k in 0..3 {
+        b.add_particle(Vec3::new(k as f64 * 0.5, 1.0, 0.0), Vec3::zeros(), 1.0);
+    }
+    b.add_spring(0, 1, 100.0, 0.1);
+    b.add_spring(1, 2, 100.0, 0.1);
+    b.finalize()
+}
+
+/// A cube-shaped rigid body (8 contact points) over the ground, spinning, plus a particle.
+fn body_model() -> Model<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    b.add_particle(Vec3::new(1.0, 1.0, 0.0), Vec3::zeros(), 1.0);
+    let body = b.add_body(
+        Vec3::new(0.0, 0.5, 0.0),
+        Quat::identity(),
+        Vec3::new(0.5, 0.0, 0.0),
+        Vec3::new(0.0, 2.0, 1.0),
+        1.0,
+        Mat33::identity() * 0.1,
+    );
+    for sx in [-0.2, 0.2] {
+        for sy in [-0.2, 0.2] {
+            for sz in [-0.2, 0.2] {
+                b.add_body_contact_point(body, Vec3::new(sx, sy, sz));
+            }
+        }
+    }
+    b.set_ground(Ground::default());
+    b.finalize()
+}
+
+// ---------------------------------------------------------------- PLY / OBJ parsers
+
+#[derive(Debug, Default)]
+struct ParsedMesh {
+    vertices: Vec<[f64; 3]>,
+    faces: Vec<Vec<usize>>,
+    edges: Vec<[usize; 2]>,
+}
+
+/// Header of a PLY file: format and `(element, count)` in order, and the header's length.
+fn ply_header(bytes: &[u8]) -> (String, Vec<(String, usize)>, usize) {
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("end_header")
+        + 11;
+    let text = std::str::from_utf8(&bytes[..end]).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("ply"));
+    let mut format = String::new();
+    let mut elements = Vec::new();
+    for l in lines {
+        let w: Vec<&str> = l.split_whitespace().collect();
+        match w.first() {
+            Some(&"format") => format = w[1].to_string(),
+            Some(&"element") => elements.push((w[1].to_string(), w[2].parse().unwrap())),
+            _ => {}
+        }
+    }
+    (format, elements, end)
+}
+
+fn parse_ply(path: &Path) -> ParsedMesh {
+    let bytes = std::fs::read(path).unwrap();
+    let (format, elements, end) = ply_header(&bytes);
+    let names: Vec<&str> = elements.iter().map(|e| e.0.as_str()).collect();
+    assert_eq!(names, ["vertex", "face", "edge"]);
+    let (nv, nf, ne) = (elements[0].1, elements[1].1, elements[2].1);
+    let mut m = ParsedMesh::default();
+    if format == "ascii" {
+        let text = std::str::from_utf8(&bytes[end..]).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), nv + nf + ne, "body lines");
+        for l in &lines[..nv] {
+            let v: Vec<f64> = l.split_whitespace().map(|t| t.parse().unwrap()).collect();
+            m.vertices.push([v[0], v[1], v[2]]);
+        }
+        for l in &lines[nv..nv + nf] {
+            let v: Vec<usize> = l.split_whitespace().map(|t| t.parse().unwrap()).collect();
+            assert_eq!(v[0], v.len() - 1);
+            m.faces.push(v[1..].to_vec());
+        }
+        for l in &lines[nv + nf..] {
+            let v: Vec<usize> = l.split_whitespace().map(|t| t.parse().unwrap()).collect();
+            m.edges.push([v[0], v[1]]);
+        }
+    } else {
+        assert_eq!(format, "binary_little_endian");
+        let mut r = &bytes[end..];
+        let mut take = |n: usize| {
+            let (a, b) = r.split_at(n);
+            r = b;
+            a.to_vec()
+        };
+        for _ in 0..nv {
+            let v = [0, 1, 2].map(|_| f32::from_le_bytes(take(4).try_into().unwrap()) as f64);
+            m.vertices.push(v);
+        }
+        for _ in 0..nf {
+            let n = take(1)[0] as usize;
+            let f = (0..n)
+                .map(|_| i32::from_le_bytes(take(4).try_into().unwrap()) as usize)
+                .collect();
+            m.faces.push(f);
+        }
+        for _ in 0..ne {
+            let e = [0, 1].map(|_| i32::from_le_bytes(take(4).try_into().unwrap()) as usize);
+            m.edges.push(e);
+        }
+        assert!(r.is_empty(), "trailing bytes");
+    }
+    m
+}
+
+fn parse_obj(path: &Path) -> ParsedMesh {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut m = ParsedMesh::default();
+    for l in text.lines() {
+        let mut w = l.split_whitespace();
+        match w.next() {
+            Some("v") => {
+                let v: Vec<f64> = w.map(|t| t.parse().unwrap()).collect();
+                m.vertices.push([v[0], v[1], v[2]]);
+            }
+            Some("f") => m
+                .faces
+                .push(w.map(|t| t.parse::<usize>().unwrap() - 1).collect()),
+            Some("l") => {
+                let v: Vec<usize> = w.map(|t| t.parse::<usize>().unwrap() - 1).collect();
+                m.edges.push([v[0], v[1]]);
+            }
+            Some("#") | Some("o") | None => {}
+            Some(other) => panic!("unexpected OBJ line {other}"),
+        }
+    }
+    m
+}
+
+fn assert_positions(parsed: &[[f64; 3]], x: &[Vec3<f64>]) {
+    for (k, (p, x)) in parsed.iter().zip(x).enumerate() {
+        for c in 0..3 {
+            let tol = 1e-6 * (1.0 + x[c].abs());
+            assert!((p[c] - x[c]).abs() <= tol, "vertex {k}: {p:?} vs {x:?}");
+        }
+    }
+}
+
+fn check_cloth_mesh(m: &ParsedMesh, model: &Model<f64>, state: &State<f64>) {
+    assert_eq!(m.vertices.len(), 16);
+    assert_positions(&m.vertices, &state.x.to_vec());
+    assert_eq!(m.faces.len(), model.triangles.len());
+    assert_eq!(m.faces.len(), 18);
+    let springs = model.springs().unwrap().pairs.to_vec();
+    assert_eq!(m.edges.len(), springs.len());
+    for (f, t) in m.faces.iter().zip(&model.triangles) {
+        assert_eq!(f, &t.map(|i| i as usize).to_vec());
+    }
+    for (e, s) in m.edges.iter().zip(&springs) {
+        assert_eq!(e, &s.map(|i| i as usize));
+    }
+}
+
+#[test]
+fn ply_ascii_parses_back() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("ply");
+    let last = states.last().unwrap();
+    export::write_ply(dir.path("c.ply"), &model, last).unwrap();
+    let m = parse_ply(&dir.path("c.ply"));
+    check_cloth_mesh(&m, &model, last);
+    // The cloth has moved: frame 0 and the last differ.
+    assert_ne!(states[0].x.to_vec(), last.x.to_vec());
+}
+
+#[test]
+fn ply_binary_parses_back() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("plyb");
+    let last = states.last().unwrap();
+    export::write_ply_binary(dir.path("c.ply"), &model, last).unwrap();
+    let m = parse_ply(&dir.path("c.ply"));
+    // f32 storage: compare with f32 precision.
+    let x: Vec<Vec3<f64>> = last
+        .x
+        .to_vec()
+        .iter()
+        .map(|v| v.map(|c| c as f32 as f64))
+        .collect();
+    assert_positions(&m.vertices, &x);
+    assert_eq!(
+        (m.faces.len(), m.edges.len()),
+        (18, model.springs().unwrap().len())
+    );
+}
+
+#[test]
+fn obj_parses_back() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("obj");
+    let last = states.last().unwrap();
+    export::write_obj(dir.path("c.obj"), &model, last).unwrap();
+    let m = parse_obj(&dir.path("c.obj"));
+    check_cloth_mesh(&m, &model, last);
+}
+
+#[test]
+fn tet_boundary_faces_are_exported() {
+    let model = tet_model();
+    let dir = TempDir::new("tet");
+    export::write_ply(dir.path("t.ply"), &model, &model.state()).unwrap();
+    let m = parse_ply(&dir.path("t.ply"));
+    assert_eq!((m.vertices.len(), m.faces.len(), m.edges.len()), (4, 4, 0));
+    let keys: HashSet<Vec<usize>> = m
+        .faces
+        .iter()
+        .map(|f| {
+            let mut k = f.clone();
+            k.sort();
+            k
+        })
+        .collect();
+    assert_eq!(keys.len(), 4);
+}
+
+#[test]
+fn rigid_body_points_and_edges_are_exported() {
+    let model = body_model();
+    let states = rollout(&model, &model.state(), 4, 1e-2);
+    let dir = TempDir::new("body");
+    let last = states.last().unwrap();
+    export::write_obj(dir.path("b.obj"), &model, last).unwrap();
+    let m = parse_obj(&dir.path("b.obj"));
+    // 1 particle + 8 contact points; the cube's 12 edges.
+    assert_eq!((m.vertices.len(), m.faces.len(), m.edges.len()), (9, 0, 12));
+    // The contact points are the body's, moved by its pose: centred on its centre of mass.
+    let c = last.bodies.as_ref().unwrap().x.get(0);
+    let mean = m.vertices[1..]
+        .iter()
+        .fold(Vec3::zeros(), |a, v| a + Vec3::new(v[0], v[1], v[2]))
+        / 8.0;
+    assert!((mean - c).norm() < 1e-6, "{mean:?} vs {c:?}");
+    // Distances to the centre stay sqrt(3) 0.2 (a rotation).
+    for v in &m.vertices[1..] {
+        let d = (Vec3::new(v[0], v[1], v[2]) - c).norm();
+        assert!((d - 0.2 * 3f64.sqrt()).abs() < 1e-5, "{d}");
+    }
+
+    export::write_usda(dir.path("b.usda"), &model, &states, 24.0).unwrap();
+    let text = std::fs::read_to_string(dir.path("b.usda")).unwrap();
+    assert!(text.contains("def Xform \"body_0\""));
+    let translate = sample_block(&text, "double3 xformOp:translate.timeSamples");
+    let orient = sample_block(&text, "quatf xformOp:orient.timeSamples");
+    assert_eq!(translate.len(), states.len());
+    assert_eq!(orient.len(), states.len());
+    assert!(text.contains("xformOpOrder = [\"xformOp:translate\", \"xformOp:orient\"]"));
+    assert!(text.contains("def Points \"contacts\""));
+}
+
+#[test]
+fn sequence_writes_numbered_frames() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("seq");
+    for format in [Format::Ply, Format::PlyBinary, Format::Obj] {
+        let sub = dir.path(format.extension()).join(format!("{format:?}"));
+        let files = export::write_sequence(&sub, &model, &states, format).unwrap();
+        assert_eq!(files.len(), states.len());
+        for (k, f) in files.iter().enumerate() {
+            assert_eq!(
+                f.file_name().unwrap().to_str().unwrap(),
+                format!("frame_{k:04}.{}", format.extension())
+            );
+            assert!(f.is_file());
+        }
+        let m = match format {
+            Format::Obj => parse_obj(&files[2]),
+            _ => parse_ply(&files[2]),
+        };
+        assert_eq!(m.vertices.len(), 16);
+    }
+}
+
+// ---------------------------------------------------------------- USDA
+
+/// The `k: value` entries of the time-sample block that starts with `head` (one per line).
+fn sample_block(text: &str, head: &str) -> Vec<(usize, String)> {
+    let start = text.find(head).unwrap_or_else(|| panic!("no {head}"));
+    let mut out = Vec::new();
+    for l in text[start..].lines().skip(1) {
+        let l = l.trim();
+        if l == "}" {
+            break;
+        }
+        let (k, v) = l.split_once(':').unwrap();
+        out.push((
+            k.trim().parse().unwrap(),
+            v.trim().trim_end_matches(',').to_string(),
+        ));
+    }
+    out
+}
+
+fn parse_points(v: &str) -> Vec<[f64; 3]> {
+    let v = v.trim().trim_start_matches('[').trim_end_matches(']');
+    v.split("), (")
+        .map(|p| {
+            let c: Vec<f64> = p
+                .trim_matches(|c| c == '(' || c == ')')
+                .split(',')
+                .map(|t| t.trim().parse().unwrap())
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect()
+}
+
+fn stage_metadata(text: &str, key: &str) -> f64 {
+    let l = text
+        .lines()
+        .find(|l| l.trim_start().starts_with(key))
+        .unwrap_or_else(|| panic!("no {key}"));
+    l.split('=').nth(1).unwrap().trim().parse().unwrap()
+}
+
+#[test]
+fn usda_points_and_time_codes_parse_back() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("usda");
+    export::write_usda(dir.path("c.usda"), &model, &states, 30.0).unwrap();
+    let text = std::fs::read_to_string(dir.path("c.usda")).unwrap();
+    assert!(text.starts_with("#usda 1.0\n"));
+    assert_eq!(stage_metadata(&text, "startTimeCode"), 0.0);
+    assert_eq!(
+        stage_metadata(&text, "endTimeCode"),
+        (states.len() - 1) as f64
+    );
+    assert_eq!(stage_metadata(&text, "timeCodesPerSecond"), 30.0);
+    assert!(text.contains("def Mesh \"mesh\""));
+    let samples = sample_block(&text, "point3f[] points.timeSamples");
+    let codes: Vec<usize> = samples.iter().map(|s| s.0).collect();
+    assert_eq!(codes, (0..states.len()).collect::<Vec<_>>());
+    for k in [0, states.len() - 1] {
+        let pts = parse_points(&samples[k].1);
+        assert_eq!(pts.len(), 16);
+        assert_positions(&pts, &states[k].x.to_vec());
+    }
+    let counts = text
+        .lines()
+        .find(|l| l.contains("int[] faceVertexCounts"))
+        .unwrap();
+    assert_eq!(counts.matches('3').count(), 18);
+    let indices = text
+        .lines()
+        .find(|l| l.contains("int[] faceVertexIndices"))
+        .unwrap();
+    assert_eq!(indices.split(',').count(), 54);
+    // Braces balance.
+    assert_eq!(text.matches('{').count(), text.matches('}').count());
+}
+
+#[test]
+fn usda_springs_without_triangles_are_points_and_curves() {
+    let model = spring_model();
+    let states = rollout(&model, &model.state(), 3, 1e-2);
+    let dir = TempDir::new("usda-springs");
+    export::write_usda(dir.path("s.usda"), &model, &states, 60.0).unwrap();
+    let text = std::fs::read_to_string(dir.path("s.usda")).unwrap();
+    assert!(!text.contains("def Mesh"));
+    assert!(text.contains("def Points \"particles\""));
+    assert!(text.contains("def BasisCurves \"springs\""));
+    assert!(text.contains("curveVertexCounts = [2, 2]"));
+    assert!(text.contains("float[] widths = [0.02]"));
+    let curves_at = text.find("def BasisCurves").unwrap();
+    let pts = sample_block(&text, "point3f[] points.timeSamples");
+    assert_eq!(pts.len(), 4);
+    assert_eq!(parse_points(&pts[3].1).len(), 3);
+    let curve = sample_block(&text[curves_at..], "point3f[] points.timeSamples");
+    assert_eq!(curve.len(), 4);
+    assert_eq!(parse_points(&curve[0].1).len(), 4);
+}
+
+// ---------------------------------------------------------------- pictures
+
+fn decode_png(path: &Path) -> (u32, u32, Vec<[u8; 4]>) {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = dec.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!(info.color_type, png::ColorType::Rgba);
+    assert_eq!(info.bit_depth, png::BitDepth::Eight);
+    let px = buf[..info.buffer_size()]
+        .chunks_exact(4)
+        .map(|c| [c[0], c[1], c[2], c[3]])
+        .collect();
+    (info.width, info.height, px)
+}
+
+#[test]
+fn png_of_cloth_is_a_picture() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("png");
+    let opts = RenderOptions {
+        width: 200,
+        height: 150,
+        ..RenderOptions::default()
+    };
+    render::render_png(dir.path("c.png"), &model, states.last().unwrap(), &opts).unwrap();
+    let (w, h, px) = decode_png(&dir.path("c.png"));
+    assert_eq!((w, h), (200, 150));
+    let colors: HashSet<[u8; 4]> = px.iter().copied().collect();
+    assert!(colors.len() >= 8, "{} colours", colors.len());
+    // The middle of the picture shows the cloth, not the background.
+    let bg = opts.background;
+    let bg = [bg.r, bg.g, bg.b, bg.a];
+    let mut fg = 0;
+    for y in h / 3..2 * h / 3 {
+        for x in w / 3..2 * w / 3 {
+            if px[(y * w + x) as usize] != bg {
+                fg += 1;
+            }
+        }
+    }
+    let area = (w / 3) * (h / 3);
+    assert!(
+        fg > area / 4,
+        "{fg} of {area} foreground pixels in the middle"
+    );
+}
+
+#[test]
+fn render_frame_draws_bodies_tets_and_springs() {
+    for model in [body_model(), tet_model(), spring_model()] {
+        let opts = RenderOptions {
+            width: 96,
+            height: 64,
+            ..RenderOptions::default()
+        };
+        let pm = render::render_frame(&model, &model.state(), &opts).unwrap();
+        let colors: HashSet<[u8; 4]> = pm
+            .pixels()
+            .iter()
+            .map(|p| {
+                let c = p.demultiply();
+                [c.red(), c.green(), c.blue(), c.alpha()]
+            })
+            .collect();
+        assert!(colors.len() >= 3, "{} colours", colors.len());
+    }
+}
+
+#[test]
+fn fitted_camera_sees_every_particle() {
+    let (model, states) = cloth_states();
+    let cam = Camera::fit(&model, &states);
+    for s in &states {
+        for x in s.x.to_vec() {
+            let (px, py) = cam.project(x, 320, 240).unwrap();
+            assert!((0.0..320.0).contains(&px) && (0.0..240.0).contains(&py));
+        }
+    }
+}
+
+#[test]
+fn gif_has_the_expected_frames() {
+    let model = body_model();
+    let states = rollout(&model, &model.state(), 6, 1e-2);
+    assert_eq!(states.len(), 7);
+    let dir = TempDir::new("gif");
+    let opts = RenderOptions {
+        width: 64,
+        height: 48,
+        ..RenderOptions::default()
+    };
+    render::render_gif(dir.path("b.gif"), &model, &states, &opts, 20.0, 2).unwrap();
+    let mut opts_dec = gif::DecodeOptions::new();
+    opts_dec.set_color_output(gif::ColorOutput::RGBA);
+    let mut dec = opts_dec
+        .read_info(std::fs::File::open(dir.path("b.gif")).unwrap())
+        .unwrap();
+    assert_eq!((dec.width(), dec.height()), (64, 48));
+    let mut frames = 0;
+    while let Some(f) = dec.read_next_frame().unwrap() {
+        assert_eq!((f.width, f.height), (64, 48));
+        assert_eq!(f.delay, 5);
+        frames += 1;
+    }
+    // States 0, 2, 4, 6.
+    assert_eq!(frames, 4);
+}
+
+// ---------------------------------------------------------------- plots
+
+#[test]
+fn loss_curve_is_svg_with_a_line() {
+    let dir = TempDir::new("svg");
+    let log: Vec<f64> = (0..40).map(|k| 100.0 * 0.7f64.powi(k)).collect();
+    plot::loss_curve(dir.path("log.svg"), &log, "decaying").unwrap();
+    let lin = [3.0, 2.5, 2.4, f64::NAN, 2.3];
+    plot::loss_curve(dir.path("lin.svg"), &lin, "flat").unwrap();
+    for f in ["log.svg", "lin.svg"] {
+        let text = std::fs::read_to_string(dir.path(f)).unwrap();
+        assert!(
+            text.contains("<svg") && text.trim_end().ends_with("</svg>"),
+            "{f}"
+        );
+        assert!(text.contains("<polyline") || text.contains("<path"), "{f}");
+    }
+    let text = std::fs::read_to_string(dir.path("log.svg")).unwrap();
+    assert!(text.contains("decaying"));
+}
+
+#[test]
+fn curves_have_a_legend() {
+    let dir = TempDir::new("curves");
+    let a: Vec<(f64, f64)> = (0..50).map(|k| (k as f64 * 0.1, 1.0)).collect();
+    let b: Vec<(f64, f64)> = (0..50)
+        .map(|k| (k as f64 * 0.1, 1.0 + 0.05 * k as f64))
+        .collect();
+    plot::curves(
+        dir.path("e.svg"),
+        "energy",
+        "time (s)",
+        "energy (J)",
+        &[("semi-implicit Euler", &a[..]), ("explicit Euler", &b[..])],
+    )
+    .unwrap();
+    let text = std::fs::read_to_string(dir.path("e.svg")).unwrap();
+    for s in [
+        "semi-implicit Euler",
+        "explicit Euler",
+        "time (s)",
+        "energy (J)",
+    ] {
+        assert!(text.contains(s), "{s}");
+    }
+    assert!(text.matches("<polyline").count() + text.matches("<path").count() >= 2);
+}
+
+// ---------------------------------------------------------------- errors
+
+#[test]
+fn unwritable_paths_are_errors_naming_the_path() {
+    let (model, states) = cloth_states();
+    let dir = TempDir::new("err");
+    // A path under a regular file cannot be created, even by root.
+    std::fs::write(dir.path("file"), b"x").unwrap();
+    let bad = dir.path("file").join("sub");
+    let s = &states[0];
+    let opts = RenderOptions {
+        width: 32,
+        height: 32,
+        ..RenderOptions::default()
+    };
+    let results: Vec<(PathBuf, Result<(), Error>)> = vec![
+        (
+            bad.join("a.ply"),
+            export::write_ply(bad.join("a.ply"), &model, s),
+        ),
+        (
+            bad.join("b.ply"),
+            export::write_ply_binary(bad.join("b.ply"), &model, s),
+        ),
+        (
+            bad.join("a.obj"),
+            export::write_obj(bad.join("a.obj"), &model, s),
+        ),
+        (
+            bad.join("a.usda"),
+            export::write_usda(bad.join("a.usda"), &model, &states, 30.0),
+        ),
+        (
+            bad.clone(),
+            export::write_sequence(&bad, &model, &states, Format::Ply).map(|_| ()),
+        ),
+        (
+            bad.join("a.png"),
+            render::render_png(bad.join("a.png"), &model, s, &opts),
+        ),
+        (
+            bad.join("a.gif"),
+            render::render_gif(bad.join("a.gif"), &model, &states, &opts, 10.0, 1),
+        ),
+        (
+            bad.join("a.svg"),
+            plot::loss_curve(bad.join("a.svg"), &[1.0, 0.5], "l"),
+        ),
+    ];
+    for (path, r) in results {
+        let e = r.expect_err("unwritable path");
+        assert!(matches!(e, Error::Io { .. }), "{e:?}");
+        assert_eq!(e.path(), Some(path.as_path()));
+        assert!(e.to_string().contains(&path.display().to_string()), "{e}");
+    }
+}
+
+#[test]
+fn empty_inputs_are_errors() {
+    let model = spring_model();
+    let dir = TempDir::new("empty");
+    let none: &[State<f64>] = &[];
+    let opts = RenderOptions::default();
+    let errs = [
+        export::write_sequence(dir.path("seq"), &model, none, Format::Obj).map(|_| ()),
+        export::write_usda(dir.path("a.usda"), &model, none, 30.0),
+        render::render_gif(dir.path("a.gif"), &model, none, &opts, 10.0, 1),
+        plot::loss_curve(dir.path("a.svg"), &[], "empty"),
+        plot::loss_curve(dir.path("b.svg"), &[f64::NAN], "nan"),
+        plot::curves(dir.path("c.svg"), "t", "x", "y", &[]),
+    ];
+    for e in errs {
+        let e = e.expect_err("empty input");
+        assert!(matches!(e, Error::Empty { .. }), "{e:?}");
+        assert!(e.path().is_some());
+    }
+    assert!(!dir.path("seq").exists());
+}
+
+#[test]
+fn bad_options_are_errors() {
+    let model = spring_model();
+    let s = model.state();
+    let zero = RenderOptions {
+        width: 0,
+        ..RenderOptions::default()
+    };
+    assert!(matches!(
+        render::render_frame(&model, &s, &zero),
+        Err(Error::Invalid(_))
+    ));
+    let cam = Camera::looking_at(Vec3::zeros(), Vec3::zeros(), Vec3::y(), 40.0);
+    let degenerate = RenderOptions {
+        camera: Some(cam),
+        ..RenderOptions::default()
+    };
+    assert!(matches!(
+        render::render_frame(&model, &s, &degenerate),
+        Err(Error::Invalid(_))
+    ));
+    // A state of another model.
+    let other = tet_model().state();
+    let (cloth_model, _) = cloth_states();
+    let e = render::render_frame(&cloth_model, &other, &RenderOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("4 particles, the model 16"), "{e}");
+    let dir = TempDir::new("badopt");
+    assert!(matches!(
+        export::write_ply(dir.path("o.ply"), &cloth_model, &other),
+        Err(Error::Invalid(_))
+    ));
+    assert!(matches!(
+        export::write_usda(dir.path("o.usda"), &cloth_model, &[other], 30.0),
+        Err(Error::Invalid(_))
+    ));
+    let wide = RenderOptions {
+        width: 70000,
+        height: 1,
+        ..RenderOptions::default()
+    };
+    assert!(matches!(
+        render::render_gif(
+            dir.path("w.gif"),
+            &model,
+            std::slice::from_ref(&s),
+            &wide,
+            10.0,
+            1
+        ),
+        Err(Error::Invalid(_))
+    ));
+    assert!(matches!(
+        export::write_usda(dir.path("a.usda"), &model, &[s], 0.0),
+        Err(Error::Invalid(_))
+    ));
+}
