@@ -80,7 +80,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
 }
 
 #[allow(dead_code)]
-fn main() -> Result<(), Error> {
+fn main() -> Result<(), Box<dyn std::error::Error>> {
     let start = std::time::Instant::now();
     let cfg = Config::full();
     let out = run(&cfg)?;
@@ -103,6 +103,26 @@ fn main() -> Result<(), Error> {
         cfg.target.z,
         out.miss,
         start.elapsed().as_secs_f64()
+    );
+    let dir = std::path::Path::new("target/demos/cage");
+    std::fs::create_dir_all(dir)?;
+    adflex::viz::plot::loss_curve(
+        dir.join("loss.svg"),
+        &out.report.losses(),
+        "cage: L-BFGS on 26 rest lengths",
+    )?;
+    let options = adflex::viz::render::RenderOptions::default();
+    let model = &out.scene.model;
+    adflex::viz::render::render_gif(dir.join("cage.gif"), model, &out.frames, &options, 25.0, 4)?;
+    adflex::viz::render::render_png(
+        dir.join("cage.png"),
+        model,
+        out.frames.last().unwrap(),
+        &options,
+    )?;
+    println!(
+        "pictures: {}/{{loss.svg, cage.gif, cage.png}}",
+        dir.display()
     );
     Ok(())
 }

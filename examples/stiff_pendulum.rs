@@ -185,7 +185,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
 }
 
 #[allow(dead_code)]
-fn main() -> Result<(), Error> {
+fn main() -> Result<(), Box<dyn std::error::Error>> {
     let start = std::time::Instant::now();
     let cfg = Config::full();
     let out = run(&cfg)?;
@@ -229,5 +229,27 @@ fn main() -> Result<(), Error> {
         out.runs.len(),
         start.elapsed().as_secs_f64()
     );
+    // The energy of each method at dt = 0.015 s (omega dt = 1.5) and at 0.021 s (2.1).
+    let dir = std::path::Path::new("target/demos/stiff_pendulum");
+    std::fs::create_dir_all(dir)?;
+    for dt in [0.015, 0.021] {
+        let series: Vec<(String, &[(f64, f64)])> = out
+            .runs
+            .iter()
+            .filter(|r| r.dt == dt)
+            .map(|r| (r.method.to_string(), &r.energy[..]))
+            .collect();
+        let series: Vec<(&str, &[(f64, f64)])> =
+            series.iter().map(|(n, e)| (n.as_str(), *e)).collect();
+        let file = dir.join(format!("energy_dt_{dt}.svg"));
+        adflex::viz::plot::curves(
+            &file,
+            &format!("stiff pendulum, dt = {dt} s (omega dt = {:.1})", omega * dt),
+            "time (s)",
+            "E / E0",
+            &series,
+        )?;
+        println!("plot: {}", file.display());
+    }
     Ok(())
 }
