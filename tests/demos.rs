@@ -47,3 +47,22 @@ fn stiff_pendulum_stability_matches_theory() {
         }
     }
 }
+
+#[path = "../examples/billiards.rs"]
+#[allow(dead_code)]
+mod billiards;
+
+#[test]
+fn billiards_from_a_miss_needs_leaky_gradients_and_then_lands_the_ball() {
+    let out = billiards::run(&billiards::Config::small()).unwrap();
+    // Exact gradients of a miss are zero: no progress.
+    assert_eq!(out.exact.report.history[0].grad_norm, 0.0);
+    assert_eq!(out.exact.report.iterations, 0);
+    // Leaky ones find the contact; the shot, replayed with exact contact, lands within 1 cm.
+    assert!(
+        out.leaky.miss < 0.01,
+        "{} m: {}",
+        out.leaky.miss,
+        out.leaky.report
+    );
+}
