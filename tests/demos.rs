@@ -66,3 +66,18 @@ fn billiards_from_a_miss_needs_leaky_gradients_and_then_lands_the_ball() {
         out.leaky.report
     );
 }
+
+#[path = "../examples/rigid_body.rs"]
+#[allow(dead_code)]
+mod rigid_body;
+
+#[test]
+fn rigid_body_flips_about_its_intermediate_axis_and_the_throw_lands_on_target() {
+    let out = rigid_body::run(&rigid_body::Config::small()).unwrap();
+    assert!(rigid_body::flips(&out.spins[0], 0).is_empty());
+    assert!(!rigid_body::flips(&out.spins[1], 1).is_empty(), "no flip");
+    assert!(rigid_body::flips(&out.spins[2], 2).is_empty());
+    let t = &out.throw;
+    assert!(t.miss < 0.03 && t.miss < 0.1 * t.initial_miss, "{} m: {}", t.miss, t.report);
+    assert!(t.speed < 1e-3, "not at rest: {} m/s", t.speed);
+}
