@@ -78,6 +78,11 @@ fn rigid_body_flips_about_its_intermediate_axis_and_the_throw_lands_on_target() 
     assert!(!rigid_body::flips(&out.spins[1], 1).is_empty(), "no flip");
     assert!(rigid_body::flips(&out.spins[2], 2).is_empty());
     let t = &out.throw;
-    assert!(t.miss < 0.03 && t.miss < 0.1 * t.initial_miss, "{} m: {}", t.miss, t.report);
+    assert!(
+        t.miss < 0.03 && t.miss < 0.1 * t.initial_miss,
+        "{} m: {}",
+        t.miss,
+        t.report
+    );
     assert!(t.speed < 1e-3, "not at rest: {} m/s", t.speed);
 }
