@@ -4,6 +4,9 @@
 #[path = "../examples/cage.rs"]
 #[allow(dead_code)]
 mod cage;
+#[path = "../examples/inverse_design.rs"]
+#[allow(dead_code)]
+mod inverse_design;
 
 #[test]
 fn cage_centre_reaches_the_target_in_a_few_lbfgs_iterations() {
@@ -12,4 +15,19 @@ fn cage_centre_reaches_the_target_in_a_few_lbfgs_iterations() {
     // The loss falls by 4 orders of magnitude within 3 iterations.
     let l = out.report.losses();
     assert!(l[3.min(l.len() - 1)] < 1e-4 * l[0], "{:?}", l);
+}
+
+#[test]
+fn inverse_design_cable_takes_the_target_shape() {
+    let out = inverse_design::run(&inverse_design::Config::small()).unwrap();
+    // The equilibrium's RMS distance from the target parabola falls by more than 100x (in
+    // practice by ~1e7, to ~1e-8 m).
+    assert!(
+        out.final_error < 1e-2 * out.initial_error && out.final_error < 1e-5,
+        "{:e} m -> {:e} m: {}",
+        out.initial_error,
+        out.final_error,
+        out.report
+    );
+    assert_eq!(out.frames.len(), 2);
 }

@@ -384,7 +384,15 @@ impl Equilibrium {
                     alpha *= 0.5;
                 }
             }
-            match accepted.or_else(|| best.filter(|b| b.0 < phi)) {
+            // Neither decreases along the Newton direction (K indefinite: compressed springs, a
+            // folded start): a step that decreases the potential, then the best residual.
+            let step = match accepted {
+                Some(a) => Some(a),
+                None => self
+                    .potential_step(sys, &mut p, &r, stats)
+                    .or_else(|| best.filter(|b| b.0 < phi)),
+            };
+            match step {
                 Some((phit, pt, rt)) => {
                     phi = phit;
                     p = pt;
@@ -397,6 +405,57 @@ impl Equilibrium {
             }
         }
         p.x_val
+    }
+
+    /// A step that decreases the potential energy `E` (gradient `-r`): along the CG solution
+    /// of `K d = r` truncated at negative curvature (a descent direction of `E`), or else
+    /// along the force `r` with the step of the quadratic model (where `K` is positive along
+    /// it), with a backtracking line search that needs only `r` (the decrease of `E`
+    /// estimated by the trapezoid rule on the slope `-r(x + s d) . d`). Returns the merit,
+    /// point and residual reached, or `None`.
+    fn potential_step<R: Real>(
+        &self,
+        sys: &System<R>,
+        p: &mut Point<R>,
+        r: &[f64],
+        stats: &mut EquilibriumStats,
+    ) -> Option<(f64, Point<R>, Vec<f64>)> {
+        let mut d = vec![0.0; r.len()];
+        let info = krylov::cg(|u, out| sys.apply(p, u, out), r, &mut d, None, &self.linear);
+        stats.linear_iterations += info.iterations;
+        sys.mask(&mut d);
+        let mut slope0 = -dot(r, &d);
+        let mut alpha = 1.0;
+        if slope0.is_nan() || slope0 >= 0.0 {
+            d = r.to_vec();
+            slope0 = -dot(r, &d);
+            if slope0.is_nan() || slope0 >= 0.0 {
+                return None;
+            }
+            let mut kd = vec![0.0; d.len()];
+            sys.apply(p, &d, &mut kd);
+            stats.linear_iterations += 1;
+            sys.mask(&mut kd);
+            let curvature = dot(&d, &kd);
+            alpha = if curvature > 0.0 {
+                -slope0 / curvature
+            } else {
+                0.1 * max_abs(&sys.x0).max(1.0) / max_abs(&d)
+            };
+        }
+        for _ in 0..=self.max_backtracks {
+            let xt: Vec<f64> = p.x_val.iter().zip(&d).map(|(x, d)| x + alpha * d).collect();
+            let pt = sys.eval(&xt, false);
+            stats.force_evaluations += 1;
+            let rt = sys.residual(&pt);
+            let slope = -dot(&rt, &d);
+            if slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0 {
+                return Some((0.5 * dot(&rt, &rt), pt, rt));
+            }
+            stats.backtracks += 1;
+            alpha *= 0.5;
+        }
+        None
     }
 
     /// Solves for the equilibrium from `guess` (its free particles' positions are the starting
