@@ -7,6 +7,9 @@ mod cage;
 #[path = "../examples/inverse_design.rs"]
 #[allow(dead_code)]
 mod inverse_design;
+#[path = "../examples/parameter_estimation.rs"]
+#[allow(dead_code)]
+mod parameter_estimation;
 
 #[test]
 fn cage_centre_reaches_the_target_in_a_few_lbfgs_iterations() {
@@ -30,4 +33,20 @@ fn inverse_design_cable_takes_the_target_shape() {
         out.report
     );
     assert_eq!(out.frames.len(), 2);
+}
+
+#[test]
+fn parameter_estimation_recovers_stiffness_damping_and_friction() {
+    let out = parameter_estimation::run(&parameter_estimation::Config::small()).unwrap();
+    // From 2x / 0.5x guesses, every value within 1% (in practice within ~1e-6: the recorded
+    // trajectory is noise-free).
+    for (name, t, r) in &out.values {
+        assert!(
+            (r - t).abs() < 1e-2 * t.abs(),
+            "{name}: true {t}, recovered {r}: {}",
+            out.report
+        );
+    }
+    assert_eq!(out.values.len(), 7);
+    assert_eq!(out.frames.len(), out.recorded.len() * 5 - 4);
 }
