@@ -82,7 +82,11 @@ fn parabola(cfg: &Config) -> Vec<Vec3<f64>> {
 
 /// RMS and largest distance between two frames (m).
 fn errors(x: &[Vec3<f64>], target: &[Vec3<f64>]) -> (f64, f64) {
-    let d: Vec<f64> = x.iter().zip(target).map(|(a, b)| (*a - *b).norm()).collect();
+    let d: Vec<f64> = x
+        .iter()
+        .zip(target)
+        .map(|(a, b)| (*a - *b).norm())
+        .collect();
     let rms = (d.iter().map(|d| d * d).sum::<f64>() / d.len() as f64).sqrt();
     (rms, d.iter().fold(0.0, |m: f64, d| m.max(*d)))
 }
@@ -121,16 +125,13 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         .grad_tol(1e-12)
         .target_loss(1e-14)
         .progress(cfg.progress)
-        .minimize(
-            &Params::new().bounded(&rest, Bounds::positive()),
-            |tape| {
-                let eq = solver.solve(&model, tape, &guess)?;
-                guess = eq.deep_clone();
-                let loss = Array::zeros(1);
-                losses::frame_mismatch(tape, &eq.x, &recorded, 1.0, &loss);
-                Ok(loss)
-            },
-        )?;
+        .minimize(&Params::new().bounded(&rest, Bounds::positive()), |tape| {
+            let eq = solver.solve(&model, tape, &guess)?;
+            guess = eq.deep_clone();
+            let loss = Array::zeros(1);
+            losses::frame_mismatch(tape, &eq.x, &recorded, 1.0, &loss);
+            Ok(loss)
+        })?;
     // `rest` holds the best values found.
     let last = solver.solve(&model, &mut Tape::new(), &guess)?;
     let (final_error, final_max_error) = errors(&last.x.to_vec(), &target);
@@ -155,7 +156,9 @@ fn main() -> Result<(), Error> {
     let (lo, hi) = out
         .rest
         .iter()
-        .fold((f64::INFINITY, 0.0f64), |(lo, hi), r| (lo.min(*r), hi.max(*r)));
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
+            (lo.min(*r), hi.max(*r))
+        });
     println!(
         "cable of {} springs, target: parabola of sag {} m over {} m; rest lengths now {:.4}..{:.4} m \
          (were {:.4} m)",

@@ -150,7 +150,8 @@ fn simulate(model: &Model<f64>, cfg: &Config, steps: usize) -> Result<Vec<State<
     let mut frames = vec![model.state()];
     for _ in 0..steps {
         let mut tape = Tape::new();
-        let next = SemiImplicitEuler.step(model, &mut tape, frames.last().unwrap(), None, cfg.dt)?;
+        let next =
+            SemiImplicitEuler.step(model, &mut tape, frames.last().unwrap(), None, cfg.dt)?;
         frames.push(next);
     }
     Ok(frames)
@@ -237,9 +238,15 @@ fn main() -> Result<(), Error> {
     let cfg = Config::full();
     let out = run(&cfg)?;
     println!("{}", out.report);
-    println!("{:>8} {:>10} {:>10} {:>10}", "", "true", "recovered", "rel. err");
+    println!(
+        "{:>8} {:>10} {:>10} {:>10}",
+        "", "true", "recovered", "rel. err"
+    );
     for (name, t, r) in &out.values {
-        println!("{name:>8} {t:>10.4} {r:>10.4} {:>10.2e}", (r - t).abs() / t.abs());
+        println!(
+            "{name:>8} {t:>10.4} {r:>10.4} {:>10.2e}",
+            (r - t).abs() / t.abs()
+        );
     }
     println!(
         "worst relative error {:.2e} after {} L-BFGS iterations ({} rollouts of {} steps, {:.1} s)",

@@ -77,8 +77,8 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
-    add_into, check_inputs, copies, epsilon, flat, forces_only, is_f32, max_abs, particles,
-    unflat, within, Copies,
+    add_into, check_inputs, copies, epsilon, flat, forces_only, is_f32, max_abs, particles, unflat,
+    within, Copies,
 };
 use crate::integrators::krylov::{self, SolveInfo, SolveSettings};
 use crate::integrators::SolverPolicy;
@@ -278,7 +278,13 @@ impl<R: Real> System<R> {
     /// `M u` on free DOFs, 0 on pinned ones.
     fn seed(&self, u: &[f64]) -> Vec<f64> {
         (0..u.len())
-            .map(|k| if self.free[k] { self.mass[k] * u[k] } else { 0.0 })
+            .map(|k| {
+                if self.free[k] {
+                    self.mass[k] * u[k]
+                } else {
+                    0.0
+                }
+            })
             .collect()
     }
 
@@ -376,7 +382,7 @@ impl Equilibrium {
                     accepted = Some((phit, pt, rt));
                     break;
                 }
-                if phit.is_finite() && best.as_ref().map_or(true, |b| phit < b.0) {
+                if phit.is_finite() && !best.as_ref().is_some_and(|b| phit >= b.0) {
                     best = Some((phit, pt, rt));
                 }
                 if k < self.max_backtracks {

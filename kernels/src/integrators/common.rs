@@ -86,7 +86,11 @@ pub(crate) fn forces_only<R: Real>(model: &Model<R>) -> Model<R> {
 /// The copies: the inverse masses, every force's parameter arrays (its
 /// [`Force::params_mut`](crate::forces::Force::params_mut) visitor, so a force added outside
 /// the library is covered), and the control's arrays.
-pub(crate) fn copies<R: Real>(model: &Model<R>, control: Option<&Control<R>>, grads: bool) -> Copies<R> {
+pub(crate) fn copies<R: Real>(
+    model: &Model<R>,
+    control: Option<&Control<R>>,
+    grads: bool,
+) -> Copies<R> {
     let mut m = forces_only(model);
     let mut c = control.cloned();
     let mut l = Vec::new();
@@ -138,7 +142,6 @@ pub(crate) fn epsilon<R: Real>() -> f64 {
         f64::EPSILON
     }
 }
-
 
 /// Whether a residual meets a tolerance: never if the residual is NaN or infinite (an
 /// infinite tolerance, from an infinite scale, would otherwise accept an infinite residual).
