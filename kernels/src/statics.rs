@@ -45,6 +45,7 @@
 //! ```
 //! use adflex_kernels::prelude::*;
 //! use adflex_kernels::statics::Equilibrium;
+//! use adflex_macros::diff_kernel;
 //! use adflex_runtime::prelude::*;
 //!
 //! // A mass of 1 kg hanging from a pinned point on a spring of 100 N/m, rest length 1 m:
