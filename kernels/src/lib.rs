@@ -43,6 +43,7 @@ pub mod model;
 pub mod rigid;
 pub mod scene_file;
 pub mod scenes;
+pub mod statics;
 pub mod validation;
 /// The constraints' old module name (`constraints` beside `integrators::xpbd`).
 #[doc(hidden)]

@@ -1,6 +1,6 @@
 //! Losses users write every time, as kernels that *add* into a loss array (`out[0]`, usually
 //! of length 1): on a plain tape, several terms and several steps add into one array; in a
-//! [`Checkpointed`](adflex_runtime::checkpoint::Checkpointed) rollout, the per-state loss
+//! [`Checkpointed`] rollout, the per-state loss
 //! closure calls them with the accumulator it is given.
 //!
 //! Every function records one launch (on `tape`) and is differentiable with respect to the

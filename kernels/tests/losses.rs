@@ -143,7 +143,7 @@ fn a_trajectory_loss_in_a_checkpointed_rollout_matches_finite_differences() {
     assert!(l > 0.0);
     let g = ke.grad().unwrap().to_vec();
     let h = 1e-5;
-    for i in 0..ke.len() {
+    for (i, &gi) in g.iter().enumerate() {
         let k = ke.get(i);
         ke.set(i, k + h);
         let lp = run();
@@ -152,9 +152,9 @@ fn a_trajectory_loss_in_a_checkpointed_rollout_matches_finite_differences() {
         ke.set(i, k);
         let fd = (lp - lm) / (2.0 * h);
         assert!(
-            (fd - g[i]).abs() <= 1e-6 * fd.abs().max(1e-9),
+            (fd - gi).abs() <= 1e-6 * fd.abs().max(1e-9),
             "ke[{i}]: adjoint {} fd {fd}",
-            g[i]
+            gi
         );
     }
 }

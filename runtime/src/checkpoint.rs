@@ -281,8 +281,11 @@ enum Loss<'a, S, L> {
     /// One array computed from the final state ([`checkpointed`]).
     Final(&'a mut dyn FnMut(&mut Tape, &S) -> Array<L>),
     /// Added into an accumulator of the given length on every state ([`Checkpointed`]).
-    Every(&'a mut dyn FnMut(&mut Tape, &S, usize, &Array<L>), usize),
+    Every(&'a mut EveryLoss<'a, S, L>, usize),
 }
+
+/// The per-state loss of [`Checkpointed`]: `(tape, state, step, accumulator)`.
+type EveryLoss<'a, S, L> = dyn FnMut(&mut Tape, &S, usize, &Array<L>) + 'a;
 
 /// An optional terminal progress bar (indicatif).
 struct Progress(Option<indicatif::ProgressBar>);

@@ -1,9 +1,12 @@
 //! Pieces shared by the integrators of this crate: the rigid body step (every particle
-//! integrator advances the bodies with the semi-implicit kernel of [`crate::rigid`]) and a
-//! state built from new particle arrays.
+//! integrator advances the bodies with the semi-implicit kernel of [`crate::rigid`]), a
+//! state built from new particle arrays, and what the Newton solves of
+//! [`ImplicitEuler`](super::ImplicitEuler) and [`crate::statics::Equilibrium`] share: private
+//! copies of the parameter arrays, flat `f64` vectors, residual checks, input checks.
 
-use adflex_runtime::{Array, Error, Real, Tape, Vec3};
+use adflex_runtime::{AnyArray, Array, Error, Real, Tape, Vec3};
 
+use crate::forces::{Param, ParamCopy};
 use crate::model::{Control, Model, State};
 use crate::rigid::BodyState;
 
@@ -55,4 +58,145 @@ pub(crate) fn check_dt<R: Real>(integrator: &str, dt: R) -> Result<f64, Error> {
             ),
         })
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Private copies of the parameter arrays, and the helpers of the Newton solves
+// (ImplicitEuler, statics::Equilibrium).
+
+/// A parameter array of the model and its private copy.
+pub(crate) type Link = Box<dyn ParamCopy>;
+
+/// The model and control with every differentiable array the particle forces read replaced
+/// by a private copy (with a gradient buffer if `grads`).
+pub(crate) struct Copies<R: Real> {
+    pub(crate) model: Model<R>,
+    pub(crate) control: Option<Control<R>>,
+    pub(crate) links: Vec<Link>,
+}
+
+/// A clone of `model` (array handles) without its host-side triangle list, which the forces
+/// do not use (and which a tape would otherwise keep once per step).
+pub(crate) fn forces_only<R: Real>(model: &Model<R>) -> Model<R> {
+    let mut m = model.clone();
+    m.triangles = Vec::new();
+    m
+}
+
+/// The copies: the inverse masses, every force's parameter arrays (its
+/// [`Force::params_mut`](crate::forces::Force::params_mut) visitor, so a force added outside
+/// the library is covered), and the control's arrays.
+pub(crate) fn copies<R: Real>(
+    model: &Model<R>,
+    control: Option<&Control<R>>,
+    grads: bool,
+) -> Copies<R> {
+    let mut m = forces_only(model);
+    let mut c = control.cloned();
+    let mut l = Vec::new();
+    l.push(m.particle_inv_mass.substitute(grads));
+    for force in &mut m.forces {
+        force.params_mut(&mut |_, p| l.push(p.substitute(grads)));
+    }
+    if let Some(c) = &mut c {
+        if let Some(f) = &mut c.particle_f {
+            l.push(f.substitute(grads));
+        }
+        if let Some(a) = &mut c.tet_activation {
+            l.push(a.substitute(grads));
+        }
+    }
+    Copies {
+        model: m,
+        control: c,
+        links: l,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The nonlinear system of one step.
+
+pub(crate) fn flat<R: Real>(a: &Array<Vec3<R>>) -> Vec<f64> {
+    a.to_vec()
+        .iter()
+        .flat_map(|p| [p.x.to_f64(), p.y.to_f64(), p.z.to_f64()])
+        .collect()
+}
+
+pub(crate) fn unflat<R: Real>(v: &[f64]) -> Vec<Vec3<R>> {
+    v.chunks_exact(3)
+        .map(|c| Vec3::new(R::lit(c[0]), R::lit(c[1]), R::lit(c[2])))
+        .collect()
+}
+
+/// Whether `R` is single precision (it cannot tell 1 from 1 + 1e-10).
+pub(crate) fn is_f32<R: Real>() -> bool {
+    R::lit(1.0 + 1e-10).to_f64() == 1.0
+}
+
+/// The unit roundoff of `R`.
+pub(crate) fn epsilon<R: Real>() -> f64 {
+    if is_f32::<R>() {
+        f32::EPSILON as f64
+    } else {
+        f64::EPSILON
+    }
+}
+
+/// Whether a residual meets a tolerance: never if the residual is NaN or infinite (an
+/// infinite tolerance, from an infinite scale, would otherwise accept an infinite residual).
+pub(crate) fn within(residual: f64, tolerance: f64) -> bool {
+    residual.is_finite() && (residual <= tolerance || residual == 0.0)
+}
+
+/// `max |v_k|`, NaN if any `v_k` is NaN (`f64::max` would skip it and hide a NaN residual).
+pub(crate) fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0, |m: f64, x| {
+        if m.is_nan() || x.is_nan() {
+            f64::NAN
+        } else {
+            m.max(x.abs())
+        }
+    })
+}
+
+/// `a.grad += g` if `a` has a gradient buffer.
+pub(crate) fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
+    if let Some(buf) = a.grad_buffer() {
+        let add = unflat::<R>(g);
+        buf.modify(|d| d.iter_mut().zip(add).for_each(|(d, a)| *d += a));
+    }
+}
+
+/// [`Error::InvalidInput`] for the first NaN/Inf in `arrays` (the state) or in a parameter
+/// array the forces read (named by label and index), or in the gravity; `who` names the solver.
+pub(crate) fn check_inputs<R: Real>(
+    who: &str,
+    model: &Model<R>,
+    arrays: &[&dyn AnyArray],
+    links: &[Link],
+) -> Result<(), Error> {
+    let arrays = arrays
+        .iter()
+        .copied()
+        .chain(links.iter().map(|l| l.original()));
+    for a in arrays {
+        if let Some(k) = a.first_non_finite() {
+            return Err(Error::InvalidInput {
+                what: format!("{}[{k}]", a.label()),
+                message: format!(
+                    "{who}: a NaN or infinite value in the state or a parameter; every force \
+                     and the Newton residual would be NaN. Fix the value (or whatever computed it)"
+                ),
+            });
+        }
+    }
+    let g = model.gravity;
+    if ![g.x, g.y, g.z].iter().all(|c| c.to_f64().is_finite()) {
+        return Err(Error::InvalidInput {
+            what: "gravity".into(),
+            message: format!("{who}: the model's gravity is not finite"),
+        });
+    }
+    Ok(())
 }

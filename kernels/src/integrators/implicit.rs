@@ -51,10 +51,12 @@ use std::sync::Arc;
 
 use adflex_runtime::prelude::*;
 
-use super::common::{particles, step_bodies};
+use super::common::{
+    add_into, check_inputs, copies, epsilon, flat, forces_only, is_f32, max_abs, particles,
+    step_bodies, unflat, within, Copies,
+};
 use super::krylov::{self, SolveInfo, SolveSettings};
 use super::{check_dt, Integrator, SolverPolicy};
-use crate::forces::{Param, ParamCopy};
 use crate::model::{Control, Model, State};
 
 /// Implicit (backward) Euler, solved by Newton-CG with a line search; first order,
@@ -139,82 +141,7 @@ pub struct NewtonStats {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Private copies of the parameter arrays.
-
-/// A parameter array of the model and its private copy.
-type Link = Box<dyn ParamCopy>;
-
-/// The model and control with every differentiable array the particle forces read replaced
-/// by a private copy (with a gradient buffer if `grads`).
-struct Copies<R: Real> {
-    model: Model<R>,
-    control: Option<Control<R>>,
-    links: Vec<Link>,
-}
-
-/// A clone of `model` (array handles) without its host-side triangle list, which the forces
-/// do not use (and which a tape would otherwise keep once per step).
-fn forces_only<R: Real>(model: &Model<R>) -> Model<R> {
-    let mut m = model.clone();
-    m.triangles = Vec::new();
-    m
-}
-
-/// The copies: the inverse masses, every force's parameter arrays (its
-/// [`Force::params_mut`](crate::forces::Force::params_mut) visitor, so a force added outside
-/// the library is covered), and the control's arrays.
-fn copies<R: Real>(model: &Model<R>, control: Option<&Control<R>>, grads: bool) -> Copies<R> {
-    let mut m = forces_only(model);
-    let mut c = control.cloned();
-    let mut l = Vec::new();
-    l.push(m.particle_inv_mass.substitute(grads));
-    for force in &mut m.forces {
-        force.params_mut(&mut |_, p| l.push(p.substitute(grads)));
-    }
-    if let Some(c) = &mut c {
-        if let Some(f) = &mut c.particle_f {
-            l.push(f.substitute(grads));
-        }
-        if let Some(a) = &mut c.tet_activation {
-            l.push(a.substitute(grads));
-        }
-    }
-    Copies {
-        model: m,
-        control: c,
-        links: l,
-    }
-}
-
-// ---------------------------------------------------------------------------------------------
 // The nonlinear system of one step.
-
-fn flat<R: Real>(a: &Array<Vec3<R>>) -> Vec<f64> {
-    a.to_vec()
-        .iter()
-        .flat_map(|p| [p.x.to_f64(), p.y.to_f64(), p.z.to_f64()])
-        .collect()
-}
-
-fn unflat<R: Real>(v: &[f64]) -> Vec<Vec3<R>> {
-    v.chunks_exact(3)
-        .map(|c| Vec3::new(R::lit(c[0]), R::lit(c[1]), R::lit(c[2])))
-        .collect()
-}
-
-/// Whether `R` is single precision (it cannot tell 1 from 1 + 1e-10).
-fn is_f32<R: Real>() -> bool {
-    R::lit(1.0 + 1e-10).to_f64() == 1.0
-}
-
-/// The unit roundoff of `R`.
-fn epsilon<R: Real>() -> f64 {
-    if is_f32::<R>() {
-        f32::EPSILON as f64
-    } else {
-        f64::EPSILON
-    }
-}
 
 /// The residual `e` that rounding alone leaves: the rounding of the positions, `eps |x|`,
 /// times the stiffness `dt |da/dx| ~ s / dt`, with `s = |M^-1 A d| / |d| = |e| / |d|` the
@@ -227,23 +154,6 @@ fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
         1.0
     };
     100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
-}
-
-/// Whether a residual meets a tolerance: never if the residual is NaN or infinite (an
-/// infinite tolerance, from an infinite scale, would otherwise accept an infinite residual).
-fn within(residual: f64, tolerance: f64) -> bool {
-    residual.is_finite() && (residual <= tolerance || residual == 0.0)
-}
-
-/// `max |v_k|`, NaN if any `v_k` is NaN (`f64::max` would skip it and hide a NaN residual).
-fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0, |m: f64, x| {
-        if m.is_nan() || x.is_nan() {
-            f64::NAN
-        } else {
-            m.max(x.abs())
-        }
-    })
 }
 
 /// One step's system: `G(v') = M (v' - v0 - dt a(x0 + dt v', v'))` over the free DOFs.
@@ -617,7 +527,7 @@ impl ImplicitEuler {
             &inv_mass,
             dtf,
         );
-        check_inputs(model, state, &sys.c.links)?;
+        check_inputs("ImplicitEuler", model, &[&state.x, &state.v], &sys.c.links)?;
         let v1 = if n == 0 {
             stats.converged = true;
             Vec::new()
@@ -730,33 +640,6 @@ impl ImplicitEuler {
             ),
         })
     }
-}
-
-/// [`Error::InvalidInput`] for the first NaN/Inf in the state or in a parameter array the
-/// forces read (named by label and index), or in the gravity.
-fn check_inputs<R: Real>(model: &Model<R>, state: &State<R>, links: &[Link]) -> Result<(), Error> {
-    let arrays = [&state.x as &dyn AnyArray, &state.v]
-        .into_iter()
-        .chain(links.iter().map(|l| l.original()));
-    for a in arrays {
-        if let Some(k) = a.first_non_finite() {
-            return Err(Error::InvalidInput {
-                what: format!("{}[{k}]", a.label()),
-                message: "ImplicitEuler: a NaN or infinite value in the state or a parameter; \
-                          every force and the Newton residual would be NaN. Fix the value \
-                          (or whatever computed it)"
-                    .into(),
-            });
-        }
-    }
-    let g = model.gravity;
-    if ![g.x, g.y, g.z].iter().all(|c| c.to_f64().is_finite()) {
-        return Err(Error::InvalidInput {
-            what: "gravity".into(),
-            message: "ImplicitEuler: the model's gravity is not finite".into(),
-        });
-    }
-    Ok(())
 }
 
 /// What the backward and tangent of a step need.
@@ -895,14 +778,6 @@ impl<R: Real> Shared<R> {
             t.assign(&unflat::<R>(&dv1));
         }
         Ok(())
-    }
-}
-
-/// `a.grad += g` if `a` has a gradient buffer.
-fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
-    if let Some(buf) = a.grad_buffer() {
-        let add = unflat::<R>(g);
-        buf.modify(|d| d.iter_mut().zip(add).for_each(|(d, a)| *d += a));
     }
 }
 

@@ -22,7 +22,7 @@
 //!   constraint solve diverging (solver `"Xpbd constraint solve"`, naming the substep and the
 //!   kernel): lower `relaxation`, or use more substeps.
 
-mod common;
+pub(crate) mod common;
 pub mod explicit;
 pub mod implicit;
 pub mod krylov;

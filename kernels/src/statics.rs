@@ -1,0 +1,646 @@
+//! Statics: the equilibrium `x*(p)` of a model under its forces and gravity, `f(x*; p) = 0`
+//! for every free particle (pinned particles stay where they are), and its gradient with
+//! respect to every parameter by the implicit function theorem.
+//!
+//! # The solve
+//!
+//! The unknowns are the positions of the free particles (inverse mass `w > 0`). With
+//! `a = w f + g` the accelerations of [`Model::eval_accelerations`] at zero velocity, the
+//! residual is the net force `r(x) = M a(x) = f(x) + M g` (N) and its Jacobian is `-K`, `K =
+//! -dr/dx` the stiffness matrix (symmetric for springs, membranes, tetrahedra). Each Newton
+//! iteration solves `K d = r` by [`krylov::solve`] (CG, then BiCGSTAB if CG meets negative
+//! curvature, e.g. from compressed springs) and moves `x += alpha d`, with a backtracking line
+//! search on `|r|^2` (or on the potential energy, whose gradient is `-r`, when the residual
+//! does not decrease along `d`). `K` is never formed: `K u` is one pass of the **tangent**
+//! kernels of the force model, recorded once per iterate on a scratch tape, exactly as
+//! [`ImplicitEuler`](crate::integrators::ImplicitEuler) does, with private copies of the
+//! parameter arrays ([`Force::params_mut`](crate::forces::Force::params_mut),
+//! [`Param::substitute`](crate::forces::Param::substitute)).
+//!
+//! # The gradient
+//!
+//! [`Equilibrium::solve`] records **one** custom step on the caller's tape
+//! ([`Tape::record_fn`]); the Newton iterations are not recorded. Since `r(x*(p), p) = 0`,
+//! `dx*/dp = K^-1 dr/dp`, so with the incoming adjoint `x*_bar` the backward solves the
+//! transposed system `K^T lambda = x*_bar` (free DOFs) matrix-free with the **adjoint** kernels
+//! and adds `lambda^T dr/dp` into the gradient of every parameter array of the forces (rest
+//! lengths, stiffnesses, ...) and of the inverse masses (at equilibrium `a = 0`, so
+//! `lambda^T dr/dp = (M lambda)^T da/dp`: one adjoint pass seeded with `M lambda`). The pinned
+//! particles' positions are inputs too: their gradient is `x*_bar + lambda^T dr/dx_pinned`,
+//! added into the guess's `x` at the pinned particles. The free particles' entries of the
+//! guess are only a starting point and get nothing.
+//!
+//! The equilibrium found is the one Newton reaches from the guess: a structure can have
+//! several (a cable hanging or standing as an arch). Start near the one you mean (and warm
+//! start from the previous solution in an optimization loop).
+//!
+//! # Failures
+//!
+//! A Newton iteration that stops above its tolerance is [`Error::NotConverged`] naming
+//! `"Equilibrium Newton"` (nothing is recorded), and an adjoint solve that does is
+//! `tape.backward`'s error naming `"Equilibrium adjoint linear solve"`, unless
+//! [`Equilibrium::on_failure`] says otherwise. A NaN or infinite position or parameter, or a
+//! model with rigid bodies (which this solve does not handle), is [`Error::InvalidInput`].
+//!
+//! ```
+//! use adflex_kernels::prelude::*;
+//! use adflex_kernels::statics::Equilibrium;
+//! use adflex_macros::diff_kernel;
+//! use adflex_runtime::prelude::*;
+//!
+//! // A mass of 1 kg hanging from a pinned point on a spring of 100 N/m, rest length 1 m:
+//! // it rests 1 + 9.8 / 100 m below the pin.
+//! let mut b = ModelBuilder::<f64>::new();
+//! let pin = b.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+//! let m = b.add_particle(Vec3::new(0.0, -1.0, 0.0), Vec3::zeros(), 1.0);
+//! b.add_spring(pin, m, 100.0, 0.0);
+//! let model = b.finalize();
+//! let rest = model.param::<f64>("springs", "rest").unwrap().requires_grad();
+//!
+//! let mut tape = Tape::new();
+//! let eq = Equilibrium::default().solve(&model, &mut tape, &model.state()).unwrap();
+//! assert!((eq.x.get(1).y + 1.098).abs() < 1e-12);
+//! assert_eq!(tape.len(), 1); // one custom step, however many Newton iterations
+//!
+//! // d(height)/d(rest) = -1: a longer spring hangs lower.
+//! #[diff_kernel]
+//! fn height(x: &Array<Vec3<f64>>, out: &Array<f64>) {
+//!     out[0] = x[1].y;
+//! }
+//! let h = Array::zeros(1);
+//! tape.launch(height, 1, (&eq.x, &h));
+//! tape.backward(&h).unwrap();
+//! assert!((rest.grad().unwrap().get(0) + 1.0).abs() < 1e-9);
+//! ```
+
+use std::sync::Arc;
+
+use adflex_runtime::prelude::*;
+
+use crate::integrators::common::{
+    add_into, check_inputs, copies, epsilon, flat, forces_only, is_f32, max_abs, particles, unflat,
+    within, Copies,
+};
+use crate::integrators::krylov::{self, SolveInfo, SolveSettings};
+use crate::integrators::SolverPolicy;
+use crate::model::{Model, State};
+
+/// A static equilibrium solver: Newton with matrix-free Krylov solves and a line search,
+/// differentiated by the implicit function theorem (see the [module docs](self)).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Equilibrium {
+    /// Newton stops when `max |r_k| <= tolerance * scale` (N) over the free DOFs, `scale` the
+    /// largest of the particles' weights `m |g|` and the forces `|f|` on them. `None`
+    /// (default): `1e-10` in f64, `1e-4` in f32.
+    pub tolerance: Option<f64>,
+    /// Maximum Newton iterations (default 50).
+    pub max_newton: usize,
+    /// Stopping rule of the Newton linear solves, and of the adjoint solve unless
+    /// `adjoint_linear` is set (default: relative `1e-10`, 1000 iterations). A Newton linear
+    /// solve that misses it is not an error by itself (inexact Newton).
+    pub linear: SolveSettings,
+    /// Stopping rule of the gradient's linear solve (`K^T lambda = x_bar`); `None` (default):
+    /// `linear`. A solve that misses it fails per `on_failure`.
+    pub adjoint_linear: Option<SolveSettings>,
+    /// Maximum halvings of the step in the line search (default 30).
+    pub max_backtracks: usize,
+    /// What a solve that misses its tolerance does (default [`SolverPolicy::Error`]): the
+    /// Newton iteration ([`Error::NotConverged`] from `solve`, nothing recorded) and the
+    /// adjoint solve (an error from `tape.backward`). `Warn` prints the figures and uses the
+    /// result, `Continue` uses it silently.
+    pub on_failure: SolverPolicy,
+}
+
+impl Default for Equilibrium {
+    fn default() -> Self {
+        Equilibrium {
+            tolerance: None,
+            max_newton: 50,
+            linear: SolveSettings::default(),
+            adjoint_linear: None,
+            max_backtracks: 30,
+            on_failure: SolverPolicy::Error,
+        }
+    }
+}
+
+/// What one [`Equilibrium`] solve did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct EquilibriumStats {
+    /// Newton iterations (linear solves).
+    pub newton_iterations: usize,
+    /// Matrix-vector products (tangent passes) of the linear solves.
+    pub linear_iterations: usize,
+    /// Force evaluations (one per line-search trial, plus the first).
+    pub force_evaluations: usize,
+    /// Step halvings in the line searches.
+    pub backtracks: usize,
+    /// Final `max |r_k|` over free DOFs (N; NaN if the iterate is not finite).
+    pub residual: f64,
+    /// The tolerance `residual` was held to, `tolerance * scale` (N).
+    pub tolerance: f64,
+    /// Whether it was met (never for a NaN residual).
+    pub converged: bool,
+}
+
+/// The nonlinear system `r(x) = M a(x) = 0` over the free DOFs.
+struct System<R: Real> {
+    c: Copies<R>,
+    /// The guess (pinned DOFs: the pins).
+    x0: Vec<f64>,
+    /// Per DOF: the mass on free DOFs, 0 on pinned ones.
+    mass: Vec<f64>,
+    free: Vec<bool>,
+    /// Gravity per DOF (m/s^2).
+    g: Vec<f64>,
+}
+
+/// The accelerations recorded at one iterate, on their own tape.
+struct Point<R: Real> {
+    tape: Tape,
+    x: Array<Vec3<R>>,
+    v: Array<Vec3<R>>,
+    a: Array<Vec3<R>>,
+    x_val: Vec<f64>,
+    a_val: Vec<f64>,
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(a, b)| a * b).sum()
+}
+
+impl<R: Real> System<R> {
+    fn new(c: Copies<R>, x0: Vec<f64>, inv_mass: &[R], gravity: Vec3<R>) -> Self {
+        let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
+        let g = [gravity.x.to_f64(), gravity.y.to_f64(), gravity.z.to_f64()];
+        System {
+            c,
+            mass: w
+                .iter()
+                .map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 })
+                .collect(),
+            free: w.iter().map(|&w| w > 0.0).collect(),
+            g: (0..x0.len()).map(|k| g[k % 3]).collect(),
+            x0,
+        }
+    }
+
+    /// Records the accelerations at `x` (zero velocities) on a new tape.
+    fn eval(&self, x: &[f64], grads: bool) -> Point<R> {
+        let n = x.len() / 3;
+        let mut xs = Array::from_vec(unflat::<R>(x)).named("x_equilibrium");
+        let vs = Array::zeros(n).named("v_equilibrium");
+        if grads {
+            xs = xs.requires_grad();
+        }
+        let mut tape = Tape::new();
+        let a = self.c.model.eval_accelerations(
+            &mut tape,
+            &particles(&xs, &vs),
+            self.c.control.as_ref(),
+        );
+        let a_val = flat(&a);
+        Point {
+            tape,
+            x: xs,
+            v: vs,
+            a,
+            x_val: x.to_vec(),
+            a_val,
+        }
+    }
+
+    /// `r = M a` on free DOFs, 0 on pinned ones (N).
+    fn residual(&self, p: &Point<R>) -> Vec<f64> {
+        (0..self.mass.len())
+            .map(|k| {
+                if self.free[k] {
+                    self.mass[k] * p.a_val[k]
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
+    /// The force scale at `p`: the largest weight `m |g|` and force `|f| = |m (a - g)|` (N).
+    fn scale(&self, p: &Point<R>) -> f64 {
+        (0..self.mass.len())
+            .filter(|&k| self.free[k])
+            .fold(0.0f64, |s, k| {
+                let m = self.mass[k];
+                s.max((m * self.g[k]).abs())
+                    .max((m * (p.a_val[k] - self.g[k])).abs())
+            })
+    }
+
+    /// `out = K u = -M da/dx u` (identity on pinned DOFs) by one tangent pass.
+    fn apply(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let ux: Vec<f64> = u
+            .iter()
+            .zip(&self.free)
+            .map(|(&u, &f)| if f { u } else { 0.0 })
+            .collect();
+        p.x.ensure_tangent().assign(&unflat::<R>(&ux));
+        p.v.ensure_tangent(); // zero: the velocities stay 0
+        p.tape
+            .tangent()
+            .expect("Equilibrium: tangent pass of the force model");
+        let ad = flat(&p.a.tangent_buffer().expect("tangent of the accelerations"));
+        for k in 0..out.len() {
+            out[k] = if self.free[k] {
+                -self.mass[k] * ad[k]
+            } else {
+                u[k]
+            };
+        }
+    }
+
+    /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
+    /// scratch tape; returns the gradient of the positions.
+    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Vec<f64> {
+        p.x.zero_grad();
+        p.a.ensure_grad().assign(&unflat::<R>(seed));
+        p.tape
+            .backward_with(&[&p.a])
+            .expect("Equilibrium: adjoint pass of the force model");
+        flat(&p.x.grad().expect("x requires grad"))
+    }
+
+    /// `out = K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
+    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let seed = self.seed(u);
+        let gx = self.pull(p, &seed);
+        for k in 0..out.len() {
+            out[k] = if self.free[k] { -gx[k] } else { u[k] };
+        }
+    }
+
+    /// `M u` on free DOFs, 0 on pinned ones.
+    fn seed(&self, u: &[f64]) -> Vec<f64> {
+        (0..u.len())
+            .map(|k| {
+                if self.free[k] {
+                    self.mass[k] * u[k]
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
+    fn mask(&self, v: &mut [f64]) {
+        v.iter_mut().zip(&self.free).for_each(|(v, &f)| {
+            if !f {
+                *v = 0.0
+            }
+        });
+    }
+
+    /// The residual rounding alone leaves: `eps |x|` times the stiffness `|K d| / |d|` along
+    /// the Newton step `d` (with `K d = r`), times a safety factor of 100 (N).
+    fn roundoff_floor(&self, r: &[f64], d: &[f64]) -> f64 {
+        let dn = max_abs(d);
+        let k = if dn > 0.0 { max_abs(r) / dn } else { 0.0 };
+        100.0 * epsilon::<R>() * k * max_abs(&self.x0).max(1.0)
+    }
+}
+
+impl Equilibrium {
+    fn tolerance<R: Real>(&self) -> f64 {
+        self.tolerance
+            .unwrap_or_else(|| if is_f32::<R>() { 1e-4 } else { 1e-10 })
+    }
+
+    /// The settings of the adjoint solve.
+    fn gradient_settings(&self) -> &SolveSettings {
+        self.adjoint_linear.as_ref().unwrap_or(&self.linear)
+    }
+
+    /// Applies [`Equilibrium::on_failure`] to a failed solve: the error, or a warning.
+    fn on_fail(&self, err: Error) -> Result<(), Error> {
+        match self.on_failure {
+            SolverPolicy::Error => Err(err),
+            SolverPolicy::Warn => {
+                eprintln!("warning: {err} [continuing: on_failure = SolverPolicy::Warn]");
+                Ok(())
+            }
+            SolverPolicy::Continue => Ok(()),
+        }
+    }
+
+    /// Newton with line search from the guess; returns the solution.
+    fn newton<R: Real>(&self, sys: &System<R>, stats: &mut EquilibriumStats) -> Vec<f64> {
+        let tol = self.tolerance::<R>();
+        let mut p = sys.eval(&sys.x0, false);
+        stats.force_evaluations += 1;
+        let mut r = sys.residual(&p);
+        let mut phi = 0.5 * dot(&r, &r);
+        loop {
+            stats.residual = max_abs(&r);
+            stats.tolerance = tol * sys.scale(&p);
+            if within(stats.residual, stats.tolerance) {
+                stats.converged = true;
+                break;
+            }
+            if stats.newton_iterations >= self.max_newton || !phi.is_finite() {
+                break;
+            }
+            stats.newton_iterations += 1;
+            let mut d = vec![0.0; r.len()];
+            let (info, _) = krylov::solve(
+                |u, out| sys.apply(&mut p, u, out),
+                &r,
+                &mut d,
+                None,
+                &self.linear,
+            );
+            stats.linear_iterations += info.iterations;
+            sys.mask(&mut d);
+            if within(stats.residual, sys.roundoff_floor(&r, &d)) {
+                stats.converged = true;
+                break;
+            }
+            // Accept a step that decreases |r|^2 (Armijo; its slope along an exact Newton
+            // direction is -2 phi) or the potential energy E (gradient -r; its decrease
+            // estimated by the trapezoid rule on the slope -r . d).
+            let slope0 = -dot(&r, &d);
+            let mut alpha = 1.0;
+            let mut best: Option<(f64, Point<R>, Vec<f64>)> = None;
+            let mut accepted = None;
+            for k in 0..=self.max_backtracks {
+                let xt: Vec<f64> = p.x_val.iter().zip(&d).map(|(x, d)| x + alpha * d).collect();
+                let pt = sys.eval(&xt, false);
+                stats.force_evaluations += 1;
+                let rt = sys.residual(&pt);
+                let phit = 0.5 * dot(&rt, &rt);
+                let residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
+                let potential_ok = slope0 < 0.0 && {
+                    let slope = -dot(&rt, &d);
+                    slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0
+                };
+                if phit.is_finite() && (residual_ok || potential_ok) {
+                    accepted = Some((phit, pt, rt));
+                    break;
+                }
+                if phit.is_finite() && !best.as_ref().is_some_and(|b| phit >= b.0) {
+                    best = Some((phit, pt, rt));
+                }
+                if k < self.max_backtracks {
+                    stats.backtracks += 1;
+                    alpha *= 0.5;
+                }
+            }
+            // Neither decreases along the Newton direction (K indefinite: compressed springs, a
+            // folded start): a step that decreases the potential, then the best residual.
+            let step = match accepted {
+                Some(a) => Some(a),
+                None => self
+                    .potential_step(sys, &mut p, &r, stats)
+                    .or_else(|| best.filter(|b| b.0 < phi)),
+            };
+            match step {
+                Some((phit, pt, rt)) => {
+                    phi = phit;
+                    p = pt;
+                    r = rt;
+                }
+                None => {
+                    stats.converged = within(stats.residual, 10.0 * sys.roundoff_floor(&r, &d));
+                    break;
+                }
+            }
+        }
+        p.x_val
+    }
+
+    /// A step that decreases the potential energy `E` (gradient `-r`): along the CG solution
+    /// of `K d = r` truncated at negative curvature (a descent direction of `E`), or else
+    /// along the force `r` with the step of the quadratic model (where `K` is positive along
+    /// it), with a backtracking line search that needs only `r` (the decrease of `E`
+    /// estimated by the trapezoid rule on the slope `-r(x + s d) . d`). Returns the merit,
+    /// point and residual reached, or `None`.
+    fn potential_step<R: Real>(
+        &self,
+        sys: &System<R>,
+        p: &mut Point<R>,
+        r: &[f64],
+        stats: &mut EquilibriumStats,
+    ) -> Option<(f64, Point<R>, Vec<f64>)> {
+        let mut d = vec![0.0; r.len()];
+        let info = krylov::cg(|u, out| sys.apply(p, u, out), r, &mut d, None, &self.linear);
+        stats.linear_iterations += info.iterations;
+        sys.mask(&mut d);
+        let mut slope0 = -dot(r, &d);
+        let mut alpha = 1.0;
+        if slope0.is_nan() || slope0 >= 0.0 {
+            d = r.to_vec();
+            slope0 = -dot(r, &d);
+            if slope0.is_nan() || slope0 >= 0.0 {
+                return None;
+            }
+            let mut kd = vec![0.0; d.len()];
+            sys.apply(p, &d, &mut kd);
+            stats.linear_iterations += 1;
+            sys.mask(&mut kd);
+            let curvature = dot(&d, &kd);
+            alpha = if curvature > 0.0 {
+                -slope0 / curvature
+            } else {
+                0.1 * max_abs(&sys.x0).max(1.0) / max_abs(&d)
+            };
+        }
+        for _ in 0..=self.max_backtracks {
+            let xt: Vec<f64> = p.x_val.iter().zip(&d).map(|(x, d)| x + alpha * d).collect();
+            let pt = sys.eval(&xt, false);
+            stats.force_evaluations += 1;
+            let rt = sys.residual(&pt);
+            let slope = -dot(&rt, &d);
+            if slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0 {
+                return Some((0.5 * dot(&rt, &rt), pt, rt));
+            }
+            stats.backtracks += 1;
+            alpha *= 0.5;
+        }
+        None
+    }
+
+    /// Solves for the equilibrium from `guess` (its free particles' positions are the starting
+    /// point; its pinned particles' positions are the pins) and records it on `tape` as one
+    /// custom step whose backward is the implicit function theorem (see the
+    /// [module docs](self)). The state returned has the equilibrium positions and zero
+    /// velocities (new arrays).
+    ///
+    /// Errors: [`Error::InvalidInput`] for a NaN/Inf in the guess or a parameter, or a model
+    /// with rigid bodies; [`Error::NotConverged`] (`"Equilibrium Newton"`) if Newton stopped
+    /// above its tolerance under [`SolverPolicy::Error`].
+    pub fn solve<R: Real>(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        guess: &State<R>,
+    ) -> Result<State<R>, Error> {
+        Ok(self.solve_with_stats(model, tape, guess)?.0)
+    }
+
+    /// [`Equilibrium::solve`], also returning what the solve did.
+    pub fn solve_with_stats<R: Real>(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        guess: &State<R>,
+    ) -> Result<(State<R>, EquilibriumStats), Error> {
+        let n = model.particle_count;
+        if model.bodies.is_some() {
+            return Err(Error::InvalidInput {
+                what: "model.bodies".into(),
+                message: "Equilibrium: the model has rigid bodies, which the static solve does \
+                          not handle (it solves for the particles only)"
+                    .into(),
+            });
+        }
+        if guess.x.len() != n {
+            return Err(Error::InvalidInput {
+                what: "guess.x".into(),
+                message: format!(
+                    "Equilibrium: the guess has {} positions, the model {n} particles",
+                    guess.x.len()
+                ),
+            });
+        }
+        let inv_mass = model.particle_inv_mass.to_vec();
+        let x0 = flat(&guess.x);
+        let sys = System::new(copies(model, None, false), x0, &inv_mass, model.gravity);
+        check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
+        let mut stats = EquilibriumStats::default();
+        let x1 = if n == 0 {
+            stats.converged = true;
+            Vec::new()
+        } else {
+            self.newton(&sys, &mut stats)
+        };
+        if !stats.converged {
+            self.on_fail(Error::NotConverged {
+                solver: "Equilibrium Newton".into(),
+                context: format!(
+                    "static equilibrium that would be step #{} on the tape; {} force \
+                     evaluations, {} line-search halvings",
+                    tape.len(),
+                    stats.force_evaluations,
+                    stats.backtracks
+                ),
+                iterations: stats.newton_iterations,
+                residual: stats.residual,
+                tolerance: stats.tolerance,
+                hint: format!(
+                    "raise `max_newton` (now {}), loosen `tolerance`, start from a guess nearer \
+                     the equilibrium, check that one exists (enough pins, no free mechanism), \
+                     or set `on_failure` to SolverPolicy::Warn or Continue",
+                    self.max_newton
+                ),
+            })?;
+        }
+
+        let x = Array::zeros(n).named("x");
+        let shared = Arc::new(Shared {
+            solver: self.clone(),
+            model: forces_only(model),
+            guess: guess.x.clone(),
+            x: x.clone(),
+            x_val: x1.clone(),
+            inv_mass,
+        });
+        let originals = sys.c.links;
+        let mut inputs: Vec<&dyn AnyArray> = vec![&guess.x];
+        inputs.extend(originals.iter().map(|l| l.original()));
+        tape.record_fn(
+            "equilibrium",
+            &inputs,
+            &[&x],
+            || x.assign(&unflat::<R>(&x1)),
+            move || shared.backward(),
+        );
+        Ok((
+            State {
+                x,
+                v: Array::zeros(n).named("v"),
+                bodies: None,
+            },
+            stats,
+        ))
+    }
+}
+
+/// What the backward needs.
+struct Shared<R: Real> {
+    solver: Equilibrium,
+    model: Model<R>,
+    guess: Array<Vec3<R>>,
+    x: Array<Vec3<R>>,
+    x_val: Vec<f64>,
+    inv_mass: Vec<R>,
+}
+
+impl<R: Real> Shared<R> {
+    /// Reverse mode by the implicit function theorem. Fails per the policy if the adjoint
+    /// solve misses its tolerance (nothing is accumulated then).
+    fn backward(&self) -> Result<(), Error> {
+        let Some(gx) = self.x.grad_buffer() else {
+            return Ok(());
+        };
+        let xbar = flat(&gx);
+        let m = xbar.len();
+        let sys = System::new(
+            copies(&self.model, None, true),
+            self.x_val.clone(),
+            &self.inv_mass,
+            self.model.gravity,
+        );
+        let mut p = sys.eval(&self.x_val, true);
+        let mut rhs = xbar.clone();
+        sys.mask(&mut rhs);
+        let mut lambda = vec![0.0; m];
+        let (info, _) = krylov::solve(
+            |u, out| sys.apply_t(&mut p, u, out),
+            &rhs,
+            &mut lambda,
+            None,
+            self.solver.gradient_settings(),
+        );
+        self.check_adjoint(&info)?;
+        sys.mask(&mut lambda);
+        for l in &sys.c.links {
+            l.zero_copy_grad();
+        }
+        let gx = sys.pull(&mut p, &sys.seed(&lambda));
+        // Pinned DOFs: x* = pin, which also moves the free particles' equilibrium.
+        let gpin: Vec<f64> = (0..m)
+            .map(|k| if sys.free[k] { 0.0 } else { xbar[k] + gx[k] })
+            .collect();
+        add_into(&self.guess, &gpin);
+        for l in &sys.c.links {
+            l.add_grad();
+        }
+        Ok(())
+    }
+
+    fn check_adjoint(&self, info: &SolveInfo) -> Result<(), Error> {
+        if info.converged {
+            return Ok(());
+        }
+        let s = self.solver.gradient_settings();
+        self.solver.on_fail(Error::NotConverged {
+            solver: "Equilibrium adjoint linear solve (CG, then BiCGSTAB)".into(),
+            context: String::new(),
+            iterations: info.iterations,
+            residual: info.residual,
+            tolerance: info.tolerance,
+            hint: format!(
+                "raise `max_iter` (now {}) or loosen `rel_tol` (now {:e}) of `adjoint_linear` \
+                 (or `linear`); a singular stiffness (a free mechanism, a slack structure) has \
+                 no unique gradient; or set `on_failure` to SolverPolicy::Warn or Continue",
+                s.max_iter, s.rel_tol
+            ),
+        })
+    }
+}

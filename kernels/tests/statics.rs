@@ -1,0 +1,339 @@
+//! Static equilibria (`adflex_kernels::statics::Equilibrium`): the solution has zero net force,
+//! its implicit-function-theorem gradient with respect to the springs' rest lengths and
+//! stiffnesses, the particles' (inverse) masses and the pins' positions matches central
+//! differences of the re-solved equilibrium in f64, and failures are errors.
+
+use adflex_kernels::integrators::krylov::SolveSettings;
+use adflex_kernels::statics::Equilibrium;
+use adflex_kernels::{Model, ModelBuilder, State};
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+/// A square net of `n x n` particles in the horizontal plane, its four corners pinned, joined
+/// by structural and shear springs whose rest lengths are 90% of their lengths (so the net is
+/// in tension), sagging under gravity like a trampoline.
+fn net(n: u32) -> Model<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    let h = 0.25;
+    for j in 0..n {
+        for i in 0..n {
+            let corner = (i == 0 || i == n - 1) && (j == 0 || j == n - 1);
+            // Unequal masses, so that every mass matters differently.
+            let m = if corner {
+                0.0
+            } else {
+                0.05 + 0.01 * ((i + 2 * j) % 3) as f64
+            };
+            b.add_particle(Vec3::new(i as f64 * h, 0.0, j as f64 * h), Vec3::zeros(), m);
+        }
+    }
+    let id = |i: u32, j: u32| j * n + i;
+    let mut k = 0;
+    let mut spring = |b: &mut ModelBuilder<f64>, p: u32, q: u32| {
+        let d = (b.particle_position(p) - b.particle_position(q)).norm();
+        let ke = 150.0 + 20.0 * (k % 4) as f64;
+        k += 1;
+        b.add_spring_with_rest(p, q, 0.9 * d, ke, 0.1);
+    };
+    for j in 0..n {
+        for i in 0..n {
+            if i + 1 < n {
+                spring(&mut b, id(i, j), id(i + 1, j));
+            }
+            if j + 1 < n {
+                spring(&mut b, id(i, j), id(i, j + 1));
+            }
+            if i + 1 < n && j + 1 < n {
+                spring(&mut b, id(i, j), id(i + 1, j + 1));
+                spring(&mut b, id(i + 1, j), id(i, j + 1));
+            }
+        }
+    }
+    b.finalize()
+}
+
+/// `out += sum_i c_i . x_i`.
+#[diff_kernel]
+fn weighted(x: &Array<Vec3<f64>>, c: &Array<Vec3<f64>>, out: &Array<f64>) {
+    let i = tid();
+    out.atomic_add(0, dot(x[i], c[i]));
+}
+
+fn weights(n: usize) -> Array<Vec3<f64>> {
+    Array::from_vec(
+        (0..n)
+            .map(|i| {
+                let t = i as f64;
+                Vec3::new((1.3 * t).sin(), (0.7 * t + 0.4).cos(), 0.5 + 0.1 * t)
+            })
+            .collect(),
+    )
+}
+
+/// The loss of the equilibrium from `guess`, recorded on `tape`.
+fn loss(
+    model: &Model<f64>,
+    tape: &mut Tape,
+    guess: &State<f64>,
+    c: &Array<Vec3<f64>>,
+) -> (Array<f64>, State<f64>) {
+    // Tight: the central differences divide the solve's error by the step.
+    let solver = Equilibrium {
+        tolerance: Some(1e-14),
+        ..Equilibrium::default()
+    };
+    let eq = solver.solve(model, tape, guess).unwrap();
+    let l = Array::zeros(1);
+    tape.launch(weighted, model.particle_count, (&eq.x, c, &l));
+    (l, eq)
+}
+
+/// The derivative of `f` at `p0` by fourth-order central differences with step `h`:
+/// `(8 (f(p0 + h) - f(p0 - h)) - (f(p0 + 2h) - f(p0 - 2h))) / 12h`. Its truncation error,
+/// `O(h^4)`, lets `h` be large enough (`1e-4` relative) that roundoff divided by `h` stays far
+/// below the `1e-6` the tests ask for.
+fn central(mut f: impl FnMut(f64) -> f64, p0: f64, h: f64) -> f64 {
+    let d1 = f(p0 + h) - f(p0 - h);
+    let d2 = f(p0 + 2.0 * h) - f(p0 - 2.0 * h);
+    (8.0 * d1 - d2) / (12.0 * h)
+}
+
+/// Checks the gradient of the loss with respect to every scalar of `param` against central
+/// differences ([`central`]), re-solving the equilibrium for each.
+fn check_param(model: &Model<f64>, param: &Array<f64>, what: &str) {
+    let c = weights(model.particle_count);
+    let guess = model.state();
+    param.zero_grad();
+    let param = param.clone().requires_grad();
+    let mut tape = Tape::new();
+    let (l, eq) = loss(model, &mut tape, &guess, &c);
+    tape.backward(&l).unwrap();
+    let g = param.grad().unwrap().to_vec();
+    let base = eq.x.to_vec();
+    let start = State {
+        x: Array::from_vec(base),
+        v: guess.v.clone(),
+        bodies: None,
+    };
+    let mut worst = 0.0f64;
+    let numeric: Vec<f64> = (0..param.len())
+        .map(|k| {
+            let p0 = param.get(k);
+            let h = 1e-4 * p0.abs().max(1e-3);
+            let eval = |p: f64| {
+                param.set(k, p);
+                let (l, _) = loss(model, &mut Tape::new(), &start, &c);
+                l.get(0)
+            };
+            let n = central(eval, p0, h);
+            param.set(k, p0);
+            n
+        })
+        .collect();
+    let scale = numeric.iter().fold(0.0f64, |m, n| m.max(n.abs()));
+    assert!(scale > 0.0, "{what}: the loss does not depend on it");
+    for (k, (a, n)) in g.iter().zip(&numeric).enumerate() {
+        let err = (a - n).abs() / (n.abs() + 1e-3 * scale);
+        worst = worst.max(err);
+        assert!(
+            err < 1e-6,
+            "{what}[{k}]: adjoint {a:e}, central differences {n:e}, relative error {err:e}"
+        );
+    }
+    println!(
+        "{what}: {} entries, worst relative error {worst:.1e}",
+        g.len()
+    );
+    param.zero_grad();
+}
+
+#[test]
+fn the_equilibrium_has_zero_net_force() {
+    let model = net(5);
+    let (eq, stats) = Equilibrium::default()
+        .solve_with_stats(&model, &mut Tape::new(), &model.state())
+        .unwrap();
+    assert!(
+        stats.converged && stats.residual <= stats.tolerance,
+        "{stats:?}"
+    );
+    assert!(stats.tolerance <= 1e-10 * 10.0, "{stats:?}");
+    // Net force f + m g on every free particle, evaluated independently.
+    let f = model.eval_forces(&mut Tape::new(), &eq, None).to_vec();
+    let w = model.particle_inv_mass.to_vec();
+    let mut worst = 0.0f64;
+    for (i, (f, w)) in f.iter().zip(&w).enumerate() {
+        if *w > 0.0 {
+            let net = *f + model.gravity * (1.0 / w);
+            worst = worst.max(net.norm());
+            assert!(net.norm() < 1e-9, "particle {i}: net force {net:?}");
+        }
+    }
+    // It sags: the middle is below the pins.
+    assert!(eq.x.get(12).y < -0.01, "{:?}", eq.x.get(12));
+    println!("{stats:?}, worst net force {worst:.1e} N");
+}
+
+#[test]
+fn gradient_wrt_rest_lengths_matches_central_differences() {
+    let model = net(4);
+    check_param(&model, &model.param("springs", "rest").unwrap(), "rest");
+}
+
+#[test]
+fn gradient_wrt_stiffness_matches_central_differences() {
+    let model = net(4);
+    check_param(&model, &model.param("springs", "ke").unwrap(), "ke");
+}
+
+#[test]
+fn gradient_wrt_masses_matches_central_differences() {
+    // Gravity loads the particles by their masses: the inverse masses are inputs (the pinned
+    // corners' zeros stay zero; their gradient is not checked by perturbing them).
+    let model = net(4);
+    let w = model.particle_inv_mass.clone();
+    let c = weights(model.particle_count);
+    let w = w.requires_grad();
+    let mut tape = Tape::new();
+    let (l, eq) = loss(&model, &mut tape, &model.state(), &c);
+    tape.backward(&l).unwrap();
+    let g = w.grad().unwrap().to_vec();
+    let start = State {
+        x: Array::from_vec(eq.x.to_vec()),
+        v: model.state().v,
+        bodies: None,
+    };
+    let mut checked = 0;
+    for (k, &gk) in g.iter().enumerate() {
+        let w0 = w.get(k);
+        if w0 == 0.0 {
+            continue;
+        }
+        let eval = |v: f64| {
+            w.set(k, v);
+            loss(&model, &mut Tape::new(), &start, &c).0.get(0)
+        };
+        let n = central(eval, w0, 1e-4 * w0);
+        w.set(k, w0);
+        let err = (gk - n).abs() / n.abs().max(1e-6);
+        assert!(
+            err < 1e-6,
+            "inv_mass[{k}]: adjoint {gk}, numeric {n}, error {err:e}"
+        );
+        checked += 1;
+    }
+    assert_eq!(checked, 12);
+}
+
+#[test]
+fn gradient_wrt_the_pins_matches_central_differences() {
+    // The pinned particles' positions come from the guess: moving a pin moves the net. The
+    // free particles' guessed positions are only a starting point: no gradient.
+    let model = net(4);
+    let c = weights(model.particle_count);
+    let guess = model.state();
+    let x0 = guess.x.clone().requires_grad();
+    let mut tape = Tape::new();
+    let (l, eq) = loss(&model, &mut tape, &guess, &c);
+    tape.backward(&l).unwrap();
+    let g = x0.grad().unwrap().to_vec();
+    let base = eq.x.to_vec();
+    for i in 0..model.particle_count {
+        let pinned = model.particle_inv_mass.get(i) == 0.0;
+        for d in 0..3 {
+            let ga = g[i][d];
+            if !pinned {
+                assert_eq!(ga, 0.0, "free particle {i}: the guess has no gradient");
+                continue;
+            }
+            let eval = |s: f64| {
+                let mut x = base.clone();
+                x[i][d] += s;
+                let start = State {
+                    x: Array::from_vec(x),
+                    v: guess.v.clone(),
+                    bodies: None,
+                };
+                loss(&model, &mut Tape::new(), &start, &c).0.get(0)
+            };
+            let n = central(eval, 0.0, 1e-4);
+            let err = (ga - n).abs() / n.abs().max(1e-3);
+            assert!(
+                err < 1e-6,
+                "pin {i}[{d}]: adjoint {ga}, numeric {n}, error {err:e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn one_newton_iteration_on_a_hard_problem_is_an_error() {
+    // Stiff springs, a flat start far from the sagged equilibrium.
+    let model = net(5);
+    let ke = model.param::<f64>("springs", "ke").unwrap();
+    ke.modify(|k| k.iter_mut().for_each(|k| *k = 5.0));
+    let capped = Equilibrium {
+        max_newton: 1,
+        ..Equilibrium::default()
+    };
+    let err = capped
+        .solve(&model, &mut Tape::new(), &model.state())
+        .unwrap_err();
+    assert!(
+        matches!(err, Error::NotConverged { ref solver, .. } if solver == "Equilibrium Newton"),
+        "{err}"
+    );
+    assert!(err.to_string().contains("raise `max_newton`"), "{err}");
+}
+
+#[test]
+fn an_adjoint_solve_that_stops_short_is_a_backward_error() {
+    let model = net(5);
+    let rest = model
+        .param::<f64>("springs", "rest")
+        .unwrap()
+        .requires_grad();
+    let solver = Equilibrium {
+        adjoint_linear: Some(SolveSettings {
+            max_iter: 2,
+            ..SolveSettings::default()
+        }),
+        ..Equilibrium::default()
+    };
+    let mut tape = Tape::new();
+    let eq = solver.solve(&model, &mut tape, &model.state()).unwrap();
+    let l = Array::zeros(1);
+    tape.launch(
+        weighted,
+        model.particle_count,
+        (&eq.x, &weights(model.particle_count), &l),
+    );
+    let err = tape.backward(&l).unwrap_err();
+    assert!(
+        err.to_string().contains("Equilibrium adjoint linear solve"),
+        "{err}"
+    );
+    let _ = rest;
+}
+
+#[test]
+fn a_nan_parameter_is_invalid_input() {
+    let model = net(3);
+    let rest = model.param::<f64>("springs", "rest").unwrap();
+    rest.set(2, f64::NAN);
+    let err = Equilibrium::default()
+        .solve(&model, &mut Tape::new(), &model.state())
+        .unwrap_err();
+    match err {
+        Error::InvalidInput { what, .. } => assert!(what.ends_with("[2]"), "{what}"),
+        e => panic!("expected InvalidInput, got {e}"),
+    }
+    // And a NaN in the guess.
+    let model = net(3);
+    let guess = model.state();
+    guess.x.set(4, Vec3::new(f64::NAN, 0.0, 0.0));
+    let err = Equilibrium::default()
+        .solve(&model, &mut Tape::new(), &guess)
+        .unwrap_err();
+    assert!(matches!(err, Error::InvalidInput { .. }), "{err}");
+}
