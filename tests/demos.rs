@@ -91,6 +91,8 @@ fn rigid_body_flips_about_its_intermediate_axis_and_the_throw_lands_on_target() 
         t.report
     );
     assert!(t.speed < 1e-3, "not at rest: {} m/s", t.speed);
+}
+
 #[test]
 fn inverse_design_cable_takes_the_target_shape() {
     let out = inverse_design::run(&inverse_design::Config::small()).unwrap();

@@ -12,12 +12,15 @@ use argmin::solver::quasinewton::LBFGS;
 
 use crate::{norm, Evaluate, Iteration, Observe, Params, Stop};
 
+/// A point, its loss and gradient.
+type Cached = (Vec<f64>, f64, Vec<f64>);
+
 /// The loss in the free variables, with the last evaluation cached (argmin asks for the cost
 /// and the gradient of one point separately) and the first error kept.
 struct Objective<'p, 'e> {
     params: &'p Params,
     evaluate: RefCell<&'p mut Evaluate<'e>>,
-    last: RefCell<Option<(Vec<f64>, f64, Vec<f64>)>>,
+    last: RefCell<Option<Cached>>,
     error: RefCell<Option<Error>>,
     evaluations: RefCell<usize>,
 }
@@ -29,7 +32,7 @@ impl Objective<'_, '_> {
                 return Ok((*l, g.clone()));
             }
         }
-        let (p, dp) = self.params.from_free(u);
+        let (p, dp) = self.params.params_of_free(u);
         let result = (self.evaluate.borrow_mut())(&p);
         match result {
             Ok((l, g)) => {
@@ -73,7 +76,7 @@ pub(crate) fn run(
     evaluate: &mut Evaluate<'_>,
     observe: &mut Observe<'_>,
 ) -> Result<((f64, Vec<f64>), Stop), Error> {
-    let u0 = params.to_free(x0)?;
+    let u0 = params.free_of_params(x0)?;
     let objective = Objective {
         params,
         evaluate: RefCell::new(evaluate),
@@ -109,7 +112,7 @@ pub(crate) fn run(
         // The gradient w.r.t. the parameters, not the free variables.
         match (s.get_param().or(s.get_best_param()), s.get_gradient()) {
             (Some(u), Some(gu)) => {
-                let (_, dp) = params.from_free(u);
+                let (_, dp) = params.params_of_free(u);
                 norm(&gu.iter().zip(&dp).map(|(g, d)| g / d).collect::<Vec<_>>())
             }
             _ => f64::NAN,
@@ -125,12 +128,23 @@ pub(crate) fn run(
     };
     let best = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>| {
         let u = s.get_best_param().expect("argmin keeps the best point");
-        (s.get_best_cost(), params.from_free(u).0)
+        (s.get_best_cost(), params.params_of_free(u).0)
     };
     if let Some(stop) = observe(iteration(&state, &problem)) {
         return Ok((best(&state), stop));
     }
+    // argmin ends a run whose line search failed (e.g. because the loss returned an error)
+    // as "terminated": an error of the loss is the answer then, not convergence.
+    let failed = |problem: &mut Problem<Objective>| {
+        problem
+            .problem
+            .as_ref()
+            .and_then(|o| o.error.borrow_mut().take())
+    };
     loop {
+        if let Some(e) = failed(&mut problem) {
+            return Err(e);
+        }
         if let TerminationStatus::Terminated(reason) =
             <LBFGS<_, _, _, _> as Solver<Objective, _>>::terminate_internal(&mut solver, &state)
         {
@@ -151,6 +165,9 @@ pub(crate) fn run(
             return Ok((best(&state), stop));
         }
         if let TerminationStatus::Terminated(reason) = state.get_termination_status() {
+            if let Some(e) = failed(&mut problem) {
+                return Err(e);
+            }
             return Ok((best(&state), Stop::Converged(reason.text().to_string())));
         }
     }

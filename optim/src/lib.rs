@@ -315,7 +315,6 @@ impl<'a> Optimizer<'a> {
                 &mut observe,
             )?,
         };
-        drop(observe);
         if let Some(b) = bar {
             b.finish_and_clear();
         }
@@ -388,8 +387,7 @@ fn first_order(
     let (mut m, mut v) = (vec![0.0; x.len()], vec![0.0; x.len()]);
     let (mut l, mut g) = evaluate(&x)?;
     let mut best = (l, x.clone());
-    let mut evaluations = 1;
-    for iter in 0.. {
+    for (iter, evaluations) in (0..).zip(1..) {
         let it = Iteration {
             iter,
             loss: l,
@@ -427,7 +425,6 @@ fn first_order(
         }
         params.project(&mut x);
         (l, g) = evaluate(&x)?;
-        evaluations += 1;
         if l < best.0 {
             best = (l, x.clone());
         }

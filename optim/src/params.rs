@@ -49,7 +49,7 @@ impl Bounds {
         p.max(self.lower).min(self.upper)
     }
     /// `p(u)` and `dp/du` of the change of variables L-BFGS uses.
-    fn from_free(&self, u: f64) -> (f64, f64) {
+    fn param_of_free(self, u: f64) -> (f64, f64) {
         match (self.lower.is_finite(), self.upper.is_finite()) {
             (false, false) => (u, 1.0),
             (true, false) => (self.lower + u.exp(), u.exp()),
@@ -61,8 +61,8 @@ impl Bounds {
             }
         }
     }
-    /// The inverse of [`Bounds::from_free`]; `None` if `p` is not strictly inside.
-    fn to_free(&self, p: f64) -> Option<f64> {
+    /// The inverse of [`Bounds::param_of_free`]; `None` if `p` is not strictly inside.
+    fn free_of_param(self, p: f64) -> Option<f64> {
         match (self.lower.is_finite(), self.upper.is_finite()) {
             (false, false) => Some(p),
             (true, false) => (p > self.lower).then(|| (p - self.lower).ln()),
@@ -246,28 +246,30 @@ impl Params {
 
     /// Values in the free variables of the change of variables, or an error naming the first
     /// component not strictly inside its bounds.
-    pub(crate) fn to_free(&self, values: &[f64]) -> Result<Vec<f64>, Error> {
+    pub(crate) fn free_of_params(&self, values: &[f64]) -> Result<Vec<f64>, Error> {
         self.components()
             .zip(values)
             .enumerate()
             .map(|(i, ((e, _), &p))| {
-                e.bounds.to_free(p).ok_or_else(|| Error::InvalidInput {
-                    what: self.component_name(i),
-                    message: format!(
-                        "starts at {p}, not strictly inside its bounds [{}, {}]; L-BFGS keeps \
+                e.bounds
+                    .free_of_param(p)
+                    .ok_or_else(|| Error::InvalidInput {
+                        what: self.component_name(i),
+                        message: format!(
+                            "starts at {p}, not strictly inside its bounds [{}, {}]; L-BFGS keeps \
                          bounds by a change of variables, start inside them",
-                        e.bounds.lower, e.bounds.upper
-                    ),
-                })
+                            e.bounds.lower, e.bounds.upper
+                        ),
+                    })
             })
             .collect()
     }
 
     /// Values and `dp/du` from the free variables.
-    pub(crate) fn from_free(&self, free: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    pub(crate) fn params_of_free(&self, free: &[f64]) -> (Vec<f64>, Vec<f64>) {
         self.components()
             .zip(free)
-            .map(|((e, _), &u)| e.bounds.from_free(u))
+            .map(|((e, _), &u)| e.bounds.param_of_free(u))
             .unzip()
     }
 }
@@ -285,17 +287,19 @@ mod tests {
             Bounds::between(-2.0, 3.0),
         ] {
             for p in [-1.5, -1.2, 0.7, 2.9] {
-                let Some(u) = b.to_free(p) else { continue };
-                let (q, d) = b.from_free(u);
+                let Some(u) = b.free_of_param(p) else {
+                    continue;
+                };
+                let (q, d) = b.param_of_free(u);
                 assert!((q - p).abs() < 1e-12, "{b:?} {p}");
                 let h = 1e-6;
-                let fd = (b.from_free(u + h).0 - b.from_free(u - h).0) / (2.0 * h);
+                let fd = (b.param_of_free(u + h).0 - b.param_of_free(u - h).0) / (2.0 * h);
                 assert!(
                     (fd - d).abs() < 1e-6 * (1.0 + d.abs()),
                     "{b:?} {p}: {fd} {d}"
                 );
             }
         }
-        assert_eq!(Bounds::positive().to_free(0.0), None);
+        assert_eq!(Bounds::positive().free_of_param(0.0), None);
     }
 }
