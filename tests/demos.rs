@@ -79,21 +79,24 @@ fn soft_body_crawls_toward_the_goal() {
         "{}\npassive {:+.4} m, initial {:+.4} m, optimized {:+.4} m",
         out.report, out.passive, out.before, out.after
     );
-    // The optimized gait moves the centre of mass forward by more than 2 cm, at least 2 cm
-    // more than the initial gait and than lying still, and the loss fell.
-    assert!(out.after > 0.02, "{} m: {}", out.after, out.report);
+    // The optimized gait moves the centre of mass forward by more than 5 cm (12.7 cm when
+    // written), at least 5 cm more than the initial gait and than lying still, and the loss
+    // fell. It is a crawl: the body never leaves the ground and its centre of mass stays low.
+    assert!(out.after > 0.05, "{} m: {}", out.after, out.report);
     assert!(
-        out.after > out.before + 0.02,
+        out.after > out.before + 0.05,
         "{} vs {}",
         out.after,
         out.before
     );
     assert!(
-        out.after > out.passive + 0.02,
+        out.after > out.passive + 0.05,
         "{} vs {}",
         out.after,
         out.passive
     );
+    assert_eq!(out.airborne, 0.0);
+    assert!(out.max_lift < 0.01, "{} m", out.max_lift);
     assert!(out.report.loss < out.report.initial_loss, "{}", out.report);
 }
 
