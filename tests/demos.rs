@@ -185,3 +185,29 @@ fn soft_body_loss_gradient_matches_central_differences() {
     assert_eq!(report.checked, 4);
     assert!(report.is_within(1e-5), "{report}");
 }
+
+#[path = "../examples/cloth.rs"]
+#[allow(dead_code)]
+mod cloth;
+
+#[test]
+fn cloth_lands_on_the_target_spot() {
+    let out = cloth::run(&cloth::Config::small()).unwrap();
+    assert!(
+        out.miss < 0.02 && out.miss < 0.05 * out.initial_miss,
+        "{} m (first guess {} m): {}",
+        out.miss,
+        out.initial_miss,
+        out.report
+    );
+}
+
+#[test]
+fn cloth_loss_gradient_matches_central_differences() {
+    let cfg = cloth::Config {
+        n: 4,
+        ..cloth::Config::small()
+    };
+    let report = cloth::fd_check(&cfg, adflex::prelude::Vec3::new(0.5, 1.0, 0.0));
+    assert!(report.is_within(1e-6), "{report}");
+}

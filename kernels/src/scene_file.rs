@@ -121,6 +121,9 @@ fn ground_ke() -> f64 {
 fn ground_kd() -> f64 {
     Ground::<f64>::default().kd
 }
+fn ground_damp_approach() -> bool {
+    Ground::<f64>::default().damp_approach
+}
 fn ground_mu() -> f64 {
     Ground::<f64>::default().mu
 }
@@ -267,6 +270,8 @@ struct GroundDesc {
     mu: f64,
     #[serde(default)]
     leak: f64,
+    #[serde(default = "ground_damp_approach")]
+    damp_approach: bool,
 }
 
 #[derive(Deserialize)]
@@ -821,6 +826,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             kd: R::lit(g.kd),
             mu: R::lit(g.mu),
             leak: R::lit(g.leak),
+            damp_approach: g.damp_approach,
         });
         c.builder(&b, n0, |f| sub("ground", f, &[]))?;
     }

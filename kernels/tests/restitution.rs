@@ -84,3 +84,48 @@ fn the_relation_is_the_one_sided_dashpots() {
     assert_eq!(restitution_damping_ratio(1.0), 0.0);
     assert!((restitution_damping_ratio((-1.0f64).exp()) - 1.0).abs() < 1e-9);
 }
+
+/// A ball dropped on the ground with `damp_approach = false` (damping in contact only)
+/// bounces with the restitution the particle relation gives for `m_eff = m` (with the dFlex
+/// default the same `kd` would also brake the fall: here it stops the ball before it lands).
+#[test]
+fn the_ground_has_a_restitution_when_it_damps_in_contact_only() {
+    let (ke, m, e, dt) = (1.0e4, 0.5, 0.6, 2e-5);
+    let kd = ParticleContact::restitution_damping(ke, e, m);
+    let drop = |damp_approach: bool| -> Option<f64> {
+        let mut b = ModelBuilder::<f64>::new();
+        b.gravity = Vec3::zeros();
+        b.add_particle(Vec3::new(0.0, 0.05, 0.0), Vec3::new(0.0, -1.0, 0.0), m);
+        b.set_ground(Ground {
+            ke,
+            kd,
+            mu: 0.0,
+            damp_approach,
+            ..Ground::default()
+        });
+        let model = b.finalize();
+        let mut s = model.state();
+        let mut impact = None;
+        for _ in 0..20_000 {
+            s = SemiImplicitEuler
+                .step(&model, &mut Tape::new(), &s, None, dt)
+                .unwrap();
+            let (y, vy) = (s.x.get(0).y, s.v.get(0).y);
+            if impact.is_none() && y <= model.particle_radius {
+                impact = Some(-vy);
+            }
+            if impact.is_some() && y > model.particle_radius + 1e-3 {
+                return Some(vy / impact.unwrap());
+            }
+        }
+        None
+    };
+    let in_contact = drop(false).expect("a bounce");
+    println!("ground, e = {e}: measured {in_contact:.4} (damping in contact only)");
+    assert!((in_contact - e).abs() < 0.01, "{in_contact}");
+    assert_eq!(
+        drop(true),
+        None,
+        "damping on approach stops this ball in the air"
+    );
+}

@@ -61,7 +61,8 @@ pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R)
 
 /// Ground contact of particle `tid`: the plane `dot(normal, x) = offset` (m), particles of
 /// radius `radius` (m); `c = contact_depth(dot(normal, x) - offset - radius, leak)` and
-/// `f += contact_force(normal, c, v, ke, kd, mu)`.
+/// `f += contact_force(normal, c, v, ke, kd [c < 0] or kd_free [c = 0], mu)`: `kd_free` is the
+/// damping of particles approaching the plane out of contact ([`Ground::damp_approach`]).
 #[diff_kernel]
 pub fn eval_ground<R: Real>(
     x: &Array<Vec3<R>>,
@@ -71,13 +72,15 @@ pub fn eval_ground<R: Real>(
     radius: R,
     ke: R,
     kd: R,
+    kd_free: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
 ) {
     let t = tid();
     let c = contact_depth(dot(normal, x[t]) - offset - radius, leak);
-    f.atomic_add(t, contact_force(normal, c, v[t], ke, kd, mu));
+    let kdc = select(c < 0.0, kd, kd_free);
+    f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
 }
 
 /// [`eval_ground`] with a radius per particle: `radius[tid]` (m).
@@ -90,22 +93,27 @@ pub fn eval_ground_radii<R: Real>(
     radius: &Array<R>,
     ke: R,
     kd: R,
+    kd_free: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
 ) {
     let t = tid();
     let c = contact_depth(dot(normal, x[t]) - offset - radius[t], leak);
-    f.atomic_add(t, contact_force(normal, c, v[t], ke, kd, mu));
+    let kdc = select(c < 0.0, kd, kd_free);
+    f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
 }
 
 /// A ground plane for particle (and rigid body point) contact.
 ///
-/// Its damping `kd` acts on every particle moving towards the plane, in contact or not (see
-/// [`contact_force`]; dFlex's choice): a falling particle is braked by `kd v` before it lands.
-/// So [`crate::contact::particle::ParticleContact::restitution_damping`] does not give the
-/// ground a coefficient of restitution (it would overestimate the loss); with `kd = 0` a
-/// bounce is elastic up to the integrator's error.
+/// By default ([`Ground::damp_approach`] `= true`, dFlex's and Warp's choice, which the
+/// benchmark scene reproduces) its damping `kd` acts on every particle moving towards the
+/// plane, in contact or not (see [`contact_force`]): a falling particle is braked by `kd v`
+/// before it lands, which for light particles (cloth) is a strong air drag. With
+/// `damp_approach = false` the damping acts only in contact, and
+/// [`crate::contact::particle::ParticleContact::restitution_damping`] (with `m_eff` the
+/// particle's mass) gives the ground a coefficient of restitution. With `kd = 0` a bounce is
+/// elastic up to the integrator's error.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ground<R: Real> {
     /// Unit normal, pointing out of the ground (default `+y`).
@@ -120,6 +128,10 @@ pub struct Ground<R: Real> {
     pub mu: R,
     /// Gradient leak of [`contact_depth`] out of contact (default 0: exact gradients).
     pub leak: R,
+    /// Whether `kd` also damps particles approaching the plane out of contact (default true,
+    /// as in dFlex and Warp; false: damping in contact only). Rigid-body points are damped in
+    /// contact only either way.
+    pub damp_approach: bool,
 }
 
 impl<R: Real> Ground<R> {
@@ -156,11 +168,21 @@ impl<R: Real> Default for Ground<R> {
             kd: R::lit(1.0),
             mu: R::lit(0.5),
             leak: R::lit(0.0),
+            damp_approach: true,
         }
     }
 }
 
 impl<R: Real> Ground<R> {
+    /// The damping out of contact the kernels get: `kd` or 0 ([`Ground::damp_approach`]).
+    fn kd_free(&self) -> R {
+        if self.damp_approach {
+            self.kd
+        } else {
+            R::lit(0.0)
+        }
+    }
+
     /// Records [`eval_ground`] for particles of radius `radius` (m), accumulating into `f`.
     pub fn eval(
         &self,
@@ -181,6 +203,7 @@ impl<R: Real> Ground<R> {
                 radius,
                 self.ke,
                 self.kd,
+                self.kd_free(),
                 self.mu,
                 self.leak,
                 f,
@@ -210,6 +233,7 @@ impl<R: Real> Ground<R> {
                 radii,
                 self.ke,
                 self.kd,
+                self.kd_free(),
                 self.mu,
                 self.leak,
                 f,
