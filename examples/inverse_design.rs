@@ -148,7 +148,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
 }
 
 #[allow(dead_code)]
-fn main() -> Result<(), Error> {
+fn main() -> Result<(), Box<dyn std::error::Error>> {
     let start = std::time::Instant::now();
     let cfg = Config::full();
     let out = run(&cfg)?;
@@ -180,5 +180,31 @@ fn main() -> Result<(), Error> {
         out.report.evaluations,
         start.elapsed().as_secs_f64()
     );
+    let dir = std::path::Path::new("target/demos/inverse_design");
+    std::fs::create_dir_all(dir)?;
+    let profile = |xs: &[Vec3<f64>]| xs.iter().map(|p| (p.x, p.y)).collect::<Vec<_>>();
+    adflex::viz::plot::curves(
+        dir.join("shape.svg"),
+        "inverse design: the cable's equilibrium against the target",
+        "x (m)",
+        "y (m)",
+        &[
+            ("target parabola", &profile(&out.target)),
+            (
+                "equilibrium, initial rest lengths",
+                &profile(&out.frames[0].x.to_vec()),
+            ),
+            (
+                "equilibrium, optimized",
+                &profile(&out.frames[out.frames.len() - 1].x.to_vec()),
+            ),
+        ],
+    )?;
+    adflex::viz::plot::loss_curve(
+        dir.join("loss.svg"),
+        &out.report.losses(),
+        "inverse design: L-BFGS",
+    )?;
+    println!("pictures: {}/{{shape.svg, loss.svg}}", dir.display());
     Ok(())
 }

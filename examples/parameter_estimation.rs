@@ -233,7 +233,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
 }
 
 #[allow(dead_code)]
-fn main() -> Result<(), Error> {
+fn main() -> Result<(), Box<dyn std::error::Error>> {
     let start = std::time::Instant::now();
     let cfg = Config::full();
     let out = run(&cfg)?;
@@ -256,5 +256,33 @@ fn main() -> Result<(), Error> {
         (cfg.duration / cfg.dt).round(),
         start.elapsed().as_secs_f64()
     );
+    let dir = std::path::Path::new("target/demos/parameter_estimation");
+    std::fs::create_dir_all(dir)?;
+    adflex::viz::plot::loss_curve(
+        dir.join("loss.svg"),
+        &out.report.losses(),
+        "real to sim: L-BFGS on the trajectory mismatch",
+    )?;
+    // Particle 0's x coordinate: the recording and the simulation with the recovered values.
+    let t_rec: Vec<(f64, f64)> = out
+        .recorded
+        .iter()
+        .enumerate()
+        .map(|(k, s)| ((k * cfg.every) as f64 * cfg.dt, s.x.get(0).x))
+        .collect();
+    let t_sim: Vec<(f64, f64)> = out
+        .frames
+        .iter()
+        .enumerate()
+        .map(|(k, s)| (k as f64 * cfg.dt, s.x.get(0).x))
+        .collect();
+    adflex::viz::plot::curves(
+        dir.join("trajectory.svg"),
+        "recorded vs simulated with the recovered parameters",
+        "time (s)",
+        "x of particle 0 (m)",
+        &[("recorded", &t_rec), ("recovered", &t_sim)],
+    )?;
+    println!("pictures: {}/{{loss.svg, trajectory.svg}}", dir.display());
     Ok(())
 }
