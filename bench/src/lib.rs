@@ -10,5 +10,6 @@ pub mod overhead;
 pub mod peers;
 pub mod scatter;
 pub mod scene_file;
+pub mod small;
 pub mod timing;
 pub mod topo;

@@ -3,6 +3,10 @@
 //! - `scatter [--quick]`: deterministic scatter strategies and the serial threshold
 //! - `kernels [--quick]`: hand-written against generated spring and bending kernels
 //! - `overhead`: where the generated spring kernel loses time against the hand-written one
+//! - `small [--steps 2000] [--reps 7]`: a launch-bound scene (the demos' cage, f64): time per
+//!   gradient and per launch, one JSON line
+//! - `adjoint-memory [--threads K]`: peak memory of a parallel adjoint with many
+//!   contributions per thread (a 4-element array read in a 10,000-iteration loop)
 //! - `cloth --n 128 --steps 100 [--threads K] [--f64] [--reps R]`: the cloth benchmark, one
 //!   JSON line
 //! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--no-python]
@@ -34,6 +38,25 @@ fn main() {
         "scatter" => scatter::main(flag("--quick")),
         "kernels" => kernels_cmp::main(flag("--quick")),
         "overhead" => overhead::main(),
+        "small" => {
+            let num = |name: &str, default: usize| {
+                rest.iter()
+                    .position(|a| a == name)
+                    .and_then(|k| rest.get(k + 1))
+                    .and_then(|v| v.parse().ok())
+                    .unwrap_or(default)
+            };
+            small::main(num("--steps", 2000), num("--reps", 7))
+        }
+        "adjoint-memory" => {
+            let threads = rest
+                .iter()
+                .position(|a| a == "--threads")
+                .and_then(|k| rest.get(k + 1))
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(2);
+            small::adjoint_memory(threads)
+        }
         "charts" => {
             if let Err(e) = charts::parse(rest)
                 .map_err(Into::into)

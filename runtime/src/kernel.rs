@@ -180,6 +180,9 @@ pub struct Exec<'a> {
     locked: &'a [(u64, bool)],
     /// The thread ids of this chunk: a store claims only for these (chunks are disjoint).
     range: Range<usize>,
+    /// A logged chunk: the launch's chunk order and this chunk's place in it (to flush a
+    /// large log early, once every earlier chunk is applied).
+    order: Option<(&'a ChunkOrder, usize)>,
 }
 
 impl<'a> Exec<'a> {
@@ -188,6 +191,22 @@ impl<'a> Exec<'a> {
             direct,
             locked,
             range,
+            order: None,
+        }
+    }
+
+    /// A logged chunk `k` of a launch whose chunks are applied in `order`.
+    pub(crate) fn ordered(
+        locked: &'a [(u64, bool)],
+        range: Range<usize>,
+        order: &'a ChunkOrder,
+        k: usize,
+    ) -> Self {
+        Exec {
+            direct: false,
+            locked,
+            range,
+            order: Some((order, k)),
         }
     }
 
@@ -410,13 +429,19 @@ impl<T: Element> Writer<T> {
 }
 
 /// Accumulates into an array (`a.atomic_add(i, v)`), deterministically.
+///
+/// The log lives in its own heap box (`None` in direct mode): a `Vec` inline in the view would
+/// let its out-of-line growth take the view's address, and the compiler would then keep every
+/// field in memory and reload it after each add (the direct path ran at 1.4x to 2x a
+/// hand-written loop; docs/performance.md).
 pub struct Scatter<T: Element> {
     target: Option<Array<T>>,
     ptr: *mut T,
     len: usize,
-    direct: bool,
-    log: Vec<(u32, T)>,
+    log: Option<Box<Vec<(u32, T)>>>,
     place: Place,
+    /// The launch's chunk order and this chunk's index (logged chunks).
+    order: Option<(*const ChunkOrder, usize)>,
 }
 
 impl<T: Element> Scatter<T> {
@@ -425,12 +450,12 @@ impl<T: Element> Scatter<T> {
             .as_ref()
             .map_or(std::ptr::null_mut(), |a| a.data_ptr());
         Scatter {
+            log: (!exec.direct && target.is_some()).then(|| Box::new(take_log())),
             target,
             ptr,
             len,
-            direct: exec.direct,
-            log: if exec.direct { Vec::new() } else { take_log() },
             place,
+            order: exec.order.map(|(o, k)| (o as *const ChunkOrder, k)),
         }
     }
 
@@ -438,14 +463,38 @@ impl<T: Element> Scatter<T> {
     #[inline(always)]
     pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
         let i = checked(i, self.len, &self.place);
-        if self.target.is_none() {
-            return;
+        match &mut self.log {
+            Some(log) => {
+                log.push((i as u32, v));
+                if log.len() >= LOG_FLUSH && self.order.is_some() {
+                    self.flush();
+                }
+            }
+            // SAFETY: direct mode runs a single chunk in thread-id order on one thread (or
+            // this chunk is the first unapplied one, see `flush`); in bounds.
+            None if !self.ptr.is_null() => unsafe { (*self.ptr.add(i)).acc(v) },
+            None => {}
         }
-        if self.direct {
-            // SAFETY: direct mode runs a single chunk on one thread; in bounds.
-            unsafe { (*self.ptr.add(i)).acc(v) }
-        } else {
-            self.log.push((i as u32, v));
+    }
+
+    /// A log too large to keep: waits until every earlier chunk of the launch is applied
+    /// (this chunk is then the first unapplied one, and no later chunk applies anything
+    /// before it finishes), applies the log in order and goes on writing directly. So a
+    /// launch's memory does not grow with its contributions, and the order of the additions
+    /// (thread-id order) is unchanged.
+    #[cold]
+    #[inline(never)]
+    fn flush(&mut self) {
+        let Some((order, k)) = self.order else { return };
+        // SAFETY: the order outlives the launch's chunks, which own the views.
+        unsafe { &*order }.wait_turn(k);
+        if let Some(log) = self.log.take() {
+            for &(i, v) in log.iter() {
+                // SAFETY: in bounds (checked when logged); this chunk's turn: no other
+                // thread writes the target.
+                unsafe { (*self.ptr.add(i as usize)).acc(v) }
+            }
+            give_log(*log);
         }
     }
 
@@ -459,16 +508,65 @@ impl<T: Element> Scatter<T> {
 
     /// The log of this chunk (empty in direct mode).
     pub fn finish(self) -> ScatterLog {
-        match self.target {
-            Some(t) if !self.log.is_empty() => ScatterLog(Some(Box::new(TypedLog {
+        match (self.target, self.log) {
+            (Some(t), Some(log)) if !log.is_empty() => ScatterLog(Some(Box::new(TypedLog {
                 target: t,
-                entries: self.log,
+                entries: *log,
             }))),
-            _ => {
-                give_log(self.log);
+            (_, Some(log)) => {
+                give_log(*log);
                 ScatterLog(None)
             }
+            _ => ScatterLog(None),
         }
+    }
+}
+
+/// Entries a chunk's log may hold before it is applied early ([`Scatter::add`]): 1 MB of
+/// `Vec3<f32>` entries per target and chunk.
+const LOG_FLUSH: usize = 1 << 16;
+
+/// The order in which the chunks of a parallel launch apply their logs: chunk `k` applies its
+/// logs when chunks `0..k` have applied theirs. Chunks are claimed in order by running workers,
+/// so the first unapplied chunk is always running or applying: waiting for it cannot deadlock.
+#[derive(Debug, Default)]
+pub(crate) struct ChunkOrder {
+    next: std::sync::atomic::AtomicUsize,
+    /// (chunks applied, a chunk panicked)
+    state: Mutex<(usize, bool)>,
+    turn: std::sync::Condvar,
+}
+
+impl ChunkOrder {
+    /// The next chunk to run (in order).
+    pub(crate) fn claim(&self) -> usize {
+        self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Blocks until chunks `0..k` are applied. Panics if one of them panicked.
+    pub(crate) fn wait_turn(&self, k: usize) {
+        let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        while st.0 < k && !st.1 {
+            st = self.turn.wait(st).unwrap_or_else(PoisonError::into_inner);
+        }
+        if st.1 && st.0 < k {
+            panic!("another chunk of this launch panicked");
+        }
+    }
+
+    /// Chunk `k` is applied: the next one's turn.
+    pub(crate) fn done(&self, k: usize) {
+        let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        debug_assert_eq!(st.0, k);
+        st.0 = k + 1;
+        self.turn.notify_all();
+    }
+
+    /// A chunk panicked: wakes every waiter (they panic too).
+    pub(crate) fn fail(&self) {
+        let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        st.1 = true;
+        self.turn.notify_all();
     }
 }
 
@@ -476,14 +574,11 @@ impl<T: Element> Scatter<T> {
 pub struct ScatterLog(pub(crate) Option<Box<dyn ApplyLog>>);
 
 pub(crate) trait ApplyLog: Send + Sync {
-    fn target_id(&self) -> u64;
-    fn entries(&self) -> usize;
-    fn target_len(&self) -> usize;
-    /// Applies the entries whose index is in `lo..hi`, in log order.
+    /// Applies every entry, in log order.
     ///
     /// # Safety
-    /// No other thread may write `lo..hi` of the target concurrently.
-    unsafe fn apply_range(&self, lo: usize, hi: usize);
+    /// No other thread may write the target concurrently.
+    unsafe fn apply(&self);
 }
 
 struct TypedLog<T: Element> {
@@ -524,23 +619,10 @@ fn give_log<T: Element>(mut log: Vec<(u32, T)>) {
 }
 
 impl<T: Element> ApplyLog for TypedLog<T> {
-    fn target_id(&self) -> u64 {
-        self.target.id()
-    }
-    fn entries(&self) -> usize {
-        self.entries.len()
-    }
-    fn target_len(&self) -> usize {
-        self.target.len()
-    }
-    unsafe fn apply_range(&self, lo: usize, hi: usize) {
+    unsafe fn apply(&self) {
         let p = self.target.data_ptr();
-        let full = lo == 0 && hi >= self.target.len();
         for &(i, v) in &self.entries {
-            let i = i as usize;
-            if full || (lo <= i && i < hi) {
-                (*p.add(i)).acc(v);
-            }
+            (*p.add(i as usize)).acc(v);
         }
     }
 }

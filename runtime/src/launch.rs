@@ -3,16 +3,16 @@
 //! Thread ids `0..dim` run in fixed chunks of [`CHUNK`] ids (fixed by size, never by thread
 //! count). A launch smaller than [`SERIAL_BELOW`] ids, or on a one-thread pool, runs as a single
 //! chunk in thread-id order and scatters straight into its targets. A larger launch runs its
-//! chunks in parallel, each logging its scatters; the logs are then applied chunk by chunk,
-//! which is thread-id order again. So the result is bitwise identical for any number of
-//! threads and from run to run.
+//! chunks in parallel, each logging its scatters; each chunk applies its logs when every earlier
+//! chunk has applied its own, which is thread-id order again. So the result is bitwise
+//! identical for any number of threads and from run to run.
 
 use std::ops::Range;
 
 use rayon::prelude::*;
 
 use crate::array::{AnyArray, Token};
-use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
+use crate::kernel::{Access, ChunkOrder, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 
 /// Thread ids per chunk.
 pub const CHUNK: usize = 2048;
@@ -154,15 +154,9 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
         } else {
-            let chunks: Vec<Range<usize>> = (0..dim)
-                .step_by(CHUNK)
-                .map(|s| s..(s + CHUNK).min(dim))
-                .collect();
-            let logs: Vec<Vec<ScatterLog>> = chunks
-                .into_par_iter()
-                .map(|r| kernel.run(mode, args, r.clone(), &Exec::new(false, locked, r)))
-                .collect();
-            apply_logs(logs);
+            run_ordered(dim, &|r, k, order| {
+                kernel.run(mode, args, r.clone(), &Exec::ordered(locked, r, order, k))
+            });
         }
     });
 }
@@ -316,33 +310,41 @@ fn mark_written(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mo
     }
 }
 
-/// Applies every chunk's logs in chunk order. Logs of one target are applied by index range in
-/// parallel when they are large; each range still sees its entries in thread-id order.
-fn apply_logs(logs: Vec<Vec<ScatterLog>>) {
-    let mut by_target: Vec<(u64, Vec<&dyn crate::kernel::ApplyLog>)> = Vec::new();
-    for chunk in &logs {
-        for log in chunk.iter().filter_map(|l| l.0.as_deref()) {
-            match by_target.iter_mut().find(|(id, _)| *id == log.target_id()) {
-                Some((_, v)) => v.push(log),
-                None => by_target.push((log.target_id(), vec![log])),
+/// Runs the chunks of `0..dim` on the pool's workers, claimed in order, each applying its logs
+/// when every earlier chunk has applied its own (thread-id order, whatever the thread count),
+/// while later chunks run. A chunk whose log grows large applies it early, at its turn
+/// ([`crate::kernel::Scatter`]), so memory does not grow with the contributions.
+fn run_ordered(dim: usize, run: &RunChunk) {
+    let chunks = dim.div_ceil(CHUNK);
+    let order = ChunkOrder::default();
+    let workers = rayon::current_num_threads().clamp(1, chunks.max(1));
+    (0..workers).into_par_iter().for_each(|_| loop {
+        let k = order.claim();
+        if k >= chunks {
+            break;
+        }
+        let range = k * CHUNK..((k + 1) * CHUNK).min(dim);
+        // Wakes the waiters if this chunk panics (they would wait for its turn forever).
+        struct FailOnUnwind<'o>(&'o ChunkOrder);
+        impl Drop for FailOnUnwind<'_> {
+            fn drop(&mut self) {
+                if std::thread::panicking() {
+                    self.0.fail();
+                }
             }
         }
-    }
-    for (_, logs) in by_target {
-        let len = logs[0].target_len();
-        let entries: usize = logs.iter().map(|l| l.entries()).sum();
-        let parts = if entries < 1 << 16 {
-            1
-        } else {
-            rayon::current_num_threads().max(1)
-        };
-        let step = len.div_ceil(parts).max(1);
-        (0..parts).into_par_iter().for_each(|p| {
-            let (lo, hi) = (p * step, ((p + 1) * step).min(len));
-            for l in &logs {
-                // SAFETY: the parts cover disjoint index ranges of the target.
-                unsafe { l.apply_range(lo, hi) }
-            }
-        });
-    }
+        let guard = FailOnUnwind(&order);
+        let logs = run(range, k, &order);
+        order.wait_turn(k);
+        for log in logs.iter().filter_map(|l| l.0.as_deref()) {
+            // SAFETY: chunk `k`'s turn: every other chunk is running (writing only logs and
+            // their own stores) or waiting.
+            unsafe { log.apply() }
+        }
+        order.done(k);
+        drop(guard);
+    });
 }
+
+/// Runs one chunk (its thread ids, its index) and returns its logs.
+type RunChunk<'a> = dyn Fn(Range<usize>, usize, &ChunkOrder) -> Vec<ScatterLog> + Sync + 'a;
