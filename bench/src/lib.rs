@@ -1,6 +1,7 @@
 //! Benchmarks and charts of adflex. The binary (`src/main.rs`) is the entry point:
 //! `cargo run --release -p adflex-bench -- <scatter|kernels|cloth|peers|charts> ...`.
 
+pub mod bound;
 pub mod charts;
 pub mod cloth;
 pub mod gen;

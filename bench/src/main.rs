@@ -5,6 +5,8 @@
 //! - `overhead`: where the generated spring kernel loses time against the hand-written one
 //! - `small [--steps 2000] [--reps 7]`: a launch-bound scene (the demos' cage, f64): time per
 //!   gradient and per launch, one JSON line
+//! - `bound [--n 128]`: streaming bandwidth (triad, 1 and 2 threads) and the compulsory
+//!   traffic and flops of one cloth step: the memory-bandwidth bound, one JSON line
 //! - `adjoint-memory [--threads K]`: peak memory of a parallel adjoint with many
 //!   contributions per thread (a 4-element array read in a 10,000-iteration loop)
 //! - `cloth --n 128 --steps 100 [--threads K] [--f64] [--reps R]`: the cloth benchmark, one
@@ -47,6 +49,15 @@ fn main() {
                     .unwrap_or(default)
             };
             small::main(num("--steps", 2000), num("--reps", 7))
+        }
+        "bound" => {
+            let n = rest
+                .iter()
+                .position(|a| a == "--n")
+                .and_then(|k| rest.get(k + 1))
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(128);
+            bound::main(n)
         }
         "adjoint-memory" => {
             let threads = rest
