@@ -47,7 +47,8 @@
 //!   file's `triangles`.
 //! - `tets`: `{ indices: [i, j, k, l], mu, lambda, kd (0) }` or with `young`, `poisson` in
 //!   place of `mu`, `lambda` (see [`crate::forces::fem_tet::snh_lame`]).
-//! - `ground`: `{ normal ([0,1,0]), offset (0), ke (1000), kd (1), mu (0.5), leak (0) }`.
+//! - `ground`: `{ normal ([0,1,0]), offset (0), ke (1000), kd (1), mu (0.5), leak (0),
+//!   damp_approach (true) }`.
 //! - `drag`: `{ kd, wind ([0,0,0]) }`.
 //! - `particle_contact`, `shape_contact`: `{ ke (1000), kd (1), mu (0.5), leak (0), margin (0) }`.
 //! - `shapes`: `{ kind: "sphere" | "box" | "capsule", pos, rot ([0,0,0,1] as x, y, z, w),

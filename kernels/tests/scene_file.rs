@@ -308,3 +308,20 @@ fn scene_file_defaults_are_the_components_defaults() {
     assert_eq!((cloth.ni, cloth.nj), (16, 16));
     assert_eq!(Drag::<f64>::default().wind, adflex_runtime::Vec3::zeros());
 }
+
+#[test]
+fn the_ground_reads_damp_approach_and_defaults_to_the_builders() {
+    let read = |ground: &str| {
+        let json = format!(
+            r#"{{ "particles": [ {{ "x": [0, 1, 0], "mass": 1 }} ], "ground": {ground} }}"#
+        );
+        adflex_kernels::ModelBuilder::<f64>::from_json_str(&json)
+            .unwrap()
+            .finalize()
+            .ground()
+            .unwrap()
+    };
+    assert!(read("{}").damp_approach);
+    assert_eq!(read("{}"), adflex_kernels::prelude::Ground::default());
+    assert!(!read(r#"{ "damp_approach": false }"#).damp_approach);
+}
