@@ -114,8 +114,10 @@ fn the_ground_has_a_restitution_when_it_damps_in_contact_only() {
             if impact.is_none() && y <= model.particle_radius {
                 impact = Some(-vy);
             }
-            if impact.is_some() && y > model.particle_radius + 1e-3 {
-                return Some(vy / impact.unwrap());
+            if let Some(v_in) = impact {
+                if y > model.particle_radius + 1e-3 {
+                    return Some(vy / v_in);
+                }
             }
         }
         None

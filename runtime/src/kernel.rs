@@ -438,6 +438,8 @@ pub struct Scatter<T: Element> {
     target: Option<Array<T>>,
     ptr: *mut T,
     len: usize,
+    // Boxed on purpose (see the type's docs): the view's own fields stay in registers.
+    #[allow(clippy::box_collection)]
     log: Option<Box<Vec<(u32, T)>>>,
     place: Place,
     /// The launch's chunk order and this chunk's index (logged chunks).
