@@ -43,7 +43,7 @@ pub struct ParamInfo {
 }
 
 /// Which of the three generated kernels to run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Mode {
     /// The kernel as written.
     Forward,

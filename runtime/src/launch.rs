@@ -1,7 +1,8 @@
 //! Launching kernels over the rayon thread pool.
 //!
 //! Thread ids `0..dim` run in fixed chunks of [`CHUNK`] ids (fixed by size, never by thread
-//! count). A launch smaller than [`SERIAL_BELOW`] ids, or on a one-thread pool, runs as a single
+//! count). A launch smaller than [`SERIAL_BELOW`] ids, on a one-thread pool, or of a kernel
+//! that measured faster serially (each kernel and size is timed both ways), runs as a single
 //! chunk in thread-id order and scatters straight into its targets. A larger launch runs its
 //! chunks in parallel, each logging its scatters; each chunk applies its logs when every earlier
 //! chunk has applied its own, which is thread-id order again. So the result is bitwise
@@ -149,7 +150,10 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
     let arrays = K::arrays(args);
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
-        let serial = dim < SERIAL_BELOW || rayon::current_num_threads() == 1;
+        let threads = rayon::current_num_threads();
+        let key = (std::any::TypeId::of::<K>(), mode, dim.ilog2(), threads);
+        let serial = dim < SERIAL_BELOW || threads == 1 || choice::serial(key);
+        let start = std::time::Instant::now();
         if serial {
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
@@ -158,7 +162,106 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                 kernel.run(mode, args, r.clone(), &Exec::ordered(locked, r, order, k))
             });
         }
+        if dim >= SERIAL_BELOW && threads > 1 {
+            choice::record(key, serial, start.elapsed().as_secs_f64());
+        }
     });
+}
+
+/// Serial or parallel, per launch, by measurement: the two paths give the same bits (both
+/// add in thread-id order), so a launch may take either. Each (kernel, mode, size class,
+/// pool size) is timed both ways, then runs the faster, trying the other again every
+/// [`choice::PROBE`] launches: so a launch that does not gain from a second thread (a small
+/// scatter-bound kernel, or a core busy with another process) runs serially, and one that
+/// gains runs in parallel.
+mod choice {
+    use std::any::TypeId;
+    use std::collections::HashMap;
+    use std::sync::{Mutex, PoisonError};
+
+    use crate::kernel::Mode;
+
+    /// Every this many launches of a key, the slower path is timed again.
+    pub(super) const PROBE: u32 = 32;
+
+    pub(super) type Key = (TypeId, Mode, u32, usize);
+
+    /// Seconds per launch, smoothed, of each path; launches so far.
+    #[derive(Default)]
+    struct Times {
+        serial: Option<f64>,
+        parallel: Option<f64>,
+        launches: u32,
+    }
+
+    static TIMES: Mutex<Option<HashMap<Key, Times>>> = Mutex::new(None);
+
+    fn with<R>(f: impl FnOnce(&mut HashMap<Key, Times>) -> R) -> R {
+        let mut g = TIMES.lock().unwrap_or_else(PoisonError::into_inner);
+        f(g.get_or_insert_with(HashMap::new))
+    }
+
+    /// Whether the next launch of `key` runs serially.
+    pub(super) fn serial(key: Key) -> bool {
+        with(|m| {
+            let t = m.entry(key).or_default();
+            t.launches = t.launches.wrapping_add(1);
+            match (t.serial, t.parallel) {
+                (_, None) => false,
+                (None, _) => true,
+                (Some(s), Some(p)) => {
+                    let faster_serial = s < p;
+                    if t.launches % PROBE == 0 {
+                        !faster_serial
+                    } else {
+                        faster_serial
+                    }
+                }
+            }
+        })
+    }
+
+    /// Records how long a launch of `key` took on the path it took.
+    pub(super) fn record(key: Key, serial: bool, seconds: f64) {
+        with(|m| {
+            let t = m.entry(key).or_default();
+            let slot = if serial {
+                &mut t.serial
+            } else {
+                &mut t.parallel
+            };
+            *slot = Some(match *slot {
+                None => seconds,
+                Some(old) => 0.75 * old + 0.25 * seconds,
+            });
+        })
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        #[test]
+        fn times_both_paths_then_takes_the_faster_and_probes_the_other() {
+            struct K;
+            let key = (TypeId::of::<K>(), Mode::Adjoint, 13, 2);
+            assert!(!serial(key)); // parallel first
+            record(key, false, 2.0);
+            assert!(serial(key)); // then serial
+            record(key, true, 1.0);
+            let picks: Vec<bool> = (0..2 * PROBE).map(|_| serial(key)).collect();
+            let parallel = picks.iter().filter(|s| !**s).count();
+            assert_eq!(
+                parallel, 2,
+                "one probe of the slower path per {PROBE} launches"
+            );
+            // The parallel path getting faster flips the choice.
+            for _ in 0..20 {
+                record(key, false, 0.1);
+            }
+            assert!(!serial(key) || !serial(key));
+        }
+    }
 }
 
 /// Runs `kernel` in `mode` over `0..dim` on the calling thread only, in thread-id order (the
