@@ -151,8 +151,14 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
     let arrays = K::arrays(args);
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
         let threads = rayon::current_num_threads();
-        let key = (std::any::TypeId::of::<K>(), mode, dim.ilog2(), threads);
-        let serial = dim < SERIAL_BELOW || threads == 1 || choice::serial(key);
+        let timed = dim >= SERIAL_BELOW && threads > 1;
+        let key = (
+            std::any::TypeId::of::<K>(),
+            mode,
+            dim.max(1).ilog2(),
+            threads,
+        );
+        let serial = !timed || choice::serial(key);
         let start = std::time::Instant::now();
         if serial {
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, 0..dim));
@@ -162,7 +168,7 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                 kernel.run(mode, args, r.clone(), &Exec::ordered(locked, r, order, k))
             });
         }
-        if dim >= SERIAL_BELOW && threads > 1 {
+        if timed {
             choice::record(key, serial, start.elapsed().as_secs_f64());
         }
     });

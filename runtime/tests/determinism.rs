@@ -118,3 +118,19 @@ fn logs_applied_early_keep_the_bits() {
     assert_eq!(one, loop_grads(3), "1 vs 3 threads");
     assert!(one.iter().all(|&b| f64::from_bits(b) != 0.0));
 }
+
+#[test]
+fn empty_and_tiny_launches_run_on_any_pool() {
+    for threads in [1, 2] {
+        with_threads(threads, || {
+            let a = Array::from_vec(vec![1.0f64; 4]);
+            let w = Array::<f64>::zeros(0);
+            let out = Array::<f64>::zeros(0);
+            launch(loop_reads, 0, (&a, &w, &out));
+            let w = Array::from_vec(vec![1.0f64]);
+            let out = Array::<f64>::zeros(1);
+            launch(loop_reads, 1, (&a, &w, &out));
+            assert!(out.get(0) != 0.0);
+        });
+    }
+}
