@@ -489,7 +489,13 @@ impl<T: Element> Scatter<T> {
     fn flush(&mut self) {
         let Some((order, k)) = self.order else { return };
         // SAFETY: the order outlives the launch's chunks, which own the views.
-        unsafe { &*order }.wait_turn(k);
+        if !unsafe { &*order }.wait_turn(k) {
+            // The launch is failing with another chunk's panic: drop the log, apply nothing.
+            if let Some(log) = &mut self.log {
+                log.clear();
+            }
+            return;
+        }
         if let Some(log) = self.log.take() {
             for &(i, v) in log.iter() {
                 // SAFETY: in bounds (checked when logged); this chunk's turn: no other
@@ -545,15 +551,14 @@ impl ChunkOrder {
         self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
     }
 
-    /// Blocks until chunks `0..k` are applied. Panics if one of them panicked.
-    pub(crate) fn wait_turn(&self, k: usize) {
+    /// Blocks until chunks `0..k` are applied (true), or one of them panicked (false: the
+    /// launch is failing with that panic; the caller applies nothing and stops).
+    pub(crate) fn wait_turn(&self, k: usize) -> bool {
         let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         while st.0 < k && !st.1 {
             st = self.turn.wait(st).unwrap_or_else(PoisonError::into_inner);
         }
-        if st.1 && st.0 < k {
-            panic!("another chunk of this launch panicked");
-        }
+        st.0 >= k
     }
 
     /// Chunk `k` is applied: the next one's turn.
@@ -564,7 +569,8 @@ impl ChunkOrder {
         self.turn.notify_all();
     }
 
-    /// A chunk panicked: wakes every waiter (they panic too).
+    /// A chunk panicked: wakes every waiter (they give up, so that the panic the launch
+    /// reports is that chunk's own).
     pub(crate) fn fail(&self) {
         let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         st.1 = true;

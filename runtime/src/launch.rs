@@ -444,7 +444,9 @@ fn run_ordered(dim: usize, run: &RunChunk) {
         }
         let guard = FailOnUnwind(&order);
         let logs = run(range, k, &order);
-        order.wait_turn(k);
+        if !order.wait_turn(k) {
+            break; // an earlier chunk panicked: the launch reports that panic
+        }
         for log in logs.iter().filter_map(|l| l.0.as_deref()) {
             // SAFETY: chunk `k`'s turn: every other chunk is running (writing only logs and
             // their own stores) or waiting.

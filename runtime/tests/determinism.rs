@@ -134,3 +134,55 @@ fn empty_and_tiny_launches_run_on_any_pool() {
         });
     }
 }
+
+/// Like `loop_reads`, but thread 5 reads out of bounds.
+#[adflex_macros::diff_kernel]
+fn loop_reads_then_fails(a: &Array<f64>, w: &Array<f64>, out: &Array<f64>) {
+    let t = tid();
+    let mut s = 0.0;
+    for k in 0..200 {
+        s += a[k % 4] * w[t];
+    }
+    let bad = select(t == 5, 1000, 0);
+    out[t] = s + a[bad];
+}
+
+#[test]
+fn a_panicking_chunk_fails_the_launch_with_its_own_message_and_no_deadlock() {
+    let n = 16_384;
+    let a = Array::from_vec(vec![0.3, -1.1, 2.0, 0.7]).requires_grad();
+    let w = Array::from_vec(random(n, 22, -1.0, 1.0));
+    let out = Array::<f64>::zeros(n);
+    for threads in [2, 3] {
+        let err = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            with_threads(threads, || {
+                let mut tape = Tape::new();
+                tape.launch(loop_reads_then_fails, n, (&a, &w, &out));
+            })
+        }))
+        .unwrap_err();
+        let msg = err
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| err.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_default();
+        assert!(
+            msg.contains("out of bounds") && msg.contains("1000"),
+            "{threads} threads: {msg}"
+        );
+        // The adjoint: later chunks fill their logs of `a.grad` and wait for their turn to
+        // apply them early while chunk 0 panics.
+        out.ensure_grad().fill(1.0);
+        let err = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            with_threads(threads, || {
+                launch_adjoint(loop_reads_then_fails, n, (&a, &w, &out))
+            })
+        }))
+        .unwrap_err();
+        let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+        assert!(
+            msg.contains("out of bounds"),
+            "adjoint, {threads} threads: {msg}"
+        );
+    }
+}
