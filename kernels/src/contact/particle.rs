@@ -5,12 +5,30 @@
 //! positions); it is recomputed from the current positions at every evaluation, so a
 //! checkpointed segment replays it identically.
 
-use adflex_macros::diff_kernel;
+use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
 use super::ground::{contact_depth, contact_force};
+
+/// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,
+/// whose surfaces are `gap` apart (m; negative in contact): what both pair kernels compute.
+#[diff_func]
+pub fn pair_contact_force<R: Real>(
+    xij: Vec3<R>,
+    vij: Vec3<R>,
+    gap: R,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+) -> Vec3<R> {
+    let n = normalize(xij);
+    let c = contact_depth(gap, leak);
+    let kdc = select(c < 0.0, kd, 0.0);
+    contact_force(n, c, vij, ke, kdc, mu)
+}
 
 /// Contact force of pair `tid = (i, j)` of particles of radius `radius` (m): with
 /// `n = normalize(x_i - x_j)` and `c = contact_depth(|x_i - x_j| - 2 radius, leak)`, particle
@@ -31,10 +49,15 @@ pub fn eval_particle_contact<R: Real>(
     let t = tid();
     let [i, j] = pairs[t];
     let xij = x[i] - x[j];
-    let n = normalize(xij);
-    let c = contact_depth(length(xij) - 2.0 * radius, leak);
-    let kdc = select(c < 0.0, kd, 0.0);
-    let fc = contact_force(n, c, v[i] - v[j], ke, kdc, mu);
+    let fc = pair_contact_force(
+        xij,
+        v[i] - v[j],
+        length(xij) - 2.0 * radius,
+        ke,
+        kd,
+        mu,
+        leak,
+    );
     f.atomic_add(i, fc);
     f.atomic_sub(j, fc);
 }
@@ -56,10 +79,15 @@ pub fn eval_particle_contact_radii<R: Real>(
     let t = tid();
     let [i, j] = pairs[t];
     let xij = x[i] - x[j];
-    let n = normalize(xij);
-    let c = contact_depth(length(xij) - radius[i] - radius[j], leak);
-    let kdc = select(c < 0.0, kd, 0.0);
-    let fc = contact_force(n, c, v[i] - v[j], ke, kdc, mu);
+    let fc = pair_contact_force(
+        xij,
+        v[i] - v[j],
+        length(xij) - radius[i] - radius[j],
+        ke,
+        kd,
+        mu,
+        leak,
+    );
     f.atomic_add(i, fc);
     f.atomic_sub(j, fc);
 }

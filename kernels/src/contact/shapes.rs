@@ -52,6 +52,37 @@ pub fn sdf_capsule<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
     vec4(n.x, n.y, n.z, length(dv) - size.x)
 }
 
+/// The contact force (N) on a particle at `x` with velocity `v` and radius `radius` from a
+/// shape of kind `k` (0 sphere, 1 box, 2 capsule) at `pos`, rotated by `q`, of size `size`:
+/// what both shape-contact kernels compute.
+#[diff_func]
+#[allow(clippy::too_many_arguments)]
+pub fn shape_contact_force<R: Real>(
+    x: Vec3<R>,
+    v: Vec3<R>,
+    k: u32,
+    pos: Vec3<R>,
+    q: Quat<R>,
+    size: Vec3<R>,
+    radius: R,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+) -> Vec3<R> {
+    let pl = quat_rotate_inv(q, x - pos);
+    let mut g = sdf_sphere(pl, size);
+    if k == 1 {
+        g = sdf_box(pl, size);
+    } else if k == 2 {
+        g = sdf_capsule(pl, size);
+    }
+    let n = quat_rotate(q, vec3(g.x, g.y, g.z));
+    let c = contact_depth(g.w - radius, leak);
+    let kdc = select(c < 0.0, kd, 0.0);
+    contact_force(n, c, v, ke, kdc, mu)
+}
+
 /// Contact of particle `tid / num_shapes` with shape `tid % num_shapes`: kind 0 sphere, 1 box,
 /// 2 capsule (sizes as in [`sdf_sphere`], [`sdf_box`], [`sdf_capsule`]). With `(n, d)` the SDF
 /// at the particle and `c = contact_depth(d - radius, leak)`, the particle gets
@@ -75,20 +106,10 @@ pub fn eval_shape_contact<R: Real>(
     let t = tid();
     let p = t / num_shapes;
     let s = t % num_shapes;
-    let k = kind[s];
-    let q = rot[s];
-    let pl = quat_rotate_inv(q, x[p] - pos[s]);
-    let sz = size[s];
-    let mut g = sdf_sphere(pl, sz);
-    if k == 1 {
-        g = sdf_box(pl, sz);
-    } else if k == 2 {
-        g = sdf_capsule(pl, sz);
-    }
-    let n = quat_rotate(q, vec3(g.x, g.y, g.z));
-    let c = contact_depth(g.w - radius, leak);
-    let kdc = select(c < 0.0, kd, 0.0);
-    f.atomic_add(p, contact_force(n, c, v[p], ke, kdc, mu));
+    let fc = shape_contact_force(
+        x[p], v[p], kind[s], pos[s], rot[s], size[s], radius, ke, kd, mu, leak,
+    );
+    f.atomic_add(p, fc);
 }
 
 /// [`eval_shape_contact`] with a radius per particle: `radius[tid / num_shapes]` (m).
@@ -111,20 +132,10 @@ pub fn eval_shape_contact_radii<R: Real>(
     let t = tid();
     let p = t / num_shapes;
     let s = t % num_shapes;
-    let k = kind[s];
-    let q = rot[s];
-    let pl = quat_rotate_inv(q, x[p] - pos[s]);
-    let sz = size[s];
-    let mut g = sdf_sphere(pl, sz);
-    if k == 1 {
-        g = sdf_box(pl, sz);
-    } else if k == 2 {
-        g = sdf_capsule(pl, sz);
-    }
-    let n = quat_rotate(q, vec3(g.x, g.y, g.z));
-    let c = contact_depth(g.w - radius[p], leak);
-    let kdc = select(c < 0.0, kd, 0.0);
-    f.atomic_add(p, contact_force(n, c, v[p], ke, kdc, mu));
+    let fc = shape_contact_force(
+        x[p], v[p], kind[s], pos[s], rot[s], size[s], radius[p], ke, kd, mu, leak,
+    );
+    f.atomic_add(p, fc);
 }
 
 /// The geometry of an analytic shape.
