@@ -402,6 +402,9 @@ fn func_items(
 
         impl #name {
             #[doc = #doc]
+            // The user's own arity: clippy would otherwise flag a generated item the user
+            // cannot annotate.
+            #[allow(clippy::too_many_arguments)]
             #[inline]
             #vis fn call #generics (#(#pnames: #tys),*) -> #ret #where_clause {
                 <Self as #rt::DiffFunc<#args_ty, #ret>>::forward(&#name, (#(#pnames,)*))
