@@ -451,8 +451,10 @@ impl<T: Element> Scatter<T> {
         let ptr = target
             .as_ref()
             .map_or(std::ptr::null_mut(), |a| a.data_ptr());
+        // A logged chunk whose turn it already is (every earlier chunk applied) writes directly.
+        let logged = !exec.direct && !exec.order.is_some_and(|(o, k)| o.is_turn(k));
         Scatter {
-            log: (!exec.direct && target.is_some()).then(|| Box::new(take_log())),
+            log: (logged && target.is_some()).then(|| Box::new(take_log())),
             target,
             ptr,
             len,
@@ -468,8 +470,8 @@ impl<T: Element> Scatter<T> {
         match &mut self.log {
             Some(log) => {
                 log.push((i as u32, v));
-                if log.len() >= LOG_FLUSH && self.order.is_some() {
-                    self.flush();
+                if log.len() % TURN_CHECK == 0 {
+                    self.checkpoint();
                 }
             }
             // SAFETY: direct mode runs a single chunk in thread-id order on one thread (or
@@ -479,23 +481,31 @@ impl<T: Element> Scatter<T> {
         }
     }
 
-    /// A log too large to keep: waits until every earlier chunk of the launch is applied
-    /// (this chunk is then the first unapplied one, and no later chunk applies anything
-    /// before it finishes), applies the log in order and goes on writing directly. So a
-    /// launch's memory does not grow with its contributions, and the order of the additions
-    /// (thread-id order) is unchanged.
-    #[cold]
+    /// Every [`TURN_CHECK`] logged entries: once every earlier chunk of the launch is applied,
+    /// this chunk is the first unapplied one and no later chunk applies anything before it
+    /// finishes, so it applies its log and goes on writing directly (with two workers, about
+    /// half the contributions are then never logged). A log too large to keep waits for that
+    /// turn, so a launch's memory does not grow with its contributions. Either way the order
+    /// of the additions (thread-id order) is unchanged.
     #[inline(never)]
-    fn flush(&mut self) {
+    fn checkpoint(&mut self) {
         let Some((order, k)) = self.order else { return };
         // SAFETY: the order outlives the launch's chunks, which own the views.
-        if !unsafe { &*order }.wait_turn(k) {
-            // The launch is failing with another chunk's panic: drop the log, apply nothing.
-            if let Some(log) = &mut self.log {
+        let order = unsafe { &*order };
+        if order.is_turn(k) {
+            self.apply_and_go_direct();
+        } else if self.log.as_ref().is_some_and(|l| l.len() >= LOG_FLUSH) {
+            if order.wait_turn(k) {
+                self.apply_and_go_direct();
+            } else if let Some(log) = &mut self.log {
+                // The launch is failing with another chunk's panic: apply nothing.
                 log.clear();
             }
-            return;
         }
+    }
+
+    /// Applies the log (this chunk's turn) and switches to direct writes.
+    fn apply_and_go_direct(&mut self) {
         if let Some(log) = self.log.take() {
             for &(i, v) in log.iter() {
                 // SAFETY: in bounds (checked when logged); this chunk's turn: no other
@@ -530,9 +540,12 @@ impl<T: Element> Scatter<T> {
     }
 }
 
-/// Entries a chunk's log may hold before it is applied early ([`Scatter::add`]): 1 MB of
-/// `Vec3<f32>` entries per target and chunk.
+/// Entries a chunk's log may hold before it waits for its turn to apply them
+/// ([`Scatter::checkpoint`]): 1 MB of `Vec3<f32>` entries per target and chunk.
 const LOG_FLUSH: usize = 1 << 16;
+/// A logged scatter looks whether its chunk's turn has come every this many entries (a power
+/// of two, so the test is a mask in the hot loop).
+const TURN_CHECK: usize = 256;
 
 /// The order in which the chunks of a parallel launch apply their logs: chunk `k` applies its
 /// logs when chunks `0..k` have applied theirs. Chunks are claimed in order by running workers,
@@ -540,6 +553,8 @@ const LOG_FLUSH: usize = 1 << 16;
 #[derive(Debug, Default)]
 pub(crate) struct ChunkOrder {
     next: std::sync::atomic::AtomicUsize,
+    /// Chunks applied (a copy of `state.0` that running chunks poll without the lock).
+    applied: std::sync::atomic::AtomicUsize,
     /// (chunks applied, a chunk panicked)
     state: Mutex<(usize, bool)>,
     turn: std::sync::Condvar,
@@ -549,6 +564,12 @@ impl ChunkOrder {
     /// The next chunk to run (in order).
     pub(crate) fn claim(&self) -> usize {
         self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Whether chunks `0..k` are applied (chunk `k`'s turn), without blocking. Acquire: the
+    /// earlier chunks' writes are visible once this is true.
+    pub(crate) fn is_turn(&self, k: usize) -> bool {
+        self.applied.load(std::sync::atomic::Ordering::Acquire) == k
     }
 
     /// Blocks until chunks `0..k` are applied (true), or one of them panicked (false: the
@@ -566,6 +587,8 @@ impl ChunkOrder {
         let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
         debug_assert_eq!(st.0, k);
         st.0 = k + 1;
+        self.applied
+            .store(k + 1, std::sync::atomic::Ordering::Release);
         self.turn.notify_all();
     }
 

@@ -12,8 +12,15 @@ use crate::Real;
 pub trait Value: Copy + Send + Sync + 'static {
     /// Number of differentiable scalar components.
     const DIM: usize;
-    /// The zero of this type (the seed of every adjoint and tangent).
+    /// The zero of this type.
     fn zeroed() -> Self;
+    /// The zero every adjoint and tangent accumulator starts from: `-0.0` in every component,
+    /// the identity of floating-point addition (`-0.0 + x` is `x` bitwise, while `0.0 + -0.0`
+    /// is `0.0`), so the compiler can drop the first accumulation into each adjoint.
+    #[inline(always)]
+    fn neg_zeroed() -> Self {
+        Self::zeroed()
+    }
     /// `self += other` for adjoint accumulation (a no-op for index types).
     fn acc(&mut self, other: Self);
     /// `self -= other` for adjoint accumulation (a no-op for index types).
@@ -24,10 +31,11 @@ pub trait Value: Copy + Send + Sync + 'static {
     fn set_component(&mut self, k: usize, x: f64);
 }
 
-/// The zero of `v`'s type; every adjoint variable starts here.
+/// The zero of `v`'s type every adjoint and tangent accumulator starts from
+/// ([`Value::neg_zeroed`]).
 #[inline(always)]
 pub fn zero_like<T: Value>(_v: &T) -> T {
-    T::zeroed()
+    T::neg_zeroed()
 }
 
 /// `adj += g`, the one accumulation the generated adjoints use.
@@ -78,6 +86,10 @@ impl<T: Value + Default, const N: usize> Value for [T; N] {
         [T::zeroed(); N]
     }
     #[inline(always)]
+    fn neg_zeroed() -> Self {
+        [T::neg_zeroed(); N]
+    }
+    #[inline(always)]
     fn acc(&mut self, other: Self) {
         for (a, b) in self.iter_mut().zip(other) {
             a.acc(b);
@@ -102,6 +114,7 @@ macro_rules! real_value {
         impl Value for $t {
             const DIM: usize = 1;
             #[inline(always)] fn zeroed() -> Self { 0.0 }
+            #[inline(always)] fn neg_zeroed() -> Self { -0.0 }
             #[inline(always)] fn acc(&mut self, other: Self) { *self += other }
             #[inline(always)] fn acc_neg(&mut self, other: Self) { *self -= other }
             fn component(&self, _: usize) -> f64 { *self as f64 }
@@ -116,6 +129,7 @@ macro_rules! matrix_value {
         impl<R: Real> Value for $t<R> {
             const DIM: usize = $n;
             #[inline(always)] fn zeroed() -> Self { $t::zeros() }
+            #[inline(always)] fn neg_zeroed() -> Self { $t::repeat(-R::zero()) }
             #[inline(always)] fn acc(&mut self, other: Self) { *self += other }
             #[inline(always)] fn acc_neg(&mut self, other: Self) { *self -= other }
             fn component(&self, k: usize) -> f64 { self[k].to_f64() }
@@ -130,6 +144,10 @@ impl<R: Real> Value for Quaternion<R> {
     #[inline(always)]
     fn zeroed() -> Self {
         Quaternion::from(Vector4::zeros())
+    }
+    #[inline(always)]
+    fn neg_zeroed() -> Self {
+        Quaternion::from(Vector4::repeat(-R::zero()))
     }
     #[inline(always)]
     fn acc(&mut self, other: Self) {
