@@ -436,7 +436,11 @@ impl<T: Element> Writer<T> {
 /// hand-written loop; docs/performance.md).
 pub struct Scatter<T: Element> {
     target: Option<Array<T>>,
+    /// The target's data while this view writes directly, null while it logs (or has no
+    /// target): one test in `add` picks the path, the direct one first.
     ptr: *mut T,
+    /// The target's data (null without a target), for applying the log.
+    dst: *mut T,
     len: usize,
     // Boxed on purpose (see the type's docs): the view's own fields stay in registers.
     #[allow(clippy::box_collection)]
@@ -448,7 +452,7 @@ pub struct Scatter<T: Element> {
 
 impl<T: Element> Scatter<T> {
     fn new(target: Option<Array<T>>, exec: &Exec, place: Place, len: usize) -> Self {
-        let ptr = target
+        let dst = target
             .as_ref()
             .map_or(std::ptr::null_mut(), |a| a.data_ptr());
         // A logged chunk whose turn it already is (every earlier chunk applied) writes directly.
@@ -456,7 +460,8 @@ impl<T: Element> Scatter<T> {
         Scatter {
             log: (logged && target.is_some()).then(|| Box::new(take_log())),
             target,
-            ptr,
+            ptr: if logged { std::ptr::null_mut() } else { dst },
+            dst,
             len,
             place,
             order: exec.order.map(|(o, k)| (o as *const ChunkOrder, k)),
@@ -467,17 +472,15 @@ impl<T: Element> Scatter<T> {
     #[inline(always)]
     pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
         let i = checked(i, self.len, &self.place);
-        match &mut self.log {
-            Some(log) => {
-                log.push((i as u32, v));
-                if log.len() % TURN_CHECK == 0 {
-                    self.checkpoint();
-                }
-            }
+        if !self.ptr.is_null() {
             // SAFETY: direct mode runs a single chunk in thread-id order on one thread (or
-            // this chunk is the first unapplied one, see `flush`); in bounds.
-            None if !self.ptr.is_null() => unsafe { (*self.ptr.add(i)).acc(v) },
-            None => {}
+            // this chunk is the first unapplied one, see `checkpoint`); in bounds.
+            unsafe { (*self.ptr.add(i)).acc(v) }
+        } else if let Some(log) = &mut self.log {
+            log.push((i as u32, v));
+            if log.len() % TURN_CHECK == 0 {
+                self.checkpoint();
+            }
         }
     }
 
@@ -510,9 +513,10 @@ impl<T: Element> Scatter<T> {
             for &(i, v) in log.iter() {
                 // SAFETY: in bounds (checked when logged); this chunk's turn: no other
                 // thread writes the target.
-                unsafe { (*self.ptr.add(i as usize)).acc(v) }
+                unsafe { (*self.dst.add(i as usize)).acc(v) }
             }
             give_log(*log);
+            self.ptr = self.dst;
         }
     }
 

@@ -324,8 +324,10 @@ macro_rules! div_scalar {
             }
             #[inline]
             fn div_adj(self, b: R, adj: $t) -> ($t, R) {
-                let ab = adj.lin_div(b);
-                (ab, -ab.lin_inner(self) / b)
+                // One division (a gradient need not round like the quotient it differentiates).
+                let r = R::lit(1.0) / b;
+                let ab = adj.lin_scale(r);
+                (ab, -ab.lin_inner(self) * r)
             }
             #[inline]
             fn div_tan(self, b: R, da: $t, db: R) -> $t {

@@ -108,8 +108,9 @@ pub fn normalize<V: VectorValue>(v: V) -> V {
 pub fn adj_normalize<V: VectorValue>(v: V, adj: V) -> V {
     let l = length(v);
     if l > V::Scalar::tiny() {
-        let n = v.lin_div(l);
-        adj.lin_sub(n.lin_scale(n.lin_inner(adj))).lin_div(l)
+        let n = v.lin_div(l); // as the forward computes it (so the two are one)
+        let r = V::Scalar::lit(1.0) / l;
+        adj.lin_sub(n.lin_scale(n.lin_inner(adj))).lin_scale(r)
     } else {
         V::zeroed()
     }
@@ -225,7 +226,7 @@ pub fn cw_div<T: Componentwise>(a: T, b: T) -> T {
 #[inline]
 pub fn adj_cw_div<T: Componentwise>(a: T, b: T, adj: T) -> (T, T) {
     let ab = adj.cw_div_fwd(b);
-    (ab, ab.cw_mul_fwd(a).cw_div_fwd(b).lin_neg())
+    (ab, ab.cw_mul_fwd(a.cw_div_fwd(b)).lin_neg())
 }
 #[doc(hidden)] // a rule: only generated code calls it
 /// Tangent of [`cw_div`](fn@cw_div): `(da - a * db / b) / b` componentwise.
