@@ -10,6 +10,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
 use crate::array::{AnyArray, Array, Element};
+use crate::chunk_order::ChunkOrder;
 
 /// How a kernel uses one of its parameters (decided by the macro from the source).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -550,60 +551,6 @@ const LOG_FLUSH: usize = 1 << 16;
 /// A logged scatter looks whether its chunk's turn has come every this many entries (a power
 /// of two, so the test is a mask in the hot loop).
 const TURN_CHECK: usize = 256;
-
-/// The order in which the chunks of a parallel launch apply their logs: chunk `k` applies its
-/// logs when chunks `0..k` have applied theirs. Chunks are claimed in order by running workers,
-/// so the first unapplied chunk is always running or applying: waiting for it cannot deadlock.
-#[derive(Debug, Default)]
-pub(crate) struct ChunkOrder {
-    next: std::sync::atomic::AtomicUsize,
-    /// Chunks applied (a copy of `state.0` that running chunks poll without the lock).
-    applied: std::sync::atomic::AtomicUsize,
-    /// (chunks applied, a chunk panicked)
-    state: Mutex<(usize, bool)>,
-    turn: std::sync::Condvar,
-}
-
-impl ChunkOrder {
-    /// The next chunk to run (in order).
-    pub(crate) fn claim(&self) -> usize {
-        self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-    }
-
-    /// Whether chunks `0..k` are applied (chunk `k`'s turn), without blocking. Acquire: the
-    /// earlier chunks' writes are visible once this is true.
-    pub(crate) fn is_turn(&self, k: usize) -> bool {
-        self.applied.load(std::sync::atomic::Ordering::Acquire) == k
-    }
-
-    /// Blocks until chunks `0..k` are applied (true), or one of them panicked (false: the
-    /// launch is failing with that panic; the caller applies nothing and stops).
-    pub(crate) fn wait_turn(&self, k: usize) -> bool {
-        let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-        while st.0 < k && !st.1 {
-            st = self.turn.wait(st).unwrap_or_else(PoisonError::into_inner);
-        }
-        st.0 >= k
-    }
-
-    /// Chunk `k` is applied: the next one's turn.
-    pub(crate) fn done(&self, k: usize) {
-        let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-        debug_assert_eq!(st.0, k);
-        st.0 = k + 1;
-        self.applied
-            .store(k + 1, std::sync::atomic::Ordering::Release);
-        self.turn.notify_all();
-    }
-
-    /// A chunk panicked: wakes every waiter (they give up, so that the panic the launch
-    /// reports is that chunk's own).
-    pub(crate) fn fail(&self) {
-        let mut st = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-        st.1 = true;
-        self.turn.notify_all();
-    }
-}
 
 /// The scatters one chunk made into one target, applied in thread-id order after the chunks ran.
 pub struct ScatterLog(pub(crate) Option<Box<dyn ApplyLog>>);

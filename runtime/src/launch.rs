@@ -13,7 +13,8 @@ use std::ops::Range;
 use rayon::prelude::*;
 
 use crate::array::{AnyArray, Token};
-use crate::kernel::{Access, ChunkOrder, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
+use crate::chunk_order::ChunkOrder;
+use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 
 /// Thread ids per chunk.
 pub const CHUNK: usize = 2048;
@@ -444,15 +445,7 @@ fn run_ordered(dim: usize, run: &RunChunk) {
         }
         let guard = FailOnUnwind(&order);
         let logs = run(range, k, &order);
-        if !order.wait_turn(k) {
-            break; // an earlier chunk panicked: the launch reports that panic
-        }
-        for log in logs.iter().filter_map(|l| l.0.as_deref()) {
-            // SAFETY: chunk `k`'s turn: every other chunk is running (writing only logs and
-            // their own stores) or waiting.
-            unsafe { log.apply() }
-        }
-        order.done(k);
+        order.finish(k, logs);
         drop(guard);
     });
 }

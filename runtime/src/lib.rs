@@ -9,6 +9,7 @@ extern crate self as adflex_runtime;
 
 pub mod array;
 pub mod checkpoint;
+mod chunk_order;
 mod error;
 pub mod func;
 pub mod gradcheck;

@@ -186,3 +186,35 @@ fn a_panicking_chunk_fails_the_launch_with_its_own_message_and_no_deadlock() {
         );
     }
 }
+
+/// Chunk 0 is slow (300 iterations per thread, the others 1): while it runs, the other workers
+/// finish and deposit every later chunk, more than may wait unapplied, so they also wait.
+#[adflex_macros::diff_kernel]
+fn slow_first_chunk(x: &Array<f64>, out: &Array<f64>) {
+    let t = tid();
+    let mut s = x[t % 1000];
+    let n = if t < 2048 { 300 } else { 1 };
+    for _k in 0..n {
+        s = s * 0.999 + 0.001 * s * s;
+    }
+    out.atomic_add(t % 7, s);
+}
+
+fn slow_first_chunk_bits(threads: usize) -> (Vec<u64>, Vec<u64>) {
+    let x = Array::from_vec(random(1000, 31, -1.0, 1.0)).requires_grad();
+    let out = Array::<f64>::zeros(7);
+    with_threads(threads, || {
+        let mut tape = Tape::new();
+        tape.launch(slow_first_chunk, 40 * 2048, (&x, &out));
+        tape.backward(&out).unwrap();
+    });
+    (bits(out.to_vec()), bits(x.grad().unwrap().to_vec()))
+}
+
+#[test]
+fn chunks_deposited_behind_a_slow_one_keep_the_bits() {
+    let one = slow_first_chunk_bits(1);
+    assert_eq!(one, slow_first_chunk_bits(2), "1 vs 2 threads");
+    assert_eq!(one, slow_first_chunk_bits(3), "1 vs 3 threads");
+    assert!(one.1.iter().any(|&b| f64::from_bits(b) != 0.0));
+}
