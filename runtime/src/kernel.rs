@@ -524,7 +524,9 @@ impl<T: Element> Scatter<T> {
     /// `a[i] -= v`.
     #[inline(always)]
     pub fn sub<I: ToIndex>(&mut self, i: I, v: T) {
-        let mut neg = T::zeroed();
+        // `-0.0 - v` is `-v` exactly (`0.0 - v` is not, at `v = 0`): the compiler makes
+        // `a[i] + (-v)` the single subtraction `a[i] - v`, the same bits.
+        let mut neg = T::neg_zeroed();
         neg.acc_neg(v);
         self.add(i, neg)
     }
