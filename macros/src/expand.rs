@@ -234,6 +234,7 @@ fn kernel_mode(
     let at_tid = body.stores_at_tid(sig.params.len());
     let mut views = TokenStream::new();
     let mut finish = Vec::new();
+    let mut scatters = Vec::new();
     for (p, (param, u)) in sig.params.iter().zip(uses).enumerate() {
         if !param.is_array() {
             continue;
@@ -250,6 +251,7 @@ fn kernel_mode(
                 Mode::Adjoint => {
                     views.extend(quote!(let mut #gv = #k::grad_scatter(#arr, __exec, #site);));
                     finish.push(quote!(#gv.finish()));
+                    scatters.push(gv);
                 }
                 Mode::Tangent => {
                     views.extend(quote!(let #tv = #k::tangent_reader(#arr, __exec, #site);))
@@ -270,6 +272,7 @@ fn kernel_mode(
                 Mode::Forward => {
                     views.extend(quote!(let mut #vw = #k::scatter(#arr, __exec, #site);));
                     finish.push(quote!(#vw.finish()));
+                    scatters.push(vw);
                 }
                 Mode::Adjoint => {
                     views.extend(quote!(let #gv = #k::grad_reader(#arr, __exec, #site);))
@@ -277,6 +280,7 @@ fn kernel_mode(
                 Mode::Tangent => {
                     views.extend(quote!(let mut #tv = #k::tangent_scatter(#arr, __exec, #site);));
                     finish.push(quote!(#tv.finish()));
+                    scatters.push(tv);
                 }
             }
         }
@@ -299,11 +303,31 @@ fn kernel_mode(
         Mode::Tangent => em.tangent(&body.block),
     };
     let t = emit::tid();
+    let body = quote!(#prologue #code);
+    if scatters.is_empty() {
+        return quote! {
+            #views
+            for #t in __range {
+                #body
+            }
+            ::std::vec![#(#finish),*]
+        };
+    }
+    // Thread by thread while a scatter logs; once all write directly (from the start on a
+    // serial or in-turn chunk, or after a logged chunk's turn came), the rest of the chunk
+    // runs in a loop over direct views (shadowing the scatters' names) without a log path.
     quote! {
         #views
-        for #t in __range {
-            #prologue
-            #code
+        let mut __tids = __range;
+        loop {
+            if let (#(::std::option::Option::Some(mut #scatters),)*) = (#(#scatters.direct(),)*) {
+                for #t in __tids {
+                    #body
+                }
+                break;
+            }
+            let ::std::option::Option::Some(#t) = __tids.next() else { break };
+            #body
         }
         ::std::vec![#(#finish),*]
     }

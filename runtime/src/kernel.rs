@@ -531,6 +531,19 @@ impl<T: Element> Scatter<T> {
         self.add(i, neg)
     }
 
+    /// This scatter as one that writes directly for the rest of the chunk, or `None` while
+    /// it logs. Generated kernels run a chunk's remaining threads in a loop over these views
+    /// once every scatter of the chunk writes directly: that loop has no log path, which
+    /// otherwise costs a hand-written loop's speed (springs' adjoint 1.3x -> 1.05x of it).
+    #[inline(always)]
+    pub fn direct(&mut self) -> Option<DirectScatter<'_, T>> {
+        (!self.ptr.is_null() || self.log.is_none()).then_some(DirectScatter {
+            ptr: self.ptr,
+            len: self.len,
+            place: &self.place,
+        })
+    }
+
     /// The log of this chunk (empty in direct mode).
     pub fn finish(self) -> ScatterLog {
         match (self.target, self.log) {
@@ -544,6 +557,36 @@ impl<T: Element> Scatter<T> {
             }
             _ => ScatterLog(None),
         }
+    }
+}
+
+/// A [`Scatter`] that writes directly (or has no target, and then ignores its adds): see
+/// [`Scatter::direct`]. Same methods, same bits.
+pub struct DirectScatter<'s, T: Element> {
+    /// Null without a target.
+    ptr: *mut T,
+    len: usize,
+    place: &'s Place,
+}
+
+impl<T: Element> DirectScatter<'_, T> {
+    /// `a[i] += v`.
+    #[inline(always)]
+    pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
+        let i = checked(i, self.len, self.place);
+        if !self.ptr.is_null() {
+            // SAFETY: as in `Scatter::add`'s direct path (this view borrows that scatter,
+            // which was writing directly); in bounds.
+            unsafe { (*self.ptr.add(i)).acc(v) }
+        }
+    }
+
+    /// `a[i] -= v` (see [`Scatter::sub`]).
+    #[inline(always)]
+    pub fn sub<I: ToIndex>(&mut self, i: I, v: T) {
+        let mut neg = T::neg_zeroed();
+        neg.acc_neg(v);
+        self.add(i, neg)
     }
 }
 
