@@ -3,6 +3,7 @@
 //! reaches the observer (argmin's observers must be `'static`).
 
 use std::cell::RefCell;
+use std::collections::VecDeque;
 use std::time::Instant;
 
 use adflex_runtime::Error;
@@ -15,14 +16,52 @@ use crate::{norm, Evaluate, Iteration, Observe, Params, Stop};
 /// A point, its loss and gradient.
 type Cached = (Vec<f64>, f64, Vec<f64>);
 
+/// How many evaluated points keep their gradient w.r.t. the parameters (for the reported
+/// gradient norm: the accepted point of a line search is one of its last evaluations).
+const KEPT_PARAM_GRADIENTS: usize = 16;
+
+/// What the evaluations left behind, owned outside argmin's `Problem` (which argmin may leave
+/// empty when a line search ends early): the first error, the count, and the gradients w.r.t.
+/// the parameters of the last points and of the lowest loss (for the reported gradient norm).
+#[derive(Default)]
+struct Record {
+    error: RefCell<Option<Error>>,
+    evaluations: RefCell<usize>,
+    recent: RefCell<VecDeque<(Vec<f64>, Vec<f64>)>>,
+    lowest: RefCell<Option<Cached>>,
+}
+
+impl Record {
+    fn keep(&self, u: &[f64], l: f64, g: Vec<f64>) {
+        *self.evaluations.borrow_mut() += 1;
+        let mut lowest = self.lowest.borrow_mut();
+        if lowest.as_ref().is_none_or(|(_, best, _)| l <= *best) {
+            *lowest = Some((u.to_vec(), l, g.clone()));
+        }
+        let mut recent = self.recent.borrow_mut();
+        if recent.len() == KEPT_PARAM_GRADIENTS {
+            recent.pop_front();
+        }
+        recent.push_back((u.to_vec(), g));
+    }
+
+    /// |dL/dp| at the free variables `u`, if `u` was evaluated recently or had the lowest loss.
+    fn param_grad_norm(&self, u: &[f64]) -> Option<f64> {
+        let lowest = self.lowest.borrow();
+        let lowest = lowest.as_ref().map(|(x, _, g)| (x, g));
+        let recent = self.recent.borrow();
+        let mut seen = recent.iter().rev().map(|(x, g)| (x, g)).chain(lowest);
+        seen.find(|(x, _)| x.as_slice() == u).map(|(_, g)| norm(g))
+    }
+}
+
 /// The loss in the free variables, with the last evaluation cached (argmin asks for the cost
-/// and the gradient of one point separately) and the first error kept.
+/// and the gradient of one point separately).
 struct Objective<'p, 'e> {
     params: &'p Params,
     evaluate: RefCell<&'p mut Evaluate<'e>>,
     last: RefCell<Option<Cached>>,
-    error: RefCell<Option<Error>>,
-    evaluations: RefCell<usize>,
+    record: &'p Record,
 }
 
 impl Objective<'_, '_> {
@@ -36,14 +75,14 @@ impl Objective<'_, '_> {
         let result = (self.evaluate.borrow_mut())(&p);
         match result {
             Ok((l, g)) => {
-                *self.evaluations.borrow_mut() += 1;
                 let gu: Vec<f64> = g.iter().zip(&dp).map(|(g, d)| g * d).collect();
                 *self.last.borrow_mut() = Some((u.to_vec(), l, gu.clone()));
+                self.record.keep(u, l, g);
                 Ok((l, gu))
             }
             Err(e) => {
                 let msg = e.to_string();
-                self.error.borrow_mut().get_or_insert(e);
+                self.record.error.borrow_mut().get_or_insert(e);
                 Err(argmin::core::Error::msg(msg))
             }
         }
@@ -77,12 +116,12 @@ pub(crate) fn run(
     observe: &mut Observe<'_>,
 ) -> Result<((f64, Vec<f64>), Stop), Error> {
     let u0 = params.free_of_params(x0)?;
+    let record = Record::default();
     let objective = Objective {
         params,
         evaluate: RefCell::new(evaluate),
         last: RefCell::new(None),
-        error: RefCell::new(None),
-        evaluations: RefCell::new(0),
+        record: &record,
     };
     let mut problem = Problem::new(objective);
     let mut solver = LBFGS::new(MoreThuenteLineSearch::new(), memory.max(1))
@@ -90,59 +129,43 @@ pub(crate) fn run(
         .and_then(|s| s.with_tolerance_cost(0.0))
         .map_err(argmin_error)?;
     let state = IterState::new().param(u0).max_iters(max_iters as u64);
-    let taken = |problem: &mut Problem<Objective>, e: argmin::core::Error| -> Error {
-        let kept = problem
-            .problem
-            .as_ref()
-            .and_then(|o| o.error.borrow_mut().take());
+    let taken = |e: argmin::core::Error| -> Error {
+        let kept = record.error.borrow_mut().take();
         kept.unwrap_or_else(|| argmin_error(e))
     };
     let (mut state, _) = match solver.init(&mut problem, state) {
         Ok(s) => s,
-        Err(e) => return Err(taken(&mut problem, e)),
+        Err(e) => return Err(taken(e)),
     };
     state.update();
-    let evals = |problem: &Problem<Objective>| {
-        problem
-            .problem
-            .as_ref()
-            .map_or(0, |o| *o.evaluations.borrow())
+    // The gradient w.r.t. the parameters, not the free variables: kept from the evaluation of
+    // that point (dividing by dp/du would fail where a bound's change of variables saturates
+    // and dp/du rounds to 0).
+    let grad_norm = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>| {
+        s.get_param()
+            .or(s.get_best_param())
+            .and_then(|u| record.param_grad_norm(u))
+            .unwrap_or(f64::NAN)
     };
-    let grad_norm = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>, params: &Params| {
-        // The gradient w.r.t. the parameters, not the free variables.
-        match (s.get_param().or(s.get_best_param()), s.get_gradient()) {
-            (Some(u), Some(gu)) => {
-                let (_, dp) = params.params_of_free(u);
-                norm(&gu.iter().zip(&dp).map(|(g, d)| g / d).collect::<Vec<_>>())
-            }
-            _ => f64::NAN,
-        }
-    };
-    let iteration = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
-                     problem: &Problem<Objective>| Iteration {
+    let iteration = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>| Iteration {
         iter: s.get_iter() as usize,
         loss: s.get_cost(),
-        grad_norm: grad_norm(s, params),
-        evaluations: evals(problem),
+        grad_norm: grad_norm(s),
+        evaluations: *record.evaluations.borrow(),
         elapsed: start.elapsed(),
     };
     let best = |s: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>| {
         let u = s.get_best_param().expect("argmin keeps the best point");
         (s.get_best_cost(), params.params_of_free(u).0)
     };
-    if let Some(stop) = observe(iteration(&state, &problem)) {
+    if let Some(stop) = observe(iteration(&state)) {
         return Ok((best(&state), stop));
     }
     // argmin ends a run whose line search failed (e.g. because the loss returned an error)
     // as "terminated": an error of the loss is the answer then, not convergence.
-    let failed = |problem: &mut Problem<Objective>| {
-        problem
-            .problem
-            .as_ref()
-            .and_then(|o| o.error.borrow_mut().take())
-    };
+    let failed = || record.error.borrow_mut().take();
     loop {
-        if let Some(e) = failed(&mut problem) {
+        if let Some(e) = failed() {
             return Err(e);
         }
         if let TerminationStatus::Terminated(reason) =
@@ -156,16 +179,16 @@ pub(crate) fn run(
         }
         let (next, _) = match solver.next_iter(&mut problem, state) {
             Ok(s) => s,
-            Err(e) => return Err(taken(&mut problem, e)),
+            Err(e) => return Err(taken(e)),
         };
         state = next;
         state.update();
         state.increment_iter();
-        if let Some(stop) = observe(iteration(&state, &problem)) {
+        if let Some(stop) = observe(iteration(&state)) {
             return Ok((best(&state), stop));
         }
         if let TerminationStatus::Terminated(reason) = state.get_termination_status() {
-            if let Some(e) = failed(&mut problem) {
+            if let Some(e) = failed() {
                 return Err(e);
             }
             return Ok((best(&state), Stop::Converged(reason.text().to_string())));

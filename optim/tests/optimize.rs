@@ -142,6 +142,44 @@ fn bounds_keep_parameters_inside() {
 }
 
 #[test]
+fn the_reported_gradient_norm_is_the_parameters_even_at_a_bound() {
+    // Towards the upper bound c = 1 of `Bounds::between(0, 1)` (the minimum, a = 2, is
+    // outside), dc/du = s (1 - s) rounds to 0 once u > 37: the norm reported is still |dL/dc|
+    // at the iterate, never 0, inf or NaN.
+    let c = Array::from_vec(vec![0.5f64]);
+    let a = Array::from_vec(vec![2.0f64]);
+    let (mut norms, mut evaluations) = (Vec::new(), Vec::new());
+    Optimizer::lbfgs()
+        .progress(false)
+        .max_iters(200)
+        .on_iteration(|it| {
+            norms.push(it.grad_norm);
+            evaluations.push(it.evaluations);
+            ControlFlow::Continue(())
+        })
+        .minimize(
+            &Params::new().bounded(&c, Bounds::between(0.0, 1.0)),
+            |tape| {
+                let l = Array::zeros(1);
+                tape.launch(bowl, 1, (&c, &a, &l));
+                Ok(l)
+            },
+        )
+        .unwrap();
+    assert!(norms.iter().all(|g| g.is_finite()), "{norms:?}");
+    // The count of evaluations never goes back (argmin may end with its problem taken out).
+    assert!(
+        evaluations.windows(2).all(|w| w[0] <= w[1]),
+        "{evaluations:?}"
+    );
+    let last = *norms.last().unwrap();
+    let x = c.get(0);
+    assert!(x > 0.999, "{x}");
+    let exact = (2.0 * (x - 2.0) * (1.0 + x * x) + 2.0 * x * (x - 2.0).powi(2)).abs();
+    assert!((last - exact).abs() < 1e-3 * exact, "{last} vs {exact}");
+}
+
+#[test]
 fn the_callback_sees_every_iteration_and_can_stop() {
     let c = Array::from_vec(vec![3.0f64]);
     let a = Array::from_vec(vec![0.0f64]);
