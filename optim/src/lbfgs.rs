@@ -35,7 +35,7 @@ impl Record {
     fn keep(&self, u: &[f64], l: f64, g: Vec<f64>) {
         *self.evaluations.borrow_mut() += 1;
         let mut lowest = self.lowest.borrow_mut();
-        if lowest.as_ref().is_none_or(|(_, best, _)| l <= *best) {
+        if !matches!(&*lowest, Some((_, best, _)) if l > *best) {
             *lowest = Some((u.to_vec(), l, g.clone()));
         }
         let mut recent = self.recent.borrow_mut();
