@@ -363,6 +363,84 @@ fn atomic_add_and_sub() {
     check_kernel!(scatter, dim = 5, inputs = [x: inputs(4, 11)], outputs = [f: 4], extra = (&pairs));
 }
 
+/// `y` and the adjoint of `a` scatter at the thread id (they write directly in every chunk of
+/// a parallel launch); `w` and the adjoint of `b` elsewhere (they log until their chunk's
+/// turn). Several additions per element, so any change of their order changes the bits.
+#[diff_kernel]
+fn own_and_shared(
+    a: &Array<f64>,
+    b: &Array<f64>,
+    idx: &Array<u32>,
+    y: &Array<f64>,
+    w: &Array<f64>,
+) {
+    let t = tid();
+    let j = idx[t];
+    for k in 0..3 {
+        let s = a[t] * b[j] + 0.1 * (k as f64);
+        y.atomic_add(t, s * s);
+        y.atomic_sub(t, s * 0.3);
+        w.atomic_add(j, s * a[t]);
+    }
+}
+
+#[test]
+fn scatters_at_the_thread_id_give_the_serial_bits_on_any_pool() {
+    const N: usize = 20_000;
+    let run = |threads: usize, passed_twice: bool| {
+        let mut rng = Rng(5);
+        let a = Array::from_vec((0..N).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<f64>>())
+            .requires_grad();
+        let other = Array::from_vec((0..N).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<f64>>())
+            .requires_grad();
+        let b = if passed_twice { a.clone() } else { other };
+        let idx = Array::from_vec((0..N as u32).map(|i| (i * 7919 + 3) % N as u32).collect());
+        let y = Array::<f64>::from_vec(vec![0.25; N]);
+        let w = Array::<f64>::zeros(N);
+        let bits = |v: Vec<f64>| v.into_iter().map(f64::to_bits).collect::<Vec<_>>();
+        let mut seen = Vec::new();
+        with_threads(threads, || {
+            // Several launches, each compared: the pool's choice between serial and parallel
+            // times both paths.
+            for _ in 0..4 {
+                let mut tape = Tape::new();
+                y.fill(0.25);
+                w.fill(0.0);
+                a.zero_grad();
+                b.zero_grad();
+                tape.launch(own_and_shared, N, (&a, &b, &idx, &y, &w));
+                let loss = Array::<f64>::zeros(1);
+                tape.launch(sum_of_products, N, (&y, &w, &loss));
+                tape.backward(&loss).unwrap();
+                seen.push((
+                    bits(y.to_vec()),
+                    bits(w.to_vec()),
+                    bits(a.grad().unwrap().to_vec()),
+                    bits(b.grad().unwrap().to_vec()),
+                ));
+            }
+        });
+        seen
+    };
+    for passed_twice in [false, true] {
+        let serial = run(1, passed_twice);
+        for threads in [2, 3] {
+            for (k, got) in run(threads, passed_twice).iter().enumerate() {
+                assert!(
+                    *got == serial[0],
+                    "{threads} threads, launch {k}, b passed as a: {passed_twice}"
+                );
+            }
+        }
+    }
+}
+
+#[diff_kernel]
+fn sum_of_products(y: &Array<f64>, w: &Array<f64>, loss: &Array<f64>) {
+    let t = tid();
+    loss.atomic_add(0, y[t] * w[t] + y[t]);
+}
+
 // ---- custom derivatives: a "leaky" contact gradient ---------------------------------------
 
 /// Penetration depth `min(d, 0)`, whose true gradient is zero when out of contact (d > 0). The

@@ -231,7 +231,7 @@ fn kernel_mode(
     mode: Mode,
 ) -> TokenStream {
     let kname = sig.name.to_string();
-    let at_tid = body.stores_at_tid(sig.params.len());
+    let at_tid = body.at_tid(sig.params.len());
     let mut views = TokenStream::new();
     let mut finish = Vec::new();
     let mut scatters = Vec::new();
@@ -249,7 +249,9 @@ fn kernel_mode(
             views.extend(quote!(let #vw = #k::reader(#arr, __exec, #site);));
             match mode {
                 Mode::Adjoint => {
-                    views.extend(quote!(let mut #gv = #k::grad_scatter(#arr, __exec, #site);));
+                    let own = at_tid.reads[p];
+                    views
+                        .extend(quote!(let mut #gv = #k::grad_scatter(#arr, __exec, #site, #own);));
                     finish.push(quote!(#gv.finish()));
                     scatters.push(gv);
                 }
@@ -259,7 +261,7 @@ fn kernel_mode(
                 Mode::Forward => {}
             }
         } else if u.store.is_some() {
-            let distinct = at_tid[p];
+            let distinct = at_tid.stores[p];
             views.extend(match mode {
                 Mode::Forward => quote!(let #vw = #k::writer(#arr, __exec, #site, #distinct);),
                 Mode::Adjoint => quote!(let #gv = #k::grad_taker(#arr, __exec, #site, #distinct);),
@@ -268,9 +270,10 @@ fn kernel_mode(
                 }
             });
         } else if u.atomic.is_some() {
+            let own = at_tid.atomics[p];
             match mode {
                 Mode::Forward => {
-                    views.extend(quote!(let mut #vw = #k::scatter(#arr, __exec, #site);));
+                    views.extend(quote!(let mut #vw = #k::scatter(#arr, __exec, #site, #own);));
                     finish.push(quote!(#vw.finish()));
                     scatters.push(vw);
                 }
@@ -278,7 +281,9 @@ fn kernel_mode(
                     views.extend(quote!(let #gv = #k::grad_reader(#arr, __exec, #site);))
                 }
                 Mode::Tangent => {
-                    views.extend(quote!(let mut #tv = #k::tangent_scatter(#arr, __exec, #site);));
+                    views.extend(
+                        quote!(let mut #tv = #k::tangent_scatter(#arr, __exec, #site, #own);),
+                    );
                     finish.push(quote!(#tv.finish()));
                     scatters.push(tv);
                 }

@@ -172,6 +172,14 @@ pub struct Block {
     pub stmts: Vec<Stmt>,
 }
 
+/// Per parameter: whether every store, read, or atomic into it indexes with the thread id
+/// (see [`Body::at_tid`]).
+pub struct AtTid {
+    pub stores: Vec<bool>,
+    pub reads: Vec<bool>,
+    pub atomics: Vec<bool>,
+}
+
 /// A lowered body: its parameters' values, the body, and the returned value (funcs).
 pub struct Body {
     /// The value of each parameter, `None` for an array (read through its view, not a value).
@@ -181,10 +189,12 @@ pub struct Body {
 }
 
 impl Body {
-    /// For each of `params` parameters: whether every `a[i] = v` into it indexes with the
+    /// For each of `params` parameters, whether every access of each kind indexes with the
     /// thread id itself (`tid()`, or a `let` bound to it), so that no two threads of a launch
-    /// can store to one element. Other stores are checked at run time.
-    pub fn stores_at_tid(&self, params: usize) -> Vec<bool> {
+    /// touch one element through it. Stores elsewhere are checked at run time; reads and
+    /// atomics at the thread id let the scatter of the adjoint (reads) or of the forward and
+    /// tangent (atomics) write directly in every chunk of a parallel launch.
+    pub fn at_tid(&self, params: usize) -> AtTid {
         fn tids(b: &Block, out: &mut Vec<ValueId>) {
             for s in &b.stmts {
                 match s {
@@ -200,15 +210,19 @@ impl Body {
                 }
             }
         }
-        fn check(b: &Block, tid: &[ValueId], ok: &mut [bool]) {
+        fn check(b: &Block, tid: &[ValueId], ok: &mut AtTid) {
             for s in &b.stmts {
                 match s {
-                    Stmt::Store {
-                        param,
-                        index,
-                        kind: StoreKind::Store,
+                    Stmt::Let(Let {
+                        op: Op::Read { param, index },
                         ..
-                    } if !tid.contains(index) => ok[*param] = false,
+                    }) if !tid.contains(index) => ok.reads[*param] = false,
+                    Stmt::Store {
+                        param, index, kind, ..
+                    } if !tid.contains(index) => match kind {
+                        StoreKind::Store => ok.stores[*param] = false,
+                        StoreKind::AtomicAdd | StoreKind::AtomicSub => ok.atomics[*param] = false,
+                    },
                     Stmt::If { then_b, else_b, .. } => {
                         check(then_b, tid, ok);
                         check(else_b, tid, ok);
@@ -220,7 +234,11 @@ impl Body {
         }
         let mut tid = Vec::new();
         tids(&self.block, &mut tid);
-        let mut ok = vec![true; params];
+        let mut ok = AtTid {
+            stores: vec![true; params],
+            reads: vec![true; params],
+            atomics: vec![true; params],
+        };
         check(&self.block, &tid, &mut ok);
         ok
     }

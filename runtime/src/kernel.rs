@@ -167,6 +167,31 @@ fn checked<I: ToIndex>(i: I, len: usize, place: &Place) -> usize {
     w as usize
 }
 
+/// `i` as an index of a scatter whose indices must lie in `lo..hi` (`0..len`, or the chunk's
+/// own thread ids for a scatter at the thread id writing directly before its turn): one
+/// comparison, as for `0..len`.
+#[inline(always)]
+fn checked_in<I: ToIndex>(i: I, lo: usize, hi: usize, len: usize, place: &Place) -> usize {
+    let w = i.to_i128();
+    if (w.wrapping_sub(lo as i128) as u128) >= (hi - lo) as u128 {
+        outside_range(place, w, lo..hi, len)
+    }
+    w as usize
+}
+
+#[cold]
+#[inline(never)]
+fn outside_range(place: &Place, index: i128, own: Range<usize>, len: usize) -> ! {
+    if index < 0 || index >= len as i128 {
+        out_of_bounds(place.site, &place.name, index, len)
+    }
+    panic!(
+        "kernel `{}`: a scatter into parameter `{}` at index {index}, outside the thread ids \
+         {own:?} of its chunk, through a view for scatters at the thread's own index",
+        place.site.kernel, place.site.param
+    )
+}
+
 /// How a chunk of a launch runs: writing scatters directly (one chunk in thread-id order) or
 /// into logs that the launch applies afterwards in thread-id order; and what the launch
 /// locked.
@@ -184,21 +209,32 @@ pub struct Exec<'a> {
     /// A logged chunk: the launch's chunk order and this chunk's place in it (to flush a
     /// large log early, once every earlier chunk is applied).
     order: Option<(&'a ChunkOrder, usize)>,
+    /// Buffers that two parameters of the launch scatter into (an array passed twice, read by
+    /// both, in the adjoint): such a launch runs serially, and no scatter into them writes
+    /// directly before its chunk's turn, even one at the thread's own index.
+    shared_scatters: &'a [u64],
 }
 
 impl<'a> Exec<'a> {
-    pub(crate) fn new(direct: bool, locked: &'a [(u64, bool)], range: Range<usize>) -> Self {
+    pub(crate) fn new(
+        direct: bool,
+        locked: &'a [(u64, bool)],
+        shared_scatters: &'a [u64],
+        range: Range<usize>,
+    ) -> Self {
         Exec {
             direct,
             locked,
             range,
             order: None,
+            shared_scatters,
         }
     }
 
     /// A logged chunk `k` of a launch whose chunks are applied in `order`.
     pub(crate) fn ordered(
         locked: &'a [(u64, bool)],
+        shared_scatters: &'a [u64],
         range: Range<usize>,
         order: &'a ChunkOrder,
         k: usize,
@@ -208,6 +244,7 @@ impl<'a> Exec<'a> {
             locked,
             range,
             order: Some((order, k)),
+            shared_scatters,
         }
     }
 
@@ -443,6 +480,9 @@ pub struct Scatter<T: Element> {
     /// The target's data (null without a target), for applying the log.
     dst: *mut T,
     len: usize,
+    /// The indices it may add at: `0..len`, or the chunk's thread ids (see `new`).
+    lo: usize,
+    hi: usize,
     // Boxed on purpose (see the type's docs): the view's own fields stay in registers.
     #[allow(clippy::box_collection)]
     log: Option<Box<Vec<(u32, T)>>>,
@@ -452,18 +492,37 @@ pub struct Scatter<T: Element> {
 }
 
 impl<T: Element> Scatter<T> {
-    fn new(target: Option<Array<T>>, exec: &Exec, place: Place, len: usize) -> Self {
+    /// `at_tid`: the macro proved that every scatter into this parameter indexes with the
+    /// thread id. Then only this chunk's threads add to the elements at this chunk's thread
+    /// ids, each its own, so the view writes directly from the start even in a logged chunk
+    /// (the additions to an element are one thread's, in its order: the same bits), unless
+    /// another parameter of the launch scatters into the same buffer. Its indices are then
+    /// checked to be the chunk's thread ids.
+    fn new(target: Option<Array<T>>, exec: &Exec, place: Place, len: usize, at_tid: bool) -> Self {
         let dst = target
             .as_ref()
             .map_or(std::ptr::null_mut(), |a| a.data_ptr());
+        let own = at_tid
+            && target
+                .as_ref()
+                .is_some_and(|t| !exec.shared_scatters.contains(&t.id()));
         // A logged chunk whose turn it already is (every earlier chunk applied) writes directly.
-        let logged = !exec.direct && !exec.order.is_some_and(|(o, k)| o.is_turn(k));
+        let logged = !own && !exec.direct && !exec.order.is_some_and(|(o, k)| o.is_turn(k));
+        let (lo, hi) = match own {
+            true => {
+                let hi = exec.range.end.min(len);
+                (exec.range.start.min(hi), hi)
+            }
+            false => (0, len),
+        };
         Scatter {
             log: (logged && target.is_some()).then(|| Box::new(take_log())),
             target,
             ptr: if logged { std::ptr::null_mut() } else { dst },
             dst,
             len,
+            lo,
+            hi,
             place,
             order: exec.order.map(|(o, k)| (o as *const ChunkOrder, k)),
         }
@@ -472,10 +531,11 @@ impl<T: Element> Scatter<T> {
     /// `a[i] += v`.
     #[inline(always)]
     pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
-        let i = checked(i, self.len, &self.place);
+        let i = checked_in(i, self.lo, self.hi, self.len, &self.place);
         if !self.ptr.is_null() {
             // SAFETY: direct mode runs a single chunk in thread-id order on one thread (or
-            // this chunk is the first unapplied one, see `checkpoint`); in bounds.
+            // this chunk is the first unapplied one, see `checkpoint`, or the indices are
+            // this chunk's own thread ids, see `new`); in bounds.
             unsafe { (*self.ptr.add(i)).acc(v) }
         } else if let Some(log) = &mut self.log {
             log.push((i as u32, v));
@@ -540,6 +600,8 @@ impl<T: Element> Scatter<T> {
         (!self.ptr.is_null() || self.log.is_none()).then_some(DirectScatter {
             ptr: self.ptr,
             len: self.len,
+            lo: self.lo,
+            hi: self.hi,
             place: &self.place,
         })
     }
@@ -566,6 +628,8 @@ pub struct DirectScatter<'s, T: Element> {
     /// Null without a target.
     ptr: *mut T,
     len: usize,
+    lo: usize,
+    hi: usize,
     place: &'s Place,
 }
 
@@ -573,7 +637,7 @@ impl<T: Element> DirectScatter<'_, T> {
     /// `a[i] += v`.
     #[inline(always)]
     pub fn add<I: ToIndex>(&mut self, i: I, v: T) {
-        let i = checked(i, self.len, self.place);
+        let i = checked_in(i, self.lo, self.hi, self.len, self.place);
         if !self.ptr.is_null() {
             // SAFETY: as in `Scatter::add`'s direct path (this view borrows that scatter,
             // which was writing directly); in bounds.
@@ -692,9 +756,10 @@ fn scatter_of<T: Element>(
     buf: Option<Array<T>>,
     exec: &Exec,
     site: &'static Site,
+    at_tid: bool,
 ) -> Scatter<T> {
     exec.check(buf.as_ref(), true, site);
-    Scatter::new(buf, exec, Place::of(of, site), of.len())
+    Scatter::new(buf, exec, Place::of(of, site), of.len(), at_tid)
 }
 
 /// A reader of `a`.
@@ -733,10 +798,17 @@ pub fn grad_taker<T: Element>(
     writer_of(a, a.grad_buffer(), exec, site, distinct)
 }
 
-/// A scatter into `a`.
+/// A scatter into `a`. `at_tid`: the macro proved that every scatter into it indexes with
+/// the thread id (then it may write directly in any chunk, its indices checked to be the
+/// chunk's thread ids; see [`Scatter`]).
 #[inline]
-pub fn scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    scatter_of(a, Some(a.clone()), exec, site)
+pub fn scatter<T: Element>(
+    a: &Array<T>,
+    exec: &Exec,
+    site: &'static Site,
+    at_tid: bool,
+) -> Scatter<T> {
+    scatter_of(a, Some(a.clone()), exec, site, at_tid)
 }
 
 /// A reader of `a`'s gradient (zeros if it has none).
@@ -745,10 +817,15 @@ pub fn grad_reader<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -
     opt_reader(a, a.grad_buffer(), exec, site)
 }
 
-/// A scatter into `a`'s gradient (a no-op if it has none).
+/// A scatter into `a`'s gradient (a no-op if it has none); `at_tid` as for [`scatter`].
 #[inline]
-pub fn grad_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    scatter_of(a, a.grad_buffer(), exec, site)
+pub fn grad_scatter<T: Element>(
+    a: &Array<T>,
+    exec: &Exec,
+    site: &'static Site,
+    at_tid: bool,
+) -> Scatter<T> {
+    scatter_of(a, a.grad_buffer(), exec, site, at_tid)
 }
 
 /// A reader of `a`'s tangent (zeros if it has none).
@@ -770,6 +847,11 @@ pub fn tangent_writer<T: Element>(
 
 /// A scatter into `a`'s tangent (a no-op if it has none).
 #[inline]
-pub fn tangent_scatter<T: Element>(a: &Array<T>, exec: &Exec, site: &'static Site) -> Scatter<T> {
-    scatter_of(a, a.tangent_buffer(), exec, site)
+pub fn tangent_scatter<T: Element>(
+    a: &Array<T>,
+    exec: &Exec,
+    site: &'static Site,
+    at_tid: bool,
+) -> Scatter<T> {
+    scatter_of(a, a.tangent_buffer(), exec, site, at_tid)
 }

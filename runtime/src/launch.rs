@@ -150,9 +150,12 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 
 fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
     let arrays = K::arrays(args);
-    with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
+    with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked, shared| {
         let threads = rayon::current_num_threads();
-        let timed = dim >= SERIAL_BELOW && threads > 1;
+        // Two parameters scattering into one buffer (an array passed twice, read by both, in
+        // the adjoint) keep two logs, which cannot be merged back into thread-id order: such
+        // launches run serially.
+        let timed = dim >= SERIAL_BELOW && threads > 1 && shared.is_empty();
         let key = (
             std::any::TypeId::of::<K>(),
             mode,
@@ -162,11 +165,16 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
         let serial = !timed || choice::serial(key);
         let start = std::time::Instant::now();
         if serial {
-            let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, 0..dim));
+            let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, shared, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
         } else {
             run_ordered(dim, &|r, k, order| {
-                kernel.run(mode, args, r.clone(), &Exec::ordered(locked, r, order, k))
+                kernel.run(
+                    mode,
+                    args,
+                    r.clone(),
+                    &Exec::ordered(locked, shared, r, order, k),
+                )
             });
         }
         if timed {
@@ -280,8 +288,13 @@ where
 {
     let owned = K::to_owned(&args);
     let arrays = K::arrays(&owned);
-    with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked| {
-        let _ = kernel.run(mode, &owned, 0..dim, &Exec::new(true, locked, 0..dim));
+    with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked, shared| {
+        let _ = kernel.run(
+            mode,
+            &owned,
+            0..dim,
+            &Exec::new(true, locked, shared, 0..dim),
+        );
     });
 }
 
@@ -310,7 +323,7 @@ fn with_locks(
             t.new_claim_epoch(Token(()));
         }
     }
-    run(&locked);
+    run(&locked, &shared_scatters(params, arrays, mode));
     mark_written(params, arrays, mode);
 }
 
@@ -331,8 +344,32 @@ fn store_buffers(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: M
         .collect()
 }
 
-/// The body of a launch, given the (id, for writing) of every buffer it holds locked.
-type LockedRun<'a> = dyn FnMut(&[(u64, bool)]) + 'a;
+/// The buffers that two or more parameters scatter into in `mode`: only gradients in the
+/// adjoint, of an array passed for two `Read` parameters (an array scattered into in forward
+/// or tangent mode is written, so it cannot be passed twice: `lock_targets`).
+fn shared_scatters(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mode) -> Vec<u64> {
+    if mode != Mode::Adjoint {
+        return Vec::new();
+    }
+    let read: Vec<&dyn AnyArray> = params
+        .iter()
+        .zip(arrays)
+        .filter_map(|(p, a)| a.filter(|_| p.access == Access::Read))
+        .collect();
+    let mut shared = Vec::new();
+    for (i, a) in read.iter().enumerate() {
+        if read[..i].iter().any(|b| b.id() == a.id()) {
+            if let Some(g) = a.grad_any() {
+                shared.push(g.id());
+            }
+        }
+    }
+    shared
+}
+
+/// The body of a launch, given the (id, for writing) of every buffer it holds locked and the
+/// buffers two parameters scatter into.
+type LockedRun<'a> = dyn FnMut(&[(u64, bool)], &[u64]) + 'a;
 
 /// A buffer a launch locks: one of its arrays, or a gradient or tangent buffer (owned: the
 /// array hands out a new handle).

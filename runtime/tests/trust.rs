@@ -1,6 +1,8 @@
 //! Paths that once gave a wrong answer with no error, or stopped the program: each is now right
 //! or refused with an error naming what is wrong.
 
+mod common;
+
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::mpsc;
 use std::time::Duration;
@@ -314,6 +316,28 @@ fn two_threads_storing_to_one_element_is_refused() {
             "{msg}"
         );
     }
+}
+
+#[test]
+fn a_scatter_claimed_at_the_thread_id_that_is_not_is_refused() {
+    // A hand-written kernel whose view claims every index is the thread id, scattering at 0:
+    // a parallel chunk not starting at 0 panics instead of racing.
+    let n = 20_000;
+    let x = Array::from_vec(vec![1.0f64; n]);
+    let loss = Array::zeros(1).named("loss");
+    let msg = panic_message(catch_unwind(AssertUnwindSafe(|| {
+        with_threads(2, || {
+            for _ in 0..4 {
+                launch(common::MisclaimedScatter, n, (&x, &loss));
+            }
+        })
+    })));
+    assert!(
+        msg.contains("misclaimed")
+            && msg.contains("`loss`")
+            && msg.contains("outside the thread ids"),
+        "{msg}"
+    );
 }
 
 #[test]
