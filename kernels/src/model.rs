@@ -1060,16 +1060,11 @@ impl<R: Real> Model<R> {
     pub fn param<T: Element>(&self, force: &str, param: &str) -> Result<Array<T>, Error> {
         let all = self.params();
         let Some((_, _, array)) = all.iter().find(|(f, p, _)| *f == force && *p == param) else {
-            let names: Vec<String> = all.iter().map(|(f, p, _)| format!("{f}.{p}")).collect();
             return Err(Error::InvalidInput {
                 what: format!("{force}.{param}"),
                 message: format!(
                     "the model has no such parameter array; it has: {}",
-                    if names.is_empty() {
-                        "none".to_string()
-                    } else {
-                        names.join(", ")
-                    }
+                    self.param_names()
                 ),
             });
         };
@@ -1088,7 +1083,11 @@ impl<R: Real> Model<R> {
     }
 
     /// Marks parameter `param` of every force named `force` as requiring a gradient (see
-    /// [`Model::params`]); returns how many arrays it marked (0: no such parameter).
+    /// [`Model::params`]); returns how many arrays it marked (at least 1).
+    ///
+    /// Panics naming the parameters the model has if no force named `force` has an array
+    /// `param` (a misspelt name would otherwise mark nothing, and the gradient would be
+    /// missing much later). [`Model::param`] returns the array, or an error.
     pub fn requires_grad(&self, force: &str, param: &str) -> usize {
         let mut marked = 0;
         for f in &self.forces {
@@ -1103,7 +1102,27 @@ impl<R: Real> Model<R> {
                 }
             });
         }
+        if marked == 0 {
+            panic!(
+                "Model::requires_grad: the model has no parameter array `{force}.{param}`; it \
+                 has: {}",
+                self.param_names()
+            );
+        }
         marked
+    }
+
+    /// `force.param` of every parameter array, for messages ("none" if there is none).
+    fn param_names(&self) -> String {
+        let names: Vec<String> = self
+            .params()
+            .iter()
+            .map(|(f, p, _)| format!("{f}.{p}"))
+            .collect();
+        match names.is_empty() {
+            true => "none".to_string(),
+            false => names.join(", "),
+        }
     }
 
     /// Records the force kernels of every force of the model ([`Model::forces`], in order)

@@ -356,6 +356,24 @@ fn implicit_euler_reaches_every_parameter() {
     }
 }
 
+/// A misspelt force or parameter name marks nothing: a panic naming what the model has, not
+/// a gradient silently missing later.
+#[test]
+fn requires_grad_with_a_wrong_name_names_the_parameters() {
+    let model = every_force();
+    for (force, param) in [("spring", "ke"), ("springs", "stiffness")] {
+        let msg = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            model.requires_grad(force, param)
+        }))
+        .expect_err("a wrong name must panic");
+        let msg = msg.downcast_ref::<String>().cloned().unwrap_or_default();
+        assert!(
+            msg.contains(&format!("{force}.{param}")) && msg.contains("springs.ke"),
+            "{msg}"
+        );
+    }
+}
+
 /// docs/guide.md's "Gradient targets" table lists as *array* exactly the parameters
 /// `model.params()` gives for a scene with every library force.
 #[test]

@@ -26,6 +26,10 @@ const KEPT_PARAM_GRADIENTS: usize = 16;
 #[derive(Default)]
 struct Record {
     error: RefCell<Option<Error>>,
+    /// The first non-finite loss or gradient (a trial point where the simulation diverged),
+    /// and how many trial points were walls (see `Objective::eval`).
+    non_finite: RefCell<Option<Error>>,
+    walls: RefCell<usize>,
     evaluations: RefCell<usize>,
     recent: RefCell<VecDeque<(Vec<f64>, Vec<f64>)>>,
     lowest: RefCell<Option<Cached>>,
@@ -74,12 +78,33 @@ impl Objective<'_, '_> {
         let (p, dp) = self.params.params_of_free(u);
         let result = (self.evaluate.borrow_mut())(&p);
         match result {
-            Ok((l, g)) => {
-                let gu: Vec<f64> = g.iter().zip(&dp).map(|(g, d)| g * d).collect();
-                *self.last.borrow_mut() = Some((u.to_vec(), l, gu.clone()));
-                self.record.keep(u, l, g);
-                Ok((l, gu))
-            }
+            Ok(e) => match e.non_finite {
+                None => {
+                    let gu: Vec<f64> = e.grad.iter().zip(&dp).map(|(g, d)| g * d).collect();
+                    *self.last.borrow_mut() = Some((u.to_vec(), e.loss, gu.clone()));
+                    self.record.keep(u, e.loss, e.grad);
+                    Ok((e.loss, gu))
+                }
+                Some(err) => {
+                    let lowest = self.record.lowest.borrow().as_ref().map(|(_, l, _)| *l);
+                    match lowest {
+                        // A trial point of a line search where the simulation diverged: a
+                        // wall (a loss far above the best, no slope), so that the line search
+                        // backtracks instead of failing.
+                        Some(best) => {
+                            *self.record.walls.borrow_mut() += 1;
+                            self.record.non_finite.borrow_mut().get_or_insert(err);
+                            let wall = best + 1e6 * (1.0 + best.abs());
+                            Ok((wall, vec![0.0; u.len()]))
+                        }
+                        None => {
+                            let msg = err.to_string();
+                            self.record.non_finite.borrow_mut().get_or_insert(err);
+                            Err(argmin::core::Error::msg(msg))
+                        }
+                    }
+                }
+            },
             Err(e) => {
                 let msg = e.to_string();
                 self.record.error.borrow_mut().get_or_insert(e);
@@ -129,13 +154,14 @@ pub(crate) fn run(
         .and_then(|s| s.with_tolerance_cost(0.0))
         .map_err(argmin_error)?;
     let state = IterState::new().param(u0).max_iters(max_iters as u64);
-    let taken = |e: argmin::core::Error| -> Error {
-        let kept = record.error.borrow_mut().take();
-        kept.unwrap_or_else(|| argmin_error(e))
-    };
+    // At the starting point a non-finite loss is an error (nothing better is known).
     let (mut state, _) = match solver.init(&mut problem, state) {
         Ok(s) => s,
-        Err(e) => return Err(taken(e)),
+        Err(e) => {
+            let kept = record.error.borrow_mut().take();
+            let kept = kept.or_else(|| record.non_finite.borrow_mut().take());
+            return Err(kept.unwrap_or_else(|| argmin_error(e)));
+        }
     };
     state.update();
     // The gradient w.r.t. the parameters, not the free variables: kept from the evaluation of
@@ -161,13 +187,19 @@ pub(crate) fn run(
     if let Some(stop) = observe(iteration(&state)) {
         return Ok((best(&state), stop));
     }
-    // argmin ends a run whose line search failed (e.g. because the loss returned an error)
-    // as "terminated": an error of the loss is the answer then, not convergence.
-    let failed = || record.error.borrow_mut().take();
+    // argmin ends a run whose line search failed (because the loss returned an error) as
+    // "terminated", or with an error: an error of the loss is the answer then, not
+    // convergence. A line search that fails after meeting walls (trial points where the
+    // simulation diverged) ends the run with the best point evaluated (`Stop::Diverged`).
+    let loss_error = || record.error.borrow_mut().take();
+    let diverged = || -> Option<((f64, Vec<f64>), Stop)> {
+        let first = record.non_finite.borrow_mut().take()?;
+        let lowest = record.lowest.borrow();
+        let (u, l, _) = lowest.as_ref().expect("the starting point was evaluated");
+        let best = (*l, params.params_of_free(u).0);
+        Some((best, Stop::Diverged(first.to_string())))
+    };
     loop {
-        if let Some(e) = failed() {
-            return Err(e);
-        }
         if let TerminationStatus::Terminated(reason) =
             <LBFGS<_, _, _, _> as Solver<Objective, _>>::terminate_internal(&mut solver, &state)
         {
@@ -177,10 +209,24 @@ pub(crate) fn run(
             };
             return Ok((best(&state), stop));
         }
+        let walls = *record.walls.borrow();
         let (next, _) = match solver.next_iter(&mut problem, state) {
             Ok(s) => s,
-            Err(e) => return Err(taken(e)),
+            Err(e) => {
+                if let Some(e) = loss_error() {
+                    return Err(e);
+                }
+                if *record.walls.borrow() > walls {
+                    if let Some(r) = diverged() {
+                        return Ok(r);
+                    }
+                }
+                return Err(argmin_error(e));
+            }
         };
+        if let Some(e) = loss_error() {
+            return Err(e);
+        }
         state = next;
         state.update();
         state.increment_iter();
@@ -188,8 +234,10 @@ pub(crate) fn run(
             return Ok((best(&state), stop));
         }
         if let TerminationStatus::Terminated(reason) = state.get_termination_status() {
-            if let Some(e) = failed() {
-                return Err(e);
+            if *record.walls.borrow() > walls {
+                if let Some(r) = diverged() {
+                    return Ok(r);
+                }
             }
             return Ok((best(&state), Stop::Converged(reason.text().to_string())));
         }

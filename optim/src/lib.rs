@@ -34,6 +34,7 @@
 //! assert!((p.get(0) - 1.0).abs() < 1e-4 && (p.get(1) - 1.0).abs() < 1e-4);
 //! ```
 
+use std::cell::RefCell;
 use std::fmt;
 use std::ops::ControlFlow;
 use std::time::{Duration, Instant};
@@ -100,6 +101,12 @@ pub enum Stop {
     Callback,
     /// The method's own criterion (e.g. L-BFGS: no change in the loss), as argmin words it.
     Converged(String),
+    /// A trial point of L-BFGS's line search gave a non-finite loss or gradient (the
+    /// simulation diverged there; the message names the evaluation). The best point found is
+    /// kept: a line search may overshoot far from a good iterate, typically after the loss
+    /// has converged. At the starting point, or for gradient descent and Adam (whose every
+    /// evaluation is an iterate), a non-finite loss is an error instead.
+    Diverged(String),
 }
 
 /// What [`Optimizer::minimize`] returns. The parameter arrays hold the best values found.
@@ -230,10 +237,12 @@ impl<'a> Optimizer<'a> {
     /// Minimizes the loss that `loss(tape)` records on a fresh tape (the sum of the returned
     /// array's components) over `params`.
     ///
-    /// Errors: the closure's errors and `backward`'s, [`Error::NoGrad`] if the recorded loss
-    /// does not depend on a parameter (at the first evaluation), [`Error::InvalidInput`] if the loss or a gradient is not finite
-    /// (naming the iteration and component), or if L-BFGS starts a bounded parameter on its
-    /// bound.
+    /// Errors: the closure's errors and `backward`'s; [`Error::InvalidInput`] naming the
+    /// parameter if the recorded loss does not depend on it (checked at the first
+    /// evaluation), naming the evaluation and component if the loss or a gradient is not
+    /// finite (but see [`Stop::Diverged`]), or if L-BFGS starts a bounded parameter on its
+    /// bound. After an error the arrays hold the best values evaluated before it (the
+    /// starting values if none), never the failing ones.
     pub fn minimize<L: Element>(
         self,
         params: &Params,
@@ -257,6 +266,10 @@ impl<'a> Optimizer<'a> {
     /// Minimizes a loss that `eval()` computes *and backpropagates* itself (e.g. with
     /// [`checkpointed`](adflex_runtime::checkpoint::checkpointed)), returning its value; the
     /// optimizer zeroes the parameters' gradients before each call and reads them after.
+    ///
+    /// Errors as [`Optimizer::minimize`], except that a parameter the loss does not depend on
+    /// cannot be told from one whose gradient is zero (there is no tape to look at): it just
+    /// keeps its value.
     pub fn minimize_with(
         mut self,
         params: &Params,
@@ -264,14 +277,23 @@ impl<'a> Optimizer<'a> {
     ) -> Result<Report, Error> {
         let start = Instant::now();
         let mut evaluations = 0;
-        let mut evaluate = |values: &[f64]| -> Result<(f64, Vec<f64>), Error> {
+        // The lowest finite loss evaluated and its values: what the arrays hold after an error.
+        let lowest: RefCell<Option<(f64, Vec<f64>)>> = RefCell::new(None);
+        let mut evaluate = |values: &[f64]| -> Result<Evaluation, Error> {
             params.set_values(values);
             params.zero_grads();
-            let l = eval()?;
+            let loss = eval()?;
             evaluations += 1;
-            let g = params.grads()?;
-            check_finite(params, evaluations, l, &g)?;
-            Ok((l, g))
+            let grad = params.grads()?;
+            let non_finite = check_finite(params, evaluations, loss, &grad).err();
+            if non_finite.is_none() && !matches!(&*lowest.borrow(), Some((l, _)) if loss >= *l) {
+                *lowest.borrow_mut() = Some((loss, values.to_vec()));
+            }
+            Ok(Evaluation {
+                loss,
+                grad,
+                non_finite,
+            })
         };
         let bar = self.progress.then(|| progress_bar(self.max_iters));
         let mut history = Vec::new();
@@ -295,7 +317,7 @@ impl<'a> Optimizer<'a> {
             }
         };
         let x0 = params.values();
-        let (best, stop) = match self.method {
+        let result = match self.method {
             Method::Lbfgs { memory } => lbfgs::run(
                 params,
                 &x0,
@@ -304,16 +326,26 @@ impl<'a> Optimizer<'a> {
                 start,
                 &mut evaluate,
                 &mut observe,
-            )?,
+            ),
             Method::GradientDescent { .. } | Method::Adam { .. } => first_order(
                 self.method,
                 params,
-                x0,
+                x0.clone(),
                 self.max_iters,
                 start,
                 &mut evaluate,
                 &mut observe,
-            )?,
+            ),
+        };
+        let (best, stop) = match result {
+            Ok(r) => r,
+            Err(e) => {
+                if let Some(b) = &bar {
+                    b.finish_and_clear();
+                }
+                params.set_values(lowest.borrow().as_ref().map_or(&x0, |(_, x)| x));
+                return Err(e);
+            }
         };
         if let Some(b) = bar {
             b.finish_and_clear();
@@ -332,8 +364,24 @@ impl<'a> Optimizer<'a> {
     }
 }
 
-/// The loss evaluation the methods call: values -> (loss, gradient).
-pub(crate) type Evaluate<'e> = dyn FnMut(&[f64]) -> Result<(f64, Vec<f64>), Error> + 'e;
+/// One evaluation of the loss: its value, its gradient, and why they are not finite (an
+/// error naming the evaluation and component), which each method handles its own way.
+pub(crate) struct Evaluation {
+    pub loss: f64,
+    pub grad: Vec<f64>,
+    pub non_finite: Option<Error>,
+}
+
+/// The loss evaluation the methods call: values -> loss and gradient.
+pub(crate) type Evaluate<'e> = dyn FnMut(&[f64]) -> Result<Evaluation, Error> + 'e;
+
+/// The loss and gradient of an evaluation that must be finite (an iterate).
+fn finite(e: Evaluation) -> Result<(f64, Vec<f64>), Error> {
+    match e.non_finite {
+        Some(err) => Err(err),
+        None => Ok((e.loss, e.grad)),
+    }
+}
 /// The per-iteration observer: `Some(stop)` ends the run.
 pub(crate) type Observe<'e> = dyn FnMut(Iteration) -> Option<Stop> + 'e;
 
@@ -385,7 +433,7 @@ fn first_order(
 ) -> Result<((f64, Vec<f64>), Stop), Error> {
     params.project(&mut x);
     let (mut m, mut v) = (vec![0.0; x.len()], vec![0.0; x.len()]);
-    let (mut l, mut g) = evaluate(&x)?;
+    let (mut l, mut g) = finite(evaluate(&x)?)?;
     let mut best = (l, x.clone());
     for (iter, evaluations) in (0..).zip(1..) {
         let it = Iteration {
@@ -424,7 +472,7 @@ fn first_order(
             Method::Lbfgs { .. } => unreachable!("L-BFGS runs through argmin"),
         }
         params.project(&mut x);
-        (l, g) = evaluate(&x)?;
+        (l, g) = finite(evaluate(&x)?)?;
         if l < best.0 {
             best = (l, x.clone());
         }

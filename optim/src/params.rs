@@ -202,14 +202,15 @@ impl Params {
         Ok(out)
     }
 
-    /// [`Error::NoGrad`] naming the first parameter `loss` does not depend on in `tape`.
+    /// [`Error::InvalidInput`] naming the first parameter `loss` does not depend on in `tape`.
     pub(crate) fn check_used(&self, tape: &Tape, loss: &dyn AnyArray) -> Result<(), Error> {
         match self.entries.iter().find(|e| !tape.depends(loss, &*e.array)) {
-            Some(e) => Err(Error::NoGrad {
-                array: format!(
-                    "{} (an optimization parameter the recorded loss `{}` does not read; \
-                     pass the array the simulation uses, or remove it from the parameters)",
-                    e.array.label(),
+            Some(e) => Err(Error::InvalidInput {
+                what: format!("optimization parameter {}", e.array.label()),
+                message: format!(
+                    "the recorded loss `{}` does not depend on it: pass the array the \
+                     simulation reads (e.g. from `model.param(..)`), or remove it from the \
+                     parameters",
                     loss.label()
                 ),
             }),

@@ -235,9 +235,10 @@ fn a_parameter_the_loss_ignores_and_a_diverging_loss_are_errors() {
         })
         .unwrap_err();
     assert!(
-        matches!(err, Error::NoGrad { ref array } if array.contains("unused")),
+        matches!(err, Error::InvalidInput { ref what, .. } if what.contains("unused")),
         "{err}"
     );
+    assert!(!err.to_string().contains("requires_grad"), "{err}");
 
     let a = Array::from_vec(vec![f64::NAN]);
     let err = Optimizer::adam(0.1)
@@ -249,6 +250,85 @@ fn a_parameter_the_loss_ignores_and_a_diverging_loss_are_errors() {
         })
         .unwrap_err();
     assert!(err.to_string().contains("loss (evaluation 1)"), "{err}");
+}
+
+/// `loss += w (c - 3)^2 + sqrt(2 - c)`: pulled towards 3, NaN past the cliff at `c = 2`.
+#[diff_kernel]
+fn cliff<R: Real>(c: &Array<R>, w: R, loss: &Array<R>) {
+    let d = c[0] - 3.0;
+    loss.atomic_add(0, w * d * d + sqrt(2.0 - c[0]));
+}
+
+/// `loss += (c - 1.5)^2`, and NaN past 2.
+#[diff_kernel]
+fn nan_past_two<R: Real>(c: &Array<R>, loss: &Array<R>) {
+    let d = c[0] - 1.5;
+    loss.atomic_add(0, d * d + 0.0 * sqrt(2.0 - c[0]));
+}
+
+fn cliff_loss(c: f64, w: f64) -> f64 {
+    w * (c - 3.0).powi(2) + (2.0 - c).sqrt()
+}
+
+#[test]
+fn an_error_leaves_the_best_values_evaluated_and_lbfgs_keeps_its_best_point() {
+    // Gradient descent steps over the cliff: an error, and `c` holds the best value before.
+    let c = Array::from_vec(vec![0.0f64]).named("c");
+    let mut losses = Vec::new();
+    let err = Optimizer::gradient_descent(0.2)
+        .progress(false)
+        .on_iteration(|it| {
+            losses.push(it.loss);
+            ControlFlow::Continue(())
+        })
+        .minimize(&Params::new().with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(cliff, 1, (&c, 1.0, &l));
+            Ok(l)
+        })
+        .unwrap_err();
+    assert!(err.to_string().contains("is NaN"), "{err}");
+    let best = losses.iter().cloned().fold(f64::INFINITY, f64::min);
+    assert!(
+        c.get(0) < 2.0 && cliff_loss(c.get(0), 1.0) == best,
+        "c = {}",
+        c.get(0)
+    );
+
+    // L-BFGS's line search backs off from points where the loss is NaN (its first step from
+    // c = -3 lands at 6): the minimum at 1.5, next to the NaN region past 2, is found.
+    let c = Array::from_vec(vec![-3.0f64]).named("c");
+    let r = Optimizer::lbfgs()
+        .progress(false)
+        .max_iters(50)
+        .minimize(&Params::new().with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(nan_past_two, 1, (&c, &l));
+            Ok(l)
+        })
+        .unwrap();
+    assert!((c.get(0) - 1.5).abs() < 1e-6, "{r}, c = {}", c.get(0));
+    assert!(!matches!(r.stop, Stop::Diverged(_)), "{r}");
+
+    // With the infimum on the edge of the NaN region no point satisfies the line search's
+    // conditions: the run ends (no error) with the best point it evaluated and the reason.
+    let c = Array::from_vec(vec![0.0f64]).named("c");
+    let r = Optimizer::lbfgs()
+        .progress(false)
+        .max_iters(50)
+        .minimize(&Params::new().with(&c), |tape| {
+            let l = Array::zeros(1);
+            tape.launch(cliff, 1, (&c, 0.1, &l));
+            Ok(l)
+        })
+        .unwrap();
+    assert!(
+        matches!(r.stop, Stop::Diverged(_) | Stop::Converged(_)),
+        "{r}"
+    );
+    let x = c.get(0);
+    assert!(x < 2.0 && r.loss == cliff_loss(x, 0.1), "{r}, c = {x}");
+    assert!(r.loss < r.initial_loss, "{r}, c = {x}");
 }
 
 #[test]
