@@ -250,8 +250,9 @@ fn kernel_mode(
             match mode {
                 Mode::Adjoint => {
                     let own = at_tid.reads[p];
-                    views
-                        .extend(quote!(let mut #gv = #k::grad_scatter(#arr, __exec, #site, #own);));
+                    views.extend(
+                        quote!(let mut #gv = #k::grad_scatter::<_, #own>(#arr, __exec, #site);),
+                    );
                     finish.push(quote!(#gv.finish()));
                     scatters.push(gv);
                 }
@@ -273,7 +274,8 @@ fn kernel_mode(
             let own = at_tid.atomics[p];
             match mode {
                 Mode::Forward => {
-                    views.extend(quote!(let mut #vw = #k::scatter(#arr, __exec, #site, #own);));
+                    views
+                        .extend(quote!(let mut #vw = #k::scatter::<_, #own>(#arr, __exec, #site);));
                     finish.push(quote!(#vw.finish()));
                     scatters.push(vw);
                 }
@@ -282,7 +284,7 @@ fn kernel_mode(
                 }
                 Mode::Tangent => {
                     views.extend(
-                        quote!(let mut #tv = #k::tangent_scatter(#arr, __exec, #site, #own);),
+                        quote!(let mut #tv = #k::tangent_scatter::<_, #own>(#arr, __exec, #site);),
                     );
                     finish.push(quote!(#tv.finish()));
                     scatters.push(tv);

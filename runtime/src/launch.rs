@@ -351,14 +351,11 @@ fn shared_scatters(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode:
     if mode != Mode::Adjoint {
         return Vec::new();
     }
-    let read: Vec<&dyn AnyArray> = params
-        .iter()
-        .zip(arrays)
-        .filter_map(|(p, a)| a.filter(|_| p.access == Access::Read))
-        .collect();
+    let read = |k: usize| arrays[k].filter(|_| params[k].access == Access::Read);
     let mut shared = Vec::new();
-    for (i, a) in read.iter().enumerate() {
-        if read[..i].iter().any(|b| b.id() == a.id()) {
+    for i in 0..params.len().min(arrays.len()) {
+        let Some(a) = read(i) else { continue };
+        if (0..i).any(|k| read(k).is_some_and(|b| b.id() == a.id())) {
             if let Some(g) = a.grad_any() {
                 shared.push(g.id());
             }

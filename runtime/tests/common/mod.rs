@@ -57,7 +57,7 @@ impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
             }
             Mode::Adjoint => {
                 let adj_y = kernel::grad_taker(&args.2, exec, &Y, true);
-                let mut adj_x = kernel::grad_scatter(&args.0, exec, &X, false);
+                let mut adj_x = kernel::grad_scatter::<_, false>(&args.0, exec, &X);
                 let k = if W { 3.0 } else { 2.0 };
                 for i in r {
                     adj_x.add(i, k * a * x.get(i) * adj_y.take(i, i));
@@ -107,7 +107,7 @@ impl KernelBody<SumSqArgs> for SumSq {
         let x = kernel::reader(&args.0, exec, &X);
         match mode {
             Mode::Forward => {
-                let mut loss = kernel::scatter(&args.1, exec, &L, false);
+                let mut loss = kernel::scatter::<_, false>(&args.1, exec, &L);
                 for i in r {
                     let xi = x.get(i);
                     loss.add(0usize, xi * xi);
@@ -116,7 +116,7 @@ impl KernelBody<SumSqArgs> for SumSq {
             }
             Mode::Adjoint => {
                 let adj_loss = kernel::grad_reader(&args.1, exec, &L);
-                let mut adj_x = kernel::grad_scatter(&args.0, exec, &X, false);
+                let mut adj_x = kernel::grad_scatter::<_, false>(&args.0, exec, &X);
                 for i in r {
                     adj_x.add(i, 2.0 * x.get(i) * adj_loss.get(0usize));
                 }
@@ -124,7 +124,7 @@ impl KernelBody<SumSqArgs> for SumSq {
             }
             Mode::Tangent => {
                 let dx = kernel::tangent_reader(&args.0, exec, &X);
-                let mut dl = kernel::tangent_scatter(&args.1, exec, &L, false);
+                let mut dl = kernel::tangent_scatter::<_, false>(&args.1, exec, &L);
                 for i in r {
                     dl.add(0usize, 2.0 * x.get(i) * dx.get(i));
                 }
@@ -173,7 +173,7 @@ impl KernelBody<SqrtArgs> for Sqrt {
             }
             Mode::Adjoint => {
                 let adj_y = kernel::grad_taker(&args.1, exec, &Y, true);
-                let mut adj_x = kernel::grad_scatter(&args.0, exec, &X, false);
+                let mut adj_x = kernel::grad_scatter::<_, false>(&args.0, exec, &X);
                 for i in r {
                     adj_x.add(i, 0.5 / x.get(i).sqrt() * adj_y.take(i, i));
                 }
@@ -289,9 +289,9 @@ impl KernelBody<StepArgs> for Step {
             Mode::Adjoint => {
                 let ax2 = kernel::grad_taker(&args.4, exec, &X2, true);
                 let av2 = kernel::grad_taker(&args.5, exec, &V2, true);
-                let mut ax = kernel::grad_scatter(&args.0, exec, &X, false);
-                let mut av = kernel::grad_scatter(&args.1, exec, &V, false);
-                let mut ap = kernel::grad_scatter(&args.2, exec, &P, false);
+                let mut ax = kernel::grad_scatter::<_, false>(&args.0, exec, &X);
+                let mut av = kernel::grad_scatter::<_, false>(&args.1, exec, &V);
+                let mut ap = kernel::grad_scatter::<_, false>(&args.2, exec, &P);
                 for i in r {
                     let j = (i + 1) % n;
                     let d = x.get(i) - x.get(j);
@@ -370,7 +370,7 @@ impl KernelBody<GsArgs> for GatherScatter {
         let idx = kernel::reader(&args.1, exec, &I);
         match mode {
             Mode::Forward => {
-                let mut out = kernel::scatter(&args.2, exec, &O, false);
+                let mut out = kernel::scatter::<_, false>(&args.2, exec, &O);
                 for i in r {
                     let w = x.get(idx.get(i));
                     out.add(i % 7, w * w);
@@ -379,7 +379,7 @@ impl KernelBody<GsArgs> for GatherScatter {
             }
             Mode::Adjoint => {
                 let adj_out = kernel::grad_reader(&args.2, exec, &O);
-                let mut adj_x = kernel::grad_scatter(&args.0, exec, &X, false);
+                let mut adj_x = kernel::grad_scatter::<_, false>(&args.0, exec, &X);
                 for i in r {
                     let k = idx.get(i);
                     adj_x.add(k, 2.0 * x.get(k) * adj_out.get(i % 7));
@@ -388,7 +388,7 @@ impl KernelBody<GsArgs> for GatherScatter {
             }
             Mode::Tangent => {
                 let dx = kernel::tangent_reader(&args.0, exec, &X);
-                let mut dout = kernel::tangent_scatter(&args.2, exec, &O, false);
+                let mut dout = kernel::tangent_scatter::<_, false>(&args.2, exec, &O);
                 for i in r {
                     let k = idx.get(i);
                     dout.add(i % 7, 2.0 * x.get(k) * dx.get(k));
@@ -469,7 +469,7 @@ impl KernelBody<SumSqArgs> for MisclaimedScatter {
         };
         assert_eq!(mode, Mode::Forward, "forward only");
         let x = kernel::reader(&args.0, exec, &X);
-        let mut loss = kernel::scatter(&args.1, exec, &L, true);
+        let mut loss = kernel::scatter::<_, true>(&args.1, exec, &L);
         for i in r {
             loss.add(0usize, x.get(i));
         }
