@@ -613,7 +613,7 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// The checks of the single item `kind`.
-    fn check_one(&mut self, kind: &'static str) -> Check<'_> {
+    pub(crate) fn check_one(&mut self, kind: &'static str) -> Check<'_> {
         Check {
             out: &mut self.problems,
             kind,

@@ -83,6 +83,13 @@ fn the_relation_is_the_one_sided_dashpots() {
     }
     assert_eq!(restitution_damping_ratio(1.0), 0.0);
     assert!((restitution_damping_ratio((-1.0f64).exp()) - 1.0).abs() < 1e-9);
+    // Tiny restitutions have large but finite damping ratios (e ~ 1 / (2 zeta)).
+    for e in [1e-6_f64, 1e-100, 1e-200, 1e-300] {
+        let z = restitution_damping_ratio(e);
+        assert!(z.is_finite() && (z * 2.0 * e - 1.0).abs() < 0.1, "{e}: {z}");
+        let back = restitution_of_damping_ratio(z);
+        assert!((back / e - 1.0).abs() < 1e-9, "{e}: {back}");
+    }
 }
 
 /// A ball dropped on the ground with `damp_approach = false` (damping in contact only)

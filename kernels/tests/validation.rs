@@ -262,3 +262,53 @@ fn a_good_scene_finalizes_bitwise_as_before() {
         assert_eq!(t.rest_volume.get(0).to_bits(), (0.9f64 / 6.0).to_bits());
     }
 }
+
+#[test]
+fn bad_grids_are_errors_naming_the_grid_parameter() {
+    let tet = |g: TetGrid<f64>| {
+        let mut b = ModelBuilder::<f64>::new();
+        g.add_to(&mut b);
+        builder_err(&b)
+    };
+    let e = tet(TetGrid {
+        dims: [0, 1, 1],
+        ..TetGrid::default()
+    });
+    has(&e, "tet_grid", Some("dims"), "at least one cell");
+    let e = tet(TetGrid {
+        density: 0.0,
+        ..TetGrid::default()
+    });
+    has(&e, "tet_grid", Some("density"), "> 0");
+    // Only the grid's parameter is named, not the masses of its particles.
+    assert_eq!(e.problems.len(), 1, "{e}");
+    let e = tet(TetGrid {
+        cell: f64::NAN,
+        ..TetGrid::default()
+    });
+    has(&e, "tet_grid", Some("cell"), "> 0");
+
+    let cloth = |g: ClothGrid<f64>| {
+        let mut b = ModelBuilder::<f64>::new();
+        b.add_cloth_grid(&g);
+        builder_err(&b)
+    };
+    for (ni, nj) in [(1, 16), (0, 0), (5, 1)] {
+        let e = cloth(ClothGrid {
+            ni,
+            nj,
+            ..ClothGrid::default()
+        });
+        has(&e, "cloth_grid", Some("ni"), "at least 2 x 2");
+    }
+    let e = cloth(ClothGrid {
+        pinned: vec![(99, 99)],
+        ..ClothGrid::default()
+    });
+    has(&e, "cloth_grid", Some("pinned"), "(99, 99) is outside");
+    // The defaults are good.
+    let mut b = ModelBuilder::<f64>::new();
+    b.add_cloth_grid(&ClothGrid::default());
+    TetGrid::default().add_to(&mut b);
+    b.try_finalize().unwrap();
+}

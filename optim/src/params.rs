@@ -40,8 +40,10 @@ impl Bounds {
     pub fn between(lower: f64, upper: f64) -> Self {
         Bounds { lower, upper }
     }
-    /// `p > 0` (a stiffness, a mass, a length): `at_least(0)`, which L-BFGS keeps strictly
-    /// positive.
+    /// `p >= 0` (a stiffness, a mass, a length): `at_least(0)`. L-BFGS keeps it strictly
+    /// positive; gradient descent and Adam project onto the closed bound, so a step past it
+    /// lands on exactly 0. Where 0 is not allowed (a mass: 0 pins the particle), use
+    /// `at_least(floor)` with a small positive floor.
     pub fn positive() -> Self {
         Self::at_least(0.0)
     }

@@ -156,7 +156,14 @@ fn write_ply_mesh(path: &Path, mesh: &Mesh, binary: bool) -> Result<()> {
         w.write_all(ply_header(mesh, "ascii").as_bytes())
             .map_err(io)?;
         for v in &mesh.vertices {
-            writeln!(w, "{} {} {}", v.x as f32, v.y as f32, v.z as f32).map_err(io)?;
+            writeln!(
+                w,
+                "{} {} {}",
+                Num(v.x as f32),
+                Num(v.y as f32),
+                Num(v.z as f32)
+            )
+            .map_err(io)?;
         }
         for f in &mesh.faces {
             writeln!(w, "3 {} {} {}", f[0], f[1], f[2]).map_err(io)?;
@@ -303,8 +310,28 @@ pub fn write_sequence<R: Real>(
     Ok(paths)
 }
 
+/// A coordinate as USD and PLY readers parse it (`nan`, `inf`, `-inf` for non-finite values;
+/// Rust writes `NaN`).
+struct Num(f32);
+
+impl std::fmt::Display for Num {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            v if v.is_nan() => f.write_str("nan"),
+            v if v.is_infinite() => f.write_str(if v > 0.0 { "inf" } else { "-inf" }),
+            v => write!(f, "{v}"),
+        }
+    }
+}
+
 fn point(out: &mut String, p: Vec3<f64>) {
-    let _ = write!(out, "({}, {}, {})", p.x as f32, p.y as f32, p.z as f32);
+    let _ = write!(
+        out,
+        "({}, {}, {})",
+        Num(p.x as f32),
+        Num(p.y as f32),
+        Num(p.z as f32)
+    );
 }
 
 fn point_list(out: &mut String, pts: impl IntoIterator<Item = Vec3<f64>>) {
@@ -348,7 +375,8 @@ fn sampled_points(out: &mut String, indent: &str, frames: impl Iterator<Item = V
 /// - `Mesh "mesh"` when the model has faces (triangles, tetrahedron boundaries): all the
 ///   particle positions as time-sampled `points`, the faces as
 ///   `faceVertexCounts`/`faceVertexIndices`;
-/// - otherwise `Points "particles"` (time-sampled `points`, `widths` = particle diameter)
+/// - otherwise `Points "particles"` (time-sampled `points`, `widths` = particle diameter,
+///   one per point if the model has per-particle radii)
 ///   and, when the model has springs or distance constraints, `BasisCurves "springs"`
 ///   (linear, two time-sampled points per edge);
 /// - `Xform "body_<i>"` per rigid body with time-sampled `xformOp:translate` and
@@ -428,11 +456,23 @@ pub fn write_usda<R: Real>(
     } else if topo.particles > 0 {
         s.push_str("    def Points \"particles\"\n    {\n");
         sampled_points(&mut s, ind, frames.iter().map(|f| f.x.clone()));
-        let _ = writeln!(
-            s,
-            "{ind}float[] widths = [{}] (\n{ind}    interpolation = \"constant\"\n{ind})",
-            width as f32
-        );
+        if topo.radii.is_empty() {
+            let _ = writeln!(
+                s,
+                "{ind}float[] widths = [{}] (\n{ind}    interpolation = \"constant\"\n{ind})",
+                width as f32
+            );
+        } else {
+            // Per-particle radii: one width per point.
+            let widths: Vec<String> = (0..topo.particles)
+                .map(|i| Num((2.0 * topo.radius_of(i)) as f32).to_string())
+                .collect();
+            let _ = writeln!(
+                s,
+                "{ind}float[] widths = [{}] (\n{ind}    interpolation = \"vertex\"\n{ind})",
+                widths.join(", ")
+            );
+        }
         let _ = writeln!(
             s,
             "{ind}color3f[] primvars:displayColor = [(0.2, 0.3, 0.5)]"

@@ -308,7 +308,7 @@ fn bounds(topo: &Topology, frames: &[Frame]) -> (Vec3<f64>, f64) {
         return (Vec3::zeros(), 0.5);
     }
     let c = (lo + hi) * 0.5;
-    let r = (hi - lo).norm() * 0.5 + topo.radius.max(0.0);
+    let r = (hi - lo).norm() * 0.5 + topo.max_radius().max(0.0);
     let r = if r > 1e-9 { r } else { 0.5 };
     (c, r)
 }
@@ -384,7 +384,8 @@ impl View {
 /// The size of the particles' circles.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum PointRadius {
-    /// The model's `particle_radius` seen through the camera, at least 1.5 px.
+    /// Each particle's radius (the model's `particle_radius`, or its own) seen through the
+    /// camera, at least 1.5 px.
     World,
     /// A fixed radius in pixels.
     Pixels(f32),
@@ -535,11 +536,11 @@ fn draw(
         PointRadius::World => ((world * view.pixels_per_metre(z)) as f32).max(1.5),
     };
     if o.draw_points {
-        for &p in &frame.x {
+        for (i, &p) in frame.x.iter().enumerate() {
             if let Some((s, z)) = view.point(p) {
                 shapes.push((
                     z - 2.0 * bias,
-                    Shape::Disc(s, disc(z, topo.radius), o.point_color),
+                    Shape::Disc(s, disc(z, topo.radius_of(i)), o.point_color),
                 ));
             }
         }

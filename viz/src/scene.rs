@@ -44,8 +44,10 @@ pub(crate) struct Topology {
     pub edges: Vec<[u32; 2]>,
     /// Contact points (body frame) of each body.
     pub body_points: Vec<Vec<Vec3<f64>>>,
-    /// Particle radius (m).
+    /// Particle radius (m): the model's `particle_radius`.
     pub radius: f64,
+    /// Each particle's own radius (m), if the model has per-particle radii (else empty).
+    pub radii: Vec<f64>,
 }
 
 impl Topology {
@@ -82,7 +84,22 @@ impl Topology {
             edges,
             body_points,
             radius: model.particle_radius.to_f64(),
+            radii: model
+                .particle_radii
+                .as_ref()
+                .map(|r| r.to_vec().into_iter().map(|v| v.to_f64()).collect())
+                .unwrap_or_default(),
         }
+    }
+
+    /// The radius (m) of particle `i`.
+    pub fn radius_of(&self, i: usize) -> f64 {
+        self.radii.get(i).copied().unwrap_or(self.radius)
+    }
+
+    /// The largest particle radius (m).
+    pub fn max_radius(&self) -> f64 {
+        self.radii.iter().copied().fold(self.radius, f64::max)
     }
 
     /// Edges between the contact points of each body, as indices into

@@ -746,3 +746,61 @@ fn bad_options_are_errors() {
         Err(Error::Invalid(_))
     ));
 }
+
+#[test]
+fn per_particle_radii_are_exported_and_drawn() {
+    // Two particles: a 0.1 m ball and a default (0.01 m) one.
+    let mut b = ModelBuilder::<f64>::new();
+    b.add_particle_with_radius(Vec3::new(-0.5, 0.5, 0.0), Vec3::zeros(), 1.0, 0.1);
+    b.add_particle(Vec3::new(0.5, 0.5, 0.0), Vec3::zeros(), 1.0);
+    let model = b.finalize();
+    let states = vec![model.state()];
+    let dir = TempDir::new("radii");
+    export::write_usda(dir.path("r.usda"), &model, &states, 60.0).unwrap();
+    let text = std::fs::read_to_string(dir.path("r.usda")).unwrap();
+    assert!(text.contains("float[] widths = [0.2, 0.02]"), "{text}");
+    assert!(text.contains("interpolation = \"vertex\""), "{text}");
+
+    // The big ball covers many more pixels than the small one (same distance to the camera).
+    let opts = RenderOptions {
+        width: 200,
+        height: 100,
+        draw_ground: false,
+        ..RenderOptions::default()
+    };
+    let pm = render::render_frame(&model, &states[0], &opts).unwrap();
+    let bg = opts.background;
+    let count = |half: std::ops::Range<u32>| {
+        let mut n = 0;
+        for y in 0..pm.height() {
+            for x in half.clone() {
+                let p = pm.pixel(x, y).unwrap().demultiply();
+                if [p.red(), p.green(), p.blue()] != [bg.r, bg.g, bg.b] {
+                    n += 1;
+                }
+            }
+        }
+        n
+    };
+    let (big, small) = (count(0..100), count(100..200));
+    assert!(
+        small > 0 && big > 8 * small,
+        "big {big} px, small {small} px"
+    );
+}
+
+#[test]
+fn non_finite_coordinates_are_written_as_usd_and_ply_read_them() {
+    let model = spring_model();
+    let s = model.state();
+    s.x.set(1, Vec3::new(f64::NAN, f64::INFINITY, 0.0));
+    let dir = TempDir::new("nan");
+    // The exporters write what they are given (a diverged frame is worth seeing), spelled
+    // the way USD's parser reads it.
+    export::write_usda(dir.path("n.usda"), &model, std::slice::from_ref(&s), 60.0).unwrap();
+    let text = std::fs::read_to_string(dir.path("n.usda")).unwrap();
+    assert!(
+        text.contains("(nan, inf, 0)") && !text.contains("NaN"),
+        "{text}"
+    );
+}

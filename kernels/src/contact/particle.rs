@@ -264,7 +264,8 @@ pub fn restitution_of_damping_ratio(zeta: f64) -> f64 {
     } else if zeta < 1.0 {
         zeta.acos() / (1.0 - zeta * zeta).sqrt()
     } else {
-        zeta.acosh() / (zeta * zeta - 1.0).sqrt()
+        // `zeta sqrt(1 - 1/zeta^2)`, not `sqrt(zeta^2 - 1)`, which overflows past 1e154.
+        zeta.acosh() / (zeta * (1.0 - 1.0 / (zeta * zeta)).sqrt())
     };
     (-zeta * g).exp()
 }
@@ -283,6 +284,8 @@ pub fn restitution_damping_ratio(e: f64) -> f64 {
     let mut hi = 1.0;
     while restitution_of_damping_ratio(hi) > e {
         hi *= 2.0;
+        // e(zeta) ~ 1/(2 zeta): every e > 0 in f64 has a finite zeta.
+        assert!(hi.is_finite(), "no damping ratio gives restitution {e}");
     }
     let mut lo = 0.0;
     for _ in 0..200 {

@@ -81,9 +81,30 @@ impl<R: Real> ClothGrid<R> {
 
 impl<R: Real> ModelBuilder<R> {
     /// Adds a [`ClothGrid`]; returns the index of its first particle.
+    ///
+    /// Bad parameters are recorded as problems of item `cloth_grid` that
+    /// [`ModelBuilder::try_finalize`] reports: fewer than 2 particles along a side (nothing is
+    /// added then), a pinned particle outside the grid; a bad `spacing`, `mass` or stiffness
+    /// is reported by the checks of the particles and springs.
     pub fn add_cloth_grid(&mut self, c: &ClothGrid<R>) -> u32 {
         let first = self.particle_count() as u32;
         let (ni, nj) = (c.ni, c.nj);
+        let mut check = self.check_one("cloth_grid");
+        if ni < 2 || nj < 2 {
+            check.fail(
+                Some("ni"),
+                format!("a cloth needs at least 2 x 2 particles (got ni = {ni}, nj = {nj})"),
+            );
+            return first;
+        }
+        for &(i, j) in &c.pinned {
+            if i >= ni || j >= nj {
+                check.fail(
+                    Some("pinned"),
+                    format!("particle ({i}, {j}) is outside the {ni} x {nj} grid"),
+                );
+            }
+        }
         let o = Vec3::new(
             c.origin.x.to_f64(),
             c.origin.y.to_f64(),

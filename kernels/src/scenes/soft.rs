@@ -112,15 +112,26 @@ const KUHN: [[usize; 4]; 6] = [
 
 impl<R: Real> TetGrid<R> {
     /// Adds the grid's particles and tetrahedra to `b` (see [`TetGrid`]); returns their ranges
-    /// and boundary. Bad parameters (a `dims` entry of 0, a non-positive or non-finite `cell`
-    /// or `density`, bad `mu`, `lambda`, `kd`) are recorded as problems by the builder's
-    /// checks ([`ModelBuilder::add_particle`], [`ModelBuilder::add_tet`]); `dims` of 0 adds
-    /// nothing.
+    /// and boundary. Bad parameters are recorded as problems of item `tet_grid` (a `dims`
+    /// entry of 0, a non-positive or non-finite `cell` or `density`: the grid then adds
+    /// nothing) or by the builder's checks of each tetrahedron (bad `mu`, `lambda`, `kd`), and
+    /// [`ModelBuilder::try_finalize`] reports them.
     pub fn add_to(&self, b: &mut ModelBuilder<R>) -> TetBlock {
         let [nx, ny, nz] = self.dims;
         let first = b.particle_count() as u32;
         let first_tet = b.tet_count() as u32;
-        if nx == 0 || ny == 0 || nz == 0 {
+        let mut c = b.check_one("tet_grid");
+        if self.dims.contains(&0) {
+            c.fail(
+                Some("dims"),
+                format!(
+                    "needs at least one cell along each axis (got {:?})",
+                    self.dims
+                ),
+            );
+        }
+        let sized = c.positive("cell", self.cell) & c.positive("density", self.density);
+        if nx == 0 || ny == 0 || nz == 0 || !sized {
             return TetBlock {
                 particles: first..first,
                 tets: first_tet..first_tet,
