@@ -9,15 +9,15 @@ use crate::model::{Model, ModelBuilder};
 /// The cage's parameters (SI units).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Cage<R: Real> {
-    /// Distance between neighbouring lattice points (m).
+    /// Distance between neighbouring lattice points (m; default 0.5).
     pub spacing: R,
-    /// Mass of the centre particle (kg).
+    /// Mass of the centre particle (kg; default 1).
     pub mass: R,
-    /// Stiffness of each spring (N/m).
+    /// Stiffness of each spring (N/m; default 50).
     pub ke: R,
-    /// Damping of each spring (N s/m).
+    /// Damping of each spring (N s/m; default 2).
     pub kd: R,
-    /// Gravity (m/s²).
+    /// Gravity (m/s²; default `(0, -9.81, 0)`).
     pub gravity: Vec3<R>,
 }
 
