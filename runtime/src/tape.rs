@@ -24,8 +24,12 @@ type BackwardFn = Box<dyn FnMut() -> Result<(), Error> + Send + Sync>;
 
 /// One array a recorded step read or wrote.
 struct Use {
-    param: String,
+    /// The kernel parameter (static), or `input k` / `output k` of a custom step.
+    param: std::borrow::Cow<'static, str>,
     array: Box<dyn AnyArray>,
+    /// `array.id()`, kept here: planning a backward over many small steps looks ids up in
+    /// every record, and through the box each was a cache miss.
+    id: u64,
     /// Version when the step was recorded (before it ran).
     version: u64,
     /// Version right after the step ran (for writes): a later step that finds another
@@ -66,7 +70,7 @@ impl Record {
     /// `Writer::take`). Outputs that are also inputs are updated in place and keep theirs.
     fn clear_replaced_grads(&self) {
         for u in &self.writes {
-            if !self.reads.iter().any(|x| x.array.id() == u.array.id()) {
+            if !self.reads.iter().any(|x| x.id == u.id) {
                 u.array.zero_grad();
             }
         }
@@ -84,7 +88,7 @@ impl Record {
         Error::NonFinite {
             kernel: self.qualified(),
             launch,
-            param: u.param.clone(),
+            param: u.param.to_string(),
             array: u.array.label(),
             index,
             pass,
@@ -185,8 +189,9 @@ fn uses(
     for (p, a) in params.iter().zip(arrays) {
         let Some(a) = a else { continue };
         let u = Use {
-            param: p.name.to_string(),
+            param: p.name.into(),
             array: a.boxed(),
+            id: a.id(),
             version: a.version(),
             after: 0,
             atomic: p.access == Access::Atomic,
@@ -344,8 +349,9 @@ impl Tape {
                 .iter()
                 .enumerate()
                 .map(|(i, a)| Use {
-                    param: format!("{what} {i}"),
+                    param: format!("{what} {i}").into(),
                     array: a.boxed(),
+                    id: a.id(),
                     version: a.version(),
                     after: 0,
                     atomic: false,
@@ -419,7 +425,7 @@ impl Tape {
     pub(crate) fn writes(&self, id: u64) -> bool {
         self.records
             .iter()
-            .any(|r| r.writes.iter().any(|u| u.array.id() == id))
+            .any(|r| r.writes.iter().any(|u| u.id == id))
     }
 
     /// Forward reach: which steps read an array that depends on a source (an array that
@@ -429,15 +435,15 @@ impl Tape {
         for r in &self.records {
             for u in r.reads.iter().chain(&r.writes) {
                 if u.array.is_requires_grad() {
-                    f.insert(u.array.id());
+                    f.insert(u.id);
                 }
             }
         }
         let mut fwd = vec![false; self.records.len()];
         for (i, r) in self.records.iter().enumerate() {
-            if r.reads.iter().any(|u| f.contains(&u.array.id())) {
+            if r.reads.iter().any(|u| f.contains(&u.id)) {
                 fwd[i] = true;
-                f.extend(r.writes.iter().map(|u| u.array.id()));
+                f.extend(r.writes.iter().map(|u| u.id));
             }
         }
         (fwd, f)
@@ -449,8 +455,8 @@ impl Tape {
     pub fn depends(&self, output: &dyn AnyArray, input: &dyn AnyArray) -> bool {
         let mut needed = HashSet::from([output.id()]);
         for r in self.records.iter().rev() {
-            if r.writes.iter().any(|u| needed.contains(&u.array.id())) {
-                needed.extend(r.reads.iter().map(|u| u.array.id()));
+            if r.writes.iter().any(|u| needed.contains(&u.id)) {
+                needed.extend(r.reads.iter().map(|u| u.id));
             }
         }
         needed.contains(&input.id())
@@ -470,7 +476,7 @@ impl Tape {
                 return Err(Error::ArrayChanged {
                     kernel: r.qualified(),
                     launch: i,
-                    param: u.param.clone(),
+                    param: u.param.to_string(),
                     array: u.array.label(),
                     recorded: u.version,
                     now,
@@ -486,7 +492,7 @@ impl Tape {
         let mut out = Vec::new();
         for r in &self.records {
             for u in r.reads.iter().chain(&r.writes) {
-                if ids.contains(&u.array.id()) && seen.insert(u.array.id()) {
+                if ids.contains(&u.id) && seen.insert(u.id) {
                     out.push(format!("`{}`", u.array.label()));
                 }
             }
@@ -510,7 +516,7 @@ impl Tape {
         let mut chains: std::collections::HashMap<u64, Chain> = Default::default();
         for (i, r) in self.records.iter().enumerate() {
             for u in r.reads.iter().chain(&r.writes) {
-                if let Some(c) = chains.get_mut(&u.array.id()) {
+                if let Some(c) = chains.get_mut(&u.id) {
                     if u.version != c.after && c.live.is_some() {
                         c.cut = true;
                     }
@@ -527,7 +533,7 @@ impl Tape {
             }
             for u in &r.writes {
                 let runs = run[i] || consume[i];
-                let (live, cut) = match chains.get(&u.array.id()) {
+                let (live, cut) = match chains.get(&u.id) {
                     // A writer whose adjoint runs starts a fresh chain: what it overwrote
                     // or accumulated onto is checked at its own read above.
                     _ if runs => (Some(i), false),
@@ -535,7 +541,7 @@ impl Tape {
                     None => (None, false),
                 };
                 chains.insert(
-                    u.array.id(),
+                    u.id,
                     Chain {
                         after: u.after,
                         live,
@@ -560,14 +566,10 @@ impl Tape {
         let mut run = vec![false; self.records.len()];
         let mut consume = vec![false; self.records.len()];
         for (i, r) in self.records.iter().enumerate().rev() {
-            if fwd[i] && r.writes.iter().any(|u| b.contains(&u.array.id())) {
+            if fwd[i] && r.writes.iter().any(|u| b.contains(&u.id)) {
                 run[i] = true;
-                b.extend(r.reads.iter().map(|u| u.array.id()));
-            } else if r
-                .writes
-                .iter()
-                .any(|u| !u.atomic && b.contains(&u.array.id()))
-            {
+                b.extend(r.reads.iter().map(|u| u.id));
+            } else if r.writes.iter().any(|u| !u.atomic && b.contains(&u.id)) {
                 consume[i] = true;
             }
         }
@@ -582,7 +584,7 @@ impl Tape {
                 .iter()
                 .flat_map(|r| &r.reads)
                 .filter(|u| u.array.is_requires_grad())
-                .map(|u| u.array.id())
+                .map(|u| u.id)
                 .chain(sources.iter().copied())
                 .collect();
             let leaf = |id: &u64| leaves.contains(id);
@@ -596,7 +598,7 @@ impl Tape {
             .records
             .iter()
             .flat_map(|r| &r.writes)
-            .map(|u| u.array.id())
+            .map(|u| u.id)
             .filter(|id| grads.contains(id) && !seeds.contains(id))
             .collect();
         Ok(Plan {
@@ -611,7 +613,7 @@ impl Tape {
     fn execute(&mut self, plan: &Plan) -> Result<(), Error> {
         for (r, _) in self.records.iter().zip(&plan.run).filter(|(_, &run)| run) {
             for u in r.reads.iter().chain(&r.writes) {
-                let id = u.array.id();
+                let id = u.id;
                 if plan.grads.contains(&id) {
                     u.array.ensure_grad();
                     if plan.zeroed.contains(&id) {
@@ -642,7 +644,7 @@ impl Tape {
             }
             self.last.run += 1;
             for u in &self.records[i].writes {
-                let id = u.array.id();
+                let id = u.id;
                 if self.retained.contains(&id) && !kept.iter().any(|(a, _)| a.id() == id) {
                     if let Some(g) = u.array.grad_any() {
                         kept.push((u.array.boxed(), g.deep_clone_any()));
@@ -779,7 +781,7 @@ impl Tape {
         let mut seen = HashSet::new();
         for r in &self.records {
             for u in &r.writes {
-                if seen.insert(u.array.id()) {
+                if seen.insert(u.id) {
                     u.array.reset_tangent();
                 }
             }
@@ -839,7 +841,7 @@ impl Tape {
         let mut seen = HashSet::new();
         for r in &self.records {
             for u in r.reads.iter().chain(&r.writes) {
-                if seen.insert(u.array.id()) {
+                if seen.insert(u.id) {
                     let fill = if u.array.is_requires_grad() {
                         ", style=filled, fillcolor=lightblue"
                     } else {
@@ -848,7 +850,7 @@ impl Tape {
                     let _ = writeln!(
                         out,
                         "  a{} [shape=ellipse, label=\"{}\"{fill}];",
-                        u.array.id(),
+                        u.id,
                         esc(&u.array.label())
                     );
                 }
@@ -895,19 +897,14 @@ impl Tape {
         }
         for (i, r) in self.records.iter().enumerate() {
             for u in &r.reads {
-                let _ = writeln!(
-                    out,
-                    "  a{} -> l{i} [label=\"{}\"];",
-                    u.array.id(),
-                    esc(&u.param)
-                );
+                let _ = writeln!(out, "  a{} -> l{i} [label=\"{}\"];", u.id, esc(&u.param));
             }
             for u in &r.writes {
                 let dash = if u.atomic { ", style=dashed" } else { "" };
                 let _ = writeln!(
                     out,
                     "  l{i} -> a{} [label=\"{}\"{dash}];",
-                    u.array.id(),
+                    u.id,
                     esc(&u.param)
                 );
             }
