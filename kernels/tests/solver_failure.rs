@@ -376,14 +376,10 @@ fn implicit_euler_tet_fem_gradients_match_finite_differences() {
     check_implicit("tet FEM", &model, &[&t.mu, &t.lambda, &t.kd], 0.02, 5);
 }
 
-/// Forward mode too: a capped tangent solve cannot return an error through `tape.tangent()`
-/// (its tangent closures return nothing), so under `SolverPolicy::Error` it panics with the
-/// solver's message rather than give a wrong tangent.
+/// Forward mode too: a capped tangent solve under `SolverPolicy::Error` is an error from
+/// `tape.tangent()`, naming the solve and the step, rather than a wrong tangent.
 #[test]
-#[should_panic(
-    expected = "ImplicitEuler tangent linear solve (CG, then BiCGSTAB) did not converge"
-)]
-fn capped_tangent_solve_panics_with_the_solver_message() {
+fn capped_tangent_solve_is_an_error_from_tangent() {
     let model = spring_system(400.0);
     let s0 = model.state();
     let integ = ImplicitEuler {
@@ -396,5 +392,121 @@ fn capped_tangent_solve_panics_with_the_solver_message() {
     let mut tape = Tape::new();
     integ.step(&model, &mut tape, &s0, None, 0.05).unwrap();
     s0.v.set_tangent(Some(Array::from_vec(vec![Vec3::new(0.3, -0.2, 0.1); 4])));
-    let _ = tape.tangent();
+    let msg = tape.tangent().unwrap_err().to_string();
+    assert!(
+        msg.contains("ImplicitEuler tangent linear solve (CG, then BiCGSTAB) did not converge")
+            && msg.contains("implicit_euler"),
+        "{msg}"
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// (f) A user force recorded as a custom step: implicit Euler linearizes the forces by their
+// tangents, so a custom step without one (or whose tangent fails) is an error naming the
+// step, never a panic inside the Newton solve.
+
+/// Linear drag `f -= c v` computed on the host with `record_fn`; its tangent is `tangent`.
+#[derive(Clone, Debug)]
+struct HostDrag {
+    c: f64,
+    tangent: HostTangent,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum HostTangent {
+    Missing,
+    Fails,
+    Exact,
+}
+
+impl adflex_kernels::forces::Force<f64> for HostDrag {
+    fn name(&self) -> &'static str {
+        "host_drag"
+    }
+    fn eval(
+        &self,
+        cx: &adflex_kernels::forces::ForceContext<'_, f64>,
+        tape: &mut Tape,
+        f: &Array<Vec3<f64>>,
+    ) {
+        let c = self.c;
+        let (v, out) = (cx.v.clone(), f.clone());
+        let step = tape.record_fn(
+            "host_drag",
+            &[cx.v, f],
+            &[f],
+            || {
+                let vv = v.to_vec();
+                out.modify(|d| d.iter_mut().zip(&vv).for_each(|(f, v)| *f -= v * c));
+            },
+            || Ok(()),
+        );
+        let (v, out) = (cx.v.clone(), f.clone());
+        match self.tangent {
+            HostTangent::Missing => {}
+            HostTangent::Fails => {
+                step.with_tangent(|| Err(Error::Other("the drag has no linearization".into())))
+            }
+            HostTangent::Exact => step.with_tangent(move || {
+                if let (Some(dv), Some(df)) = (v.tangent_buffer(), out.tangent_buffer()) {
+                    let dv = dv.to_vec();
+                    df.modify(|d| d.iter_mut().zip(&dv).for_each(|(f, v)| *f -= v * c));
+                }
+            }),
+        }
+    }
+    fn params_mut(
+        &mut self,
+        _visit: &mut dyn FnMut(&'static str, &mut dyn adflex_kernels::forces::Param),
+    ) {
+    }
+}
+
+/// Two particles on a spring, with the host drag if `tangent` is given.
+fn host_drag_system(tangent: Option<HostTangent>) -> Model<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    let p0 = b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.5, 0.0, 0.0), 1.0);
+    let p1 = b.add_particle(Vec3::new(0.6, 1.1, 0.1), Vec3::new(0.0, 0.3, -0.2), 2.0);
+    b.add_spring_with_rest(p0, p1, 0.5, 50.0, 0.2);
+    if let Some(tangent) = tangent {
+        b.add_force(HostDrag { c: 0.7, tangent });
+    }
+    b.finalize()
+}
+
+#[test]
+fn custom_force_without_a_working_tangent_is_an_error_naming_it() {
+    for (kind, says) in [
+        (HostTangent::Missing, "has no tangent"),
+        (HostTangent::Fails, "the drag has no linearization"),
+    ] {
+        let model = host_drag_system(Some(kind));
+        let mut tape = Tape::new();
+        let err = ImplicitEuler::default()
+            .step(&model, &mut tape, &model.state(), None, 0.01)
+            .expect_err("the Newton solve needs the force's tangent");
+        let msg = err.to_string();
+        assert!(
+            msg.contains("host_drag") && msg.contains(says) && msg.contains("ImplicitEuler"),
+            "{kind:?}: {msg}"
+        );
+    }
+    // With its tangent, the same force steps, and the drag slows the particles down.
+    let model = host_drag_system(Some(HostTangent::Exact));
+    let free = host_drag_system(None);
+    let (mut t1, mut t2) = (Tape::new(), Tape::new());
+    let s = model.state();
+    let with = ImplicitEuler::default()
+        .step(&model, &mut t1, &s, None, 0.01)
+        .unwrap();
+    let without = ImplicitEuler::default()
+        .step(&free, &mut t2, &free.state(), None, 0.01)
+        .unwrap();
+    let ke = |s: &State<f64>| s.v.to_vec().iter().map(|v| v.norm_squared()).sum::<f64>();
+    assert!(
+        ke(&with) < ke(&without),
+        "{} !< {}",
+        ke(&with),
+        ke(&without)
+    );
 }

@@ -17,10 +17,9 @@ use crate::error::Error;
 use crate::kernel::{Access, Kernel, KernelBody, Mode};
 use crate::launch::{bind, BoundLaunch};
 
-type StepFn = Box<dyn FnMut() + Send + Sync>;
-/// The backward of a custom step: fails if it cannot produce a right gradient (e.g. its
-/// adjoint linear solve did not converge).
-type BackwardFn = Box<dyn FnMut() -> Result<(), Error> + Send + Sync>;
+/// The backward or tangent of a custom step: fails if it cannot produce a right derivative
+/// (e.g. its linear solve did not converge).
+type StepFn = Box<dyn FnMut() -> Result<(), Error> + Send + Sync>;
 
 /// One array a recorded step read or wrote.
 struct Use {
@@ -45,7 +44,7 @@ enum Step {
     },
     Custom {
         name: String,
-        backward: BackwardFn,
+        backward: StepFn,
         tangent: Option<StepFn>,
     },
 }
@@ -472,13 +471,20 @@ impl Tape {
         let r = &self.records[i];
         for u in &r.reads {
             let now = u.array.version();
-            if now != u.version {
+            // An input that is also an output (a custom step updating it in place) must be
+            // as the step left it.
+            let expected = r
+                .writes
+                .iter()
+                .find(|w| w.id == u.id)
+                .map_or(u.version, |w| w.after);
+            if now != expected {
                 return Err(Error::ArrayChanged {
                     kernel: r.qualified(),
                     launch: i,
                     param: u.param.to_string(),
                     array: u.array.label(),
-                    recorded: u.version,
+                    recorded: expected,
                     now,
                 });
             }
@@ -789,7 +795,14 @@ impl Tape {
         for i in 0..self.records.len() {
             match &mut self.records[i].step {
                 Step::Launch { launch, dim } => launch.run(Mode::Tangent, *dim),
-                Step::Custom { tangent, .. } => (tangent.as_mut().expect("checked above"))(),
+                Step::Custom { tangent, .. } => {
+                    if let Err(e) = (tangent.as_mut().expect("checked above"))() {
+                        let step = self.records[i].qualified();
+                        return Err(
+                            e.in_context(format!("custom step `{step}` (#{i} on the tape)"))
+                        );
+                    }
+                }
             }
             if self.check_finite {
                 let r = &self.records[i];
@@ -924,10 +937,46 @@ impl CustomStep<'_> {
     /// The forward-mode rule of the step for [`Tape::tangent`]: it must read the tangents of
     /// the inputs (`tangent_buffer()`, `None` = zero) and write those of the outputs (whose
     /// buffers exist and are zero when it runs).
-    pub fn with_tangent(self, tangent: impl FnMut() + Send + Sync + 'static) {
+    ///
+    /// The closure returns `()`, or a `Result<(), Error>` when it can fail (e.g. its linear
+    /// solve did not converge): [`Tape::tangent`] then stops and returns that error with the
+    /// step's name and position on the tape in its context, like [`Tape::backward`].
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// let x = Array::from_vec(vec![2.0_f64]);
+    /// let y = Array::<f64>::zeros(1);
+    /// let mut tape = Tape::new();
+    /// tape.record_fn("fails", &[&x], &[&y], || {}, || Ok(()))
+    ///     .with_tangent(|| Err(Error::Other("no convergence".into())));
+    /// let err = tape.tangent().unwrap_err().to_string();
+    /// assert!(err.contains("no convergence") && err.contains("fails"), "{err}");
+    /// ```
+    pub fn with_tangent<O: StepOutcome>(
+        self,
+        mut tangent: impl FnMut() -> O + Send + Sync + 'static,
+    ) {
         if let Step::Custom { tangent: t, .. } = &mut self.tape.records[self.index].step {
-            *t = Some(Box::new(tangent));
+            *t = Some(Box::new(move || tangent().into_result()));
         }
+    }
+}
+
+/// What a custom step's tangent returns: `()` (it cannot fail) or `Result<(), Error>`.
+pub trait StepOutcome {
+    /// As a result.
+    fn into_result(self) -> Result<(), Error>;
+}
+
+impl StepOutcome for () {
+    fn into_result(self) -> Result<(), Error> {
+        Ok(())
+    }
+}
+
+impl StepOutcome for Result<(), Error> {
+    fn into_result(self) -> Result<(), Error> {
+        self
     }
 }
 

@@ -450,3 +450,48 @@ fn non_finite_adjoint_is_reported() {
         }
     );
 }
+
+/// A custom step that updates an array in place (an input that is also an output): later
+/// steps and `backward` see the updated array as the step's, not as changed since, and a host
+/// write after the step is still caught.
+#[test]
+fn custom_step_in_place() {
+    let x = Array::from_vec(vec![1.0f64, -2.0, 0.5])
+        .requires_grad()
+        .named("x");
+    let y = Array::<f64>::zeros(3).named("y");
+    let loss = Array::<f64>::zeros(1).named("loss");
+    let mut tape = Tape::new();
+    tape.launch(Square::<false>, 3, (&x, 1.0, &y));
+    // y *= 3 on the host; its gradient (kept in place) is scaled the same way.
+    let yb = y.clone();
+    tape.record_fn(
+        "triple",
+        &[&y],
+        &[&y],
+        || y.modify(|d| d.iter_mut().for_each(|v| *v *= 3.0)),
+        move || {
+            if let Some(g) = yb.grad_buffer() {
+                g.modify(|d| d.iter_mut().for_each(|v| *v *= 3.0));
+            }
+            Ok(())
+        },
+    )
+    .with_tangent(|| ());
+    tape.launch(SumSq, 3, (&y, &loss));
+    tape.backward(&loss).unwrap();
+    // loss = sum (3 x^2)^2 = 9 sum x^4, d/dx = 36 x^3.
+    for (g, x) in x.grad().unwrap().to_vec().iter().zip([1.0f64, -2.0, 0.5]) {
+        assert!(
+            (g - 36.0 * x * x * x).abs() <= 1e-12 * (36.0 * x * x * x).abs(),
+            "{g}"
+        );
+    }
+    assert!(tape.tangent().is_ok());
+    y.assign(&[0.0, 0.0, 0.0]);
+    tape.zero();
+    assert!(matches!(
+        tape.backward(&loss),
+        Err(Error::ArrayChanged { .. })
+    ));
+}

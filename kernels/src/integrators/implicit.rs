@@ -99,7 +99,7 @@ pub struct ImplicitEuler {
     /// What a solve that misses its tolerance does (default [`SolverPolicy::Error`]): the
     /// Newton iteration of `step` (an [`Error::NotConverged`] from `step`, nothing recorded),
     /// the adjoint solve of `tape.backward` (an error from `backward`), the tangent solve of
-    /// `tape.tangent` (a panic with the same message: a tangent cannot return an error).
+    /// `tape.tangent` (an error from `tangent`).
     /// [`SolverPolicy::Warn`] prints the figures to stderr and uses the result;
     /// [`SolverPolicy::Continue`] uses it silently.
     pub on_failure: SolverPolicy,
@@ -167,6 +167,10 @@ struct System<R: Real> {
     precond: Vec<f64>,
     free: Vec<bool>,
     dt: f64,
+    /// A pass of the force model that failed inside a Krylov product (which cannot return
+    /// an error), e.g. a custom force step without a tangent: kept here, the product filled
+    /// with NaN so the solve stops, and returned by [`System::checked`] after the solve.
+    failure: std::cell::RefCell<Option<Error>>,
 }
 
 /// The accelerations recorded at one iterate, on their own tape.
@@ -193,6 +197,7 @@ impl<R: Real> System<R> {
             precond: w.iter().map(|&w| if w > 0.0 { w } else { 1.0 }).collect(),
             free: w.iter().map(|&w| w > 0.0).collect(),
             dt,
+            failure: Default::default(),
         }
     }
 
@@ -259,10 +264,12 @@ impl<R: Real> System<R> {
         let dx: Vec<f64> = ux.iter().map(|u| self.dt * u).collect();
         p.x.ensure_tangent().assign(&unflat::<R>(&dx));
         p.v.ensure_tangent().assign(&unflat::<R>(&ux));
-        p.tape
-            .tangent()
-            .expect("implicit Euler: tangent pass of the force model");
-        let ad = flat(&p.a.tangent_buffer().expect("tangent of the accelerations"));
+        if let Err(e) = p.tape.tangent() {
+            return self.fail("tangent (forward-mode)", e, out);
+        }
+        let ad =
+            p.a.tangent_buffer()
+                .map_or_else(|| vec![0.0; out.len()], |t| flat(&t));
         for k in 0..out.len() {
             out[k] = if self.free[k] {
                 self.mass[k] * (u[k] - self.dt * ad[k])
@@ -274,23 +281,42 @@ impl<R: Real> System<R> {
 
     /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
     /// scratch tape; returns the gradients of `x'` and `v'`.
-    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Result<(Vec<f64>, Vec<f64>), Error> {
         p.x.zero_grad();
         p.v.zero_grad();
         p.a.ensure_grad().assign(&unflat::<R>(seed));
-        p.tape
-            .backward_with(&[&p.a])
-            .expect("implicit Euler: adjoint pass of the force model");
-        (
-            flat(&p.x.grad().expect("x' requires grad")),
-            flat(&p.v.grad().expect("v' requires grad")),
-        )
+        p.tape.backward_with(&[&p.a]).map_err(|e| {
+            e.in_context("ImplicitEuler: the adjoint (reverse-mode) pass of the force model")
+        })?;
+        let grad = |a: &Array<Vec3<R>>| {
+            a.grad()
+                .map_or_else(|_| vec![0.0; seed.len()], |g| flat(&g))
+        };
+        Ok((grad(&p.x), grad(&p.v)))
+    }
+
+    /// Keeps the first failure of a pass inside a Krylov product (see `failure`) and makes
+    /// the product NaN, which stops the solve.
+    fn fail(&self, pass: &str, e: Error, out: &mut [f64]) {
+        let mut f = self.failure.borrow_mut();
+        if f.is_none() {
+            *f = Some(e.in_context(format!("ImplicitEuler: the {pass} pass of the force model")));
+        }
+        out.fill(f64::NAN);
+    }
+
+    /// The failure of a pass inside the last solve, if any.
+    fn checked(&self) -> Result<(), Error> {
+        self.failure.borrow_mut().take().map_or(Ok(()), Err)
     }
 
     /// `out = A^T u` (identity on pinned DOFs) by one adjoint pass.
     fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
         let seed: Vec<f64> = (0..u.len()).map(|k| self.mass[k] * u[k]).collect();
-        let (gx, gv) = self.pull(p, &seed);
+        let (gx, gv) = match self.pull(p, &seed) {
+            Ok(g) => g,
+            Err(e) => return self.fail("adjoint (reverse-mode)", e, out),
+        };
         for k in 0..out.len() {
             out[k] = if self.free[k] {
                 self.mass[k] * u[k] - self.dt * (self.dt * gx[k] + gv[k])
@@ -316,7 +342,7 @@ impl ImplicitEuler {
     }
 
     /// Newton with line search from `v' = v0`; returns the solution `v'`.
-    fn newton<R: Real>(&self, sys: &System<R>, stats: &mut NewtonStats) -> Vec<f64> {
+    fn newton<R: Real>(&self, sys: &System<R>, stats: &mut NewtonStats) -> Result<Vec<f64>, Error> {
         let tol = self.tolerance::<R>();
         let mut p = sys.eval(&sys.v0, false);
         stats.force_evaluations += 1;
@@ -352,6 +378,7 @@ impl ImplicitEuler {
                 Some(&sys.precond),
                 &self.linear,
             );
+            sys.checked()?;
             stats.linear_iterations += info.iterations;
             stats.fallbacks += fell_back as usize;
             sys.mask(&mut d);
@@ -404,9 +431,11 @@ impl ImplicitEuler {
             // truncated at negative curvature, or else the best residual decrease.
             let step = match accepted {
                 Some(a) => Some(a),
-                None => self
-                    .potential_step(sys, &mut p, &e, stats)
-                    .or_else(|| best.filter(|b| b.0 < phi)),
+                None => {
+                    let s = self.potential_step(sys, &mut p, &e, stats);
+                    sys.checked()?;
+                    s.or_else(|| best.filter(|b| b.0 < phi))
+                }
             };
             match step {
                 Some((phit, pt, et)) => {
@@ -422,7 +451,7 @@ impl ImplicitEuler {
                 }
             }
         }
-        p.v_val
+        Ok(p.v_val)
     }
 
     /// A step that decreases the incremental potential `E(v')`, whose gradient is `G` when
@@ -532,7 +561,7 @@ impl ImplicitEuler {
             stats.converged = true;
             Vec::new()
         } else {
-            self.newton(&sys, &mut stats)
+            self.newton(&sys, &mut stats)?
         };
         if !stats.converged {
             self.on_fail(Error::NotConverged {
@@ -587,11 +616,7 @@ impl ImplicitEuler {
             },
             move || sb.backward(),
         )
-        .with_tangent(move || {
-            if let Err(e) = st.tangent() {
-                panic!("{e}");
-            }
-        });
+        .with_tangent(move || st.tangent());
         let bodies = step_bodies(model, tape, state, control, dt);
         Ok((
             State {
@@ -693,6 +718,7 @@ impl<R: Real> Shared<R> {
             Some(&sys.precond),
             self.integrator.gradient_settings(),
         );
+        sys.checked()?;
         self.integrator.check_gradient_solve("adjoint", &info)?;
         sys.mask(&mut lambda);
         // The products accumulated into the copies' gradients: start them over.
@@ -700,7 +726,7 @@ impl<R: Real> Shared<R> {
             l.zero_copy_grad();
         }
         let seed: Vec<f64> = (0..m).map(|k| dt * sys.mass[k] * lambda[k]).collect();
-        let (gx, gv) = sys.pull(&mut p, &seed);
+        let (gx, gv) = sys.pull(&mut p, &seed)?;
         let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
         let gv0: Vec<f64> = (0..m)
             .map(|k| {
@@ -745,13 +771,16 @@ impl<R: Real> Shared<R> {
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
         p.x.ensure_tangent().assign(&unflat::<R>(&dxp));
         p.v.ensure_tangent().assign(&unflat::<R>(&dvp));
-        p.tape
-            .tangent()
-            .expect("implicit Euler: tangent pass of the force model");
-        let ad = flat(&p.a.tangent_buffer().expect("tangent of the accelerations"));
+        let ran = p.tape.tangent();
+        let ad =
+            p.a.tangent_buffer()
+                .map_or_else(|| vec![0.0; m], |t| flat(&t));
         for l in &sys.c.links {
             l.share_tangent(false);
         }
+        ran.map_err(|e| {
+            e.in_context("ImplicitEuler: the tangent (forward-mode) pass of the force model")
+        })?;
         let mut rhs: Vec<f64> = (0..m)
             .map(|k| sys.mass[k] * (dv0[k] + dt * ad[k]))
             .collect();
@@ -764,6 +793,7 @@ impl<R: Real> Shared<R> {
             Some(&sys.precond),
             self.integrator.gradient_settings(),
         );
+        sys.checked()?;
         self.integrator.check_gradient_solve("tangent", &info)?;
         for k in 0..m {
             if !sys.free[k] {
