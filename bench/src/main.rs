@@ -11,7 +11,7 @@
 //!   contributions per thread (a 4-element array read in a 10,000-iteration loop)
 //! - `cloth --n 128 --steps 100 [--threads K] [--f64] [--reps R]`: the cloth benchmark, one
 //!   JSON line
-//! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--no-python]
+//! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--rounds R] [--no-python]
 //!   [--wait-each L]`: adflex and the peer scripts, as JSONL
 //! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
 //!   serde_json, time and peak RSS of each in its own process, as JSON lines
