@@ -477,7 +477,7 @@ fn custom_step_in_place() {
             Ok(())
         },
     )
-    .with_tangent(|| ());
+    .with_tangent(|| Ok(()));
     tape.launch(SumSq, 3, (&y, &loss));
     tape.backward(&loss).unwrap();
     // loss = sum (3 x^2)^2 = 9 sum x^4, d/dx = 36 x^3.
