@@ -64,6 +64,13 @@ impl Record {
         }
     }
 
+    /// `e`, returned by this custom step's backward or tangent (step `i` on the tape), with
+    /// the step named in its context.
+    fn custom_error(&self, i: usize, e: Error) -> Error {
+        let step = self.qualified();
+        e.in_context(format!("custom step `{step}` (#{i} on the tape)"))
+    }
+
     /// After a custom step's backward: the step replaced its outputs, so an earlier writer of
     /// one gets no gradient (a launch's stores take theirs element by element, see
     /// `Writer::take`). Outputs that are also inputs are updated in place and keep theirs.
@@ -179,6 +186,20 @@ impl fmt::Debug for Tape {
     }
 }
 
+impl Use {
+    /// A use of `array` as it is now (its `after` set once the step ran, see `Tape::push`).
+    fn new(param: std::borrow::Cow<'static, str>, array: &dyn AnyArray, atomic: bool) -> Self {
+        Use {
+            param,
+            array: array.boxed(),
+            id: array.id(),
+            version: array.version(),
+            after: 0,
+            atomic,
+        }
+    }
+}
+
 /// Splits a step's arrays into reads and writes, with their current versions.
 fn uses(
     params: &[crate::kernel::ParamInfo],
@@ -187,14 +208,7 @@ fn uses(
     let (mut reads, mut writes) = (Vec::new(), Vec::new());
     for (p, a) in params.iter().zip(arrays) {
         let Some(a) = a else { continue };
-        let u = Use {
-            param: p.name.into(),
-            array: a.boxed(),
-            id: a.id(),
-            version: a.version(),
-            after: 0,
-            atomic: p.access == Access::Atomic,
-        };
+        let u = Use::new(p.name.into(), *a, p.access == Access::Atomic);
         match p.access {
             Access::Read => reads.push(u),
             Access::Store | Access::Atomic => writes.push(u),
@@ -347,14 +361,7 @@ impl Tape {
             arrays
                 .iter()
                 .enumerate()
-                .map(|(i, a)| Use {
-                    param: format!("{what} {i}").into(),
-                    array: a.boxed(),
-                    id: a.id(),
-                    version: a.version(),
-                    after: 0,
-                    atomic: false,
-                })
+                .map(|(i, a)| Use::new(format!("{what} {i}").into(), *a, false))
                 .collect::<Vec<_>>()
         };
         let (reads, writes) = (side(inputs, "input"), side(outputs, "output"));
@@ -661,10 +668,7 @@ impl Tape {
                 Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
                 Step::Custom { backward, .. } => {
                     if let Err(e) = backward() {
-                        let step = self.records[i].qualified();
-                        return Err(
-                            e.in_context(format!("custom step `{step}` (#{i} on the tape)"))
-                        );
+                        return Err(self.records[i].custom_error(i, e));
                     }
                 }
             }
@@ -797,10 +801,7 @@ impl Tape {
                 Step::Launch { launch, dim } => launch.run(Mode::Tangent, *dim),
                 Step::Custom { tangent, .. } => {
                     if let Err(e) = (tangent.as_mut().expect("checked above"))() {
-                        let step = self.records[i].qualified();
-                        return Err(
-                            e.in_context(format!("custom step `{step}` (#{i} on the tape)"))
-                        );
+                        return Err(self.records[i].custom_error(i, e));
                     }
                 }
             }

@@ -156,6 +156,11 @@ fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
     100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
 }
 
+/// `e`, from a pass of the force model on its scratch tape, with the pass named.
+fn in_pass(pass: &str, e: Error) -> Error {
+    e.in_context(format!("ImplicitEuler: the {pass} pass of the force model"))
+}
+
 /// One step's system: `G(v') = M (v' - v0 - dt a(x0 + dt v', v'))` over the free DOFs.
 struct System<R: Real> {
     c: Copies<R>,
@@ -280,14 +285,13 @@ impl<R: Real> System<R> {
     }
 
     /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
-    /// scratch tape; returns the gradients of `x'` and `v'`.
+    /// scratch tape; returns the gradients of `x'` and `v'` (an error without context: see
+    /// [`in_pass`]).
     fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Result<(Vec<f64>, Vec<f64>), Error> {
         p.x.zero_grad();
         p.v.zero_grad();
         p.a.ensure_grad().assign(&unflat::<R>(seed));
-        p.tape.backward_with(&[&p.a]).map_err(|e| {
-            e.in_context("ImplicitEuler: the adjoint (reverse-mode) pass of the force model")
-        })?;
+        p.tape.backward_with(&[&p.a])?;
         let grad = |a: &Array<Vec3<R>>| {
             a.grad()
                 .map_or_else(|_| vec![0.0; seed.len()], |g| flat(&g))
@@ -300,7 +304,7 @@ impl<R: Real> System<R> {
     fn fail(&self, pass: &str, e: Error, out: &mut [f64]) {
         let mut f = self.failure.borrow_mut();
         if f.is_none() {
-            *f = Some(e.in_context(format!("ImplicitEuler: the {pass} pass of the force model")));
+            *f = Some(in_pass(pass, e));
         }
         out.fill(f64::NAN);
     }
@@ -726,7 +730,9 @@ impl<R: Real> Shared<R> {
             l.zero_copy_grad();
         }
         let seed: Vec<f64> = (0..m).map(|k| dt * sys.mass[k] * lambda[k]).collect();
-        let (gx, gv) = sys.pull(&mut p, &seed)?;
+        let (gx, gv) = sys
+            .pull(&mut p, &seed)
+            .map_err(|e| in_pass("adjoint (reverse-mode)", e))?;
         let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
         let gv0: Vec<f64> = (0..m)
             .map(|k| {
@@ -778,9 +784,7 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.share_tangent(false);
         }
-        ran.map_err(|e| {
-            e.in_context("ImplicitEuler: the tangent (forward-mode) pass of the force model")
-        })?;
+        ran.map_err(|e| in_pass("tangent (forward-mode)", e))?;
         let mut rhs: Vec<f64> = (0..m)
             .map(|k| sys.mass[k] * (dv0[k] + dt * ad[k]))
             .collect();
