@@ -39,27 +39,7 @@ impl<'a> Emitter<'a> {
 fn collect_uses(b: &Block, used: &mut HashSet<ValueId>) {
     for s in &b.stmts {
         match s {
-            Stmt::Let(l) => match &l.op {
-                Op::Builtin { args, .. }
-                | Op::Func { args, .. }
-                | Op::Tuple(args)
-                | Op::PlainCall { args, .. } => used.extend(args),
-                Op::PlainMethod { recv, args, .. } => {
-                    used.insert(*recv);
-                    used.extend(args);
-                }
-                Op::Cast { arg: x, .. }
-                | Op::Typed { src: x, .. }
-                | Op::NativeUnary { a: x, .. }
-                | Op::StopGrad(x) => {
-                    used.insert(*x);
-                }
-                Op::NativeBinary { a, b, .. } => used.extend([*a, *b]),
-                Op::Read { index, .. } => {
-                    used.insert(*index);
-                }
-                Op::Const(_) | Op::Tid | Op::Zero => {}
-            },
+            Stmt::Let(l) => used.extend(l.op.operands()),
             Stmt::Store { index, value, .. } => used.extend([*index, *value]),
             Stmt::If {
                 cond,
@@ -238,6 +218,12 @@ impl<'a> Emitter<'a> {
             Op::Typed { ty, .. } => quote!(let #x: #ty = #e;),
             _ => quote!(let #x = #e;),
         }
+    }
+
+    /// The forward code of `lets` alone (the static scatter indices, see
+    /// [`crate::ir::Body::static_indices`]).
+    pub fn lets(&self, lets: &[&Let]) -> TokenStream {
+        lets.iter().map(|l| self.let_stmt(l)).collect()
     }
 
     // ---- forward ---------------------------------------------------------------------

@@ -178,6 +178,18 @@ fn kernel_items(
     let modes = [Mode::Forward, Mode::Adjoint, Mode::Tangent]
         .map(|m| kernel_mode(sig, rt, body, uses, &em, m));
     let [fwd, adj, tan] = modes;
+    let statics = [Mode::Forward, Mode::Adjoint, Mode::Tangent]
+        .map(|m| static_scatters(sig, rt, body, uses, &em, m));
+    let infos: Vec<TokenStream> = statics
+        .iter()
+        .map(|s| match &s.0 {
+            Some(Statics { targets, deps }) => quote!(::std::option::Option::Some(
+                #rt::kernel::StaticScatters { targets: &[#(#targets),*], deps: &[#(#deps),*] }
+            )),
+            None => quote!(::std::option::Option::None),
+        })
+        .collect();
+    let [s_fwd, s_adj, s_tan] = statics.map(|s| s.1);
     let strukt = struct_item(sig, attrs);
     let lints = lints();
     quote! {
@@ -211,8 +223,112 @@ fn kernel_items(
                     #rt::kernel::Mode::Tangent => { #tan }
                 }
             }
+            fn static_scatters(
+                __mode: #rt::kernel::Mode,
+            ) -> ::std::option::Option<#rt::kernel::StaticScatters> {
+                let [__fwd, __adj, __tan] = [#(#infos),*];
+                match __mode {
+                    #rt::kernel::Mode::Forward => __fwd,
+                    #rt::kernel::Mode::Adjoint => __adj,
+                    #rt::kernel::Mode::Tangent => __tan,
+                }
+            }
+            #lints
+            fn scatter_indices(
+                &self,
+                __mode: #rt::kernel::Mode,
+                __args: &(#(#owned,)*),
+                __range: ::std::ops::Range<usize>,
+                __exec: &#rt::kernel::Exec,
+                __sink: &mut dyn ::std::ops::FnMut(usize, usize, i128),
+            ) {
+                match __mode {
+                    #rt::kernel::Mode::Forward => { #s_fwd }
+                    #rt::kernel::Mode::Adjoint => { #s_adj }
+                    #rt::kernel::Mode::Tangent => { #s_tan }
+                }
+            }
         }
     }
+}
+
+/// The scatters of `mode` other than those at the thread id (which write directly anyway),
+/// if every one has static indices (see [`Body::static_indices`]): their parameters and the
+/// array parameters their indices read; and the code that reports them thread by thread
+/// (`__sink(slot, tid, index)`, `slot` the place of the parameter in the first list).
+fn static_scatters(
+    sig: &Signature,
+    rt: &TokenStream,
+    body: &Body,
+    uses: &[ArrayUse],
+    em: &Emitter,
+    mode: Mode,
+) -> (Option<Statics>, TokenStream) {
+    let kname = sig.name.to_string();
+    let at_tid = body.at_tid(sig.params.len());
+    let si = body.static_indices(sig.params.len());
+    let mut targets = Vec::new();
+    let mut roots = Vec::new();
+    for (p, (param, u)) in sig.params.iter().zip(uses).enumerate() {
+        if !param.is_array() {
+            continue;
+        }
+        // The same choice of view as `kernel_mode`: a read parameter is scattered into (its
+        // gradient) in the adjoint; an atomic one in the forward and tangent.
+        let indices = match mode {
+            Mode::Adjoint if u.read.is_some() && !at_tid.reads[p] => &si.reads[p],
+            Mode::Forward | Mode::Tangent
+                if u.read.is_none()
+                    && u.store.is_none()
+                    && u.atomic.is_some()
+                    && !at_tid.atomics[p] =>
+            {
+                &si.atomics[p]
+            }
+            _ => continue,
+        };
+        let Some(ix) = indices else {
+            return (None, quote!(::std::unreachable!()));
+        };
+        roots.push((targets.len(), ix.clone()));
+        targets.push(p);
+    }
+    let all: Vec<_> = roots
+        .iter()
+        .flat_map(|(_, ix)| ix.iter().copied())
+        .collect();
+    let (lets, deps) = si.closure(&all);
+    let mut views = TokenStream::new();
+    for &q in &deps {
+        let i = syn::Index::from(q);
+        let pname = sig.params[q].name.to_string();
+        let vw = emit::view(q);
+        let site = quote!(&#rt::kernel::Site { kernel: #kname, param: #pname });
+        views.extend(quote!(let #vw = #rt::kernel::reader(&__args.#i, __exec, #site);));
+    }
+    let code = em.lets(&lets);
+    let t = emit::tid();
+    let t = &t;
+    let sinks = roots.iter().flat_map(|(slot, ix)| {
+        ix.iter().map(move |x| {
+            let x = emit::names(*x).0;
+            quote!(__sink(#slot, #t, #rt::kernel::ToIndex::to_i128(#x));)
+        })
+    });
+    let code = quote! {
+        #views
+        for #t in __range {
+            #code
+            #(#sinks)*
+        }
+    };
+    (Some(Statics { targets, deps }), code)
+}
+
+/// The parameters a mode's static scatters go to and the array parameters their indices read.
+struct Statics {
+    targets: Vec<usize>,
+    deps: Vec<usize>,
 }
 
 #[derive(Clone, Copy, PartialEq)]

@@ -82,6 +82,36 @@ pub trait KernelBody<Owned>: Copy + Send + Sync + 'static {
     /// Runs thread ids `range` in `mode`; returns the scatter logs to apply (empty when `exec`
     /// writes directly).
     fn run(&self, mode: Mode, args: &Owned, range: Range<usize>, exec: &Exec) -> Vec<ScatterLog>;
+    /// The scatters of `mode` (other than those at the thread id), if the indices of every
+    /// one are static: computed at the top of the body from the thread id, constants and
+    /// reads of arrays, so a launch can know them before it runs (see `crate::split`).
+    fn static_scatters(mode: Mode) -> Option<StaticScatters> {
+        let _ = mode;
+        None
+    }
+    /// Calls `sink(slot, tid, index)` for every static scatter of `mode` of each thread id in
+    /// `range`, in order: `slot` is the scattered parameter's place in
+    /// [`StaticScatters::targets`]. A thread reports each scatter it may make, whatever
+    /// branch it takes later.
+    fn scatter_indices(
+        &self,
+        mode: Mode,
+        args: &Owned,
+        range: Range<usize>,
+        exec: &Exec,
+        sink: &mut dyn FnMut(usize, usize, i128),
+    ) {
+        let _ = (mode, args, range, exec, sink);
+    }
+}
+
+/// The static scatters of a kernel in one mode (see [`KernelBody::static_scatters`]).
+#[derive(Clone, Copy, Debug)]
+pub struct StaticScatters {
+    /// The parameters scattered into (in the adjoint: whose gradients are).
+    pub targets: &'static [usize],
+    /// The array parameters the indices read (index arrays such as a mesh's elements).
+    pub deps: &'static [usize],
 }
 
 /// Converts one launch argument into what the tape keeps.
@@ -213,6 +243,18 @@ pub struct Exec<'a> {
     /// both, in the adjoint): such a launch runs serially, and no scatter into them writes
     /// directly before its chunk's turn, even one at the thread's own index.
     shared_scatters: &'a [u64],
+    /// The head of a range of a split launch (see `crate::split`): its scatters log only
+    /// what an earlier range also adds to.
+    halo: Option<Halo<'a>>,
+}
+
+/// The head of a range of a split launch: per scattered array (by id), the first thread id
+/// that adds to each element, and the range's first thread id. An element first touched at
+/// or after it belongs to this range alone until later ranges' logs are applied.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Halo<'a> {
+    pub(crate) firsts: &'a [(u64, Arc<[u32]>)],
+    pub(crate) bound: u32,
 }
 
 impl<'a> Exec<'a> {
@@ -228,6 +270,24 @@ impl<'a> Exec<'a> {
             range,
             order: None,
             shared_scatters,
+            halo: None,
+        }
+    }
+
+    /// The head `range` of a range of a split launch (see [`Halo`]).
+    pub(crate) fn halo(
+        locked: &'a [(u64, bool)],
+        shared_scatters: &'a [u64],
+        range: Range<usize>,
+        halo: Halo<'a>,
+    ) -> Self {
+        Exec {
+            direct: false,
+            locked,
+            range,
+            order: None,
+            shared_scatters,
+            halo: Some(halo),
         }
     }
 
@@ -245,6 +305,7 @@ impl<'a> Exec<'a> {
             range,
             order: Some((order, k)),
             shared_scatters,
+            halo: None,
         }
     }
 
@@ -489,6 +550,11 @@ pub struct Scatter<T: Element, const AT_TID: bool = false> {
     place: Place,
     /// The launch's chunk order and this chunk's index (logged chunks).
     order: Option<(*const ChunkOrder, usize)>,
+    /// In the head of a split launch's range: the first thread id adding to each element
+    /// (null otherwise), and the range's first thread id; an element first touched at or
+    /// after it is written directly, the others logged.
+    first: *const u32,
+    bound: u32,
 }
 
 impl<T: Element, const AT_TID: bool> Scatter<T, AT_TID> {
@@ -498,7 +564,7 @@ impl<T: Element, const AT_TID: bool> Scatter<T, AT_TID> {
     /// (the additions to an element are one thread's, in its order: the same bits), unless
     /// another parameter of the launch scatters into the same buffer. Its indices are then
     /// checked to be the chunk's thread ids.
-    fn new(target: Option<Array<T>>, exec: &Exec, place: Place, len: usize) -> Self {
+    fn new(target: Option<Array<T>>, of: u64, exec: &Exec, place: Place, len: usize) -> Self {
         let dst = target
             .as_ref()
             .map_or(std::ptr::null_mut(), |a| a.data_ptr());
@@ -515,7 +581,22 @@ impl<T: Element, const AT_TID: bool> Scatter<T, AT_TID> {
             }
             false => (0, len),
         };
+        let first = match (&exec.halo, logged && target.is_some()) {
+            (Some(h), true) => match h.firsts.iter().find(|(id, _)| *id == of) {
+                Some((_, m)) if m.len() == len => m.as_ptr(),
+                // The plan covers every scatter that is not at the thread id: logging all
+                // of a head would apply it after the tail's direct additions.
+                _ => panic!(
+                    "kernel `{}`, parameter `{}`: a split launch without the first-touch map \
+                     of this scatter (an internal error of adflex; please report it)",
+                    place.site.kernel, place.site.param
+                ),
+            },
+            _ => std::ptr::null(),
+        };
         Scatter {
+            first,
+            bound: exec.halo.map_or(0, |h| h.bound),
             log: (logged && target.is_some()).then(|| Box::new(take_log())),
             target,
             ptr: if logged { std::ptr::null_mut() } else { dst },
@@ -543,6 +624,12 @@ impl<T: Element, const AT_TID: bool> Scatter<T, AT_TID> {
             // this chunk's own thread ids, see `new`); in bounds.
             unsafe { (*self.ptr.add(i)).acc(v) }
         } else if let Some(log) = &mut self.log {
+            // SAFETY: `i < len`, the map's length (see `new`).
+            if !self.first.is_null() && unsafe { *self.first.add(i) } >= self.bound {
+                // SAFETY: no earlier range adds to this element, later ones log theirs.
+                unsafe { (*self.dst.add(i)).acc(v) };
+                return;
+            }
             log.push((i as u32, v));
             if log.len() % TURN_CHECK == 0 {
                 self.checkpoint();
@@ -766,7 +853,7 @@ fn scatter_of<T: Element, const AT_TID: bool>(
     site: &'static Site,
 ) -> Scatter<T, AT_TID> {
     exec.check(buf.as_ref(), true, site);
-    Scatter::new(buf, exec, Place::of(of, site), of.len())
+    Scatter::new(buf, of.id(), exec, Place::of(of, site), of.len())
 }
 
 /// A reader of `a`.

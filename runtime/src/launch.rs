@@ -15,6 +15,7 @@ use rayon::prelude::*;
 use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
+use crate::split;
 
 /// Thread ids per chunk.
 pub const CHUNK: usize = 2048;
@@ -164,9 +165,16 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
         );
         let serial = !timed || choice::serial(key);
         let start = std::time::Instant::now();
+        let mut built = false;
+        let split = match serial || dim >= u32::MAX as usize {
+            true => None,
+            false => split::plan(kernel, args, mode, dim, threads, locked, shared, &mut built),
+        };
         if serial {
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, shared, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
+        } else if let Some(plan) = split {
+            split::run(kernel, args, mode, &plan, locked, shared);
         } else {
             run_ordered(dim, &|r, k, order| {
                 kernel.run(
@@ -177,7 +185,9 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                 )
             });
         }
-        if timed {
+        // The first launch that plans its split is not a fair sample of the parallel path
+        // (a plan is made once per index arrays' version); later ones that plan again are.
+        if timed && !(built && choice::first_build(key)) {
             choice::record(key, serial, start.elapsed().as_secs_f64());
         }
     });
@@ -236,6 +246,14 @@ mod choice {
         })
     }
 
+    static BUILT: Mutex<Option<std::collections::HashSet<Key>>> = Mutex::new(None);
+
+    /// Whether this is the first launch of `key` that planned a split.
+    pub(super) fn first_build(key: Key) -> bool {
+        let mut g = BUILT.lock().unwrap_or_else(PoisonError::into_inner);
+        g.get_or_insert_with(Default::default).insert(key)
+    }
+
     /// Records how long a launch of `key` took on the path it took.
     pub(super) fn record(key: Key, serial: bool, seconds: f64) {
         with(|m| {
@@ -277,6 +295,13 @@ mod choice {
             assert!(!serial(key) || !serial(key));
         }
     }
+}
+
+/// How many launches so far ran as a static split (see `docs/performance.md`, "How a parallel
+/// launch scatters"): for tests that a launch took that path.
+#[doc(hidden)]
+pub fn split_launches() -> u64 {
+    split::LAUNCHES.load(std::sync::atomic::Ordering::Relaxed)
 }
 
 /// Runs `kernel` in `mode` over `0..dim` on the calling thread only, in thread-id order (the

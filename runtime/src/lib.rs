@@ -20,6 +20,7 @@ pub mod kernel;
 pub mod launch;
 pub mod math;
 mod real;
+mod split;
 pub mod tape;
 mod value;
 
