@@ -260,3 +260,71 @@ fn check_refuses_each_construct_once() {
         assert!(out.contains(msg), "{stmts}: `{msg}` expected: {out}");
     }
 }
+
+/// The emitted `static_scatters` of a kernel, mode by mode (forward, adjoint, tangent):
+/// `Some` with the targets' parameter indices, or `None`.
+fn static_scatters(kernel: proc_macro2::TokenStream) -> Vec<String> {
+    let out = expand(quote!(), kernel, Kind::Kernel).to_string();
+    let from = out
+        .find("let [__fwd , __adj , __tan] = [")
+        .expect("static_scatters is emitted");
+    let list = &out[from..from + out[from..].find("] ;").unwrap()];
+    list.split(":: option :: Option :: ")
+        .skip(1)
+        .map(|m| match m.find("targets : & [") {
+            Some(t) => {
+                let rest = &m[t + "targets : & [".len()..];
+                format!("Some[{}]", &rest[..rest.find(']').unwrap()].trim())
+            }
+            None => "None".to_string(),
+        })
+        .collect()
+}
+
+#[test]
+fn scatters_through_index_arrays_are_static_and_others_are_not() {
+    // Indices read from an index array at the thread id: static in every mode (the adjoint
+    // scatters into `x`'s gradient at `i` and `j`).
+    let pairs = static_scatters(quote! {
+        fn k(x: &Array<f32>, pairs: &Array<[u32; 2]>, f: &Array<f32>) {
+            let t = tid();
+            let [i, j] = pairs[t];
+            f.atomic_add(i, x[i] - x[j]);
+        }
+    });
+    assert_eq!(pairs, ["Some[2usize]", "Some[0usize]", "Some[2usize]"]);
+    // A constant loop is unrolled: its indices are constants, static.
+    let unrolled = static_scatters(quote! {
+        fn k(x: &Array<f32>, f: &Array<f32>) {
+            for k in 0..4 {
+                f.atomic_add(k, x[tid()]);
+            }
+        }
+    });
+    assert_eq!(unrolled, ["Some[1usize]", "Some[]", "Some[1usize]"]);
+    // A dynamic loop's index, a value parameter, an index computed in a branch: not static.
+    let loop_index = static_scatters(quote! {
+        fn k(x: &Array<f32>, m: usize, f: &Array<f32>) {
+            for k in 0..m {
+                f.atomic_add(k, x[tid()]);
+            }
+        }
+    });
+    assert_eq!(loop_index, ["None", "Some[]", "None"]);
+    let value = static_scatters(quote! {
+        fn k(x: &Array<f32>, n: usize, f: &Array<f32>) {
+            f.atomic_add(n, x[tid()]);
+        }
+    });
+    assert_eq!(value, ["None", "Some[]", "None"]);
+    let branch = static_scatters(quote! {
+        fn k(x: &Array<f32>, pairs: &Array<[u32; 2]>, f: &Array<f32>) {
+            let t = tid();
+            if x[t] > 0.0 {
+                let i = pairs[t][0];
+                f.atomic_add(i, x[t]);
+            }
+        }
+    });
+    assert_eq!(branch, ["None", "Some[]", "None"]);
+}
