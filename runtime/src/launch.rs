@@ -195,8 +195,9 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
 
 /// Serial or parallel, per launch, by measurement: the two paths give the same bits (both
 /// add in thread-id order), so a launch may take either. Each (kernel, mode, size class,
-/// pool size) is timed both ways, then runs the faster, trying the other again every
-/// [`choice::PROBE`] launches: so a launch that does not gain from a second thread (a small
+/// pool size) is timed both ways, then runs the faster, trying parallel again every
+/// [`choice::PROBE`] launches of a serial key and serial every [`choice::PROBE_SERIAL`] of a
+/// parallel one: so a launch that does not gain from a second thread (a small
 /// scatter-bound kernel, or a core busy with another process) runs serially, and one that
 /// gains runs in parallel.
 mod choice {
@@ -206,8 +207,13 @@ mod choice {
 
     use crate::kernel::Mode;
 
-    /// Every this many launches of a key, the slower path is timed again.
+    /// Every this many launches of a key that runs serially, the parallel path is timed again
+    /// (to return to it once a busy core is free).
     pub(super) const PROBE: u32 = 32;
+    /// Every this many launches of a key that runs in parallel, the serial path is timed again.
+    /// Rarer: a parallel path that slows (another process on a core) is seen at every launch,
+    /// and each serial probe costs a launch at about half speed (32 cost the cloth 2.5%).
+    pub(super) const PROBE_SERIAL: u32 = 256;
 
     pub(super) type Key = (TypeId, Mode, u32, usize);
 
@@ -236,7 +242,8 @@ mod choice {
                 (None, _) => true,
                 (Some(s), Some(p)) => {
                     let faster_serial = s < p;
-                    if t.launches % PROBE == 0 {
+                    let every = if faster_serial { PROBE } else { PROBE_SERIAL };
+                    if t.launches % every == 0 {
                         !faster_serial
                     } else {
                         faster_serial
@@ -293,6 +300,12 @@ mod choice {
                 record(key, false, 0.1);
             }
             assert!(!serial(key) || !serial(key));
+            let picks: Vec<bool> = (0..2 * PROBE_SERIAL).map(|_| serial(key)).collect();
+            let serial_picks = picks.iter().filter(|s| **s).count();
+            assert_eq!(
+                serial_picks, 2,
+                "one probe of the serial path per {PROBE_SERIAL} launches"
+            );
         }
     }
 }
