@@ -311,12 +311,12 @@ impl Body {
 
     /// The scatter indices of each parameter that are *static*: computed at the top level of
     /// the body (so for every thread, whatever branch it takes later) from the thread id,
-    /// constants and array reads by the same rule, through component extraction, integer
-    /// arithmetic and casts. Such indices depend only on the arrays read on the way (index
+    /// constants and array reads by the same rule, through component extraction, arithmetic,
+    /// comparisons and casts. Such indices depend only on the arrays read on the way (index
     /// arrays such as a mesh's elements), so the runtime can compute them ahead of a launch
-    /// and know which chunk of thread ids first touches each target element. A parameter
-    /// with any other access of the kind (a computed, loop or value-parameter index) gets
-    /// `None`.
+    /// and know the first thread id that touches each target element (`runtime/src/split.rs`).
+    /// A parameter with any other access of the kind (an index from a dynamic loop, a value
+    /// parameter, a builtin call or a branch) gets `None`.
     pub fn static_indices(&self, params: usize) -> StaticIndices<'_> {
         fn is_static(
             id: ValueId,
