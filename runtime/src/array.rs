@@ -138,9 +138,10 @@ impl<T: Element> Array<T> {
         }
     }
 
-    /// `len` zeros.
+    /// `len` zeros. Large arrays of reals, vectors and matrices come zeroed from the allocator
+    /// (no pass over the memory here: its pages are first touched by whatever writes them).
     pub fn zeros(len: usize) -> Self {
-        Self::from_vec(vec![T::zeroed(); len])
+        Self::from_vec(T::zeroed_vec(len))
     }
 
     /// Zeros shaped like `self` (same length), without gradient.
@@ -195,6 +196,16 @@ impl<T: Element> Array<T> {
     pub fn ensure_grad(&self) -> Array<T> {
         let mut g = relock(&self.inner.grad);
         g.get_or_insert_with(|| Array::zeros(self.len())).clone()
+    }
+
+    /// Makes the gradient buffer zero: allocates a zeroed one if there is none (without a
+    /// second pass over it), zeroes the existing one otherwise.
+    pub(crate) fn reset_grad(&self) {
+        let mut g = relock(&self.inner.grad);
+        match &*g {
+            Some(b) => b.fill(T::zeroed()),
+            None => *g = Some(Array::zeros(self.len())),
+        }
     }
 
     /// Sets the gradient buffer to zero (no-op without one).
@@ -418,6 +429,8 @@ pub trait AnyArray: Send + Sync {
     fn ensure_grad(&self);
     /// Zeroes the gradient buffer if present.
     fn zero_grad(&self);
+    /// Allocates a zeroed gradient buffer, or zeroes the existing one.
+    fn reset_grad(&self);
     /// Number of differentiable scalars per element (0 for index arrays).
     fn element_dim(&self) -> usize;
     /// A clone of the handle, boxed.
@@ -477,6 +490,9 @@ impl<T: Element> AnyArray for Array<T> {
     }
     fn zero_grad(&self) {
         Array::zero_grad(self)
+    }
+    fn reset_grad(&self) {
+        Array::reset_grad(self)
     }
     fn element_dim(&self) -> usize {
         T::DIM

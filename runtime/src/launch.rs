@@ -7,6 +7,9 @@
 //! chunks in parallel, each logging its scatters; each chunk applies its logs when every earlier
 //! chunk has applied its own, which is thread-id order again. So the result is bitwise
 //! identical for any number of threads and from run to run.
+//!
+//! Launches flush subnormal floats to zero, on every thread that runs them; host code keeps
+//! IEEE subnormals. [`set_flush_subnormals`] says why and turns it off.
 
 use std::ops::Range;
 
@@ -16,6 +19,8 @@ use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 use crate::split;
+use crate::subnormals::{self, Flush};
+pub use crate::subnormals::{flush_subnormals, set_flush_subnormals};
 
 /// Thread ids per chunk.
 pub const CHUNK: usize = 2048;
@@ -151,7 +156,10 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 
 fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
     let arrays = K::arrays(args);
+    let flush = subnormals::flush_subnormals();
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked, shared| {
+        // This thread runs a serial launch and applies a split one's logs; workers enter too.
+        let _flush = Flush::enter(flush);
         let threads = rayon::current_num_threads();
         // Two parameters scattering into one buffer (an array passed twice, read by both, in
         // the adjoint) keep two logs, which cannot be merged back into thread-id order: such
@@ -174,9 +182,9 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, shared, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
         } else if let Some(plan) = split {
-            split::run(kernel, args, mode, &plan, locked, shared);
+            split::run(kernel, args, mode, &plan, locked, shared, flush);
         } else {
-            run_ordered(dim, &|r, k, order| {
+            run_ordered(dim, flush, &|r, k, order| {
                 kernel.run(
                     mode,
                     args,
@@ -326,7 +334,9 @@ where
 {
     let owned = K::to_owned(&args);
     let arrays = K::arrays(&owned);
+    let flush = subnormals::flush_subnormals();
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked, shared| {
+        let _flush = Flush::enter(flush);
         let _ = kernel.run(
             mode,
             &owned,
@@ -496,11 +506,20 @@ fn mark_written(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mo
 /// when every earlier chunk has applied its own (thread-id order, whatever the thread count),
 /// while later chunks run. A chunk whose log grows large applies it early, at its turn
 /// ([`crate::kernel::Scatter`]), so memory does not grow with the contributions.
-fn run_ordered(dim: usize, run: &RunChunk) {
+fn run_ordered(dim: usize, flush: bool, run: &RunChunk) {
     let chunks = dim.div_ceil(CHUNK);
     let order = ChunkOrder::default();
     let workers = rayon::current_num_threads().clamp(1, chunks.max(1));
-    (0..workers).into_par_iter().for_each(|_| loop {
+    (0..workers).into_par_iter().for_each(|_| {
+        // Covers the chunks this worker runs and the logs it applies.
+        let _flush = Flush::enter(flush);
+        run_chunks(dim, &order, chunks, run)
+    });
+}
+
+/// Claims and runs chunks in order until none is left (one worker of [`run_ordered`]).
+fn run_chunks(dim: usize, order: &ChunkOrder, chunks: usize, run: &RunChunk) {
+    loop {
         let k = order.claim();
         if k >= chunks {
             break;
@@ -515,11 +534,11 @@ fn run_ordered(dim: usize, run: &RunChunk) {
                 }
             }
         }
-        let guard = FailOnUnwind(&order);
-        let logs = run(range, k, &order);
+        let guard = FailOnUnwind(order);
+        let logs = run(range, k, order);
         order.finish(k, logs);
         drop(guard);
-    });
+    }
 }
 
 /// Runs one chunk (its thread ids, its index) and returns its logs.

@@ -21,6 +21,7 @@ pub mod launch;
 pub mod math;
 mod real;
 mod split;
+mod subnormals;
 pub mod tape;
 mod value;
 

@@ -3,7 +3,7 @@
 /// A floating-point scalar a kernel can be differentiated in: `f32` (for speed) or `f64` (for
 /// checking). Kernels written generically over `R: Real` run in either.
 pub trait Real:
-    nalgebra::RealField + Copy + Default + Send + Sync + std::fmt::Debug + crate::Value
+    nalgebra::RealField + Copy + Default + Send + Sync + std::fmt::Debug + crate::Value + bytemuck::Pod
 {
     /// Converts a literal; the macro emits `R::lit(..)` for float literals in generic kernels.
     fn lit(x: f64) -> Self;

@@ -20,6 +20,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use rayon::prelude::*;
 
 use crate::kernel::{Exec, Halo, KernelBody, Mode, ScatterLog};
+use crate::subnormals::Flush;
 
 /// A split of one launch: each range with the end of its head, and the first-touch maps.
 pub(crate) struct Plan {
@@ -155,6 +156,7 @@ pub(crate) fn run<K: KernelBody<O>, O: Sync>(
     plan: &Plan,
     locked: &[(u64, bool)],
     shared: &[u64],
+    flush: bool,
 ) {
     LAUNCHES.fetch_add(1, Ordering::Relaxed);
     // The maps by the ids of this launch's arrays (scatters find theirs by array id).
@@ -170,6 +172,7 @@ pub(crate) fn run<K: KernelBody<O>, O: Sync>(
         .ranges
         .par_iter()
         .map(|(range, head_end)| {
+            let _flush = Flush::enter(flush);
             let head = range.start..*head_end;
             let logs = match head.is_empty() {
                 true => Vec::new(),

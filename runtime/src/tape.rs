@@ -624,14 +624,18 @@ impl Tape {
 
     /// Allocates the gradient buffers of the plan and runs its adjoints in reverse order.
     fn execute(&mut self, plan: &Plan) -> Result<(), Error> {
+        // Each buffer once: zeroing one again would be a second pass over its memory.
+        let mut seen = HashSet::new();
         for (r, _) in self.records.iter().zip(&plan.run).filter(|(_, &run)| run) {
             for u in r.reads.iter().chain(&r.writes) {
                 let id = u.id;
-                if plan.grads.contains(&id) {
+                if !seen.insert(id) {
+                    continue;
+                }
+                if plan.zeroed.contains(&id) {
+                    u.array.reset_grad();
+                } else if plan.grads.contains(&id) {
                     u.array.ensure_grad();
-                    if plan.zeroed.contains(&id) {
-                        u.array.zero_grad();
-                    }
                 }
             }
         }

@@ -29,6 +29,13 @@ pub trait Value: Copy + Send + Sync + 'static {
     fn component(&self, k: usize) -> f64;
     /// Sets differentiable component `k < DIM` from an `f64`.
     fn set_component(&mut self, k: usize, x: f64);
+    /// `len` copies of [`Value::zeroed`]. Types whose zero is all-zero bytes take their memory
+    /// zeroed from the allocator (for a large array, fresh pages nobody has written yet).
+    #[doc(hidden)]
+    fn zeroed_vec(len: usize) -> Vec<Self> {
+        // For integers, `bool` and the reals, the standard library already asks for zeroed memory.
+        vec![Self::zeroed(); len]
+    }
 }
 
 /// The zero of `v`'s type every adjoint and tangent accumulator starts from
@@ -134,6 +141,7 @@ macro_rules! matrix_value {
             #[inline(always)] fn acc_neg(&mut self, other: Self) { *self -= other }
             fn component(&self, k: usize) -> f64 { self[k].to_f64() }
             fn set_component(&mut self, k: usize, x: f64) { self[k] = R::lit(x) }
+            fn zeroed_vec(len: usize) -> Vec<Self> { bytemuck::zeroed_vec(len) }
         }
     )*};
 }
@@ -162,5 +170,8 @@ impl<R: Real> Value for Quaternion<R> {
     }
     fn set_component(&mut self, k: usize, x: f64) {
         self.coords[k] = R::lit(x)
+    }
+    fn zeroed_vec(len: usize) -> Vec<Self> {
+        bytemuck::zeroed_vec(len)
     }
 }
