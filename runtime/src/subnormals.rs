@@ -28,7 +28,8 @@ pub fn flush_subnormals() -> bool {
 /// magnitude below `MIN_POSITIVE`; every path of a launch (serial or parallel, any thread
 /// count) runs in the same mode, so results stay bitwise identical across thread counts.
 /// [`set_flush_subnormals`]`(false)` keeps IEEE subnormals (exact gradual underflow) for
-/// launches that start afterwards. On other architectures the setting has no effect.
+/// launches that start afterwards. On other architectures the setting has no effect. A
+/// constant the compiler folds ahead of time follows IEEE rules and may stay subnormal.
 ///
 /// ```
 /// use adflex_runtime::prelude::*;
@@ -82,6 +83,13 @@ impl Drop for Flush {
 // The control register is read and written by inline assembly that may touch memory (no
 // `nomem`), so the compiler keeps the kernel's loads and stores, and with them its arithmetic,
 // between the two writes.
+//
+// Rust's documentation of `_mm_setcsr` counts a changed denormal mode as outside the language's
+// model: the compiler assumes IEEE arithmetic, e.g. when it folds constants. What that can
+// change here is only whether a value below `MIN_POSITIVE` that the compiler computed ahead of
+// time stays subnormal; the same compiled kernel runs on every path and thread count, so the
+// bits across thread counts do not depend on it. TensorFlow, XLA and audio DSP code (the
+// `no_denormals` crate) rely on the same behaviour of the hardware.
 
 #[cfg(target_arch = "x86_64")]
 type Control = u32;
