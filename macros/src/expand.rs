@@ -175,21 +175,18 @@ fn kernel_items(
     let generic_params = sig.generic_params();
     let (impl_generics, where_clause) = sig.impl_generics();
     let em = Emitter::new(rt, body);
-    let modes = [Mode::Forward, Mode::Adjoint, Mode::Tangent]
-        .map(|m| kernel_mode(sig, rt, body, uses, &em, m));
-    let [fwd, adj, tan] = modes;
-    let statics = [Mode::Forward, Mode::Adjoint, Mode::Tangent]
-        .map(|m| static_scatters(sig, rt, body, uses, &em, m));
-    let infos: Vec<TokenStream> = statics
-        .iter()
-        .map(|s| match &s.0 {
+    let run = by_mode(rt, MODES.map(|m| kernel_mode(sig, rt, body, uses, &em, m)));
+    let statics = MODES.map(|m| static_scatters(sig, rt, body, uses, &em, m));
+    let infos = by_mode(
+        rt,
+        statics.each_ref().map(|s| match &s.0 {
             Some(Statics { targets, deps }) => quote!(::std::option::Option::Some(
                 #rt::kernel::StaticScatters { targets: &[#(#targets),*], deps: &[#(#deps),*] }
             )),
             None => quote!(::std::option::Option::None),
-        })
-        .collect();
-    let [s_fwd, s_adj, s_tan] = statics.map(|s| s.1);
+        }),
+    );
+    let scatter_indices = by_mode(rt, statics.map(|s| s.1));
     let strukt = struct_item(sig, attrs);
     let lints = lints();
     quote! {
@@ -217,21 +214,12 @@ fn kernel_items(
                 __range: ::std::ops::Range<usize>,
                 __exec: &#rt::kernel::Exec,
             ) -> ::std::vec::Vec<#rt::kernel::ScatterLog> {
-                match __mode {
-                    #rt::kernel::Mode::Forward => { #fwd }
-                    #rt::kernel::Mode::Adjoint => { #adj }
-                    #rt::kernel::Mode::Tangent => { #tan }
-                }
+                #run
             }
             fn static_scatters(
                 __mode: #rt::kernel::Mode,
             ) -> ::std::option::Option<#rt::kernel::StaticScatters> {
-                let [__fwd, __adj, __tan] = [#(#infos),*];
-                match __mode {
-                    #rt::kernel::Mode::Forward => __fwd,
-                    #rt::kernel::Mode::Adjoint => __adj,
-                    #rt::kernel::Mode::Tangent => __tan,
-                }
+                #infos
             }
             #lints
             fn scatter_indices(
@@ -242,12 +230,22 @@ fn kernel_items(
                 __exec: &#rt::kernel::Exec,
                 __sink: &mut dyn ::std::ops::FnMut(usize, usize, i128),
             ) {
-                match __mode {
-                    #rt::kernel::Mode::Forward => { #s_fwd }
-                    #rt::kernel::Mode::Adjoint => { #s_adj }
-                    #rt::kernel::Mode::Tangent => { #s_tan }
-                }
+                #scatter_indices
             }
+        }
+    }
+}
+
+/// The three modes, in the order [`by_mode`] takes their code.
+const MODES: [Mode; 3] = [Mode::Forward, Mode::Adjoint, Mode::Tangent];
+
+/// `match __mode { .. }` choosing the code of each of [`MODES`].
+fn by_mode(rt: &TokenStream, [fwd, adj, tan]: [TokenStream; 3]) -> TokenStream {
+    quote! {
+        match __mode {
+            #rt::kernel::Mode::Forward => { #fwd }
+            #rt::kernel::Mode::Adjoint => { #adj }
+            #rt::kernel::Mode::Tangent => { #tan }
         }
     }
 }

@@ -266,9 +266,9 @@ fn check_refuses_each_construct_once() {
 fn static_scatters(kernel: proc_macro2::TokenStream) -> Vec<String> {
     let out = expand(quote!(), kernel, Kind::Kernel).to_string();
     let from = out
-        .find("let [__fwd , __adj , __tan] = [")
+        .find("fn static_scatters")
         .expect("static_scatters is emitted");
-    let list = &out[from..from + out[from..].find("] ;").unwrap()];
+    let list = &out[from..from + out[from..].find("fn scatter_indices").unwrap()];
     list.split(":: option :: Option :: ")
         .skip(1)
         .map(|m| match m.find("targets : & [") {
