@@ -8,7 +8,7 @@ mod common;
 
 use adflex_runtime::launch::split_launches;
 use adflex_runtime::prelude::*;
-use common::random;
+use common::{grid_pairs, random, shuffled};
 
 /// A pair force with a branch: some pairs add to `i`, every pair subtracts from `j`.
 #[adflex_macros::diff_kernel]
@@ -20,34 +20,6 @@ fn pair_forces(x: &Array<f64>, pairs: &Array<[u32; 2]>, k: &Array<f64>, f: &Arra
         f.atomic_add(i, d * d);
     }
     f.atomic_sub(j, d * x[i]);
-}
-
-/// The edges of a `w` x `w` grid in mesh order: right and down neighbours, node by node.
-/// Each test uses its own size: launches of one kernel, mode, size class and pool size share
-/// the serial-or-parallel choice, and tests run concurrently.
-fn grid_pairs(w: u32) -> Vec<[u32; 2]> {
-    let mut pairs = Vec::new();
-    for p in 0..w * w {
-        if p % w + 1 < w {
-            pairs.push([p, p + 1]);
-        }
-        if p / w + 1 < w {
-            pairs.push([p, p + w]);
-        }
-    }
-    pairs
-}
-
-/// `pairs` shuffled (a fixed permutation).
-fn shuffled(mut pairs: Vec<[u32; 2]>) -> Vec<[u32; 2]> {
-    let keys = random(pairs.len(), 7, 0.0, 1.0);
-    let mut order: Vec<usize> = (0..pairs.len()).collect();
-    order.sort_by(|&a, &b| keys[a].total_cmp(&keys[b]));
-    let old = pairs.clone();
-    for (dst, src) in pairs.iter_mut().zip(order) {
-        *dst = old[src];
-    }
-    pairs
 }
 
 /// Values over many scales: a different order of additions gives other bits.

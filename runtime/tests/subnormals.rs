@@ -7,7 +7,7 @@ mod common;
 
 use adflex_runtime::launch::{flush_subnormals, split_launches, SERIAL_BELOW};
 use adflex_runtime::prelude::*;
-use common::random;
+use common::{grid_pairs, random, shuffled};
 
 #[adflex_macros::diff_kernel]
 fn scale(x: &Array<f32>, s: f32, y: &Array<f32>) {
@@ -42,25 +42,6 @@ fn launches_flush_subnormals_and_host_code_keeps_them() {
     assert!(host > 0.0 && host < f32::MIN_POSITIVE, "host code: {host}");
 }
 
-/// The edges of a `w` x `w` grid in mesh order, or shuffled. (Sizes differ per case: launches
-/// of one kernel, mode, size class and pool size share the serial-or-parallel choice.)
-fn pairs(w: u32, shuffle: bool) -> Vec<[u32; 2]> {
-    let mut p: Vec<[u32; 2]> = (0..w * w)
-        .flat_map(|q| {
-            let right = (q % w + 1 < w).then_some([q, q + 1]);
-            let down = (q / w + 1 < w).then_some([q, q + w]);
-            right.into_iter().chain(down)
-        })
-        .collect();
-    if shuffle {
-        let keys = random(p.len(), 7, 0.0, 1.0);
-        let mut order: Vec<usize> = (0..p.len()).collect();
-        order.sort_by(|&a, &b| keys[a].total_cmp(&keys[b]));
-        p = order.into_iter().map(|k| p[k]).collect();
-    }
-    p
-}
-
 fn bits(a: &Array<f32>) -> Vec<u32> {
     a.to_vec().into_iter().map(f32::to_bits).collect()
 }
@@ -92,8 +73,13 @@ fn run(threads: usize, pairs: &[[u32; 2]]) -> [Vec<u32>; 3] {
 
 #[test]
 fn flushed_results_have_the_same_bits_on_any_thread_count() {
+    // Sizes differ per case: launches of one kernel, mode, size class and pool size share the
+    // serial-or-parallel choice.
     for (shuffle, w) in [(false, 120), (true, 200)] {
-        let p = pairs(w, shuffle);
+        let p = match shuffle {
+            false => grid_pairs(w),
+            true => shuffled(grid_pairs(w)),
+        };
         let one = run(1, &p);
         for (mode, b) in ["forward", "adjoint", "tangent"].iter().zip(&one) {
             let v: Vec<f32> = b.iter().map(|&u| f32::from_bits(u)).collect();

@@ -412,6 +412,34 @@ pub fn random(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<f64> {
         .collect()
 }
 
+/// The edges of a `w` x `w` grid in mesh order: right and down neighbours, node by node.
+/// Each test uses its own size: launches of one kernel, mode, size class and pool size share
+/// the serial-or-parallel choice, and tests run concurrently.
+pub fn grid_pairs(w: u32) -> Vec<[u32; 2]> {
+    let mut pairs = Vec::new();
+    for p in 0..w * w {
+        if p % w + 1 < w {
+            pairs.push([p, p + 1]);
+        }
+        if p / w + 1 < w {
+            pairs.push([p, p + w]);
+        }
+    }
+    pairs
+}
+
+/// `pairs` shuffled (a fixed permutation).
+pub fn shuffled(mut pairs: Vec<[u32; 2]>) -> Vec<[u32; 2]> {
+    let keys = random(pairs.len(), 7, 0.0, 1.0);
+    let mut order: Vec<usize> = (0..pairs.len()).collect();
+    order.sort_by(|&a, &b| keys[a].total_cmp(&keys[b]));
+    let old = pairs.clone();
+    for (dst, src) in pairs.iter_mut().zip(order) {
+        *dst = old[src];
+    }
+    pairs
+}
+
 /// `y = 2 x` on the host, recorded as a custom step (with its tangent).
 pub fn double_on_host(tape: &mut adflex_runtime::Tape, x: &Array<f64>) -> Array<f64> {
     let y = Array::<f64>::zeros(x.len()).named("2x");
