@@ -1,15 +1,20 @@
 //! Launching kernels over the rayon thread pool.
 //!
-//! Thread ids `0..dim` run in fixed chunks of [`CHUNK`] ids (fixed by size, never by thread
-//! count). A launch smaller than [`SERIAL_BELOW`] ids, on a one-thread pool, or of a kernel
-//! that measured faster serially (each kernel and size is timed both ways), runs as a single
-//! chunk in thread-id order and scatters straight into its targets. A larger launch runs its
-//! chunks in parallel, each logging its scatters; each chunk applies its logs when every earlier
-//! chunk has applied its own, which is thread-id order again. So the result is bitwise
-//! identical for any number of threads and from run to run.
+//! A launch smaller than [`SERIAL_BELOW`] ids, on a one-thread pool, or of a kernel that
+//! measured faster serially (each kernel, mode and size is timed both ways), runs on the
+//! calling thread in thread-id order and scatters straight into its targets. A larger launch
+//! runs in parallel in one of two ways. If the macro proved its scatters go through index
+//! arrays read at the thread id (a mesh's springs), it is split into one contiguous range per
+//! worker, each writing directly all it alone touches and logging the rest, and the logs are
+//! applied in range order (`split`). Otherwise its thread ids run in chunks of [`CHUNK`]
+//! (fixed by size, never by thread count), each logging its scatters and applying its logs
+//! when every earlier chunk has applied its own. Both add in thread-id order, so the result
+//! is bitwise identical for any number of threads and from run to run.
 //!
 //! Launches flush subnormal floats to zero, on every thread that runs them; host code keeps
-//! IEEE subnormals. [`set_flush_subnormals`] says why and turns it off.
+//! IEEE subnormals. [`set_flush_subnormals`] says why and turns it off. After a parallel
+//! launch the pool's other workers wait for the next one awake for a while; [`set_linger`]
+//! says why and sets how long.
 
 use std::ops::Range;
 
@@ -18,6 +23,8 @@ use rayon::prelude::*;
 use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
+use crate::linger;
+pub use crate::linger::{linger, lingering_workers, set_linger};
 use crate::split;
 use crate::subnormals::{self, Flush};
 pub use crate::subnormals::{flush_subnormals, set_flush_subnormals};
@@ -181,17 +188,20 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
         if serial {
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, shared, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
-        } else if let Some(plan) = split {
-            split::run(kernel, args, mode, &plan, locked, shared, flush);
         } else {
-            run_ordered(dim, flush, &|r, k, order| {
-                kernel.run(
-                    mode,
-                    args,
-                    r.clone(),
-                    &Exec::ordered(locked, shared, r, order, k),
-                )
-            });
+            linger::launch_starts();
+            match split {
+                Some(plan) => split::run(kernel, args, mode, &plan, locked, shared, flush),
+                None => run_ordered(dim, flush, &|r, k, order| {
+                    kernel.run(
+                        mode,
+                        args,
+                        r.clone(),
+                        &Exec::ordered(locked, shared, r, order, k),
+                    )
+                }),
+            }
+            linger::launch_ended();
         }
         // The first launch that plans its split is not a fair sample of the parallel path
         // (a plan is made once per index arrays' version); later ones that plan again are.
@@ -225,7 +235,11 @@ mod choice {
 
     pub(super) type Key = (TypeId, Mode, u32, usize);
 
-    /// Seconds per launch, smoothed, of each path; launches so far.
+    /// Seconds per launch of each path; launches so far. A launch faster than the estimate
+    /// replaces it, a slower one moves it a quarter of the way: one slow launch (a page fault,
+    /// a preempted worker) must not keep a key on its slower path until many probes have
+    /// averaged it away, while a path that stays slow (a busy core) is seen within a few
+    /// launches.
     #[derive(Default)]
     struct Times {
         serial: Option<f64>,
@@ -279,8 +293,8 @@ mod choice {
                 &mut t.parallel
             };
             *slot = Some(match *slot {
-                None => seconds,
-                Some(old) => 0.75 * old + 0.25 * seconds,
+                Some(old) if seconds > old => 0.75 * old + 0.25 * seconds,
+                _ => seconds,
             });
         })
     }
@@ -314,6 +328,42 @@ mod choice {
                 serial_picks, 2,
                 "one probe of the serial path per {PROBE_SERIAL} launches"
             );
+        }
+
+        #[test]
+        fn one_slow_launch_costs_one_probe_not_many() {
+            struct K;
+            let key = (TypeId::of::<K>(), Mode::Forward, 16, 2);
+            assert!(!serial(key));
+            record(key, false, 1.0);
+            assert!(serial(key));
+            record(key, true, 2.0);
+            assert!(!serial(key));
+            // A parallel launch 100 times slower (a preempted worker) sends the key serial...
+            record(key, false, 100.0);
+            assert!(serial(key));
+            // ...until the next probe of the parallel path, which is fast again.
+            let mut launches = 1;
+            while serial(key) {
+                record(key, true, 2.0);
+                launches += 1;
+                assert!(launches <= PROBE, "no parallel probe in {PROBE} launches");
+            }
+            record(key, false, 1.0);
+            assert!(
+                !serial(key),
+                "a fast probe brings the key back to its faster path"
+            );
+            // A path that stays slow is left within a few launches.
+            let mut slow = 0;
+            while !serial(key) {
+                record(key, false, 3.0);
+                slow += 1;
+                assert!(
+                    slow <= 4,
+                    "a path slower at every launch is kept {slow} launches"
+                );
+            }
         }
     }
 }

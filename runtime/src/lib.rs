@@ -18,6 +18,7 @@ pub mod gradcheck;
 #[doc(hidden)]
 pub mod kernel;
 pub mod launch;
+mod linger;
 pub mod math;
 mod real;
 mod split;

@@ -1,0 +1,86 @@
+//! After a parallel launch the pool's other workers spin for the next one (`set_linger`), and
+//! stop when a launch starts or the time has passed. (The setting is process-wide, so this
+//! binary has a single test.)
+
+use std::time::{Duration, Instant};
+
+use adflex_runtime::launch::{linger, lingering_workers, set_linger, SERIAL_BELOW};
+use adflex_runtime::prelude::*;
+
+#[adflex_macros::diff_kernel]
+fn scale(x: &Array<f32>, s: f32, y: &Array<f32>) {
+    let t = tid();
+    y[t] = x[t] * s;
+}
+
+/// Waits up to 2 s for `lingering_workers() == n`; false if it never was.
+fn reaches(n: usize) -> bool {
+    let start = Instant::now();
+    while start.elapsed() < Duration::from_secs(2) {
+        if lingering_workers() == n {
+            return true;
+        }
+        std::thread::yield_now();
+    }
+    false
+}
+
+/// A parallel launch: the first launch of a kernel, mode and size class on a pool takes the
+/// parallel path (the launch choice times it first). `class` picks a new size class.
+fn parallel_launch(class: u32) {
+    let n = SERIAL_BELOW << class;
+    let x = Array::from_vec(vec![1.0f32; n]);
+    let y = Array::zeros(n);
+    launch(scale, n, (&x, 2.0, &y));
+    assert_eq!(y.get(n - 1), 2.0);
+}
+
+#[test]
+fn other_workers_linger_until_the_next_launch_or_the_time_has_passed() {
+    assert_eq!(linger(), Duration::from_micros(500), "the default");
+    for threads in [2, 3] {
+        with_threads(threads, || {
+            // Long enough that only the next launch can end the wait within the test.
+            set_linger(Duration::from_secs(30));
+            parallel_launch(0);
+            assert!(
+                reaches(threads - 1),
+                "{threads} threads: every worker but the launching one lingers (saw {})",
+                lingering_workers()
+            );
+            // The launching thread goes on with its program: when it next runs pool work (here
+            // one pending job, its share of the broadcast), that returns at once.
+            let t = Instant::now();
+            while rayon::yield_local() == Some(rayon::Yield::Executed) {}
+            assert!(
+                t.elapsed() < Duration::from_secs(5),
+                "the launching thread lingered"
+            );
+            // The next parallel launch ends their wait; with no lingering set, none follows.
+            set_linger(Duration::ZERO);
+            parallel_launch(1);
+            assert!(
+                reaches(0),
+                "a launch ends the wait of the lingering workers"
+            );
+            // A short linger ends by itself.
+            set_linger(Duration::from_millis(20));
+            parallel_launch(2);
+            assert!(reaches(0), "lingering ends when its time has passed");
+        });
+    }
+    // From a thread outside the pool (here the global one), every worker of the pool lingers.
+    set_linger(Duration::from_secs(30));
+    let workers = rayon::current_num_threads();
+    parallel_launch(3);
+    if workers > 1 {
+        assert!(
+            reaches(workers),
+            "outside the pool, all {workers} workers linger"
+        );
+    }
+    set_linger(Duration::ZERO);
+    parallel_launch(4);
+    assert!(reaches(0));
+    set_linger(Duration::from_micros(500));
+}
