@@ -24,7 +24,7 @@ use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 use crate::linger;
-pub use crate::linger::{linger, lingering_workers, set_linger};
+pub use crate::linger::{linger, lingerers, set_linger};
 use crate::split;
 use crate::subnormals::{self, Flush};
 pub use crate::subnormals::{flush_subnormals, set_flush_subnormals};

@@ -8,6 +8,9 @@ use std::time::{Duration, Instant};
 static EPOCH: AtomicU64 = AtomicU64::new(0);
 /// How long workers linger, in nanoseconds.
 static LINGER_NS: AtomicU64 = AtomicU64::new(500_000);
+/// Lingering jobs spawned and not yet started (at most one per worker: a job nobody takes,
+/// all workers busy with other work, is not spawned again at every launch).
+static QUEUED: AtomicUsize = AtomicUsize::new(0);
 /// Workers lingering now.
 static LINGERING: AtomicUsize = AtomicUsize::new(0);
 
@@ -45,10 +48,13 @@ pub fn set_linger(time: Duration) {
     LINGER_NS.store(ns, Ordering::Relaxed)
 }
 
-/// How many workers are lingering now (for tests).
+/// Lingering jobs spawned and not yet started, and workers lingering now (for tests).
 #[doc(hidden)]
-pub fn lingering_workers() -> usize {
-    LINGERING.load(Ordering::Acquire)
+pub fn lingerers() -> (usize, usize) {
+    (
+        QUEUED.load(Ordering::Acquire),
+        LINGERING.load(Ordering::Acquire),
+    )
 }
 
 /// Called when a parallel launch is about to hand out its work: lingering workers stop
@@ -57,8 +63,8 @@ pub(crate) fn launch_starts() {
     EPOCH.fetch_add(1, Ordering::AcqRel);
 }
 
-/// Called when a parallel launch has ended: every other worker of the current pool spins
-/// until the next parallel launch starts or [`linger`] has passed.
+/// Called when a parallel launch has ended: up to one job per other worker of the current
+/// pool spins until the next parallel launch starts or [`linger`] has passed.
 pub(crate) fn launch_ended() {
     let ns = LINGER_NS.load(Ordering::Relaxed);
     if ns == 0 {
@@ -66,25 +72,33 @@ pub(crate) fn launch_ended() {
     }
     let epoch = EPOCH.load(Ordering::Acquire);
     let caller = rayon::current_thread_index();
-    rayon::spawn_broadcast(move |ctx| {
-        // The launching thread goes on with its program; a worker that reaches this after
-        // the next launch started has work to take.
-        if Some(ctx.index()) == caller || EPOCH.load(Ordering::Acquire) != epoch {
-            return;
-        }
-        LINGERING.fetch_add(1, Ordering::AcqRel);
-        let until = Instant::now() + Duration::from_nanos(ns);
-        'wait: loop {
-            for _ in 0..64 {
-                if EPOCH.load(Ordering::Acquire) != epoch {
-                    break 'wait;
+    // From outside the pool every worker may linger; from inside, all but the caller.
+    let want = rayon::current_num_threads() - usize::from(caller.is_some());
+    while QUEUED.load(Ordering::Acquire) + LINGERING.load(Ordering::Acquire) < want {
+        QUEUED.fetch_add(1, Ordering::AcqRel);
+        // Spawned jobs go to the caller's queue, where idle workers take them at once.
+        rayon::spawn(move || {
+            QUEUED.fetch_sub(1, Ordering::AcqRel);
+            // The launching thread goes on with its program (it runs this only when it waits
+            // for other pool work); a worker that starts this after the next launch started
+            // has work to take.
+            if rayon::current_thread_index() == caller || EPOCH.load(Ordering::Acquire) != epoch {
+                return;
+            }
+            LINGERING.fetch_add(1, Ordering::AcqRel);
+            let until = Instant::now() + Duration::from_nanos(ns);
+            'wait: loop {
+                for _ in 0..64 {
+                    if EPOCH.load(Ordering::Acquire) != epoch {
+                        break 'wait;
+                    }
+                    std::hint::spin_loop();
                 }
-                std::hint::spin_loop();
+                if Instant::now() >= until {
+                    break;
+                }
             }
-            if Instant::now() >= until {
-                break;
-            }
-        }
-        LINGERING.fetch_sub(1, Ordering::AcqRel);
-    });
+            LINGERING.fetch_sub(1, Ordering::AcqRel);
+        });
+    }
 }

@@ -2,9 +2,10 @@
 //! stop when a launch starts or the time has passed. (The setting is process-wide, so this
 //! binary has a single test.)
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use adflex_runtime::launch::{linger, lingering_workers, set_linger, SERIAL_BELOW};
+use adflex_runtime::launch::{linger, lingerers, set_linger, SERIAL_BELOW};
 use adflex_runtime::prelude::*;
 
 #[adflex_macros::diff_kernel]
@@ -13,11 +14,15 @@ fn scale(x: &Array<f32>, s: f32, y: &Array<f32>) {
     y[t] = x[t] * s;
 }
 
-/// Waits up to 2 s for `lingering_workers() == n`; false if it never was.
+fn lingering() -> usize {
+    lingerers().1
+}
+
+/// Waits up to 2 s for `lingering() == n`; false if it never was.
 fn reaches(n: usize) -> bool {
     let start = Instant::now();
     while start.elapsed() < Duration::from_secs(2) {
-        if lingering_workers() == n {
+        if lingering() == n {
             return true;
         }
         std::thread::yield_now();
@@ -46,15 +51,7 @@ fn other_workers_linger_until_the_next_launch_or_the_time_has_passed() {
             assert!(
                 reaches(threads - 1),
                 "{threads} threads: every worker but the launching one lingers (saw {})",
-                lingering_workers()
-            );
-            // The launching thread goes on with its program: when it next runs pool work (here
-            // one pending job, its share of the broadcast), that returns at once.
-            let t = Instant::now();
-            while rayon::yield_local() == Some(rayon::Yield::Executed) {}
-            assert!(
-                t.elapsed() < Duration::from_secs(5),
-                "the launching thread lingered"
+                lingering()
             );
             // The next parallel launch ends their wait; with no lingering set, none follows.
             set_linger(Duration::ZERO);
@@ -63,16 +60,58 @@ fn other_workers_linger_until_the_next_launch_or_the_time_has_passed() {
                 reaches(0),
                 "a launch ends the wait of the lingering workers"
             );
+            assert_eq!(lingerers().0, 0, "nothing left queued");
             // A short linger ends by itself.
             set_linger(Duration::from_millis(20));
             parallel_launch(2);
             assert!(reaches(0), "lingering ends when its time has passed");
         });
     }
+
+    // With the other worker busy with work of its own, the launching thread runs both halves,
+    // and the lingering job it spawns waits in its queue: one, however many launches follow,
+    // and when the launching thread runs it (waiting for other pool work), it returns at once.
+    with_threads(2, || {
+        set_linger(Duration::from_secs(30));
+        static RELEASE: AtomicBool = AtomicBool::new(false);
+        static BUSY: AtomicBool = AtomicBool::new(false);
+        rayon::spawn(|| {
+            BUSY.store(true, Ordering::Release);
+            while !RELEASE.load(Ordering::Acquire) {
+                std::thread::yield_now();
+            }
+        });
+        while !BUSY.load(Ordering::Acquire) {
+            std::thread::yield_now();
+        }
+        let run_queued = || {
+            let t = Instant::now();
+            while rayon::yield_local() == Some(rayon::Yield::Executed) {}
+            assert!(
+                t.elapsed() < Duration::from_secs(5),
+                "the launching thread lingered"
+            );
+            assert_eq!(lingerers(), (0, 0));
+        };
+        parallel_launch(3);
+        assert_eq!(
+            lingerers(),
+            (1, 0),
+            "one lingering job queued, none spinning"
+        );
+        run_queued();
+        for class in 4..7 {
+            parallel_launch(class);
+        }
+        assert_eq!(lingerers(), (1, 0), "still one lingering job queued");
+        run_queued();
+        RELEASE.store(true, Ordering::Release);
+    });
+
     // From a thread outside the pool (here the global one), every worker of the pool lingers.
     set_linger(Duration::from_secs(30));
     let workers = rayon::current_num_threads();
-    parallel_launch(3);
+    parallel_launch(7);
     if workers > 1 {
         assert!(
             reaches(workers),
@@ -80,7 +119,7 @@ fn other_workers_linger_until_the_next_launch_or_the_time_has_passed() {
         );
     }
     set_linger(Duration::ZERO);
-    parallel_launch(4);
+    parallel_launch(8);
     assert!(reaches(0));
     set_linger(Duration::from_micros(500));
 }
