@@ -626,6 +626,7 @@ impl Tape {
     fn execute(&mut self, plan: &Plan) -> Result<(), Error> {
         // Each buffer once: zeroing one again would be a second pass over its memory.
         let mut seen = HashSet::new();
+        let mut reset: Vec<&dyn AnyArray> = Vec::new();
         for (r, _) in self.records.iter().zip(&plan.run).filter(|(_, &run)| run) {
             for u in r.reads.iter().chain(&r.writes) {
                 let id = u.id;
@@ -633,12 +634,13 @@ impl Tape {
                     continue;
                 }
                 if plan.zeroed.contains(&id) {
-                    u.array.reset_grad();
+                    reset.push(&*u.array);
                 } else if plan.grads.contains(&id) {
                     u.array.ensure_grad();
                 }
             }
         }
+        zero_grads(&reset);
         self.last = BackwardStats::default();
         // Retained gradients, copied before the adjoint of the step that wrote them last.
         let mut kept: Vec<(Box<dyn AnyArray>, Box<dyn AnyArray>)> = Vec::new();
@@ -992,4 +994,19 @@ pub(crate) fn ones<T: Element>() -> T {
         one.set_component(k, 1.0);
     }
     one
+}
+
+/// Zeroes the gradient buffers of `arrays` (allocating them zeroed when new), on the pool's
+/// threads when there is enough to share: a rollout's intermediate gradients are tens of
+/// megabytes, a serial pass over them a few percent of a backward.
+fn zero_grads(arrays: &[&dyn AnyArray]) {
+    use rayon::prelude::*;
+    if rayon::current_num_threads() > 1 && arrays.len() > 1 {
+        arrays
+            .par_iter()
+            .with_min_len(4)
+            .for_each(|a| a.reset_grad());
+    } else {
+        arrays.iter().for_each(|a| a.reset_grad());
+    }
 }

@@ -50,6 +50,48 @@ fn backward_matches_formula_and_fd() {
 }
 
 #[test]
+fn intermediate_grads_restart_from_zero_on_every_backward_on_any_pool() {
+    // A chain of eight squarings added into their outputs: eight intermediates, whose
+    // gradients an adjoint reads without taking them (unlike those of stores), so a backward
+    // zeroes them first, on the pool's threads when it has several.
+    #[adflex_macros::diff_kernel]
+    fn add_square(x: &Array<f64>, a: f64, y: &Array<f64>) {
+        let t = tid();
+        y.atomic_add(t, x[t] * x[t] * a);
+    }
+    for threads in [1, 2, 3] {
+        with_threads(threads, || {
+            let x = Array::from_vec(xs()).requires_grad().named("x");
+            let mut tape = Tape::new();
+            let mut ys = vec![x.clone()];
+            for k in 0..8 {
+                let y = Array::<f64>::zeros(x.len()).named(format!("y{k}"));
+                tape.launch(add_square, x.len(), (ys.last().unwrap(), 0.9, &y));
+                ys.push(y);
+            }
+            let loss = Array::<f64>::zeros(1).named("loss");
+            tape.launch(SumSq, x.len(), (ys.last().unwrap(), &loss));
+            tape.backward(&loss).unwrap();
+            let first: Vec<Vec<f64>> = ys.iter().map(|y| y.grad().unwrap().to_vec()).collect();
+            tape.backward(&loss).unwrap();
+            assert_eq!(
+                x.grad().unwrap().to_vec(),
+                first[0].iter().map(|g| 2.0 * g).collect::<Vec<_>>(),
+                "{threads} threads: the leaf accumulates"
+            );
+            for (k, y) in ys.iter().enumerate().skip(1) {
+                assert_eq!(
+                    y.grad().unwrap().to_vec(),
+                    first[k],
+                    "{threads} threads: y{} restarts from zero",
+                    k - 1
+                );
+            }
+        });
+    }
+}
+
+#[test]
 fn zero_and_reset() {
     let x = Array::from_vec(xs()).requires_grad().named("x");
     let mut tape = Tape::new();
