@@ -57,8 +57,8 @@ pub fn lingerers() -> (usize, usize) {
     )
 }
 
-/// Called when a parallel launch is about to hand out its work: lingering workers stop
-/// spinning and take it.
+/// Called when a parallel launch (or other parallel work of the runtime) is about to hand
+/// out its work: lingering workers stop spinning and take it.
 pub(crate) fn launch_starts() {
     EPOCH.fetch_add(1, Ordering::AcqRel);
 }

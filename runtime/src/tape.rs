@@ -1002,6 +1002,8 @@ pub(crate) fn ones<T: Element>() -> T {
 fn zero_grads(arrays: &[&dyn AnyArray]) {
     use rayon::prelude::*;
     if rayon::current_num_threads() > 1 && arrays.len() > 1 {
+        // Workers lingering after the forward's last launch take this work at once.
+        crate::linger::launch_starts();
         arrays
             .par_iter()
             .with_min_len(4)
