@@ -138,10 +138,22 @@ impl<T: Element> Array<T> {
         }
     }
 
-    /// `len` zeros. Large arrays of reals, vectors and matrices come zeroed from the allocator
-    /// (no pass over the memory here: its pages are first touched by whatever writes them).
+    /// `len` zeros. Large arrays of reals, vectors and matrices come zeroed from the allocator,
+    /// and only one element per memory page is written here.
     pub fn zeros(len: usize) -> Self {
-        Self::from_vec(T::zeroed_vec(len))
+        let mut v = T::zeroed_vec(len);
+        // Fresh pages from the kernel are mapped on first touch. Touched first by a read (a
+        // scatter's or a gradient's `+=`), a page maps the shared zero page and faults again
+        // on the write, which also flushes the TLB of every core running the process: a
+        // backward faulted twice per page of its new gradients. One write per page here
+        // faults each page once (docs/performance.md).
+        let step = (4096 / std::mem::size_of::<T>().max(1)).max(1);
+        for k in (0..len).step_by(step) {
+            // SAFETY: `k < len`, an initialized element. Volatile: the compiler knows the
+            // memory is zero and would drop a plain store of zero.
+            unsafe { std::ptr::write_volatile(v.as_mut_ptr().add(k), T::zeroed()) };
+        }
+        Self::from_vec(v)
     }
 
     /// Zeros shaped like `self` (same length), without gradient.

@@ -24,7 +24,7 @@ use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
 use crate::linger;
-pub use crate::linger::{linger, lingerers, set_linger};
+pub use crate::linger::{leader_waits, linger, lingerers, set_linger};
 use crate::split;
 use crate::subnormals::{self, Flush};
 pub use crate::subnormals::{flush_subnormals, set_flush_subnormals};
@@ -560,10 +560,13 @@ fn run_ordered(dim: usize, flush: bool, run: &RunChunk) {
     let chunks = dim.div_ceil(CHUNK);
     let order = ChunkOrder::default();
     let workers = rayon::current_num_threads().clamp(1, chunks.max(1));
+    let team = linger::Team::new(workers);
     (0..workers).into_par_iter().for_each(|_| {
-        // Covers the chunks this worker runs and the logs it applies.
-        let _flush = Flush::enter(flush);
-        run_chunks(dim, &order, chunks, run)
+        team.share(|| {
+            // Covers the chunks this worker runs and the logs it applies.
+            let _flush = Flush::enter(flush);
+            run_chunks(dim, &order, chunks, run)
+        })
     });
 }
 

@@ -20,6 +20,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use rayon::prelude::*;
 
 use crate::kernel::{Exec, Halo, KernelBody, Mode, ScatterLog};
+use crate::linger::Team;
 use crate::subnormals::Flush;
 
 /// A split of one launch: each range with the end of its head, and the first-touch maps.
@@ -168,38 +169,41 @@ pub(crate) fn run<K: KernelBody<O>, O: Sync>(
         .zip(&plan.firsts)
         .filter_map(|(&p, m)| Some((arrays.get(p).copied().flatten()?.id(), m.clone())))
         .collect();
+    let team = Team::new(plan.ranges.len());
     let logs: Vec<Vec<ScatterLog>> = plan
         .ranges
         .par_iter()
         .map(|(range, head_end)| {
-            let _flush = Flush::enter(flush);
-            let head = range.start..*head_end;
-            let logs = match head.is_empty() {
-                true => Vec::new(),
-                false => {
-                    let halo = Halo {
-                        firsts: &firsts,
-                        bound: range.start as u32,
-                    };
-                    kernel.run(
+            team.share(|| {
+                let _flush = Flush::enter(flush);
+                let head = range.start..*head_end;
+                let logs = match head.is_empty() {
+                    true => Vec::new(),
+                    false => {
+                        let halo = Halo {
+                            firsts: &firsts,
+                            bound: range.start as u32,
+                        };
+                        kernel.run(
+                            mode,
+                            args,
+                            head.clone(),
+                            &Exec::halo(locked, shared, head, halo),
+                        )
+                    }
+                };
+                let tail = *head_end..range.end;
+                if !tail.is_empty() {
+                    let direct = kernel.run(
                         mode,
                         args,
-                        head.clone(),
-                        &Exec::halo(locked, shared, head, halo),
-                    )
+                        tail.clone(),
+                        &Exec::new(true, locked, shared, tail),
+                    );
+                    debug_assert!(direct.iter().all(|l| l.0.is_none()));
                 }
-            };
-            let tail = *head_end..range.end;
-            if !tail.is_empty() {
-                let direct = kernel.run(
-                    mode,
-                    args,
-                    tail.clone(),
-                    &Exec::new(true, locked, shared, tail),
-                );
-                debug_assert!(direct.iter().all(|l| l.0.is_none()));
-            }
-            logs
+                logs
+            })
         })
         .collect();
     for log in logs.iter().flatten().filter_map(|l| l.0.as_deref()) {

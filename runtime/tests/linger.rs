@@ -1,17 +1,38 @@
 //! After a parallel launch the pool's other workers spin for the next one (`set_linger`), and
-//! stop when a launch starts or the time has passed. (The setting is process-wide, so this
-//! binary has a single test.)
+//! stop when a launch starts or the time has passed; during one, the launching thread waits
+//! for the others' shares awake. (The setting is process-wide, so this binary has a single
+//! test.)
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use adflex_runtime::launch::{linger, lingerers, set_linger, SERIAL_BELOW};
+use adflex_runtime::launch::{
+    leader_waits, linger, lingerers, set_linger, split_launches, SERIAL_BELOW,
+};
 use adflex_runtime::prelude::*;
 
 #[adflex_macros::diff_kernel]
 fn scale(x: &Array<f32>, s: f32, y: &Array<f32>) {
     let t = tid();
     y[t] = x[t] * s;
+}
+
+#[adflex_macros::diff_kernel]
+fn count_ends(pairs: &Array<[u32; 2]>, n: &Array<f32>) {
+    let [i, j] = pairs[tid()];
+    n.atomic_add(i, 1.0);
+    n.atomic_add(j, 1.0);
+}
+
+/// A parallel launch split into one range per worker (scatters through an index array).
+fn split_launch() {
+    let n = SERIAL_BELOW * 2;
+    let pairs = Array::from_vec((0..n as u32).map(|i| [i, i + 1]).collect());
+    let ends = Array::zeros(n + 1);
+    let before = split_launches();
+    launch(count_ends, n, (&pairs, &ends));
+    assert!(split_launches() > before, "the launch was split");
+    assert_eq!((ends.get(0), ends.get(1), ends.get(n)), (1.0, 2.0, 1.0));
 }
 
 fn lingering() -> usize {
@@ -65,6 +86,14 @@ fn other_workers_linger_until_the_next_launch_or_the_time_has_passed() {
             set_linger(Duration::from_millis(20));
             parallel_launch(2);
             assert!(reaches(0), "lingering ends when its time has passed");
+            // Both ways of running a launch in parallel have the launching thread wait for
+            // the other shares (the wait itself: the unit test of `linger::Team`).
+            let waits = leader_waits();
+            split_launch();
+            assert!(leader_waits() > waits, "a split launch's leader waits");
+            let waits = leader_waits();
+            parallel_launch(9);
+            assert!(leader_waits() > waits, "a chunked launch's leader waits");
         });
     }
 
