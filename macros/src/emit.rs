@@ -8,7 +8,11 @@
 //!   stack; its reverse pops them, replays that iteration's body and reverses it, so no
 //!   iteration is ever replayed with another iteration's values.
 //! - Tangent: the forward with a tangent `d<N>` beside every value (`tan_<op>` rules).
+//!
+//! Forward and adjoint code is built as [`Piece`]s, rendered here for one thread id and by
+//! [`crate::lanes`] for two interleaved.
 
+use std::cell::Cell;
 use std::collections::HashSet;
 
 use proc_macro2::{Ident, Span, TokenStream};
@@ -21,6 +25,107 @@ pub struct Emitter<'a> {
     /// Values some statement uses; an unused placeholder (`Op::Zero`) is not emitted, since
     /// nothing would give it a type.
     used: HashSet<ValueId>,
+    /// Scatters emitted so far (numbers them).
+    sites: Cell<usize>,
+}
+
+/// Generated code as a tree: straight-line statements, and the `if`s and gradient scatters
+/// that code for two interleaved thread ids treats apart ([`crate::lanes`]).
+pub enum Piece {
+    /// Statements of one thread id (names `v<N>`, `a<N>`, `__g<N>`, `__tid`).
+    Code(TokenStream),
+    /// `view.add(index, value);` into a gradient, numbered `site` in emission order.
+    Scatter {
+        site: usize,
+        view: Ident,
+        index: Ident,
+        value: Ident,
+        span: Span,
+    },
+    /// A replayed `if`: `let (outs,) = if cond { then (then_vals,) } else { else (else_vals,) };`
+    Phi {
+        cond: Ident,
+        outs: Vec<Ident>,
+        then: Vec<Piece>,
+        then_vals: Vec<Ident>,
+        els: Vec<Piece>,
+        else_vals: Vec<Ident>,
+    },
+    /// A reversed `if`: `if cond { then } else { els }`.
+    Branch {
+        cond: Ident,
+        then: Vec<Piece>,
+        els: Vec<Piece>,
+    },
+}
+
+/// How [`render_as`] writes one thread id's names, statements and scatters.
+pub trait Names {
+    fn name(&self, i: &Ident) -> Ident;
+    fn code(&self, c: &TokenStream) -> TokenStream;
+    fn scatter(
+        &self,
+        site: usize,
+        view: &Ident,
+        index: Ident,
+        value: Ident,
+        span: Span,
+    ) -> TokenStream;
+}
+
+/// The names as emitted, scatters where they stand.
+struct AsEmitted;
+
+impl Names for AsEmitted {
+    fn name(&self, i: &Ident) -> Ident {
+        i.clone()
+    }
+    fn code(&self, c: &TokenStream) -> TokenStream {
+        c.clone()
+    }
+    fn scatter(&self, _: usize, view: &Ident, i: Ident, x: Ident, span: Span) -> TokenStream {
+        quote_spanned!(span=> #view.add(#i, #x);)
+    }
+}
+
+/// The code of `pieces` for one thread id.
+pub fn render(pieces: &[Piece]) -> TokenStream {
+    render_as(pieces, &AsEmitted)
+}
+
+/// The code of `pieces` for one thread id, written as `names` says.
+pub fn render_as(pieces: &[Piece], names: &dyn Names) -> TokenStream {
+    let all = |is: &[Ident]| is.iter().map(|i| names.name(i)).collect::<Vec<_>>();
+    pieces
+        .iter()
+        .map(|p| match p {
+            Piece::Code(c) => names.code(c),
+            Piece::Scatter {
+                site,
+                view,
+                index,
+                value,
+                span,
+            } => names.scatter(*site, view, names.name(index), names.name(value), *span),
+            Piece::Phi {
+                cond,
+                outs,
+                then,
+                then_vals,
+                els,
+                else_vals,
+            } => {
+                let (c, o, t, e) = (names.name(cond), all(outs), all(then_vals), all(else_vals));
+                let (tb, eb) = (render_as(then, names), render_as(els, names));
+                quote!(let (#(#o,)*) = if #c { #tb (#(#t,)*) } else { #eb (#(#e,)*) };)
+            }
+            Piece::Branch { cond, then, els } => {
+                let c = names.name(cond);
+                let (tb, eb) = (render_as(then, names), render_as(els, names));
+                quote!(if #c { #tb } else { #eb })
+            }
+        })
+        .collect()
 }
 
 impl<'a> Emitter<'a> {
@@ -28,7 +133,11 @@ impl<'a> Emitter<'a> {
         let mut used = HashSet::new();
         used.extend(body.ret);
         collect_uses(&body.block, &mut used);
-        Emitter { rt, used }
+        Emitter {
+            rt,
+            used,
+            sites: Cell::new(0),
+        }
     }
 
     fn skip(&self, l: &Let) -> bool {
@@ -230,21 +339,22 @@ impl<'a> Emitter<'a> {
 
     /// The forward code of a block (with stores).
     pub fn forward(&self, b: &Block) -> TokenStream {
-        self.replay(b, Replay::Forward)
+        render(&self.replay(b, Replay::Forward))
     }
 
-    fn replay(&self, b: &Block, mode: Replay) -> TokenStream {
+    fn replay(&self, b: &Block, mode: Replay) -> Vec<Piece> {
         let rt = self.rt;
-        let mut out = TokenStream::new();
+        let mut out = Vec::new();
         for s in &b.stmts {
             match s {
                 Stmt::Let(l) if self.skip(l) => {}
                 Stmt::Let(l) => {
-                    out.extend(self.let_stmt(l));
+                    let mut code = self.let_stmt(l);
                     if mode == Replay::Top {
                         let (x, ax) = (v(l.id), a(l.id));
-                        out.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
+                        code.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
                     }
+                    out.push(Piece::Code(code));
                 }
                 Stmt::Store {
                     param,
@@ -254,7 +364,8 @@ impl<'a> Emitter<'a> {
                     span,
                 } => {
                     if mode == Replay::Forward {
-                        out.extend(store_call(view(*param), *kind, v(*index), v(*value), *span));
+                        let store = store_call(view(*param), *kind, v(*index), v(*value), *span);
+                        out.push(Piece::Code(store));
                     }
                 }
                 Stmt::If {
@@ -268,22 +379,23 @@ impl<'a> Emitter<'a> {
                     } else {
                         Replay::Nested
                     };
-                    let c = v(*cond);
-                    let (tb, eb) = (self.replay(then_b, inner), self.replay(else_b, inner));
-                    let outs: Vec<_> = phis.iter().map(|p| v(p.out)).collect();
-                    let tvs: Vec<_> = phis.iter().map(|p| v(p.then_v)).collect();
-                    let evs: Vec<_> = phis.iter().map(|p| v(p.else_v)).collect();
-                    out.extend(quote! {
-                        let (#(#outs,)*) = if #c { #tb (#(#tvs,)*) } else { #eb (#(#evs,)*) };
+                    out.push(Piece::Phi {
+                        cond: v(*cond),
+                        outs: phis.iter().map(|p| v(p.out)).collect(),
+                        then: self.replay(then_b, inner),
+                        then_vals: phis.iter().map(|p| v(p.then_v)).collect(),
+                        els: self.replay(else_b, inner),
+                        else_vals: phis.iter().map(|p| v(p.else_v)).collect(),
                     });
                     if mode == Replay::Top {
-                        for p in phis {
+                        let decls = phis.iter().map(|p| {
                             let (x, ax) = (v(p.out), a(p.out));
-                            out.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
-                        }
+                            quote!(let mut #ax = #rt::zero_like(&#x);)
+                        });
+                        out.push(Piece::Code(quote!(#(#decls)*)));
                     }
                 }
-                Stmt::Loop(l) => out.extend(self.loop_forward(l, mode)),
+                Stmt::Loop(l) => out.push(Piece::Code(self.loop_forward(l, mode))),
             }
         }
         out
@@ -335,7 +447,7 @@ impl<'a> Emitter<'a> {
         } else {
             quote!()
         };
-        let body = self.replay(&l.body, inner_mode);
+        let body = render(&self.replay(&l.body, inner_mode));
         let exit = loop_exit(l);
         let stack_decl = if mode == Replay::Top {
             quote!(let mut #st = ::std::vec::Vec::new();)
@@ -371,25 +483,29 @@ impl<'a> Emitter<'a> {
 
     /// The adjoint of a block: replay, seed `adj(value) += seed`, reverse.
     pub fn adjoint(&self, b: &Block, seeds: &[(ValueId, TokenStream)]) -> TokenStream {
+        render(&self.adjoint_pieces(b, seeds))
+    }
+
+    /// [`Emitter::adjoint`] as pieces.
+    pub fn adjoint_pieces(&self, b: &Block, seeds: &[(ValueId, TokenStream)]) -> Vec<Piece> {
         let rt = self.rt;
-        let replay = self.replay(b, Replay::Top);
+        let mut out = self.replay(b, Replay::Top);
         let seeds = seeds.iter().map(|(x, s)| {
             let ax = a(*x);
             quote!(#rt::acc(&mut #ax, #s);)
         });
-        let reverse = b.stmts.iter().rev().map(|s| self.reverse(s));
-        quote! {
-            #replay
-            #(#seeds)*
-            #(#reverse)*
+        out.push(Piece::Code(quote!(#(#seeds)*)));
+        for s in b.stmts.iter().rev() {
+            self.reverse(s, &mut out);
         }
+        out
     }
 
-    fn reverse(&self, s: &Stmt) -> TokenStream {
+    fn reverse(&self, s: &Stmt, out: &mut Vec<Piece>) {
         let rt = self.rt;
         match s {
-            Stmt::Let(l) if self.skip(l) => quote!(),
-            Stmt::Let(l) => self.reverse_let(l),
+            Stmt::Let(l) if self.skip(l) => {}
+            Stmt::Let(l) => out.push(self.reverse_let(l)),
             Stmt::Store {
                 param,
                 index,
@@ -399,7 +515,7 @@ impl<'a> Emitter<'a> {
             } => {
                 let (g, i, ax) = (grad_view(*param), v(*index), a(*value));
                 let t = tid();
-                match kind {
+                out.push(Piece::Code(match kind {
                     // Takes the gradient: an earlier store to the element was overwritten.
                     StoreKind::Store => {
                         quote_spanned!(*span=> #rt::acc(&mut #ax, #g.take(#t, #i));)
@@ -410,7 +526,7 @@ impl<'a> Emitter<'a> {
                     StoreKind::AtomicSub => {
                         quote_spanned!(*span=> #rt::acc_neg(&mut #ax, #g.get(#i));)
                     }
-                }
+                }));
             }
             Stmt::If {
                 cond,
@@ -418,7 +534,6 @@ impl<'a> Emitter<'a> {
                 else_b,
                 phis,
             } => {
-                let c = v(*cond);
                 let tseeds: Vec<_> = phis
                     .iter()
                     .map(|p| (p.then_v, self.adj_tokens(p.out)))
@@ -427,10 +542,13 @@ impl<'a> Emitter<'a> {
                     .iter()
                     .map(|p| (p.else_v, self.adj_tokens(p.out)))
                     .collect();
-                let (tb, eb) = (self.adjoint(then_b, &tseeds), self.adjoint(else_b, &eseeds));
-                quote!(if #c { #tb } else { #eb })
+                out.push(Piece::Branch {
+                    cond: v(*cond),
+                    then: self.adjoint_pieces(then_b, &tseeds),
+                    els: self.adjoint_pieces(else_b, &eseeds),
+                });
             }
-            Stmt::Loop(l) => self.reverse_loop(l),
+            Stmt::Loop(l) => out.push(Piece::Code(self.reverse_loop(l))),
         }
     }
 
@@ -439,11 +557,22 @@ impl<'a> Emitter<'a> {
         quote!(#ax)
     }
 
-    fn reverse_let(&self, l: &Let) -> TokenStream {
+    fn reverse_let(&self, l: &Let) -> Piece {
         let rt = self.rt;
         let span = l.span;
         let an = a(l.id);
-        match &l.op {
+        if let Op::Read { param, index } = &l.op {
+            let site = self.sites.get();
+            self.sites.set(site + 1);
+            return Piece::Scatter {
+                site,
+                view: grad_view(*param),
+                index: v(*index),
+                value: an,
+                span,
+            };
+        }
+        Piece::Code(match &l.op {
             Op::Builtin { args, .. } if args.is_empty() => quote!(),
             Op::Builtin { f, args } => {
                 let f = format_ident!("adj_{}", f.name(), span = span);
@@ -483,12 +612,8 @@ impl<'a> Emitter<'a> {
                 let ax = a(*src);
                 quote!(#rt::acc(&mut #ax, #an);)
             }
-            Op::Read { param, index } => {
-                let (g, i) = (grad_view(*param), v(*index));
-                quote_spanned!(span=> #g.add(#i, #an);)
-            }
             _ => quote!(),
-        }
+        })
     }
 
     fn reverse_loop(&self, l: &Loop) -> TokenStream {

@@ -9,6 +9,7 @@ use crate::attr::Attr;
 use crate::check;
 use crate::emit::{self, Emitter};
 use crate::ir::Body;
+use crate::lanes;
 use crate::lower::{ArrayUse, Lowerer};
 use crate::signature::{ParamKind, Signature};
 use crate::{Errors, Kind};
@@ -418,9 +419,26 @@ fn kernel_mode(
             Mode::Forward => {}
         }
     }
+    // The adjoint's direct loop runs two ids per iteration where the kernel qualifies.
+    let mut pairs = TokenStream::new();
     let code = match mode {
         Mode::Forward => em.forward(&body.block),
-        Mode::Adjoint => em.adjoint(&body.block, &[]),
+        Mode::Adjoint => {
+            let pieces = em.adjoint_pieces(&body.block, &[]);
+            if lanes::qualifies(&body.block, &|p| at_tid.stores[p], rt) {
+                let (t0, t1) = (lanes::tid(0), lanes::tid(1));
+                let two = lanes::interleaved(&prologue, &pieces);
+                pairs = quote! {
+                    while __tids.len() >= 2 {
+                        let #t0 = __tids.start;
+                        let #t1 = #t0 + 1;
+                        __tids.start += 2;
+                        #two
+                    }
+                };
+            }
+            emit::render(&pieces)
+        }
         Mode::Tangent => em.tangent(&body.block),
     };
     let t = emit::tid();
@@ -442,6 +460,7 @@ fn kernel_mode(
         let mut __tids = __range;
         loop {
             if let (#(::std::option::Option::Some(mut #scatters),)*) = (#(#scatters.direct(),)*) {
+                #pairs
                 for #t in __tids {
                     #body
                 }

@@ -36,6 +36,7 @@ mod check;
 mod emit;
 mod expand;
 mod ir;
+mod lanes;
 mod lower;
 mod signature;
 mod syntax;

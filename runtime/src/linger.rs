@@ -33,9 +33,11 @@ pub fn linger() -> Duration {
 /// step is a few launches of 0.05 to 1 ms with a little host work between them (recording
 /// them, allocating the next state), so every parallel launch paid that. So after a parallel
 /// launch, the pool's other workers spin until the next parallel launch starts or this time
-/// has passed, as OpenMP runtimes do (`KMP_BLOCKTIME`, `OMP_WAIT_POLICY`). The cost is CPU
-/// time on those cores, at most this long per parallel launch; a program that launches
-/// rarely and shares its cores may prefer `Duration::ZERO`. Results do not depend on it.
+/// has passed, as OpenMP runtimes do (`KMP_BLOCKTIME`, `OMP_WAIT_POLICY`). Within a launch,
+/// the launching thread, done with its share, waits for the other shares spinning too, at
+/// most this long. The cost is CPU time on those cores, at most this long per parallel
+/// launch; a program that launches rarely and shares its cores may prefer `Duration::ZERO`.
+/// Results do not depend on it.
 ///
 /// ```
 /// use std::time::Duration;

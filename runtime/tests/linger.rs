@@ -51,6 +51,19 @@ fn reaches(n: usize) -> bool {
     false
 }
 
+/// Waits up to 2 s for no lingering job queued or running, in any pool (the counts are the
+/// process's, and a dropped pool's workers still run the jobs left in their queues).
+fn quiet() -> bool {
+    let start = Instant::now();
+    while start.elapsed() < Duration::from_secs(2) {
+        if lingerers() == (0, 0) {
+            return true;
+        }
+        std::thread::yield_now();
+    }
+    false
+}
+
 /// A parallel launch: the first launch of a kernel, mode and size class on a pool takes the
 /// parallel path (the launch choice times it first). `class` picks a new size class.
 fn parallel_launch(class: u32) {
@@ -94,12 +107,20 @@ fn other_workers_linger_until_the_next_launch_or_the_time_has_passed() {
             let waits = leader_waits();
             parallel_launch(9);
             assert!(leader_waits() > waits, "a chunked launch's leader waits");
+            // The counts of lingering workers are the process's: let these end before the
+            // next pool's launches count them.
+            assert!(reaches(0), "lingering ends when its time has passed");
         });
     }
 
     // With the other worker busy with work of its own, the launching thread runs both halves,
     // and the lingering job it spawns waits in its queue: one, however many launches follow,
     // and when the launching thread runs it (waiting for other pool work), it returns at once.
+    assert!(
+        quiet(),
+        "the pools above left lingering jobs: {:?}",
+        lingerers()
+    );
     with_threads(2, || {
         set_linger(Duration::from_secs(30));
         static RELEASE: AtomicBool = AtomicBool::new(false);
