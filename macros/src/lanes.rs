@@ -40,7 +40,7 @@ pub fn qualifies(b: &Block, distinct: &dyn Fn(usize) -> bool, rt: &TokenStream) 
         b.stmts.iter().all(|s| match s {
             Stmt::Let(l) => {
                 *lets += 1;
-                !user_tokens(&l.op).into_iter().any(names_a_local)
+                !user_tokens(&l.op).is_some_and(names_a_local)
             }
             Stmt::Store { param, kind, .. } => *kind != StoreKind::Store || distinct(*param),
             Stmt::If { then_b, else_b, .. } => {
@@ -56,7 +56,7 @@ pub fn qualifies(b: &Block, distinct: &dyn Fn(usize) -> bool, rt: &TokenStream) 
 }
 
 /// The user's tokens `op` carries into the generated code.
-fn user_tokens(op: &Op) -> Vec<&TokenStream> {
+fn user_tokens(op: &Op) -> Option<&TokenStream> {
     match op {
         Op::Const(t)
         | Op::Func { path: t, .. }
@@ -65,13 +65,13 @@ fn user_tokens(op: &Op) -> Vec<&TokenStream> {
         | Op::NativeBinary { op: t, .. }
         | Op::NativeUnary { op: t, .. }
         | Op::PlainCall { path: t, .. }
-        | Op::PlainMethod { method: t, .. } => vec![t],
+        | Op::PlainMethod { method: t, .. } => Some(t),
         Op::Tid
         | Op::Builtin { .. }
         | Op::Tuple(_)
         | Op::Read { .. }
         | Op::StopGrad(_)
-        | Op::Zero => Vec::new(),
+        | Op::Zero => None,
     }
 }
 
