@@ -26,12 +26,13 @@ mod stiff_pendulum;
 
 #[test]
 fn stiff_pendulum_stability_matches_theory() {
-    let out = stiff_pendulum::run(&stiff_pendulum::Config::small()).unwrap();
-    assert_eq!(out.runs.len(), 16);
+    let cfg = stiff_pendulum::Config::small();
+    let out = stiff_pendulum::run(&cfg).unwrap();
+    assert_eq!(out.runs.len(), 4 * stiff_pendulum::METHODS.len());
     for r in &out.runs {
         assert_eq!(
             r.stable(),
-            stiff_pendulum::predicted_stable(r.method, r.dt),
+            stiff_pendulum::predicted_stable(r.method, r.dt, cfg.duration),
             "{} at dt = {}: max E/E0 = {}, error {:?}",
             r.method,
             r.dt,

@@ -62,7 +62,8 @@ pub mod prelude {
     pub use crate::forces::bending::RestAngle;
     pub use crate::forces::particle::Drag;
     pub use crate::integrators::{
-        ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
+        ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, SolverPolicy,
+        Xpbd,
     };
     pub use crate::model::{Control, Model, ModelBuilder, State};
     pub use crate::rigid::BodyState;

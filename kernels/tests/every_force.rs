@@ -17,7 +17,7 @@ use adflex_kernels::contact::shapes::{Shape, ShapeKind};
 use adflex_kernels::forces::particle::Drag;
 use adflex_kernels::forces::{Force, ForceContext, Param, BUILTIN_FORCES};
 use adflex_kernels::integrators::{
-    ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+    ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
 use adflex_kernels::prelude::RestAngle;
 use adflex_kernels::{Model, ModelBuilder, State};
@@ -246,6 +246,34 @@ fn loss_of(tape: &mut Tape, model: &Model<f64>, s: &State<f64>) -> Array<f64> {
 const STEPS: usize = 4;
 const DT: f64 = 1e-2;
 
+/// Checks the parameters of every force at once, and the initial velocities, in the whole
+/// scene through `integ` with central differences of step `h`, within `tol`.
+fn check_whole_scene<I: Integrator<f64>>(name: &str, integ: &I, h: f64, tol: f64) {
+    let model = every_force();
+    let s0 = model.state();
+    let (x0, v0) = (s0.x.named("x0"), s0.v.named("v0"));
+    let params = model.params();
+    let mut arrays: Vec<&dyn AnyArray> = params.iter().map(|(_, _, a)| &**a).collect();
+    arrays.push(&v0);
+    let report = GradCheck::new()
+        .step(h)
+        .run(
+            |tape| {
+                let s = State {
+                    x: x0.clone(),
+                    v: v0.clone(),
+                    bodies: None,
+                };
+                let s = integ.rollout(&model, tape, &s, None, DT, STEPS).unwrap();
+                loss_of(tape, &model, &s)
+            },
+            &arrays,
+        )
+        .unwrap();
+    println!("{name}: {report}");
+    report.assert_within(tol);
+}
+
 /// Checks every force's parameters through `integ` with central differences of step `h`,
 /// each relative error within `tol`.
 fn check<I: Integrator<f64>>(name: &str, integ: &I, h: f64, tol: f64) {
@@ -312,8 +340,56 @@ fn rk4() {
 }
 
 #[test]
+fn midpoint() {
+    check("Midpoint", &Midpoint, 1e-6, 1e-5);
+}
+
+#[test]
 fn implicit_euler() {
     check("ImplicitEuler", &ImplicitEuler::default(), 1e-6, 1e-5);
+}
+
+#[test]
+fn linearized_implicit_euler() {
+    check(
+        "ImplicitEuler::linearized",
+        &ImplicitEuler::linearized(),
+        1e-6,
+        1e-5,
+    );
+}
+
+/// The forces that are not elastic (contact, drag, the user's anchors) and the elastic ones.
+const CONTACT_AND_USER: [&str; 5] = [
+    "ground",
+    "particle_contact",
+    "shape_contact",
+    "drag",
+    "anchors",
+];
+const ELASTIC: [&str; 4] = ["springs", "bending", "triangle_fem", "tets"];
+
+/// Implicit-explicit splits of the whole scene: every force explicit in one split and implicit
+/// in the other, for the full and the linearized method. Each force's parameters are checked
+/// with the rest of the scene present (the split's coupling is what is tested).
+#[test]
+fn implicit_euler_with_explicit_splits() {
+    for (name, integ) in [
+        (
+            "ImplicitEuler, contact and user forces explicit",
+            ImplicitEuler::default().with_explicit(CONTACT_AND_USER),
+        ),
+        (
+            "ImplicitEuler, elastic forces explicit",
+            ImplicitEuler::default().with_explicit(ELASTIC),
+        ),
+        (
+            "ImplicitEuler::linearized, contact and user forces explicit",
+            ImplicitEuler::linearized().with_explicit(CONTACT_AND_USER),
+        ),
+    ] {
+        check_whole_scene(name, &integ, 1e-6, 1e-5);
+    }
 }
 
 /// XPBD's velocities are position differences over a substep (`dt / 8`): they amplify the

@@ -8,7 +8,7 @@ mod common;
 
 use adflex_kernels::integrators::oscillator::Oscillator;
 use adflex_kernels::integrators::{
-    ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+    ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;
@@ -73,6 +73,19 @@ fn check_integrator<I: Integrator<f64>>(
     dt: f64,
     steps: usize,
 ) -> (f64, f64) {
+    check_integrator_within(name, integ, model, dt, steps, 1e-5, 1e-9)
+}
+
+/// [`check_integrator`] with the tolerances of the FD check and of the dot test.
+fn check_integrator_within<I: Integrator<f64>>(
+    name: &str,
+    integ: &I,
+    model: &Model<f64>,
+    dt: f64,
+    steps: usize,
+    fd_tol: f64,
+    dot_tol: f64,
+) -> (f64, f64) {
     let s0 = model.state();
     let (x0, v0) = (s0.x.named("x0"), s0.v.named("v0"));
     let mut params: Vec<&dyn AnyArray> = vec![&x0, &v0];
@@ -98,7 +111,7 @@ fn check_integrator<I: Integrator<f64>>(
         )
         .unwrap();
     println!("{name}: gradient vs central differences over {steps} steps: {report}");
-    report.assert_within(1e-5);
+    report.assert_within(fd_tol);
     let dot = dot_test(
         |tape| {
             let s = rollout(integ, model, tape, &x0, &v0, dt, steps);
@@ -114,7 +127,7 @@ fn check_integrator<I: Integrator<f64>>(
         dot.v_jtw,
         dot.rel_error()
     );
-    dot.assert_within(1e-9);
+    dot.assert_within(dot_tol);
     (report.max_error, dot.rel_error())
 }
 
@@ -143,6 +156,78 @@ fn semi_implicit_euler_gradients() {
 #[test]
 fn rk4_gradients() {
     check_integrator("RK4", &Rk4, &spring_system(20.0), 0.02, 4);
+}
+
+#[test]
+fn midpoint_gradients() {
+    check_integrator("midpoint", &Midpoint, &spring_system(20.0), 0.01, 6);
+}
+
+/// Linearized implicit Euler on stiff nonlinear springs (rest lengths, so the Jacobian changes
+/// with the state and the stiffness): its gradient includes the second-order term (how the
+/// Jacobian of the step changes with each input), by a central difference of adjoint passes,
+/// and agrees with central differences of the whole rollout; its forward mode likewise.
+#[test]
+fn linearized_implicit_euler_gradients() {
+    let lin = ImplicitEuler::linearized();
+    let (fd, dot) = check_integrator_within(
+        "linearized implicit Euler",
+        &lin,
+        &spring_system(400.0),
+        0.05,
+        5,
+        1e-5,
+        1e-7,
+    );
+    assert!(fd < 1e-5 && dot < 1e-7);
+    // Free particles: the masses get their gradient too.
+    check_integrator_within(
+        "linearized implicit Euler (free, with masses)",
+        &lin,
+        &spring_system_with(400.0, 3.0),
+        0.05,
+        5,
+        1e-5,
+        1e-7,
+    );
+}
+
+/// Implicit-explicit splits on the spring system with drag: drag explicit, springs implicit,
+/// and the reverse, for the full and the linearized method.
+#[test]
+fn implicit_explicit_split_gradients() {
+    let mut model = spring_system(400.0);
+    model.forces.push(Box::new(adflex_kernels::prelude::Drag {
+        kd: 0.7,
+        wind: Vec3::new(0.5, 0.0, -0.3),
+    }));
+    for (label, integ, dot_tol) in [
+        (
+            "drag explicit",
+            ImplicitEuler::default().with_explicit(["drag"]),
+            1e-9,
+        ),
+        (
+            "springs explicit",
+            ImplicitEuler::default().with_explicit(["springs"]),
+            1e-9,
+        ),
+        (
+            "linearized, drag explicit",
+            ImplicitEuler::linearized().with_explicit(["drag"]),
+            1e-7,
+        ),
+    ] {
+        check_integrator_within(
+            &format!("implicit Euler, {label}"),
+            &integ,
+            &model,
+            0.02,
+            5,
+            1e-5,
+            dot_tol,
+        );
+    }
 }
 
 #[test]
@@ -310,6 +395,17 @@ fn accuracy_order_on_a_damped_spring() {
         }),
         ("RK4", &|dt| order_ratio(&Rk4, &osc, dt)),
     ];
+    // Midpoint: second order (error ratio 4 when dt halves).
+    let (e1, e2, ratio) = order_ratio(&Midpoint, &osc, 0.005);
+    println!("{:>26}: error at t=1 {e1:.3e} (dt = 0.005), {e2:.3e} (dt/2): ratio {ratio:.2}, order {:.2}", "midpoint", ratio.log2());
+    assert!(
+        (3.6..4.4).contains(&ratio),
+        "midpoint: ratio {ratio} is not second order"
+    );
+    // Linearized implicit Euler: first order (on this linear spring it is implicit Euler).
+    let (e1, e2, ratio) = order_ratio(&ImplicitEuler::linearized(), &osc, 0.0025);
+    println!("{:>26}: error at t=1 {e1:.3e} (dt = 0.0025), {e2:.3e} (dt/2): ratio {ratio:.2}, order {:.2}", "linearized implicit Euler", ratio.log2());
+    assert!((1.7..2.4).contains(&ratio), "linearized: ratio {ratio}");
     for (name, f) in first {
         let dt = if name == "RK4" { 0.02 } else { 0.0025 };
         let (e1, e2, ratio) = f(dt);

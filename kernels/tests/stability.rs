@@ -3,8 +3,9 @@
 
 use adflex_kernels::integrators::oscillator::Oscillator;
 use adflex_kernels::integrators::{
-    ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, Xpbd,
+    ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
+use adflex_kernels::prelude::Drag;
 use adflex_kernels::{Model, ModelBuilder};
 use adflex_runtime::{Tape, Vec3};
 
@@ -106,6 +107,138 @@ fn rk4_bounded_below_2_83_diverges_above() {
         tr.final_energy_ratio()
     );
     assert!(diverged(tr.final_energy_ratio(), 1e8));
+}
+
+/// Midpoint (RK2) multiplies the complex amplitude of an undamped oscillator by
+/// `1 + i omega dt - (omega dt)^2 / 2` per step: the energy by `1 + (omega dt)^4 / 4`, for
+/// every `dt` (it grows, slowly where `omega dt` is small).
+#[test]
+fn midpoint_amplification_matches_theory() {
+    let osc = tiny_spring();
+    for omega_dt in [0.1f64, 0.5, 1.0, 2.0, 3.0] {
+        let theory = 1.0 + omega_dt.powi(4) / 4.0;
+        // At most 20 steps, and a growth of at most 1e8 (within the 1-D model).
+        let steps = 20.min((8.0 * 10f64.ln() / theory.ln()) as usize);
+        let tr = osc.simulate(&Midpoint, osc.dt_for(omega_dt), steps);
+        let per_step = tr.final_energy_ratio().powf(1.0 / steps as f64);
+        println!("midpoint, omega dt = {omega_dt}: energy factor per step {per_step:.12} (theory |1 + i z - z^2/2|^2 = {theory:.12})");
+        assert!(
+            (per_step / theory - 1.0).abs() < 1e-9,
+            "omega dt = {omega_dt}: {per_step} vs {theory}"
+        );
+        for k in 1..tr.energy.len() {
+            assert!(
+                tr.energy[k] > tr.energy[k - 1],
+                "omega dt = {omega_dt}: no growth at step {k}"
+            );
+        }
+    }
+}
+
+/// Linearized implicit Euler on a linear spring is implicit Euler: the energy factor is
+/// `1 / (1 + (omega dt)^2)` per step for any `dt` (one linear solve per step).
+#[test]
+fn linearized_implicit_euler_is_unconditionally_stable_on_a_linear_spring() {
+    let osc = spring();
+    for omega_dt in [0.5f64, 2.0, 10.0, 100.0, 1e4] {
+        let tr = osc.simulate(&ImplicitEuler::linearized(), osc.dt_for(omega_dt), 50);
+        let first = tr.energy[1] / tr.energy[0];
+        let theory = 1.0 / (1.0 + omega_dt * omega_dt);
+        println!("linearized implicit Euler, omega dt = {omega_dt}: E1 / E0 = {first:.6e} (theory {theory:.6e}), max over 50 steps {:.6}", tr.max_energy_ratio());
+        assert!(
+            (first / theory - 1.0).abs() < 1e-6,
+            "omega dt = {omega_dt}: {first} vs {theory}"
+        );
+        assert!(tr.max_energy_ratio() <= 1.0 + 1e-12);
+    }
+}
+
+/// The spectral radius of implicit Euler with the spring implicit (`z = omega dt`) and a
+/// linear damping force explicit (`q = gamma dt`, `gamma = c / m`): the step matrix is
+/// `[[1, dt (1 - q)], [-dt omega^2, 1 - q]] / (1 + z^2)` on `(u, v)`, stable iff
+/// `q < 2 + z^2 / 2`.
+fn imex_spectral_radius(z: f64, q: f64) -> f64 {
+    let (t, d) = ((2.0 - q) / (1.0 + z * z), (1.0 - q) / (1.0 + z * z));
+    let disc = t * t - 4.0 * d;
+    if disc >= 0.0 {
+        let s = disc.sqrt();
+        ((t + s) / 2.0).abs().max(((t - s) / 2.0).abs())
+    } else {
+        d.sqrt()
+    }
+}
+
+/// The spring of [`spring`] without damping, plus drag `c` (N s/m) as its own force.
+fn spring_with_drag(c: f64) -> Model<f64> {
+    let mut m = tiny_spring().model();
+    m.forces.push(Box::new(Drag {
+        kd: c,
+        wind: Vec3::zeros(),
+    }));
+    m
+}
+
+/// The spectral radius of the step matrix of a linear one-degree-of-freedom trajectory, fitted
+/// from its first three states: `M [s0 s1] = [s1 s2]`, `s_k = (u_k, v_k)`.
+fn fitted_spectral_radius(u: &[f64], v: &[f64]) -> f64 {
+    let (a, b, c, d) = (u[0], u[1], v[0], v[1]); // [s0 s1] = [[a, b], [c, d]]
+    let det = a * d - b * c;
+    let inv = [[d / det, -b / det], [-c / det, a / det]];
+    let rhs = [[u[1], u[2]], [v[1], v[2]]];
+    let m = |i: usize, j: usize| rhs[i][0] * inv[0][j] + rhs[i][1] * inv[1][j];
+    let (t, dm) = (m(0, 0) + m(1, 1), m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0));
+    let disc = t * t - 4.0 * dm;
+    if disc >= 0.0 {
+        let s = disc.sqrt();
+        ((t + s) / 2.0).abs().max(((t - s) / 2.0).abs())
+    } else {
+        dm.sqrt()
+    }
+}
+
+/// An implicit-explicit split keeps the explicit part's stability limit: spring implicit,
+/// drag explicit is stable for `gamma dt < 2 + (omega dt)^2 / 2`. Measured: the spectral
+/// radius of the step (fitted from the trajectory) against theory, and the energy after enough
+/// steps for a factor 1e6 (growth beyond the limit, decay below). Treating the drag implicitly
+/// too is stable at every one of these steps.
+#[test]
+fn implicit_explicit_split_stability_limit_matches_theory() {
+    let osc = tiny_spring();
+    let imex = ImplicitEuler::default().with_explicit(["drag"]);
+    for z in [0.5f64, 2.0, 4.0] {
+        let dt = osc.dt_for(z);
+        let limit = 2.0 + z * z / 2.0;
+        for frac in [0.5, 0.9, 0.98, 1.02, 1.1, 1.5] {
+            let q = frac * limit;
+            let model = spring_with_drag(q / dt); // m = 1 kg: gamma = c
+            let theory = imex_spectral_radius(z, q);
+            let steps = ((3.0 * 10f64.ln() / theory.ln().abs()).ceil() as usize).clamp(3, 400);
+            let tr = osc.simulate_model(&model, &imex, dt, steps);
+            let fitted = fitted_spectral_radius(&tr.u, &tr.v);
+            let ratio = tr.final_energy_ratio();
+            println!("implicit spring, explicit drag, omega dt = {z}, gamma dt = {q:.3} ({frac} x limit {limit}): spectral radius {fitted:.9} (theory {theory:.9}), E_{steps} / E_0 = {ratio:.2e}");
+            assert!(
+                (fitted / theory - 1.0).abs() < 1e-6,
+                "z {z} q {q}: {fitted} vs {theory}"
+            );
+            if frac > 1.0 {
+                assert!(
+                    ratio > 1e3,
+                    "z {z} q {q}: beyond the limit but E ratio {ratio}"
+                );
+                let tr = osc.simulate_model(&model, &ImplicitEuler::default(), dt, steps);
+                assert!(
+                    tr.max_energy_ratio() <= 1.0 + 1e-9,
+                    "fully implicit, z {z} q {q}"
+                );
+            } else {
+                assert!(
+                    ratio < 1e-3,
+                    "z {z} q {q}: within the limit but E ratio {ratio}"
+                );
+            }
+        }
+    }
 }
 
 /// Implicit Euler stays bounded at omega dt = 100 (where every explicit method above blows up

@@ -44,12 +44,15 @@ type ChartFn = fn(&Opts) -> Result<serde_json::Value, Box<dyn std::error::Error>
 
 pub fn main(o: &Opts) -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&o.out)?;
-    let charts: [(&str, ChartFn); 5] = [
+    let charts: [(&str, ChartFn); 6] = [
         ("integrators_error_vs_cost", |o| {
             integrators::error_vs_cost(&o.out, o.quick)
         }),
         ("integrators_stability", |o| {
             integrators::stability(&o.out, o.quick)
+        }),
+        ("integrators_imex_stability", |o| {
+            integrators::imex_stability(&o.out, o.quick)
         }),
         ("gradient_accuracy", |o| {
             gradients::accuracy(&o.out, o.quick)

@@ -26,6 +26,7 @@ pub(crate) mod common;
 pub mod explicit;
 pub mod implicit;
 pub mod krylov;
+pub mod midpoint;
 #[doc(hidden)]
 pub use krylov as linsolve;
 // A test fixture (a mass-spring oscillator with its exact solution), not API.
@@ -42,6 +43,7 @@ use crate::model::{Control, Model, State};
 pub(crate) use common::check_dt;
 pub use explicit::ExplicitEuler;
 pub use implicit::{ImplicitEuler, NewtonStats};
+pub use midpoint::Midpoint;
 pub use rk4::Rk4;
 pub use semi_implicit::SemiImplicitEuler;
 pub use xpbd::Xpbd;
