@@ -78,8 +78,8 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
-    add_into, check_inputs, copies, epsilon, flat, forces_only, is_f32, max_abs, particles, unflat,
-    within, Copies,
+    add_into, check_inputs, check_visited, copies, epsilon, flat, forces_only, is_f32, max_abs,
+    particles, unflat, within, Copies, Needs,
 };
 use crate::integrators::krylov::{self, SolveInfo, SolveSettings};
 use crate::integrators::SolverPolicy;
@@ -512,6 +512,10 @@ impl Equilibrium {
         let x0 = flat(&guess.x);
         let sys = System::new(copies(model, None, false), x0, &inv_mass, model.gravity);
         check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
+        if n > 0 {
+            let p = sys.eval(&sys.x0, false);
+            check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Gradient)?;
+        }
         let mut stats = EquilibriumStats::default();
         let x1 = if n == 0 {
             stats.converged = true;
@@ -597,6 +601,7 @@ impl<R: Real> Shared<R> {
             self.model.gravity,
         );
         let mut p = sys.eval(&self.x_val, true);
+        check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Gradient)?;
         let mut rhs = xbar.clone();
         sys.mask(&mut rhs);
         let mut lambda = vec![0.0; m];

@@ -97,8 +97,9 @@ pub enum Error {
 
 impl Error {
     /// This error, with `context` prepended to where it happened (for the solver errors'
-    /// `context`, e.g. the tape step that ran the solve; other errors get it as a prefix of
-    /// their message).
+    /// `context`, e.g. the tape step that ran the solve; [`Error::NonFinite`] after its
+    /// kernel's name, `kernel (in context)`; other errors get it as a prefix of their
+    /// message).
     pub fn in_context(self, context: impl AsRef<str>) -> Error {
         let ctx = context.as_ref();
         let join = |c: String| {
@@ -129,6 +130,21 @@ impl Error {
                 message: format!("{message} (in {ctx})"),
             },
             Error::Other(m) => Error::Other(format!("{ctx}: {m}")),
+            Error::NonFinite {
+                kernel,
+                launch,
+                param,
+                array,
+                index,
+                pass,
+            } => Error::NonFinite {
+                kernel: format!("{kernel} (in {ctx})"),
+                launch,
+                param,
+                array,
+                index,
+                pass,
+            },
             e => e,
         }
     }

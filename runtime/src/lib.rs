@@ -34,7 +34,7 @@ pub use launch::{
     launch, launch_adjoint, launch_mode, launch_serial, launch_tangent, with_threads,
 };
 pub use real::{Mat22, Mat33, Quat, Real, Vec2, Vec3, Vec4};
-pub use tape::{BackwardStats, CustomStep, StepOutcome, Tape};
+pub use tape::{BackwardStats, CustomStep, StepOutcome, Tape, TapeInput};
 pub use value::{acc, acc_neg, zero_like, Value};
 
 /// Everything a kernel author needs: types, math builtins, arrays, launches, the tape.

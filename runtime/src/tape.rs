@@ -102,6 +102,17 @@ impl Record {
     }
 }
 
+/// An input of a tape ([`Tape::inputs`]): an array a recorded step read before any recorded
+/// step wrote it.
+pub struct TapeInput {
+    /// The first step that read it (kernel or custom step name, `scope/name` in a scope).
+    pub step: String,
+    /// The step's parameter it was bound to (`input k` for a custom step).
+    pub param: String,
+    /// A handle of the array.
+    pub array: Box<dyn AnyArray>,
+}
+
 /// What the last [`Tape::backward`] did: how many recorded steps had their adjoint run and how
 /// many were skipped because they could not contribute.
 ///
@@ -157,6 +168,8 @@ pub struct Tape {
     records: Vec<Record>,
     scopes: Vec<String>,
     check_finite: bool,
+    /// The first non-finite value a recorded step wrote in `check_finite` mode.
+    anomaly: Option<Error>,
     last: BackwardStats,
     /// Arrays whose gradient with respect to their final value is kept (see
     /// [`Tape::retain_grad`]).
@@ -225,6 +238,7 @@ impl Tape {
             records: Vec::new(),
             scopes: Vec::new(),
             check_finite: false,
+            anomaly: None,
             last: BackwardStats::default(),
             retained: HashSet::new(),
         }
@@ -276,22 +290,57 @@ impl Tape {
         self.records.is_empty()
     }
 
-    /// Turns the NaN/Inf check on or off (off by default; it reads every written array after
-    /// each step).
+    /// Turns the NaN/Inf check (the anomaly mode) on or off (off by default; it reads every
+    /// written array after each step).
     ///
-    /// When on, [`Tape::launch`] and [`Tape::record_fn`] check the arrays they wrote and
-    /// **panic** with the [`Error::NonFinite`] message (kernel, launch, array, first bad index);
-    /// [`Tape::backward`] checks the gradient buffers of the arrays each adjoint read and
-    /// [`Tape::tangent`] the tangents each step wrote, and return the error.
+    /// When on, [`Tape::launch`] and [`Tape::record_fn`] check the arrays they wrote and keep
+    /// the first non-finite value as an [`Error::NonFinite`] (kernel, launch, parameter,
+    /// array, first bad index, pass `"forward"`): [`Tape::anomaly`] returns it, and
+    /// [`Tape::backward`] and [`Tape::tangent`] return it before running anything (the
+    /// integrators of `adflex-kernels` return it from the step that produced it). Backward
+    /// checks the gradient buffers of the arrays each adjoint read (pass `"adjoint"`), and
+    /// tangent the tangents each step wrote (pass `"tangent"`), and return the first bad one.
+    /// Nothing panics.
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// use adflex_macros::diff_kernel;
+    ///
+    /// #[diff_kernel]
+    /// fn root(x: &Array<f64>, y: &Array<f64>) {
+    ///     let i = tid();
+    ///     y[i] = sqrt(x[i]);
+    /// }
+    ///
+    /// let x = Array::from_vec(vec![4.0, -1.0]).requires_grad().named("x");
+    /// let y = Array::zeros(2).named("y");
+    /// let mut tape = Tape::new();
+    /// tape.check_finite(true);
+    /// tape.launch(root, 2, (&x, &y));
+    /// let err = tape.anomaly().unwrap().clone();
+    /// assert!(matches!(err, Error::NonFinite { index: 1, pass: "forward", .. }), "{err}");
+    /// assert_eq!(tape.backward(&y).unwrap_err(), err);
+    /// ```
     pub fn check_finite(&mut self, on: bool) {
         self.check_finite = on;
+    }
+
+    /// The first NaN or infinity a recorded step wrote while [`Tape::check_finite`] was on
+    /// (an [`Error::NonFinite`] naming the kernel, launch, array and index), if any.
+    pub fn anomaly(&self) -> Option<&Error> {
+        self.anomaly.as_ref()
+    }
+
+    /// `Err` with [`Tape::anomaly`], if there is one.
+    fn no_anomaly(&self) -> Result<(), Error> {
+        self.anomaly.clone().map_or(Ok(()), Err)
     }
 
     /// Runs `kernel` over thread ids `0..dim` with `args` (like [`crate::launch()`]) and records
     /// the launch with the version of every array it reads.
     ///
-    /// Panics with an [`Error::NonFinite`] message if [`Tape::check_finite`] is on and the launch
-    /// wrote a NaN or an infinity.
+    /// In [`Tape::check_finite`] mode, a NaN or infinity the launch wrote becomes the tape's
+    /// [`Tape::anomaly`] (returned by `backward` and `tangent`); nothing panics.
     ///
     /// ```
     /// use adflex_runtime::prelude::*;
@@ -347,7 +396,8 @@ impl Tape {
     /// returns that error with the step's name (`scope/name`) and position on the tape in its
     /// context ([`Error::in_context`]); the gradients accumulated so far are incomplete.
     ///
-    /// Panics like [`Tape::launch`] if [`Tape::check_finite`] is on and an output is not finite.
+    /// Like [`Tape::launch`] in [`Tape::check_finite`] mode: a non-finite output becomes the
+    /// tape's [`Tape::anomaly`].
     /// See the example on [`Tape`].
     pub fn record_fn(
         &mut self,
@@ -387,11 +437,12 @@ impl Tape {
         }
         let index = self.records.len();
         self.records.push(record);
-        if self.check_finite {
+        if self.check_finite && self.anomaly.is_none() {
             let r = &self.records[index];
             for u in &r.writes {
                 if let Some(i) = u.array.first_non_finite() {
-                    panic!("{}", r.non_finite(index, u, i, "forward"));
+                    self.anomaly = Some(r.non_finite(index, u, i, "forward"));
+                    break;
                 }
             }
         }
@@ -453,6 +504,50 @@ impl Tape {
             }
         }
         (fwd, f)
+    }
+
+    /// The tape's inputs: every array a recorded step read that no earlier recorded step
+    /// wrote, once each, with the first step (its name, `scope/name` inside a scope) and
+    /// parameter that read it. For checks such as "every parameter this force reads is one the
+    /// solver knows about" (`ImplicitEuler` refuses a force that reads an array requiring grad
+    /// that its parameter visitor does not list).
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// use adflex_macros::diff_kernel;
+    ///
+    /// #[diff_kernel]
+    /// fn scale(x: &Array<f64>, k: &Array<f64>, y: &Array<f64>) {
+    ///     let i = tid();
+    ///     y[i] = x[i] * k[0];
+    /// }
+    ///
+    /// let x = Array::from_vec(vec![1.0, 2.0]).named("x");
+    /// let k = Array::from_vec(vec![3.0]).named("k");
+    /// let (y, z) = (Array::zeros(2), Array::zeros(2));
+    /// let mut tape = Tape::new();
+    /// tape.launch(scale, 2, (&x, &k, &y));
+    /// tape.launch(scale, 2, (&y, &k, &z)); // reads y, written above: not an input
+    /// let inputs: Vec<String> = tape.inputs().iter().map(|i| i.array.label()).collect();
+    /// assert_eq!(inputs, ["x", "k"]);
+    /// assert_eq!(tape.inputs()[1].param, "k");
+    /// ```
+    pub fn inputs(&self) -> Vec<TapeInput> {
+        let (mut written, mut seen) = (HashSet::new(), HashSet::new());
+        let mut out = Vec::new();
+        for r in &self.records {
+            for u in &r.reads {
+                if !written.contains(&u.id) && seen.insert(u.id) {
+                    out.push(TapeInput {
+                        step: r.qualified(),
+                        param: u.param.to_string(),
+                        array: u.array.boxed(),
+                    });
+                }
+            }
+            written.extend(r.writes.iter().map(|u| u.id));
+        }
+        out
     }
 
     /// Whether the value of `output` depends on `input` through the recorded steps (reads
@@ -727,6 +822,7 @@ impl Tape {
                 array: loss.label(),
             });
         }
+        self.no_anomaly()?;
         let plan = self.plan(&HashSet::from([loss.id()]), sources, sources.is_empty())?;
         loss.ensure_grad().fill(ones::<T>());
         self.execute(&plan)
@@ -747,6 +843,7 @@ impl Tape {
                 return Err(Error::NoGrad { array: s.label() });
             }
         }
+        self.no_anomaly()?;
         let ids = seeds.iter().map(|s| s.id()).collect();
         let plan = self.plan(&ids, &HashSet::new(), true)?;
         self.execute(&plan)
@@ -780,6 +877,7 @@ impl Tape {
     /// recorded, [`Error::Other`] if a custom step has no tangent, [`Error::NonFinite`] in
     /// [`Tape::check_finite`] mode.
     pub fn tangent(&mut self) -> Result<(), Error> {
+        self.no_anomaly()?;
         for i in 0..self.records.len() {
             self.check_versions(i)?;
             if let Step::Custom {
@@ -837,6 +935,7 @@ impl Tape {
     pub fn reset(&mut self) {
         self.zero();
         self.records.clear();
+        self.anomaly = None;
         self.last = BackwardStats::default();
     }
 

@@ -214,6 +214,8 @@ pub trait Param: Send + Sync {
 pub trait ParamCopy: Send + Sync {
     /// The original array.
     fn original(&self) -> &dyn AnyArray;
+    /// The private copy that replaced it.
+    fn copy(&self) -> &dyn AnyArray;
     /// Adds the copy's gradient into the original's (if both have one).
     fn add_grad(&self);
     /// Zeroes the copy's gradient.
@@ -245,6 +247,9 @@ struct Substituted<T: Element> {
 impl<T: Element> ParamCopy for Substituted<T> {
     fn original(&self) -> &dyn AnyArray {
         &self.original
+    }
+    fn copy(&self) -> &dyn AnyArray {
+        &self.copy
     }
     fn add_grad(&self) {
         if let (Some(g), Some(c)) = (self.original.grad_buffer(), self.copy.grad_buffer()) {

@@ -30,6 +30,80 @@ pub(crate) fn step_bodies<R: Real>(
     Some(bodies.integrate(tape, s, &f, &t, model.gravity, dt))
 }
 
+/// The arrays of a state, particles then bodies.
+fn state_arrays<R: Real>(s: &State<R>) -> Vec<&dyn AnyArray> {
+    let mut out: Vec<&dyn AnyArray> = vec![&s.x, &s.v];
+    if let Some(b) = &s.bodies {
+        out.extend([&b.x as &dyn AnyArray, &b.q, &b.v, &b.w]);
+    }
+    out
+}
+
+/// The end of every integrator's step (`who`): the tape's anomaly ([`Tape::check_finite`]
+/// mode: the first kernel that wrote a NaN/Inf), then the new state, which must be finite: a
+/// NaN/Inf in it is an error rather than a state. The error names the first non-finite input
+/// that explains it (the old state, a force's parameter array, the control's arrays, the
+/// gravity) as [`Error::InvalidInput`], or else the state array and index that became
+/// non-finite in this step as [`Error::NonFinite`] (the forces overflowed: a smaller `dt`, or
+/// an unstable integrator). One pass over the new state's arrays (a few percent of a
+/// semi-implicit step on the cloth benchmark, see `docs/performance.md`).
+pub(crate) fn finish_step<R: Real>(
+    who: &str,
+    model: &Model<R>,
+    tape: &Tape,
+    old: &State<R>,
+    control: Option<&Control<R>>,
+    new: State<R>,
+) -> Result<State<R>, Error> {
+    if let Some(e) = tape.anomaly() {
+        return Err(e.clone());
+    }
+    let Some((array, index)) = state_arrays(&new)
+        .into_iter()
+        .find_map(|a| a.first_non_finite().map(|k| (a, k)))
+    else {
+        return Ok(new);
+    };
+    let params = model.params();
+    let mut inputs: Vec<&dyn AnyArray> = state_arrays(old);
+    inputs.push(&model.particle_inv_mass);
+    inputs.extend(params.iter().map(|(_, _, a)| &**a));
+    if let Some(c) = control {
+        inputs.extend(c.particle_f.iter().map(|a| a as &dyn AnyArray));
+        inputs.extend(c.tet_activation.iter().map(|a| a as &dyn AnyArray));
+        inputs.extend(c.body_f.iter().map(|a| a as &dyn AnyArray));
+        inputs.extend(c.body_t.iter().map(|a| a as &dyn AnyArray));
+    }
+    for a in inputs {
+        if let Some(k) = a.first_non_finite() {
+            let owner = params
+                .iter()
+                .find(|(_, _, p)| p.id() == a.id())
+                .map_or(String::new(), |(f, p, _)| format!(" (parameter `{f}.{p}`)"));
+            return Err(Error::InvalidInput {
+                what: format!("{}[{k}]", a.label()),
+                message: format!(
+                    "{who}: a NaN or infinite value in an input of the step{owner}; the new \
+                     state's `{}[{index}]` is not finite. Fix the value (or whatever computed \
+                     it, e.g. an optimizer step)",
+                    array.label()
+                ),
+            });
+        }
+    }
+    check_inputs(who, model, &[], &[])?;
+    // From finite inputs: the forces overflowed (a dt beyond the integrator's stability limit,
+    // or a singular force); `tape.check_finite(true)` names the first kernel.
+    Err(Error::NonFinite {
+        kernel: format!("{who} step"),
+        launch: tape.len().saturating_sub(1),
+        param: "new state".into(),
+        array: array.label(),
+        index,
+        pass: "forward",
+    })
+}
+
 /// A state with particle arrays `x`, `v` and no bodies (for intermediate stages).
 pub(crate) fn particles<R: Real>(x: &Array<Vec3<R>>, v: &Array<Vec3<R>>) -> State<R> {
     State {
@@ -166,6 +240,79 @@ pub(crate) fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
         let add = unflat::<R>(g);
         buf.modify(|d| d.iter_mut().zip(add).for_each(|(d, a)| *d += a));
     }
+}
+
+/// What [`check_visited`] looks for in an array the forces read but no visitor lists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Needs {
+    /// A gradient (`requires_grad`, or a gradient buffer): the solver's adjoint would add
+    /// scratch products into it, a wrong gradient.
+    Gradient,
+    /// A tangent buffer: the solver's forward mode would ignore it.
+    Tangent,
+}
+
+/// [`Error::InvalidInput`] if the force model, recorded on `tape` with the private copies
+/// `c` at the state `(x, v)`, read an array that needs a derivative (see [`Needs`]) but is
+/// neither the state nor a copy: a parameter no force's
+/// [`Force::params_mut`](crate::forces::Force::params_mut) visits, which the solver (`who`)
+/// cannot differentiate. The error names the force, the kernel, its parameter and the array.
+pub(crate) fn check_visited<R: Real>(
+    who: &str,
+    c: &Copies<R>,
+    tape: &Tape,
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    needs: Needs,
+) -> Result<(), Error> {
+    let mut known: std::collections::HashSet<u64> = c.links.iter().map(|l| l.copy().id()).collect();
+    known.extend([x.id(), v.id()]);
+    for input in tape.inputs() {
+        let a = &input.array;
+        let missed = !known.contains(&a.id())
+            && match needs {
+                Needs::Gradient => a.is_requires_grad() || a.has_grad(),
+                Needs::Tangent => a.tangent_any().is_some(),
+            };
+        if !missed {
+            continue;
+        }
+        // Which force reads it (only on this error path: one evaluation per force).
+        let state = particles(x, v);
+        let cx = c.model.context(&state, c.control.as_ref());
+        let force = c.model.forces.iter().find(|f| {
+            let mut t = Tape::new();
+            f.eval(&cx, &mut t, &Array::zeros(x.len()));
+            t.inputs().iter().any(|i| i.array.id() == a.id())
+        });
+        let force = force.map_or("a force".to_string(), |f| format!("force `{}`", f.name()));
+        let (what, consequence) = match needs {
+            Needs::Gradient => (
+                "requires a gradient",
+                "its gradient would be wrong (the solver's adjoint works on private copies of \
+                 the visited parameters only)",
+            ),
+            Needs::Tangent => (
+                "carries a tangent",
+                "its tangent would be ignored (the solver's forward mode works on private copies \
+                 of the visited parameters only)",
+            ),
+        };
+        return Err(Error::InvalidInput {
+            what: a.label(),
+            message: format!(
+                "{who}: {force} reads `{}` (parameter `{}` of kernel `{}`), which {what}, but \
+                 the force's `params_mut` does not visit it, so {consequence}. Add \
+                 `visit(\"{}\", &mut self.<field>)` to its `params_mut`, or use an array that \
+                 does not require a gradient",
+                a.label(),
+                input.param,
+                input.step,
+                input.param
+            ),
+        });
+    }
+    Ok(())
 }
 
 /// [`Error::InvalidInput`] for the first NaN/Inf in `arrays` (the state) or in a parameter

@@ -9,7 +9,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::common::{new_xv, step_bodies};
+use super::common::{finish_step, new_xv, step_bodies};
 use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
@@ -58,6 +58,7 @@ impl<R: Real> Integrator<R> for ExplicitEuler {
             (&state.x, &state.v, &a, dt, &x, &v),
         );
         let bodies = step_bodies(model, tape, state, control, dt);
-        Ok(State { x, v, bodies })
+        let new = State { x, v, bodies };
+        finish_step("ExplicitEuler", model, tape, state, control, new)
     }
 }

@@ -87,8 +87,8 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use super::common::{
-    add_into, check_inputs, copies, epsilon, flat, forces_only, is_f32, max_abs, particles,
-    step_bodies, unflat, within, Copies,
+    add_into, check_inputs, check_visited, copies, epsilon, finish_step, flat, forces_only, is_f32,
+    max_abs, particles, step_bodies, unflat, within, Copies, Needs,
 };
 use super::krylov::{self, SolveInfo, SolveSettings};
 use super::{check_dt, Integrator, SolverPolicy};
@@ -499,6 +499,12 @@ impl<R: Real> System<R> {
         }
     }
 
+    /// See [`check_visited`]: every array the forces read at `p` that needs a derivative is
+    /// the state or a private copy.
+    fn check_visited(&self, p: &Point<R>, needs: Needs) -> Result<(), Error> {
+        check_visited("ImplicitEuler", &self.c, &p.tape, &p.x, &p.v, needs)
+    }
+
     fn mask(&self, v: &mut [f64]) {
         v.iter_mut().zip(&self.free).for_each(|(v, &f)| {
             if !f {
@@ -518,6 +524,7 @@ impl ImplicitEuler {
     fn newton<R: Real>(&self, sys: &System<R>, stats: &mut NewtonStats) -> Result<Vec<f64>, Error> {
         let tol = self.tolerance::<R>();
         let mut p = sys.eval(&sys.v0, false);
+        sys.check_visited(&p, Needs::Gradient)?;
         stats.force_evaluations += 1;
         let mut e = sys.residual(&p);
         let mut phi = sys.merit(&e);
@@ -808,12 +815,13 @@ impl ImplicitEuler {
         )
         .with_tangent(move || st.tangent());
         let bodies = step_bodies(model, tape, state, control, dt);
+        let new = State {
+            x: x1,
+            v: v1a,
+            bodies,
+        };
         Ok((
-            State {
-                x: x1,
-                v: v1a,
-                bodies,
-            },
+            finish_step("ImplicitEuler", model, tape, state, control, new)?,
             stats,
         ))
     }
@@ -885,6 +893,7 @@ impl ImplicitEuler {
         stats: &mut NewtonStats,
     ) -> Result<Vec<f64>, Error> {
         let mut p = sys.eval(&sys.v0, false);
+        sys.check_visited(&p, Needs::Gradient)?;
         stats.force_evaluations = 1;
         let e = sys.residual(&p);
         let rhs: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| -m * e).collect();
@@ -1067,6 +1076,7 @@ impl<R: Real> Shared<R> {
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
         let sys = self.system(true);
         let mut p = sys.eval(&self.v0_val, true);
+        sys.check_visited(&p, Needs::Gradient)?;
         let mut rhs = b.clone();
         sys.mask(&mut rhs);
         let mut lambda = vec![0.0; m];
@@ -1119,6 +1129,7 @@ impl<R: Real> Shared<R> {
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dv0[k]).collect();
         let direction = self.linear_direction();
         let mut points = vec![(1.0, sys.eval(&self.v0_val, false))];
+        sys.check_visited(&points[0].1, Needs::Tangent)?;
         if let Some((d, eps)) = &direction {
             let c = 1.0 / (2.0 * eps);
             points.push((c, sys.eval(&self.shifted(d, *eps), false)));
@@ -1171,6 +1182,7 @@ impl<R: Real> Shared<R> {
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
         let sys = self.system(true);
         let mut p = sys.eval(&self.v1_val, true);
+        sys.check_visited(&p, Needs::Gradient)?;
         let mut rhs = b.clone();
         sys.mask(&mut rhs);
         let mut lambda = vec![0.0; m];
@@ -1222,6 +1234,7 @@ impl<R: Real> Shared<R> {
         let (dx0, dv0, dae) = self.input_tangents();
         let sys = self.system(false);
         let mut p = sys.eval(&self.v1_val, false);
+        sys.check_visited(&p, Needs::Tangent)?;
         for l in &sys.c.links {
             l.share_tangent(true);
         }

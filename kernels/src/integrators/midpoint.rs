@@ -12,7 +12,7 @@
 
 use adflex_runtime::prelude::*;
 
-use super::common::{new_xv, particles, step_bodies};
+use super::common::{finish_step, new_xv, particles, step_bodies};
 use super::rk4::rk_stage;
 use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
@@ -62,6 +62,7 @@ impl<R: Real> Integrator<R> for Midpoint {
         let (x, v) = new_xv(n);
         tape.launch(rk_stage, n, (x0, v0, &vh, &a2, dt, &x, &v));
         let bodies = step_bodies(model, tape, state, control, dt);
-        Ok(State { x, v, bodies })
+        let new = State { x, v, bodies };
+        finish_step("Midpoint", model, tape, state, control, new)
     }
 }

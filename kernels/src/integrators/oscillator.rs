@@ -25,7 +25,7 @@
 
 use std::time::Instant;
 
-use adflex_runtime::{Array, Tape, Vec3};
+use adflex_runtime::{Array, Error, Tape, Vec3};
 
 use super::Integrator;
 use crate::model::{Model, ModelBuilder};
@@ -266,9 +266,16 @@ impl Oscillator {
         let mut samples = Vec::with_capacity(steps);
         for k in 0..steps {
             let mut tape = Tape::new();
-            state = integrator
-                .step(model, &mut tape, &state, None, dt)
-                .unwrap_or_else(|e| panic!("Oscillator: step {k} failed: {e}"));
+            state = match integrator.step(model, &mut tape, &state, None, dt) {
+                Ok(s) => s,
+                // The state overflowed (an unstable method): NaN from here on.
+                Err(Error::NonFinite { .. }) => {
+                    let nan = Vec3::new(f64::NAN, f64::NAN, f64::NAN);
+                    samples.resize(steps, (nan, nan));
+                    break;
+                }
+                Err(e) => panic!("Oscillator: step {k} failed: {e}"),
+            };
             samples.push((state.x.get(1), state.v.get(1)));
         }
         tr.seconds = start.elapsed().as_secs_f64();

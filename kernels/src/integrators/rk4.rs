@@ -11,7 +11,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::common::{new_xv, particles, step_bodies};
+use super::common::{finish_step, new_xv, particles, step_bodies};
 use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
@@ -101,6 +101,7 @@ impl<R: Real> Integrator<R> for Rk4 {
             (x0, v0, &v2, &v3, &v4, &a1, &a2, &a3, &a4, dt, &x, &v),
         );
         let bodies = step_bodies(model, tape, state, control, dt);
-        Ok(State { x, v, bodies })
+        let new = State { x, v, bodies };
+        finish_step("Rk4", model, tape, state, control, new)
     }
 }

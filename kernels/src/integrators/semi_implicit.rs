@@ -3,6 +3,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
+use super::common::finish_step;
 use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
@@ -72,6 +73,7 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
                     dt,
                 )
             });
-        Ok(State { x, v, bodies })
+        let new = State { x, v, bodies };
+        finish_step("SemiImplicitEuler", model, tape, state, control, new)
     }
 }

@@ -16,7 +16,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::common::{particles, step_bodies};
+use super::common::{finish_step, particles, step_bodies};
 use super::{check_dt, Integrator};
 use crate::constraints::velocity_from_positions;
 use crate::model::{Control, Model, State};
@@ -215,10 +215,11 @@ impl<R: Real> Integrator<R> for Xpbd {
         }
         let x_out = x.named("x");
         let bodies = step_bodies(model, tape, state, control, dt);
-        Ok(State {
+        let new = State {
             x: x_out,
             v,
             bodies,
-        })
+        };
+        finish_step("Xpbd", model, tape, state, control, new)
     }
 }
