@@ -50,18 +50,20 @@ def eval_bending(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), idx: wp
     n2_length = wp.length(n2)
     rcp_n1 = 1.0 / n1_length
     rcp_n2 = 1.0 / n2_length
-    cos_theta = wp.dot(n1, n2) * rcp_n1 * rcp_n2
-    n1 = n1 * rcp_n1 * rcp_n1
-    n2 = n2 * rcp_n2 * rcp_n2
+    m1 = n1 * rcp_n1 * rcp_n1
+    m2 = n2 * rcp_n2 * rcp_n2
     e = x4 - x3
     e_hat = wp.normalize(e)
     e_length = wp.length(e)
-    s = wp.sign(wp.dot(wp.cross(n2, n1), e_hat))
-    angle = wp.acos(wp.clamp(cos_theta, -1.0, 1.0)) * s
-    d1 = n1 * e_length
-    d2 = n2 * e_length
-    d3 = n1 * wp.dot(x1 - x4, e_hat) + n2 * wp.dot(x2 - x4, e_hat)
-    d4 = n1 * wp.dot(x3 - x1, e_hat) + n2 * wp.dot(x3 - x2, e_hat)
+    # adflex's angle: atan2 of sine and cosine (Warp's stock kernel takes acos of the cosine,
+    # which loses half the digits near flat).
+    cos_theta = wp.dot(n1, n2) * rcp_n1 * rcp_n2
+    sin_theta = wp.dot(wp.cross(n2, n1), e_hat) * rcp_n1 * rcp_n2
+    angle = wp.atan2(sin_theta, cos_theta)
+    d1 = m1 * e_length
+    d2 = m2 * e_length
+    d3 = m1 * wp.dot(x1 - x4, e_hat) + m2 * wp.dot(x2 - x4, e_hat)
+    d4 = m1 * wp.dot(x3 - x1, e_hat) + m2 * wp.dot(x3 - x2, e_hat)
     f_elastic = ke * (angle - rest[tid])
     f_damp = kd * (wp.dot(d1, v1) + wp.dot(d2, v2) + wp.dot(d3, v3) + wp.dot(d4, v4))
     f_total = 0.0 - e_length * (f_elastic + f_damp)

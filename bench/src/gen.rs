@@ -2,14 +2,8 @@
 //! Warp's signatures (scalar `kd`, bending `ke` and `kd`), for the comparison with the
 //! hand-written kernels of [`crate::hand`].
 
-use adflex_macros::{diff_func, diff_kernel};
+use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
-
-/// Warp's `sign`: -1 below zero, 1 otherwise.
-#[diff_func]
-pub fn sign_warp<R: Real>(a: R) -> R {
-    select(a < 0.0, -1.0, 1.0)
-}
 
 /// `eval_springs` of warp_cloth.py.
 #[diff_kernel]
@@ -62,14 +56,14 @@ pub fn eval_bending<R: Real>(
     let n2_length = length(n2);
     let rcp_n1 = 1.0 / n1_length;
     let rcp_n2 = 1.0 / n2_length;
-    let cos_theta = dot(n1, n2) * rcp_n1 * rcp_n2;
     let m1 = n1 * rcp_n1 * rcp_n1;
     let m2 = n2 * rcp_n2 * rcp_n2;
     let e = x4 - x3;
     let e_hat = normalize(e);
     let e_length = length(e);
-    let s = sign_warp(dot(cross(m2, m1), e_hat));
-    let angle = acos(clamp(cos_theta, -1.0, 1.0)) * s;
+    let cos_theta = dot(n1, n2) * rcp_n1 * rcp_n2;
+    let sin_theta = dot(cross(n2, n1), e_hat) * rcp_n1 * rcp_n2;
+    let angle = atan2(sin_theta, cos_theta);
     let d1 = m1 * e_length;
     let d2 = m2 * e_length;
     let d3 = m1 * dot(x1 - x4, e_hat) + m2 * dot(x2 - x4, e_hat);

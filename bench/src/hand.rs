@@ -78,7 +78,9 @@ struct Bend<R: Real> {
     m2: Vec3<R>,
     eh: Vec3<R>,
     el: R,
-    s: R,
+    sin: R,
+    /// `(n2 x n1) . eh`: the sine times `|n1| |n2|`.
+    q: R,
     p: [R; 4], // (x1-x4).eh, (x2-x4).eh, (x3-x1).eh, (x3-x2).eh
     d: [Vec3<R>; 4],
     fe: R,
@@ -103,12 +105,9 @@ fn bend<R: Real>(x: &[Vec3<R>], v: &[Vec3<R>], q: [usize; 4], rest: R, ke: R, kd
     } else {
         Vec3::zeros()
     };
-    let s = if m2.cross(&m1).dot(&eh) < R::zero() {
-        -R::one()
-    } else {
-        R::one()
-    };
-    let angle = cos.clamp(-R::one(), R::one()).acos() * s;
+    let q_ = n2.cross(&n1).dot(&eh);
+    let sin = q_ * r1 * r2;
+    let angle = sin.atan2(cos);
     let p = [
         (x1 - x4).dot(&eh),
         (x2 - x4).dot(&eh),
@@ -136,7 +135,8 @@ fn bend<R: Real>(x: &[Vec3<R>], v: &[Vec3<R>], q: [usize; 4], rest: R, ke: R, kd
         m2,
         eh,
         el,
-        s,
+        sin,
+        q: q_,
         p,
         d,
         fe,
@@ -195,13 +195,13 @@ pub fn bending_adj<R: Real>(
             adj_d[k] += v[q[k]] * kfd;
             adj_v[q[k]] += b.d[k] * kfd;
         }
-        // fe = ke (angle - rest), angle = acos(clamp(cos)) * s
+        // fe = ke (angle - rest), angle = atan2(sin, cos)
         let adj_angle = adj_sum * ke;
-        let adj_cos = if b.cos.abs() < R::one() {
-            -adj_angle * b.s / (R::one() - b.cos * b.cos).sqrt()
-        } else {
-            R::zero()
-        };
+        let h = b.cos * b.cos + b.sin * b.sin;
+        let adj_cos = -adj_angle * b.sin / h;
+        let adj_sin = adj_angle * b.cos / h;
+        // sin = q r1 r2, q = (n2 x n1) . eh
+        let adj_q = adj_sin * b.r1 * b.r2;
         // d1 = m1 el, d2 = m2 el, d3 = m1 p0 + m2 p1, d4 = m1 p2 + m2 p3
         let adj_m1 = adj_d[0] * b.el + adj_d[2] * b.p[0] + adj_d[3] * b.p[2];
         let adj_m2 = adj_d[1] * b.el + adj_d[2] * b.p[1] + adj_d[3] * b.p[3];
@@ -216,7 +216,11 @@ pub fn bending_adj<R: Real>(
         let mut ax2 = b.eh * (ap[1] - ap[3]);
         let mut ax3 = b.eh * (ap[2] + ap[3]);
         let mut ax4 = -(b.eh * (ap[0] + ap[1]));
-        let adj_eh = (x1 - x4) * ap[0] + (x2 - x4) * ap[1] + (x3 - x1) * ap[2] + (x3 - x2) * ap[3];
+        let adj_eh = (x1 - x4) * ap[0]
+            + (x2 - x4) * ap[1]
+            + (x3 - x1) * ap[2]
+            + (x3 - x2) * ap[3]
+            + b.n2.cross(&b.n1) * adj_q;
         // eh = e / el, el = |e|, e = x4 - x3
         if b.el > R::zero() {
             let adj_e = (adj_eh - b.eh * b.eh.dot(&adj_eh)) / b.el + b.eh * adj_el;
@@ -225,11 +229,13 @@ pub fn bending_adj<R: Real>(
         }
         // m1 = n1 r1^2, m2 = n2 r2^2, cos = (n1 . n2) r1 r2, r = 1 / |n|
         let pn = b.n1.dot(&b.n2);
-        let adj_r1 = two * b.r1 * adj_m1.dot(&b.n1) + adj_cos * pn * b.r2;
-        let adj_r2 = two * b.r2 * adj_m2.dot(&b.n2) + adj_cos * pn * b.r1;
+        let adj_r1 = two * b.r1 * adj_m1.dot(&b.n1) + (adj_cos * pn + adj_sin * b.q) * b.r2;
+        let adj_r2 = two * b.r2 * adj_m2.dot(&b.n2) + (adj_cos * pn + adj_sin * b.q) * b.r1;
         let adj_pn = adj_cos * b.r1 * b.r2;
-        let adj_n1 = adj_m1 * (b.r1 * b.r1) + b.n2 * adj_pn - b.n1 * (adj_r1 * b.r1 * b.r1 * b.r1);
-        let adj_n2 = adj_m2 * (b.r2 * b.r2) + b.n1 * adj_pn - b.n2 * (adj_r2 * b.r2 * b.r2 * b.r2);
+        let adj_n1 = adj_m1 * (b.r1 * b.r1) + b.n2 * adj_pn - b.n1 * (adj_r1 * b.r1 * b.r1 * b.r1)
+            + b.eh.cross(&b.n2) * adj_q;
+        let adj_n2 = adj_m2 * (b.r2 * b.r2) + b.n1 * adj_pn - b.n2 * (adj_r2 * b.r2 * b.r2 * b.r2)
+            + b.n1.cross(&b.eh) * adj_q;
         // n1 = (x3 - x1) x (x4 - x1), n2 = (x4 - x2) x (x3 - x2)
         let adj_a = (x4 - x1).cross(&adj_n1);
         let adj_b = adj_n1.cross(&(x3 - x1));

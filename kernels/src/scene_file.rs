@@ -48,7 +48,7 @@
 //! - `tets`: `{ indices: [i, j, k, l], mu, lambda, kd (0) }` or with `young`, `poisson` in
 //!   place of `mu`, `lambda` (see [`crate::forces::fem_tet::snh_lame`]).
 //! - `ground`: `{ normal ([0,1,0]), offset (0), ke (1000), kd (1), mu (0.5), leak (0),
-//!   damp_approach (true) }`.
+//!   damp_approach (true), damping_depth (1e-4) }`.
 //! - `drag`: `{ kd, wind ([0,0,0]) }`.
 //! - `particle_contact`, `shape_contact`: `{ ke (1000), kd (1), mu (0.5), leak (0), margin (0) }`.
 //! - `shapes`: `{ kind: "sphere" | "box" | "capsule", pos, rot ([0,0,0,1] as x, y, z, w),
@@ -124,6 +124,9 @@ fn ground_kd() -> f64 {
 }
 fn ground_damp_approach() -> bool {
     Ground::<f64>::default().damp_approach
+}
+fn ground_damping_depth() -> f64 {
+    Ground::<f64>::default().damping_depth
 }
 fn ground_mu() -> f64 {
     Ground::<f64>::default().mu
@@ -273,6 +276,8 @@ struct GroundDesc {
     leak: f64,
     #[serde(default = "ground_damp_approach")]
     damp_approach: bool,
+    #[serde(default = "ground_damping_depth")]
+    damping_depth: f64,
 }
 
 #[derive(Deserialize)]
@@ -828,6 +833,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             mu: R::lit(g.mu),
             leak: R::lit(g.leak),
             damp_approach: g.damp_approach,
+            damping_depth: R::lit(g.damping_depth),
         });
         c.builder(&b, n0, |f| sub("ground", f, &[]))?;
     }

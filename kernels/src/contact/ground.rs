@@ -59,10 +59,25 @@ pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R)
     (fnormal + fd - ft) * -1.0
 }
 
+/// The damping of a contact at depth `c <= 0` (m): `kd_free` out of contact, rising linearly
+/// to `kd` over the first `depth` metres of penetration (`depth = 0`: a switch at contact), so
+/// that the force is continuous where the damping differs in and out of contact (implicit
+/// solvers do not converge through a jump). With `kd_free = kd` it is exactly `kd`.
+#[diff_func]
+pub fn contact_damping<R: Real>(c: R, kd: R, kd_free: R, depth: R) -> R {
+    let ramp = select(
+        depth > 0.0,
+        min(c * -1.0 / depth, 1.0),
+        select(c < 0.0, 1.0, 0.0),
+    );
+    kd_free + (kd - kd_free) * ramp
+}
+
 /// Ground contact of particle `tid`: the plane `dot(normal, x) = offset` (m), particles of
 /// radius `radius` (m); `c = contact_depth(dot(normal, x) - offset - radius, leak)` and
-/// `f += contact_force(normal, c, v, ke, kd [c < 0] or kd_free [c = 0], mu)`: `kd_free` is the
-/// damping of particles approaching the plane out of contact ([`Ground::damp_approach`]).
+/// `f += contact_force(normal, c, v, ke, contact_damping(c, kd, kd_free, depth), mu)`:
+/// `kd_free` is the damping of particles approaching the plane out of contact
+/// ([`Ground::damp_approach`]), `depth` the [`Ground::damping_depth`].
 #[diff_kernel]
 pub fn eval_ground<R: Real>(
     x: &Array<Vec3<R>>,
@@ -73,13 +88,14 @@ pub fn eval_ground<R: Real>(
     ke: R,
     kd: R,
     kd_free: R,
+    depth: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
 ) {
     let t = tid();
     let c = contact_depth(dot(normal, x[t]) - offset - radius, leak);
-    let kdc = select(c < 0.0, kd, kd_free);
+    let kdc = contact_damping(c, kd, kd_free, depth);
     f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
 }
 
@@ -94,13 +110,14 @@ pub fn eval_ground_radii<R: Real>(
     ke: R,
     kd: R,
     kd_free: R,
+    depth: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
 ) {
     let t = tid();
     let c = contact_depth(dot(normal, x[t]) - offset - radius[t], leak);
-    let kdc = select(c < 0.0, kd, kd_free);
+    let kdc = contact_damping(c, kd, kd_free, depth);
     f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
 }
 
@@ -132,11 +149,16 @@ pub struct Ground<R: Real> {
     /// as in dFlex and Warp; false: damping in contact only). Rigid-body points are damped in
     /// contact only either way.
     pub damp_approach: bool,
+    /// With `damp_approach = false`: the penetration depth (m; default 1e-4) over which the
+    /// damping rises from 0 to `kd` ([`contact_damping`]), so that the contact force has no
+    /// jump (implicit Euler's Newton cannot converge through one); 0 switches it on at contact.
+    /// Without effect when `damp_approach` is true (the damping is `kd` everywhere).
+    pub damping_depth: R,
 }
 
 impl<R: Real> Ground<R> {
     /// The builder's checks: a finite unit normal (length within 1e-3 of 1), a finite
-    /// offset, and `ke`, `kd`, `mu`, `leak` finite and `>= 0`.
+    /// offset, and `ke`, `kd`, `mu`, `leak`, `damping_depth` finite and `>= 0`.
     pub(crate) fn check(&self, c: &mut crate::validation::Check) {
         if c.finite3("normal", &self.normal) {
             let l = self.normal.norm().to_f64();
@@ -153,6 +175,7 @@ impl<R: Real> Ground<R> {
             ("kd", self.kd),
             ("mu", self.mu),
             ("leak", self.leak),
+            ("damping_depth", self.damping_depth),
         ] {
             c.nonneg(p, v);
         }
@@ -169,6 +192,7 @@ impl<R: Real> Default for Ground<R> {
             mu: R::lit(0.5),
             leak: R::lit(0.0),
             damp_approach: true,
+            damping_depth: R::lit(1e-4),
         }
     }
 }
@@ -204,6 +228,7 @@ impl<R: Real> Ground<R> {
                 self.ke,
                 self.kd,
                 self.kd_free(),
+                self.damping_depth,
                 self.mu,
                 self.leak,
                 f,
@@ -234,6 +259,7 @@ impl<R: Real> Ground<R> {
                 self.ke,
                 self.kd,
                 self.kd_free(),
+                self.damping_depth,
                 self.mu,
                 self.leak,
                 f,

@@ -1,26 +1,21 @@
-//! Dihedral bending between pairs of triangles sharing an edge: dFlex's bending force, the
-//! same as `eval_bending` of NVIDIA Warp (Bridson et al. 2003 style gradients of the dihedral
-//! angle).
+//! Dihedral bending between pairs of triangles sharing an edge: dFlex's bending force, that
+//! of `eval_bending` in NVIDIA Warp (Bridson et al. 2003 style gradients of the dihedral
+//! angle), with the angle computed by `atan2` (full precision near flat, where Warp's `acos`
+//! has an error of `sqrt(eps)` rad).
 
 use std::collections::HashMap;
 
-use adflex_macros::{diff_func, diff_kernel};
+use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use super::{Force, ForceContext, Param};
 
-/// `-1` if `a < 0`, else `1` (zero derivative). Warp's `sign`: unlike [`sign`](fn@sign) it is `1` at
-/// zero, which matters for a flat cloth, whose `cos_theta` may round to just below 1 while
-/// the sign test is exactly 0.
-#[diff_func]
-pub fn sign_nonzero<R: Real>(a: R) -> R {
-    select(a < 0.0, -1.0, 1.0)
-}
-
 /// Accumulates the bending force of element `tid` into `f`.
 ///
 /// Element `(i, j, k, l)`: `i`, `j` the vertices opposite the shared edge, `k`, `l` the edge.
-/// The angle is `acos(clamp(cos_theta, -1, 1))` signed by `dot(cross(n2, n1), e_hat)`;
+/// The angle is `atan2(sin_theta, cos_theta)` of the triangles' normals `n1`, `n2` and the
+/// unit edge `e_hat`, `sin_theta = dot(cross(n2, n1), e_hat) / (|n1| |n2|)` (Warp's
+/// `acos(clamp(cos_theta, -1, 1))` signed by the sine, without its round-off near flat);
 /// `ke` (N m/rad) and `kd` (N m s/rad) are the stiffness and damping, `rest` (rad) the rest
 /// angle. An element with a degenerate triangle (zero normal) exerts no force.
 #[diff_kernel]
@@ -48,14 +43,16 @@ pub fn eval_bending<R: Real>(
     }
     let rcp_n1 = 1.0 / n1_length;
     let rcp_n2 = 1.0 / n2_length;
-    let cos_theta = dot(n1, n2) * rcp_n1 * rcp_n2;
     let m1 = n1 * rcp_n1 * rcp_n1;
     let m2 = n2 * rcp_n2 * rcp_n2;
     let e = x4 - x3;
     let e_hat = normalize(e);
     let e_length = length(e);
-    let s = sign_nonzero(dot(cross(m2, m1), e_hat));
-    let angle = acos(clamp(cos_theta, -1.0, 1.0)) * s;
+    // atan2 of the sine and cosine, both to full relative precision: acos of the cosine
+    // (Warp's form) loses half the digits near a flat angle (an error of sqrt(eps) rad).
+    let cos_theta = dot(n1, n2) * rcp_n1 * rcp_n2;
+    let sin_theta = dot(cross(n2, n1), e_hat) * rcp_n1 * rcp_n2;
+    let angle = atan2(sin_theta, cos_theta);
     let d1 = m1 * e_length;
     let d2 = m2 * e_length;
     let d3 = m1 * dot(x1 - x4, e_hat) + m2 * dot(x2 - x4, e_hat);
