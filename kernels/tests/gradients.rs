@@ -138,16 +138,16 @@ fn ground_contact() {
         "eval_ground",
         eval_ground,
         n,
-        (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.5, 0.0, &f),
+        (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.0, 0.5, 0.0, &f),
         inputs = [x, v],
         outputs = [f]
     );
-    // Damping in contact only (`Ground::damp_approach = false`).
+    // Damping in contact only (`Ground::damp_approach = false`), ramped in over 2 cm (`damping_depth`).
     check_kernel!(
-        "eval_ground (damping in contact only)",
+        "eval_ground (damping in contact only, ramped over 2 cm)",
         eval_ground,
         n,
-        (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.0, 0.5, 0.0, &f),
+        (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 0.0, 2e-2, 0.5, 0.0, &f),
         inputs = [x, v],
         outputs = [f]
     );
@@ -157,7 +157,7 @@ fn ground_contact() {
         "eval_ground (tilted)",
         eval_ground,
         n,
-        (&x, &v, tilt, -0.01, 0.01, 1000.0, 1.0, 1.0, 0.5, 0.0, &f),
+        (&x, &v, tilt, -0.01, 0.01, 1000.0, 1.0, 1.0, 0.0, 0.5, 0.0, &f),
         inputs = [x, v],
         outputs = [f]
     );

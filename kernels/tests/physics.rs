@@ -144,7 +144,7 @@ fn degenerate_elements_have_finite_derivatives() {
             "eval_ground (vt = 0)",
             eval_ground,
             3,
-            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.5, 0.0, &f),
+            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.0, 0.5, 0.0, &f),
             inputs = [x, v],
             outputs = [f]
         );
@@ -523,7 +523,7 @@ fn leaky_ground_gradient_reaches_particles_above_the_ground() {
         launch(
             eval_ground,
             2,
-            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.5, leak, &f),
+            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.0, 0.5, leak, &f),
         );
         // The forward force is the same with or without leak.
         assert_eq!(f.get(0), Vec3::zeros());
@@ -534,7 +534,7 @@ fn leaky_ground_gradient_reaches_particles_above_the_ground() {
         launch_adjoint(
             eval_ground,
             2,
-            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.5, leak, &f),
+            (&x, &v, up, 0.0, 0.01, 1000.0, 1.0, 1.0, 0.0, 0.5, leak, &f),
         );
         let g = x.grad().unwrap().to_vec();
         // d f_y / d y = -ke * slope: slope 1 in contact, `leak` above the ground.

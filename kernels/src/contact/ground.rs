@@ -65,9 +65,11 @@ pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R)
 /// solvers do not converge through a jump). With `kd_free = kd` it is exactly `kd`.
 #[diff_func]
 pub fn contact_damping<R: Real>(c: R, kd: R, kd_free: R, depth: R) -> R {
+    // Both branches of a select are differentiated: no division by a zero depth.
+    let safe = select(depth > 0.0, depth, 1.0);
     let ramp = select(
         depth > 0.0,
-        min(c * -1.0 / depth, 1.0),
+        min(c * -1.0 / safe, 1.0),
         select(c < 0.0, 1.0, 0.0),
     );
     kd_free + (kd - kd_free) * ramp
