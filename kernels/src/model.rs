@@ -985,8 +985,21 @@ impl<R: Real> Model<R> {
         self.forces.iter().find_map(|f| f.downcast_ref::<T>())
     }
 
-    /// The first force named `name` ([`Force::name`]), if any.
-    pub fn force_named(&self, name: &str) -> Option<&dyn Force<R>> {
+    /// The first force named `name` ([`Force::name`]), if any; downcast it to its type with
+    /// `downcast_ref` (or use [`Model::force`]).
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_runtime::Vec3;
+    /// let mut b = ModelBuilder::<f64>::new();
+    /// b.add_particle(Vec3::zeros(), Vec3::zeros(), 1.0);
+    /// b.set_drag(Drag { kd: 0.2, ..Drag::default() });
+    /// let model = b.finalize();
+    /// let drag = model.force_named("drag").unwrap().downcast_ref::<Drag<f64>>().unwrap();
+    /// assert_eq!(drag.kd, 0.2);
+    /// assert_eq!(model.force::<Drag<f64>>().unwrap().kd, 0.2);
+    /// ```
+    pub fn force_named(&self, name: &str) -> Option<&(dyn Force<R> + 'static)> {
         self.forces.iter().find(|f| f.name() == name).map(|f| &**f)
     }
 
@@ -1085,10 +1098,23 @@ impl<R: Real> Model<R> {
     /// Marks parameter `param` of every force named `force` as requiring a gradient (see
     /// [`Model::params`]); returns how many arrays it marked (at least 1).
     ///
-    /// Panics naming the parameters the model has if no force named `force` has an array
-    /// `param` (a misspelt name would otherwise mark nothing, and the gradient would be
-    /// missing much later). [`Model::param`] returns the array, or an error.
-    pub fn requires_grad(&self, force: &str, param: &str) -> usize {
+    /// Errors: [`Error::InvalidInput`] naming the parameters the model has if no force named
+    /// `force` has an array `param` (a misspelt name would otherwise mark nothing, and the
+    /// gradient would be missing much later). [`Model::param`] returns the array itself.
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_runtime::Vec3;
+    /// let mut b = ModelBuilder::<f64>::new();
+    /// let a = b.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    /// let c = b.add_particle(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), 1.0);
+    /// b.add_spring(a, c, 100.0, 0.1);
+    /// let model = b.finalize();
+    /// assert_eq!(model.requires_grad("springs", "ke").unwrap(), 1);
+    /// let err = model.requires_grad("springs", "stiffness").unwrap_err();
+    /// assert!(err.to_string().contains("springs.ke"));
+    /// ```
+    pub fn requires_grad(&self, force: &str, param: &str) -> Result<usize, Error> {
         let mut marked = 0;
         for f in &self.forces {
             if f.name() != force {
@@ -1103,13 +1129,15 @@ impl<R: Real> Model<R> {
             });
         }
         if marked == 0 {
-            panic!(
-                "Model::requires_grad: the model has no parameter array `{force}.{param}`; it \
-                 has: {}",
-                self.param_names()
-            );
+            return Err(Error::InvalidInput {
+                what: format!("{force}.{param}"),
+                message: format!(
+                    "Model::requires_grad: the model has no such parameter array; it has: {}",
+                    self.param_names()
+                ),
+            });
         }
-        marked
+        Ok(marked)
     }
 
     /// `force.param` of every parameter array, for messages ("none" if there is none).

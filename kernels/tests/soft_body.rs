@@ -211,3 +211,20 @@ fn rollout_gradient_wrt_mu_and_activation() {
     println!("{report}");
     assert!(report.is_within(1e-5), "{report}");
 }
+
+/// The numbers `TetGrid`'s docs state for its defaults are what it gives (the docs once said
+/// lambda = 100962 Pa; it is 89744).
+#[test]
+fn tet_grid_defaults_are_the_documented_ones() {
+    let src = include_str!("../src/scenes/soft.rs");
+    let g = adflex_kernels::prelude::TetGrid::<f64>::default();
+    for (value, documented) in [(g.mu, "51282 Pa"), (g.lambda, "89744 Pa")] {
+        assert!(src.contains(documented), "the docs no longer say {documented}");
+        let n: f64 = documented.trim_end_matches(" Pa").parse().unwrap();
+        assert!((value - n).abs() < 0.5, "{value} vs documented {documented}");
+    }
+    assert_eq!(g.dims, [4, 2, 2]);
+    assert_eq!(g.cell, 0.05);
+    assert_eq!(g.density, 1000.0);
+    assert_eq!(g.kd, 0.1);
+}

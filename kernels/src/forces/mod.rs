@@ -58,7 +58,7 @@
 //! assert_eq!(s.v.get(0).x, 1.0);
 //! let (force, param, _) = &model.params()[0];
 //! assert_eq!((*force, *param), ("push", "f0"));
-//! assert_eq!(model.requires_grad("push", "f0"), 1);
+//! assert_eq!(model.requires_grad("push", "f0").unwrap(), 1);
 //! ```
 
 use std::any::Any;

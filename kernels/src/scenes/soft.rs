@@ -42,7 +42,7 @@ pub struct TetGrid<R: Real> {
     /// Stable Neo-Hookean `mu` (Pa; default from [`snh_lame`]`(1e5, 0.3)`, Young's modulus
     /// 0.1 MPa and Poisson's ratio 0.3, a soft rubber: 51282 Pa).
     pub mu: R,
-    /// Stable Neo-Hookean `lambda` (Pa; default from [`snh_lame`]`(1e5, 0.3)`: 100962 Pa).
+    /// Stable Neo-Hookean `lambda` (Pa; default from [`snh_lame`]`(1e5, 0.3)`: 89744 Pa).
     pub lambda: R,
     /// Damping (Pa s; default 0.1).
     pub kd: R,
