@@ -67,6 +67,6 @@ pub mod prelude {
     };
     pub use crate::model::{Control, Model, ModelBuilder, State};
     pub use crate::rigid::BodyState;
-    pub use crate::scenes::cloth::ClothGrid;
+    pub use crate::scenes::cloth::{ClothEdge, ClothGrid};
     pub use crate::scenes::soft::{TetBlock, TetGrid};
 }

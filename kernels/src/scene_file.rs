@@ -38,7 +38,8 @@
 //! - `particles`: `{ x, v ([0,0,0]), mass, radius (particle_radius) }` (m, m/s, kg, m;
 //!   mass 0 pins; see [`ModelBuilder::set_particle_radius`]).
 //! - `cloth_grids`: `{ ni, nj, origin, spacing, mass, pinned ([]: [[i, j], ...]), spring_ke,
-//!   spring_kd (0), bend_ke, bend_kd (0), bend_rest ("flat" | "initial") }`, see
+//!   spring_kd (0), bend_ke, bend_kd (0), bend_rest ("flat" | "initial"), rotation
+//!   ([0,0,0,1] as x, y, z, w) }`, see
 //!   [`crate::scenes::cloth::ClothGrid`] (no bending without `bend_ke`).
 //! - `springs`: `{ i, j, ke, kd (0), rest (current distance) }`.
 //! - `triangles`: `{ indices: [i, j, k], mu, lambda, kd (0) }`: a StVK membrane if `mu` and
@@ -197,6 +198,8 @@ struct ClothGridDesc {
     bend_kd: f64,
     #[serde(default)]
     bend_rest: RestDesc,
+    #[serde(default = "identity_quat")]
+    rotation: [f64; 4],
 }
 
 #[derive(Deserialize, Default, Clone, Copy)]
@@ -735,6 +738,12 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
             spring_kd: R::lit(g.spring_kd),
             bend: g.bend_ke.map(|ke| (R::lit(ke), R::lit(g.bend_kd))),
             bend_rest: g.bend_rest.into(),
+            rotation: Quat::new(
+                R::lit(g.rotation[3]),
+                R::lit(g.rotation[0]),
+                R::lit(g.rotation[1]),
+                R::lit(g.rotation[2]),
+            ),
         });
         if let Some(p) = b.problems().get(n0) {
             return Err(c.err(format!("cloth_grids[{k}]"), p.to_string()));

@@ -325,3 +325,39 @@ fn the_ground_reads_damp_approach_and_defaults_to_the_builders() {
     assert_eq!(read("{}"), adflex_kernels::prelude::Ground::default());
     assert!(!read(r#"{ "damp_approach": false }"#).damp_approach);
 }
+
+/// A rotated cloth grid reads from a file as the builder makes it, and a rotation that is not
+/// a unit quaternion is an error naming the field.
+#[test]
+fn a_rotated_cloth_grid_reads_as_built() {
+    use adflex_kernels::prelude::ClothGrid;
+    use adflex_runtime::{Quat, Vec3};
+    let h = 0.5f64.sqrt();
+    let src = format!(
+        r#"{{ "cloth_grids": [ {{ "ni": 3, "nj": 4, "origin": [0, 1, 0], "spacing": 0.1,
+              "mass": 0.01, "spring_ke": 50, "rotation": [{h}, 0, 0, {h}] }} ] }}"#
+    );
+    let from_file = ModelBuilder::<f64>::from_json_str(&src).unwrap().finalize();
+    let mut b = ModelBuilder::<f64>::new();
+    b.add_cloth_grid(&ClothGrid {
+        ni: 3,
+        nj: 4,
+        origin: Vec3::new(0.0, 1.0, 0.0),
+        spacing: 0.1,
+        mass: 0.01,
+        pinned: vec![],
+        spring_kd: 0.0,
+        bend: None,
+        rotation: Quat::new(h, h, 0.0, 0.0),
+        ..ClothGrid::benchmark(3)
+    });
+    let built = b.finalize();
+    assert_eq!(from_file.particle_x.to_vec(), built.particle_x.to_vec());
+    // Particle (0, 3) hangs 0.3 m below the origin.
+    assert!((built.particle_x.get(3) - Vec3::new(0.0, 0.7, 0.0)).norm() < 1e-12);
+    let bad = src.replace(&format!("[{h}, 0, 0, {h}]"), "[1, 0, 0, 1]");
+    let err = ModelBuilder::<f64>::from_json_str(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("rotation"), "{err}");
+}

@@ -219,9 +219,15 @@ fn tet_grid_defaults_are_the_documented_ones() {
     let src = include_str!("../src/scenes/soft.rs");
     let g = adflex_kernels::prelude::TetGrid::<f64>::default();
     for (value, documented) in [(g.mu, "51282 Pa"), (g.lambda, "89744 Pa")] {
-        assert!(src.contains(documented), "the docs no longer say {documented}");
+        assert!(
+            src.contains(documented),
+            "the docs no longer say {documented}"
+        );
         let n: f64 = documented.trim_end_matches(" Pa").parse().unwrap();
-        assert!((value - n).abs() < 0.5, "{value} vs documented {documented}");
+        assert!(
+            (value - n).abs() < 0.5,
+            "{value} vs documented {documented}"
+        );
     }
     assert_eq!(g.dims, [4, 2, 2]);
     assert_eq!(g.cell, 0.05);

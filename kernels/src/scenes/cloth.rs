@@ -20,7 +20,7 @@ use crate::model::{Model, ModelBuilder, State};
 /// A rectangular cloth: a grid of particles joined by structural and shear springs, split into
 /// triangles, with bending elements on every interior edge.
 ///
-/// Particle `(i, j)` (`i < ni`, `j < nj`) is at `origin + (i h, 0, j h)` with index
+/// Particle `(i, j)` (`i < ni`, `j < nj`) is at `origin + rotation (i h, 0, j h)` with index
 /// `first + i nj + j`. Springs, for each `(i, j)` in row-major order: `(p(i,j), p(i+1,j))`,
 /// `(p(i,j), p(i,j+1))`, then if both exist `(p(i,j), p(i+1,j+1))` and `(p(i+1,j), p(i,j+1))`.
 /// Each quad `a = p(i,j)`, `b = p(i+1,j)`, `c = p(i+1,j+1)`, `d = p(i,j+1)` gives the triangles
@@ -48,6 +48,24 @@ pub struct ClothGrid<R: Real> {
     pub bend: Option<(R, R)>,
     /// Rest angle of the bending elements (default [`RestAngle::Flat`]).
     pub bend_rest: RestAngle,
+    /// Orientation of the sheet about `origin` (a unit quaternion `(x, y, z, w)`; default the
+    /// identity: horizontal, in the x-z plane). E.g. a quarter turn about x,
+    /// `Quat::new(0.5f64.sqrt(), 0.5f64.sqrt(), 0.0, 0.0)` (nalgebra's `(w, i, j, k)` order),
+    /// hangs it in the x-y plane like a flag.
+    pub rotation: Quat<R>,
+}
+
+/// An edge of a [`ClothGrid`], for [`ClothGrid::pin_edge`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ClothEdge {
+    /// The particles `(0, j)`.
+    IMin,
+    /// The particles `(ni - 1, j)`.
+    IMax,
+    /// The particles `(i, 0)`.
+    JMin,
+    /// The particles `(i, nj - 1)`.
+    JMax,
 }
 
 /// [`ClothGrid::benchmark`]`(16)`: a 16 x 16 sheet of 1 m, at 0.03 m, 0.01 kg per particle,
@@ -75,7 +93,50 @@ impl<R: Real> ClothGrid<R> {
             spring_kd: R::lit(0.1),
             bend: Some((R::lit(0.01), R::lit(0.0))),
             bend_rest: RestAngle::Flat,
+            rotation: Quat::identity(),
         }
+    }
+
+    /// The grid with every particle of `edge` pinned too (Warp's `fix_left` etc.).
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_kernels::scenes::cloth::ClothEdge;
+    /// use adflex_runtime::{Quat, Vec3};
+    ///
+    /// // A flag: 8 x 6, hanging in the x-y plane, held along its edge i = 0.
+    /// let h = 0.5f64.sqrt();
+    /// let flag = ClothGrid::<f64> {
+    ///     ni: 8,
+    ///     nj: 6,
+    ///     pinned: vec![],
+    ///     origin: Vec3::new(0.0, 1.0, 0.0),
+    ///     rotation: Quat::new(h, h, 0.0, 0.0), // a quarter turn about x: j runs along -y
+    ///     ..ClothGrid::benchmark(8)
+    /// }
+    /// .pin_edge(ClothEdge::IMin);
+    /// let mut b = ModelBuilder::<f64>::new();
+    /// b.add_cloth_grid(&flag);
+    /// let model = b.finalize();
+    /// let w = model.particle_inv_mass.to_vec();
+    /// assert_eq!(w.iter().filter(|&&w| w == 0.0).count(), 6);
+    /// let last = model.particle_x.get(5); // particle (0, 5)
+    /// assert!((last - Vec3::new(0.0, 1.0 - 5.0 / 7.0, 0.0)).norm() < 1e-12);
+    /// ```
+    pub fn pin_edge(mut self, edge: ClothEdge) -> Self {
+        let (ni, nj) = (self.ni, self.nj);
+        let cells: Vec<(usize, usize)> = match edge {
+            ClothEdge::IMin => (0..nj).map(|j| (0, j)).collect(),
+            ClothEdge::IMax => (0..nj).map(|j| (ni.saturating_sub(1), j)).collect(),
+            ClothEdge::JMin => (0..ni).map(|i| (i, 0)).collect(),
+            ClothEdge::JMax => (0..ni).map(|i| (i, nj.saturating_sub(1))).collect(),
+        };
+        for c in cells {
+            if !self.pinned.contains(&c) {
+                self.pinned.push(c);
+            }
+        }
+        self
     }
 }
 
@@ -110,10 +171,29 @@ impl<R: Real> ModelBuilder<R> {
             c.origin.y.to_f64(),
             c.origin.z.to_f64(),
         );
+        let q = c.rotation;
+        let q = Quat::new(q.w.to_f64(), q.i.to_f64(), q.j.to_f64(), q.k.to_f64());
+        let rotated = q != Quat::identity();
+        if rotated && (q.norm() - 1.0).abs() > 1e-3 {
+            check.fail(
+                Some("rotation"),
+                format!(
+                    "must be a unit quaternion (length {}); normalize it",
+                    q.norm()
+                ),
+            );
+            return first;
+        }
         for i in 0..ni {
             for j in 0..nj {
                 // Positions in f64, rounded once (as the reference builds them).
-                let p = Vec3::new(o.x + i as f64 * c.spacing, o.y, o.z + j as f64 * c.spacing);
+                let d = Vec3::new(i as f64 * c.spacing, 0.0, j as f64 * c.spacing);
+                // Unrotated, the sum as the reference builds it (the same bits).
+                let p = if rotated {
+                    o + adflex_runtime::math::quat_rotate(q, d)
+                } else {
+                    Vec3::new(o.x + d.x, o.y, o.z + d.z)
+                };
                 let p = Vec3::new(R::lit(p.x), R::lit(p.y), R::lit(p.z));
                 let mass = if c.pinned.contains(&(i, j)) {
                     R::lit(0.0)
