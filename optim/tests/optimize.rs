@@ -351,12 +351,12 @@ fn minimize_with_takes_a_checkpointed_rollout() {
             let step = |tape: &mut Tape, x: &Array<f64>| {
                 let y = Array::zeros(1);
                 tape.launch(scale, 1, (x, &k, &y));
-                y
+                Ok(y)
             };
             let out = checkpointed(&x0, 12, 4, step, |tape, x| {
                 let l = Array::zeros(1);
                 tape.launch(miss, 1, (x, &l));
-                l
+                Ok(l)
             })?;
             Ok(out.loss.get(0))
         })
