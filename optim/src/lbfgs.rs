@@ -158,7 +158,8 @@ type Iterate = IterState<Vec<f64>, Vec<f64>, (), (), (), f64>;
 /// argmin's L-BFGS keeps its correction pairs after a line search that met walls (zero
 /// gradients) or rounding, and may then propose a direction that is not a descent direction:
 /// where that happens away from a stationary point, the run restarts from the best point with
-/// an empty memory (steepest descent first), as long as each restart lowers the loss.
+/// an empty memory (steepest descent first), as long as each restart lowers the loss and an
+/// iteration was accepted since the last one.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn run(
     params: &Params,
@@ -229,6 +230,8 @@ pub(crate) fn run(
     // The initial stationarity measure, and the loss at the last (re)start.
     let mut s0 = f64::NAN;
     let mut restart_loss = f64::INFINITY;
+    // The iteration of the last restart: a restart needs an accepted iteration since.
+    let mut restarted_at: Option<usize> = None;
     loop {
         let objective = Objective {
             params,
@@ -308,10 +311,12 @@ pub(crate) fn run(
         let stationary = b.stationarity <= restart.stationary_tol * s0
             || b.grad_norm <= restart.grad_tol
             || b.stationarity == 0.0;
-        if matches!(end, End::NoProgress { .. }) && !stationary && b.loss < restart_loss {
+        let moved = !matches!(restarted_at, Some(at) if iter <= at);
+        if matches!(end, End::NoProgress { .. }) && !stationary && b.loss < restart_loss && moved {
             let lowest = record.lowest.borrow();
             u_start = lowest.as_ref().expect("evaluated").0.clone();
             restart_loss = b.loss;
+            restarted_at = Some(iter);
             continue;
         }
         return Ok((b, end));
