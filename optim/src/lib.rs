@@ -7,7 +7,10 @@
 //! gradients, runs the closure and `backward`, and reads the gradients. A loss computed some
 //! other way (a [`checkpointed`](adflex_runtime::checkpoint::checkpointed) rollout, which runs
 //! its own backward) goes through [`Optimizer::minimize_with`]. When the optimizer returns,
-//! the parameter arrays hold the best values it found.
+//! the parameter arrays hold the best values it found, and the [`Report`] says what happened:
+//! converged (by which test), stalled, a failed line search, diverged, a budget spent or the
+//! callback's stop ([`Stop`]); [`Report::converged`] is `true` only for a minimum, decided by
+//! the numbers (the gradient norm against the initial one, the loss change).
 //!
 //! ```
 //! use adflex_optim::{Optimizer, Params};
@@ -30,6 +33,9 @@
 //!         Ok(loss)
 //!     })
 //!     .unwrap();
+//! // Why it stopped, in words ("converged: ..." or "NOT converged, ...").
+//! println!("{report}");
+//! assert!(report.converged(), "{report}");
 //! assert!(report.loss < 1e-10, "{report}");
 //! assert!((p.get(0) - 1.0).abs() < 1e-4 && (p.get(1) - 1.0).abs() < 1e-4);
 //! ```

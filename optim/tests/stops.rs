@@ -113,17 +113,62 @@ fn a_quadratic_converges_by_the_gradient_test_and_by_no_progress_at_a_stationary
     assert!((r.grad_norm - exact).abs() <= 1e-12, "{r}");
 }
 
+/// `loss += (c_i^2 - 2 - 0.37 i)^2`: minima at irrational `c`, so that the gradient never
+/// vanishes exactly.
+#[diff_kernel]
+fn roots(c: &Array<f64>, loss: &Array<f64>) {
+    let i = tid();
+    let d = c[i] * c[i] - 2.0 - 0.37 * i as f64;
+    loss.atomic_add(0, d * d);
+}
+
 #[test]
-fn non_finite_trial_points_after_converging_are_not_divergence() {
-    // From c = -1.9, L-BFGS's first trial step lands past the NaN wall at |c| = 2 (as line
-    // searches near a tiny loss do): the run backs off and converges; when its line search
-    // meets the wall again at the minimum, that is no progress at a stationary point.
+fn a_non_finite_trial_point_after_converging_to_1e_30_is_not_divergence() {
+    // L-BFGS converges to a loss near 1e-31; then its steps no longer change the point, its
+    // memory becomes 0/0 and the next trial point is NaN (the run that used to be reported as
+    // diverged, "lower the learning rate"). It converged: no lower point at a stationary point.
+    for n in [1, 3, 8] {
+        let c = Array::from_vec(vec![1.0f64; n]);
+        let seen = std::cell::RefCell::new(Vec::new());
+        let r = minimize(Optimizer::lbfgs().max_iters(1000), &c, |tape, c| {
+            let l = Array::zeros(1);
+            tape.launch(roots, n, (c, &l));
+            seen.borrow_mut().push(l.get(0));
+            l
+        });
+        let seen = seen.into_inner();
+        let tiny = seen.iter().position(|&l| l < 1e-28).expect("converges");
+        assert!(seen[tiny..].iter().any(|l| l.is_nan()), "n = {n}: {seen:?}");
+        assert_eq!(
+            r.stop,
+            Stop::Converged(Convergence::NoProgress),
+            "n = {n}: {r}"
+        );
+        assert!(
+            r.loss < 1e-28 && r.grad_norm < 1e-12 * r.initial_grad_norm,
+            "{r}"
+        );
+        assert!(
+            r.to_string().starts_with("converged: no lower point"),
+            "{r}"
+        );
+    }
+}
+
+#[test]
+fn non_finite_trial_points_before_converging_are_not_divergence() {
+    // From c = -1.9, L-BFGS's first trial step lands past the NaN wall at |c| = 2: the run
+    // backs off and converges.
     let c = Array::from_vec(vec![-1.9f64]);
+    let seen = std::cell::RefCell::new(Vec::new());
     let r = minimize(Optimizer::lbfgs().max_iters(60), &c, |tape, c| {
         let l = Array::zeros(1);
         tape.launch(walled, 1, (c, &l));
+        seen.borrow_mut().push((c.get(0), l.get(0)));
         l
     });
+    let seen = seen.into_inner();
+    assert!(seen[1].1.is_nan(), "{seen:?}");
     assert!(r.converged(), "{r}");
     assert!(!matches!(r.stop, Stop::Diverged(_)), "{r}");
     assert!((c.get(0) - 1.0).abs() < 1e-8, "{r}");
