@@ -279,3 +279,38 @@ fn the_sweep_resolves_smooth_derivatives_to_near_rounding() {
     }
     assert_eq!(r.max_error, 0.0, "{r}");
 }
+
+/// `x^3`, with an adjoint (and tangent) 1% too large.
+#[adflex_macros::diff_func(adjoint = cube_adjoint, tangent = cube_tangent)]
+fn cube_off<R: Real>(x: R) -> R {
+    x * x * x
+}
+fn cube_adjoint<R: Real>(x: R, adj_out: R) -> (R,) {
+    (R::lit(3.03) * x * x * adj_out,)
+}
+fn cube_tangent<R: Real>(x: R, dx: R) -> R {
+    R::lit(3.03) * x * x * dx
+}
+
+/// [`noisy_cubes`] with the 1%-wrong adjoint of [`cube_off`].
+#[adflex_macros::diff_kernel]
+fn noisy_cubes_off(x: &Array<f64>, loss: &Array<f64>) {
+    let q = (x[tid()] + 1048576.0) - 1048576.0;
+    loss.atomic_add(0, cube_off(q));
+}
+
+#[test]
+fn kernel_checks_at_the_defaults_pass_noisy_right_adjoints_and_fail_noisy_wrong_ones() {
+    let x = Array::from_vec(random(6, 15, 0.5, 2.0)).named("x");
+    let loss = Array::<f64>::zeros(1);
+    let r = gradcheck_kernel(noisy_cubes, 6, (&x, &loss)).unwrap();
+    assert!(r.is_within(1e-9), "{r}");
+    let r = GradCheck::new()
+        .step(1e-8)
+        .kernel(noisy_cubes, 6, (&x, &loss))
+        .unwrap();
+    assert!(!r.is_within(1e-4), "{r}");
+    let r = gradcheck_kernel(noisy_cubes_off, 6, (&x, &loss)).unwrap();
+    assert!(!r.is_within(1e-3), "{r}");
+    assert!(r.max_error > 0.9e-2, "{r}");
+}
