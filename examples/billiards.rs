@@ -11,7 +11,7 @@
 //! Run: `cargo run --release --example billiards` (pictures in `target/demos/billiards/`).
 
 use adflex::kernels::losses;
-use adflex::optim::{Optimizer, Params, Report, Stop};
+use adflex::optim::{Convergence, Optimizer, Params, Report, Stop};
 use adflex::prelude::*;
 
 pub const RADIUS: f64 = 0.0286;
@@ -163,7 +163,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("{name}: {}", a.report);
         println!("  object ball ends {:.4} m from the destination", a.miss);
     }
-    if out.exact.report.stop == Stop::GradientTolerance && out.exact.report.iterations == 0 {
+    if out.exact.report.stop == Stop::Converged(Convergence::GradientTolerance)
+        && out.exact.report.iterations == 0
+    {
         println!("exact: the miss has a zero gradient, so the optimizer cannot move");
     }
     let c = out.leaky.frames[0].x.get(0);

@@ -35,22 +35,20 @@ fn main() -> Result<(), Error> {
     let target = Vec3::new(0.0, -0.1, 0.0);
     let scale = 1.0 / (n * n) as f32;
     let x0 = scene.initial.x.clone();
-    let step = |tape: &mut Tape, s: &State<f32>| {
-        SemiImplicitEuler.step(model, tape, s, None, 1e-3).unwrap()
-    };
+    let step = |tape: &mut Tape, s: &State<f32>| SemiImplicitEuler.step(model, tape, s, None, 1e-3);
     let loss = |tape: &mut Tape, s: &State<f32>| {
         let l = Array::zeros(1).named("loss");
         tape.launch(displacement_loss, s.x.len(), (&s.x, &x0, target, scale, &l));
-        l
+        Ok(l)
     };
     let start = std::time::Instant::now();
     let value = if plain {
         let mut tape = Tape::new();
         let mut s = scene.initial.clone();
         for _ in 0..steps {
-            s = step(&mut tape, &s);
+            s = step(&mut tape, &s)?;
         }
-        let l = loss(&mut tape, &s);
+        let l = loss(&mut tape, &s)?;
         tape.backward(&l)?;
         l.get(0)
     } else {

@@ -7,7 +7,10 @@
 //! gradients, runs the closure and `backward`, and reads the gradients. A loss computed some
 //! other way (a [`checkpointed`](adflex_runtime::checkpoint::checkpointed) rollout, which runs
 //! its own backward) goes through [`Optimizer::minimize_with`]. When the optimizer returns,
-//! the parameter arrays hold the best values it found.
+//! the parameter arrays hold the best values it found, and the [`Report`] says what happened:
+//! converged (by which test), stalled, a failed line search, diverged, a budget spent or the
+//! callback's stop ([`Stop`]); [`Report::converged`] is `true` only for a minimum, decided by
+//! the numbers (the gradient norm against the initial one, the loss change).
 //!
 //! ```
 //! use adflex_optim::{Optimizer, Params};
@@ -30,6 +33,9 @@
 //!         Ok(loss)
 //!     })
 //!     .unwrap();
+//! // Why it stopped, in words ("converged: ..." or "NOT converged, ...").
+//! println!("{report}");
+//! assert!(report.converged(), "{report}");
 //! assert!(report.loss < 1e-10, "{report}");
 //! assert!((p.get(0) - 1.0).abs() < 1e-4 && (p.get(1) - 1.0).abs() < 1e-4);
 //! ```
@@ -88,25 +94,99 @@ pub struct Iteration {
     pub elapsed: Duration,
 }
 
-/// Why an optimization stopped.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Stop {
-    /// [`Optimizer::max_iters`] iterations ran.
-    MaxIterations,
-    /// The gradient norm fell below [`Optimizer::grad_tol`].
+/// Which test a converged run met (see [`Stop::Converged`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Convergence {
+    /// The gradient norm fell to [`Optimizer::grad_tol`] (absolute) or to
+    /// [`Optimizer::grad_tol_rel`] times the initial one.
     GradientTolerance,
     /// The loss reached [`Optimizer::target_loss`].
     TargetLoss,
+    /// The loss changed by at most [`Optimizer::loss_tol`] (relative) in an iteration, at a
+    /// stationary point (gradient norm at most [`Optimizer::stationary_tol`] times the initial
+    /// one).
+    LossChange,
+    /// L-BFGS's line search found no lower point, at a stationary point (gradient norm at most
+    /// [`Optimizer::stationary_tol`] times the initial one): the loss cannot be lowered in
+    /// floating point any more. Elsewhere the same failure is [`Stop::LineSearchFailed`].
+    NoProgress,
+}
+
+/// Why an optimization stopped. Only [`Stop::Converged`] says that the parameters are at a
+/// minimum (as far as the numbers tell); [`Report::converged`] checks for it.
+///
+/// "Converged" is decided from the numbers (the gradient norm relative to the initial one,
+/// the loss and its change), never from a method's own wording: a line search that fails
+/// where the gradient is still large is [`Stop::LineSearchFailed`], however argmin words it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Stop {
+    /// A minimum, by the test named.
+    Converged(Convergence),
+    /// The loss changed by at most [`Optimizer::loss_tol`] (relative) in an iteration while
+    /// the gradient norm is more than [`Optimizer::stationary_tol`] times the initial one: no
+    /// progress, and not at a minimum (a kink, a wrong gradient, a noisy loss, a learning rate
+    /// too small). The message gives the numbers.
+    Stalled(String),
+    /// L-BFGS's line search failed (argmin's message, and the trial points where the loss was
+    /// not finite, if any) at a point that is not stationary: the gradient does not lead
+    /// down (a kink or a non-smooth minimum, a gradient inconsistent with the loss, a loss
+    /// too noisy at the step sizes tried, or the edge of a region where the simulation
+    /// diverges).
+    LineSearchFailed(String),
+    /// The run diverged (the message names the evaluation): gradient descent or Adam reached a
+    /// non-finite loss or gradient, or a gradient `1e8` times the initial one at a loss above
+    /// the initial one (lower the learning rate); or L-BFGS ran away, its line search meeting
+    /// non-finite trial points after the loss fell far below any scale (an unbounded loss) or
+    /// the gradient grew `1e8` times. A non-finite trial point of a line search near a
+    /// stationary point is not divergence: that run is [`Convergence::NoProgress`].
+    /// The best finite point found is kept.
+    Diverged(String),
+    /// [`Optimizer::max_iters`] iterations ran (the budget is spent, whatever the gradient).
+    MaxIterations,
+    /// [`Optimizer::max_evals`] loss evaluations ran.
+    MaxEvaluations,
     /// The callback returned `ControlFlow::Break`.
     Callback,
-    /// The method's own criterion (e.g. L-BFGS: no change in the loss), as argmin words it.
-    Converged(String),
-    /// A trial point of L-BFGS's line search gave a non-finite loss or gradient (the
-    /// simulation diverged there; the message names the evaluation). The best point found is
-    /// kept: a line search may overshoot far from a good iterate, typically after the loss
-    /// has converged. At the starting point, or for gradient descent and Adam (whose every
-    /// evaluation is an iterate), a non-finite loss is an error instead.
-    Diverged(String),
+}
+
+impl fmt::Display for Convergence {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Convergence::GradientTolerance => "the gradient norm reached its tolerance",
+            Convergence::TargetLoss => "the loss reached its target",
+            Convergence::LossChange => {
+                "the loss stopped changing (below its tolerance) at a stationary point"
+            }
+            Convergence::NoProgress => {
+                "no lower point can be found (the line search failed) at a stationary point"
+            }
+        })
+    }
+}
+
+impl fmt::Display for Stop {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Stop::Converged(c) => write!(f, "converged: {c}"),
+            Stop::Stalled(m) => write!(f, "NOT converged, stalled: {m}"),
+            Stop::LineSearchFailed(m) => write!(
+                f,
+                "NOT converged, the line search failed where the gradient is not small: {m}"
+            ),
+            Stop::Diverged(m) => write!(f, "NOT converged, diverged: {m}"),
+            Stop::MaxIterations => {
+                write!(
+                    f,
+                    "NOT converged, stopped after the maximum number of iterations"
+                )
+            }
+            Stop::MaxEvaluations => write!(
+                f,
+                "NOT converged, stopped after the maximum number of loss evaluations"
+            ),
+            Stop::Callback => write!(f, "stopped by the callback"),
+        }
+    }
 }
 
 /// What [`Optimizer::minimize`] returns. The parameter arrays hold the best values found.
@@ -116,6 +196,10 @@ pub struct Report {
     pub loss: f64,
     /// The loss at the start.
     pub initial_loss: f64,
+    /// The gradient norm at the best point (w.r.t. the parameters).
+    pub grad_norm: f64,
+    /// The gradient norm at the start.
+    pub initial_grad_norm: f64,
     /// Iterations run.
     pub iterations: usize,
     /// Loss and gradient evaluations.
@@ -133,24 +217,42 @@ impl Report {
     pub fn losses(&self) -> Vec<f64> {
         self.history.iter().map(|i| i.loss).collect()
     }
+
+    /// Whether the run converged ([`Stop::Converged`], by any test). A budget spent, a stall,
+    /// a failed line search, a divergence or a callback's stop is not convergence.
+    pub fn converged(&self) -> bool {
+        matches!(self.stop, Stop::Converged(_))
+    }
 }
 
 impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "loss {:.6e} -> {:.6e} in {} iterations ({} evaluations, {:.2} s), stopped: {:?}",
+            "{}; loss {:.6e} -> {:.6e}, gradient norm {:.3e} -> {:.3e}, in {} iterations ({} \
+             evaluations, {:.2} s)",
+            self.stop,
             self.initial_loss,
             self.loss,
+            self.initial_grad_norm,
+            self.grad_norm,
             self.iterations,
             self.evaluations,
             self.elapsed.as_secs_f64(),
-            self.stop
         )
     }
 }
 
 type Callback<'a> = Box<dyn FnMut(&Iteration) -> ControlFlow<()> + 'a>;
+
+/// How much the gradient may grow (relative to the initial one, with the loss above the
+/// initial one) before gradient descent or Adam counts as diverged; and before L-BFGS, meeting
+/// non-finite trial points, does.
+const DIVERGENCE_GROWTH: f64 = 1e8;
+/// How far below the scale of the initial loss (`-RUNAWAY * max(|initial loss|, ..)`) the loss
+/// of L-BFGS must fall, while its line search meets non-finite trial points, for the run to
+/// count as diverged (a loss unbounded below).
+const RUNAWAY: f64 = 1e12;
 
 /// An optimizer: a [`Method`] and when to stop. Build with [`Optimizer::lbfgs`],
 /// [`Optimizer::adam`] or [`Optimizer::gradient_descent`], then run
@@ -158,7 +260,11 @@ type Callback<'a> = Box<dyn FnMut(&Iteration) -> ControlFlow<()> + 'a>;
 pub struct Optimizer<'a> {
     method: Method,
     max_iters: usize,
+    max_evals: usize,
     grad_tol: f64,
+    grad_tol_rel: f64,
+    loss_tol: f64,
+    stationary_tol: f64,
     target_loss: f64,
     progress: bool,
     callback: Option<Callback<'a>>,
@@ -169,7 +275,11 @@ impl fmt::Debug for Optimizer<'_> {
         f.debug_struct("Optimizer")
             .field("method", &self.method)
             .field("max_iters", &self.max_iters)
+            .field("max_evals", &self.max_evals)
             .field("grad_tol", &self.grad_tol)
+            .field("grad_tol_rel", &self.grad_tol_rel)
+            .field("loss_tol", &self.loss_tol)
+            .field("stationary_tol", &self.stationary_tol)
             .field("target_loss", &self.target_loss)
             .field("progress", &self.progress)
             .finish()
@@ -177,13 +287,18 @@ impl fmt::Debug for Optimizer<'_> {
 }
 
 impl<'a> Optimizer<'a> {
-    /// An optimizer with `method`, 100 iterations at most, `grad_tol = 0` and no target loss
-    /// (stop only on the iteration count or the method's own criterion), and a progress bar.
+    /// An optimizer with `method`, 100 iterations at most, no limit on evaluations,
+    /// `grad_tol = grad_tol_rel = loss_tol = 0` and no target loss (stop only on the budget,
+    /// or when L-BFGS can make no more progress), `stationary_tol = 1e-3`, and a progress bar.
     pub fn new(method: Method) -> Self {
         Optimizer {
             method,
             max_iters: 100,
+            max_evals: usize::MAX,
             grad_tol: 0.0,
+            grad_tol_rel: 0.0,
+            loss_tol: 0.0,
+            stationary_tol: 1e-3,
             target_loss: f64::NEG_INFINITY,
             progress: true,
             callback: None,
@@ -206,17 +321,45 @@ impl<'a> Optimizer<'a> {
     pub fn gradient_descent(lr: f64) -> Self {
         Self::new(Method::GradientDescent { lr })
     }
-    /// At most `n` iterations (default 100).
+    /// At most `n` iterations (default 100; [`Stop::MaxIterations`]).
     pub fn max_iters(mut self, n: usize) -> Self {
         self.max_iters = n;
         self
     }
-    /// Stop when the gradient norm is at most `tol` (default 0: never).
+    /// At most `n` loss evaluations (default: no limit; [`Stop::MaxEvaluations`]). L-BFGS's
+    /// line searches take several per iteration; a line search cut short by the limit ends
+    /// the run with the best point evaluated.
+    pub fn max_evals(mut self, n: usize) -> Self {
+        self.max_evals = n;
+        self
+    }
+    /// Converged when the gradient norm is at most `tol` (default 0: never).
     pub fn grad_tol(mut self, tol: f64) -> Self {
         self.grad_tol = tol;
         self
     }
-    /// Stop when the loss is at most `target` (default: never).
+    /// Converged when the gradient norm is at most `rel` times the initial one (default 0:
+    /// never). For bounded parameters the norm is that of the projected gradient (gradient
+    /// descent, Adam) or of the gradient in L-BFGS's free variables.
+    pub fn grad_tol_rel(mut self, rel: f64) -> Self {
+        self.grad_tol_rel = rel;
+        self
+    }
+    /// Stop when the loss changes by at most `tol` relative to its magnitude in an iteration
+    /// (default 0: never): [`Convergence::LossChange`] at a stationary point, [`Stop::Stalled`]
+    /// elsewhere (see [`Optimizer::stationary_tol`]).
+    pub fn loss_tol(mut self, tol: f64) -> Self {
+        self.loss_tol = tol;
+        self
+    }
+    /// Where the loss stops changing (or L-BFGS's line search fails), the run counts as
+    /// converged if the gradient norm is at most `rel` times the initial one, or at most
+    /// [`Optimizer::grad_tol`] (default `1e-3`); otherwise it stalled.
+    pub fn stationary_tol(mut self, rel: f64) -> Self {
+        self.stationary_tol = rel;
+        self
+    }
+    /// Converged when the loss is at most `target` (default: never).
     pub fn target_loss(mut self, target: f64) -> Self {
         self.target_loss = target;
         self
@@ -240,9 +383,13 @@ impl<'a> Optimizer<'a> {
     /// Errors: the closure's errors and `backward`'s; [`Error::InvalidInput`] naming the
     /// parameter if the recorded loss does not depend on it (checked at the first
     /// evaluation), naming the evaluation and component if the loss or a gradient is not
-    /// finite (but see [`Stop::Diverged`]), or if L-BFGS starts a bounded parameter on its
-    /// bound. After an error the arrays hold the best values evaluated before it (the
+    /// finite at the starting point (later, the run ends with [`Stop::Diverged`] or, for a
+    /// trial point of a line search, backs off), or if L-BFGS starts a bounded parameter on
+    /// its bound. After an error the arrays hold the best values evaluated before it (the
     /// starting values if none), never the failing ones.
+    ///
+    /// A run that returns `Ok` may still not have converged: check [`Report::converged`] (or
+    /// print the report, which says why it stopped).
     pub fn minimize<L: Element>(
         self,
         params: &Params,
@@ -296,25 +443,72 @@ impl<'a> Optimizer<'a> {
             })
         };
         let bar = self.progress.then(|| progress_bar(self.max_iters));
-        let mut history = Vec::new();
-        let mut observe = |it: Iteration| {
+        let mut history: Vec<Iteration> = Vec::new();
+        // The initial loss and stationarity measure (see `Observe`).
+        let mut initial: Option<(f64, f64)> = None;
+        let (grad_tol, grad_tol_rel, loss_tol, stationary_tol, target_loss, max_evals) = (
+            self.grad_tol,
+            self.grad_tol_rel,
+            self.loss_tol,
+            self.stationary_tol,
+            self.target_loss,
+            self.max_evals,
+        );
+        let first_order = !matches!(self.method, Method::Lbfgs { .. });
+        let mut observe = |it: Iteration, stationarity: f64| {
             if let Some(b) = &bar {
                 b.set_position(it.iter as u64);
                 b.set_message(format!("loss {:.4e} |grad| {:.2e}", it.loss, it.grad_norm));
             }
+            let prev = history.last().map(|p| p.loss);
             history.push(it);
+            let (l0, s0) = *initial.get_or_insert((it.loss, stationarity));
             if let Some(cb) = &mut self.callback {
                 if cb(&it).is_break() {
                     return Some(Stop::Callback);
                 }
             }
-            if it.loss <= self.target_loss {
-                Some(Stop::TargetLoss)
-            } else if it.grad_norm <= self.grad_tol {
-                Some(Stop::GradientTolerance)
-            } else {
-                None
+            let g0 = history[0].grad_norm;
+            if it.loss <= target_loss {
+                return Some(Stop::Converged(Convergence::TargetLoss));
             }
+            if it.grad_norm <= grad_tol || stationarity <= grad_tol_rel * s0 {
+                return Some(Stop::Converged(Convergence::GradientTolerance));
+            }
+            if first_order && it.grad_norm > DIVERGENCE_GROWTH * g0 && it.loss > l0 {
+                return Some(Stop::Diverged(format!(
+                    "at iteration {} the gradient norm is {:.3e}, {:.1e} times the initial \
+                     one, and the loss {:.6e} is above the initial {:.6e} (lower the learning \
+                     rate)",
+                    it.iter,
+                    it.grad_norm,
+                    it.grad_norm / g0,
+                    it.loss,
+                    l0
+                )));
+            }
+            if let Some(prev) = prev {
+                let change = (prev - it.loss).abs();
+                if loss_tol > 0.0 && change <= loss_tol * prev.abs().max(it.loss.abs()) {
+                    let ratio = stationarity / s0;
+                    return Some(if ratio <= stationary_tol || it.grad_norm <= grad_tol {
+                        Stop::Converged(Convergence::LossChange)
+                    } else {
+                        Stop::Stalled(format!(
+                            "the loss changed by {change:.3e} (relative {:.3e}, tolerance \
+                             {loss_tol:.1e}) at iteration {} while the gradient norm is \
+                             {ratio:.3e} times the initial one (stationary below \
+                             {stationary_tol:.1e})",
+                            change / prev.abs().max(it.loss.abs()),
+                            it.iter
+                        ))
+                    });
+                }
+            }
+            if it.evaluations >= max_evals {
+                return Some(Stop::MaxEvaluations);
+            }
+            None
         };
         let x0 = params.values();
         let result = match self.method {
@@ -323,11 +517,16 @@ impl<'a> Optimizer<'a> {
                 &x0,
                 memory,
                 self.max_iters,
+                max_evals,
+                lbfgs::Restart {
+                    stationary_tol,
+                    grad_tol,
+                },
                 start,
                 &mut evaluate,
                 &mut observe,
             ),
-            Method::GradientDescent { .. } | Method::Adam { .. } => first_order(
+            Method::GradientDescent { .. } | Method::Adam { .. } => first_order_run(
                 self.method,
                 params,
                 x0.clone(),
@@ -337,7 +536,7 @@ impl<'a> Optimizer<'a> {
                 &mut observe,
             ),
         };
-        let (best, stop) = match result {
+        let (best, end) = match result {
             Ok(r) => r,
             Err(e) => {
                 if let Some(b) = &bar {
@@ -350,11 +549,50 @@ impl<'a> Optimizer<'a> {
         if let Some(b) = bar {
             b.finish_and_clear();
         }
-        params.set_values(&best.1);
-        let initial_loss = history.first().map_or(best.0, |i| i.loss);
+        params.set_values(&best.values);
+        let (initial_loss, initial_grad_norm) = history
+            .first()
+            .map_or((best.loss, best.grad_norm), |i| (i.loss, i.grad_norm));
+        let (l0, s0) = initial.unwrap_or((best.loss, best.stationarity));
+        let stop = match end {
+            End::Stop(stop) => stop,
+            End::NoProgress {
+                message,
+                non_finite,
+            } => {
+                let ratio = best.stationarity / s0;
+                let runaway = best.loss < -RUNAWAY * l0.abs().max(f64::MIN_POSITIVE)
+                    || best.grad_norm > DIVERGENCE_GROWTH * initial_grad_norm;
+                if ratio <= self.stationary_tol
+                    || best.grad_norm <= self.grad_tol
+                    || best.stationarity == 0.0
+                {
+                    Stop::Converged(Convergence::NoProgress)
+                } else if let (Some(nf), true) = (&non_finite, runaway) {
+                    Stop::Diverged(format!(
+                        "the loss fell to {:.6e} (from {l0:.6e}) with a gradient norm {:.3e} \
+                         times the initial one, and then {nf}",
+                        best.loss,
+                        best.grad_norm / initial_grad_norm
+                    ))
+                } else {
+                    let mut m = format!(
+                        "{message} (gradient norm {ratio:.3e} times the initial one, \
+                         stationary below {:.1e})",
+                        self.stationary_tol
+                    );
+                    if let Some(nf) = non_finite {
+                        m.push_str(&format!("; a trial point was not finite: {nf}"));
+                    }
+                    Stop::LineSearchFailed(m)
+                }
+            }
+        };
         Ok(Report {
-            loss: best.0,
+            loss: best.loss,
             initial_loss,
+            grad_norm: best.grad_norm,
+            initial_grad_norm,
             iterations: history.len().saturating_sub(1),
             evaluations,
             history,
@@ -375,15 +613,32 @@ pub(crate) struct Evaluation {
 /// The loss evaluation the methods call: values -> loss and gradient.
 pub(crate) type Evaluate<'e> = dyn FnMut(&[f64]) -> Result<Evaluation, Error> + 'e;
 
-/// The loss and gradient of an evaluation that must be finite (an iterate).
-fn finite(e: Evaluation) -> Result<(f64, Vec<f64>), Error> {
-    match e.non_finite {
-        Some(err) => Err(err),
-        None => Ok((e.loss, e.grad)),
-    }
+/// The per-iteration observer, given the iteration and the method's stationarity measure
+/// (the norm of the projected gradient, or of the gradient in L-BFGS's free variables):
+/// `Some(stop)` ends the run.
+pub(crate) type Observe<'e> = dyn FnMut(Iteration, f64) -> Option<Stop> + 'e;
+
+/// The best point a method found.
+pub(crate) struct Best {
+    pub loss: f64,
+    pub values: Vec<f64>,
+    /// |dL/dp| there.
+    pub grad_norm: f64,
+    /// The method's stationarity measure there (see [`Observe`]).
+    pub stationarity: f64,
 }
-/// The per-iteration observer: `Some(stop)` ends the run.
-pub(crate) type Observe<'e> = dyn FnMut(Iteration) -> Option<Stop> + 'e;
+
+/// How a method ended: a decided stop, or no more progress (L-BFGS's line search failed),
+/// which [`Optimizer::minimize_with`] classifies by the numbers.
+pub(crate) enum End {
+    Stop(Stop),
+    NoProgress {
+        /// argmin's message.
+        message: String,
+        /// The first non-finite trial point of the failing line search, if any.
+        non_finite: Option<String>,
+    },
+}
 
 fn norm(g: &[f64]) -> f64 {
     g.iter().map(|x| x * x).sum::<f64>().sqrt()
@@ -393,10 +648,7 @@ fn check_finite(params: &Params, evaluation: usize, loss: f64, g: &[f64]) -> Res
     if !loss.is_finite() {
         return Err(Error::InvalidInput {
             what: format!("loss (evaluation {evaluation})"),
-            message: format!(
-                "is {loss}: the simulation diverged at these parameter values (lower the \
-                 learning rate or the time step, or bound the parameters)"
-            ),
+            message: format!("is {loss}: the simulation diverged at these parameter values"),
         });
     }
     if let Some(i) = g.iter().position(|x| !x.is_finite()) {
@@ -421,8 +673,10 @@ fn progress_bar(len: usize) -> indicatif::ProgressBar {
     bar
 }
 
-/// Gradient descent and Adam, with bounds by projection. Returns the best (loss, values).
-fn first_order(
+/// Gradient descent and Adam, with bounds by projection. Returns the best point and how the
+/// run ended. A non-finite loss or gradient at the start is an error; later, it ends the run
+/// ([`Stop::Diverged`]).
+fn first_order_run(
     method: Method,
     params: &Params,
     mut x: Vec<f64>,
@@ -430,11 +684,21 @@ fn first_order(
     start: Instant,
     evaluate: &mut Evaluate<'_>,
     observe: &mut Observe<'_>,
-) -> Result<((f64, Vec<f64>), Stop), Error> {
+) -> Result<(Best, End), Error> {
     params.project(&mut x);
     let (mut m, mut v) = (vec![0.0; x.len()], vec![0.0; x.len()]);
-    let (mut l, mut g) = finite(evaluate(&x)?)?;
-    let mut best = (l, x.clone());
+    let first = evaluate(&x)?;
+    if let Some(err) = first.non_finite {
+        return Err(err);
+    }
+    let (mut l, mut g) = (first.loss, first.grad);
+    let point = |l: f64, x: &[f64], g: &[f64]| Best {
+        loss: l,
+        values: x.to_vec(),
+        grad_norm: norm(g),
+        stationarity: params.projected_grad_norm(x, g),
+    };
+    let mut best = point(l, &x, &g);
     for (iter, evaluations) in (0..).zip(1..) {
         let it = Iteration {
             iter,
@@ -443,11 +707,11 @@ fn first_order(
             evaluations,
             elapsed: start.elapsed(),
         };
-        if let Some(stop) = observe(it) {
-            return Ok((best, stop));
+        if let Some(stop) = observe(it, params.projected_grad_norm(&x, &g)) {
+            return Ok((best, End::Stop(stop)));
         }
         if iter == max_iters {
-            return Ok((best, Stop::MaxIterations));
+            return Ok((best, End::Stop(Stop::MaxIterations)));
         }
         match method {
             Method::GradientDescent { lr } => {
@@ -472,9 +736,17 @@ fn first_order(
             Method::Lbfgs { .. } => unreachable!("L-BFGS runs through argmin"),
         }
         params.project(&mut x);
-        (l, g) = finite(evaluate(&x)?)?;
-        if l < best.0 {
-            best = (l, x.clone());
+        let e = evaluate(&x)?;
+        if let Some(err) = e.non_finite {
+            let stop = Stop::Diverged(format!(
+                "{err}, at iteration {} (lower the learning rate, or bound the parameters)",
+                iter + 1
+            ));
+            return Ok((best, End::Stop(stop)));
+        }
+        (l, g) = (e.loss, e.grad);
+        if l < best.loss {
+            best = point(l, &x, &g);
         }
     }
     unreachable!("the loop returns")

@@ -240,6 +240,23 @@ impl Params {
         }
     }
 
+    /// The norm of the projected gradient: components at a bound whose descent direction
+    /// leaves the bounds count as 0 (a minimum on a bound is stationary for projection).
+    pub(crate) fn projected_grad_norm(&self, values: &[f64], grad: &[f64]) -> f64 {
+        self.components()
+            .zip(values.iter().zip(grad))
+            .map(|((e, _), (&p, &g))| {
+                let out = (p <= e.bounds.lower && g > 0.0) || (p >= e.bounds.upper && g < 0.0);
+                if out {
+                    0.0
+                } else {
+                    g * g
+                }
+            })
+            .sum::<f64>()
+            .sqrt()
+    }
+
     /// Clamps `values` into the bounds (projection).
     pub(crate) fn project(&self, values: &mut [f64]) {
         for ((e, _), x) in self.components().zip(values) {

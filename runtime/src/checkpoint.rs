@@ -108,17 +108,22 @@ fn flagged<S: Checkpoint>(s: &S, flags: &[bool]) -> HashSet<u64> {
 /// Runs `steps` steps of `step` from `initial`, then `loss` on the final state, and
 /// backpropagates, keeping a checkpoint every `every` steps (see the [module docs](self)).
 ///
-/// `step(tape, s)` records one step on `tape` and returns the next state (new arrays);
-/// `loss(tape, s)` records the loss of the final state and returns the loss array (usually of
-/// length 1; it is seeded with ones like [`Tape::backward`]). Both must be deterministic
-/// functions of the state and the captured parameters, since segments are run twice.
+/// `step(tape, s)` records one step on `tape` and returns the next state (new arrays), or an
+/// error (a solver that did not converge, an invalid input); `loss(tape, s)` records the loss
+/// of the final state and returns the loss array (usually of length 1; it is seeded with ones
+/// like [`Tape::backward`]). Both must be deterministic functions of the state and the
+/// captured parameters, since segments are run twice.
 ///
 /// Gradients accumulate, as with a plain tape, into the arrays of `initial` and the captured
 /// arrays that require grad; they are bitwise equal to those of
 /// `for _ in 0..steps { s = step(&mut tape, &s) }; tape.backward(&loss(&mut tape, &s))` when
 /// those gradient buffers start at zero. Memory: O(steps / every + every) states.
 ///
-/// Errors: those of [`Tape::backward`] for each segment.
+/// Errors: the first error of `step` or `loss`, with the step index in its context
+/// ([`Error::in_context`]: `"checkpointed rollout, step 7 of 20 (forward sweep)"`, or
+/// `"(recomputing segment 6..9 for the backward pass)"` when it happens there), and those of
+/// [`Tape::backward`] for each segment. Nothing panics; the rollout stops at the error, and
+/// the gradients accumulated so far are incomplete.
 ///
 /// ```
 /// use adflex_runtime::prelude::*;
@@ -135,7 +140,7 @@ fn flagged<S: Checkpoint>(s: &S, flags: &[bool]) -> HashSet<u64> {
 ///         }
 ///         Ok(())
 ///     });
-///     y
+///     Ok(y)
 /// };
 /// let x0 = Array::from_vec(vec![1.0f64]).requires_grad();
 /// let out = checkpointed(&x0, 10, 3, double, |tape, x| double(tape, x)).unwrap();
@@ -152,8 +157,8 @@ pub fn checkpointed<S, L, F, G>(
 where
     S: Checkpoint,
     L: Element,
-    F: FnMut(&mut Tape, &S) -> S,
-    G: FnMut(&mut Tape, &S) -> Array<L>,
+    F: FnMut(&mut Tape, &S) -> Result<S, Error>,
+    G: FnMut(&mut Tape, &S) -> Result<Array<L>, Error>,
 {
     assert!(every >= 1, "checkpointed: `every` must be at least 1");
     run(
@@ -169,9 +174,11 @@ where
 /// Checkpointed rollouts with a loss on every state, the step index, and progress: the
 /// general form of [`checkpointed`].
 ///
-/// `step(tape, s_t, t)` records step `t` (from 0) and returns `s_{t+1}`;
+/// `step(tape, s_t, t)` records step `t` (from 0) and returns `s_{t+1}` (or an error);
 /// `loss(tape, s_t, t, acc)` is called on every state `s_0 ..= s_T` and records the kernels
-/// that *add* that state's loss into `acc` (with `atomic_add`; doing nothing is fine). The
+/// that *add* that state's loss into `acc` (with `atomic_add`; doing nothing is fine), or
+/// returns an error. An error comes out of [`Checkpointed::run`] with the step index in its
+/// context (see [`checkpointed`]). The
 /// rollout's loss is the sum of everything added: a trajectory loss, a loss of the final
 /// state only (`if t == steps`), or both. The gradients are those of a plain tape that adds
 /// every loss into one array, bit for bit; the loss value may differ from such a tape's in
@@ -195,9 +202,12 @@ where
 ///         |tape, x, _t| {
 ///             let y = Array::zeros(1);
 ///             tape.launch(scale, 1, (x, 1.5, &y));
-///             y
+///             Ok(y)
 ///         },
-///         |tape, x, _t, acc| tape.launch(add_into, 1, (x, acc)),
+///         |tape, x, _t, acc| {
+///             tape.launch(add_into, 1, (x, acc));
+///             Ok(())
+///         },
 ///     )
 ///     .unwrap();
 /// let expected: f64 = (0..=6).map(|t| 1.5f64.powi(t)).sum();
@@ -246,7 +256,8 @@ impl Checkpointed {
 
     /// Runs the rollout forward and backward (see the [type docs](Checkpointed)).
     ///
-    /// Errors: those of [`Tape::backward`] for each segment.
+    /// Errors: those of `step` and `loss`, with the step index in their context (see
+    /// [`checkpointed`]), and those of [`Tape::backward`] for each segment.
     pub fn run<S, L, F, G>(
         &self,
         initial: &S,
@@ -256,8 +267,8 @@ impl Checkpointed {
     where
         S: Checkpoint,
         L: Element,
-        F: FnMut(&mut Tape, &S, usize) -> S,
-        G: FnMut(&mut Tape, &S, usize, &Array<L>),
+        F: FnMut(&mut Tape, &S, usize) -> Result<S, Error>,
+        G: FnMut(&mut Tape, &S, usize, &Array<L>) -> Result<(), Error>,
     {
         let progress = match &self.progress {
             Some(label) => Progress::bar(label, 2 * self.steps),
@@ -279,13 +290,19 @@ impl Checkpointed {
 /// Where the loss of a rollout comes from.
 enum Loss<'a, S, L> {
     /// One array computed from the final state ([`checkpointed`]).
-    Final(&'a mut dyn FnMut(&mut Tape, &S) -> Array<L>),
+    Final(&'a mut FinalLoss<'a, S, L>),
     /// Added into an accumulator of the given length on every state ([`Checkpointed`]).
     Every(&'a mut EveryLoss<'a, S, L>, usize),
 }
 
 /// The per-state loss of [`Checkpointed`]: `(tape, state, step, accumulator)`.
-type EveryLoss<'a, S, L> = dyn FnMut(&mut Tape, &S, usize, &Array<L>) + 'a;
+type EveryLoss<'a, S, L> = dyn FnMut(&mut Tape, &S, usize, &Array<L>) -> Result<(), Error> + 'a;
+
+/// The loss of the final state of [`checkpointed`]: `(tape, state)`.
+type FinalLoss<'a, S, L> = dyn FnMut(&mut Tape, &S) -> Result<Array<L>, Error> + 'a;
+
+/// The step closure both entry points share: `(tape, state, step index)`.
+type Step<'a, S> = dyn FnMut(&mut Tape, &S, usize) -> Result<S, Error> + 'a;
 
 /// An optional terminal progress bar (indicatif).
 struct Progress(Option<indicatif::ProgressBar>);
@@ -326,7 +343,7 @@ fn run<S, L>(
     initial: &S,
     steps: usize,
     every: usize,
-    step: &mut dyn FnMut(&mut Tape, &S, usize) -> S,
+    step: &mut Step<'_, S>,
     mut loss: Loss<'_, S, L>,
     progress: &Progress,
 ) -> Result<Rollout<L>, Error>
@@ -358,7 +375,7 @@ where
             let s = cur.as_ref().unwrap_or(initial);
             let sources = flagged(s, &flags);
             let mut tape = Tape::new();
-            let next = step(&mut tape, s, t);
+            let next = step(&mut tape, s, t).map_err(|e| at_step(e, "step", t, steps, None))?;
             steps_run += 1;
             progress.tick();
             let reach = tape.forward_reach(&sources);
@@ -399,16 +416,20 @@ where
         let acc = total
             .as_ref()
             .map(|t| Array::<L>::zeros(t.len()).named("loss"));
+        let segment = Some((starts[j], end, j + 1 == starts.len()));
         if let (Loss::Every(f, _), Some(acc), 0) = (&mut loss, &acc, j) {
-            f(&mut tape, first, 0, acc);
+            f(&mut tape, first, 0, acc)
+                .map_err(|e| at_step(e, "loss of state", 0, steps, segment))?;
         }
         let mut cur: Option<S> = None;
         for t in starts[j]..end {
-            let next = step(&mut tape, cur.as_ref().unwrap_or(first), t);
+            let next = step(&mut tape, cur.as_ref().unwrap_or(first), t)
+                .map_err(|e| at_step(e, "step", t, steps, segment))?;
             steps_run += 1;
             progress.tick();
             if let (Loss::Every(f, _), Some(acc)) = (&mut loss, &acc) {
-                f(&mut tape, &next, t + 1, acc);
+                f(&mut tape, &next, t + 1, acc)
+                    .map_err(|e| at_step(e, "loss of state", t + 1, steps, segment))?;
             }
             cur = Some(next);
         }
@@ -417,7 +438,8 @@ where
         match later.take() {
             None => {
                 if let Loss::Final(f) = &mut loss {
-                    let l = f(&mut tape, last);
+                    let l = f(&mut tape, last)
+                        .map_err(|e| at_step(e, "loss of state", steps, steps, segment))?;
                     tape.backward_sources(&l, &sources)?;
                     result = Some(l);
                 }
@@ -454,4 +476,24 @@ where
         checkpoints: starts.len(),
         steps_run,
     })
+}
+
+/// `e` with where it happened: `"checkpointed rollout, step 7 of 20 (forward sweep)"`.
+/// `segment`: `None` in the forward sweep, else the steps of the segment being run for the
+/// backward pass and whether it is the last (run there for the first time).
+fn at_step(
+    e: Error,
+    what: &str,
+    t: usize,
+    steps: usize,
+    segment: Option<(usize, usize, bool)>,
+) -> Error {
+    let pass = match segment {
+        None => "forward sweep".to_string(),
+        Some((a, b, true)) => format!("last segment {a}..{b}, run once on the backward tape"),
+        Some((a, b, false)) => format!("recomputing segment {a}..{b} for the backward pass"),
+    };
+    e.in_context(format!(
+        "checkpointed rollout, {what} {t} of {steps} ({pass})"
+    ))
 }

@@ -2,10 +2,35 @@
 //! three ways (adjoint rows, tangent columns, finite differences) and the dot-product test
 //! `<J v, w> = <v, J^T w>` between forward and reverse mode.
 //!
-//! Finite differences need `f64`: with the default step `h = 1e-6` an `f32` array cannot even
-//! represent most perturbations. Check a kernel written generically over `R: Real` through its
-//! `f64` instantiation; the `f32` one runs the same source. Every perturbed value is restored
-//! exactly (also when the computation panics).
+//! # The finite-difference step, chosen per scalar
+//!
+//! No single step suits every computation: a large one has truncation error (and may cross a
+//! kink, a contact switching on), a small one amplifies the round-off of the forward pass (a
+//! long rollout's loss is smooth only down to some noise level, so its difference quotient
+//! at `h = 1e-6` can be off by percents while the adjoint is right). By default
+//! ([`GradCheck::new`]) each scalar `x` is checked with a sweep: central differences `D(h)` at
+//! the three steps `h = s * 1e-3, s * 1e-4, s * 1e-5`, `s = max(|x|, 1)` (6 evaluations), and
+//! their Richardson extrapolations (which cancel the `h^2` error term). Each of these
+//! estimates gets an uncertainty: twice its disagreement with the next finer estimate
+//! (truncation error, and the noise of the finer one) plus three times its own noise, `3 e /
+//! (sqrt(2) h)`, where `e` is the noise of one evaluation of the computation, estimated from
+//! the even part of the differences (`f(x+h) + f(x-h) - 2 f(x)` at the two finest steps, whose
+//! noise is independent of the odd part's) and at least a few rounding errors of the loss
+//! value. The estimate with the smallest uncertainty is the numeric derivative
+//! ([`Entry::numeric`], with [`Entry::uncertainty`] and [`Entry::step`]), and the check
+//! compares the adjoint with it *beyond* that uncertainty ([`Entry::error`]): a right gradient
+//! passes however noisy the forward pass (the uncertainty grows with the noise), and a wrong
+//! one fails as soon as its error exceeds what the differences can resolve (an adjoint off by
+//! 1% fails unless the loss is noisy at the 1e-3 level at steps of `1e-3 s`; the uncertainty
+//! in the report says how well each derivative was resolved).
+//!
+//! [`GradCheck::step`] fixes the step instead: one central difference per scalar (2
+//! evaluations), uncertainty 0, as plain central differences do.
+//!
+//! Finite differences need `f64`: an `f32` array cannot represent small perturbations and an
+//! `f32` loss is noisy at the 1e-7 level. Check a kernel written generically over `R: Real`
+//! through its `f64` instantiation; the `f32` one runs the same source. Every perturbed value
+//! is restored exactly (also when the computation panics).
 //!
 //! The Jacobian functions and [`dot_test`] take a computation with several outputs: a closure
 //! that records its steps on the tape it is given and returns the output arrays
@@ -21,7 +46,8 @@ use crate::kernel::{Access, Kernel, KernelBody, Mode};
 use crate::launch::bind;
 use crate::tape::Tape;
 
-/// Settings of a gradient check. [`gradcheck`] and [`gradcheck_kernel`] use the defaults.
+/// Settings of a gradient check. [`gradcheck`] and [`gradcheck_kernel`] use the defaults
+/// (the step chosen per scalar, see the [module docs](self)).
 ///
 /// ```
 /// use adflex_runtime::gradcheck::GradCheck;
@@ -30,7 +56,8 @@ use crate::tape::Tape;
 /// ```
 #[derive(Debug, Clone)]
 pub struct GradCheck {
-    h: f64,
+    /// A fixed step, or `None`: a sweep per scalar.
+    h: Option<f64>,
     worst: usize,
     seed: u64,
     floor: f64,
@@ -39,7 +66,7 @@ pub struct GradCheck {
 impl Default for GradCheck {
     fn default() -> Self {
         GradCheck {
-            h: 1e-6,
+            h: None,
             worst: 10,
             seed: 0x5eed_ad1e,
             floor: 1e-12,
@@ -47,7 +74,11 @@ impl Default for GradCheck {
     }
 }
 
-/// One checked scalar: where it is, both derivatives and their relative error.
+/// The steps of the sweep, relative to `max(|x|, 1)` (see the [module docs](self)).
+pub const SWEEP: [f64; 3] = [1e-3, 1e-4, 1e-5];
+
+/// One checked scalar: where it is, both derivatives, how well the numeric one is known and
+/// their relative error beyond that.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Entry {
     /// The array's label.
@@ -58,15 +89,23 @@ pub struct Entry {
     pub component: usize,
     /// The adjoint (tape) derivative.
     pub analytic: f64,
-    /// The central-difference derivative.
+    /// The finite-difference derivative (a central difference or its Richardson
+    /// extrapolation, whichever is known best; see the [module docs](self)).
     pub numeric: f64,
-    /// `|analytic - numeric| / max(|analytic|, |numeric|, scale)`, see [`Report`].
+    /// An estimate of how far `numeric` may be from the true derivative (absolute; from the
+    /// disagreement of the steps and the noise of the computation); 0 with a fixed step.
+    pub uncertainty: f64,
+    /// The step of `numeric` (the larger one, for an extrapolation).
+    pub step: f64,
+    /// `max(|analytic - numeric| - uncertainty, 0) / max(|analytic|, |numeric|, scale)`: the
+    /// relative error beyond what the differences resolve, see [`Report`].
     pub error: f64,
 }
 
 /// The result of a gradient check: the worst entries first.
 ///
-/// The error of an entry is relative: `|a - n| / max(|a|, |n|, s)` where `s` is `1e-3` times the
+/// The error of an entry is relative, and counts only what exceeds the finite differences'
+/// uncertainty `u`: `max(|a - n| - u, 0) / max(|a|, |n|, s)` where `s` is `1e-3` times the
 /// largest `|n|` of the whole check (so derivatives that are zero are compared at the scale of
 /// the gradient, not at their own) and at least [`GradCheck::floor`]. A NaN counts as failing.
 #[derive(Debug, Clone)]
@@ -77,8 +116,9 @@ pub struct Report {
     pub checked: usize,
     /// The largest error (NaN if any derivative was NaN).
     pub max_error: f64,
-    /// The finite-difference step.
-    pub h: f64,
+    /// The fixed finite-difference step ([`GradCheck::step`]), or `None`: chosen per scalar
+    /// ([`Entry::step`]).
+    pub h: Option<f64>,
 }
 
 impl Report {
@@ -97,11 +137,19 @@ impl Report {
 
 impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        writeln!(
-            f,
-            "gradient check of {} scalars (h = {:e}): max relative error {:e}",
-            self.checked, self.h, self.max_error
-        )?;
+        match self.h {
+            Some(h) => writeln!(
+                f,
+                "gradient check of {} scalars (fixed step h = {h:e}): max relative error {:e}",
+                self.checked, self.max_error
+            )?,
+            None => writeln!(
+                f,
+                "gradient check of {} scalars (steps chosen per scalar): max relative error \
+                 beyond the finite differences' uncertainty {:e}",
+                self.checked, self.max_error
+            )?,
+        }
         if self.entries.is_empty() {
             return Ok(());
         }
@@ -114,14 +162,21 @@ impl fmt::Display for Report {
             .max(5);
         writeln!(
             f,
-            "  {:<w$} {:>7} {:>4} {:>23} {:>23} {:>10}",
-            "array", "index", "comp", "analytic", "numeric", "rel.error"
+            "  {:<w$} {:>7} {:>4} {:>23} {:>23} {:>10} {:>8} {:>10}",
+            "array", "index", "comp", "analytic", "numeric", "+-", "step", "rel.error"
         )?;
         for e in &self.entries {
             writeln!(
                 f,
-                "  {:<w$} {:>7} {:>4} {:>23.15e} {:>23.15e} {:>10.3e}",
-                e.array, e.index, e.component, e.analytic, e.numeric, e.error
+                "  {:<w$} {:>7} {:>4} {:>23.15e} {:>23.15e} {:>10.2e} {:>8.1e} {:>10.3e}",
+                e.array,
+                e.index,
+                e.component,
+                e.analytic,
+                e.numeric,
+                e.uncertainty,
+                e.step,
+                e.error
             )?;
         }
         Ok(())
@@ -207,19 +262,131 @@ fn central(inputs: &[&dyn AnyArray], h: f64, mut eval: impl FnMut() -> Vec<f64>)
     cols
 }
 
+/// A finite-difference derivative: its value, uncertainty and step.
+#[derive(Clone, Copy, Debug)]
+struct Fd {
+    value: f64,
+    uncertainty: f64,
+    step: f64,
+}
+
+/// The derivatives of the scalar function `eval` (of the current array values; `f0` is its
+/// value at them) with respect to every scalar of `inputs`, each by a sweep of steps (see the
+/// [module docs](self)). Uses the perturbations actually stored and restores every value
+/// exactly.
+fn sweep(inputs: &[&dyn AnyArray], f0: f64, mut eval: impl FnMut() -> f64) -> Vec<Fd> {
+    let mut out = Vec::new();
+    for &a in inputs {
+        for k in 0..scalars(a) {
+            let x0 = a.scalar(k);
+            let guard = Restore {
+                array: a,
+                k,
+                value: x0,
+            };
+            let s = x0.abs().max(1.0);
+            // Per step: the half-width, the central difference, the second-derivative
+            // estimate (from the even part).
+            let mut h = [0.0; 3];
+            let mut d = [0.0; 3];
+            let mut dd = [0.0; 3];
+            let mut fmax = f0.abs();
+            for (j, rel) in SWEEP.iter().enumerate() {
+                a.set_scalar(k, x0 + s * rel);
+                let xp = a.scalar(k);
+                let fp = eval();
+                a.set_scalar(k, x0 - s * rel);
+                let xm = a.scalar(k);
+                let fm = eval();
+                let (hp, hm) = (xp - x0, x0 - xm);
+                h[j] = 0.5 * (xp - xm);
+                d[j] = (fp - fm) / (xp - xm);
+                dd[j] = ((fp - f0) / hp - (f0 - fm) / hm) / h[j];
+                fmax = fmax.max(fp.abs()).max(fm.abs());
+            }
+            drop(guard);
+            debug_assert_eq!(a.scalar(k).to_bits(), x0.to_bits());
+            out.push(choose(&h, &d, &dd, fmax));
+        }
+    }
+    out
+}
+
+/// The best-known derivative from the sweep's central differences `d` at half-widths `h`
+/// (decreasing) and second-derivative estimates `dd` (see the [module docs](self)).
+fn choose(h: &[f64; 3], d: &[f64; 3], dd: &[f64; 3], fmax: f64) -> Fd {
+    // Richardson: D(h) = f' + c h^2 + ...
+    let rich =
+        |i: usize, j: usize| d[j] + (d[j] - d[i]) * h[j] * h[j] / (h[i] * h[i] - h[j] * h[j]);
+    let (r01, r12) = (rich(0, 1), rich(1, 2));
+    // The noise of one evaluation: the even part at the two finest steps (its noise
+    // dominated by the finest: e sqrt(6) / h^2), at least a few roundings of the loss.
+    let even = (dd[2] - dd[1]).abs() * h[2] * h[2] / 6f64.sqrt();
+    let e = if even.is_finite() {
+        even
+    } else {
+        f64::INFINITY
+    };
+    let e = e.max(4.0 * f64::EPSILON * fmax);
+    let noise = |j: usize| 3.0 * e / (std::f64::consts::SQRT_2 * h[j]);
+    let candidates = [
+        (d[0], 2.0 * (d[0] - r01).abs() + noise(0), h[0]),
+        (r01, 2.0 * (r01 - r12).abs() + noise(1), h[0]),
+        (d[1], 2.0 * (d[1] - r12).abs() + noise(1), h[1]),
+        (d[2], 2.0 * (d[2] - d[1]).abs() + noise(2), h[2]),
+    ];
+    candidates
+        .iter()
+        .filter(|(v, u, _)| v.is_finite() && u.is_finite())
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|&(value, uncertainty, step)| Fd {
+            value,
+            uncertainty,
+            step,
+        })
+        .unwrap_or(Fd {
+            value: f64::NAN,
+            uncertainty: f64::NAN,
+            step: h[0],
+        })
+}
+
+/// The derivatives of `eval` by a fixed step `h` or by a sweep (`None`).
+fn numeric(
+    inputs: &[&dyn AnyArray],
+    h: Option<f64>,
+    f0: f64,
+    mut eval: impl FnMut() -> f64,
+) -> Vec<Fd> {
+    match h {
+        Some(h) => central(inputs, h, || vec![eval()])
+            .into_iter()
+            .map(|c| Fd {
+                value: c[0],
+                uncertainty: 0.0,
+                step: h,
+            })
+            .collect(),
+        None => sweep(inputs, f0, eval),
+    }
+}
+
 fn sum_scalars(a: &dyn AnyArray) -> f64 {
     values(a).iter().sum()
 }
 
 impl GradCheck {
-    /// The defaults: `h = 1e-6`, the 10 worst entries, a fixed seed, floor `1e-12`.
+    /// The defaults: the step chosen per scalar (see the [module docs](self)), the 10 worst
+    /// entries, a fixed seed, floor `1e-12`.
     pub fn new() -> Self {
         Self::default()
     }
 
-    /// The finite-difference step `h` (central differences `(f(x+h) - f(x-h)) / 2h`).
+    /// A fixed finite-difference step `h` for every scalar (central differences
+    /// `(f(x+h) - f(x-h)) / 2h`, 2 evaluations per scalar, no uncertainty estimate) instead of
+    /// the default sweep.
     pub fn step(mut self, h: f64) -> Self {
-        self.h = h;
+        self.h = Some(h);
         self
     }
 
@@ -241,8 +408,8 @@ impl GradCheck {
         self
     }
 
-    fn report(&self, inputs: &[&dyn AnyArray], analytic: &[f64], numeric: &[f64]) -> Report {
-        let scale = numeric.iter().fold(0.0f64, |m, n| m.max(n.abs())) * 1e-3;
+    fn report(&self, inputs: &[&dyn AnyArray], analytic: &[f64], numeric: &[Fd]) -> Report {
+        let scale = numeric.iter().fold(0.0f64, |m, n| m.max(n.value.abs())) * 1e-3;
         let scale = scale.max(self.floor);
         let mut entries = Vec::with_capacity(analytic.len());
         let mut at = 0;
@@ -250,15 +417,19 @@ impl GradCheck {
             let dim = a.element_dim();
             let label = a.label();
             for k in 0..scalars(a) {
-                let (an, nu) = (analytic[at], numeric[at]);
-                let error = (an - nu).abs() / an.abs().max(nu.abs()).max(scale);
+                let (an, fd) = (analytic[at], numeric[at]);
+                let nu = fd.value;
+                let beyond = ((an - nu).abs() - fd.uncertainty).max(0.0);
+                let error = beyond / an.abs().max(nu.abs()).max(scale);
                 entries.push(Entry {
                     array: label.clone(),
                     index: k / dim,
                     component: k % dim,
                     analytic: an,
                     numeric: nu,
-                    error: if an.is_nan() || nu.is_nan() {
+                    uncertainty: fd.uncertainty,
+                    step: fd.step,
+                    error: if an.is_nan() || nu.is_nan() || fd.uncertainty.is_nan() {
                         f64::NAN
                     } else {
                         error
@@ -289,8 +460,9 @@ impl GradCheck {
     /// Checks the gradient of the computation `f` with respect to every scalar of `params`.
     ///
     /// `f` records the whole computation on the tape it is given and returns the loss array
-    /// (its elements are summed). It runs once for the adjoint gradient and twice per scalar of
-    /// `params` for the differences, each time on a fresh tape: it must recompute everything
+    /// (its elements are summed). It runs once for the adjoint gradient and 6 times per scalar
+    /// of `params` for the differences (2 with a fixed [`GradCheck::step`]), each time on a
+    /// fresh tape: it must recompute everything
     /// from the parameters (allocate or zero the arrays it accumulates into). `params` need not
     /// require grad; their gradient buffers are zeroed and overwritten.
     ///
@@ -332,14 +504,12 @@ impl GradCheck {
         let loss = f(&mut tape);
         tape.backward_sources(&loss, &ids(params))?;
         drop(tape);
+        let f0 = sum_scalars(&loss);
         let analytic: Vec<f64> = params.iter().flat_map(|&p| grads(p)).collect();
-        let numeric: Vec<f64> = central(params, self.h, || {
+        let numeric = numeric(params, self.h, f0, || {
             let mut tape = Tape::new();
-            vec![sum_scalars(&f(&mut tape))]
-        })
-        .into_iter()
-        .map(|c| c[0])
-        .collect();
+            sum_scalars(&f(&mut tape))
+        });
         Ok(self.report(params, &analytic, &numeric))
     }
 
@@ -409,10 +579,10 @@ impl GradCheck {
                     sum += w * o.scalar(k);
                 }
             }
-            vec![sum]
+            sum
         };
 
-        eval();
+        let f0 = eval();
         for a in &inputs {
             a.ensure_grad();
             a.zero_grad();
@@ -426,10 +596,7 @@ impl GradCheck {
         }
         bound.run(Mode::Adjoint, dim);
         let analytic: Vec<f64> = inputs.iter().flat_map(|&a| grads(a)).collect();
-        let numeric: Vec<f64> = central(&inputs, self.h, eval)
-            .into_iter()
-            .map(|c| c[0])
-            .collect();
+        let numeric = numeric(&inputs, self.h, f0, eval);
         restore();
         bound.run(Mode::Forward, dim);
         Ok(self.report(&inputs, &analytic, &numeric))

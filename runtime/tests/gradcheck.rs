@@ -4,7 +4,7 @@ mod common;
 
 use adflex_runtime::gradcheck::{
     dot_test, gradcheck, gradcheck_kernel, jacobian_adjoint, jacobian_fd, jacobian_tangent,
-    GradCheck,
+    GradCheck, SWEEP,
 };
 use adflex_runtime::prelude::*;
 use common::{random, Square, Step, SumSq};
@@ -156,4 +156,161 @@ fn jacobians_three_ways_and_dot_test() {
         .to_vec()
         .iter()
         .all(|&t| t == 0.0));
+}
+
+/// `loss += q(x)^3` where `q(x) = (x + 2^20) - 2^20` rounds `x` to a multiple of 2^-32
+/// (round-off in the forward pass, like a long rollout's): its adjoint `3 q^2` is the right
+/// gradient (of the smooth function the computation approximates), and the loss is noisy at
+/// the 1e-10 level.
+#[adflex_macros::diff_kernel]
+fn noisy_cubes(x: &Array<f64>, loss: &Array<f64>) {
+    let q = (x[tid()] + 1048576.0) - 1048576.0;
+    loss.atomic_add(0, q * q * q);
+}
+
+/// `loss += x^3`, smooth.
+#[adflex_macros::diff_kernel]
+fn cubes(x: &Array<f64>, loss: &Array<f64>) {
+    let v = x[tid()];
+    loss.atomic_add(0, v * v * v);
+}
+
+#[test]
+fn a_noisy_but_right_gradient_passes_at_the_defaults_and_not_at_a_tiny_fixed_step() {
+    let x = Array::from_vec(random(8, 11, -2.0, 2.0)).named("x");
+    let f = |tape: &mut Tape| {
+        let l = Array::<f64>::zeros(1);
+        tape.launch(noisy_cubes, 8, (&x, &l));
+        l
+    };
+    let r = gradcheck(f, &[&x]).unwrap();
+    println!("{r}");
+    assert_eq!(r.h, None);
+    r.assert_within(1e-9);
+    // The uncertainties are honest: small against the derivatives (so that a wrong gradient
+    // would show), but not zero.
+    for e in &r.entries {
+        assert!(e.uncertainty > 0.0, "{r}");
+        assert!(e.uncertainty < 1e-4 * e.numeric.abs().max(1e-2), "{r}");
+        let scale = x.get(e.index).abs().max(1.0);
+        assert!(
+            SWEEP
+                .iter()
+                .any(|s| (e.step / (s * scale) - 1.0).abs() < 1e-6),
+            "{r}"
+        );
+    }
+    // The old problem: a fixed small step divides the noise by h.
+    let r = GradCheck::new().step(1e-8).run(f, &[&x]).unwrap();
+    println!("{r}");
+    assert!(!r.is_within(1e-3), "{r}");
+    assert_eq!(r.h, Some(1e-8));
+}
+
+/// `loss = sum x^3` on the host, with a backward `k * 3 x^2`, over a forward pass whose value
+/// is rounded to a multiple of `q` (0: exact).
+fn host_cubes(x: &Array<f64>, k: f64, q: f64) -> impl Fn(&mut Tape) -> Array<f64> + '_ {
+    move |tape| {
+        let loss = Array::<f64>::zeros(1).named("loss");
+        let (xb, lb) = (x.clone(), loss.clone());
+        tape.record_fn(
+            "cubes",
+            &[x],
+            &[&loss],
+            || {
+                let v: f64 = x.to_vec().iter().map(|v| v * v * v).sum();
+                loss.set(0, if q > 0.0 { (v / q).round() * q } else { v });
+            },
+            move || {
+                let (d, xs) = (lb.grad_buffer().unwrap().get(0), xb.to_vec());
+                if let Some(g) = xb.grad_buffer() {
+                    g.modify(|g| {
+                        g.iter_mut()
+                            .zip(xs)
+                            .for_each(|(g, x)| *g += k * 3.0 * x * x * d)
+                    });
+                }
+                Ok(())
+            },
+        );
+        loss
+    }
+}
+
+#[test]
+fn an_adjoint_off_by_one_percent_fails_at_the_defaults() {
+    let x = Array::from_vec(random(6, 12, 0.5, 2.0)).named("x");
+    // Right: passes, exact or rounded to 1e-9.
+    for q in [0.0, 1e-9] {
+        let r = gradcheck(host_cubes(&x, 1.0, q), &[&x]).unwrap();
+        assert!(r.is_within(1e-9), "q = {q}: {r}");
+    }
+    // Off by 1%: fails (the error beyond the uncertainty is about 1%), exact or noisy.
+    for q in [0.0, 1e-9] {
+        let r = gradcheck(host_cubes(&x, 1.01, q), &[&x]).unwrap();
+        println!("{r}");
+        assert!(!r.is_within(1e-3), "q = {q}: {r}");
+        assert!(r.max_error > 0.9e-2 && r.max_error < 1e-2, "q = {q}: {r}");
+        assert!(r.to_string().contains("+-"), "{r}");
+    }
+    // And a kernel check with a wrong adjoint still fails at its full error.
+    let x = Array::from_vec(random(5, 13, 0.5, 2.0)).named("x");
+    let y = Array::<f64>::zeros(5);
+    let r = gradcheck_kernel(Square::<true>, 5, (&x, 1.5, &y)).unwrap();
+    assert!((r.max_error - 1.0 / 3.0).abs() < 1e-6, "{r}");
+}
+
+#[test]
+fn the_sweep_resolves_smooth_derivatives_to_near_rounding() {
+    // x^3 at |x| <= 2: the Richardson value is exact up to rounding, far better than one
+    // central difference at 1e-6.
+    let x = Array::from_vec(random(8, 14, -2.0, 2.0)).named("x");
+    let f = |tape: &mut Tape| {
+        let l = Array::<f64>::zeros(1);
+        tape.launch(cubes, 8, (&x, &l));
+        l
+    };
+    let r = GradCheck::new().worst(8).run(f, &[&x]).unwrap();
+    for e in &r.entries {
+        let exact = 3.0 * x.get(e.index).powi(2);
+        assert!((e.numeric - exact).abs() <= 1e-9 * exact.max(1.0), "{r}");
+        assert!(e.uncertainty <= 1e-8 * exact.max(1.0), "{r}");
+        assert!((e.numeric - exact).abs() <= e.uncertainty.max(1e-13), "{r}");
+    }
+    assert_eq!(r.max_error, 0.0, "{r}");
+}
+
+/// `x^3`, with an adjoint (and tangent) 1% too large.
+#[adflex_macros::diff_func(adjoint = cube_adjoint, tangent = cube_tangent)]
+fn cube_off<R: Real>(x: R) -> R {
+    x * x * x
+}
+fn cube_adjoint<R: Real>(x: R, adj_out: R) -> (R,) {
+    (R::lit(3.03) * x * x * adj_out,)
+}
+fn cube_tangent<R: Real>(x: R, dx: R) -> R {
+    R::lit(3.03) * x * x * dx
+}
+
+/// [`noisy_cubes`] with the 1%-wrong adjoint of [`cube_off`].
+#[adflex_macros::diff_kernel]
+fn noisy_cubes_off(x: &Array<f64>, loss: &Array<f64>) {
+    let q = (x[tid()] + 1048576.0) - 1048576.0;
+    loss.atomic_add(0, cube_off(q));
+}
+
+#[test]
+fn kernel_checks_at_the_defaults_pass_noisy_right_adjoints_and_fail_noisy_wrong_ones() {
+    let x = Array::from_vec(random(6, 15, 0.5, 2.0)).named("x");
+    let loss = Array::<f64>::zeros(1);
+    let r = gradcheck_kernel(noisy_cubes, 6, (&x, &loss)).unwrap();
+    assert!(r.is_within(1e-9), "{r}");
+    let r = GradCheck::new()
+        .step(1e-8)
+        .kernel(noisy_cubes, 6, (&x, &loss))
+        .unwrap();
+    assert!(!r.is_within(1e-4), "{r}");
+    let r = gradcheck_kernel(noisy_cubes_off, 6, (&x, &loss)).unwrap();
+    assert!(!r.is_within(1e-3), "{r}");
+    assert!(r.max_error > 0.9e-2, "{r}");
 }
