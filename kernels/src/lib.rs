@@ -44,6 +44,7 @@ pub mod rigid;
 pub mod scene_file;
 pub mod scenes;
 pub mod statics;
+pub mod tied;
 pub mod validation;
 /// The constraints' old module name (`constraints` beside `integrators::xpbd`).
 #[doc(hidden)]

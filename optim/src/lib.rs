@@ -429,7 +429,24 @@ impl<'a> Optimizer<'a> {
         let mut evaluate = |values: &[f64]| -> Result<Evaluation, Error> {
             params.set_values(values);
             params.zero_grads();
-            let loss = eval()?;
+            let loss = match eval() {
+                Ok(loss) => loss,
+                // After the first evaluation, a simulation that refuses the trial's values (a
+                // state that overflowed, a NaN parameter: the integrators' errors instead of
+                // a NaN loss) is a non-finite evaluation, which the methods handle (a wall
+                // for a line search, divergence for gradient descent and Adam).
+                Err(e @ (Error::NonFinite { .. } | Error::InvalidInput { .. }))
+                    if evaluations > 0 =>
+                {
+                    evaluations += 1;
+                    return Ok(Evaluation {
+                        loss: f64::NAN,
+                        grad: vec![0.0; values.len()],
+                        non_finite: Some(e.in_context(format!("evaluation {evaluations}"))),
+                    });
+                }
+                Err(e) => return Err(e),
+            };
             evaluations += 1;
             let grad = params.grads()?;
             let non_finite = check_finite(params, evaluations, loss, &grad).err();

@@ -108,8 +108,14 @@ use crate::model::{Control, Model, State};
 ///
 /// Each step records a single custom step (see the module docs) plus, for rigid bodies, the
 /// semi-implicit body step. The tape records a step per call, however many Newton iterations
-/// it took. Contact and friction make the force non-smooth: Newton still converges in
-/// practice but the gradient is that of the active contact set.
+/// it took. Penalty contact is continuous but not smooth (a kink where a contact starts; the
+/// ground's damping ramps in over [`Ground::damping_depth`](crate::contact::ground::Ground)
+/// rather than jumping): Newton with its line search converges through impacts
+/// (`kernels/tests/integrators.rs` drops soft blocks and a bending cloth on the ground at steps
+/// of 1 ms to 1/60 s), and the gradient is that of the active contact set. Forces that jump
+/// (a damping switched on at contact, as the particle-particle and shape contacts do) can
+/// stall it: the error then says Newton stalled, and a smaller `dt` or an explicit treatment
+/// of that force ([`ImplicitEuler::explicit`]) is the remedy.
 ///
 /// A solve that misses its tolerance is an error by default (see [`ImplicitEuler::on_failure`]
 /// and the module's "Failures").
@@ -144,7 +150,7 @@ pub struct ImplicitEuler {
     /// `v' = v` (one linear solve with the force Jacobians at the start of the step), no
     /// iteration, no line search. See the module's "Linearized implicit Euler".
     pub linearized: bool,
-    /// Names ([`Force::name`](crate::forces::Force::name)) of the forces treated
+    /// Names ([`Force::name`]) of the forces treated
     /// **explicitly** (default none): evaluated once at the start of the step and held
     /// constant in the implicit solve (an implicit-explicit split). Every force of the model
     /// with such a name is explicit; an unknown name is an [`Error::InvalidInput`] listing

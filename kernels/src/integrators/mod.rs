@@ -11,8 +11,18 @@
 //! a state it knows to be wrong.
 //!
 //! - [`Error::InvalidInput`] (every integrator): `dt` is NaN, infinite, zero or negative; or
-//!   (implicit Euler) a parameter or the state holds a NaN/Inf, named with its array label and
-//!   index (e.g. `spring_ke[3]`). Fix the input.
+//!   a parameter, the control or the state holds a NaN/Inf, named with its array label and
+//!   index (e.g. `spring_ke[3]`, `v[1]`). Fix the input. Implicit Euler checks before it
+//!   solves; the others find it when the new state is not finite (every step checks it).
+//!   Implicit Euler (and [`crate::statics::Equilibrium`]) also refuse a force that reads an
+//!   array requiring a gradient which its [`Force::params_mut`](crate::forces::Force::params_mut)
+//!   does not visit (the error names the force, kernel and array): they differentiate private
+//!   copies of the visited parameters, so a forgotten one would get a wrong gradient.
+//! - [`Error::NonFinite`] (every integrator): the new state is not finite although every input
+//!   is (the forces overflowed: a `dt` beyond the method's stability limit), naming the state
+//!   array and index; or, with [`Tape::check_finite`] on, the first kernel of the step that
+//!   wrote a NaN/Inf (its name, array, index). `rollout` adds the step (`rollout step k of
+//!   n`).
 //! - [`Error::NotConverged`]: an iterative solve stopped short of its tolerance.
 //!   [`ImplicitEuler`]'s Newton iteration (solver `"ImplicitEuler Newton"`): raise
 //!   `max_newton`, loosen `tolerance`, take a smaller `dt`, or accept the unconverged step
