@@ -127,7 +127,7 @@ impl<R: Real> Tied<R> {
             .collect();
         Ok(Tied {
             values: Array::from_vec(values)
-                .named(&format!("{what} (tied)"))
+                .named(format!("{what} (tied)"))
                 .requires_grad(),
             group: Array::from_vec(group.to_vec()),
             target,
