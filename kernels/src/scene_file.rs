@@ -49,7 +49,7 @@
 //! - `tets`: `{ indices: [i, j, k, l], mu, lambda, kd (0) }` or with `young`, `poisson` in
 //!   place of `mu`, `lambda` (see [`crate::forces::fem_tet::snh_lame`]).
 //! - `ground`: `{ normal ([0,1,0]), offset (0), ke (1000), kd (1), mu (0.5), leak (0),
-//!   damp_approach (true), damping_depth (1e-4) }`.
+//!   damp_approach (false), damping_depth (1e-4) }`.
 //! - `drag`: `{ kd, wind ([0,0,0]) }`.
 //! - `particle_contact`, `shape_contact`: `{ ke (1000), kd (1), mu (0.5), leak (0), margin (0) }`.
 //! - `shapes`: `{ kind: "sphere" | "box" | "capsule", pos, rot ([0,0,0,1] as x, y, z, w),

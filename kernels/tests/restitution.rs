@@ -138,3 +138,36 @@ fn the_ground_has_a_restitution_when_it_damps_in_contact_only() {
         "damping on approach stops this ball in the air"
     );
 }
+
+/// The default ground does not damp a particle in mid-air: it falls freely until it touches
+/// (it used to: the default was dFlex's damping on approach, an air drag of `kd v`).
+#[test]
+fn the_default_ground_lets_particles_fall_freely() {
+    let mut b = ModelBuilder::<f64>::new();
+    b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 0.01);
+    b.set_ground(Ground::default());
+    let model = b.finalize();
+    let dt = 1e-3;
+    let s = SemiImplicitEuler
+        .rollout(&model, &mut Tape::new(), &model.state(), None, dt, 300)
+        .unwrap();
+    // Semi-implicit Euler's free fall: v = g t exactly, after 0.3 s (the particle is at about
+    // 0.56 m, far above the ground).
+    let v = s.v.get(0).y;
+    assert!((v - model.gravity.y * 0.3).abs() < 1e-12, "{v}");
+    let with_approach = Ground {
+        damp_approach: true,
+        ..Ground::default()
+    };
+    let mut b = ModelBuilder::<f64>::new();
+    b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 0.01);
+    b.set_ground(with_approach);
+    let model = b.finalize();
+    let s = SemiImplicitEuler
+        .rollout(&model, &mut Tape::new(), &model.state(), None, dt, 300)
+        .unwrap();
+    assert!(
+        s.v.get(0).y > -0.11,
+        "dFlex's ground brakes it to about 0.1 m/s"
+    );
+}

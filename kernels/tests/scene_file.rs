@@ -83,6 +83,7 @@ spring_kd = 0.1
 bend_ke = 0.01
 
 [ground]
+damp_approach = true
 "#;
     let m = ModelBuilder::<f32>::from_toml_str(toml).unwrap().finalize();
     let reference = cloth::build::<f32>(6);
@@ -321,9 +322,9 @@ fn the_ground_reads_damp_approach_and_defaults_to_the_builders() {
             .ground()
             .unwrap()
     };
-    assert!(read("{}").damp_approach);
+    assert!(!read("{}").damp_approach);
     assert_eq!(read("{}"), adflex_kernels::prelude::Ground::default());
-    assert!(!read(r#"{ "damp_approach": false }"#).damp_approach);
+    assert!(read(r#"{ "damp_approach": true }"#).damp_approach);
 }
 
 /// A rotated cloth grid reads from a file as the builder makes it, and a rotation that is not

@@ -272,7 +272,11 @@ fn cloth(n: usize, ke: f32, ground: bool) -> (Model<f32>, State<f32>) {
     grid.spring_ke = ke;
     b.add_cloth_grid(&grid);
     if ground {
-        b.set_ground(Ground::default());
+        // The benchmark scene's ground (damping on approach, as in Warp).
+        b.set_ground(Ground {
+            damp_approach: true,
+            ..Ground::default()
+        });
     }
     let model = b.finalize();
     let s0 = model.state();

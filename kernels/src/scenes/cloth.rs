@@ -268,7 +268,11 @@ pub fn build<R: Real>(n: usize) -> Cloth<R> {
     let mut b = ModelBuilder::<R>::new();
     b.particle_radius = R::lit(0.01);
     b.add_cloth_grid(&ClothGrid::benchmark(n));
-    b.set_ground(Ground::default());
+    // Warp's and dFlex's ground, which damps particles approaching it (the peers' scene).
+    b.set_ground(Ground {
+        damp_approach: true,
+        ..Ground::default()
+    });
     let model = b.finalize();
     let initial = model.state();
     let _ = initial.v.clone().requires_grad();
