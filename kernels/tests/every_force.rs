@@ -250,12 +250,26 @@ const DT: f64 = 1e-2;
 /// scene through `integ` with central differences of step `h`, within `tol`.
 fn check_whole_scene<I: Integrator<f64>>(name: &str, integ: &I, h: f64, tol: f64) {
     let model = every_force();
-    let s0 = model.state();
-    let (x0, v0) = (s0.x.named("x0"), s0.v.named("v0"));
+    let v0 = model.state().v.named("v0");
     let params = model.params();
     let mut arrays: Vec<&dyn AnyArray> = params.iter().map(|(_, _, a)| &**a).collect();
     arrays.push(&v0);
-    let report = GradCheck::new()
+    let report = rollout_report(integ, &model, &v0, &arrays, h);
+    println!("{name}: {report}");
+    report.assert_within(tol);
+}
+
+/// The gradient check of `arrays` for the loss of a rollout of `model` from its initial
+/// positions and the velocities `v0`, with central differences of step `h`.
+fn rollout_report<I: Integrator<f64>>(
+    integ: &I,
+    model: &Model<f64>,
+    v0: &Array<Vec3<f64>>,
+    arrays: &[&dyn AnyArray],
+    h: f64,
+) -> adflex_runtime::gradcheck::Report {
+    let x0 = model.state().x.named("x0");
+    GradCheck::new()
         .step(h)
         .run(
             |tape| {
@@ -264,14 +278,12 @@ fn check_whole_scene<I: Integrator<f64>>(name: &str, integ: &I, h: f64, tol: f64
                     v: v0.clone(),
                     bodies: None,
                 };
-                let s = integ.rollout(&model, tape, &s, None, DT, STEPS).unwrap();
-                loss_of(tape, &model, &s)
+                let s = integ.rollout(model, tape, &s, None, DT, STEPS).unwrap();
+                loss_of(tape, model, &s)
             },
-            &arrays,
+            arrays,
         )
-        .unwrap();
-    println!("{name}: {report}");
-    report.assert_within(tol);
+        .unwrap()
 }
 
 /// Checks every force's parameters through `integ` with central differences of step `h`,
@@ -281,28 +293,13 @@ fn check<I: Integrator<f64>>(name: &str, integ: &I, h: f64, tol: f64) {
     let mut failures = Vec::new();
     for force in &all.forces {
         let model = only(&all, force.name());
-        let s0 = model.state();
-        let (x0, v0) = (s0.x.named("x0"), s0.v.named("v0"));
+        let v0 = model.state().v.named("v0");
         let params = force.params();
         let mut arrays: Vec<&dyn AnyArray> = params.iter().map(|(_, a)| &**a).collect();
         if arrays.is_empty() {
             arrays.push(&v0);
         }
-        let report = GradCheck::new()
-            .step(h)
-            .run(
-                |tape| {
-                    let s = State {
-                        x: x0.clone(),
-                        v: v0.clone(),
-                        bodies: None,
-                    };
-                    let s = integ.rollout(&model, tape, &s, None, DT, STEPS).unwrap();
-                    loss_of(tape, &model, &s)
-                },
-                &arrays,
-            )
-            .unwrap();
+        let report = rollout_report(integ, &model, &v0, &arrays, h);
         let what: Vec<&str> = params.iter().map(|(p, _)| *p).collect();
         println!(
             "{name} / {} ({}): {report}",

@@ -158,7 +158,11 @@ fn linearized_implicit_euler_is_unconditionally_stable_on_a_linear_spring() {
 /// `[[1, dt (1 - q)], [-dt omega^2, 1 - q]] / (1 + z^2)` on `(u, v)`, stable iff
 /// `q < 2 + z^2 / 2`.
 fn imex_spectral_radius(z: f64, q: f64) -> f64 {
-    let (t, d) = ((2.0 - q) / (1.0 + z * z), (1.0 - q) / (1.0 + z * z));
+    spectral_radius((2.0 - q) / (1.0 + z * z), (1.0 - q) / (1.0 + z * z))
+}
+
+/// The largest eigenvalue modulus of a real 2x2 matrix of trace `t` and determinant `d`.
+fn spectral_radius(t: f64, d: f64) -> f64 {
     let disc = t * t - 4.0 * d;
     if disc >= 0.0 {
         let s = disc.sqrt();
@@ -186,14 +190,7 @@ fn fitted_spectral_radius(u: &[f64], v: &[f64]) -> f64 {
     let inv = [[d / det, -b / det], [-c / det, a / det]];
     let rhs = [[u[1], u[2]], [v[1], v[2]]];
     let m = |i: usize, j: usize| rhs[i][0] * inv[0][j] + rhs[i][1] * inv[1][j];
-    let (t, dm) = (m(0, 0) + m(1, 1), m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0));
-    let disc = t * t - 4.0 * dm;
-    if disc >= 0.0 {
-        let s = disc.sqrt();
-        ((t + s) / 2.0).abs().max(((t - s) / 2.0).abs())
-    } else {
-        dm.sqrt()
-    }
+    spectral_radius(m(0, 0) + m(1, 1), m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0))
 }
 
 /// An implicit-explicit split keeps the explicit part's stability limit: spring implicit,

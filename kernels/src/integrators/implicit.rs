@@ -1054,6 +1054,36 @@ impl<R: Real> Shared<R> {
         self.v0_val.iter().zip(d).map(|(v, d)| v + s * d).collect()
     }
 
+    /// The adjoint solve of both methods: the system with gradient-carrying copies, the forces
+    /// recorded at `v` (`x = x0 + dt v`), and `lambda` with `A^T lambda = b` there (masked);
+    /// the copies' gradients zeroed (the solve's products accumulated into them).
+    fn adjoint_solve(
+        &self,
+        v: &[f64],
+        b: &[f64],
+    ) -> Result<(System<R>, Point<R>, Vec<f64>), Error> {
+        let sys = self.system(true);
+        let mut p = sys.eval(v, true);
+        sys.check_visited(&p, Needs::Gradient)?;
+        let mut rhs = b.to_vec();
+        sys.mask(&mut rhs);
+        let mut lambda = vec![0.0; b.len()];
+        let (info, _) = krylov::solve(
+            |u, out| sys.apply_t(&mut p, u, out),
+            &rhs,
+            &mut lambda,
+            Some(&sys.precond),
+            self.integrator.gradient_settings(),
+        );
+        sys.checked()?;
+        self.integrator.check_gradient_solve("adjoint", &info)?;
+        sys.mask(&mut lambda);
+        for l in &sys.c.links {
+            l.zero_copy_grad();
+        }
+        Ok((sys, p, lambda))
+    }
+
     fn backward(&self) -> Result<(), Error> {
         match self.integrator.linearized {
             true => self.backward_linearized(),
@@ -1080,25 +1110,7 @@ impl<R: Real> Shared<R> {
         };
         let (m, dt) = (self.x0_val.len(), self.dt);
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
-        let sys = self.system(true);
-        let mut p = sys.eval(&self.v0_val, true);
-        sys.check_visited(&p, Needs::Gradient)?;
-        let mut rhs = b.clone();
-        sys.mask(&mut rhs);
-        let mut lambda = vec![0.0; m];
-        let (info, _) = krylov::solve(
-            |u, out| sys.apply_t(&mut p, u, out),
-            &rhs,
-            &mut lambda,
-            Some(&sys.precond),
-            self.integrator.gradient_settings(),
-        );
-        sys.checked()?;
-        self.integrator.check_gradient_solve("adjoint", &info)?;
-        sys.mask(&mut lambda);
-        for l in &sys.c.links {
-            l.zero_copy_grad();
-        }
+        let (sys, mut p, lambda) = self.adjoint_solve(&self.v0_val, &b)?;
         let mu: Vec<f64> = (0..m).map(|k| sys.mass[k] * lambda[k]).collect();
         let seed: Vec<f64> = mu.iter().map(|u| dt * u).collect();
         let adjoint = |e| in_pass("adjoint (reverse-mode)", e);
@@ -1186,26 +1198,7 @@ impl<R: Real> Shared<R> {
         };
         let (m, dt) = (self.x0_val.len(), self.dt);
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
-        let sys = self.system(true);
-        let mut p = sys.eval(&self.v1_val, true);
-        sys.check_visited(&p, Needs::Gradient)?;
-        let mut rhs = b.clone();
-        sys.mask(&mut rhs);
-        let mut lambda = vec![0.0; m];
-        let (info, _) = krylov::solve(
-            |u, out| sys.apply_t(&mut p, u, out),
-            &rhs,
-            &mut lambda,
-            Some(&sys.precond),
-            self.integrator.gradient_settings(),
-        );
-        sys.checked()?;
-        self.integrator.check_gradient_solve("adjoint", &info)?;
-        sys.mask(&mut lambda);
-        // The products accumulated into the copies' gradients: start them over.
-        for l in &sys.c.links {
-            l.zero_copy_grad();
-        }
+        let (sys, mut p, lambda) = self.adjoint_solve(&self.v1_val, &b)?;
         let seed: Vec<f64> = (0..m).map(|k| dt * sys.mass[k] * lambda[k]).collect();
         let (gx, gv) = sys
             .pull(&mut p, &seed)
