@@ -961,6 +961,9 @@ impl ImplicitEuler {
     }
 }
 
+/// The system, the point and `lambda` of an adjoint solve.
+type AdjointSolve<R> = (System<R>, Point<R>, Vec<f64>);
+
 /// What the backward and tangent of a step need.
 struct Shared<R: Real> {
     integrator: ImplicitEuler,
@@ -1057,11 +1060,7 @@ impl<R: Real> Shared<R> {
     /// The adjoint solve of both methods: the system with gradient-carrying copies, the forces
     /// recorded at `v` (`x = x0 + dt v`), and `lambda` with `A^T lambda = b` there (masked);
     /// the copies' gradients zeroed (the solve's products accumulated into them).
-    fn adjoint_solve(
-        &self,
-        v: &[f64],
-        b: &[f64],
-    ) -> Result<(System<R>, Point<R>, Vec<f64>), Error> {
+    fn adjoint_solve(&self, v: &[f64], b: &[f64]) -> Result<AdjointSolve<R>, Error> {
         let sys = self.system(true);
         let mut p = sys.eval(v, true);
         sys.check_visited(&p, Needs::Gradient)?;
@@ -1082,6 +1081,19 @@ impl<R: Real> Shared<R> {
             l.zero_copy_grad();
         }
         Ok((sys, p, lambda))
+    }
+
+    /// Adds a backward's results into the inputs' gradients: `x0`, `v0`, the explicit
+    /// accelerations (`dt M lambda`, `a_e_bar`) and the parameters (from their copies).
+    fn accumulate(&self, sys: &System<R>, gx0: &[f64], gv0: &[f64], a_e_bar: &[f64]) {
+        add_into(&self.x0, gx0);
+        add_into(&self.v0, gv0);
+        if let Some(a) = &self.a_e {
+            add_into(a, a_e_bar);
+        }
+        for l in &sys.c.links {
+            l.add_grad();
+        }
     }
 
     fn backward(&self) -> Result<(), Error> {
@@ -1127,14 +1139,7 @@ impl<R: Real> Shared<R> {
         }
         let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
         let gv0: Vec<f64> = (0..m).map(|k| b[k] + dt * gx[k] + gv[k]).collect();
-        add_into(&self.x0, &gx0);
-        add_into(&self.v0, &gv0);
-        if let Some(a) = &self.a_e {
-            add_into(a, &seed);
-        }
-        for l in &sys.c.links {
-            l.add_grad();
-        }
+        self.accumulate(&sys, &gx0, &gv0, &seed);
         Ok(())
     }
 
@@ -1214,14 +1219,7 @@ impl<R: Real> Shared<R> {
                 }
             })
             .collect();
-        add_into(&self.x0, &gx0);
-        add_into(&self.v0, &gv0);
-        if let Some(a) = &self.a_e {
-            add_into(a, &seed);
-        }
-        for l in &sys.c.links {
-            l.add_grad();
-        }
+        self.accumulate(&sys, &gx0, &gv0, &seed);
         Ok(())
     }
 
