@@ -525,8 +525,20 @@ impl<T: Element> AnyArray for Array<T> {
         if T::DIM == 0 {
             return None;
         }
-        self.to_vec()
-            .iter()
+        let _g = self.host_lock(false);
+        // SAFETY: under the read lock nobody writes (writers hold the write lock).
+        let data = unsafe { std::slice::from_raw_parts(self.data_ptr(), self.len()) };
+        // One pass without branches first, in the element's own arithmetic (integrators check
+        // every new state): a sum is finite only if every term is (a finite sum that
+        // overflows just takes the slow pass).
+        let mut sum = T::zeroed();
+        for v in data {
+            sum.acc(*v);
+        }
+        if (0..T::DIM).all(|k| sum.component(k).is_finite()) {
+            return None;
+        }
+        data.iter()
             .position(|v| (0..T::DIM).any(|k| !v.component(k).is_finite()))
     }
     fn lock(&self, write: bool, _: Token) -> ArrayLock<'_> {
