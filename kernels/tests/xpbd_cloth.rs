@@ -18,7 +18,11 @@ fn constrained_cloth(n: usize) -> Model<f64> {
     let mut b = ModelBuilder::<f64>::new();
     b.particle_radius = 0.01;
     b.add_cloth_grid(&ClothGrid::benchmark(n));
-    b.set_ground(Ground::default());
+    // The benchmark scene's ground (damping on approach, as in Warp).
+    b.set_ground(Ground {
+        damp_approach: true,
+        ..Ground::default()
+    });
     let pairs = b.finalize().springs().unwrap().pairs.to_vec();
     for [i, j] in pairs {
         b.add_distance_constraint(i, j, 0.0);
