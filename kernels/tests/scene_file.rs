@@ -362,3 +362,72 @@ fn a_rotated_cloth_grid_reads_as_built() {
         .to_string();
     assert!(err.contains("rotation"), "{err}");
 }
+
+/// The defaults the scene-file schema documents (in parentheses in `crate::scene_file`'s
+/// docs) are the builder's: the ground's and the contacts' scalars, read from the docs' text.
+#[test]
+fn the_documented_scene_defaults_are_the_builders() {
+    use adflex_kernels::prelude::{Ground, ParticleContact};
+    let src = include_str!("../src/scene_file.rs");
+    // `name (value)` pairs of the documented section starting with `//! - {section}`.
+    let documented = |section: &str| -> Vec<(String, String)> {
+        let start = src
+            .find(&format!("//! - {section}"))
+            .unwrap_or_else(|| panic!("no docs for {section}"));
+        let text: String = src[start..]
+            .lines()
+            .take_while(|l| l.starts_with("//!"))
+            .enumerate()
+            .take_while(|(k, l)| *k == 0 || !l.starts_with("//! - "))
+            .map(|(_, l)| l.trim_start_matches("//!"))
+            .collect();
+        let mut out = Vec::new();
+        let mut rest = text.as_str();
+        while let Some(open) = rest.find(" (") {
+            let name = rest[..open]
+                .rsplit([' ', ',', '{', '`'])
+                .next()
+                .unwrap()
+                .to_string();
+            let close = rest[open..].find(')').unwrap() + open;
+            out.push((name, rest[open + 2..close].to_string()));
+            rest = &rest[close..];
+        }
+        out
+    };
+    let g = Ground::<f64>::default();
+    let ground = documented("`ground`");
+    let value = |pairs: &[(String, String)], name: &str| {
+        pairs
+            .iter()
+            .find(|(n, _)| n == name)
+            .unwrap_or_else(|| panic!("{name} not documented: {pairs:?}"))
+            .1
+            .clone()
+    };
+    for (name, actual) in [
+        ("offset", g.offset),
+        ("ke", g.ke),
+        ("kd", g.kd),
+        ("mu", g.mu),
+        ("leak", g.leak),
+        ("damping_depth", g.damping_depth),
+    ] {
+        let doc: f64 = value(&ground, name).parse().unwrap();
+        assert_eq!(doc, actual, "ground.{name}");
+    }
+    assert_eq!(value(&ground, "damp_approach"), g.damp_approach.to_string());
+    assert_eq!(value(&ground, "normal"), "[0,1,0]");
+    let c = ParticleContact::<f64>::default();
+    let contact = documented("`particle_contact`");
+    for (name, actual) in [
+        ("ke", c.ke),
+        ("kd", c.kd),
+        ("mu", c.mu),
+        ("leak", c.leak),
+        ("margin", c.margin),
+    ] {
+        let doc: f64 = value(&contact, name).parse().unwrap();
+        assert_eq!(doc, actual, "particle_contact.{name}");
+    }
+}
