@@ -109,6 +109,16 @@ impl<R: Real> Tied<R> {
                 target.len()
             )));
         }
+        if let Some((k, &g)) = group
+            .iter()
+            .enumerate()
+            .find(|(_, &g)| g as usize >= group.len())
+        {
+            return Err(invalid(format!(
+                "group index {g} of element {k} is not below the number of elements {}",
+                group.len()
+            )));
+        }
         let count = group.iter().max().map_or(0, |&g| g as usize + 1);
         let (mut sum, mut members) = (vec![0.0; count], vec![0usize; count]);
         for (k, &g) in group.iter().enumerate() {

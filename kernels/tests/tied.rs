@@ -100,6 +100,12 @@ fn tying_errors_name_the_parameter() {
         .unwrap_err()
         .to_string();
     assert!(msg.contains("group 1 has no element"), "{msg}");
+    let mut stray = vec![0u32; n];
+    stray[3] = u32::MAX;
+    let msg = Tied::groups(&model, "tets", "mu", &stray)
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("of element 3 is not below"), "{msg}");
 }
 
 /// Per-step particle forces and tetrahedron activations: gradients of every step's controls

@@ -352,3 +352,25 @@ fn anomaly_mode_names_the_kernel_of_the_first_nan() {
         );
     }
 }
+
+/// An anomaly belongs to the step that recorded it: after a failed step, a retry on the same
+/// tape (at another step, from good inputs) is not failed by the old anomaly.
+#[test]
+fn a_retry_on_the_same_tape_is_not_failed_by_an_earlier_anomaly() {
+    let mut b = ModelBuilder::<f64>::new();
+    let a = b.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    let c = b.add_particle(Vec3::new(1.1, 0.0, 0.0), Vec3::zeros(), 1.0);
+    b.add_spring_with_rest(a, c, 1.0, 1e8, 0.0);
+    let model = b.finalize();
+    let mut tape = Tape::new();
+    tape.check_finite(true);
+    let err = ExplicitEuler
+        .rollout(&model, &mut tape, &model.state(), None, 0.1, 1000)
+        .unwrap_err();
+    assert!(matches!(err, Error::NonFinite { .. }), "{err:?}");
+    assert!(tape.anomaly().is_some());
+    // A step from the initial state at a tiny dt is fine.
+    ExplicitEuler
+        .step(&model, &mut tape, &model.state(), None, 1e-6)
+        .unwrap();
+}

@@ -432,12 +432,14 @@ impl<'a> Optimizer<'a> {
             let loss = match eval() {
                 Ok(loss) => loss,
                 // After the first evaluation, a simulation that refuses the trial's values (a
-                // state that overflowed, a NaN parameter: the integrators' errors instead of
-                // a NaN loss) is a non-finite evaluation, which the methods handle (a wall
+                // state that overflowed, a NaN parameter, a solve that failed there: the
+                // integrators' errors instead of a NaN loss) is a non-finite evaluation, which the methods handle (a wall
                 // for a line search, divergence for gradient descent and Adam).
-                Err(e @ (Error::NonFinite { .. } | Error::InvalidInput { .. }))
-                    if evaluations > 0 =>
-                {
+                Err(
+                    e @ (Error::NonFinite { .. }
+                    | Error::InvalidInput { .. }
+                    | Error::NotConverged { .. }),
+                ) if evaluations > 0 => {
                     evaluations += 1;
                     return Ok(Evaluation {
                         loss: f64::NAN,

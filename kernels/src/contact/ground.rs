@@ -96,8 +96,11 @@ pub fn eval_ground<R: Real>(
     f: &Array<Vec3<R>>,
 ) {
     let t = tid();
-    let c = contact_depth(dot(normal, x[t]) - offset - radius, leak);
-    let kdc = contact_damping(c, kd, kd_free, depth);
+    let d = dot(normal, x[t]) - offset - radius;
+    let c = contact_depth(d, leak);
+    // The ramp sees the true depth: a leaky slope through it would be `kd / depth` times
+    // the leak, far above the intended `leak ke`.
+    let kdc = contact_damping(min(d, 0.0), kd, kd_free, depth);
     f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
 }
 
@@ -118,8 +121,11 @@ pub fn eval_ground_radii<R: Real>(
     f: &Array<Vec3<R>>,
 ) {
     let t = tid();
-    let c = contact_depth(dot(normal, x[t]) - offset - radius[t], leak);
-    let kdc = contact_damping(c, kd, kd_free, depth);
+    let d = dot(normal, x[t]) - offset - radius[t];
+    let c = contact_depth(d, leak);
+    // The ramp sees the true depth: a leaky slope through it would be `kd / depth` times
+    // the leak, far above the intended `leak ke`.
+    let kdc = contact_damping(min(d, 0.0), kd, kd_free, depth);
     f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
 }
 

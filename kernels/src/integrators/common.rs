@@ -39,8 +39,9 @@ fn state_arrays<R: Real>(s: &State<R>) -> Vec<&dyn AnyArray> {
     out
 }
 
-/// The end of every integrator's step (`who`): the tape's anomaly ([`Tape::check_finite`]
-/// mode: the first kernel that wrote a NaN/Inf), then the new state, which must be finite: a
+/// The end of every integrator's step (`who`, whose first record is `first` on `tape`): the
+/// tape's anomaly if this step recorded it ([`Tape::check_finite`] mode: the first kernel that
+/// wrote a NaN/Inf), then the new state, which must be finite: a
 /// NaN/Inf in it is an error rather than a state. The error names the first non-finite input
 /// that explains it (the old state, a force's parameter array, the control's arrays, the
 /// gravity) as [`Error::InvalidInput`], or else the state array and index that became
@@ -51,12 +52,17 @@ pub(crate) fn finish_step<R: Real>(
     who: &str,
     model: &Model<R>,
     tape: &Tape,
+    first: usize,
     old: &State<R>,
     control: Option<&Control<R>>,
     new: State<R>,
 ) -> Result<State<R>, Error> {
-    if let Some(e) = tape.anomaly() {
-        return Err(e.clone());
+    // Only an anomaly of this step's records (`first..` on the tape): one of an earlier step
+    // was that step's error, and a retry on the same tape must not fail with it again.
+    if let Some(e @ Error::NonFinite { launch, .. }) = tape.anomaly() {
+        if *launch >= first {
+            return Err(e.clone());
+        }
     }
     let Some((array, index)) = state_arrays(&new)
         .into_iter()
@@ -96,7 +102,7 @@ pub(crate) fn finish_step<R: Real>(
     // or a singular force); `tape.check_finite(true)` names the first kernel.
     Err(Error::NonFinite {
         kernel: format!("{who} step"),
-        launch: tape.len().saturating_sub(1),
+        launch: first,
         param: "new state".into(),
         array: array.label(),
         index,

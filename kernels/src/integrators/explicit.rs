@@ -50,6 +50,7 @@ impl<R: Real> Integrator<R> for ExplicitEuler {
         dt: R,
     ) -> Result<State<R>, Error> {
         check_dt("ExplicitEuler", dt)?;
+        let first = tape.len();
         let a = model.eval_accelerations(tape, state, control);
         let (x, v) = new_xv(model.particle_count);
         tape.launch(
@@ -59,6 +60,6 @@ impl<R: Real> Integrator<R> for ExplicitEuler {
         );
         let bodies = step_bodies(model, tape, state, control, dt);
         let new = State { x, v, bodies };
-        finish_step("ExplicitEuler", model, tape, state, control, new)
+        finish_step("ExplicitEuler", model, tape, first, state, control, new)
     }
 }

@@ -123,8 +123,8 @@ use crate::model::{Control, Model, State};
 pub struct ImplicitEuler {
     /// Maximum Newton iterations per step (default 30).
     pub max_newton: usize,
-    /// Newton stops when `max |v' - v - dt a| <= tolerance * scale` (m/s), `scale` the
-    /// largest of `|v|`, `|v'|`, `dt |a|`. `None` (default): `1e-10` in f64, `1e-4` in f32.
+    /// Newton stops when `max |v' - v - dt (a + a_e)| <= tolerance * scale` (m/s), `scale`
+    /// the largest of `|v|`, `|v'|`, `dt |a|`, `dt |a_e|` (`a_e`: the explicit forces' part). `None` (default): `1e-10` in f64, `1e-4` in f32.
     pub tolerance: Option<f64>,
     /// Stopping rule of the linear solves (Newton, and adjoint/tangent unless
     /// `adjoint_linear` is set; default: relative `1e-10`, 1000 iterations). A Newton linear
@@ -146,9 +146,10 @@ pub struct ImplicitEuler {
     /// [`SolverPolicy::Warn`] prints the figures to stderr and uses the result;
     /// [`SolverPolicy::Continue`] uses it silently.
     pub on_failure: SolverPolicy,
-    /// Baraff and Witkin's **linearized** implicit Euler (default off): one Newton step from
-    /// `v' = v` (one linear solve with the force Jacobians at the start of the step), no
-    /// iteration, no line search. See the module's "Linearized implicit Euler".
+    /// **Linearized** implicit Euler (default off), a variant of Baraff and Witkin's: one
+    /// Newton step from `v' = v` (one linear solve with the force Jacobians at the predicted
+    /// state `(x + dt v, v)`; Baraff and Witkin take them at `(x, v)`, the same on linear
+    /// forces), no iteration, no line search. See the module's "Linearized implicit Euler".
     pub linearized: bool,
     /// Names ([`Force::name`]) of the forces treated
     /// **explicitly** (default none): evaluated once at the start of the step and held
@@ -734,6 +735,7 @@ impl ImplicitEuler {
         let n = model.particle_count;
         let mut stats = NewtonStats::default();
         let dtf = check_dt("ImplicitEuler", dt)?;
+        let first = tape.len();
         let (implicit, explicit) = self.split(model)?;
         let inv_mass = model.particle_inv_mass.to_vec();
         let (x0, v0) = (flat(&state.x), flat(&state.v));
@@ -827,7 +829,7 @@ impl ImplicitEuler {
             bodies,
         };
         Ok((
-            finish_step("ImplicitEuler", model, tape, state, control, new)?,
+            finish_step("ImplicitEuler", model, tape, first, state, control, new)?,
             stats,
         ))
     }
@@ -837,7 +839,15 @@ impl ImplicitEuler {
     fn step_failure(&self, dt: f64, stats: &NewtonStats) -> Error {
         let policy = "or set `on_failure` to SolverPolicy::Warn or Continue to accept the \
                       unconverged step";
-        let (solver, hint) = if self.linearized {
+        let (solver, hint) = if self.linearized && !stats.residual.is_finite() {
+            (
+                "ImplicitEuler (linearized) linear solve",
+                "the solve's iterate is not finite: the state or a force overflowed or is NaN \
+                 at the predicted state (a rollout that diverged in earlier steps, or a force \
+                 that is singular there); take a smaller dt or check the forces"
+                    .to_string(),
+            )
+        } else if self.linearized {
             (
                 "ImplicitEuler (linearized) linear solve",
                 format!(

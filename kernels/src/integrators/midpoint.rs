@@ -52,6 +52,7 @@ impl<R: Real> Integrator<R> for Midpoint {
         dt: R,
     ) -> Result<State<R>, Error> {
         check_dt("Midpoint", dt)?;
+        let first = tape.len();
         let n = model.particle_count;
         let (x0, v0) = (&state.x, &state.v);
         let a1 = model.eval_accelerations(tape, state, control);
@@ -63,6 +64,6 @@ impl<R: Real> Integrator<R> for Midpoint {
         tape.launch(rk_stage, n, (x0, v0, &vh, &a2, dt, &x, &v));
         let bodies = step_bodies(model, tape, state, control, dt);
         let new = State { x, v, bodies };
-        finish_step("Midpoint", model, tape, state, control, new)
+        finish_step("Midpoint", model, tape, first, state, control, new)
     }
 }

@@ -78,6 +78,7 @@ impl<R: Real> Integrator<R> for Rk4 {
         dt: R,
     ) -> Result<State<R>, Error> {
         check_dt("Rk4", dt)?;
+        let first = tape.len();
         let n = model.particle_count;
         let half = dt * R::lit(0.5);
         let (x0, v0) = (&state.x, &state.v);
@@ -102,6 +103,6 @@ impl<R: Real> Integrator<R> for Rk4 {
         );
         let bodies = step_bodies(model, tape, state, control, dt);
         let new = State { x, v, bodies };
-        finish_step("Rk4", model, tape, state, control, new)
+        finish_step("Rk4", model, tape, first, state, control, new)
     }
 }

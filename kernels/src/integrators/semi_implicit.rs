@@ -42,6 +42,7 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
         dt: R,
     ) -> Result<State<R>, Error> {
         check_dt("SemiImplicitEuler", dt)?;
+        let first = tape.len();
         let n = model.particle_count;
         let f = model.eval_forces(tape, state, control);
         let x = Array::zeros(n).named("x");
@@ -74,6 +75,6 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
                 )
             });
         let new = State { x, v, bodies };
-        finish_step("SemiImplicitEuler", model, tape, state, control, new)
+        finish_step("SemiImplicitEuler", model, tape, first, state, control, new)
     }
 }

@@ -114,6 +114,7 @@ impl<R: Real> Integrator<R> for Xpbd {
         dt: R,
     ) -> Result<State<R>, Error> {
         check_dt("Xpbd", dt)?;
+        let step_first = tape.len();
         if self.substeps == 0 {
             return Err(Error::InvalidInput {
                 what: "Xpbd::substeps".into(),
@@ -220,6 +221,6 @@ impl<R: Real> Integrator<R> for Xpbd {
             v,
             bodies,
         };
-        finish_step("Xpbd", model, tape, state, control, new)
+        finish_step("Xpbd", model, tape, step_first, state, control, new)
     }
 }
