@@ -234,7 +234,26 @@ impl Drop for Restore<'_> {
 /// respect to every scalar of `inputs`: one column per scalar. Uses the perturbation actually
 /// stored (after rounding to the element type) and restores every value exactly.
 fn central(inputs: &[&dyn AnyArray], h: f64, mut eval: impl FnMut() -> Vec<f64>) -> Vec<Vec<f64>> {
-    let mut cols = Vec::new();
+    each_scalar(inputs, |x0, set| {
+        let xp = set(x0 + h);
+        let fp = eval();
+        let xm = set(x0 - h);
+        let fm = eval();
+        fp.iter()
+            .zip(&fm)
+            .map(|(p, m)| (p - m) / (xp - xm))
+            .collect()
+    })
+}
+
+/// `f(x0, set)` for every scalar of `inputs`, `x0` its value and `set(x)` storing `x` there and
+/// returning the value actually stored (after rounding to the element type); the scalar is
+/// restored exactly afterwards, also if `f` panics.
+fn each_scalar<T>(
+    inputs: &[&dyn AnyArray],
+    mut f: impl FnMut(f64, &mut dyn FnMut(f64) -> f64) -> T,
+) -> Vec<T> {
+    let mut out = Vec::new();
     for &a in inputs {
         for k in 0..scalars(a) {
             let x0 = a.scalar(k);
@@ -243,23 +262,15 @@ fn central(inputs: &[&dyn AnyArray], h: f64, mut eval: impl FnMut() -> Vec<f64>)
                 k,
                 value: x0,
             };
-            a.set_scalar(k, x0 + h);
-            let xp = a.scalar(k);
-            let fp = eval();
-            a.set_scalar(k, x0 - h);
-            let xm = a.scalar(k);
-            let fm = eval();
+            out.push(f(x0, &mut |x| {
+                a.set_scalar(k, x);
+                a.scalar(k)
+            }));
             drop(guard);
             debug_assert_eq!(a.scalar(k).to_bits(), x0.to_bits());
-            cols.push(
-                fp.iter()
-                    .zip(&fm)
-                    .map(|(p, m)| (p - m) / (xp - xm))
-                    .collect(),
-            );
         }
     }
-    cols
+    out
 }
 
 /// A finite-difference derivative: its value, uncertainty and step.
@@ -275,41 +286,27 @@ struct Fd {
 /// [module docs](self)). Uses the perturbations actually stored and restores every value
 /// exactly.
 fn sweep(inputs: &[&dyn AnyArray], f0: f64, mut eval: impl FnMut() -> f64) -> Vec<Fd> {
-    let mut out = Vec::new();
-    for &a in inputs {
-        for k in 0..scalars(a) {
-            let x0 = a.scalar(k);
-            let guard = Restore {
-                array: a,
-                k,
-                value: x0,
-            };
-            let s = x0.abs().max(1.0);
-            // Per step: the half-width, the central difference, the second-derivative
-            // estimate (from the even part).
-            let mut h = [0.0; 3];
-            let mut d = [0.0; 3];
-            let mut dd = [0.0; 3];
-            let mut fmax = f0.abs();
-            for (j, rel) in SWEEP.iter().enumerate() {
-                a.set_scalar(k, x0 + s * rel);
-                let xp = a.scalar(k);
-                let fp = eval();
-                a.set_scalar(k, x0 - s * rel);
-                let xm = a.scalar(k);
-                let fm = eval();
-                let (hp, hm) = (xp - x0, x0 - xm);
-                h[j] = 0.5 * (xp - xm);
-                d[j] = (fp - fm) / (xp - xm);
-                dd[j] = ((fp - f0) / hp - (f0 - fm) / hm) / h[j];
-                fmax = fmax.max(fp.abs()).max(fm.abs());
-            }
-            drop(guard);
-            debug_assert_eq!(a.scalar(k).to_bits(), x0.to_bits());
-            out.push(choose(&h, &d, &dd, fmax));
+    each_scalar(inputs, |x0, set| {
+        let s = x0.abs().max(1.0);
+        // Per step: the half-width, the central difference, the second-derivative estimate
+        // (from the even part).
+        let mut h = [0.0; 3];
+        let mut d = [0.0; 3];
+        let mut dd = [0.0; 3];
+        let mut fmax = f0.abs();
+        for (j, rel) in SWEEP.iter().enumerate() {
+            let xp = set(x0 + s * rel);
+            let fp = eval();
+            let xm = set(x0 - s * rel);
+            let fm = eval();
+            let (hp, hm) = (xp - x0, x0 - xm);
+            h[j] = 0.5 * (xp - xm);
+            d[j] = (fp - fm) / (xp - xm);
+            dd[j] = ((fp - f0) / hp - (f0 - fm) / hm) / h[j];
+            fmax = fmax.max(fp.abs()).max(fm.abs());
         }
-    }
-    out
+        choose(&h, &d, &dd, fmax)
+    })
 }
 
 /// The best-known derivative from the sweep's central differences `d` at half-widths `h`

@@ -506,6 +506,29 @@ impl<R: Real> System<R> {
         }
     }
 
+    /// The Newton direction at `p` of residual `e`: `A d = -M e` solved by
+    /// [`krylov::solve`] with `settings` (masked on pinned DOFs), with the solve's figures and
+    /// whether BiCGSTAB took over; an error if a pass of the force model failed in it.
+    fn newton_direction(
+        &self,
+        p: &mut Point<R>,
+        e: &[f64],
+        settings: &SolveSettings,
+    ) -> Result<(Vec<f64>, SolveInfo, bool), Error> {
+        let rhs: Vec<f64> = e.iter().zip(&self.mass).map(|(e, m)| -m * e).collect();
+        let mut d = vec![0.0; rhs.len()];
+        let (info, fell_back) = krylov::solve(
+            |u, out| self.apply(p, u, out),
+            &rhs,
+            &mut d,
+            Some(&self.precond),
+            settings,
+        );
+        self.checked()?;
+        self.mask(&mut d);
+        Ok((d, info, fell_back))
+    }
+
     /// See [`check_visited`]: every array the forces read at `p` that needs a derivative is
     /// the state or a private copy.
     fn check_visited(&self, p: &Point<R>, needs: Needs) -> Result<(), Error> {
@@ -557,19 +580,9 @@ impl ImplicitEuler {
                 break;
             }
             stats.newton_iterations += 1;
-            let rhs: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| -m * e).collect();
-            let mut d = vec![0.0; rhs.len()];
-            let (info, fell_back) = krylov::solve(
-                |u, out| sys.apply(&mut p, u, out),
-                &rhs,
-                &mut d,
-                Some(&sys.precond),
-                &self.linear,
-            );
-            sys.checked()?;
+            let (d, info, fell_back) = sys.newton_direction(&mut p, &e, &self.linear)?;
             stats.linear_iterations += info.iterations;
             stats.fallbacks += fell_back as usize;
-            sys.mask(&mut d);
             if within(stats.residual, roundoff_floor::<R>(sys, &e, &d)) {
                 stats.converged = true;
                 break;
@@ -912,17 +925,7 @@ impl ImplicitEuler {
         sys.check_visited(&p, Needs::Gradient)?;
         stats.force_evaluations = 1;
         let e = sys.residual(&p);
-        let rhs: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| -m * e).collect();
-        let mut d = vec![0.0; rhs.len()];
-        let (info, fell_back) = krylov::solve(
-            |u, out| sys.apply(&mut p, u, out),
-            &rhs,
-            &mut d,
-            Some(&sys.precond),
-            &self.linear,
-        );
-        sys.checked()?;
-        sys.mask(&mut d);
+        let (d, info, fell_back) = sys.newton_direction(&mut p, &e, &self.linear)?;
         stats.newton_iterations = 1;
         stats.linear_iterations = info.iterations;
         stats.fallbacks = fell_back as usize;
