@@ -433,8 +433,9 @@ impl<'a> Optimizer<'a> {
                 Ok(loss) => loss,
                 // After the first evaluation, a simulation that refuses the trial's values (a
                 // state that overflowed, a NaN parameter, a solve that failed there: the
-                // integrators' errors instead of a NaN loss) is a non-finite evaluation, which the methods handle (a wall
-                // for a line search, divergence for gradient descent and Adam).
+                // integrators' errors instead of a NaN loss) is a non-finite evaluation,
+                // which the methods handle (a wall for a line search, divergence for gradient
+                // descent and Adam).
                 Err(
                     e @ (Error::NonFinite { .. }
                     | Error::InvalidInput { .. }
