@@ -1247,8 +1247,9 @@ impl<R: Real> Model<R> {
     }
 
     /// Records the elastic potential energy of the forces that have one ([`Force::energy`]:
-    /// springs, membranes, tetrahedra, and any added force with a potential) (J) and returns
-    /// it as a one-element array (for tests and energy-based integrators).
+    /// springs, membranes, tetrahedra, bending, the contact penalties, and any added force
+    /// with a potential) (J) and returns it as a one-element array (for tests and
+    /// energy-based integrators).
     pub fn elastic_energy(
         &self,
         tape: &mut Tape,

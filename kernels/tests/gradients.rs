@@ -8,10 +8,12 @@ use adflex_kernels::constraints::{
     apply_corrections, distance_constraint_energy, solve_distance_constraints,
     velocity_from_positions,
 };
-use adflex_kernels::contact::ground::eval_ground;
-use adflex_kernels::contact::particle::{eval_particle_contact, find_pairs};
-use adflex_kernels::contact::shapes::{eval_shape_contact, ShapeKind};
-use adflex_kernels::forces::bending::{bending_edges, eval_bending};
+use adflex_kernels::contact::ground::{eval_ground, ground_energy, ground_energy_radii};
+use adflex_kernels::contact::particle::{
+    eval_particle_contact, find_pairs, particle_contact_energy, particle_contact_energy_radii,
+};
+use adflex_kernels::contact::shapes::{eval_shape_contact, shape_contact_energy, ShapeKind};
+use adflex_kernels::forces::bending::{bending_edges, bending_energy, eval_bending};
 use adflex_kernels::forces::fem_tet::{eval_tetrahedra, tetrahedron_energy};
 use adflex_kernels::forces::fem_tri::{eval_triangles, triangle_energy};
 use adflex_kernels::forces::particle::{accelerations, add_forces, add_gravity_force, eval_drag};
@@ -113,6 +115,15 @@ fn bending() {
         inputs = [x, v, rest, ke, kd],
         outputs = [f]
     );
+    let e: Array<f64> = Array::zeros(1);
+    check_kernel!(
+        "bending_energy",
+        bending_energy,
+        m,
+        (&x, &quads, &rest, &ke, &e),
+        inputs = [x, rest, ke],
+        outputs = [e]
+    );
 }
 
 #[test]
@@ -160,6 +171,24 @@ fn ground_contact() {
         (&x, &v, tilt, -0.01, 0.01, 1000.0, 1.0, 1.0, 0.0, 0.5, 0.0, &f),
         inputs = [x, v],
         outputs = [f]
+    );
+    let e: Array<f64> = Array::zeros(1);
+    check_kernel!(
+        "ground_energy",
+        ground_energy,
+        n,
+        (&x, tilt, -0.01, 0.01, 1000.0, &e),
+        inputs = [x],
+        outputs = [e]
+    );
+    let radii = arr(r.scalars(n, 0.0, 0.03), "radius");
+    check_kernel!(
+        "ground_energy_radii",
+        ground_energy_radii,
+        n,
+        (&x, up, 0.0, &radii, 1000.0, &e),
+        inputs = [x, radii],
+        outputs = [e]
     );
 }
 
@@ -357,6 +386,24 @@ fn particle_particle_contact() {
         inputs = [x, v],
         outputs = [f]
     );
+    let e: Array<f64> = Array::zeros(1);
+    check_kernel!(
+        "particle_contact_energy",
+        particle_contact_energy,
+        np,
+        (&x, &pairs, radius, 1000.0, &e),
+        inputs = [x],
+        outputs = [e]
+    );
+    let radii = arr(vec![radius; x.len()], "radius");
+    check_kernel!(
+        "particle_contact_energy_radii",
+        particle_contact_energy_radii,
+        np,
+        (&x, &pairs, &radii, 1000.0, &e),
+        inputs = [x, radii],
+        outputs = [e]
+    );
 }
 
 #[test]
@@ -419,6 +466,16 @@ fn shape_contact() {
         (&x, &v, &kind, &pos, &rot, &size, 3usize, 0.02, 1000.0, 1.0, 0.5, 0.0, &f),
         inputs = [x, v, pos, rot, size],
         outputs = [f]
+    );
+    let e: Array<f64> = Array::zeros(1);
+    let radii = arr(vec![0.02; n], "radius");
+    check_kernel!(
+        "shape_contact_energy",
+        shape_contact_energy,
+        n * 3,
+        (&x, &kind, &pos, &rot, &size, 3usize, &radii, 1000.0, &e),
+        inputs = [x, pos, rot, size, radii],
+        outputs = [e]
     );
     // Every particle is in contact with its shape.
     assert!(

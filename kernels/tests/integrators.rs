@@ -495,7 +495,7 @@ fn implicit_euler_cloth_f32_with_contact() {
 
 /// ImplicitEuler converges through contact (issue: it used to stall at impact): a soft block
 /// thrown onto the ground and a free cloth with bending dropped on it, at steps from 1 ms to
-/// 1/60 s, with the ground's damping on approach and in contact only. Every step converges,
+/// 1/30 s, with the ground's damping on approach and in contact only. Every step converges,
 /// everything reaches the ground and nothing falls through it.
 #[test]
 fn implicit_euler_converges_through_contact() {
@@ -531,12 +531,16 @@ fn implicit_euler_converges_through_contact() {
     };
     let mut cases: Vec<(String, Model<f64>, f64)> = Vec::new();
     for damp in [false, true] {
-        for dt in [1e-3, 4e-3, 1.0 / 60.0] {
+        // Without approach damping, 0.017 s and 0.02 s cycled between the residual's and the
+        // potential's steps at the impact before the line search kept to the potential.
+        for dt in [1e-3, 4e-3, 1.0 / 60.0, 0.017, 0.02, 1.0 / 30.0] {
             cases.push((
                 format!("block 2x1x1, damp_approach {damp}"),
                 block(damp, [2, 1, 1]),
                 dt,
             ));
+        }
+        for dt in [1e-3, 4e-3, 1.0 / 60.0] {
             cases.push((
                 format!("block 4x2x2, damp_approach {damp}"),
                 block(damp, [4, 2, 2]),

@@ -5,7 +5,7 @@
 mod common;
 
 use adflex_kernels::contact::ground::{eval_ground, Ground};
-use adflex_kernels::contact::particle::{eval_particle_contact, find_pairs};
+use adflex_kernels::contact::particle::{eval_particle_contact, find_pairs, ParticleContact};
 use adflex_kernels::contact::shapes::{eval_shape_contact, Shape, ShapeKind};
 use adflex_kernels::forces::bending::eval_bending;
 use adflex_kernels::forces::fem_tet::eval_tetrahedra;
@@ -400,10 +400,23 @@ fn elastic_forces_are_minus_the_energy_gradient() {
     tape.backward(&e).unwrap();
     let grad = x.grad().unwrap().to_vec();
     let mut f = vec![Vec3::zeros(); m.particle_count];
-    for (name, fc) in component_forces(&m, &s) {
-        if name != "bending" {
-            f.iter_mut().zip(&fc).for_each(|(a, b)| *a += b);
-        }
+    for (_, fc) in component_forces(&m, &s) {
+        f.iter_mut().zip(&fc).for_each(|(a, b)| *a += b);
+    }
+    // Bending's force leaves out the variation of the edge length in its energy
+    // `ke/2 |e| (angle - rest)^2`: add `ke/2 (angle - rest)^2 d|e|/dx` back.
+    let bending = m.bending().unwrap();
+    let xs = s.x.to_vec();
+    let (quads, rest, ke) = (
+        bending.quads.to_vec(),
+        bending.rest.to_vec(),
+        bending.ke.to_vec(),
+    );
+    for (q, (rest, ke)) in quads.iter().zip(rest.iter().zip(&ke)) {
+        let c = adflex_kernels::forces::bending::dihedral_angle(&xs, *q) - rest;
+        let e_hat = (xs[q[3] as usize] - xs[q[2] as usize]).normalize();
+        f[q[3] as usize] -= e_hat * (0.5 * ke * c * c);
+        f[q[2] as usize] += e_hat * (0.5 * ke * c * c);
     }
     let scale = f.iter().map(|f| f.norm()).fold(0.0, f64::max);
     for (k, (g, f)) in grad.iter().zip(&f).enumerate() {
@@ -412,6 +425,90 @@ fn elastic_forces_are_minus_the_energy_gradient() {
             "particle {k}: -dE/dx {:?} vs force {f:?}",
             -g
         );
+    }
+}
+
+/// Each contact force at rest (`v = 0`: no damping, no friction) is minus the gradient of its
+/// own energy (`Force::energy`, which `ImplicitEuler`'s line search uses): ground, particle
+/// pairs and shapes, with penetrating and separated particles, uniform and per-particle radii.
+#[test]
+fn contact_forces_at_rest_are_minus_their_energy_gradient() {
+    for radii in [false, true] {
+        let mut r = Rng(if radii { 35 } else { 34 });
+        let mut b = ModelBuilder::<f64>::new();
+        for _ in 0..40 {
+            let i = b.add_particle(
+                r.vec3(-0.5, 0.5) + Vec3::new(0.0, 0.3, 0.0),
+                Vec3::zeros(),
+                1.0,
+            );
+            if radii {
+                b.set_particle_radius(i, r.uniform(0.05, 0.2));
+            }
+        }
+        b.particle_radius = 0.15;
+        b.set_ground(Ground {
+            ke: 2000.0,
+            ..Ground::default()
+        });
+        b.set_particle_contact(ParticleContact {
+            ke: 700.0,
+            ..ParticleContact::default()
+        });
+        b.add_shape(Shape::new(
+            ShapeKind::Sphere { radius: 0.3 },
+            Vec3::new(0.2, 0.4, 0.0),
+        ));
+        let mut bx = Shape::new(
+            ShapeKind::Box {
+                half_extents: Vec3::new(0.2, 0.1, 0.3),
+            },
+            Vec3::new(-0.2, 0.2, 0.1),
+        );
+        bx.rot = nalgebra::UnitQuaternion::from_euler_angles(0.3, -0.2, 0.5).into_inner();
+        b.add_shape(bx);
+        b.add_shape(Shape::new(
+            ShapeKind::Capsule {
+                radius: 0.1,
+                half_length: 0.3,
+            },
+            Vec3::new(0.0, 0.6, -0.2),
+        ));
+        b.set_shape_contact(ParticleContact {
+            ke: 1500.0,
+            ..ParticleContact::default()
+        });
+        let m = b.finalize();
+        let s = m.state();
+        let x = s.x.clone().requires_grad();
+        let mut touching = 0;
+        for force in &m.forces {
+            let cx = m.context(&s, None);
+            let (mut tape, e) = (Tape::new(), Array::<f64>::zeros(1));
+            assert!(
+                force.energy(&cx, &mut tape, &e),
+                "{}: no energy",
+                force.name()
+            );
+            x.zero_grad();
+            tape.backward(&e).unwrap();
+            let g = x.grad().unwrap().to_vec();
+            let f = Array::zeros(m.particle_count);
+            force.eval(&cx, &mut Tape::new(), &f);
+            let f = f.to_vec();
+            let scale = f.iter().map(|f| f.norm()).fold(0.0, f64::max);
+            assert!(scale > 1.0, "{}: no particle in contact", force.name());
+            touching += 1;
+            for (k, (g, f)) in g.iter().zip(&f).enumerate() {
+                assert!(
+                    (g + f).norm() <= 1e-12 * scale,
+                    "{} (radii {radii}) particle {k}: -dE/dx {:?} vs force {f:?}",
+                    force.name(),
+                    -g
+                );
+            }
+        }
+        assert_eq!(touching, 3);
     }
 }
 

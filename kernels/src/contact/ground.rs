@@ -59,6 +59,16 @@ pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R)
     (fnormal + fd - ft) * -1.0
 }
 
+/// The potential of [`contact_force`]'s normal (penalty) part at signed distance `d` (m):
+/// `ke/2 min(d, 0)^2` (J). Its gradient is exactly the penalty force (the leak of
+/// [`contact_depth`] shapes only the gradients of the force, not this energy); damping and
+/// friction have no potential.
+#[diff_func]
+pub fn penalty_energy<R: Real>(d: R, ke: R) -> R {
+    let c = min(d, 0.0);
+    0.5 * ke * c * c
+}
+
 /// The damping of a contact at depth `c <= 0` (m): `kd_free` out of contact, rising linearly
 /// to `kd` over the first `depth` metres of penetration (`depth = 0`: a switch at contact), so
 /// that the force is continuous where the damping differs in and out of contact (implicit
@@ -127,6 +137,38 @@ pub fn eval_ground_radii<R: Real>(
     // the leak, far above the intended `leak ke`.
     let kdc = contact_damping(min(d, 0.0), kd, kd_free, depth);
     f.atomic_add(t, contact_force(normal, c, v[t], ke, kdc, mu));
+}
+
+/// Penalty energy of particle `tid` against the ground of [`eval_ground`]:
+/// `penalty_energy(dot(normal, x) - offset - radius, ke)`, added to `energy[0]`.
+#[diff_kernel]
+pub fn ground_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    normal: Vec3<R>,
+    offset: R,
+    radius: R,
+    ke: R,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    energy.atomic_add(0, penalty_energy(dot(normal, x[t]) - offset - radius, ke));
+}
+
+/// [`ground_energy`] with a radius per particle: `radius[tid]` (m).
+#[diff_kernel]
+pub fn ground_energy_radii<R: Real>(
+    x: &Array<Vec3<R>>,
+    normal: Vec3<R>,
+    offset: R,
+    radius: &Array<R>,
+    ke: R,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    energy.atomic_add(
+        0,
+        penalty_energy(dot(normal, x[t]) - offset - radius[t], ke),
+    );
 }
 
 /// A ground plane for particle (and rigid body point) contact.
@@ -288,6 +330,22 @@ impl<R: Real> Force<R> for Ground<R> {
             Some(r) => self.eval_radii(tape, cx.x, cx.v, r, f),
             None => Ground::eval(self, tape, cx.x, cx.v, cx.particle_radius, f),
         }
+    }
+    /// The penalty's potential ([`ground_energy`]); damping and friction have none.
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        let (n, off, ke) = (self.normal, self.offset, self.ke);
+        match cx.particle_radii {
+            Some(r) => tape.launch(
+                ground_energy_radii,
+                cx.x.len(),
+                (cx.x, n, off, r, ke, energy),
+            ),
+            None => {
+                let r = cx.particle_radius;
+                tape.launch(ground_energy, cx.x.len(), (cx.x, n, off, r, ke, energy))
+            }
+        }
+        true
     }
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }

@@ -10,7 +10,7 @@ use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
-use super::ground::{contact_depth, contact_force};
+use super::ground::{contact_depth, contact_force, penalty_energy};
 
 /// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,
 /// whose surfaces are `gap` apart (m; negative in contact): what both pair kernels compute.
@@ -90,6 +90,39 @@ pub fn eval_particle_contact_radii<R: Real>(
     );
     f.atomic_add(i, fc);
     f.atomic_sub(j, fc);
+}
+
+/// Penalty energy of pair `tid = (i, j)` of [`eval_particle_contact`]:
+/// `penalty_energy(|x_i - x_j| - 2 radius, ke)` (J), added to `energy[0]`.
+#[diff_kernel]
+pub fn particle_contact_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    pairs: &Array<[u32; 2]>,
+    radius: R,
+    ke: R,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let [i, j] = pairs[t];
+    energy.atomic_add(0, penalty_energy(length(x[i] - x[j]) - 2.0 * radius, ke));
+}
+
+/// [`particle_contact_energy`] with a radius per particle: the pair touches at
+/// `radius[i] + radius[j]` (m).
+#[diff_kernel]
+pub fn particle_contact_energy_radii<R: Real>(
+    x: &Array<Vec3<R>>,
+    pairs: &Array<[u32; 2]>,
+    radius: &Array<R>,
+    ke: R,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let [i, j] = pairs[t];
+    energy.atomic_add(
+        0,
+        penalty_energy(length(x[i] - x[j]) - radius[i] - radius[j], ke),
+    );
 }
 
 /// Particle-particle contact parameters (also those of particles against shapes,
@@ -232,7 +265,7 @@ impl<R: Real> ParticleContact<R> {
         radius: R,
         f: &Array<Vec3<R>>,
     ) -> usize {
-        let pairs = find_pairs(&x.to_vec(), radius + radius + self.margin);
+        let pairs = self.pairs(x, radius);
         if pairs.is_empty() {
             return 0;
         }
@@ -312,20 +345,7 @@ impl<R: Real> ParticleContact<R> {
         radii: &Array<R>,
         f: &Array<Vec3<R>>,
     ) -> usize {
-        let r = radii.to_vec();
-        let xs = x.to_vec();
-        let rmax = r.iter().map(|r| r.to_f64()).fold(0.0, f64::max);
-        let margin = self.margin.to_f64();
-        let pairs: Vec<[u32; 2]> = find_pairs(&xs, R::lit(2.0 * rmax + margin))
-            .into_iter()
-            .filter(|&[i, j]| {
-                let (i, j) = (i as usize, j as usize);
-                let d = xs[i] - xs[j];
-                let d2: f64 = d.iter().map(|c| c.to_f64().powi(2)).sum();
-                let cut = r[i].to_f64() + r[j].to_f64() + margin;
-                d2 < cut * cut
-            })
-            .collect();
+        let pairs = self.pairs_radii(x, radii);
         if pairs.is_empty() {
             return 0;
         }
@@ -337,6 +357,31 @@ impl<R: Real> ParticleContact<R> {
             (x, v, &pairs, radii, self.ke, self.kd, self.mu, self.leak, f),
         );
         n
+    }
+}
+
+impl<R: Real> ParticleContact<R> {
+    /// The broad phase of [`ParticleContact::eval`]: pairs closer than `2 radius + margin`.
+    fn pairs(&self, x: &Array<Vec3<R>>, radius: R) -> Vec<[u32; 2]> {
+        find_pairs(&x.to_vec(), radius + radius + self.margin)
+    }
+
+    /// The broad phase of [`ParticleContact::eval_radii`].
+    fn pairs_radii(&self, x: &Array<Vec3<R>>, radii: &Array<R>) -> Vec<[u32; 2]> {
+        let r = radii.to_vec();
+        let xs = x.to_vec();
+        let rmax = r.iter().map(|r| r.to_f64()).fold(0.0, f64::max);
+        let margin = self.margin.to_f64();
+        find_pairs(&xs, R::lit(2.0 * rmax + margin))
+            .into_iter()
+            .filter(|&[i, j]| {
+                let (i, j) = (i as usize, j as usize);
+                let d = xs[i] - xs[j];
+                let d2: f64 = d.iter().map(|c| c.to_f64().powi(2)).sum();
+                let cut = r[i].to_f64() + r[j].to_f64() + margin;
+                d2 < cut * cut
+            })
+            .collect()
     }
 }
 
@@ -402,6 +447,29 @@ impl<R: Real> Force<R> for ParticleContact<R> {
             Some(r) => self.eval_radii(tape, cx.x, cx.v, r, f),
             None => ParticleContact::eval(self, tape, cx.x, cx.v, cx.particle_radius, f),
         };
+    }
+    /// The penalty's potential on the pairs the broad phase finds at `cx.x`
+    /// ([`particle_contact_energy`]); damping and friction have none.
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        let (x, ke) = (cx.x, self.ke);
+        let pairs = match cx.particle_radii {
+            Some(r) => self.pairs_radii(x, r),
+            None => self.pairs(x, cx.particle_radius),
+        };
+        if !pairs.is_empty() {
+            let n = pairs.len();
+            let pairs = Array::from_vec(pairs).named("contact_pairs");
+            match cx.particle_radii {
+                Some(r) => {
+                    tape.launch(particle_contact_energy_radii, n, (x, &pairs, r, ke, energy))
+                }
+                None => {
+                    let r = cx.particle_radius;
+                    tape.launch(particle_contact_energy, n, (x, &pairs, r, ke, energy))
+                }
+            }
+        }
+        true
     }
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }

@@ -7,7 +7,7 @@ use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
-use super::ground::{contact_depth, contact_force};
+use super::ground::{contact_depth, contact_force, penalty_energy};
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
 /// with `n` the outward normal (zero at the centre).
@@ -52,6 +52,34 @@ pub fn sdf_capsule<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
     vec4(n.x, n.y, n.z, length(dv) - size.x)
 }
 
+/// The SDF of a shape of kind `k` (0 sphere, 1 box, 2 capsule) at `pos`, rotated by `q`, of
+/// size `size`, at the point `x`: `(n, d)` as in [`sdf_sphere`], `n` in the shape's frame.
+#[diff_func]
+pub fn shape_sdf<R: Real>(x: Vec3<R>, k: u32, pos: Vec3<R>, q: Quat<R>, size: Vec3<R>) -> Vec4<R> {
+    let pl = quat_rotate_inv(q, x - pos);
+    let mut g = sdf_sphere(pl, size);
+    if k == 1 {
+        g = sdf_box(pl, size);
+    } else if k == 2 {
+        g = sdf_capsule(pl, size);
+    }
+    g
+}
+
+/// The signed distance (m) of a particle at `x` of radius `radius` from a shape (negative in
+/// contact), as [`shape_contact_force`] measures it.
+#[diff_func]
+pub fn shape_gap<R: Real>(
+    x: Vec3<R>,
+    k: u32,
+    pos: Vec3<R>,
+    q: Quat<R>,
+    size: Vec3<R>,
+    radius: R,
+) -> R {
+    shape_sdf(x, k, pos, q, size).w - radius
+}
+
 /// The contact force (N) on a particle at `x` with velocity `v` and radius `radius` from a
 /// shape of kind `k` (0 sphere, 1 box, 2 capsule) at `pos`, rotated by `q`, of size `size`:
 /// what both shape-contact kernels compute.
@@ -70,17 +98,32 @@ pub fn shape_contact_force<R: Real>(
     mu: R,
     leak: R,
 ) -> Vec3<R> {
-    let pl = quat_rotate_inv(q, x - pos);
-    let mut g = sdf_sphere(pl, size);
-    if k == 1 {
-        g = sdf_box(pl, size);
-    } else if k == 2 {
-        g = sdf_capsule(pl, size);
-    }
+    let g = shape_sdf(x, k, pos, q, size);
     let n = quat_rotate(q, vec3(g.x, g.y, g.z));
     let c = contact_depth(g.w - radius, leak);
     let kdc = select(c < 0.0, kd, 0.0);
     contact_force(n, c, v, ke, kdc, mu)
+}
+
+/// Penalty energy of particle `tid / num_shapes` against shape `tid % num_shapes`:
+/// `penalty_energy(shape_gap(..), ke)` (J), added to `energy[0]`; `radius` per particle.
+#[diff_kernel]
+pub fn shape_contact_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    kind: &Array<u32>,
+    pos: &Array<Vec3<R>>,
+    rot: &Array<Quat<R>>,
+    size: &Array<Vec3<R>>,
+    num_shapes: usize,
+    radius: &Array<R>,
+    ke: R,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let p = t / num_shapes;
+    let s = t % num_shapes;
+    let d = shape_gap(x[p], kind[s], pos[s], rot[s], size[s], radius[p]);
+    energy.atomic_add(0, penalty_energy(d, ke));
 }
 
 /// Contact of particle `tid / num_shapes` with shape `tid % num_shapes`: kind 0 sphere, 1 box,
@@ -311,6 +354,22 @@ impl<R: Real> Force<R> for Shapes<R> {
             Some(r) => self.eval_radii(tape, cx.x, cx.v, r, f),
             None => Shapes::eval(self, tape, cx.x, cx.v, cx.particle_radius, f),
         }
+    }
+    /// The penalty's potential ([`shape_contact_energy`]); damping and friction have none.
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        let ns = self.kind.len();
+        let radii = match cx.particle_radii {
+            Some(r) => r.clone(),
+            None => Array::from_vec(vec![cx.particle_radius; cx.x.len()]),
+        };
+        tape.launch(
+            shape_contact_energy,
+            cx.x.len() * ns,
+            (
+                cx.x, &self.kind, &self.pos, &self.rot, &self.size, ns, &radii, self.ke, energy,
+            ),
+        );
+        true
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("pos", &mut self.pos);

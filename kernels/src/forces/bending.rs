@@ -66,6 +66,40 @@ pub fn eval_bending<R: Real>(
     f.atomic_add(l, d4 * f_total);
 }
 
+/// Bending energy of element `tid`, `ke/2 |e| (angle - rest)^2` (J) with `|e|` the shared
+/// edge's length, added to `energy[0]`: the discrete-shells energy whose gradient is
+/// [`eval_bending`]'s elastic force up to the edge length's own variation, which dFlex's force
+/// leaves out (the difference, `ke/2 (angle - rest)^2 d|e|/dx`, is second order in the bend).
+/// A degenerate element has no energy, as it has no force.
+#[diff_kernel]
+pub fn bending_energy<R: Real>(
+    x: &Array<Vec3<R>>,
+    quads: &Array<[u32; 4]>,
+    rest: &Array<R>,
+    ke: &Array<R>,
+    energy: &Array<R>,
+) {
+    let t = tid();
+    let [i, j, k, l] = quads[t];
+    let x1 = x[i];
+    let x2 = x[j];
+    let x3 = x[k];
+    let x4 = x[l];
+    let n1 = cross(x3 - x1, x4 - x1);
+    let n2 = cross(x4 - x2, x3 - x2);
+    let n1_length = length(n1);
+    let n2_length = length(n2);
+    if n1_length <= 0.0 || n2_length <= 0.0 {
+        return;
+    }
+    let e = x4 - x3;
+    let e_hat = normalize(e);
+    let rcp = 1.0 / (n1_length * n2_length);
+    let angle = atan2(dot(cross(n2, n1), e_hat) * rcp, dot(n1, n2) * rcp);
+    let c = angle - rest[t];
+    energy.atomic_add(0, 0.5 * ke[t] * length(e) * c * c);
+}
+
 /// The bending elements of a model.
 #[derive(Clone, Debug)]
 pub struct Bending<R: Real> {
@@ -102,6 +136,15 @@ impl<R: Real> Bending<R> {
             eval_bending,
             self.len(),
             (x, v, &self.quads, &self.rest, &self.ke, &self.kd, f),
+        );
+    }
+
+    /// Records [`bending_energy`] on `tape`, adding into `energy[0]`.
+    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
+        tape.launch(
+            bending_energy,
+            self.len(),
+            (x, &self.quads, &self.rest, &self.ke, energy),
         );
     }
 }
@@ -171,6 +214,10 @@ impl<R: Real> Force<R> for Bending<R> {
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         Bending::eval(self, tape, cx.x, cx.v, f);
+    }
+    fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
+        Bending::energy(self, tape, cx.x, energy);
+        true
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("rest", &mut self.rest);

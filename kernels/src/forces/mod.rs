@@ -147,8 +147,17 @@ pub trait Force<R: Real>: ForceClone<R> + Debug + Send + Sync {
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>);
 
     /// Records the force's potential energy (J), added into `energy[0]`, and returns `true`;
-    /// the default (a force without a potential: damping, contact, drag) records nothing and
-    /// returns `false`.
+    /// the default (a force without a potential: drag, wind) records nothing and returns
+    /// `false`. For a force with damping or friction, the energy of its conservative part
+    /// (the library's springs, membranes, tetrahedra, bending and contact penalties do this).
+    ///
+    /// [`ImplicitEuler`](crate::integrators::ImplicitEuler)'s line search uses it: the
+    /// incremental potential it decreases is exact for the forces that define an energy, and
+    /// estimated from the force for the others, so defining one makes large steps converge
+    /// more reliably; its gradient should be minus the force at zero velocity (the library's
+    /// tests check it; bending's differs by a term second order in the bend, see
+    /// [`bending::bending_energy`]). A wrong energy cannot make a step wrong, since a step is
+    /// converged only when the residual is, but can make it fail to converge.
     fn energy(&self, _cx: &ForceContext<'_, R>, _tape: &mut Tape, _energy: &Array<R>) -> bool {
         false
     }

@@ -16,9 +16,17 @@
 //! compressed springs, or from friction, which makes `A` unsymmetric). The matrix is never
 //! formed: `A u` is one pass of the **tangent** kernels of the force model, recorded once per
 //! iterate on a scratch tape, with the tangents `dt u` on `x'` and `u` on `v'`
-//! ([`Tape::tangent`]): `A u = M u - dt M a_dot`. A backtracking (Armijo) line search on
-//! `0.5 (v' - v - dt a)^T M (v' - v - dt a)` makes the iteration robust far from the solution
-//! (large `dt`, stiff springs).
+//! ([`Tape::tangent`]): `A u = M u - dt M a_dot`. A backtracking (Armijo) line search makes
+//! the iteration robust far from the solution (large `dt`, stiff forces, impacts). It accepts a
+//! step that decreases the **incremental potential**
+//! `E(v') = 0.5 (v' - v)^T M (v' - v) + U(x + dt v') - (work of the other forces)`, whose
+//! gradient is `G` when the forces derive from a potential: `U` is the sum of the forces'
+//! energies ([`Force::energy`]: springs, membranes, tetrahedra, bending, and the penalty of
+//! every contact), computed exactly, and the work of the forces without one (gravity, control,
+//! damping, friction, a user force without an energy) is estimated by the trapezoid rule on
+//! its slopes. A step may also be accepted for decreasing the residual's merit
+//! `0.5 (v' - v - dt a)^T M (v' - v - dt a)`, but never if it raises `E`: alternating the two
+//! merits can cycle (it did, at a block's impact with friction).
 //!
 //! # The gradient
 //!
@@ -110,9 +118,10 @@ use crate::model::{Control, Model, State};
 /// semi-implicit body step. The tape records a step per call, however many Newton iterations
 /// it took. Penalty contact is continuous but not smooth (a kink where a contact starts; the
 /// ground's damping ramps in over [`Ground::damping_depth`](crate::contact::ground::Ground)
-/// rather than jumping): Newton with its line search converges through impacts
-/// (`kernels/tests/integrators.rs` drops soft blocks and a bending cloth on the ground at steps
-/// of 1 ms to 1/60 s), and the gradient is that of the active contact set. Forces that jump
+/// rather than jumping): Newton with its line search on the incremental potential (module
+/// docs) converges through impacts (`kernels/tests/integrators.rs` drops soft blocks and a
+/// bending cloth on the ground at steps of 1 ms to 1/30 s), and the gradient is that of the
+/// active contact set. Forces that jump
 /// (a damping switched on at contact, as the particle-particle and shape contacts do) can
 /// stall it: the error then says Newton stalled, and a smaller `dt` or an explicit treatment
 /// of that force ([`ImplicitEuler::explicit`]) is the remedy.
@@ -346,6 +355,57 @@ struct System<R: Real> {
     failure: std::cell::RefCell<Option<Error>>,
 }
 
+/// The incremental potential along a line search's direction `d`, at one point:
+/// `E(v') = E_c(v') + E_r(v')`, `E_c` the conservative part ([`System::potential`]: inertia
+/// and the energies of the forces that have one, exact) and `E_r` the rest (gravity, control,
+/// explicit forces, damping, friction, forces without an energy), whose slope along `d` is
+/// what `G . d` leaves after `E_c`'s. `G` is the gradient of `E` when every force derives from
+/// a potential; `E_r`'s change is estimated by the trapezoid rule on its slopes (exact for
+/// constant and linear forces), so a scene whose forces all have energies is searched on
+/// its true incremental potential.
+struct Potential {
+    /// `E_c` (J).
+    conservative: f64,
+    /// `dE_c/ds` along `d`.
+    slope_c: f64,
+    /// `G . d`, the slope of `E`.
+    slope: f64,
+}
+
+impl Potential {
+    /// At point `p` of residual `e`, along `d`.
+    fn at<R: Real>(sys: &System<R>, p: &Point<R>, e: &[f64], d: &[f64]) -> Result<Self, Error> {
+        let (conservative, slope_c) = sys.potential(p, d)?;
+        Ok(Potential {
+            conservative,
+            slope_c,
+            slope: dot(&sys.gradient(e), d),
+        })
+    }
+
+    /// `E(t) - E(self)` for the step of length `alpha` (along `d`) from `self` to `t`.
+    fn change(&self, t: &Potential, alpha: f64) -> f64 {
+        let rest = 0.5 * alpha * ((self.slope - self.slope_c) + (t.slope - t.slope_c));
+        t.conservative - self.conservative + rest
+    }
+
+    /// The rounding error of [`Potential::change`] between `self` and `t` (J): the energies
+    /// are sums in the model's precision.
+    fn rounding<R: Real>(&self, t: &Potential) -> f64 {
+        100.0 * epsilon::<R>() * (self.conservative.abs() + t.conservative.abs())
+    }
+
+    /// Armijo's condition for that step: `E(t) - E(self) <= 1e-4 alpha G . d`.
+    fn armijo(&self, t: &Potential, alpha: f64) -> bool {
+        let change = self.change(t, alpha);
+        change.is_finite() && change <= 1e-4 * alpha * self.slope
+    }
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(a, b)| a * b).sum()
+}
+
 /// The accelerations recorded at one iterate, on their own tape.
 struct Point<R: Real> {
     tape: Tape,
@@ -424,6 +484,11 @@ impl<R: Real> System<R> {
                 }
             })
             .collect()
+    }
+
+    /// `G = M e`, the incremental potential's gradient for conservative forces.
+    fn gradient(&self, e: &[f64]) -> Vec<f64> {
+        e.iter().zip(&self.mass).map(|(e, m)| m * e).collect()
     }
 
     /// The line-search merit `0.5 e^T M e` (J).
@@ -529,6 +594,36 @@ impl<R: Real> System<R> {
         Ok((d, info, fell_back))
     }
 
+    /// The incremental potential's conservative part at `p` and its slope along `d`:
+    /// `E_c = 0.5 (v' - v0)^T M (v' - v0) + U(x0 + dt v')` (J), with `U` the energies of the
+    /// forces that have one ([`Force::energy`]), and `dE_c/ds = (M (v' - v0) + dt dU/dx) . d`
+    /// (one tangent pass of the energy kernels).
+    fn potential(&self, p: &Point<R>, d: &[f64]) -> Result<(f64, f64), Error> {
+        let mut tape = Tape::new();
+        let energy =
+            self.c
+                .model
+                .elastic_energy(&mut tape, &particles(&p.x, &p.v), self.c.control.as_ref());
+        let dx: Vec<f64> = d
+            .iter()
+            .zip(&self.free)
+            .map(|(&d, &f)| if f { self.dt * d } else { 0.0 })
+            .collect();
+        p.x.ensure_tangent().assign(&unflat::<R>(&dx));
+        p.v.ensure_tangent().assign(&vec![Vec3::zeros(); p.v.len()]);
+        tape.tangent().map_err(|e| in_pass("energy tangent", e))?;
+        let du = energy.tangent_buffer().map_or(0.0, |t| t.get(0).to_f64());
+        let (mut kinetic, mut slope) = (0.0, 0.0);
+        for k in 0..d.len() {
+            if self.free[k] {
+                let m_dv = self.mass[k] * (p.v_val[k] - self.v0[k]);
+                kinetic += 0.5 * m_dv * (p.v_val[k] - self.v0[k]);
+                slope += m_dv * d[k];
+            }
+        }
+        Ok((kinetic + energy.get(0).to_f64(), slope + du))
+    }
+
     /// See [`check_visited`]: every array the forces read at `p` that needs a derivative is
     /// the state or a private copy.
     fn check_visited(&self, p: &Point<R>, needs: Needs) -> Result<(), Error> {
@@ -589,13 +684,11 @@ impl ImplicitEuler {
             }
             // Backtracking line search. A step is accepted if it decreases either merit:
             // the residual `phi` (Armijo; its slope along a Newton direction is -2 phi), or
-            // the incremental potential `E` whose gradient is `G` for conservative forces
-            // (its decrease estimated by the trapezoid rule on the slope `G . d`, so `E`
-            // itself is never needed). The potential is what makes large steps on stiff
-            // nonlinear springs converge: there the residual has local minima.
-            let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
-            let g: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
-            let slope0 = dot(&g, &d);
+            // the incremental potential `E` whose gradient is `G` (Armijo on `E`, see
+            // [`Potential`]). The potential is what makes large steps on stiff nonlinear
+            // forces and through contact converge: there the residual has local minima.
+            let slope0 = dot(&sys.gradient(&e), &d);
+            let mut start: Option<Potential> = None;
             let mut alpha = 1.0;
             let mut best: Option<(f64, Point<R>, Vec<f64>)> = None;
             let mut accepted = None;
@@ -605,12 +698,21 @@ impl ImplicitEuler {
                 stats.force_evaluations += 1;
                 let et = sys.residual(&pt);
                 let phit = sys.merit(&et);
-                let residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
-                let potential_ok = slope0 < 0.0 && {
-                    let gt: Vec<f64> = et.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
-                    let slope = dot(&gt, &d);
-                    slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0
-                };
+                let mut residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
+                let mut potential_ok = false;
+                if slope0 < 0.0 {
+                    if start.is_none() {
+                        start = Some(Potential::at(sys, &p, &e, &d)?);
+                    }
+                    let s0 = start.as_ref().expect("set above");
+                    let t = Potential::at(sys, &pt, &et, &d)?;
+                    let change = s0.change(&t, alpha);
+                    potential_ok = change.is_finite() && change <= 1e-4 * alpha * slope0;
+                    // A residual decrease that raises the potential (beyond its rounding) is
+                    // refused: taking both merits' steps in turn can cycle (seen at impacts
+                    // with friction).
+                    residual_ok &= !(change > s0.rounding::<R>(&t));
+                }
                 if !self.line_search || (phit.is_finite() && (residual_ok || potential_ok)) {
                     accepted = Some((phit, pt, et));
                     break;
@@ -633,7 +735,7 @@ impl ImplicitEuler {
             let step = match accepted {
                 Some(a) => Some(a),
                 None => {
-                    let s = self.potential_step(sys, &mut p, &e, stats);
+                    let s = self.potential_step(sys, &mut p, &e, stats)?;
                     sys.checked()?;
                     s.or_else(|| best.filter(|b| b.0 < phi))
                 }
@@ -655,19 +757,19 @@ impl ImplicitEuler {
         Ok(p.v_val)
     }
 
-    /// A step that decreases the incremental potential `E(v')`, whose gradient is `G` when
-    /// the forces derive from a potential: along the CG solution truncated at negative
-    /// curvature (a descent direction of `E`), or along `-M^-1 G`, with a backtracking line
-    /// search that needs only `G` (the decrease of `E` estimated by the trapezoid rule on the
-    /// slope `G(v' + s d) . d`). Returns the merit, point and residual reached, or `None`.
+    /// A step that decreases the incremental potential `E(v')` ([`Potential`]), whose gradient
+    /// is `G` when the forces derive from a potential: along the CG solution truncated at
+    /// negative curvature (a descent direction of `E`), or along `-M^-1 G`, with a
+    /// backtracking (Armijo) line search on `E`. Returns the merit, point and residual
+    /// reached, or `None`.
     fn potential_step<R: Real>(
         &self,
         sys: &System<R>,
         p: &mut Point<R>,
         e: &[f64],
         stats: &mut NewtonStats,
-    ) -> Option<(f64, Point<R>, Vec<f64>)> {
-        let g: Vec<f64> = e.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
+    ) -> Result<Option<(f64, Point<R>, Vec<f64>)>, Error> {
+        let g = sys.gradient(e);
         let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
         let mut d = vec![0.0; g.len()];
         let info = krylov::cg(
@@ -679,14 +781,13 @@ impl ImplicitEuler {
         );
         stats.linear_iterations += info.iterations;
         sys.mask(&mut d);
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
-        let mut slope0 = dot(&g, &d);
+        let slope0 = dot(&g, &d);
         if slope0.is_nan() || slope0 >= 0.0 {
             d = e.iter().map(|e| -e).collect();
-            slope0 = dot(&g, &d);
         }
-        if slope0.is_nan() || slope0 >= 0.0 {
-            return None;
+        let s0 = Potential::at(sys, p, e, &d)?;
+        if s0.slope.is_nan() || s0.slope >= 0.0 {
+            return Ok(None);
         }
         let mut alpha = 1.0;
         for _ in 0..=self.max_backtracks {
@@ -694,15 +795,13 @@ impl ImplicitEuler {
             let pt = sys.eval(&vt, false);
             stats.force_evaluations += 1;
             let et = sys.residual(&pt);
-            let gt: Vec<f64> = et.iter().zip(&sys.mass).map(|(e, m)| m * e).collect();
-            let slope = dot(&gt, &d);
-            if slope.is_finite() && 0.5 * alpha * (slope0 + slope) <= 1e-4 * alpha * slope0 {
-                return Some((sys.merit(&et), pt, et));
+            if s0.armijo(&Potential::at(sys, &pt, &et, &d)?, alpha) {
+                return Ok(Some((sys.merit(&et), pt, et)));
             }
             stats.backtracks += 1;
             alpha *= 0.5;
         }
-        None
+        Ok(None)
     }
 
     /// One step like [`Integrator::step`], also returning what the solve did.
