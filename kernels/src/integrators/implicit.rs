@@ -406,6 +406,9 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(a, b)| a * b).sum()
 }
 
+/// A line search's accepted step: its merit, point and residual.
+type Accepted<R> = (f64, Point<R>, Vec<f64>);
+
 /// The accelerations recorded at one iterate, on their own tape.
 struct Point<R: Real> {
     tape: Tape,
@@ -614,11 +617,11 @@ impl<R: Real> System<R> {
         tape.tangent().map_err(|e| in_pass("energy tangent", e))?;
         let du = energy.tangent_buffer().map_or(0.0, |t| t.get(0).to_f64());
         let (mut kinetic, mut slope) = (0.0, 0.0);
-        for k in 0..d.len() {
+        for (k, dk) in d.iter().enumerate() {
             if self.free[k] {
                 let m_dv = self.mass[k] * (p.v_val[k] - self.v0[k]);
                 kinetic += 0.5 * m_dv * (p.v_val[k] - self.v0[k]);
-                slope += m_dv * d[k];
+                slope += m_dv * dk;
             }
         }
         Ok((kinetic + energy.get(0).to_f64(), slope + du))
@@ -768,7 +771,7 @@ impl ImplicitEuler {
         p: &mut Point<R>,
         e: &[f64],
         stats: &mut NewtonStats,
-    ) -> Result<Option<(f64, Point<R>, Vec<f64>)>, Error> {
+    ) -> Result<Option<Accepted<R>>, Error> {
         let g = sys.gradient(e);
         let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
         let mut d = vec![0.0; g.len()];
