@@ -799,10 +799,12 @@ impl<R: Real> ModelBuilder<R> {
     /// rest shapes), each naming its item (`springs[3]`, `tets[0]`) and parameter.
     pub fn try_finalize(&self) -> Result<Model<R>, ModelError> {
         self.validate()?;
-        Ok(self.build_model())
+        // Compiled in this crate (`precompiled`): a user crate does not code-generate the
+        // library's kernels again.
+        Ok(crate::precompiled::build_model(self))
     }
 
-    fn build_model(&self) -> Model<R> {
+    pub(crate) fn build_model(&self) -> Model<R> {
         let n = self.particle_count();
         let springs = (!self.spring_pairs.is_empty()).then(|| Springs {
             pairs: Array::from_vec(self.spring_pairs.clone()).named("spring_pairs"),

@@ -12,7 +12,7 @@ use crate::rigid::BodyState;
 
 /// Advances the rigid bodies of `state` (if any) by `dt` (s) with
 /// [`crate::rigid::RigidBodies::integrate`] (semi-implicit Euler), recording on `tape`.
-pub(crate) fn step_bodies<R: Real>(
+pub(crate) fn step_bodies_generic<R: Real>(
     model: &Model<R>,
     tape: &mut Tape,
     state: &State<R>,
@@ -29,6 +29,10 @@ pub(crate) fn step_bodies<R: Real>(
         .expect("the model has rigid bodies");
     Some(bodies.integrate(tape, s, &f, &t, model.gravity, dt))
 }
+
+/// [`step_bodies_generic`], by code compiled in this crate for `f32` and `f64`
+/// (`crate::precompiled`).
+pub(crate) use crate::precompiled::step_bodies;
 
 /// The arrays of a state, particles then bodies.
 fn state_arrays<R: Real>(s: &State<R>) -> Vec<&dyn AnyArray> {

@@ -847,6 +847,18 @@ impl ImplicitEuler {
         control: Option<&Control<R>>,
         dt: R,
     ) -> Result<(State<R>, NewtonStats), Error> {
+        // Compiled in this crate (`precompiled`), not in the caller's.
+        crate::precompiled::implicit_euler_step(self, model, tape, state, control, dt)
+    }
+
+    pub(crate) fn step_with_stats_generic<R: Real>(
+        &self,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> Result<(State<R>, NewtonStats), Error> {
         let n = model.particle_count;
         let mut stats = NewtonStats::default();
         let dtf = check_dt("ImplicitEuler", dt)?;

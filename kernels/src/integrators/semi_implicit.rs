@@ -3,7 +3,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::common::finish_step;
+use super::common::{finish_step, step_bodies};
 use super::{check_dt, Integrator};
 use crate::model::{Control, Model, State};
 
@@ -61,19 +61,7 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
                 &v,
             ),
         );
-        let bodies = model
-            .eval_body_forces(tape, state, control)
-            .map(|(bf, bt)| {
-                let b = model.bodies.as_ref().expect("bodies");
-                b.integrate(
-                    tape,
-                    state.bodies.as_ref().expect("body state"),
-                    &bf,
-                    &bt,
-                    model.gravity,
-                    dt,
-                )
-            });
+        let bodies = step_bodies(model, tape, state, control, dt);
         let new = State { x, v, bodies };
         finish_step("SemiImplicitEuler", model, tape, first, state, control, new)
     }
