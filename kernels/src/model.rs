@@ -846,6 +846,7 @@ impl<R: Real> ModelBuilder<R> {
                 size: Array::from_vec(codes.iter().map(|c| c.1).collect()).named("shape_size"),
                 ke: self.shape_contact.ke,
                 kd: self.shape_contact.kd,
+                damping_depth: self.shape_contact.damping_depth,
                 mu: self.shape_contact.mu,
                 leak: self.shape_contact.leak,
             }

@@ -51,7 +51,8 @@
 //! - `ground`: `{ normal ([0,1,0]), offset (0), ke (1000), kd (1), mu (0.5), leak (0),
 //!   damp_approach (false), damping_depth (1e-4) }`.
 //! - `drag`: `{ kd, wind ([0,0,0]) }`.
-//! - `particle_contact`, `shape_contact`: `{ ke (1000), kd (1), mu (0.5), leak (0), margin (0) }`.
+//! - `particle_contact`, `shape_contact`: `{ ke (1000), kd (1), damping_depth (1e-4), mu (0.5),
+//!   leak (0), margin (0) }`.
 //! - `shapes`: `{ kind: "sphere" | "box" | "capsule", pos, rot ([0,0,0,1] as x, y, z, w),
 //!   radius, half_extents, half_length }`.
 //! - `bodies`: `{ x, q ([0,0,0,1]), v, w, mass, inertia: [Ixx, Iyy, Izz] (body frame),
@@ -126,6 +127,10 @@ fn ground_kd() -> f64 {
 fn ground_damp_approach() -> bool {
     Ground::<f64>::default().damp_approach
 }
+fn contact_damping_depth() -> f64 {
+    ParticleContact::<f64>::default().damping_depth
+}
+
 fn ground_damping_depth() -> f64 {
     Ground::<f64>::default().damping_depth
 }
@@ -298,6 +303,8 @@ struct ContactDesc {
     ke: f64,
     #[serde(default = "contact_kd")]
     kd: f64,
+    #[serde(default = "contact_damping_depth")]
+    damping_depth: f64,
     #[serde(default = "contact_mu")]
     mu: f64,
     #[serde(default)]
@@ -857,6 +864,7 @@ fn build<R: Real>(d: SceneDesc, src: &str, format: Format) -> Result<ModelBuilde
     let contact = |cd: &ContactDesc| ParticleContact {
         ke: R::lit(cd.ke),
         kd: R::lit(cd.kd),
+        damping_depth: R::lit(cd.damping_depth),
         mu: R::lit(cd.mu),
         leak: R::lit(cd.leak),
         margin: R::lit(cd.margin),

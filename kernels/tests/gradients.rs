@@ -382,7 +382,16 @@ fn particle_particle_contact() {
         "eval_particle_contact",
         eval_particle_contact,
         np,
-        (&x, &v, &pairs, radius, 1000.0, 1.0, 0.5, 0.0, &f),
+        (&x, &v, &pairs, radius, 1000.0, 1.0, 0.0, 0.5, 0.0, &f),
+        inputs = [x, v],
+        outputs = [f]
+    );
+    // The damping ramped in over 2 cm.
+    check_kernel!(
+        "eval_particle_contact (damping ramped over 2 cm)",
+        eval_particle_contact,
+        np,
+        (&x, &v, &pairs, radius, 1000.0, 1.0, 2e-2, 0.5, 0.0, &f),
         inputs = [x, v],
         outputs = [f]
     );
@@ -463,7 +472,15 @@ fn shape_contact() {
         "eval_shape_contact",
         eval_shape_contact,
         n * 3,
-        (&x, &v, &kind, &pos, &rot, &size, 3usize, 0.02, 1000.0, 1.0, 0.5, 0.0, &f),
+        (&x, &v, &kind, &pos, &rot, &size, 3usize, 0.02, 1000.0, 1.0, 0.0, 0.5, 0.0, &f),
+        inputs = [x, v, pos, rot, size],
+        outputs = [f]
+    );
+    check_kernel!(
+        "eval_shape_contact (damping ramped over 2 cm)",
+        eval_shape_contact,
+        n * 3,
+        (&x, &v, &kind, &pos, &rot, &size, 3usize, 0.02, 1000.0, 1.0, 2e-2, 0.5, 0.0, &f),
         inputs = [x, v, pos, rot, size],
         outputs = [f]
     );

@@ -586,3 +586,74 @@ fn implicit_euler_converges_through_contact() {
         );
     }
 }
+
+/// ImplicitEuler converges through particle-particle and shape contact: a pile of 27 balls
+/// thrown onto a box and the ground, at steps of 2 and 4 ms. The contacts' damping ramps in
+/// over `damping_depth`; switched on at contact (`damping_depth = 0`), the force jumps and
+/// Newton stalls (at both steps here: the test can fail). At 8 ms this stiff, frictional pile
+/// (`omega dt = 2.5` per contact) still fails to converge within 30 iterations, with an
+/// error that says so.
+#[test]
+fn implicit_euler_converges_through_particle_and_shape_contact() {
+    use adflex_kernels::prelude::{Ground, ParticleContact, Shape, ShapeKind};
+    let pile = |depth: f64| {
+        let mut b = ModelBuilder::<f64>::new();
+        b.particle_radius = 0.05;
+        for i in 0..3 {
+            for j in 0..3 {
+                for k in 0..3 {
+                    let x = Vec3::new(i as f64, j as f64, k as f64) * 0.095;
+                    b.add_particle(x + Vec3::new(0.0, 0.4, 0.0), Vec3::new(0.5, -2.0, 0.0), 0.1);
+                }
+            }
+        }
+        let contact = ParticleContact {
+            ke: 1e4,
+            kd: 5.0,
+            damping_depth: depth,
+            ..ParticleContact::default()
+        };
+        b.set_particle_contact(contact);
+        b.set_shape_contact(contact);
+        b.add_shape(Shape::new(
+            ShapeKind::Box {
+                half_extents: Vec3::new(0.1, 0.1, 0.1),
+            },
+            Vec3::new(0.2, 0.1, 0.1),
+        ));
+        b.set_ground(Ground {
+            ke: 1e4,
+            kd: 5.0,
+            ..Ground::default()
+        });
+        b.finalize()
+    };
+    let run = |model: &Model<f64>, dt: f64| -> Result<(usize, f64), String> {
+        let mut s = model.state();
+        let mut newton = 0;
+        let mut lowest = f64::INFINITY;
+        for k in 0..(0.6 / dt).round() as usize {
+            let (next, st) = ImplicitEuler::default()
+                .step_with_stats(model, &mut Tape::new(), &s, None, dt)
+                .map_err(|e| format!("step {k}: {e}"))?;
+            newton += st.newton_iterations;
+            s = next;
+            lowest = s.x.to_vec().iter().map(|p| p.y).fold(lowest, f64::min);
+        }
+        Ok((newton, lowest))
+    };
+    let mut stalled = 0;
+    for dt in [2e-3, 4e-3] {
+        let (newton, lowest) = run(&pile(1e-4), dt).unwrap_or_else(|e| panic!("dt {dt}: {e}"));
+        println!("dt {dt:.4}: {newton} Newton iterations, lowest centre {lowest:.4} m");
+        assert!(lowest > 0.0, "dt {dt}: fell through the ground ({lowest})");
+        if let Err(e) = run(&pile(0.0), dt) {
+            println!("dt {dt:.4}, damping switched on at contact: {e}");
+            stalled += 1;
+        }
+    }
+    assert!(
+        stalled > 0,
+        "the switched damping converged too: the test cannot fail"
+    );
+}

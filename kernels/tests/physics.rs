@@ -158,7 +158,7 @@ fn degenerate_elements_have_finite_derivatives() {
         "eval_particle_contact (coincident)",
         eval_particle_contact,
         1,
-        (&x, &v, &pairs, 0.1, 1000.0, 1.0, 0.5, 0.0, &f),
+        (&x, &v, &pairs, 0.1, 1000.0, 1.0, 1e-4, 0.5, 0.0, &f),
         inputs = [x, v],
         outputs = [f]
     );
@@ -182,7 +182,7 @@ fn degenerate_elements_have_finite_derivatives() {
         "eval_shape_contact (centre)",
         eval_shape_contact,
         3,
-        (&x, &v, &kind, &pos, &rot, &size, 3usize, 0.01, 1000.0, 1.0, 0.5, 0.0, &f),
+        (&x, &v, &kind, &pos, &rot, &size, 3usize, 0.01, 1000.0, 1.0, 1e-4, 0.5, 0.0, &f),
         inputs = [x, v, pos, rot, size],
         outputs = [f]
     );

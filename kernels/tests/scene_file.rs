@@ -423,6 +423,7 @@ fn the_documented_scene_defaults_are_the_builders() {
     for (name, actual) in [
         ("ke", c.ke),
         ("kd", c.kd),
+        ("damping_depth", c.damping_depth),
         ("mu", c.mu),
         ("leak", c.leak),
         ("margin", c.margin),

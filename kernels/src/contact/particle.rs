@@ -10,30 +10,35 @@ use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
-use super::ground::{contact_depth, contact_force, penalty_energy};
+use super::ground::{contact_damping, contact_depth, contact_force, penalty_energy};
 
 /// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,
 /// whose surfaces are `gap` apart (m; negative in contact): what both pair kernels compute.
+/// The damping `kd` ramps in over the first `depth` metres of penetration
+/// ([`contact_damping`]; `depth = 0`: a switch at contact).
 #[diff_func]
+#[allow(clippy::too_many_arguments)]
 pub fn pair_contact_force<R: Real>(
     xij: Vec3<R>,
     vij: Vec3<R>,
     gap: R,
     ke: R,
     kd: R,
+    depth: R,
     mu: R,
     leak: R,
 ) -> Vec3<R> {
     let n = normalize(xij);
     let c = contact_depth(gap, leak);
-    let kdc = select(c < 0.0, kd, 0.0);
+    // The ramp sees the true depth (no leaky slope through it), as the ground's does.
+    let kdc = contact_damping(min(gap, 0.0), kd, 0.0, depth);
     contact_force(n, c, vij, ke, kdc, mu)
 }
 
 /// Contact force of pair `tid = (i, j)` of particles of radius `radius` (m): with
 /// `n = normalize(x_i - x_j)` and `c = contact_depth(|x_i - x_j| - 2 radius, leak)`, particle
-/// `i` gets `contact_force(n, c, v_i - v_j, ke, kd [c < 0], mu)`, particle `j` the opposite.
-/// Unlike the ground's, the damping acts only in contact.
+/// `i` gets `contact_force(n, c, v_i - v_j, ke, contact_damping(c, kd, 0, depth), mu)`,
+/// particle `j` the opposite: the damping acts only in contact, ramped in over `depth` (m).
 #[diff_kernel]
 pub fn eval_particle_contact<R: Real>(
     x: &Array<Vec3<R>>,
@@ -42,6 +47,7 @@ pub fn eval_particle_contact<R: Real>(
     radius: R,
     ke: R,
     kd: R,
+    depth: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
@@ -55,6 +61,7 @@ pub fn eval_particle_contact<R: Real>(
         length(xij) - 2.0 * radius,
         ke,
         kd,
+        depth,
         mu,
         leak,
     );
@@ -72,6 +79,7 @@ pub fn eval_particle_contact_radii<R: Real>(
     radius: &Array<R>,
     ke: R,
     kd: R,
+    depth: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
@@ -85,6 +93,7 @@ pub fn eval_particle_contact_radii<R: Real>(
         length(xij) - radius[i] - radius[j],
         ke,
         kd,
+        depth,
         mu,
         leak,
     );
@@ -135,8 +144,12 @@ pub struct ParticleContact<R: Real> {
     /// Contact stiffness (N/m; default 1000).
     pub ke: R,
     /// Contact damping (N s/m; default 1), acting only in contact and only while the
-    /// particles approach.
+    /// particles approach, ramped in over [`ParticleContact::damping_depth`].
     pub kd: R,
+    /// The penetration depth (m; default 1e-4) over which the damping rises from 0 to `kd`
+    /// ([`contact_damping`]), so that the contact force has no jump (implicit Euler's Newton
+    /// cannot converge through one); 0 switches it on at contact.
+    pub damping_depth: R,
     /// Friction coefficient (dimensionless; default 0.5).
     pub mu: R,
     /// Gradient leak out of contact (dimensionless, see [`contact_depth`]; default 0: exact
@@ -148,13 +161,14 @@ pub struct ParticleContact<R: Real> {
     pub margin: R,
 }
 
-/// `ke = 1000` N/m, `kd = 1` N s/m, `mu = 0.5`, `leak = 0` (exact gradients), `margin = 0` m
-/// (the scene file's defaults are these).
+/// `ke = 1000` N/m, `kd = 1` N s/m, `damping_depth = 1e-4` m, `mu = 0.5`, `leak = 0` (exact
+/// gradients), `margin = 0` m (the scene file's defaults are these).
 impl<R: Real> Default for ParticleContact<R> {
     fn default() -> Self {
         ParticleContact {
             ke: R::lit(1000.0),
             kd: R::lit(1.0),
+            damping_depth: R::lit(1e-4),
             mu: R::lit(0.5),
             leak: R::lit(0.0),
             margin: R::lit(0.0),
@@ -172,7 +186,8 @@ impl<R: Real> ParticleContact<R> {
     /// remains: semi-implicit Euler gains a little energy per contact at large `dt`).
     ///
     /// The relation is exact for the contact of [`eval_particle_contact`] and
-    /// [`crate::contact::shapes::eval_shape_contact`] in the limit of a small time step: their
+    /// [`crate::contact::shapes::eval_shape_contact`] in the limit of a small time step (and of
+    /// a [`ParticleContact::damping_depth`] small against the penetration): their
     /// damping acts only in contact *and only while the particles approach*
     /// (`min(v.n, 0) kd`), so only the compression half of the contact is damped. The textbook
     /// linear spring-dashpot relation (`zeta = -ln e / sqrt(pi^2 + ln^2 e)`, damping in both
@@ -240,11 +255,13 @@ impl<R: Real> ParticleContact<R> {
         }
     }
 
-    /// The builder's checks: `ke`, `kd`, `mu`, `leak`, `margin` finite and `>= 0`.
+    /// The builder's checks: `ke`, `kd`, `damping_depth`, `mu`, `leak`, `margin` finite and
+    /// `>= 0`.
     pub(crate) fn check(&self, c: &mut crate::validation::Check) {
         for (p, v) in [
             ("ke", self.ke),
             ("kd", self.kd),
+            ("damping_depth", self.damping_depth),
             ("mu", self.mu),
             ("leak", self.leak),
             ("margin", self.margin),
@@ -275,7 +292,16 @@ impl<R: Real> ParticleContact<R> {
             eval_particle_contact,
             n,
             (
-                x, v, &pairs, radius, self.ke, self.kd, self.mu, self.leak, f,
+                x,
+                v,
+                &pairs,
+                radius,
+                self.ke,
+                self.kd,
+                self.damping_depth,
+                self.mu,
+                self.leak,
+                f,
             ),
         );
         n
@@ -354,7 +380,18 @@ impl<R: Real> ParticleContact<R> {
         tape.launch(
             eval_particle_contact_radii,
             n,
-            (x, v, &pairs, radii, self.ke, self.kd, self.mu, self.leak, f),
+            (
+                x,
+                v,
+                &pairs,
+                radii,
+                self.ke,
+                self.kd,
+                self.damping_depth,
+                self.mu,
+                self.leak,
+                f,
+            ),
         );
         n
     }

@@ -7,7 +7,7 @@ use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
-use super::ground::{contact_depth, contact_force, penalty_energy};
+use super::ground::{contact_damping, contact_depth, contact_force, penalty_energy};
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
 /// with `n` the outward normal (zero at the centre).
@@ -82,7 +82,8 @@ pub fn shape_gap<R: Real>(
 
 /// The contact force (N) on a particle at `x` with velocity `v` and radius `radius` from a
 /// shape of kind `k` (0 sphere, 1 box, 2 capsule) at `pos`, rotated by `q`, of size `size`:
-/// what both shape-contact kernels compute.
+/// what both shape-contact kernels compute. The damping `kd` ramps in over the first `depth`
+/// metres of penetration ([`contact_damping`]).
 #[diff_func]
 #[allow(clippy::too_many_arguments)]
 pub fn shape_contact_force<R: Real>(
@@ -95,13 +96,15 @@ pub fn shape_contact_force<R: Real>(
     radius: R,
     ke: R,
     kd: R,
+    depth: R,
     mu: R,
     leak: R,
 ) -> Vec3<R> {
     let g = shape_sdf(x, k, pos, q, size);
     let n = quat_rotate(q, vec3(g.x, g.y, g.z));
     let c = contact_depth(g.w - radius, leak);
-    let kdc = select(c < 0.0, kd, 0.0);
+    // The ramp sees the true depth (no leaky slope through it), as the ground's does.
+    let kdc = contact_damping(min(g.w - radius, 0.0), kd, 0.0, depth);
     contact_force(n, c, v, ke, kdc, mu)
 }
 
@@ -129,7 +132,8 @@ pub fn shape_contact_energy<R: Real>(
 /// Contact of particle `tid / num_shapes` with shape `tid % num_shapes`: kind 0 sphere, 1 box,
 /// 2 capsule (sizes as in [`sdf_sphere`], [`sdf_box`], [`sdf_capsule`]). With `(n, d)` the SDF
 /// at the particle and `c = contact_depth(d - radius, leak)`, the particle gets
-/// `contact_force(n, c, v, ke, kd [c < 0], mu)` (damping only in contact).
+/// `contact_force(n, c, v, ke, contact_damping(c, kd, 0, depth), mu)` (damping only in contact,
+/// ramped in over `depth` m).
 #[diff_kernel]
 pub fn eval_shape_contact<R: Real>(
     x: &Array<Vec3<R>>,
@@ -142,6 +146,7 @@ pub fn eval_shape_contact<R: Real>(
     radius: R,
     ke: R,
     kd: R,
+    depth: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
@@ -150,7 +155,7 @@ pub fn eval_shape_contact<R: Real>(
     let p = t / num_shapes;
     let s = t % num_shapes;
     let fc = shape_contact_force(
-        x[p], v[p], kind[s], pos[s], rot[s], size[s], radius, ke, kd, mu, leak,
+        x[p], v[p], kind[s], pos[s], rot[s], size[s], radius, ke, kd, depth, mu, leak,
     );
     f.atomic_add(p, fc);
 }
@@ -168,6 +173,7 @@ pub fn eval_shape_contact_radii<R: Real>(
     radius: &Array<R>,
     ke: R,
     kd: R,
+    depth: R,
     mu: R,
     leak: R,
     f: &Array<Vec3<R>>,
@@ -176,7 +182,7 @@ pub fn eval_shape_contact_radii<R: Real>(
     let p = t / num_shapes;
     let s = t % num_shapes;
     let fc = shape_contact_force(
-        x[p], v[p], kind[s], pos[s], rot[s], size[s], radius[p], ke, kd, mu, leak,
+        x[p], v[p], kind[s], pos[s], rot[s], size[s], radius[p], ke, kd, depth, mu, leak,
     );
     f.atomic_add(p, fc);
 }
@@ -292,8 +298,12 @@ pub struct Shapes<R: Real> {
     /// Contact stiffness (N/m; default 1000, [`ParticleContact`](crate::contact::particle::ParticleContact)'s default, as are the
     /// others).
     pub ke: R,
-    /// Contact damping (N s/m; default 1), only in contact and while approaching.
+    /// Contact damping (N s/m; default 1), only in contact and while approaching, ramped in
+    /// over `damping_depth`.
     pub kd: R,
+    /// The penetration depth (m; default 1e-4) over which the damping rises from 0 to `kd`
+    /// (see [`ParticleContact::damping_depth`](crate::contact::particle::ParticleContact)).
+    pub damping_depth: R,
     /// Friction coefficient (dimensionless; default 0.5).
     pub mu: R,
     /// Gradient leak out of contact (dimensionless; default 0: exact gradients).
@@ -315,8 +325,20 @@ impl<R: Real> Shapes<R> {
             eval_shape_contact,
             x.len() * ns,
             (
-                x, v, &self.kind, &self.pos, &self.rot, &self.size, ns, radius, self.ke, self.kd,
-                self.mu, self.leak, f,
+                x,
+                v,
+                &self.kind,
+                &self.pos,
+                &self.rot,
+                &self.size,
+                ns,
+                radius,
+                self.ke,
+                self.kd,
+                self.damping_depth,
+                self.mu,
+                self.leak,
+                f,
             ),
         );
     }
@@ -337,8 +359,20 @@ impl<R: Real> Shapes<R> {
             eval_shape_contact_radii,
             x.len() * ns,
             (
-                x, v, &self.kind, &self.pos, &self.rot, &self.size, ns, radii, self.ke, self.kd,
-                self.mu, self.leak, f,
+                x,
+                v,
+                &self.kind,
+                &self.pos,
+                &self.rot,
+                &self.size,
+                ns,
+                radii,
+                self.ke,
+                self.kd,
+                self.damping_depth,
+                self.mu,
+                self.leak,
+                f,
             ),
         );
     }

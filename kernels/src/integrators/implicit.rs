@@ -121,10 +121,11 @@ use crate::model::{Control, Model, State};
 /// rather than jumping): Newton with its line search on the incremental potential (module
 /// docs) converges through impacts (`kernels/tests/integrators.rs` drops soft blocks and a
 /// bending cloth on the ground at steps of 1 ms to 1/30 s), and the gradient is that of the
-/// active contact set. Forces that jump
-/// (a damping switched on at contact, as the particle-particle and shape contacts do) can
-/// stall it: the error then says Newton stalled, and a smaller `dt` or an explicit treatment
-/// of that force ([`ImplicitEuler::explicit`]) is the remedy.
+/// active contact set. The particle-particle and shape contacts' damping ramps in the same way
+/// (`damping_depth`); a dense pile of stiff frictional particles (`kernels/tests/integrators.rs`:
+/// converged at 2 and 4 ms, not at 8 ms) can still stall it. A force that jumps (a user's
+/// switch) can too: the error then says Newton stalled, and a smaller `dt` or an explicit
+/// treatment of that force ([`ImplicitEuler::explicit`]) is the remedy.
 ///
 /// A solve that misses its tolerance is an error by default (see [`ImplicitEuler::on_failure`]
 /// and the module's "Failures").
