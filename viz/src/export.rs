@@ -356,15 +356,52 @@ fn int_list(out: &mut String, v: impl IntoIterator<Item = u32>) {
     out.push(']');
 }
 
-/// Time-sampled points: `point3f[] points.timeSamples = { 0: [...], 1: [...], }`.
-fn sampled_points(out: &mut String, indent: &str, frames: impl Iterator<Item = Vec<Vec3<f64>>>) {
+/// Half the width (m) of point `i` of a prim: what USD's extent computation grows it by.
+type Pad<'a> = &'a dyn Fn(usize) -> f64;
+
+/// The bounding box `[min, max]` of the finite points, point `i` grown by `pad(i)` (m) on every
+/// side, as USD's own extent computation does; `None` if no point is finite.
+fn bounds(pts: &[Vec3<f64>], pad: Pad) -> Option<[Vec3<f64>; 2]> {
+    let mut it = pts
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.iter().all(|c| c.is_finite()))
+        .map(|(i, p)| (p - Vec3::repeat(pad(i)), p + Vec3::repeat(pad(i))));
+    let first = it.next()?;
+    let (lo, hi) = it.fold(first, |(lo, hi), (a, b)| (lo.inf(&a), hi.sup(&b)));
+    Some([lo, hi])
+}
+
+/// Time-sampled points and their extent (`pad`: see [`bounds`]):
+/// `point3f[] points.timeSamples = { 0: [...], ... }` and
+/// `float3[] extent.timeSamples = { 0: [(min), (max)], ... }`, which a boundable prim should
+/// author (renderers and `usdview` cull by it).
+fn sampled_points(out: &mut String, indent: &str, frames: &[Vec<Vec3<f64>>], pad: Pad) {
     let _ = writeln!(out, "{indent}point3f[] points.timeSamples = {{");
-    for (k, pts) in frames.enumerate() {
+    for (k, pts) in frames.iter().enumerate() {
         let _ = write!(out, "{indent}    {k}: ");
-        point_list(out, pts);
+        point_list(out, pts.iter().copied());
         out.push_str(",\n");
     }
     let _ = writeln!(out, "{indent}}}");
+    let _ = writeln!(out, "{indent}float3[] extent.timeSamples = {{");
+    for (k, pts) in frames.iter().enumerate() {
+        if let Some(b) = bounds(pts, pad) {
+            let _ = write!(out, "{indent}    {k}: ");
+            point_list(out, b);
+            out.push_str(",\n");
+        }
+    }
+    let _ = writeln!(out, "{indent}}}");
+}
+
+/// A static extent (see [`sampled_points`]): `float3[] extent = [(min), (max)]`.
+fn static_extent(out: &mut String, indent: &str, pts: &[Vec3<f64>], pad: Pad) {
+    if let Some(b) = bounds(pts, pad) {
+        let _ = write!(out, "{indent}float3[] extent = ");
+        point_list(out, b);
+        out.push('\n');
+    }
 }
 
 /// Writes a rollout as a USD ASCII stage (`.usda`): time code `k` is `states[k]`, played at
@@ -445,7 +482,8 @@ pub fn write_usda<R: Real>(
         s.push_str("int[] faceVertexIndices = ");
         int_list(&mut s, topo.faces.iter().flatten().copied());
         s.push('\n');
-        sampled_points(&mut s, ind, frames.iter().map(|f| f.x.clone()));
+        let xs: Vec<Vec<Vec3<f64>>> = frames.iter().map(|f| f.x.clone()).collect();
+        sampled_points(&mut s, ind, &xs, &|_| 0.0);
         let _ = writeln!(s, "{ind}uniform token subdivisionScheme = \"none\"");
         let _ = writeln!(s, "{ind}uniform bool doubleSided = 1");
         let _ = writeln!(
@@ -455,7 +493,17 @@ pub fn write_usda<R: Real>(
         s.push_str("    }\n");
     } else if topo.particles > 0 {
         s.push_str("    def Points \"particles\"\n    {\n");
-        sampled_points(&mut s, ind, frames.iter().map(|f| f.x.clone()));
+        let xs: Vec<Vec<Vec3<f64>>> = frames.iter().map(|f| f.x.clone()).collect();
+        // Half the widths written below, in their f32 rounding.
+        let half = |i: usize| {
+            let r = if topo.radii.is_empty() {
+                topo.radius
+            } else {
+                topo.radius_of(i)
+            };
+            0.5 * (2.0 * r) as f32 as f64
+        };
+        sampled_points(&mut s, ind, &xs, &half);
         if topo.radii.is_empty() {
             let _ = writeln!(
                 s,
@@ -485,16 +533,17 @@ pub fn write_usda<R: Real>(
             s.push_str("int[] curveVertexCounts = ");
             int_list(&mut s, topo.edges.iter().map(|_| 2));
             s.push('\n');
-            sampled_points(
-                &mut s,
-                ind,
-                frames.iter().map(|f| {
+            let ends: Vec<Vec<Vec3<f64>>> = frames
+                .iter()
+                .map(|f| {
                     topo.edges
                         .iter()
                         .flat_map(|e| [f.x[e[0] as usize], f.x[e[1] as usize]])
                         .collect()
-                }),
-            );
+                })
+                .collect();
+            let half = 0.5 * (width * 0.3) as f32 as f64;
+            sampled_points(&mut s, ind, &ends, &|_| half);
             let _ = writeln!(
                 s,
                 "{ind}float[] widths = [{}] (\n{ind}    interpolation = \"constant\"\n{ind})",
@@ -531,6 +580,8 @@ pub fn write_usda<R: Real>(
             let _ = write!(s, "{ind}    point3f[] points = ");
             point_list(&mut s, pts.iter().copied());
             s.push('\n');
+            let contact_width = (width.max(1e-3) * 2.0) as f32 as f64;
+            static_extent(&mut s, &format!("{ind}    "), pts, &|_| 0.5 * contact_width);
             let _ = writeln!(
                 s,
                 "{ind}    float[] widths = [{}] (\n{ind}        interpolation = \"constant\"\n{ind}    )",
@@ -550,13 +601,14 @@ pub fn write_usda<R: Real>(
             int_list(&mut s, edges.iter().map(|_| 2));
             s.push('\n');
             let _ = write!(s, "{ind}    point3f[] points = ");
-            point_list(
-                &mut s,
-                edges
-                    .iter()
-                    .flat_map(|e| [pts[e[0] as usize], pts[e[1] as usize]]),
-            );
+            let ends: Vec<Vec3<f64>> = edges
+                .iter()
+                .flat_map(|e| [pts[e[0] as usize], pts[e[1] as usize]])
+                .collect();
+            point_list(&mut s, ends.iter().copied());
             s.push('\n');
+            let edge_width = (width.max(1e-3) * 0.5) as f32 as f64;
+            static_extent(&mut s, &format!("{ind}    "), &ends, &|_| 0.5 * edge_width);
             let _ = writeln!(
                 s,
                 "{ind}    float[] widths = [{}] (\n{ind}        interpolation = \"constant\"\n{ind}    )",

@@ -7,6 +7,7 @@
 //!
 //! - [`export`]: frames as PLY or OBJ meshes (Blender, MeshLab, ParaView), a whole rollout as
 //!   one USD ASCII stage (Omniverse, Blender, usdview).
+//! - [`gltf`]: a whole rollout as one animated binary glTF 2.0 file (Blender, web viewers).
 //! - [`render`]: pictures drawn on the CPU with `tiny-skia`: a PNG of one state, an animated
 //!   GIF of a rollout, or the raw pixels.
 //! - [`plot`]: SVG line charts with `plotters`: a loss curve, or several named curves.
@@ -38,6 +39,7 @@
 use std::path::{Path, PathBuf};
 
 pub mod export;
+pub mod gltf;
 pub mod plot;
 pub mod render;
 mod scene;

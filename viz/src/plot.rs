@@ -18,6 +18,7 @@
 use std::ops::Range;
 use std::path::Path;
 
+use plotters::coord::combinators::BindKeyPoints;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::prelude::*;
 
@@ -120,6 +121,22 @@ fn tick(x: f64) -> String {
     }
 }
 
+/// The powers of ten in `[lo, hi]` (`0 < lo < hi`), every one for up to 12 decades, then every
+/// second, third, ... so that at most 12 are labelled: a log axis labelled over its whole range
+/// (plotters' own choice left the bottom decades of a 1e0..1e-23 loss unlabelled).
+fn decades(lo: f64, hi: f64) -> Vec<f64> {
+    let (a, b) = (lo.log10().ceil() as i32, hi.log10().floor() as i32);
+    let n = (b - a + 1).max(1);
+    let step = ((n + 11) / 12).max(1);
+    // From the top down, so that the largest decade is always labelled.
+    let mut v: Vec<f64> = (0..n)
+        .step_by(step as usize)
+        .map(|k| 10f64.powi(b - k))
+        .collect();
+    v.reverse();
+    v
+}
+
 fn padded(lo: f64, hi: f64) -> Range<f64> {
     if hi > lo {
         let pad = 0.04 * (hi - lo);
@@ -158,7 +175,8 @@ fn chart(
     let xr = if x1 > x0 { x0..x1 } else { padded(x0, x1) };
     let mut svg = String::new();
     let drawn = if y0 > 0.0 && y1 / y0 > 100.0 {
-        let yr = (y0 / 1.5..y1 * 1.5).log_scale();
+        let (lo, hi) = (y0 / 1.5, y1 * 1.5);
+        let yr = (lo..hi).log_scale().with_key_points(decades(lo, hi));
         draw(&mut svg, title, x_label, y_label, xr, yr, &series, legend)
     } else {
         draw(
@@ -248,5 +266,16 @@ mod tests {
         assert_eq!(tick(0.001), "0.001");
         assert_eq!(tick(2.5e-5), "2.5e-5");
         assert_eq!(tick(-1.25), "-1.25");
+    }
+
+    #[test]
+    fn log_axes_are_labelled_over_the_whole_range() {
+        use super::decades;
+        // The cage's loss: 6.6e-2 down to 1e-23.
+        let d = decades(1e-23 / 1.5, 6.6e-2 * 1.5);
+        assert!(d.len() <= 12 && d.len() >= 10, "{d:?}");
+        assert_eq!(*d.last().unwrap(), 1e-2);
+        assert!(d[0] <= 1e-21, "{d:?}");
+        assert_eq!(decades(0.5, 2e3), vec![1.0, 10.0, 100.0, 1000.0]);
     }
 }

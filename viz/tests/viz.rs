@@ -804,3 +804,249 @@ fn non_finite_coordinates_are_written_as_usd_and_ply_read_them() {
         "{text}"
     );
 }
+
+// ---------------------------------------------------------------- independent readers
+
+/// The Python of a venv with the readers of `viz/tools/requirements.txt` (Pixar's usd-core,
+/// plyfile): `ADFLEX_VIZ_PYTHON` if set, else a venv this test makes once under the target
+/// directory (`python3 -m venv`, then `pip install -r`; needs python3 and PyPI). Panics with
+/// what is missing and how to provide it: a check that cannot run must not pass.
+fn reader_python() -> PathBuf {
+    if let Some(p) = std::env::var_os("ADFLEX_VIZ_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let venv = Path::new(env!("CARGO_TARGET_TMPDIR")).join("viz-tools-venv");
+    let python = venv.join("bin").join("python");
+    let reqs = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/requirements.txt");
+    let stamp = venv.join("requirements.txt");
+    let wanted = std::fs::read_to_string(&reqs).unwrap();
+    if std::fs::read_to_string(&stamp).ok().as_deref() == Some(wanted.as_str()) {
+        return python;
+    }
+    let run = |cmd: &mut std::process::Command, what: &str| {
+        let out = cmd
+            .output()
+            .unwrap_or_else(|e| panic!("{what}: cannot start it ({e}); install Python 3 (python3 with venv and pip), or set ADFLEX_VIZ_PYTHON to a Python that has viz/tools/requirements.txt"));
+        assert!(
+            out.status.success(),
+            "{what} failed ({}):\n{}\nInstall Python 3 with venv and pip and PyPI access, or set ADFLEX_VIZ_PYTHON to a Python that has viz/tools/requirements.txt",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    run(
+        std::process::Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv),
+        "python3 -m venv",
+    );
+    run(
+        std::process::Command::new(&python)
+            .args(["-m", "pip", "install", "-q", "-r"])
+            .arg(&reqs),
+        "pip install -r viz/tools/requirements.txt",
+    );
+    std::fs::write(&stamp, wanted).unwrap();
+    python
+}
+
+/// Runs `viz/tools/check_files.py` on `files`: one JSON object per file.
+fn read_with_python(files: &[PathBuf]) -> Vec<serde_json::Value> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/check_files.py");
+    let out = std::process::Command::new(reader_python())
+        .arg(script)
+        .args(files)
+        .output()
+        .expect("run check_files.py");
+    assert!(
+        out.status.success(),
+        "an independent reader rejected a file: {}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+/// The USD stages open with Pixar's own library (usd-core): every prim is of a registered
+/// schema type, points are time-sampled over the whole rollout, every boundable prim authors
+/// its extent and it is what USD computes from the points and widths at every time code;
+/// PLY files (ASCII and binary) read with plyfile give the particles.
+#[test]
+fn files_open_in_their_makers_readers() {
+    let dir = TempDir::new("readers");
+    let (cloth_model, cloth) = cloth_states();
+    let springs = spring_model();
+    let spring_states = rollout(&springs, &springs.state(), 4, 2e-2);
+    let bodies = body_model();
+    let body_states = rollout(&bodies, &bodies.state(), 4, 2e-2);
+    let mut b = ModelBuilder::<f64>::new();
+    for k in 0..4 {
+        let i = b.add_particle(Vec3::new(k as f64, 1.0, 0.0), Vec3::new(0.0, 1.0, 0.0), 1.0);
+        b.set_particle_radius(i, 0.05 * (k + 1) as f64);
+    }
+    let radii = b.finalize();
+    let radii_states = rollout(&radii, &radii.state(), 3, 2e-2);
+    let files = [
+        dir.path("cloth.usda"),
+        dir.path("springs.usda"),
+        dir.path("bodies.usda"),
+        dir.path("radii.usda"),
+        dir.path("cloth.ply"),
+        dir.path("cloth_binary.ply"),
+    ];
+    export::write_usda(&files[0], &cloth_model, &cloth, 30.0).unwrap();
+    export::write_usda(&files[1], &springs, &spring_states, 30.0).unwrap();
+    export::write_usda(&files[2], &bodies, &body_states, 30.0).unwrap();
+    export::write_usda(&files[3], &radii, &radii_states, 30.0).unwrap();
+    let last = cloth.last().unwrap();
+    export::write_ply(&files[4], &cloth_model, last).unwrap();
+    export::write_ply_binary(&files[5], &cloth_model, last).unwrap();
+    let found = read_with_python(&files);
+    assert_eq!(found.len(), files.len());
+    let frames = [
+        cloth.len(),
+        spring_states.len(),
+        body_states.len(),
+        radii_states.len(),
+    ];
+    let mut types = HashSet::new();
+    for (stage, &n) in found[..4].iter().zip(&frames) {
+        assert_eq!(stage["default_prim"], "/World", "{stage}");
+        for prim in stage["prims"].as_array().unwrap() {
+            let ty = prim["type"].as_str().unwrap();
+            types.insert(ty.to_string());
+            assert_eq!(prim["schema"], true, "{prim}");
+            if let Some(k) = prim.get("points_time_samples") {
+                // Body contact points and edges are static, in the body's frame.
+                let static_ok = prim["path"].as_str().unwrap().contains("/body_");
+                assert!(
+                    k == n || (static_ok && k == 0),
+                    "{prim}: {k} samples of {n}"
+                );
+            }
+            if prim.get("extent_authored").is_some() {
+                assert_eq!(prim["extent_authored"], true, "{prim}");
+                let err = prim["extent_error"].as_f64().unwrap_or(f64::INFINITY);
+                assert!(err < 1e-6, "{prim}: extent off by {err}");
+            }
+        }
+    }
+    for ty in ["Xform", "Mesh", "Points", "BasisCurves"] {
+        assert!(types.contains(ty), "no {ty} prim in {types:?}");
+    }
+    let x = last.x.to_vec();
+    for ply in &found[4..] {
+        let v = &ply["elements"]["vertex"];
+        assert_eq!(v["count"], x.len(), "{ply}");
+        let first: Vec<f64> = serde_json::from_value(ply["first_vertex"].clone()).unwrap();
+        for c in 0..3 {
+            assert!((first[c] - x[0][c]).abs() < 1e-6, "{ply}");
+        }
+        assert_eq!(
+            ply["elements"]["face"]["count"],
+            cloth_model.triangles.len(),
+            "{ply}"
+        );
+    }
+}
+
+/// `node` with the packages of `viz/tools/package.json` (the Khronos glTF validator) on its
+/// module path, installed once under the target directory by `npm install` (needs Node.js,
+/// npm and the npm registry); panics with what is missing otherwise.
+fn validator_node() -> (PathBuf, PathBuf) {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("viz-tools-node");
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/package.json");
+    let wanted = std::fs::read_to_string(&manifest).unwrap();
+    let modules = dir.join("node_modules");
+    if std::fs::read_to_string(dir.join("package.json"))
+        .ok()
+        .as_deref()
+        != Some(wanted.as_str())
+        || !modules.join("gltf-validator").exists()
+    {
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("package.json"), &wanted).unwrap();
+        let out = std::process::Command::new("npm")
+            .args(["install", "--no-audit", "--no-fund", "--loglevel=error"])
+            .current_dir(&dir)
+            .output()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "npm: cannot start it ({e}); install Node.js and npm to run the glTF validator"
+                )
+            });
+        assert!(
+            out.status.success(),
+            "npm install (viz/tools/package.json) failed: {}\n{}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    (PathBuf::from("node"), modules)
+}
+
+/// Animated `.glb` files of a cloth (mesh with morph targets), springs (lines), loose
+/// particles (points) and a rigid body (animated node) pass the Khronos glTF validator with
+/// no error and no warning, and say so in its report (the animation is there).
+#[test]
+fn glb_files_pass_the_khronos_validator() {
+    let dir = TempDir::new("gltf");
+    let (cloth_model, cloth) = cloth_states();
+    let springs = spring_model();
+    let spring_states = rollout(&springs, &springs.state(), 4, 2e-2);
+    let bodies = body_model();
+    let body_states = rollout(&bodies, &bodies.state(), 4, 2e-2);
+    let tet = tet_model();
+    let one = vec![tet.state()];
+    let files = [
+        dir.path("cloth.glb"),
+        dir.path("springs.glb"),
+        dir.path("bodies.glb"),
+        dir.path("tet_one_frame.glb"),
+    ];
+    adflex_viz::gltf::write_glb(&files[0], &cloth_model, &cloth, 30.0).unwrap();
+    adflex_viz::gltf::write_glb(&files[1], &springs, &spring_states, 30.0).unwrap();
+    adflex_viz::gltf::write_glb(&files[2], &bodies, &body_states, 30.0).unwrap();
+    adflex_viz::gltf::write_glb(&files[3], &tet, &one, 30.0).unwrap();
+    let (node, modules) = validator_node();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/validate_gltf.js");
+    let out = std::process::Command::new(node)
+        .arg(script)
+        .args(&files)
+        .env("NODE_PATH", modules)
+        .output()
+        .unwrap_or_else(|e| panic!("node: cannot start it ({e}); install Node.js"));
+    assert!(
+        out.status.success(),
+        "the validator failed to run: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let reports: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(reports.len(), files.len());
+    for (r, animated) in reports.iter().zip([true, true, true, false]) {
+        assert_eq!(r["errors"], 0, "{r}");
+        assert_eq!(r["warnings"], 0, "{r}");
+        assert_eq!(r["animations"], animated as u64, "{r}");
+    }
+    // A non-finite position is refused, naming it.
+    let s = cloth[1].clone();
+    let mut x = s.x.to_vec();
+    x[3].y = f64::NAN;
+    s.x.assign(&x);
+    let e = adflex_viz::gltf::write_glb(
+        dir.path("nan.glb"),
+        &cloth_model,
+        &[cloth[0].clone(), s],
+        30.0,
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("particle 3 of state 1"), "{e}");
+}
