@@ -43,6 +43,8 @@ pub struct Outcome {
     pub scene: cage::CageScene<f64>,
     /// The centre's trajectory with the optimized rest lengths.
     pub frames: Vec<State<f64>>,
+    /// The last state with the first guess (the initial rest lengths).
+    pub first_guess: State<f64>,
     /// Distance of the centre from the target at the end (m).
     pub miss: f64,
 }
@@ -52,6 +54,15 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     let model = &scene.model;
     let rest = model.param::<f64>("springs", "rest")?;
     let steps = (cfg.duration / cfg.dt).round() as usize;
+    let rollout = |tape: &mut Tape| -> Result<Vec<State<f64>>, Error> {
+        let mut frames = vec![model.state()];
+        for _ in 0..steps {
+            let next = SemiImplicitEuler.step(model, tape, frames.last().unwrap(), None, cfg.dt)?;
+            frames.push(next);
+        }
+        Ok(frames)
+    };
+    let first_guess = rollout(&mut Tape::new())?.pop().expect("a state");
     let report = Optimizer::lbfgs()
         .max_iters(cfg.max_iters)
         .grad_tol(1e-9)
@@ -63,18 +74,13 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
             losses::distance_to_target(tape, &end.x, &[scene.center], cfg.target, 1.0, &loss);
             Ok(loss)
         })?;
-    let mut frames = vec![model.state()];
-    let mut tape = Tape::new();
-    for _ in 0..steps {
-        let next =
-            SemiImplicitEuler.step(model, &mut tape, frames.last().unwrap(), None, cfg.dt)?;
-        frames.push(next);
-    }
+    let frames = rollout(&mut Tape::new())?;
     let miss = (frames.last().unwrap().x.get(scene.center as usize) - cfg.target).norm();
     Ok(Outcome {
         report,
         scene,
         frames,
+        first_guess,
         miss,
     })
 }
@@ -111,14 +117,54 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &out.report.losses(),
         "cage: L-BFGS on 26 rest lengths",
     )?;
-    let options = adflex::viz::render::RenderOptions::default();
+    // The target, the centre's path, the first guess's end state behind the result, the
+    // springs coloured by strain (red stretched, blue compressed) and the time.
+    use adflex::viz::overlay::{ColorBy, Colormap, Ghost, Marker, Overlay, Trail, Values};
     let model = &out.scene.model;
-    adflex::viz::render::render_gif(dir.join("cage.gif"), model, &out.frames, &options, 25.0, 4)?;
-    adflex::viz::render::render_png(
+    let last = out.report.history.last();
+    let overlay = Overlay {
+        markers: vec![Marker::target(cfg.target, "target")],
+        trails: vec![Trail::of(out.scene.center as usize)],
+        ghosts: vec![Ghost::of(&out.first_guess, "first guess, t = 2 s")],
+        color_by: Some(ColorBy::new(
+            Values::EdgeStrain,
+            (-0.2, 0.2),
+            Colormap::Diverging,
+            "spring strain",
+        )),
+        captions: (0..out.frames.len())
+            .map(|k| {
+                format!(
+                    "t = {:.2} s | L-BFGS: {} it., loss {:.1e}",
+                    k as f64 * cfg.dt,
+                    last.map_or(0, |it| it.iter),
+                    last.map_or(f64::NAN, |it| it.loss)
+                )
+            })
+            .collect(),
+    };
+    let options = adflex::viz::render::RenderOptions {
+        width: 720,
+        height: 540,
+        ..Default::default()
+    };
+    let n = out.frames.len();
+    adflex::viz::render::render_gif_with(
+        dir.join("cage.gif"),
+        model,
+        &out.frames,
+        &options,
+        &overlay,
+        25.0,
+        4,
+    )?;
+    adflex::viz::render::render_png_with(
         dir.join("cage.png"),
         model,
-        out.frames.last().unwrap(),
+        &out.frames,
+        n - 1,
         &options,
+        &overlay,
     )?;
     println!(
         "pictures: {}/{{loss.svg, cage.gif, cage.png}}",

@@ -10,6 +10,8 @@
 //! - [`gltf`]: a whole rollout as one animated binary glTF 2.0 file (Blender, web viewers).
 //! - [`render`]: pictures drawn on the CPU with `tiny-skia`: a PNG of one state, an animated
 //!   GIF of a rollout, or the raw pixels.
+//! - [`overlay`]: targets, trails, a ghost of the first guess, colours by a value with a
+//!   colour bar, captions, drawn over those pictures.
 //! - [`plot`]: SVG line charts with `plotters`: a loss curve, or several named curves.
 //!
 //! ```
@@ -40,6 +42,7 @@ use std::path::{Path, PathBuf};
 
 pub mod export;
 pub mod gltf;
+pub mod overlay;
 pub mod plot;
 pub mod render;
 mod scene;

@@ -34,6 +34,7 @@ use tiny_skia::{FillRule, LineCap, Paint, PathBuilder, Stroke, Transform};
 
 pub use tiny_skia::Pixmap;
 
+use crate::overlay::{self, Overlay, Values};
 use crate::scene::{wide, Frame, Topology};
 use crate::{Error, Result};
 
@@ -180,18 +181,7 @@ impl Camera {
     /// assert!(cam.eye.y > cam.target.y);
     /// ```
     pub fn fit<R: Real>(model: &Model<R>, states: &[State<R>]) -> Self {
-        let up = up_of(model);
-        let a = if up.z.abs() < 0.9 {
-            let b0 = Vec3::z() - up * up.z;
-            let b = b0.normalize();
-            (up.cross(&b), b)
-        } else {
-            let b0 = Vec3::x() - up * up.x;
-            let b = b0.normalize();
-            (up.cross(&b), b)
-        };
-        let dir = (up * 0.8 + a.0 * 0.6 + a.1).normalize();
-        Self::fit_from(model, states, dir, up)
+        Self::fit_from(model, states, default_direction(up_of(model)), up_of(model))
     }
 
     /// Like [`Camera::fit`] with the eye along `direction` (from the scene's centre) and
@@ -214,7 +204,12 @@ impl Camera {
     ) -> Self {
         let topo = Topology::of(model);
         let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
-        let (c, r) = bounds(&topo, &frames);
+        let (c, r) = bounds(&topo, &frames, &[]);
+        Self::fit_sphere(c, r, direction, up)
+    }
+
+    /// A camera along `direction` from `c` that sees the sphere of radius `r` around it.
+    fn fit_sphere(c: Vec3<f64>, r: f64, direction: Vec3<f64>, up: Vec3<f64>) -> Self {
         let dir = if direction.norm() > 0.0 && direction.iter().all(|v| v.is_finite()) {
             direction.normalize()
         } else {
@@ -279,6 +274,20 @@ impl Camera {
 }
 
 /// Up for the scene: the ground normal, else against gravity, else `+y`.
+/// The direction [`Camera::fit`] looks from: above and to the side of the scene, `up` up.
+fn default_direction(up: Vec3<f64>) -> Vec3<f64> {
+    let a = if up.z.abs() < 0.9 {
+        let b0 = Vec3::z() - up * up.z;
+        let b = b0.normalize();
+        (up.cross(&b), b)
+    } else {
+        let b0 = Vec3::x() - up * up.x;
+        let b = b0.normalize();
+        (up.cross(&b), b)
+    };
+    (up * 0.8 + a.0 * 0.6 + a.1).normalize()
+}
+
 fn up_of<R: Real>(model: &Model<R>) -> Vec3<f64> {
     if let Some(g) = model.ground() {
         if let Some(n) = wide(g.normal).try_normalize(1e-12) {
@@ -293,16 +302,19 @@ fn up_of<R: Real>(model: &Model<R>) -> Vec3<f64> {
 
 /// The centre and radius of a sphere around every finite point of the frames (radius at
 /// least a small fraction of the centre's size, and 0.5 m if there is nothing to frame).
-fn bounds(topo: &Topology, frames: &[Frame]) -> (Vec3<f64>, f64) {
+fn bounds(topo: &Topology, frames: &[Frame], extra: &[Vec3<f64>]) -> (Vec3<f64>, f64) {
     let mut lo = Vec3::repeat(f64::MAX);
     let mut hi = Vec3::repeat(f64::MIN);
     let mut any = false;
-    for f in frames {
-        for p in f.all_points(topo) {
-            lo = lo.inf(&p);
-            hi = hi.sup(&p);
-            any = true;
-        }
+    let finite_extra = extra.iter().filter(|p| p.iter().all(|c| c.is_finite()));
+    for p in frames
+        .iter()
+        .flat_map(|f| f.all_points(topo))
+        .chain(finite_extra.copied())
+    {
+        lo = lo.inf(&p);
+        hi = hi.sup(&p);
+        any = true;
     }
     if !any {
         return (Vec3::zeros(), 0.5);
@@ -471,6 +483,49 @@ enum Shape {
     Tri([(f32, f32); 3], Rgba),
     Line([(f32, f32); 2], Rgba, f32),
     Disc((f32, f32), f32, Rgba),
+    Ring((f32, f32), f32, Rgba),
+}
+
+/// What one picture draws besides the state: the overlay at state `k` of `history`, the
+/// per-particle or per-edge values of that state, and where the ground is drawn (fixed for a
+/// whole animation, so it does not move between frames).
+struct Decor<'a> {
+    overlay: &'a Overlay,
+    k: usize,
+    history: &'a [Frame],
+    particle_values: Option<Vec<f64>>,
+    edge_values: Option<Vec<f64>>,
+    ground_box: (Vec3<f64>, f64),
+}
+
+/// The rest length (m) of each edge of [`Topology::of`]: the springs' and distance
+/// constraints' own (so that an optimized rest length shows its true strain).
+fn rest_lengths<R: Real>(model: &Model<R>) -> Vec<f64> {
+    let mut out: Vec<f64> = Vec::new();
+    if let Some(s) = model.springs() {
+        out.extend(s.rest.to_vec().into_iter().map(|r| r.to_f64()));
+    }
+    if let Some(d) = &model.distance_constraints {
+        out.extend(d.rest.to_vec().into_iter().map(|r| r.to_f64()));
+    }
+    out
+}
+
+/// Per-edge strain `(l - l0) / l0` at `frame`, `l0` from `rest` ([`rest_lengths`]).
+fn edge_strain(topo: &Topology, rest: &[f64], frame: &Frame) -> Vec<f64> {
+    topo.edges
+        .iter()
+        .zip(rest)
+        .map(|(e, &l0)| {
+            let (i, j) = (e[0] as usize, e[1] as usize);
+            let l = (frame.x[i] - frame.x[j]).norm();
+            if l0 > 0.0 {
+                (l - l0) / l0
+            } else {
+                0.0
+            }
+        })
+        .collect()
 }
 
 /// Draws one state with the given camera into a new pixmap.
@@ -480,6 +535,7 @@ fn draw(
     ground: Option<(Vec3<f64>, f64)>,
     cam: &Camera,
     o: &RenderOptions,
+    decor: &Decor,
 ) -> Result<Pixmap> {
     if o.width == 0 || o.height == 0 {
         return Err(Error::Invalid(format!(
@@ -501,11 +557,14 @@ fn draw(
             "degenerate camera {cam:?} (eye at target, up along the view, bad field of view or size)"
         ))
     })?;
-    let (centre, radius) = bounds(topo, std::slice::from_ref(frame));
+    let (centre, radius) = decor.ground_box;
     let bias = 0.02 * radius;
 
     if let (true, Some((n, offset))) = (o.draw_ground, ground) {
         draw_ground(&mut pm, &view, n, offset, centre, radius, o.ground_color);
+    }
+    for g in &decor.overlay.ghosts {
+        draw_ghost(&mut pm, &view, topo, &g.frame(), g.color);
     }
 
     let mut shapes: Vec<(f64, Shape)> = Vec::new();
@@ -520,14 +579,27 @@ fn draw(
             };
             let n = (p[1] - p[0]).cross(&(p[2] - p[0]));
             let lambert = n.try_normalize(1e-300).map_or(0.0, |n| n.dot(&light).abs());
-            let color = o.face_color.scaled(0.4 + 0.6 * lambert);
+            let color = match (&decor.particle_values, &decor.overlay.color_by) {
+                (Some(v), Some(c)) => {
+                    let mean = f
+                        .iter()
+                        .map(|&i| v.get(i as usize).copied().unwrap_or(f64::NAN));
+                    c.color(mean.sum::<f64>() / 3.0)
+                        .scaled(0.65 + 0.35 * lambert)
+                }
+                _ => o.face_color.scaled(0.4 + 0.6 * lambert),
+            };
             shapes.push(((a.1 + b.1 + c.1) / 3.0, Shape::Tri([a.0, b.0, c.0], color)));
         }
     }
     if o.draw_edges {
-        for e in &topo.edges {
+        for (k, e) in topo.edges.iter().enumerate() {
             if let Some((s, z)) = view.segment(frame.x[e[0] as usize], frame.x[e[1] as usize]) {
-                shapes.push((z - bias, Shape::Line(s, o.edge_color, o.edge_width)));
+                let line = match (&decor.edge_values, &decor.overlay.color_by) {
+                    (Some(v), Some(c)) => Shape::Line(s, c.color(v[k]), o.edge_width.max(2.0)),
+                    _ => Shape::Line(s, o.edge_color, o.edge_width),
+                };
+                shapes.push((z - bias, line));
             }
         }
     }
@@ -538,9 +610,13 @@ fn draw(
     if o.draw_points {
         for (i, &p) in frame.x.iter().enumerate() {
             if let Some((s, z)) = view.point(p) {
+                let color = match (&decor.particle_values, &decor.overlay.color_by) {
+                    (Some(v), Some(c)) => c.color(v.get(i).copied().unwrap_or(f64::NAN)),
+                    _ => o.point_color,
+                };
                 shapes.push((
                     z - 2.0 * bias,
-                    Shape::Disc(s, disc(z, topo.radius_of(i)), o.point_color),
+                    Shape::Disc(s, disc(z, topo.radius_of(i)), color),
                 ));
             }
         }
@@ -579,6 +655,28 @@ fn draw(
     }
     // Back to front; stable, so equal depths keep faces < edges < points order.
     shapes.sort_by(|a, b| b.0.total_cmp(&a.0));
+    // Trails, markers and keys on top of everything.
+    for t in &decor.overlay.trails {
+        let path: Vec<Vec3<f64>> = decor.history[..=decor.k]
+            .iter()
+            .filter_map(|f| f.x.get(t.particle).copied())
+            .collect();
+        for w in path.windows(2) {
+            if let Some((s, _)) = view.segment(w[0], w[1]) {
+                shapes.push((f64::MIN, Shape::Line(s, t.color, t.width)));
+            }
+        }
+    }
+    for m in &decor.overlay.markers {
+        if let Some((c, _)) = view.point(m.position) {
+            let r = m.radius;
+            for (a, b) in [((-r, 0.0), (r, 0.0)), ((0.0, -r), (0.0, r))] {
+                let seg = [(c.0 + a.0, c.1 + a.1), (c.0 + b.0, c.1 + b.1)];
+                shapes.push((f64::MIN, Shape::Line(seg, m.color, 2.0)));
+            }
+            shapes.push((f64::MIN, Shape::Ring(c, r, m.color)));
+        }
+    }
     for (_, s) in shapes {
         match s {
             Shape::Tri(p, color) => {
@@ -617,6 +715,15 @@ fn draw(
                     pm.stroke_path(&path, &color.paint(), &stroke, Transform::identity(), None);
                 }
             }
+            Shape::Ring(c, r, color) => {
+                if let Some(path) = PathBuilder::from_circle(c.0, c.1, r) {
+                    let stroke = Stroke {
+                        width: 2.5,
+                        ..Stroke::default()
+                    };
+                    pm.stroke_path(&path, &color.paint(), &stroke, Transform::identity(), None);
+                }
+            }
             Shape::Disc(c, r, color) => {
                 if let Some(path) = PathBuilder::from_circle(c.0, c.1, r) {
                     pm.fill_path(
@@ -643,7 +750,83 @@ fn draw(
             }
         }
     }
+    if let Some(c) = &decor.overlay.color_by {
+        overlay::color_bar(&mut pm, c);
+    }
+    overlay::key(&mut pm, decor.overlay);
+    if let Some(caption) = decor.overlay.caption(decor.k) {
+        overlay::text(&mut pm, 10.0, 8.0, caption, Rgba::rgb(20, 20, 20));
+    }
     Ok(pm)
+}
+
+/// `frame` faintly: its faces, edges and particles in `color` (translucent), under the state.
+fn draw_ghost(pm: &mut Pixmap, view: &View, topo: &Topology, frame: &Frame, color: Rgba) {
+    if frame.check(topo, None).is_err() {
+        return;
+    }
+    let paint = color.paint();
+    let stroke = Stroke {
+        width: 1.5,
+        line_cap: LineCap::Round,
+        ..Stroke::default()
+    };
+    for f in &topo.faces {
+        let p = f.map(|i| view.point(frame.x[i as usize]));
+        if let [Some(a), Some(b), Some(c)] = p {
+            let mut pb = PathBuilder::new();
+            pb.move_to(a.0 .0, a.0 .1);
+            pb.line_to(b.0 .0, b.0 .1);
+            pb.line_to(c.0 .0, c.0 .1);
+            pb.close();
+            if let Some(path) = pb.finish() {
+                pm.fill_path(
+                    &path,
+                    &paint,
+                    FillRule::Winding,
+                    Transform::identity(),
+                    None,
+                );
+            }
+        }
+    }
+    let mut segments: Vec<(Vec3<f64>, Vec3<f64>)> = topo
+        .edges
+        .iter()
+        .map(|e| (frame.x[e[0] as usize], frame.x[e[1] as usize]))
+        .collect();
+    let world = frame.body_world_points(topo);
+    segments.extend(
+        topo.body_edges()
+            .iter()
+            .map(|e| (world[e[0] as usize], world[e[1] as usize])),
+    );
+    for (a, b) in segments {
+        if let Some((s, _)) = view.segment(a, b) {
+            let mut pb = PathBuilder::new();
+            pb.move_to(s[0].0, s[0].1);
+            pb.line_to(s[1].0, s[1].1);
+            if let Some(path) = pb.finish() {
+                pm.stroke_path(&path, &paint, &stroke, Transform::identity(), None);
+            }
+        }
+    }
+    if topo.faces.is_empty() {
+        for i in 0..topo.particles {
+            if let Some((c, z)) = view.point(frame.x[i]) {
+                let r = ((topo.radius_of(i) * view.pixels_per_metre(z)) as f32).max(1.5);
+                if let Some(path) = PathBuilder::from_circle(c.0, c.1, r) {
+                    pm.fill_path(
+                        &path,
+                        &paint,
+                        FillRule::Winding,
+                        Transform::identity(),
+                        None,
+                    );
+                }
+            }
+        }
+    }
 }
 
 /// The ground plane `dot(n, x) = offset` around the scene: a filled square with a grid.
@@ -750,11 +933,108 @@ pub fn render_frame<R: Real>(
     state: &State<R>,
     options: &RenderOptions,
 ) -> Result<Pixmap> {
-    let topo = Topology::of(model);
-    let cam = options
-        .camera
-        .unwrap_or_else(|| Camera::fit(model, std::slice::from_ref(state)));
-    draw(&topo, &Frame::of(state), ground_of(model), &cam, options)
+    render_frame_with(
+        model,
+        std::slice::from_ref(state),
+        0,
+        options,
+        &Overlay::default(),
+    )
+}
+
+/// Everything a rollout's pictures share: its frames, the camera (`options.camera` or one
+/// fitted to every state and the overlay's markers and ghosts) and the ground's extent.
+struct Framing {
+    topo: Topology,
+    frames: Vec<Frame>,
+    camera: Camera,
+    ground_box: (Vec3<f64>, f64),
+}
+
+impl Framing {
+    fn of<R: Real>(
+        model: &Model<R>,
+        states: &[State<R>],
+        options: &RenderOptions,
+        overlay: &Overlay,
+    ) -> Result<Self> {
+        let topo = Topology::of(model);
+        let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
+        for (k, f) in frames.iter().enumerate() {
+            f.check(&topo, Some(k))?;
+        }
+        let ground_box = bounds(&topo, &frames, &overlay.points(&topo));
+        let up = up_of(model);
+        let camera = options.camera.unwrap_or_else(|| {
+            Camera::fit_sphere(ground_box.0, ground_box.1, default_direction(up), up)
+        });
+        Ok(Framing {
+            topo,
+            frames,
+            camera,
+            ground_box,
+        })
+    }
+
+    /// Draws state `k`.
+    fn draw<R: Real>(
+        &self,
+        model: &Model<R>,
+        states: &[State<R>],
+        k: usize,
+        options: &RenderOptions,
+        overlay: &Overlay,
+    ) -> Result<Pixmap> {
+        let color_by = overlay.color_by.as_ref();
+        let edge_values = match color_by.map(|c| &c.values) {
+            Some(Values::EdgeStrain) => Some(edge_strain(
+                &self.topo,
+                &rest_lengths(model),
+                &self.frames[k],
+            )),
+            _ => None,
+        };
+        let decor = Decor {
+            overlay,
+            k,
+            history: &self.frames,
+            particle_values: color_by.and_then(|c| c.particle_values(k, &states[k])),
+            edge_values,
+            ground_box: self.ground_box,
+        };
+        draw(
+            &self.topo,
+            &self.frames[k],
+            ground_of(model),
+            &self.camera,
+            options,
+            &decor,
+        )
+    }
+}
+
+/// Draws state `k` of the rollout `states` with `overlay` (its trails run over
+/// `states[..=k]`, its caption is `captions[k]`) into a new pixmap; the camera is
+/// `options.camera` or one fitted to all of `states` and to the overlay's markers and ghosts,
+/// so that every picture of one rollout is framed alike.
+///
+/// Errors: [`Error::Invalid`] for `k` outside `states` (or a state that does not fit the
+/// model), otherwise as
+/// [`render_frame`].
+pub fn render_frame_with<R: Real>(
+    model: &Model<R>,
+    states: &[State<R>],
+    k: usize,
+    options: &RenderOptions,
+    overlay: &Overlay,
+) -> Result<Pixmap> {
+    if k >= states.len() {
+        return Err(Error::Invalid(format!(
+            "state {k} asked of a rollout of {} states",
+            states.len()
+        )));
+    }
+    Framing::of(model, states, options, overlay)?.draw(model, states, k, options, overlay)
 }
 
 /// Draws `state` ([`render_frame`]) and writes it to `path` as a PNG.
@@ -774,8 +1054,26 @@ pub fn render_png<R: Real>(
     state: &State<R>,
     options: &RenderOptions,
 ) -> Result<()> {
-    let path = path.as_ref();
     let pm = render_frame(model, state, options)?;
+    write_png(path.as_ref(), &pm)
+}
+
+/// Draws state `k` of `states` with `overlay` ([`render_frame_with`]) and writes it to `path`
+/// as a PNG: e.g. the last state of an optimized rollout with the target marked, the trail of
+/// the particle that had to reach it and the first guess as a ghost.
+pub fn render_png_with<R: Real>(
+    path: impl AsRef<Path>,
+    model: &Model<R>,
+    states: &[State<R>],
+    k: usize,
+    options: &RenderOptions,
+    overlay: &Overlay,
+) -> Result<()> {
+    let pm = render_frame_with(model, states, k, options, overlay)?;
+    write_png(path.as_ref(), &pm)
+}
+
+fn write_png(path: &Path, pm: &Pixmap) -> Result<()> {
     let bytes = pm.encode_png().map_err(|e| Error::Encode {
         path: path.to_path_buf(),
         message: e.to_string(),
@@ -820,6 +1118,21 @@ pub fn render_gif<R: Real>(
     fps: f64,
     every_nth: usize,
 ) -> Result<()> {
+    let none = Overlay::default();
+    render_gif_with(path, model, states, options, &none, fps, every_nth)
+}
+
+/// [`render_gif`] with an [`Overlay`]: each frame `k` shows the trails up to state `k` and
+/// caption `k`; one camera and one ground for the whole animation.
+pub fn render_gif_with<R: Real>(
+    path: impl AsRef<Path>,
+    model: &Model<R>,
+    states: &[State<R>],
+    options: &RenderOptions,
+    overlay: &Overlay,
+    fps: f64,
+    every_nth: usize,
+) -> Result<()> {
     let path = path.as_ref();
     if states.is_empty() {
         return Err(Error::Empty {
@@ -838,9 +1151,7 @@ pub fn render_gif<R: Real>(
             options.width, options.height
         )));
     };
-    let topo = Topology::of(model);
-    let cam = options.camera.unwrap_or_else(|| Camera::fit(model, states));
-    let ground = ground_of(model);
+    let framing = Framing::of(model, states, options, overlay)?;
     let delay = (100.0 / fps).round().clamp(2.0, u16::MAX as f64) as u16;
     let file = File::create(path).map_err(|e| Error::io(path, e))?;
     let encode = |e: gif::EncodingError| match e {
@@ -852,8 +1163,8 @@ pub fn render_gif<R: Real>(
     };
     let mut enc = gif::Encoder::new(BufWriter::new(file), w, h, &[]).map_err(encode)?;
     enc.set_repeat(gif::Repeat::Infinite).map_err(encode)?;
-    for s in states.iter().step_by(every_nth.max(1)) {
-        let pm = draw(&topo, &Frame::of(s), ground, &cam, options)?;
+    for k in (0..states.len()).step_by(every_nth.max(1)) {
+        let pm = framing.draw(model, states, k, options, overlay)?;
         let mut rgba = pm.take_demultiplied();
         let mut frame = gif::Frame::from_rgba_speed(w, h, &mut rgba, 10);
         frame.delay = delay;

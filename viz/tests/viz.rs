@@ -1050,3 +1050,124 @@ fn glb_files_pass_the_khronos_validator() {
     .unwrap_err();
     assert!(e.to_string().contains("particle 3 of state 1"), "{e}");
 }
+
+// ---------------------------------------------------------------- overlays
+
+fn count(pm: &render::Pixmap, f: impl Fn(u8, u8, u8) -> bool) -> usize {
+    pm.pixels()
+        .iter()
+        .map(|p| p.demultiply())
+        .filter(|p| f(p.red(), p.green(), p.blue()))
+        .count()
+}
+
+/// A target far from the scene is framed and drawn; a caption and a colour bar appear; a
+/// stretched spring is red and a compressed one blue; the first guess shows as a ghost.
+#[test]
+fn overlays_show_targets_strain_ghosts_and_captions() {
+    use adflex_viz::overlay::{ColorBy, Colormap, Ghost, Marker, Overlay, Trail, Values};
+    let mut b = ModelBuilder::<f64>::new();
+    b.gravity = Vec3::zeros();
+    for k in 0..4 {
+        b.add_particle(Vec3::new(k as f64, 1.0, 0.0), Vec3::zeros(), 1.0);
+    }
+    b.add_spring(0, 1, 10.0, 0.0);
+    b.add_spring(2, 3, 10.0, 0.0);
+    let model = b.finalize();
+    let s = model.state();
+    // Spring 0 stretched by 50%, spring 1 compressed by 50%.
+    s.x.assign(&[
+        Vec3::new(0.0, 1.0, 0.0),
+        Vec3::new(1.5, 1.0, 0.0),
+        Vec3::new(2.5, 1.0, 0.0),
+        Vec3::new(3.0, 1.0, 0.0),
+    ]);
+    let states = vec![model.state(), s];
+    let opts = RenderOptions {
+        width: 320,
+        height: 240,
+        draw_points: false,
+        ..RenderOptions::default()
+    };
+    let plain = render::render_frame_with(&model, &states, 1, &opts, &Overlay::default()).unwrap();
+    let red = |r: u8, g: u8, b: u8| r > 150 && g < 90 && b < 90;
+    let blue = |r: u8, _g: u8, b: u8| b > 150 && r < 90;
+    assert_eq!(count(&plain, red), 0);
+    let overlay = Overlay {
+        markers: vec![Marker::target(Vec3::new(1.5, 6.0, 0.0), "target")],
+        color_by: Some(ColorBy::new(
+            Values::EdgeStrain,
+            (-0.5, 0.5),
+            Colormap::Diverging,
+            "strain",
+        )),
+        captions: vec!["iteration 0".into(), "iteration 7, loss 1.2e-9".into()],
+        ..Overlay::default()
+    };
+    let pm = render::render_frame_with(&model, &states, 1, &opts, &overlay).unwrap();
+    assert!(
+        count(&pm, red) > 50,
+        "the target and the stretched spring are red"
+    );
+    assert!(count(&pm, blue) > 20, "the compressed spring is blue");
+    // The target, 5 m above the springs, is in the picture (the camera was fitted to it):
+    // red pixels in the top third, where the plain picture has nothing.
+    let red_above = |pm: &render::Pixmap| {
+        let mut n = 0;
+        for y in 30..80 {
+            for x in 0..320 {
+                let p = pm.pixel(x, y).unwrap().demultiply();
+                n += red(p.red(), p.green(), p.blue()) as usize;
+            }
+        }
+        n
+    };
+    assert!(red_above(&pm) > 10, "no target drawn above the scene");
+    let dark = |r: u8, g: u8, b: u8| r < 60 && g < 60 && b < 60;
+    let top_left = |pm: &render::Pixmap| {
+        let mut n = 0;
+        for y in 0..28 {
+            for x in 0..200 {
+                let p = pm.pixel(x, y).unwrap().demultiply();
+                n += dark(p.red(), p.green(), p.blue()) as usize;
+            }
+        }
+        n
+    };
+    assert!(top_left(&pm) > 100, "a caption");
+    assert_eq!(top_left(&plain), 0);
+    // A ghost of the first state and a trail: more non-background pixels.
+    let bg = |r: u8, g: u8, b: u8| (r, g, b) == (250, 250, 247);
+    let with_ghost = Overlay {
+        ghosts: vec![Ghost::of(&states[0], "first guess")],
+        trails: vec![Trail::of(1)],
+        ..Overlay::default()
+    };
+    let pg = render::render_frame_with(&model, &states, 1, &opts, &with_ghost).unwrap();
+    assert!(count(&pg, bg) < count(&plain, bg));
+    // Asking for a state past the end is an error, not a panic.
+    assert!(render::render_frame_with(&model, &states, 2, &opts, &overlay).is_err());
+}
+
+/// One camera and one ground for a whole animation: the ground drawn under a particle that
+/// moves far sideways is the same in the first and last pictures where the particle is not.
+#[test]
+fn the_ground_stays_put_across_frames() {
+    use adflex_viz::overlay::Overlay;
+    let mut b = ModelBuilder::<f64>::new();
+    b.gravity = Vec3::zeros();
+    b.add_particle(Vec3::new(0.0, 0.2, 0.0), Vec3::new(4.0, 0.0, 0.0), 1.0);
+    b.set_ground(Ground::default());
+    let model = b.finalize();
+    let states = rollout(&model, &model.state(), 10, 0.1);
+    let opts = RenderOptions {
+        width: 160,
+        height: 120,
+        draw_points: false,
+        ..RenderOptions::default()
+    };
+    let none = Overlay::default();
+    let first = render::render_frame_with(&model, &states, 0, &opts, &none).unwrap();
+    let last = render::render_frame_with(&model, &states, 10, &opts, &none).unwrap();
+    assert_eq!(first.data(), last.data());
+}
