@@ -204,30 +204,63 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ),
         ],
     )?;
+    // A top view of the table: the destination, both balls' paths, the first guess (the
+    // cue ball missing) as a ghost, the time and the result in the caption.
+    use adflex::viz::overlay::{Ghost, Marker, Overlay, Region, Trail};
+    use adflex::viz::render::{Camera, RenderOptions, Rgba};
     let model = table(false, cfg.duration);
-    let camera = adflex::viz::render::Camera::fit_from(
-        &model,
-        &out.leaky.frames,
-        Vec3::new(0.0, 1.0, 0.0),
-        Vec3::new(0.0, 0.0, -1.0),
-    );
-    let options = adflex::viz::render::RenderOptions {
-        camera: Some(camera),
+    let frames = &out.leaky.frames;
+    let mut cue = Trail::of(0);
+    cue.color = Rgba::rgb(90, 90, 90);
+    let felt = Rgba::rgb(196, 222, 196);
+    let overlay = Overlay {
+        markers: vec![Marker::target(cfg.destination, "destination")],
+        trails: vec![cue, Trail::of(1)],
+        regions: vec![Region::rect_xz((-0.7, 0.7), (-0.45, 0.3), -RADIUS, felt)],
+        ghosts: vec![Ghost::of(
+            out.exact.frames.last().unwrap(),
+            "first guess (a miss), end",
+        )],
+        captions: (0..frames.len())
+            .map(|k| {
+                format!(
+                    "t = {:.2} s | Adam: {} it., miss {:.1} mm",
+                    k as f64 * cfg.dt,
+                    out.leaky.report.iterations,
+                    1e3 * out.leaky.miss
+                )
+            })
+            .collect(),
+        ..Overlay::default()
+    };
+    let options = RenderOptions {
+        width: 720,
+        height: 480,
+        camera: Some(Camera::fit_with(
+            &model,
+            frames,
+            &overlay,
+            Vec3::new(0.0, 1.0, 0.0),
+            Vec3::new(0.0, 0.0, -1.0),
+        )),
         ..Default::default()
     };
-    adflex::viz::render::render_gif(
+    adflex::viz::render::render_gif_with(
         dir.join("billiards.gif"),
         &model,
-        &out.leaky.frames,
+        frames,
         &options,
+        &overlay,
         25.0,
         40,
     )?;
-    adflex::viz::render::render_png(
+    adflex::viz::render::render_png_with(
         dir.join("billiards.png"),
         &model,
-        out.leaky.frames.last().unwrap(),
+        frames,
+        frames.len() - 1,
         &options,
+        &overlay,
     )?;
     println!(
         "pictures: {}/{{loss.svg, billiards.gif, billiards.png}}",

@@ -110,6 +110,8 @@ pub struct Outcome {
     pub initial_miss: f64,
     pub miss: f64,
     pub frames: Vec<State<f64>>,
+    /// Where the first guess's toss ends.
+    pub first_guess: State<f64>,
     pub model: Model<f64>,
     pub velocity: Vec3<f64>,
 }
@@ -138,7 +140,8 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         }
         Ok(frames)
     };
-    let initial_miss = com_miss(simulate(&u)?.last().unwrap());
+    let first_guess = simulate(&u)?.pop().expect("a state");
+    let initial_miss = com_miss(&first_guess);
     let report = Optimizer::adam(0.1)
         .max_iters(cfg.iterations)
         .progress(cfg.progress)
@@ -157,6 +160,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         initial_miss,
         miss: com_miss(frames.last().unwrap()),
         frames,
+        first_guess,
         model,
         velocity: u.get(0),
     })
@@ -200,20 +204,51 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &out.report.losses(),
         "cloth toss: Adam on the initial velocity",
     )?;
-    let options = adflex::viz::render::RenderOptions::default();
-    adflex::viz::render::render_gif(
+    // The landing target, a corner's path, where the first guess landed, the speed.
+    use adflex::viz::overlay::{ColorBy, Colormap, Ghost, Marker, Overlay, Trail, Values};
+    let overlay = Overlay {
+        markers: vec![Marker::target(cfg.target, "target (centre of mass)")],
+        trails: vec![Trail::of(0)],
+        ghosts: vec![Ghost::of(&out.first_guess, "first guess, end")],
+        color_by: Some(ColorBy::new(
+            Values::Speed,
+            (0.0, 4.0),
+            Colormap::Sequential,
+            "speed (m/s)",
+        )),
+        captions: (0..out.frames.len())
+            .map(|k| {
+                format!(
+                    "t = {:.2} s | Adam: {} it., miss {:.1} mm",
+                    k as f64 * cfg.dt,
+                    out.report.iterations,
+                    1e3 * out.miss
+                )
+            })
+            .collect(),
+        ..Overlay::default()
+    };
+    let options = adflex::viz::render::RenderOptions {
+        width: 720,
+        height: 480,
+        ..Default::default()
+    };
+    adflex::viz::render::render_gif_with(
         dir.join("cloth.gif"),
         &out.model,
         &out.frames,
         &options,
+        &overlay,
         25.0,
         40,
     )?;
-    adflex::viz::render::render_png(
+    adflex::viz::render::render_png_with(
         dir.join("cloth.png"),
         &out.model,
-        out.frames.last().unwrap(),
+        &out.frames,
+        out.frames.len() - 1,
         &options,
+        &overlay,
     )?;
     println!(
         "pictures: {}/{{loss.svg, cloth.gif, cloth.png}}",

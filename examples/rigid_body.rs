@@ -144,6 +144,8 @@ pub struct Throw {
     pub speed: f64,
     pub initial_miss: f64,
     pub frames: Vec<State<f64>>,
+    /// Where the first guess's throw ends.
+    pub first_guess: State<f64>,
     pub model: Model<f64>,
 }
 
@@ -155,7 +157,8 @@ fn throw(cfg: &Config) -> Result<Throw, Error> {
     let rollout =
         |tape: &mut Tape| SemiImplicitEuler.rollout(&model, tape, &s0, None, cfg.throw_dt, steps);
     let end_of = |s: &State<f64>| s.bodies.as_ref().expect("a body").x.get(0);
-    let initial_miss = (end_of(&rollout(&mut Tape::new())?) - cfg.target).norm();
+    let first_guess = rollout(&mut Tape::new())?;
+    let initial_miss = (end_of(&first_guess) - cfg.target).norm();
     let report = Optimizer::adam(0.05)
         .max_iters(cfg.iterations)
         .progress(cfg.progress)
@@ -185,6 +188,7 @@ fn throw(cfg: &Config) -> Result<Throw, Error> {
         speed: last.v.get(0).norm(),
         initial_miss,
         frames,
+        first_guess,
         model,
     })
 }
@@ -257,20 +261,44 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &t.report.losses(),
         "throw a box to a target: Adam",
     )?;
-    let options = adflex::viz::render::RenderOptions::default();
-    adflex::viz::render::render_gif(
+    // The target, where the first guess came to rest, the time and the result.
+    use adflex::viz::overlay::{Ghost, Marker, Overlay};
+    let overlay = Overlay {
+        markers: vec![Marker::target(cfg.target, "target")],
+        ghosts: vec![Ghost::of(&t.first_guess, "first guess, end")],
+        captions: (0..t.frames.len())
+            .map(|k| {
+                format!(
+                    "t = {:.2} s | Adam: {} it., miss {:.1} mm",
+                    k as f64 * cfg.throw_dt,
+                    t.report.iterations,
+                    1e3 * t.miss
+                )
+            })
+            .collect(),
+        ..Overlay::default()
+    };
+    let options = adflex::viz::render::RenderOptions {
+        width: 720,
+        height: 480,
+        ..Default::default()
+    };
+    adflex::viz::render::render_gif_with(
         dir.join("throw.gif"),
         &t.model,
         &t.frames,
         &options,
+        &overlay,
         25.0,
         40,
     )?;
-    adflex::viz::render::render_png(
+    adflex::viz::render::render_png_with(
         dir.join("throw.png"),
         &t.model,
-        t.frames.last().unwrap(),
+        &t.frames,
+        t.frames.len() - 1,
         &options,
+        &overlay,
     )?;
     println!(
         "pictures: {}/{{flip.svg, loss.svg, throw.gif, throw.png}}",

@@ -239,6 +239,30 @@ impl ColorBy {
     }
 }
 
+/// A flat region drawn under the scene (a table, a landing zone), as a filled polygon.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Region {
+    /// Corners (m), in order.
+    pub corners: Vec<Vec3<f64>>,
+    /// Fill colour.
+    pub color: Rgba,
+}
+
+impl Region {
+    /// The rectangle `[x0, x1] x [z0, z1]` at height `y` (m), in `color`.
+    pub fn rect_xz(x: (f64, f64), z: (f64, f64), y: f64, color: Rgba) -> Self {
+        Region {
+            corners: vec![
+                Vec3::new(x.0, y, z.0),
+                Vec3::new(x.1, y, z.0),
+                Vec3::new(x.1, y, z.1),
+                Vec3::new(x.0, y, z.1),
+            ],
+            color,
+        }
+    }
+}
+
 /// Everything drawn over the state; `Overlay::default()` draws nothing extra.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Overlay {
@@ -246,6 +270,8 @@ pub struct Overlay {
     pub markers: Vec<Marker>,
     /// Particle paths up to the state shown.
     pub trails: Vec<Trail>,
+    /// Regions drawn under everything (after the ground).
+    pub regions: Vec<Region>,
     /// Other states drawn faintly behind.
     pub ghosts: Vec<Ghost>,
     /// Colouring by a value, with a colour bar.
@@ -259,6 +285,7 @@ impl Overlay {
     /// Every world point the overlay draws (markers, ghosts), to fit a camera to.
     pub(crate) fn points(&self, topo: &Topology) -> Vec<Vec3<f64>> {
         let mut out: Vec<Vec3<f64>> = self.markers.iter().map(|m| m.position).collect();
+        out.extend(self.regions.iter().flat_map(|r| r.corners.iter().copied()));
         for g in &self.ghosts {
             out.extend(g.frame().all_points(topo));
         }

@@ -208,6 +208,36 @@ impl Camera {
         Self::fit_sphere(c, r, direction, up)
     }
 
+    /// Like [`Camera::fit_from`], fitted to the overlay's markers, regions and ghosts too
+    /// (so that a target off the path stays in the picture).
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_runtime::Vec3;
+    /// use adflex_viz::overlay::{Marker, Overlay};
+    /// use adflex_viz::render::Camera;
+    /// let mut b = ModelBuilder::<f64>::new();
+    /// b.add_particle(Vec3::zeros(), Vec3::zeros(), 1.0);
+    /// let model = b.finalize();
+    /// let far = Vec3::new(5.0, 0.0, 0.0);
+    /// let overlay = Overlay { markers: vec![Marker::target(far, "goal")], ..Overlay::default() };
+    /// let cam = Camera::fit_with(&model, &[model.state()], &overlay, Vec3::y(), Vec3::z());
+    /// let (x, _) = cam.project(far, 640, 480).unwrap();
+    /// assert!((0.0..640.0).contains(&x));
+    /// ```
+    pub fn fit_with<R: Real>(
+        model: &Model<R>,
+        states: &[State<R>],
+        overlay: &Overlay,
+        direction: Vec3<f64>,
+        up: Vec3<f64>,
+    ) -> Self {
+        let topo = Topology::of(model);
+        let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
+        let (c, r) = bounds(&topo, &frames, &overlay.points(&topo));
+        Self::fit_sphere(c, r, direction, up)
+    }
+
     /// A camera along `direction` from `c` that sees the sphere of radius `r` around it.
     fn fit_sphere(c: Vec3<f64>, r: f64, direction: Vec3<f64>, up: Vec3<f64>) -> Self {
         let dir = if direction.norm() > 0.0 && direction.iter().all(|v| v.is_finite()) {
@@ -562,6 +592,30 @@ fn draw(
 
     if let (true, Some((n, offset))) = (o.draw_ground, ground) {
         draw_ground(&mut pm, &view, n, offset, centre, radius, o.ground_color);
+    }
+    for r in &decor.overlay.regions {
+        let corners: Option<Vec<(f32, f32)>> = r
+            .corners
+            .iter()
+            .map(|&p| view.point(p).map(|c| c.0))
+            .collect();
+        if let Some(c) = corners.filter(|c| c.len() >= 3) {
+            let mut pb = PathBuilder::new();
+            pb.move_to(c[0].0, c[0].1);
+            for p in &c[1..] {
+                pb.line_to(p.0, p.1);
+            }
+            pb.close();
+            if let Some(path) = pb.finish() {
+                pm.fill_path(
+                    &path,
+                    &r.color.paint(),
+                    FillRule::Winding,
+                    Transform::identity(),
+                    None,
+                );
+            }
+        }
     }
     for g in &decor.overlay.ghosts {
         draw_ghost(&mut pm, &view, topo, &g.frame(), g.color);
