@@ -142,6 +142,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 )
             })
             .collect(),
+        ..Overlay::default()
     };
     let options = adflex::viz::render::RenderOptions {
         width: 720,
