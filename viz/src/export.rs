@@ -310,6 +310,34 @@ pub fn write_sequence<R: Real>(
     Ok(paths)
 }
 
+/// The checks every rollout file makes (states, `fps` finite and `> 0`, each state fits the
+/// model), then the model's topology and the states' frames.
+pub(crate) fn rollout<R: Real>(
+    path: &Path,
+    model: &Model<R>,
+    states: &[State<R>],
+    fps: f64,
+) -> Result<(Topology, Vec<Frame>)> {
+    if states.is_empty() {
+        return Err(Error::Empty {
+            path: path.to_path_buf(),
+            what: "the list of states is empty",
+        });
+    }
+    if !(fps.is_finite() && fps > 0.0) {
+        return Err(Error::Invalid(format!(
+            "fps must be finite and > 0 (got {fps}) for {}",
+            path.display()
+        )));
+    }
+    let topo = Topology::of(model);
+    let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
+    for (k, f) in frames.iter().enumerate() {
+        f.check(&topo, Some(k))?;
+    }
+    Ok((topo, frames))
+}
+
 /// A coordinate as USD and PLY readers parse it (`nan`, `inf`, `-inf` for non-finite values;
 /// Rust writes `NaN`).
 struct Num(f32);
@@ -443,23 +471,7 @@ pub fn write_usda<R: Real>(
     fps: f64,
 ) -> Result<()> {
     let path = path.as_ref();
-    if states.is_empty() {
-        return Err(Error::Empty {
-            path: path.to_path_buf(),
-            what: "the list of states is empty",
-        });
-    }
-    if !(fps.is_finite() && fps > 0.0) {
-        return Err(Error::Invalid(format!(
-            "fps must be finite and > 0 (got {fps}) for {}",
-            path.display()
-        )));
-    }
-    let topo = Topology::of(model);
-    let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
-    for (k, f) in frames.iter().enumerate() {
-        f.check(&topo, Some(k))?;
-    }
+    let (topo, frames) = rollout(path, model, states, fps)?;
     let mut s = String::new();
     let _ = write!(
         s,

@@ -39,7 +39,7 @@ use adflex_kernels::model::{Model, State};
 use adflex_runtime::{Real, Vec3};
 use serde_json::{json, Value};
 
-use crate::scene::{Frame, Topology};
+use crate::scene::Frame;
 use crate::{Error, Result};
 
 const FLOAT: u32 = 5126;
@@ -151,28 +151,12 @@ pub fn write_glb<R: Real>(
     fps: f64,
 ) -> Result<()> {
     let path = path.as_ref();
-    if states.is_empty() {
-        return Err(Error::Empty {
-            path: path.to_path_buf(),
-            what: "the list of states is empty",
-        });
-    }
-    if !(fps.is_finite() && fps > 0.0) {
-        return Err(Error::Invalid(format!(
-            "fps must be finite and > 0 (got {fps}) for {}",
-            path.display()
-        )));
-    }
-    let topo = Topology::of(model);
+    let (topo, frames) = crate::export::rollout(path, model, states, fps)?;
     if topo.particles == 0 && topo.body_points.is_empty() {
         return Err(Error::Empty {
             path: path.to_path_buf(),
             what: "the model has no particles and no rigid bodies",
         });
-    }
-    let frames: Vec<Frame> = states.iter().map(Frame::of).collect();
-    for (k, f) in frames.iter().enumerate() {
-        f.check(&topo, Some(k))?;
     }
     let n = topo.particles;
     let mut b = Builder::default();

@@ -25,6 +25,7 @@
 //!     ghosts: vec![Ghost::of(&states[0], "start")],
 //!     color_by: Some(ColorBy::new(Values::Speed, (0.0, 3.0), Colormap::Sequential, "speed (m/s)")),
 //!     captions: (0..states.len()).map(|k| format!("t = {:.2} s", k as f64 * 0.02)).collect(),
+//!     ..Overlay::default()
 //! };
 //! let opts = RenderOptions { width: 200, height: 150, ..RenderOptions::default() };
 //! let path = std::env::temp_dir().join(format!("adflex-viz-doc-overlay-{}.gif", std::process::id()));
