@@ -797,6 +797,9 @@ impl<R: Real> ModelBuilder<R> {
     /// Builds the model, or returns every problem of the scene (see [`crate::validation`]):
     /// bad inputs of the builder methods and bad derived values (inverse masses, rest lengths,
     /// rest shapes), each naming its item (`springs[3]`, `tets[0]`) and parameter.
+    ///
+    /// Panics for a scalar type `R` other than `f32` and `f64`, which the library's forces are
+    /// compiled for (`Real` is implemented for those two only).
     pub fn try_finalize(&self) -> Result<Model<R>, ModelError> {
         self.validate()?;
         // Compiled in this crate (`precompiled`): a user crate does not code-generate the

@@ -40,6 +40,9 @@ macro_rules! precompiled {
 
         $(#[$m])*
         pub(crate) fn $name<R: Real>($($arg: $ty),*) -> $out {
+            // The result must not borrow from the arguments: `same` would not see the lifetime.
+            fn owned<T: 'static>() {}
+            owned::<$out>();
             if TypeId::of::<R>() == TypeId::of::<f64>() {
                 // SAFETY: `R` is `f64`, so every argument's type and the result's are those of
                 // `$name::f64::call`.

@@ -282,10 +282,13 @@ pub fn write_glb<R: Real>(
         "scene": 0,
         "scenes": [{ "name": "rollout", "nodes": roots }],
         "nodes": nodes,
-        "buffers": [{ "byteLength": b.bin.len() }],
-        "bufferViews": b.views,
-        "accessors": b.accessors,
     });
+    // glTF wants no empty arrays and no empty buffer (bodies without points, one state).
+    if !b.bin.is_empty() {
+        doc["buffers"] = json!([{ "byteLength": b.bin.len() }]);
+        doc["bufferViews"] = json!(b.views);
+        doc["accessors"] = json!(b.accessors);
+    }
     if !meshes.is_empty() {
         doc["meshes"] = json!(meshes);
     }
@@ -300,7 +303,8 @@ pub fn write_glb<R: Real>(
 fn write_container(path: &Path, doc: &Value, bin: &[u8]) -> Result<()> {
     let mut json = serde_json::to_vec(doc).expect("a JSON value serializes");
     json.resize(json.len().next_multiple_of(4), b' ');
-    let total = 12 + 8 + json.len() + 8 + bin.len();
+    // The binary chunk only if there is data.
+    let total = 12 + 8 + json.len() + if bin.is_empty() { 0 } else { 8 + bin.len() };
     let too_big = |_| Error::Invalid(format!("{} would exceed 4 GiB", path.display()));
     let mut out = Vec::with_capacity(total);
     out.extend_from_slice(b"glTF");
@@ -309,8 +313,10 @@ fn write_container(path: &Path, doc: &Value, bin: &[u8]) -> Result<()> {
     out.extend_from_slice(&(json.len() as u32).to_le_bytes());
     out.extend_from_slice(b"JSON");
     out.extend_from_slice(&json);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(bin);
+    if !bin.is_empty() {
+        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+        out.extend_from_slice(b"BIN\0");
+        out.extend_from_slice(bin);
+    }
     std::fs::write(path, out).map_err(|e| Error::io(path, e))
 }

@@ -997,7 +997,7 @@ pub fn render_frame<R: Real>(
 }
 
 /// Everything a rollout's pictures share: its frames, the camera (`options.camera` or one
-/// fitted to every state and the overlay's markers and ghosts) and the ground's extent.
+/// fitted to every state and the overlay's markers, regions and ghosts) and the ground's extent.
 struct Framing {
     topo: Topology,
     frames: Vec<Frame>,
@@ -1069,7 +1069,8 @@ impl Framing {
 
 /// Draws state `k` of the rollout `states` with `overlay` (its trails run over
 /// `states[..=k]`, its caption is `captions[k]`) into a new pixmap; the camera is
-/// `options.camera` or one fitted to all of `states` and to the overlay's markers and ghosts,
+/// `options.camera` or one fitted to all of `states` and to the overlay's markers, regions and
+/// ghosts,
 /// so that every picture of one rollout is framed alike.
 ///
 /// Errors: [`Error::Invalid`] for `k` outside `states` (or a state that does not fit the
