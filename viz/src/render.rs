@@ -599,22 +599,15 @@ fn draw(
             .iter()
             .map(|&p| view.point(p).map(|c| c.0))
             .collect();
-        if let Some(c) = corners.filter(|c| c.len() >= 3) {
-            let mut pb = PathBuilder::new();
-            pb.move_to(c[0].0, c[0].1);
-            for p in &c[1..] {
-                pb.line_to(p.0, p.1);
-            }
-            pb.close();
-            if let Some(path) = pb.finish() {
-                pm.fill_path(
-                    &path,
-                    &r.color.paint(),
-                    FillRule::Winding,
-                    Transform::identity(),
-                    None,
-                );
-            }
+        if let Some(path) = corners.as_deref().and_then(polygon) {
+            let paint = r.color.paint();
+            pm.fill_path(
+                &path,
+                &paint,
+                FillRule::Winding,
+                Transform::identity(),
+                None,
+            );
         }
     }
     for g in &decor.overlay.ghosts {
@@ -734,12 +727,7 @@ fn draw(
     for (_, s) in shapes {
         match s {
             Shape::Tri(p, color) => {
-                let mut pb = PathBuilder::new();
-                pb.move_to(p[0].0, p[0].1);
-                pb.line_to(p[1].0, p[1].1);
-                pb.line_to(p[2].0, p[2].1);
-                pb.close();
-                if let Some(path) = pb.finish() {
+                if let Some(path) = polygon(&p) {
                     let paint = color.paint();
                     pm.fill_path(
                         &path,
@@ -814,6 +802,21 @@ fn draw(
     Ok(pm)
 }
 
+/// The closed polygon through `pts` (px), or `None` for fewer than three points.
+fn polygon(pts: &[(f32, f32)]) -> Option<tiny_skia::Path> {
+    let (first, rest) = pts.split_first()?;
+    if rest.len() < 2 {
+        return None;
+    }
+    let mut pb = PathBuilder::new();
+    pb.move_to(first.0, first.1);
+    for p in rest {
+        pb.line_to(p.0, p.1);
+    }
+    pb.close();
+    pb.finish()
+}
+
 /// `frame` faintly: its faces, edges and particles in `color` (translucent), under the state.
 fn draw_ghost(pm: &mut Pixmap, view: &View, topo: &Topology, frame: &Frame, color: Rgba) {
     if frame.check(topo, None).is_err() {
@@ -828,12 +831,7 @@ fn draw_ghost(pm: &mut Pixmap, view: &View, topo: &Topology, frame: &Frame, colo
     for f in &topo.faces {
         let p = f.map(|i| view.point(frame.x[i as usize]));
         if let [Some(a), Some(b), Some(c)] = p {
-            let mut pb = PathBuilder::new();
-            pb.move_to(a.0 .0, a.0 .1);
-            pb.line_to(b.0 .0, b.0 .1);
-            pb.line_to(c.0 .0, c.0 .1);
-            pb.close();
-            if let Some(path) = pb.finish() {
+            if let Some(path) = polygon(&[a.0, b.0, c.0]) {
                 pm.fill_path(
                     &path,
                     &paint,
@@ -1001,6 +999,8 @@ pub fn render_frame<R: Real>(
 struct Framing {
     topo: Topology,
     frames: Vec<Frame>,
+    /// The edges' rest lengths ([`rest_lengths`]), for strain colours.
+    rest: Vec<f64>,
     camera: Camera,
     ground_box: (Vec3<f64>, f64),
 }
@@ -1025,6 +1025,7 @@ impl Framing {
         Ok(Framing {
             topo,
             frames,
+            rest: rest_lengths(model),
             camera,
             ground_box,
         })
@@ -1041,11 +1042,7 @@ impl Framing {
     ) -> Result<Pixmap> {
         let color_by = overlay.color_by.as_ref();
         let edge_values = match color_by.map(|c| &c.values) {
-            Some(Values::EdgeStrain) => Some(edge_strain(
-                &self.topo,
-                &rest_lengths(model),
-                &self.frames[k],
-            )),
+            Some(Values::EdgeStrain) => Some(edge_strain(&self.topo, &self.rest, &self.frames[k])),
             _ => None,
         };
         let decor = Decor {
