@@ -44,6 +44,7 @@ mod precompiled;
 pub mod rigid;
 pub mod scene_file;
 pub mod scenes;
+pub mod solver;
 pub mod statics;
 pub mod tied;
 pub mod validation;

@@ -79,11 +79,13 @@ use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
     add_into, check_inputs, check_visited, copies, epsilon, flat, forces_only, is_f32, max_abs,
-    particles, unflat, within, Copies, Needs,
+    record, unflat, Copies, Dofs, Needs, Point,
 };
-use crate::integrators::krylov::{self, SolveInfo, SolveSettings};
 use crate::integrators::SolverPolicy;
 use crate::model::{Model, State};
+use crate::solver::krylov::{SolveInfo, SolveSettings};
+use crate::solver::newton::{dot, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure};
+pub use crate::solver::NewtonStats;
 
 /// A static equilibrium solver: Newton with matrix-free Krylov solves and a line search,
 /// differentiated by the implicit function theorem (see the [module docs](self)).
@@ -124,164 +126,86 @@ impl Default for Equilibrium {
     }
 }
 
-/// What one [`Equilibrium`] solve did.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct EquilibriumStats {
-    /// Newton iterations (linear solves).
-    pub newton_iterations: usize,
-    /// Matrix-vector products (tangent passes) of the linear solves.
-    pub linear_iterations: usize,
-    /// Force evaluations (one per line-search trial, plus the first).
-    pub force_evaluations: usize,
-    /// Step halvings in the line searches.
-    pub backtracks: usize,
-    /// Final `max |r_k|` over free DOFs (N; NaN if the iterate is not finite).
-    pub residual: f64,
-    /// The tolerance `residual` was held to, `tolerance * scale` (N).
-    pub tolerance: f64,
-    /// Whether it was met (never for a NaN residual).
-    pub converged: bool,
-}
+/// What one [`Equilibrium`] solve did (the shared Newton solver's figures; `residual` and
+/// `tolerance` in N).
+pub type EquilibriumStats = NewtonStats;
 
 /// The nonlinear system `r(x) = M a(x) = 0` over the free DOFs.
 struct System<R: Real> {
     c: Copies<R>,
     /// The guess (pinned DOFs: the pins).
     x0: Vec<f64>,
-    /// Per DOF: the mass on free DOFs, 0 on pinned ones.
-    mass: Vec<f64>,
-    free: Vec<bool>,
+    dofs: Dofs,
     /// Gravity per DOF (m/s^2).
     g: Vec<f64>,
-}
-
-/// The accelerations recorded at one iterate, on their own tape.
-struct Point<R: Real> {
-    tape: Tape,
-    x: Array<Vec3<R>>,
-    v: Array<Vec3<R>>,
-    a: Array<Vec3<R>>,
-    x_val: Vec<f64>,
-    a_val: Vec<f64>,
-}
-
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(a, b)| a * b).sum()
+    failure: PassFailure,
 }
 
 impl<R: Real> System<R> {
     fn new(c: Copies<R>, x0: Vec<f64>, inv_mass: &[R], gravity: Vec3<R>) -> Self {
-        let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
         let g = [gravity.x.to_f64(), gravity.y.to_f64(), gravity.z.to_f64()];
         System {
             c,
-            mass: w
-                .iter()
-                .map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 })
-                .collect(),
-            free: w.iter().map(|&w| w > 0.0).collect(),
+            dofs: Dofs::new(inv_mass),
             g: (0..x0.len()).map(|k| g[k % 3]).collect(),
             x0,
+            failure: PassFailure::new("Equilibrium"),
         }
     }
 
     /// Records the accelerations at `x` (zero velocities) on a new tape.
-    fn eval(&self, x: &[f64], grads: bool) -> Point<R> {
+    fn eval_with(&self, x: &[f64], grads: bool) -> Point<R> {
         let n = x.len() / 3;
         let mut xs = Array::from_vec(unflat::<R>(x)).named("x_equilibrium");
         let vs = Array::zeros(n).named("v_equilibrium");
         if grads {
             xs = xs.requires_grad();
         }
-        let mut tape = Tape::new();
-        let a = self.c.model.eval_accelerations(
-            &mut tape,
-            &particles(&xs, &vs),
-            self.c.control.as_ref(),
-        );
-        let a_val = flat(&a);
-        Point {
-            tape,
-            x: xs,
-            v: vs,
-            a,
-            x_val: x.to_vec(),
-            a_val,
-        }
-    }
-
-    /// `r = M a` on free DOFs, 0 on pinned ones (N).
-    fn residual(&self, p: &Point<R>) -> Vec<f64> {
-        (0..self.mass.len())
-            .map(|k| {
-                if self.free[k] {
-                    self.mass[k] * p.a_val[k]
-                } else {
-                    0.0
-                }
-            })
-            .collect()
-    }
-
-    /// The force scale at `p`: the largest weight `m |g|` and force `|f| = |m (a - g)|` (N).
-    fn scale(&self, p: &Point<R>) -> f64 {
-        (0..self.mass.len())
-            .filter(|&k| self.free[k])
-            .fold(0.0f64, |s, k| {
-                let m = self.mass[k];
-                s.max((m * self.g[k]).abs())
-                    .max((m * (p.a_val[k] - self.g[k])).abs())
-            })
-    }
-
-    /// `out = K u = -M da/dx u` (identity on pinned DOFs) by one tangent pass.
-    fn apply(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
-        let ux: Vec<f64> = u
-            .iter()
-            .zip(&self.free)
-            .map(|(&u, &f)| if f { u } else { 0.0 })
-            .collect();
-        p.x.ensure_tangent().assign(&unflat::<R>(&ux));
-        p.v.ensure_tangent(); // zero: the velocities stay 0
-        p.tape
-            .tangent()
-            .expect("Equilibrium: tangent pass of the force model");
-        let ad = flat(&p.a.tangent_buffer().expect("tangent of the accelerations"));
-        for k in 0..out.len() {
-            out[k] = if self.free[k] {
-                -self.mass[k] * ad[k]
-            } else {
-                u[k]
-            };
-        }
+        record(&self.c, xs, vs, x)
     }
 
     /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
     /// scratch tape; returns the gradient of the positions.
-    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Vec<f64> {
+    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Result<Vec<f64>, Error> {
         p.x.zero_grad();
         p.a.ensure_grad().assign(&unflat::<R>(seed));
-        p.tape
-            .backward_with(&[&p.a])
-            .expect("Equilibrium: adjoint pass of the force model");
-        flat(&p.x.grad().expect("x requires grad"))
-    }
-
-    /// `out = K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
-    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
-        let seed = self.seed(u);
-        let gx = self.pull(p, &seed);
-        for k in 0..out.len() {
-            out[k] = if self.free[k] { -gx[k] } else { u[k] };
-        }
+        p.tape.backward_with(&[&p.a])?;
+        Ok(p.x
+            .grad()
+            .map_or_else(|_| vec![0.0; seed.len()], |g| flat(&g)))
     }
 
     /// `M u` on free DOFs, 0 on pinned ones.
     fn seed(&self, u: &[f64]) -> Vec<f64> {
         (0..u.len())
             .map(|k| {
-                if self.free[k] {
-                    self.mass[k] * u[k]
+                if self.dofs.free[k] {
+                    self.dofs.mass[k] * u[k]
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+}
+
+impl<R: Real> NewtonSystem for System<R> {
+    type Point = Point<R>;
+
+    fn eval(&self, x: &[f64]) -> Point<R> {
+        self.eval_with(x, false)
+    }
+
+    fn unknowns<'a>(&self, p: &'a Point<R>) -> &'a [f64] {
+        &p.u
+    }
+
+    /// `r = M a` on free DOFs, 0 on pinned ones (N).
+    fn residual(&self, p: &Point<R>) -> Vec<f64> {
+        (0..self.dofs.mass.len())
+            .map(|k| {
+                if self.dofs.free[k] {
+                    self.dofs.mass[k] * p.a_val[k]
                 } else {
                     0.0
                 }
@@ -289,20 +213,111 @@ impl<R: Real> System<R> {
             .collect()
     }
 
-    fn mask(&self, v: &mut [f64]) {
-        v.iter_mut().zip(&self.free).for_each(|(v, &f)| {
-            if !f {
-                *v = 0.0
-            }
-        });
+    /// `-r`, the gradient of the potential energy.
+    fn gradient(&self, r: &[f64]) -> Vec<f64> {
+        r.iter().map(|r| -r).collect()
     }
 
-    /// The residual rounding alone leaves: `eps |x|` times the stiffness `|K d| / |d|` along
-    /// the Newton step `d` (with `K d = r`), times a safety factor of 100 (N).
+    /// `0.5 |r|^2` (N^2).
+    fn merit(&self, r: &[f64]) -> f64 {
+        0.5 * dot(r, r)
+    }
+
+    /// The force scale at `p`: the largest weight `m |g|` and force `|f| = |m (a - g)|` (N).
+    fn scale(&self, p: &Point<R>) -> f64 {
+        (0..self.dofs.mass.len())
+            .filter(|&k| self.dofs.free[k])
+            .fold(0.0f64, |s, k| {
+                let m = self.dofs.mass[k];
+                s.max((m * self.g[k]).abs())
+                    .max((m * (p.a_val[k] - self.g[k])).abs())
+            })
+    }
+
+    /// `eps |x|` times the stiffness `|K d| / |d|` along the Newton step `d` (with `K d = r`),
+    /// times a safety factor of 100 (N).
     fn roundoff_floor(&self, r: &[f64], d: &[f64]) -> f64 {
         let dn = max_abs(d);
         let k = if dn > 0.0 { max_abs(r) / dn } else { 0.0 };
         100.0 * epsilon::<R>() * k * max_abs(&self.x0).max(1.0)
+    }
+
+    fn epsilon(&self) -> f64 {
+        epsilon::<R>()
+    }
+
+    fn precond(&self) -> Option<&[f64]> {
+        None
+    }
+
+    fn mask(&self, v: &mut [f64]) {
+        self.dofs.mask(v)
+    }
+
+    /// `out = K u = -M da/dx u` (identity on pinned DOFs) by one tangent pass.
+    fn apply(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let ux: Vec<f64> = u
+            .iter()
+            .zip(&self.dofs.free)
+            .map(|(&u, &f)| if f { u } else { 0.0 })
+            .collect();
+        p.x.ensure_tangent().assign(&unflat::<R>(&ux));
+        p.v.ensure_tangent(); // zero: the velocities stay 0
+        if let Err(e) = p.tape.tangent() {
+            return self.failure.fail("tangent (forward-mode)", e, out);
+        }
+        let ad =
+            p.a.tangent_buffer()
+                .map_or_else(|| vec![0.0; out.len()], |t| flat(&t));
+        for k in 0..out.len() {
+            out[k] = if self.dofs.free[k] {
+                -self.dofs.mass[k] * ad[k]
+            } else {
+                u[k]
+            };
+        }
+    }
+
+    /// `out = K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
+    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let seed = self.seed(u);
+        let gx = match self.pull(p, &seed) {
+            Ok(g) => g,
+            Err(e) => return self.failure.fail("adjoint (reverse-mode)", e, out),
+        };
+        for k in 0..out.len() {
+            out[k] = if self.dofs.free[k] { -gx[k] } else { u[k] };
+        }
+    }
+
+    fn checked(&self) -> Result<(), Error> {
+        self.failure.take()
+    }
+
+    /// The net force `r = -G`.
+    fn steepest(&self, r: &[f64]) -> Vec<f64> {
+        r.to_vec()
+    }
+
+    /// The step of the quadratic model where `K` is positive along `d` (one tangent pass),
+    /// else a tenth of the scene's size.
+    fn steepest_length(
+        &self,
+        p: &mut Point<R>,
+        d: &[f64],
+        slope: f64,
+        stats: &mut NewtonStats,
+    ) -> f64 {
+        let mut kd = vec![0.0; d.len()];
+        self.apply(p, d, &mut kd);
+        stats.linear_iterations += 1;
+        self.mask(&mut kd);
+        let curvature = dot(d, &kd);
+        if curvature > 0.0 {
+            -slope / curvature
+        } else {
+            0.1 * max_abs(&self.x0).max(1.0) / max_abs(d)
+        }
     }
 }
 
@@ -315,154 +330,6 @@ impl Equilibrium {
     /// The settings of the adjoint solve.
     fn gradient_settings(&self) -> &SolveSettings {
         self.adjoint_linear.as_ref().unwrap_or(&self.linear)
-    }
-
-    /// Applies [`Equilibrium::on_failure`] to a failed solve: the error, or a warning.
-    fn on_fail(&self, err: Error) -> Result<(), Error> {
-        match self.on_failure {
-            SolverPolicy::Error => Err(err),
-            SolverPolicy::Warn => {
-                eprintln!("warning: {err} [continuing: on_failure = SolverPolicy::Warn]");
-                Ok(())
-            }
-            SolverPolicy::Continue => Ok(()),
-        }
-    }
-
-    /// Newton with line search from the guess; returns the solution.
-    fn newton<R: Real>(&self, sys: &System<R>, stats: &mut EquilibriumStats) -> Vec<f64> {
-        let tol = self.tolerance::<R>();
-        let mut p = sys.eval(&sys.x0, false);
-        stats.force_evaluations += 1;
-        let mut r = sys.residual(&p);
-        let mut phi = 0.5 * dot(&r, &r);
-        loop {
-            stats.residual = max_abs(&r);
-            stats.tolerance = tol * sys.scale(&p);
-            if within(stats.residual, stats.tolerance) {
-                stats.converged = true;
-                break;
-            }
-            if stats.newton_iterations >= self.max_newton || !phi.is_finite() {
-                break;
-            }
-            stats.newton_iterations += 1;
-            let mut d = vec![0.0; r.len()];
-            let (info, _) = krylov::solve(
-                |u, out| sys.apply(&mut p, u, out),
-                &r,
-                &mut d,
-                None,
-                &self.linear,
-            );
-            stats.linear_iterations += info.iterations;
-            sys.mask(&mut d);
-            if within(stats.residual, sys.roundoff_floor(&r, &d)) {
-                stats.converged = true;
-                break;
-            }
-            // Accept a step that decreases |r|^2 (Armijo; its slope along an exact Newton
-            // direction is -2 phi) or the potential energy E (gradient -r; its decrease
-            // estimated by the trapezoid rule on the slope -r . d).
-            let slope0 = -dot(&r, &d);
-            let mut alpha = 1.0;
-            let mut best: Option<(f64, Point<R>, Vec<f64>)> = None;
-            let mut accepted = None;
-            for k in 0..=self.max_backtracks {
-                let xt: Vec<f64> = p.x_val.iter().zip(&d).map(|(x, d)| x + alpha * d).collect();
-                let pt = sys.eval(&xt, false);
-                stats.force_evaluations += 1;
-                let rt = sys.residual(&pt);
-                let phit = 0.5 * dot(&rt, &rt);
-                let residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
-                let potential_ok = slope0 < 0.0 && {
-                    let slope = -dot(&rt, &d);
-                    slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0
-                };
-                if phit.is_finite() && (residual_ok || potential_ok) {
-                    accepted = Some((phit, pt, rt));
-                    break;
-                }
-                if phit.is_finite() && !best.as_ref().is_some_and(|b| phit >= b.0) {
-                    best = Some((phit, pt, rt));
-                }
-                if k < self.max_backtracks {
-                    stats.backtracks += 1;
-                    alpha *= 0.5;
-                }
-            }
-            // Neither decreases along the Newton direction (K indefinite: compressed springs, a
-            // folded start): a step that decreases the potential, then the best residual.
-            let step = match accepted {
-                Some(a) => Some(a),
-                None => self
-                    .potential_step(sys, &mut p, &r, stats)
-                    .or_else(|| best.filter(|b| b.0 < phi)),
-            };
-            match step {
-                Some((phit, pt, rt)) => {
-                    phi = phit;
-                    p = pt;
-                    r = rt;
-                }
-                None => {
-                    stats.converged = within(stats.residual, 10.0 * sys.roundoff_floor(&r, &d));
-                    break;
-                }
-            }
-        }
-        p.x_val
-    }
-
-    /// A step that decreases the potential energy `E` (gradient `-r`): along the CG solution
-    /// of `K d = r` truncated at negative curvature (a descent direction of `E`), or else
-    /// along the force `r` with the step of the quadratic model (where `K` is positive along
-    /// it), with a backtracking line search that needs only `r` (the decrease of `E`
-    /// estimated by the trapezoid rule on the slope `-r(x + s d) . d`). Returns the merit,
-    /// point and residual reached, or `None`.
-    fn potential_step<R: Real>(
-        &self,
-        sys: &System<R>,
-        p: &mut Point<R>,
-        r: &[f64],
-        stats: &mut EquilibriumStats,
-    ) -> Option<(f64, Point<R>, Vec<f64>)> {
-        let mut d = vec![0.0; r.len()];
-        let info = krylov::cg(|u, out| sys.apply(p, u, out), r, &mut d, None, &self.linear);
-        stats.linear_iterations += info.iterations;
-        sys.mask(&mut d);
-        let mut slope0 = -dot(r, &d);
-        let mut alpha = 1.0;
-        if slope0.is_nan() || slope0 >= 0.0 {
-            d = r.to_vec();
-            slope0 = -dot(r, &d);
-            if slope0.is_nan() || slope0 >= 0.0 {
-                return None;
-            }
-            let mut kd = vec![0.0; d.len()];
-            sys.apply(p, &d, &mut kd);
-            stats.linear_iterations += 1;
-            sys.mask(&mut kd);
-            let curvature = dot(&d, &kd);
-            alpha = if curvature > 0.0 {
-                -slope0 / curvature
-            } else {
-                0.1 * max_abs(&sys.x0).max(1.0) / max_abs(&d)
-            };
-        }
-        for _ in 0..=self.max_backtracks {
-            let xt: Vec<f64> = p.x_val.iter().zip(&d).map(|(x, d)| x + alpha * d).collect();
-            let pt = sys.eval(&xt, false);
-            stats.force_evaluations += 1;
-            let rt = sys.residual(&pt);
-            let slope = -dot(&rt, &d);
-            if slope.is_finite() && 0.5 * (slope0 + slope) <= 1e-4 * slope0 {
-                return Some((0.5 * dot(&rt, &rt), pt, rt));
-            }
-            stats.backtracks += 1;
-            alpha *= 0.5;
-        }
-        None
     }
 
     /// Solves for the equilibrium from `guess` (its free particles' positions are the starting
@@ -512,19 +379,31 @@ impl Equilibrium {
         let x0 = flat(&guess.x);
         let sys = System::new(copies(model, None, false), x0, &inv_mass, model.gravity);
         check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
-        if n > 0 {
-            let p = sys.eval(&sys.x0, false);
-            check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Gradient)?;
-        }
         let mut stats = EquilibriumStats::default();
         let x1 = if n == 0 {
             stats.converged = true;
             Vec::new()
         } else {
-            self.newton(&sys, &mut stats)
+            let first = sys.eval(&sys.x0);
+            check_visited(
+                "Equilibrium",
+                &sys.c,
+                &first.tape,
+                &first.x,
+                &first.v,
+                Needs::Gradient,
+            )?;
+            let settings = NewtonSettings {
+                tolerance: self.tolerance::<R>(),
+                max_newton: self.max_newton,
+                max_backtracks: self.max_backtracks,
+                line_search: true,
+                linear: &self.linear,
+            };
+            newton(&sys, first, &settings, &mut stats)?
         };
         if !stats.converged {
-            self.on_fail(Error::NotConverged {
+            self.on_failure.handle(Error::NotConverged {
                 solver: "Equilibrium Newton".into(),
                 context: format!(
                     "static equilibrium that would be step #{} on the tape; {} force \
@@ -600,27 +479,28 @@ impl<R: Real> Shared<R> {
             &self.inv_mass,
             self.model.gravity,
         );
-        let mut p = sys.eval(&self.x_val, true);
+        let mut p = sys.eval_with(&self.x_val, true);
         check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Gradient)?;
         let mut rhs = xbar.clone();
         sys.mask(&mut rhs);
-        let mut lambda = vec![0.0; m];
-        let (info, _) = krylov::solve(
-            |u, out| sys.apply_t(&mut p, u, out),
-            &rhs,
-            &mut lambda,
-            None,
-            self.solver.gradient_settings(),
-        );
+        let settings = self.solver.gradient_settings();
+        let (lambda, info, _) = solve_linear(&sys, &mut p, &rhs, settings, true)?;
         self.check_adjoint(&info)?;
-        sys.mask(&mut lambda);
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
-        let gx = sys.pull(&mut p, &sys.seed(&lambda));
+        let gx = sys
+            .pull(&mut p, &sys.seed(&lambda))
+            .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         // Pinned DOFs: x* = pin, which also moves the free particles' equilibrium.
         let gpin: Vec<f64> = (0..m)
-            .map(|k| if sys.free[k] { 0.0 } else { xbar[k] + gx[k] })
+            .map(|k| {
+                if sys.dofs.free[k] {
+                    0.0
+                } else {
+                    xbar[k] + gx[k]
+                }
+            })
             .collect();
         add_into(&self.guess, &gpin);
         for l in &sys.c.links {
@@ -634,7 +514,7 @@ impl<R: Real> Shared<R> {
             return Ok(());
         }
         let s = self.solver.gradient_settings();
-        self.solver.on_fail(Error::NotConverged {
+        self.solver.on_failure.handle(Error::NotConverged {
             solver: "Equilibrium adjoint linear solve (CG, then BiCGSTAB)".into(),
             context: String::new(),
             iterations: info.iterations,

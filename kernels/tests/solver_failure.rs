@@ -8,10 +8,11 @@
 
 mod common;
 
-use adflex_kernels::integrators::krylov::SolveSettings;
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,
 };
+use adflex_kernels::solver::krylov::SolveSettings;
+use adflex_kernels::statics::Equilibrium;
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;
 use adflex_runtime::gradcheck::GradCheck;
@@ -488,6 +489,15 @@ fn custom_force_without_a_working_tangent_is_an_error_naming_it() {
         let msg = err.to_string();
         assert!(
             msg.contains("host_drag") && msg.contains(says) && msg.contains("ImplicitEuler"),
+            "{kind:?}: {msg}"
+        );
+        // The static solve shares the Newton solver: the same error, not a panic.
+        let err = Equilibrium::default()
+            .solve(&model, &mut Tape::new(), &model.state())
+            .expect_err("the Newton solve needs the force's tangent");
+        let msg = err.to_string();
+        assert!(
+            msg.contains("host_drag") && msg.contains(says) && msg.contains("Equilibrium"),
             "{kind:?}: {msg}"
         );
     }

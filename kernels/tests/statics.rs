@@ -3,7 +3,7 @@
 //! stiffnesses, the particles' (inverse) masses and the pins' positions matches central
 //! differences of the re-solved equilibrium in f64, and failures are errors.
 
-use adflex_kernels::integrators::krylov::SolveSettings;
+use adflex_kernels::solver::krylov::SolveSettings;
 use adflex_kernels::statics::Equilibrium;
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;

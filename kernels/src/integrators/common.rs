@@ -198,7 +198,70 @@ pub(crate) fn copies<R: Real>(
 }
 
 // ---------------------------------------------------------------------------------------------
-// The nonlinear system of one step.
+// The particle systems of the Newton solves.
+
+/// The particles' degrees of freedom in a Newton solve, three per particle.
+pub(crate) struct Dofs {
+    /// Per DOF: the mass (kg) on free DOFs, 0 on pinned ones.
+    pub(crate) mass: Vec<f64>,
+    /// Per DOF: whether it is free (inverse mass > 0).
+    pub(crate) free: Vec<bool>,
+}
+
+impl Dofs {
+    pub(crate) fn new<R: Real>(inv_mass: &[R]) -> Self {
+        let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
+        Dofs {
+            mass: w
+                .iter()
+                .map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 })
+                .collect(),
+            free: w.iter().map(|&w| w > 0.0).collect(),
+        }
+    }
+
+    /// Zeroes the pinned DOFs of `v`.
+    pub(crate) fn mask(&self, v: &mut [f64]) {
+        v.iter_mut().zip(&self.free).for_each(|(v, &f)| {
+            if !f {
+                *v = 0.0
+            }
+        });
+    }
+}
+
+/// The accelerations recorded at one iterate of a Newton solve (unknowns `u`), on their own
+/// tape.
+pub(crate) struct Point<R: Real> {
+    pub(crate) tape: Tape,
+    pub(crate) x: Array<Vec3<R>>,
+    pub(crate) v: Array<Vec3<R>>,
+    pub(crate) a: Array<Vec3<R>>,
+    pub(crate) u: Vec<f64>,
+    pub(crate) a_val: Vec<f64>,
+}
+
+/// Records the accelerations of the copies' model at `x`, `v` on a new tape.
+pub(crate) fn record<R: Real>(
+    c: &Copies<R>,
+    x: Array<Vec3<R>>,
+    v: Array<Vec3<R>>,
+    u: &[f64],
+) -> Point<R> {
+    let mut tape = Tape::new();
+    let a = c
+        .model
+        .eval_accelerations(&mut tape, &particles(&x, &v), c.control.as_ref());
+    let a_val = flat(&a);
+    Point {
+        tape,
+        x,
+        v,
+        a,
+        u: u.to_vec(),
+        a_val,
+    }
+}
 
 pub(crate) fn flat<R: Real>(a: &Array<Vec3<R>>) -> Vec<f64> {
     a.to_vec()

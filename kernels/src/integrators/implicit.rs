@@ -12,7 +12,7 @@
 //!
 //! and its Jacobian `A = M - dt^2 df/dx - dt df/dv` (symmetric for springs, membranes,
 //! tetrahedra, bending and drag). Each Newton iteration solves `A d = -G` by
-//! [`krylov::cg`] (falling back to BiCGSTAB if CG meets negative curvature, e.g. from
+//! [`cg`](crate::solver::krylov::cg) (falling back to BiCGSTAB if CG meets negative curvature, e.g. from
 //! compressed springs, or from friction, which makes `A` unsymmetric). The matrix is never
 //! formed: `A u` is one pass of the **tangent** kernels of the force model, recorded once per
 //! iterate on a scratch tape, with the tangents `dt u` on `x'` and `u` on `v'`
@@ -98,13 +98,17 @@ use adflex_runtime::prelude::*;
 
 use super::common::{
     add_into, check_inputs, check_visited, copies, epsilon, finish_step, flat, forces_only, is_f32,
-    max_abs, particles, step_bodies, unflat, within, Copies, Needs,
+    max_abs, particles, record, step_bodies, unflat, Copies, Dofs, Needs, Point,
 };
-use super::krylov::{self, SolveInfo, SolveSettings};
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
 use crate::forces::Force;
 use crate::model::{Control, Model, State};
+use crate::solver::krylov::{SolveInfo, SolveSettings};
+use crate::solver::newton::{
+    direction, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
+};
+pub use crate::solver::NewtonStats;
 
 /// Implicit (backward) Euler, solved by Newton-CG with a line search; first order,
 /// unconditionally stable, differentiable through the implicit function theorem.
@@ -297,139 +301,22 @@ fn explicit_accelerations<R: Real>(
     a
 }
 
-/// What one [`ImplicitEuler`] step did (its cost, for the benchmarks).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct NewtonStats {
-    /// Newton iterations (linear solves).
-    pub newton_iterations: usize,
-    /// Matrix-vector products (tangent passes) of all the linear solves.
-    pub linear_iterations: usize,
-    /// Force evaluations (one per line-search trial, plus the first).
-    pub force_evaluations: usize,
-    /// Step halvings in the line searches.
-    pub backtracks: usize,
-    /// Linear solves where CG failed and BiCGSTAB took over.
-    pub fallbacks: usize,
-    /// Final `max |v' - v - dt a|` over free particles (m/s; NaN if the iterate is not finite).
-    pub residual: f64,
-    /// The tolerance `residual` was held to, `tolerance * scale` (m/s).
-    pub tolerance: f64,
-    /// Whether the tolerance was met (never for a NaN residual).
-    pub converged: bool,
-}
-
 // ---------------------------------------------------------------------------------------------
 // The nonlinear system of one step.
-
-/// The residual `e` that rounding alone leaves: the rounding of the positions, `eps |x|`,
-/// times the stiffness `dt |da/dx| ~ s / dt`, with `s = |M^-1 A d| / |d| = |e| / |d|` the
-/// stiffness ratio along the Newton step `d` (times a safety factor of 100).
-fn roundoff_floor<R: Real>(sys: &System<R>, e: &[f64], d: &[f64]) -> f64 {
-    let dn = max_abs(d);
-    let s = if dn > 0.0 {
-        (max_abs(e) / dn).max(1.0)
-    } else {
-        1.0
-    };
-    100.0 * epsilon::<R>() * s * max_abs(&sys.x0).max(1.0) / sys.dt
-}
-
-/// `e`, from a pass of the force model on its scratch tape, with the pass named.
-fn in_pass(pass: &str, e: Error) -> Error {
-    e.in_context(format!("ImplicitEuler: the {pass} pass of the force model"))
-}
 
 /// One step's system: `G(v') = M (v' - v0 - dt a(x0 + dt v', v'))` over the free DOFs.
 struct System<R: Real> {
     c: Copies<R>,
     x0: Vec<f64>,
     v0: Vec<f64>,
-    /// Per DOF: the mass (kg) on free DOFs, 0 on pinned ones.
-    mass: Vec<f64>,
+    dofs: Dofs,
     /// Per DOF: the inverse mass on free DOFs, 1 on pinned ones (the CG preconditioner).
     precond: Vec<f64>,
-    free: Vec<bool>,
     dt: f64,
     /// The explicit forces' accelerations (m/s^2), constant over the solve (zeros without an
     /// implicit-explicit split).
     a_e: Vec<f64>,
-    /// A pass of the force model that failed inside a Krylov product (which cannot return
-    /// an error), e.g. a custom force step without a tangent: kept here, the product filled
-    /// with NaN so the solve stops, and returned by [`System::checked`] after the solve.
-    failure: std::cell::RefCell<Option<Error>>,
-}
-
-/// The incremental potential along a line search's direction `d`, at one point:
-/// `E(v') = E_c(v') + E_r(v')`, `E_c` the conservative part ([`System::potential`]: inertia
-/// and the energies of the forces that have one, exact) and `E_r` the rest (gravity, control,
-/// explicit forces, damping, friction, forces without an energy), whose slope along `d` is
-/// what `G . d` leaves after `E_c`'s. `G` is the gradient of `E` when every force derives from
-/// a potential; `E_r`'s change is estimated by the trapezoid rule on its slopes (exact for
-/// constant and linear forces), so a scene whose forces all have energies is searched on
-/// its true incremental potential.
-struct Potential {
-    /// `E_c` (J).
-    conservative: f64,
-    /// `dE_c/ds` along `d`.
-    slope_c: f64,
-    /// `G . d`, the slope of `E`.
-    slope: f64,
-    /// The size of the terms `change` cancels (J): `|E_c|`, the forces times the positions
-    /// (the energies' rounding through the positions' rounding) and the slopes.
-    magnitude: f64,
-}
-
-impl Potential {
-    /// At point `p` of residual `e`, along `d`.
-    fn at<R: Real>(sys: &System<R>, p: &Point<R>, e: &[f64], d: &[f64]) -> Result<Self, Error> {
-        let (conservative, slope_c) = sys.potential(p, d)?;
-        let slope = dot(&sys.gradient(e), d);
-        let work: f64 = (0..p.v_val.len())
-            .filter(|&k| sys.free[k])
-            .map(|k| sys.mass[k] * (p.a_val[k] * (sys.x0[k] + sys.dt * p.v_val[k])).abs())
-            .sum();
-        Ok(Potential {
-            conservative,
-            slope_c,
-            slope,
-            magnitude: conservative.abs() + work + slope_c.abs() + slope.abs(),
-        })
-    }
-
-    /// `E(t) - E(self)` for the step of length `alpha` (along `d`) from `self` to `t`.
-    fn change(&self, t: &Potential, alpha: f64) -> f64 {
-        let rest = 0.5 * alpha * ((self.slope - self.slope_c) + (t.slope - t.slope_c));
-        t.conservative - self.conservative + rest
-    }
-
-    /// The rounding error of [`Potential::change`] between `self` and `t` (J): the energies
-    /// and slopes are sums in the model's precision, of the positions rounded in it.
-    fn rounding<R: Real>(&self, t: &Potential) -> f64 {
-        100.0 * epsilon::<R>() * (self.magnitude + t.magnitude)
-    }
-
-    /// Armijo's condition for that step: `E(t) - E(self) <= 1e-4 alpha G . d`.
-    fn armijo(&self, t: &Potential, alpha: f64) -> bool {
-        let change = self.change(t, alpha);
-        change.is_finite() && change <= 1e-4 * alpha * self.slope
-    }
-}
-
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(a, b)| a * b).sum()
-}
-
-/// A line search's accepted step: its merit, point and residual.
-type Accepted<R> = (f64, Point<R>, Vec<f64>);
-
-/// The accelerations recorded at one iterate, on their own tape.
-struct Point<R: Real> {
-    tape: Tape,
-    x: Array<Vec3<R>>,
-    v: Array<Vec3<R>>,
-    a: Array<Vec3<R>>,
-    v_val: Vec<f64>,
-    a_val: Vec<f64>,
+    failure: PassFailure,
 }
 
 impl<R: Real> System<R> {
@@ -447,19 +334,15 @@ impl<R: Real> System<R> {
             c,
             x0,
             v0,
-            mass: w
-                .iter()
-                .map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 })
-                .collect(),
+            dofs: Dofs::new(inv_mass),
             precond: w.iter().map(|&w| if w > 0.0 { w } else { 1.0 }).collect(),
-            free: w.iter().map(|&w| w > 0.0).collect(),
             dt,
-            failure: Default::default(),
+            failure: PassFailure::new("ImplicitEuler"),
         }
     }
 
     /// Records the accelerations at `v'` (`x' = x0 + dt v'`) on a new tape.
-    fn eval(&self, v: &[f64], grads: bool) -> Point<R> {
+    fn eval_with(&self, v: &[f64], grads: bool) -> Point<R> {
         let x: Vec<f64> = self
             .x0
             .iter()
@@ -472,78 +355,12 @@ impl<R: Real> System<R> {
             xs = xs.requires_grad();
             vs = vs.requires_grad();
         }
-        let mut tape = Tape::new();
-        let a = self.c.model.eval_accelerations(
-            &mut tape,
-            &particles(&xs, &vs),
-            self.c.control.as_ref(),
-        );
-        let a_val = flat(&a);
-        Point {
-            tape,
-            x: xs,
-            v: vs,
-            a,
-            v_val: v.to_vec(),
-            a_val,
-        }
-    }
-
-    /// `v' - v0 - dt a` on free DOFs, 0 on pinned ones (m/s).
-    fn residual(&self, p: &Point<R>) -> Vec<f64> {
-        (0..self.v0.len())
-            .map(|k| {
-                if self.free[k] {
-                    p.v_val[k] - self.v0[k] - self.dt * (p.a_val[k] + self.a_e[k])
-                } else {
-                    0.0
-                }
-            })
-            .collect()
-    }
-
-    /// `G = M e`, the incremental potential's gradient for conservative forces.
-    fn gradient(&self, e: &[f64]) -> Vec<f64> {
-        e.iter().zip(&self.mass).map(|(e, m)| m * e).collect()
-    }
-
-    /// The line-search merit `0.5 e^T M e` (J).
-    fn merit(&self, e: &[f64]) -> f64 {
-        0.5 * e
-            .iter()
-            .zip(&self.mass)
-            .map(|(e, m)| m * e * e)
-            .sum::<f64>()
-    }
-
-    /// `out = A u` (identity on pinned DOFs) by one tangent pass.
-    fn apply(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
-        let ux: Vec<f64> = u
-            .iter()
-            .zip(&self.free)
-            .map(|(&u, &f)| if f { u } else { 0.0 })
-            .collect();
-        let dx: Vec<f64> = ux.iter().map(|u| self.dt * u).collect();
-        p.x.ensure_tangent().assign(&unflat::<R>(&dx));
-        p.v.ensure_tangent().assign(&unflat::<R>(&ux));
-        if let Err(e) = p.tape.tangent() {
-            return self.fail("tangent (forward-mode)", e, out);
-        }
-        let ad =
-            p.a.tangent_buffer()
-                .map_or_else(|| vec![0.0; out.len()], |t| flat(&t));
-        for k in 0..out.len() {
-            out[k] = if self.free[k] {
-                self.mass[k] * (u[k] - self.dt * ad[k])
-            } else {
-                u[k]
-            };
-        }
+        record(&self.c, xs, vs, v)
     }
 
     /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
     /// scratch tape; returns the gradients of `x'` and `v'` (an error without context: see
-    /// [`in_pass`]).
+    /// [`PassFailure::in_pass`]).
     fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Result<(Vec<f64>, Vec<f64>), Error> {
         p.x.zero_grad();
         p.v.zero_grad();
@@ -556,65 +373,144 @@ impl<R: Real> System<R> {
         Ok((grad(&p.x), grad(&p.v)))
     }
 
-    /// Keeps the first failure of a pass inside a Krylov product (see `failure`) and makes
-    /// the product NaN, which stops the solve.
-    fn fail(&self, pass: &str, e: Error, out: &mut [f64]) {
-        let mut f = self.failure.borrow_mut();
-        if f.is_none() {
-            *f = Some(in_pass(pass, e));
-        }
-        out.fill(f64::NAN);
+    /// See [`check_visited`]: every array the forces read at `p` that needs a derivative is
+    /// the state or a private copy.
+    fn check_visited(&self, p: &Point<R>, needs: Needs) -> Result<(), Error> {
+        check_visited("ImplicitEuler", &self.c, &p.tape, &p.x, &p.v, needs)
+    }
+}
+
+impl<R: Real> NewtonSystem for System<R> {
+    type Point = Point<R>;
+
+    fn eval(&self, v: &[f64]) -> Point<R> {
+        self.eval_with(v, false)
     }
 
-    /// The failure of a pass inside the last solve, if any.
-    fn checked(&self) -> Result<(), Error> {
-        self.failure.borrow_mut().take().map_or(Ok(()), Err)
+    fn unknowns<'a>(&self, p: &'a Point<R>) -> &'a [f64] {
+        &p.u
     }
 
-    /// `out = A^T u` (identity on pinned DOFs) by one adjoint pass.
-    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
-        let seed: Vec<f64> = (0..u.len()).map(|k| self.mass[k] * u[k]).collect();
-        let (gx, gv) = match self.pull(p, &seed) {
-            Ok(g) => g,
-            Err(e) => return self.fail("adjoint (reverse-mode)", e, out),
+    /// `v' - v0 - dt a` on free DOFs, 0 on pinned ones (m/s).
+    fn residual(&self, p: &Point<R>) -> Vec<f64> {
+        (0..self.v0.len())
+            .map(|k| {
+                if self.dofs.free[k] {
+                    p.u[k] - self.v0[k] - self.dt * (p.a_val[k] + self.a_e[k])
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
+    /// `G = M e`, the incremental potential's gradient for conservative forces.
+    fn gradient(&self, e: &[f64]) -> Vec<f64> {
+        e.iter().zip(&self.dofs.mass).map(|(e, m)| m * e).collect()
+    }
+
+    /// `0.5 e^T M e` (J).
+    fn merit(&self, e: &[f64]) -> f64 {
+        0.5 * e
+            .iter()
+            .zip(&self.dofs.mass)
+            .map(|(e, m)| m * e * e)
+            .sum::<f64>()
+    }
+
+    /// The largest of `|v0|`, `|v'|`, `dt |a|`, `dt |a_e|` over free DOFs (m/s).
+    fn scale(&self, p: &Point<R>) -> f64 {
+        let free_max = |v: &[f64]| {
+            v.iter()
+                .zip(&self.dofs.free)
+                .filter(|(_, &f)| f)
+                .fold(0.0f64, |m, (x, _)| m.max(x.abs()))
         };
+        free_max(&self.v0)
+            .max(free_max(&p.u))
+            .max(self.dt * free_max(&p.a_val))
+            .max(self.dt * free_max(&self.a_e))
+    }
+
+    /// The rounding of the positions, `eps |x|`, times the stiffness `dt |da/dx| ~ s / dt`,
+    /// with `s = |M^-1 A d| / |d| = |e| / |d|` the stiffness ratio along the Newton step `d`
+    /// (times a safety factor of 100).
+    fn roundoff_floor(&self, e: &[f64], d: &[f64]) -> f64 {
+        let dn = max_abs(d);
+        let s = if dn > 0.0 {
+            (max_abs(e) / dn).max(1.0)
+        } else {
+            1.0
+        };
+        100.0 * epsilon::<R>() * s * max_abs(&self.x0).max(1.0) / self.dt
+    }
+
+    fn epsilon(&self) -> f64 {
+        epsilon::<R>()
+    }
+
+    fn precond(&self) -> Option<&[f64]> {
+        Some(&self.precond)
+    }
+
+    fn mask(&self, v: &mut [f64]) {
+        self.dofs.mask(v)
+    }
+
+    /// `out = A u = M (u - dt (dt J_x + J_v) u)` (identity on pinned DOFs).
+    fn apply(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let ux: Vec<f64> = u
+            .iter()
+            .zip(&self.dofs.free)
+            .map(|(&u, &f)| if f { u } else { 0.0 })
+            .collect();
+        let dx: Vec<f64> = ux.iter().map(|u| self.dt * u).collect();
+        p.x.ensure_tangent().assign(&unflat::<R>(&dx));
+        p.v.ensure_tangent().assign(&unflat::<R>(&ux));
+        if let Err(e) = p.tape.tangent() {
+            return self.failure.fail("tangent (forward-mode)", e, out);
+        }
+        let ad =
+            p.a.tangent_buffer()
+                .map_or_else(|| vec![0.0; out.len()], |t| flat(&t));
         for k in 0..out.len() {
-            out[k] = if self.free[k] {
-                self.mass[k] * u[k] - self.dt * (self.dt * gx[k] + gv[k])
+            out[k] = if self.dofs.free[k] {
+                self.dofs.mass[k] * (u[k] - self.dt * ad[k])
             } else {
                 u[k]
             };
         }
     }
 
-    /// The Newton direction at `p` of residual `e`: `A d = -M e` solved by
-    /// [`krylov::solve`] with `settings` (masked on pinned DOFs), with the solve's figures and
-    /// whether BiCGSTAB took over; an error if a pass of the force model failed in it.
-    fn newton_direction(
-        &self,
-        p: &mut Point<R>,
-        e: &[f64],
-        settings: &SolveSettings,
-    ) -> Result<(Vec<f64>, SolveInfo, bool), Error> {
-        let rhs: Vec<f64> = e.iter().zip(&self.mass).map(|(e, m)| -m * e).collect();
-        let mut d = vec![0.0; rhs.len()];
-        let (info, fell_back) = krylov::solve(
-            |u, out| self.apply(p, u, out),
-            &rhs,
-            &mut d,
-            Some(&self.precond),
-            settings,
-        );
-        self.checked()?;
-        self.mask(&mut d);
-        Ok((d, info, fell_back))
+    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
+        let seed: Vec<f64> = (0..u.len()).map(|k| self.dofs.mass[k] * u[k]).collect();
+        let (gx, gv) = match self.pull(p, &seed) {
+            Ok(g) => g,
+            Err(e) => return self.failure.fail("adjoint (reverse-mode)", e, out),
+        };
+        for k in 0..out.len() {
+            out[k] = if self.dofs.free[k] {
+                self.dofs.mass[k] * u[k] - self.dt * (self.dt * gx[k] + gv[k])
+            } else {
+                u[k]
+            };
+        }
+    }
+
+    fn checked(&self) -> Result<(), Error> {
+        self.failure.take()
+    }
+
+    /// `-e = -M^-1 G`; its first step (length 1) is the explicit update `v0 + dt a`.
+    fn steepest(&self, e: &[f64]) -> Vec<f64> {
+        e.iter().map(|e| -e).collect()
     }
 
     /// The incremental potential's conservative part at `p` and its slope along `d`:
     /// `E_c = 0.5 (v' - v0)^T M (v' - v0) + U(x0 + dt v')` (J), with `U` the energies of the
     /// forces that have one ([`Force::energy`]), and `dE_c/ds = (M (v' - v0) + dt dU/dx) . d`
     /// (one tangent pass of the energy kernels).
-    fn potential(&self, p: &Point<R>, d: &[f64]) -> Result<(f64, f64), Error> {
+    fn energy(&self, p: &Point<R>, d: &[f64]) -> Option<Result<(f64, f64), Error>> {
         let mut tape = Tape::new();
         let energy =
             self.c
@@ -622,36 +518,33 @@ impl<R: Real> System<R> {
                 .elastic_energy(&mut tape, &particles(&p.x, &p.v), self.c.control.as_ref());
         let dx: Vec<f64> = d
             .iter()
-            .zip(&self.free)
+            .zip(&self.dofs.free)
             .map(|(&d, &f)| if f { self.dt * d } else { 0.0 })
             .collect();
         p.x.ensure_tangent().assign(&unflat::<R>(&dx));
         p.v.ensure_tangent().assign(&vec![Vec3::zeros(); p.v.len()]);
-        tape.tangent().map_err(|e| in_pass("energy tangent", e))?;
+        if let Err(e) = tape.tangent() {
+            return Some(Err(self.failure.in_pass("energy tangent", e)));
+        }
         let du = energy.tangent_buffer().map_or(0.0, |t| t.get(0).to_f64());
         let (mut kinetic, mut slope) = (0.0, 0.0);
         for (k, dk) in d.iter().enumerate() {
-            if self.free[k] {
-                let m_dv = self.mass[k] * (p.v_val[k] - self.v0[k]);
-                kinetic += 0.5 * m_dv * (p.v_val[k] - self.v0[k]);
+            if self.dofs.free[k] {
+                let m_dv = self.dofs.mass[k] * (p.u[k] - self.v0[k]);
+                kinetic += 0.5 * m_dv * (p.u[k] - self.v0[k]);
                 slope += m_dv * dk;
             }
         }
-        Ok((kinetic + energy.get(0).to_f64(), slope + du))
+        Some(Ok((kinetic + energy.get(0).to_f64(), slope + du)))
     }
 
-    /// See [`check_visited`]: every array the forces read at `p` that needs a derivative is
-    /// the state or a private copy.
-    fn check_visited(&self, p: &Point<R>, needs: Needs) -> Result<(), Error> {
-        check_visited("ImplicitEuler", &self.c, &p.tape, &p.x, &p.v, needs)
-    }
-
-    fn mask(&self, v: &mut [f64]) {
-        v.iter_mut().zip(&self.free).for_each(|(v, &f)| {
-            if !f {
-                *v = 0.0
-            }
-        });
+    /// `sum m |a (x0 + dt v')|` over free DOFs: the forces times the positions, whose
+    /// rounding the energies carry.
+    fn work(&self, p: &Point<R>) -> f64 {
+        (0..p.u.len())
+            .filter(|&k| self.dofs.free[k])
+            .map(|k| self.dofs.mass[k] * (p.a_val[k] * (self.x0[k] + self.dt * p.u[k])).abs())
+            .sum()
     }
 }
 
@@ -661,177 +554,18 @@ impl ImplicitEuler {
             .unwrap_or_else(|| if is_f32::<R>() { 1e-4 } else { 1e-10 })
     }
 
-    /// Newton with line search from `v' = v0`; returns the solution `v'`.
+    /// Newton with line search from `v' = v0` ([`newton`]); returns the solution `v'`.
     fn newton<R: Real>(&self, sys: &System<R>, stats: &mut NewtonStats) -> Result<Vec<f64>, Error> {
-        let tol = self.tolerance::<R>();
-        let mut p = sys.eval(&sys.v0, false);
-        sys.check_visited(&p, Needs::Gradient)?;
-        stats.force_evaluations += 1;
-        let mut e = sys.residual(&p);
-        let mut phi = sys.merit(&e);
-        loop {
-            let free_max = |v: &[f64]| {
-                v.iter()
-                    .zip(&sys.free)
-                    .filter(|(_, &f)| f)
-                    .fold(0.0f64, |m, (x, _)| m.max(x.abs()))
-            };
-            let scale = free_max(&sys.v0)
-                .max(free_max(&p.v_val))
-                .max(sys.dt * free_max(&p.a_val))
-                .max(sys.dt * free_max(&sys.a_e));
-            stats.residual = max_abs(&e);
-            stats.tolerance = tol * scale;
-            // A NaN or infinite residual (or scale) is never converged.
-            if within(stats.residual, tol * scale) {
-                stats.converged = true;
-                break;
-            }
-            if stats.newton_iterations >= self.max_newton || !phi.is_finite() {
-                break;
-            }
-            stats.newton_iterations += 1;
-            let (d, info, fell_back) = sys.newton_direction(&mut p, &e, &self.linear)?;
-            stats.linear_iterations += info.iterations;
-            stats.fallbacks += fell_back as usize;
-            if within(stats.residual, roundoff_floor::<R>(sys, &e, &d)) {
-                stats.converged = true;
-                break;
-            }
-            // Backtracking line search. A step is accepted if it decreases either merit:
-            // the residual `phi` (Armijo; its slope along a Newton direction is -2 phi), or
-            // the incremental potential `E` whose gradient is `G` (Armijo on `E`, see
-            // [`Potential`]). The potential is what makes large steps on stiff nonlinear
-            // forces and through contact converge: there the residual has local minima.
-            let slope0 = dot(&sys.gradient(&e), &d);
-            // `None`: not computed yet; `Some(None)`: unavailable (an energy's tangent pass
-            // failed; the search then keeps to the residual).
-            let mut start: Option<Option<Potential>> = None;
-            let mut alpha = 1.0;
-            let mut best: Option<(f64, Point<R>, Vec<f64>)> = None;
-            let mut accepted = None;
-            for k in 0..=self.max_backtracks {
-                let vt: Vec<f64> = p.v_val.iter().zip(&d).map(|(v, d)| v + alpha * d).collect();
-                let pt = sys.eval(&vt, false);
-                stats.force_evaluations += 1;
-                let et = sys.residual(&pt);
-                let phit = sys.merit(&et);
-                let mut residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
-                let mut potential_ok = false;
-                // Every trial, even one the residual accepts, is checked against the potential
-                // (an energy pass and its tangent: 1.25x the time of a small cloth dropped on
-                // the ground, 1.01x that of a 96-tet block, docs/performance.md).
-                // Checking it only once a potential step was taken is cheaper but let a block
-                // thrown at the ground at 1/60 s stall again.
-                if self.line_search && slope0 < 0.0 {
-                    let s0 = start.get_or_insert_with(|| Potential::at(sys, &p, &e, &d).ok());
-                    let t = s0
-                        .as_ref()
-                        .and_then(|_| Potential::at(sys, &pt, &et, &d).ok());
-                    if let (Some(s0), Some(t)) = (s0.as_ref(), t) {
-                        let change = s0.change(&t, alpha);
-                        potential_ok = change.is_finite() && change <= 1e-4 * alpha * slope0;
-                        // A residual decrease that raises the potential (beyond its rounding)
-                        // is refused: taking both merits' steps in turn can cycle (seen at
-                        // impacts with friction).
-                        residual_ok &= !(change > s0.rounding::<R>(&t));
-                    }
-                }
-                if !self.line_search || (phit.is_finite() && (residual_ok || potential_ok)) {
-                    accepted = Some((phit, pt, et));
-                    break;
-                }
-                let better = match &best {
-                    Some(b) => phit < b.0,
-                    None => true,
-                };
-                if phit.is_finite() && better {
-                    best = Some((phit, pt, et));
-                }
-                if k < self.max_backtracks {
-                    stats.backtracks += 1;
-                    alpha *= 0.5;
-                }
-            }
-            // Neither merit decreases along the Newton direction (not a descent direction of
-            // the potential where `A` is indefinite): a potential step along the CG solution
-            // truncated at negative curvature, or else the best residual decrease.
-            let step = match accepted {
-                Some(a) => Some(a),
-                None => {
-                    let s = self.potential_step(sys, &mut p, &e, stats)?;
-                    sys.checked()?;
-                    s.or_else(|| best.filter(|b| b.0 < phi))
-                }
-            };
-            match step {
-                Some((phit, pt, et)) => {
-                    phi = phit;
-                    p = pt;
-                    e = et;
-                }
-                // No decrease either way: at the attainable precision (or stuck).
-                None => {
-                    stats.converged =
-                        within(stats.residual, 10.0 * roundoff_floor::<R>(sys, &e, &d));
-                    break;
-                }
-            }
-        }
-        Ok(p.v_val)
-    }
-
-    /// A step that decreases the incremental potential `E(v')` ([`Potential`]), whose gradient
-    /// is `G` when the forces derive from a potential: along the CG solution truncated at
-    /// negative curvature (a descent direction of `E`), or along `-M^-1 G`, with a
-    /// backtracking (Armijo) line search on `E`. Returns the merit, point and residual
-    /// reached, or `None`.
-    fn potential_step<R: Real>(
-        &self,
-        sys: &System<R>,
-        p: &mut Point<R>,
-        e: &[f64],
-        stats: &mut NewtonStats,
-    ) -> Result<Option<Accepted<R>>, Error> {
-        let g = sys.gradient(e);
-        let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
-        let mut d = vec![0.0; g.len()];
-        let info = krylov::cg(
-            |u, out| sys.apply(p, u, out),
-            &rhs,
-            &mut d,
-            Some(&sys.precond),
-            &self.linear,
-        );
-        stats.linear_iterations += info.iterations;
-        sys.mask(&mut d);
-        let slope0 = dot(&g, &d);
-        if slope0.is_nan() || slope0 >= 0.0 {
-            d = e.iter().map(|e| -e).collect();
-        }
-        // An energy whose tangent pass fails: no potential step (the residual's best is next).
-        let Ok(s0) = Potential::at(sys, p, e, &d) else {
-            return Ok(None);
+        let first = sys.eval(&sys.v0);
+        sys.check_visited(&first, Needs::Gradient)?;
+        let settings = NewtonSettings {
+            tolerance: self.tolerance::<R>(),
+            max_newton: self.max_newton,
+            max_backtracks: self.max_backtracks,
+            line_search: self.line_search,
+            linear: &self.linear,
         };
-        if s0.slope.is_nan() || s0.slope >= 0.0 {
-            return Ok(None);
-        }
-        let mut alpha = 1.0;
-        for _ in 0..=self.max_backtracks {
-            let vt: Vec<f64> = p.v_val.iter().zip(&d).map(|(v, d)| v + alpha * d).collect();
-            let pt = sys.eval(&vt, false);
-            stats.force_evaluations += 1;
-            let et = sys.residual(&pt);
-            let Ok(t) = Potential::at(sys, &pt, &et, &d) else {
-                return Ok(None);
-            };
-            if s0.armijo(&t, alpha) {
-                return Ok(Some((sys.merit(&et), pt, et)));
-            }
-            stats.backtracks += 1;
-            alpha *= 0.5;
-        }
-        Ok(None)
+        newton(sys, first, &settings, stats)
     }
 
     /// One step like [`Integrator::step`], also returning what the solve did.
@@ -930,7 +664,7 @@ impl ImplicitEuler {
             self.newton(&sys, &mut stats)?
         };
         if !stats.converged {
-            self.on_fail(self.step_failure(dtf, &stats))?;
+            self.on_failure.handle(self.step_failure(dtf, &stats))?;
         }
         let x1v: Vec<f64> = x0.iter().zip(&v1).map(|(x, v)| x + dtf * v).collect();
 
@@ -1062,11 +796,11 @@ impl ImplicitEuler {
         sys: &System<R>,
         stats: &mut NewtonStats,
     ) -> Result<Vec<f64>, Error> {
-        let mut p = sys.eval(&sys.v0, false);
+        let mut p = sys.eval(&sys.v0);
         sys.check_visited(&p, Needs::Gradient)?;
         stats.force_evaluations = 1;
         let e = sys.residual(&p);
-        let (d, info, fell_back) = sys.newton_direction(&mut p, &e, &self.linear)?;
+        let (d, info, fell_back) = direction(sys, &mut p, &e, &self.linear)?;
         stats.newton_iterations = 1;
         stats.linear_iterations = info.iterations;
         stats.fallbacks = fell_back as usize;
@@ -1074,18 +808,6 @@ impl ImplicitEuler {
         stats.tolerance = info.tolerance;
         stats.converged = info.converged && d.iter().all(|d| d.is_finite());
         Ok(sys.v0.iter().zip(&d).map(|(v, d)| v + d).collect())
-    }
-
-    /// Applies [`ImplicitEuler::on_failure`] to a failed solve: the error, or a warning.
-    fn on_fail(&self, err: Error) -> Result<(), Error> {
-        match self.on_failure {
-            SolverPolicy::Error => Err(err),
-            SolverPolicy::Warn => {
-                eprintln!("warning: {err} [continuing: on_failure = SolverPolicy::Warn]");
-                Ok(())
-            }
-            SolverPolicy::Continue => Ok(()),
-        }
     }
 
     /// The settings of the adjoint and tangent solves.
@@ -1099,7 +821,7 @@ impl ImplicitEuler {
             return Ok(());
         }
         let s = self.gradient_settings();
-        self.on_fail(Error::NotConverged {
+        self.on_failure.handle(Error::NotConverged {
             solver: format!("ImplicitEuler {what} linear solve (CG, then BiCGSTAB)"),
             context: String::new(),
             iterations: info.iterations,
@@ -1216,21 +938,13 @@ impl<R: Real> Shared<R> {
     /// the copies' gradients zeroed (the solve's products accumulated into them).
     fn adjoint_solve(&self, v: &[f64], b: &[f64]) -> Result<AdjointSolve<R>, Error> {
         let sys = self.system(true);
-        let mut p = sys.eval(v, true);
+        let mut p = sys.eval_with(v, true);
         sys.check_visited(&p, Needs::Gradient)?;
         let mut rhs = b.to_vec();
         sys.mask(&mut rhs);
-        let mut lambda = vec![0.0; b.len()];
-        let (info, _) = krylov::solve(
-            |u, out| sys.apply_t(&mut p, u, out),
-            &rhs,
-            &mut lambda,
-            Some(&sys.precond),
-            self.integrator.gradient_settings(),
-        );
-        sys.checked()?;
+        let settings = self.integrator.gradient_settings();
+        let (lambda, info, _) = solve_linear(&sys, &mut p, &rhs, settings, true)?;
         self.integrator.check_gradient_solve("adjoint", &info)?;
-        sys.mask(&mut lambda);
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
@@ -1277,14 +991,14 @@ impl<R: Real> Shared<R> {
         let (m, dt) = (self.x0_val.len(), self.dt);
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
         let (sys, mut p, lambda) = self.adjoint_solve(&self.v0_val, &b)?;
-        let mu: Vec<f64> = (0..m).map(|k| sys.mass[k] * lambda[k]).collect();
+        let mu: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * lambda[k]).collect();
         let seed: Vec<f64> = mu.iter().map(|u| dt * u).collect();
-        let adjoint = |e| in_pass("adjoint (reverse-mode)", e);
+        let adjoint = |e| sys.failure.in_pass("adjoint (reverse-mode)", e);
         let (mut gx, mut gv) = sys.pull(&mut p, &seed).map_err(adjoint)?;
         if let Some((d, eps)) = self.linear_direction() {
             let c = dt / (2.0 * eps);
             for s in [1.0, -1.0] {
-                let mut q = sys.eval(&self.shifted(&d, s * eps), true);
+                let mut q = sys.eval_with(&self.shifted(&d, s * eps), true);
                 let seed: Vec<f64> = mu.iter().map(|u| s * c * u).collect();
                 let (qx, qv) = sys.pull(&mut q, &seed).map_err(adjoint)?;
                 gx.iter_mut().zip(qx).for_each(|(g, q)| *g += q);
@@ -1305,12 +1019,12 @@ impl<R: Real> Shared<R> {
         let sys = self.system(false);
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dv0[k]).collect();
         let direction = self.linear_direction();
-        let mut points = vec![(1.0, sys.eval(&self.v0_val, false))];
+        let mut points = vec![(1.0, sys.eval(&self.v0_val))];
         sys.check_visited(&points[0].1, Needs::Tangent)?;
         if let Some((d, eps)) = &direction {
             let c = 1.0 / (2.0 * eps);
-            points.push((c, sys.eval(&self.shifted(d, *eps), false)));
-            points.push((-c, sys.eval(&self.shifted(d, -eps), false)));
+            points.push((c, sys.eval(&self.shifted(d, *eps))));
+            points.push((-c, sys.eval(&self.shifted(d, -eps))));
         }
         for l in &sys.c.links {
             l.share_tangent(true);
@@ -1329,21 +1043,13 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.share_tangent(false);
         }
-        ran.map_err(|e| in_pass("tangent (forward-mode)", e))?;
-        let mut rhs: Vec<f64> = (0..m).map(|k| sys.mass[k] * rhs[k]).collect();
+        ran.map_err(|e| sys.failure.in_pass("tangent (forward-mode)", e))?;
+        let mut rhs: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * rhs[k]).collect();
         sys.mask(&mut rhs);
-        let mut dd = vec![0.0; m];
         let mut p = points.swap_remove(0).1;
-        let (info, _) = krylov::solve(
-            |u, out| sys.apply(&mut p, u, out),
-            &rhs,
-            &mut dd,
-            Some(&sys.precond),
-            self.integrator.gradient_settings(),
-        );
-        sys.checked()?;
+        let settings = self.integrator.gradient_settings();
+        let (dd, info, _) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
         self.integrator.check_gradient_solve("tangent", &info)?;
-        sys.mask(&mut dd);
         let dv1: Vec<f64> = (0..m).map(|k| dv0[k] + dd[k]).collect();
         self.set_output_tangents(&dx0, &dv1);
         Ok(())
@@ -1358,15 +1064,15 @@ impl<R: Real> Shared<R> {
         let (m, dt) = (self.x0_val.len(), self.dt);
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
         let (sys, mut p, lambda) = self.adjoint_solve(&self.v1_val, &b)?;
-        let seed: Vec<f64> = (0..m).map(|k| dt * sys.mass[k] * lambda[k]).collect();
+        let seed: Vec<f64> = (0..m).map(|k| dt * sys.dofs.mass[k] * lambda[k]).collect();
         let (gx, gv) = sys
             .pull(&mut p, &seed)
-            .map_err(|e| in_pass("adjoint (reverse-mode)", e))?;
+            .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
         let gv0: Vec<f64> = (0..m)
             .map(|k| {
-                if sys.free[k] {
-                    sys.mass[k] * lambda[k]
+                if sys.dofs.free[k] {
+                    sys.dofs.mass[k] * lambda[k]
                 } else {
                     // v' = v on pinned DOFs, which also moves x' = x + dt v.
                     b[k] + dt * gx[k] + gv[k]
@@ -1384,13 +1090,13 @@ impl<R: Real> Shared<R> {
         let (m, dt) = (self.x0_val.len(), self.dt);
         let (dx0, dv0, dae) = self.input_tangents();
         let sys = self.system(false);
-        let mut p = sys.eval(&self.v1_val, false);
+        let mut p = sys.eval(&self.v1_val);
         sys.check_visited(&p, Needs::Tangent)?;
         for l in &sys.c.links {
             l.share_tangent(true);
         }
         let dvp: Vec<f64> = (0..m)
-            .map(|k| if sys.free[k] { 0.0 } else { dv0[k] })
+            .map(|k| if sys.dofs.free[k] { 0.0 } else { dv0[k] })
             .collect();
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
         p.x.ensure_tangent().assign(&unflat::<R>(&dxp));
@@ -1402,23 +1108,16 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.share_tangent(false);
         }
-        ran.map_err(|e| in_pass("tangent (forward-mode)", e))?;
+        ran.map_err(|e| sys.failure.in_pass("tangent (forward-mode)", e))?;
         let mut rhs: Vec<f64> = (0..m)
-            .map(|k| sys.mass[k] * (dv0[k] + dt * (ad[k] + dae[k])))
+            .map(|k| sys.dofs.mass[k] * (dv0[k] + dt * (ad[k] + dae[k])))
             .collect();
         sys.mask(&mut rhs);
-        let mut dv1 = vec![0.0; m];
-        let (info, _) = krylov::solve(
-            |u, out| sys.apply(&mut p, u, out),
-            &rhs,
-            &mut dv1,
-            Some(&sys.precond),
-            self.integrator.gradient_settings(),
-        );
-        sys.checked()?;
+        let settings = self.integrator.gradient_settings();
+        let (mut dv1, info, _) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
         self.integrator.check_gradient_solve("tangent", &info)?;
         for k in 0..m {
-            if !sys.free[k] {
+            if !sys.dofs.free[k] {
                 dv1[k] = dv0[k];
             }
         }

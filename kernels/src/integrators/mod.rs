@@ -35,10 +35,7 @@
 pub(crate) mod common;
 pub mod explicit;
 pub mod implicit;
-pub mod krylov;
 pub mod midpoint;
-#[doc(hidden)]
-pub use krylov as linsolve;
 // A test fixture (a mass-spring oscillator with its exact solution), not API.
 #[doc(hidden)]
 pub mod oscillator;
@@ -75,6 +72,20 @@ pub enum SolverPolicy {
     /// Use the unconverged result silently (e.g. a fixed iteration budget on purpose; check
     /// the figures with [`ImplicitEuler::step_with_stats`]).
     Continue,
+}
+
+impl SolverPolicy {
+    /// Applies the policy to a solve's failure `err`: the error, or a warning, or nothing.
+    pub(crate) fn handle(self, err: Error) -> Result<(), Error> {
+        match self {
+            SolverPolicy::Error => Err(err),
+            SolverPolicy::Warn => {
+                eprintln!("warning: {err} [continuing: on_failure = SolverPolicy::Warn]");
+                Ok(())
+            }
+            SolverPolicy::Continue => Ok(()),
+        }
+    }
 }
 
 /// A time stepping scheme.

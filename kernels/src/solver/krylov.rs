@@ -3,12 +3,13 @@
 //! nonsingular ones, the fallback when CG meets negative curvature or stalls).
 //!
 //! The matrix is never formed: a solver only calls `apply(u, out)`, which writes `A u` into
-//! `out`. [`crate::integrators::ImplicitEuler`] computes those products with the tangent
+//! `out`. [`crate::integrators::ImplicitEuler`] and [`crate::statics::Equilibrium`] (through
+//! [`crate::solver`]'s Newton iteration) compute those products with the tangent
 //! kernels of the force model (`A u`) or with its adjoint kernels (`A^T u`). Vectors are flat
 //! `f64` slices (three components per particle), whatever the scalar of the model.
 //!
 //! ```
-//! use adflex_kernels::integrators::krylov::{cg, SolveSettings};
+//! use adflex_kernels::solver::krylov::{cg, SolveSettings};
 //! // A = [[4, 1], [1, 3]], b = [1, 2]: x = [1/11, 7/11].
 //! let a = |u: &[f64], out: &mut [f64]| {
 //!     out[0] = 4.0 * u[0] + u[1];
