@@ -45,6 +45,7 @@ pub mod rigid;
 pub mod scene_file;
 pub mod scenes;
 pub mod solver;
+pub mod state;
 pub mod statics;
 pub mod tied;
 pub mod validation;
@@ -53,8 +54,8 @@ pub mod validation;
 pub use constraints as xpbd;
 
 pub use integrators::{Integrator, SemiImplicitEuler};
-pub use model::{Control, Model, ModelBuilder, State};
-pub use rigid::BodyState;
+pub use model::{Model, ModelBuilder};
+pub use state::{BodyState, Control, State};
 pub use validation::{ModelError, Problem};
 
 /// The builder, model, state, integrators and component types in one import.
@@ -68,8 +69,8 @@ pub mod prelude {
         ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, SolverPolicy,
         Xpbd,
     };
-    pub use crate::model::{Control, Model, ModelBuilder, State};
-    pub use crate::rigid::BodyState;
+    pub use crate::model::{Model, ModelBuilder};
     pub use crate::scenes::cloth::{ClothEdge, ClothGrid};
     pub use crate::scenes::soft::{TetBlock, TetGrid};
+    pub use crate::state::{BodyState, Control, State};
 }

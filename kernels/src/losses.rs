@@ -31,7 +31,7 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use crate::model::Model;
-use crate::rigid::BodyState;
+use crate::state::BodyState;
 
 /// `out[0] += scale * |x[idx[t]] - target|^2`.
 #[diff_kernel]

@@ -5,7 +5,6 @@
 //! [`Force`] components, see [`crate::forces`]), and [`Model::eval_forces`] launches only
 //! their kernels: a scene costs only what it contains.
 
-use adflex_runtime::checkpoint::Checkpoint;
 use adflex_runtime::{AnyArray, Array, Element, Error, Mat22, Mat33, Quat, Real, Tape, Vec3};
 
 use crate::constraints::DistanceConstraints;
@@ -18,7 +17,10 @@ use crate::forces::fem_tri::{triangle_quality, triangle_rest, TriangleFem};
 use crate::forces::particle::{accelerations, add_forces, Drag};
 use crate::forces::spring::Springs;
 use crate::forces::{Force, ForceContext};
-use crate::rigid::{BodyState, RigidBodies};
+use crate::precompiled::precompiled;
+use crate::rigid::RigidBodies;
+use crate::state::BodyState;
+pub use crate::state::{BodyForces, Control, State};
 use crate::validation::{
     max_of, min_quality, overflow_hint, precision, Check, ModelError, Problem,
 };
@@ -30,65 +32,6 @@ fn lit<R: Real>(x: f64) -> R {
 fn wide<R: Real>(v: Vec3<R>) -> Vec3<f64> {
     Vec3::new(v.x.to_f64(), v.y.to_f64(), v.z.to_f64())
 }
-
-/// Everything that changes from step to step: particle positions (m) and velocities (m/s),
-/// and the rigid body state if the model has bodies. Integrators return a new `State` (new
-/// arrays) every step, so a tape keeps the whole trajectory.
-#[derive(Clone, Debug)]
-pub struct State<R: Real> {
-    /// Particle positions (m).
-    pub x: Array<Vec3<R>>,
-    /// Particle velocities (m/s).
-    pub v: Array<Vec3<R>>,
-    /// Rigid bodies, if the model has any.
-    pub bodies: Option<BodyState<R>>,
-}
-
-impl<R: Real> State<R> {
-    /// New arrays with the same values (no gradients).
-    pub fn deep_clone(&self) -> Self {
-        State {
-            x: self.x.deep_clone(),
-            v: self.v.deep_clone(),
-            bodies: self.bodies.as_ref().map(BodyState::deep_clone),
-        }
-    }
-
-    /// Number of particles.
-    pub fn particle_count(&self) -> usize {
-        self.x.len()
-    }
-}
-
-impl<R: Real> Checkpoint for State<R> {
-    fn arrays(&self) -> Vec<&dyn AnyArray> {
-        let mut a: Vec<&dyn AnyArray> = vec![&self.x, &self.v];
-        if let Some(b) = &self.bodies {
-            a.extend([&b.x as &dyn AnyArray, &b.q, &b.v, &b.w]);
-        }
-        a
-    }
-    fn snapshot(&self) -> Self {
-        self.deep_clone()
-    }
-}
-
-/// Per-step actuation. Every field is optional; absent means none (or the model's default).
-#[derive(Clone, Debug, Default)]
-pub struct Control<R: Real> {
-    /// External force on each particle (N).
-    pub particle_f: Option<Array<Vec3<R>>>,
-    /// Activation of each tetrahedron (see [`crate::forces::fem_tet`]); replaces the model's
-    /// default activation.
-    pub tet_activation: Option<Array<R>>,
-    /// External force on each body's centre of mass (N, world frame).
-    pub body_f: Option<Array<Vec3<R>>>,
-    /// External torque on each body (N m, world frame).
-    pub body_t: Option<Array<Vec3<R>>>,
-}
-
-/// Forces (N) and torques (N m) on the rigid bodies, world frame.
-pub type BodyForces<R> = (Array<Vec3<R>>, Array<Vec3<R>>);
 
 /// A rigid body as the builder records it.
 #[derive(Clone, Copy, Debug)]
@@ -804,7 +747,7 @@ impl<R: Real> ModelBuilder<R> {
         self.validate()?;
         // Compiled in this crate (`precompiled`): a user crate does not code-generate the
         // library's kernels again.
-        Ok(crate::precompiled::build_model(self))
+        Ok(build_model(self))
     }
 
     pub(crate) fn build_model(&self) -> Model<R> {
@@ -1268,5 +1211,12 @@ impl<R: Real> Model<R> {
             force.energy(&cx, tape, &e);
         }
         e
+    }
+}
+
+precompiled! {
+    /// [`ModelBuilder::build_model`], which boxes the library's forces.
+    fn build_model(builder: &ModelBuilder<R>) -> Model<R> {
+        builder.build_model()
     }
 }

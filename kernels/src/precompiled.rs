@@ -10,17 +10,16 @@
 //! here are generic shims: they call a non-generic instantiation compiled once, in this crate,
 //! for the scalar type at hand.
 
-use std::any::TypeId;
+//!
+//! The macro is invoked next to the entry point it serves (`model.rs`: the model's build;
+//! `integrators/common.rs`: the rigid bodies' step; `integrators/implicit.rs`: implicit Euler's
+//! step), so this module depends on none of them.
+
 use std::mem::ManuallyDrop;
 
-use adflex_runtime::{Error, Real, Tape};
-
-use crate::integrators::implicit::{ImplicitEuler, NewtonStats};
-use crate::model::{Control, Model, ModelBuilder, State};
-use crate::rigid::BodyState;
-
 /// Defines `pub(crate) fn $name<R: Real>(args) -> out` running `body` with `R = f32` or
-/// `R = f64`, each compiled once in this crate (in the modules `$name::{f32, f64}`).
+/// `R = f64`, each compiled once in this crate (in the modules `$name::{f32, f64}`), in the
+/// module that invokes it.
 macro_rules! precompiled {
     ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) -> $out:ty $body:block) => {
         mod $name {
@@ -43,6 +42,8 @@ macro_rules! precompiled {
             // The result must not borrow from the arguments: `same` would not see the lifetime.
             fn owned<T: 'static>() {}
             owned::<$out>();
+            use ::std::any::TypeId;
+            use $crate::precompiled::{same, unsupported};
             if TypeId::of::<R>() == TypeId::of::<f64>() {
                 // SAFETY: `R` is `f64`, so every argument's type and the result's are those of
                 // `$name::f64::call`.
@@ -62,7 +63,7 @@ macro_rules! precompiled {
 /// # Safety
 ///
 /// `A` and `B` must be the same type (up to lifetimes that the caller keeps).
-unsafe fn same<A, B>(a: A) -> B {
+pub(crate) unsafe fn same<A, B>(a: A) -> B {
     assert_eq!(std::mem::size_of::<A>(), std::mem::size_of::<B>());
     let a = ManuallyDrop::new(a);
     // SAFETY: the caller's contract; `a` is not dropped, its bits move into the result.
@@ -70,44 +71,11 @@ unsafe fn same<A, B>(a: A) -> B {
 }
 
 /// Panics for a scalar type other than `f32` and `f64`, which the library is compiled for.
-fn unsupported<R>() -> ! {
+pub(crate) fn unsupported<R>() -> ! {
     panic!(
         "adflex's library (models, forces, integrators) is compiled for f32 and f64, not for {}",
         std::any::type_name::<R>()
     )
 }
 
-precompiled! {
-    /// [`ModelBuilder::build_model`], which boxes the library's forces.
-    fn build_model(builder: &ModelBuilder<R>) -> Model<R> {
-        builder.build_model()
-    }
-}
-
-precompiled! {
-    /// The rigid bodies' step of every integrator
-    /// ([`step_bodies_generic`](crate::integrators::common::step_bodies_generic)).
-    fn step_bodies(
-        model: &Model<R>,
-        tape: &mut Tape,
-        state: &State<R>,
-        control: Option<&Control<R>>,
-        dt: R,
-    ) -> Option<BodyState<R>> {
-        crate::integrators::common::step_bodies_generic(model, tape, state, control, dt)
-    }
-}
-
-precompiled! {
-    /// [`ImplicitEuler::step_with_stats`].
-    fn implicit_euler_step(
-        this: &ImplicitEuler,
-        model: &Model<R>,
-        tape: &mut Tape,
-        state: &State<R>,
-        control: Option<&Control<R>>,
-        dt: R,
-    ) -> Result<(State<R>, NewtonStats), Error> {
-        this.step_with_stats_generic(model, tape, state, control, dt)
-    }
-}
+pub(crate) use precompiled;

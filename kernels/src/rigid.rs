@@ -6,33 +6,9 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::contact::ground::{contact_depth, contact_force, Ground};
-
-/// The state of the rigid bodies: centre of mass position (m), orientation (unit quaternion),
-/// linear velocity (m/s) and angular velocity (rad/s, world frame).
-#[derive(Clone, Debug)]
-pub struct BodyState<R: Real> {
-    /// Position of the centre of mass (m).
-    pub x: Array<Vec3<R>>,
-    /// Orientation, body to world (unit quaternion).
-    pub q: Array<Quat<R>>,
-    /// Linear velocity (m/s).
-    pub v: Array<Vec3<R>>,
-    /// Angular velocity in world frame (rad/s).
-    pub w: Array<Vec3<R>>,
-}
-
-impl<R: Real> BodyState<R> {
-    /// New arrays with the same values (no gradients).
-    pub fn deep_clone(&self) -> Self {
-        BodyState {
-            x: self.x.deep_clone(),
-            q: self.q.deep_clone(),
-            v: self.v.deep_clone(),
-            w: self.w.deep_clone(),
-        }
-    }
-}
+use crate::contact::ground::Ground;
+use crate::contact::law::{contact_depth, contact_force};
+pub use crate::state::BodyState;
 
 /// Ground contact of contact point `tid`, a point `contact_point` (m, body frame) of body
 /// `contact_body`: with `r` the point relative to the centre of mass in world frame,

@@ -82,10 +82,11 @@ use crate::integrators::common::{
     record, unflat, Copies, Dofs, Needs, Point,
 };
 use crate::integrators::SolverPolicy;
-use crate::model::{Model, State};
+use crate::model::Model;
 use crate::solver::krylov::{SolveInfo, SolveSettings};
 use crate::solver::newton::{dot, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure};
 pub use crate::solver::NewtonStats;
+use crate::state::State;
 
 /// A static equilibrium solver: Newton with matrix-free Krylov solves and a line search,
 /// differentiated by the implicit function theorem (see the [module docs](self)).

@@ -35,7 +35,8 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::Integrator;
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 /// `target[tid] = values[group[tid]]`.
 #[diff_kernel]

@@ -87,7 +87,7 @@ impl Force<f64> for Anchors {
 }
 
 /// No particle starts with a vertical velocity of exactly 0: the ground's damping term
-/// (`min(v.n, 0) kd`, see `contact::ground::contact_force`) acts on every particle moving
+/// (`min(v.n, 0) kd`, see `contact::law::contact_force`) acts on every particle moving
 /// down, in contact or not, and has a kink at `v.n = 0` that central differences straddle.
 ///
 /// A small scene with every force of the library (and the user-defined [`Anchors`]), each

@@ -3,5 +3,6 @@
 //! with the smoothed Coulomb friction of dFlex.
 
 pub mod ground;
+pub mod law;
 pub mod particle;
 pub mod shapes;

@@ -10,7 +10,7 @@ use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
-use super::ground::{contact_damping, contact_depth, contact_force, penalty_energy};
+use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 
 /// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,
 /// whose surfaces are `gap` apart (m; negative in contact): what both pair kernels compute.

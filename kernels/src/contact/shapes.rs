@@ -7,7 +7,7 @@ use adflex_runtime::prelude::*;
 
 use crate::forces::{Force, ForceContext, Param};
 
-use super::ground::{contact_damping, contact_depth, contact_force, penalty_energy};
+use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
 /// with `n` the outward normal (zero at the centre).

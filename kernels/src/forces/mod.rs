@@ -66,7 +66,7 @@ use std::fmt::Debug;
 
 use adflex_runtime::{AnyArray, Array, Element, Real, Tape, Vec3};
 
-use crate::model::Control;
+use crate::state::Control;
 
 pub mod bending;
 pub mod fem_tet;

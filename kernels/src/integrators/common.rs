@@ -7,8 +7,10 @@
 use adflex_runtime::{AnyArray, Array, Error, Real, Tape, Vec3};
 
 use crate::forces::{Param, ParamCopy};
-use crate::model::{Control, Model, State};
-use crate::rigid::BodyState;
+use crate::model::Model;
+use crate::precompiled::precompiled;
+use crate::state::BodyState;
+use crate::state::{Control, State};
 
 /// Advances the rigid bodies of `state` (if any) by `dt` (s) with
 /// [`crate::rigid::RigidBodies::integrate`] (semi-implicit Euler), recording on `tape`.
@@ -30,9 +32,18 @@ pub(crate) fn step_bodies_generic<R: Real>(
     Some(bodies.integrate(tape, s, &f, &t, model.gravity, dt))
 }
 
-/// [`step_bodies_generic`], by code compiled in this crate for `f32` and `f64`
-/// (`crate::precompiled`).
-pub(crate) use crate::precompiled::step_bodies;
+precompiled! {
+    /// [`step_bodies_generic`], by code compiled in this crate for `f32` and `f64`.
+    fn step_bodies(
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> Option<BodyState<R>> {
+        step_bodies_generic(model, tape, state, control, dt)
+    }
+}
 
 /// The arrays of a state, particles then bodies.
 fn state_arrays<R: Real>(s: &State<R>) -> Vec<&dyn AnyArray> {

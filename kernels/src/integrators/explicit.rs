@@ -11,7 +11,8 @@ use adflex_runtime::prelude::*;
 
 use super::common::{finish_step, new_xv, step_bodies};
 use super::{check_dt, Integrator};
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 /// Explicit Euler update of particle `tid`: `x_new = x + v dt`, `v_new = v + a dt` (`a` in
 /// m/s^2, `dt` in s). The position moves with the *old* velocity.

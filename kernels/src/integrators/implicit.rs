@@ -103,12 +103,14 @@ use super::common::{
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
 use crate::forces::Force;
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::precompiled::precompiled;
 use crate::solver::krylov::{SolveInfo, SolveSettings};
 use crate::solver::newton::{
     direction, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
 };
 pub use crate::solver::NewtonStats;
+use crate::state::{Control, State};
 
 /// Implicit (backward) Euler, solved by Newton-CG with a line search; first order,
 /// unconditionally stable, differentiable through the implicit function theorem.
@@ -609,7 +611,7 @@ impl ImplicitEuler {
         dt: R,
     ) -> Result<(State<R>, NewtonStats), Error> {
         // Compiled in this crate (`precompiled`), not in the caller's.
-        crate::precompiled::implicit_euler_step(self, model, tape, state, control, dt)
+        implicit_euler_step(self, model, tape, state, control, dt)
     }
 
     pub(crate) fn step_with_stats_generic<R: Real>(
@@ -1136,5 +1138,19 @@ impl<R: Real> Integrator<R> for ImplicitEuler {
         dt: R,
     ) -> Result<State<R>, Error> {
         Ok(self.step_with_stats(model, tape, state, control, dt)?.0)
+    }
+}
+
+precompiled! {
+    /// [`ImplicitEuler::step_with_stats`].
+    fn implicit_euler_step(
+        this: &ImplicitEuler,
+        model: &Model<R>,
+        tape: &mut Tape,
+        state: &State<R>,
+        control: Option<&Control<R>>,
+        dt: R,
+    ) -> Result<(State<R>, NewtonStats), Error> {
+        this.step_with_stats_generic(model, tape, state, control, dt)
     }
 }

@@ -15,7 +15,8 @@ use adflex_runtime::prelude::*;
 use super::common::{finish_step, new_xv, particles, step_bodies};
 use super::rk4::rk_stage;
 use super::{check_dt, Integrator};
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 /// The explicit midpoint method (RK2): `a1 = a(x0, v0)`, the half step
 /// `x_h = x0 + v0 dt/2`, `v_h = v0 + a1 dt/2`, then `x = x0 + v_h dt`, `v = v0 + a(x_h, v_h) dt`.

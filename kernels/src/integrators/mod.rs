@@ -45,7 +45,8 @@ pub mod xpbd;
 
 use adflex_runtime::{Error, Real, Tape};
 
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 pub(crate) use common::check_dt;
 pub use explicit::ExplicitEuler;

@@ -13,7 +13,8 @@ use adflex_runtime::prelude::*;
 
 use super::common::{finish_step, new_xv, particles, step_bodies};
 use super::{check_dt, Integrator};
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 /// A Runge-Kutta stage of particle `tid`: `xs = x0 + vk c`, `vs = v0 + ak c` (`c` in s).
 #[diff_kernel]

@@ -5,7 +5,8 @@ use adflex_runtime::prelude::*;
 
 use super::common::{finish_step, step_bodies};
 use super::{check_dt, Integrator};
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 /// `v' = v + (f w + g [w > 0]) dt`, `x' = x + v' dt` for particle `tid` (`w` the inverse mass
 /// in 1/kg, `g` gravity in m/s^2, `dt` in s), into new arrays `x_new`, `v_new`.

@@ -19,7 +19,8 @@ use adflex_runtime::prelude::*;
 use super::common::{finish_step, particles, step_bodies};
 use super::{check_dt, Integrator};
 use crate::constraints::velocity_from_positions;
-use crate::model::{Control, Model, State};
+use crate::model::Model;
+use crate::state::{Control, State};
 
 /// Prediction of particle `tid` (a semi-implicit Euler step): `x_pred = x + (v + a h) h`
 /// (`a` in m/s^2, `h` in s).

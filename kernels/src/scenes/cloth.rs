@@ -15,7 +15,8 @@ use adflex_runtime::prelude::*;
 use crate::contact::ground::Ground;
 use crate::forces::bending::{bending_edges, dihedral_angle, RestAngle};
 use crate::integrators::{Integrator, SemiImplicitEuler};
-use crate::model::{Model, ModelBuilder, State};
+use crate::model::{Model, ModelBuilder};
+use crate::state::State;
 
 /// A rectangular cloth: a grid of particles joined by structural and shear springs, split into
 /// triangles, with bending elements on every interior edge.

@@ -1,0 +1,86 @@
+//! The contact law every contact of the library uses (particles against the ground, each
+//! other and shapes; rigid bodies' points against the ground): the penetration depth with its
+//! optional leaky gradient, the penalty force with damping and dFlex's smoothed Coulomb
+//! friction, its potential, and the damping ramp at first contact.
+
+use adflex_macros::diff_func;
+use adflex_runtime::prelude::*;
+
+/// Penetration depth `min(d, 0)` (m) with a leaky derivative: `1` for `d < 0` (in contact),
+/// `leak` for `d >= 0` (out of contact, where the true derivative is 0).
+///
+/// The forward value is exactly `min(d, 0)`; only the adjoint and tangent differ. With
+/// `leak = 0` the derivative is the exact one (`min`'s tie at `d = 0` goes to the constant, so
+/// 0 there). A small leak (e.g. 0.01: a contact 1 cm away pulls with 1% of the stiffness)
+/// gives a nonzero gradient for a particle above the ground, the standard remedy for the
+/// vanishing gradients of penalty contact (cf. "leaky" contact in DiffTaichi/gradSim). The
+/// gradient is then not the derivative of the simulation: gradient checks must use `leak = 0`.
+#[diff_func(adjoint = contact_depth_adjoint, tangent = contact_depth_tangent)]
+pub fn contact_depth<R: Real>(d: R, leak: R) -> R {
+    min(d, 0.0)
+}
+
+/// The slope [`contact_depth`] uses in place of the derivative of `min(d, 0)`.
+#[inline]
+pub fn contact_depth_slope<R: Real>(d: R, leak: R) -> R {
+    if d < R::lit(0.0) {
+        R::lit(1.0)
+    } else {
+        leak
+    }
+}
+
+/// Adjoint of [`contact_depth`] (the leak factor itself gets no gradient).
+pub fn contact_depth_adjoint<R: Real>(d: R, leak: R, adj: R) -> (R, R) {
+    (contact_depth_slope(d, leak) * adj, R::lit(0.0))
+}
+
+/// Tangent of [`contact_depth`].
+pub fn contact_depth_tangent<R: Real>(d: R, leak: R, dd: R, _dleak: R) -> R {
+    contact_depth_slope(d, leak) * dd
+}
+
+/// Penalty contact force of a point against a surface of unit normal `n`: the force the point
+/// receives, `-(fn + fd - ft)` with `c` the (non-positive) penetration depth (m), `v` the
+/// point's velocity relative to the surface (m/s):
+/// `fn = n c ke`, `fd = n min(v.n, 0) kd`, `ft = vt (mu c ke / (|vt| + 0.01))` with
+/// `vt = v - n (v.n)`; `ke` (N/m), `kd` (N s/m), `mu` (friction coefficient).
+///
+/// As in dFlex, the damping `fd` acts whenever the point approaches the surface, even out of
+/// contact; the friction is Coulomb's `mu |fn|` smoothed near `vt = 0` (so `|vt| = 0` is
+/// regular: `length`'s gradient there is 0).
+#[diff_func]
+pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R) -> Vec3<R> {
+    let vn = dot(n, v);
+    let vt = v - n * vn;
+    let fnormal = n * c * ke;
+    let fd = n * min(vn, 0.0) * kd;
+    let ft = vt * (mu * c * ke / (length(vt) + 0.01));
+    (fnormal + fd - ft) * -1.0
+}
+
+/// The potential of [`contact_force`]'s normal (penalty) part at signed distance `d` (m):
+/// `ke/2 min(d, 0)^2` (J). Its gradient is exactly the penalty force (the leak of
+/// [`contact_depth`] shapes only the gradients of the force, not this energy); damping and
+/// friction have no potential.
+#[diff_func]
+pub fn penalty_energy<R: Real>(d: R, ke: R) -> R {
+    let c = min(d, 0.0);
+    0.5 * ke * c * c
+}
+
+/// The damping of a contact at depth `c <= 0` (m): `kd_free` out of contact, rising linearly
+/// to `kd` over the first `depth` metres of penetration (`depth = 0`: a switch at contact), so
+/// that the force is continuous where the damping differs in and out of contact (implicit
+/// solvers do not converge through a jump). With `kd_free = kd` it is exactly `kd`.
+#[diff_func]
+pub fn contact_damping<R: Real>(c: R, kd: R, kd_free: R, depth: R) -> R {
+    // Both branches of a select are differentiated: no division by a zero depth.
+    let safe = select(depth > 0.0, depth, 1.0);
+    let ramp = select(
+        depth > 0.0,
+        min(c * -1.0 / safe, 1.0),
+        select(c < 0.0, 1.0, 0.0),
+    );
+    kd_free + (kd - kd_free) * ramp
+}
