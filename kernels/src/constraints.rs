@@ -15,6 +15,8 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
+use crate::particles::Elements;
+
 /// One Jacobi pass over the constraints: reads positions `x` and multipliers `lambda`,
 /// accumulates position corrections into `dx` and writes the new multipliers `lambda_out`.
 /// A constraint between two particles of inverse mass 0 is left as is.
@@ -242,5 +244,53 @@ impl<R: Real> DistanceConstraints<R> {
         let x_out = Array::zeros(x.len()).named("x");
         tape.launch(apply_corrections, x.len(), (x, &dx, relaxation, &x_out));
         (x_out, lambda_out)
+    }
+}
+
+/// The distance constraints of a scene description (see
+/// [`ModelBuilder::add_distance_constraint`](crate::ModelBuilder::add_distance_constraint)).
+#[derive(Clone, Debug)]
+pub(crate) struct ConstraintParts<R: Real> {
+    pairs: Vec<[u32; 2]>,
+    rest: Vec<R>,
+    compliance: Vec<R>,
+}
+
+impl<R: Real> Default for ConstraintParts<R> {
+    fn default() -> Self {
+        ConstraintParts {
+            pairs: Vec::new(),
+            rest: Vec::new(),
+            compliance: Vec::new(),
+        }
+    }
+}
+
+impl<R: Real> ConstraintParts<R> {
+    /// A constraint at the particles' current distance, checked.
+    pub(crate) fn add(&mut self, el: &mut Elements<'_, R>, i: u32, j: u32, compliance: R) -> u32 {
+        let k = self.pairs.len();
+        let rest = if el.distinct("distance_constraints", k, &[i, j]) {
+            let d = el.particles.x[i as usize] - el.particles.x[j as usize];
+            el.rest("distance_constraints", k, [i, j], d.norm(), true);
+            d.norm()
+        } else {
+            R::lit(1.0)
+        };
+        el.check("distance_constraints", k)
+            .nonneg("compliance", compliance);
+        self.pairs.push([i, j]);
+        self.rest.push(rest);
+        self.compliance.push(compliance);
+        (self.pairs.len() - 1) as u32
+    }
+
+    /// The model's constraints, if the scene has any.
+    pub(crate) fn build(&self) -> Option<DistanceConstraints<R>> {
+        (!self.pairs.is_empty()).then(|| DistanceConstraints {
+            pairs: Array::from_vec(self.pairs.clone()).named("dist_pairs"),
+            rest: Array::from_vec(self.rest.clone()).named("dist_rest"),
+            compliance: Array::from_vec(self.compliance.clone()).named("dist_compliance"),
+        })
     }
 }

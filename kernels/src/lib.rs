@@ -40,6 +40,7 @@ pub mod forces;
 pub mod integrators;
 pub mod losses;
 pub mod model;
+mod particles;
 mod precompiled;
 pub mod rigid;
 pub mod scene_file;

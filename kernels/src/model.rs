@@ -5,44 +5,23 @@
 //! [`Force`] components, see [`crate::forces`]), and [`Model::eval_forces`] launches only
 //! their kernels: a scene costs only what it contains.
 
-use adflex_runtime::{AnyArray, Array, Element, Error, Mat22, Mat33, Quat, Real, Tape, Vec3};
+use adflex_runtime::{AnyArray, Array, Element, Error, Mat33, Quat, Real, Tape, Vec3};
 
-use crate::constraints::DistanceConstraints;
+use crate::constraints::{ConstraintParts, DistanceConstraints};
 use crate::contact::ground::Ground;
 use crate::contact::particle::ParticleContact;
 use crate::contact::shapes::{Shape, Shapes};
-use crate::forces::bending::{bending_edges, dihedral_angle, Bending, RestAngle};
-use crate::forces::fem_tet::{tet_quality, tet_rest, TetFem};
-use crate::forces::fem_tri::{triangle_quality, triangle_rest, TriangleFem};
+use crate::forces::bending::{Bending, RestAngle};
+use crate::forces::fem_tet::TetFem;
+use crate::forces::fem_tri::TriangleFem;
 use crate::forces::particle::{accelerations, add_forces, Drag};
 use crate::forces::spring::Springs;
-use crate::forces::{Force, ForceContext};
+use crate::forces::{Force, ForceContext, ForceParts};
+use crate::particles::{Elements, Particles};
 use crate::precompiled::precompiled;
-use crate::rigid::RigidBodies;
-use crate::state::BodyState;
+use crate::rigid::{BodyParts, RigidBodies};
 pub use crate::state::{BodyForces, Control, State};
-use crate::validation::{
-    max_of, min_quality, overflow_hint, precision, Check, ModelError, Problem,
-};
-
-fn lit<R: Real>(x: f64) -> R {
-    R::lit(x)
-}
-
-fn wide<R: Real>(v: Vec3<R>) -> Vec3<f64> {
-    Vec3::new(v.x.to_f64(), v.y.to_f64(), v.z.to_f64())
-}
-
-/// A rigid body as the builder records it.
-#[derive(Clone, Copy, Debug)]
-struct BodyDesc<R: Real> {
-    x: Vec3<R>,
-    q: Quat<R>,
-    v: Vec3<R>,
-    w: Vec3<R>,
-    mass: R,
-    inertia: Mat33<R>,
-}
+use crate::validation::{Check, ModelError, Problem};
 
 /// Describes a scene element by element; [`ModelBuilder::finalize`] makes the [`Model`].
 ///
@@ -61,43 +40,13 @@ pub struct ModelBuilder<R: Real> {
     /// Radius for contact (m) of every particle not given its own radius
     /// ([`ModelBuilder::set_particle_radius`]); default 0.01.
     pub particle_radius: R,
-    particle_x: Vec<Vec3<R>>,
-    particle_radii: Vec<Option<R>>,
-    particle_v: Vec<Vec3<R>>,
-    particle_inv_mass: Vec<R>,
-    spring_pairs: Vec<[u32; 2]>,
-    spring_rest: Vec<R>,
-    spring_ke: Vec<R>,
-    spring_kd: Vec<R>,
-    triangles: Vec<[u32; 3]>,
-    tri_fem: Vec<[u32; 3]>,
-    tri_dm_inv: Vec<Mat22<R>>,
-    tri_area: Vec<R>,
-    tri_mu: Vec<R>,
-    tri_lambda: Vec<R>,
-    tri_kd: Vec<R>,
-    bend_quads: Vec<[u32; 4]>,
-    bend_rest: Vec<R>,
-    bend_ke: Vec<R>,
-    bend_kd: Vec<R>,
-    tets: Vec<[u32; 4]>,
-    tet_dm_inv: Vec<Mat33<R>>,
-    tet_volume: Vec<R>,
-    tet_mu: Vec<R>,
-    tet_lambda: Vec<R>,
-    tet_kd: Vec<R>,
-    ground: Option<Ground<R>>,
-    drag: Option<Drag<R>>,
-    particle_contact: Option<ParticleContact<R>>,
-    shapes: Vec<Shape<R>>,
-    shape_contact: ParticleContact<R>,
-    bodies: Vec<BodyDesc<R>>,
-    body_contacts: Vec<(u32, Vec3<R>)>,
-    dist_pairs: Vec<[u32; 2]>,
-    dist_rest: Vec<R>,
-    dist_compliance: Vec<R>,
-    forces: AddedForces<R>,
-    problems: Vec<Problem>,
+    // The families' and the library forces' parts, each owned by its module.
+    pub(crate) particles: Particles<R>,
+    pub(crate) forces: ForceParts<R>,
+    pub(crate) bodies: BodyParts<R>,
+    pub(crate) constraints: ConstraintParts<R>,
+    added: AddedForces<R>,
+    pub(crate) problems: Vec<Problem>,
 }
 
 /// The forces added with [`ModelBuilder::add_force`]. The builder only clones them (array
@@ -119,56 +68,43 @@ impl<R: Real> ModelBuilder<R> {
     /// An empty scene with gravity `(0, -9.8, 0)` m/s^2 and particle radius 0.01 m.
     pub fn new() -> Self {
         ModelBuilder {
-            gravity: Vec3::new(lit(0.0), lit(-9.8), lit(0.0)),
-            particle_radius: lit(0.01),
-            particle_x: Vec::new(),
-            particle_radii: Vec::new(),
-            particle_v: Vec::new(),
-            particle_inv_mass: Vec::new(),
-            spring_pairs: Vec::new(),
-            spring_rest: Vec::new(),
-            spring_ke: Vec::new(),
-            spring_kd: Vec::new(),
-            triangles: Vec::new(),
-            tri_fem: Vec::new(),
-            tri_dm_inv: Vec::new(),
-            tri_area: Vec::new(),
-            tri_mu: Vec::new(),
-            tri_lambda: Vec::new(),
-            tri_kd: Vec::new(),
-            bend_quads: Vec::new(),
-            bend_rest: Vec::new(),
-            bend_ke: Vec::new(),
-            bend_kd: Vec::new(),
-            tets: Vec::new(),
-            tet_dm_inv: Vec::new(),
-            tet_volume: Vec::new(),
-            tet_mu: Vec::new(),
-            tet_lambda: Vec::new(),
-            tet_kd: Vec::new(),
-            ground: None,
-            drag: None,
-            particle_contact: None,
-            shapes: Vec::new(),
-            shape_contact: ParticleContact::default(),
-            bodies: Vec::new(),
-            body_contacts: Vec::new(),
-            dist_pairs: Vec::new(),
-            dist_rest: Vec::new(),
-            dist_compliance: Vec::new(),
-            forces: AddedForces::default(),
+            gravity: Vec3::new(R::lit(0.0), R::lit(-9.8), R::lit(0.0)),
+            particle_radius: R::lit(0.01),
+            particles: Particles::default(),
+            forces: ForceParts::default(),
+            bodies: BodyParts::default(),
+            constraints: ConstraintParts::default(),
+            added: AddedForces::default(),
             problems: Vec::new(),
+        }
+    }
+
+    /// The library forces' parts, and what their elements are checked against.
+    pub(crate) fn parts(&mut self) -> (&mut ForceParts<R>, Elements<'_, R>) {
+        let el = Elements {
+            particles: &self.particles,
+            problems: &mut self.problems,
+        };
+        (&mut self.forces, el)
+    }
+
+    /// The checks of the single item `kind`.
+    pub(crate) fn check_one(&mut self, kind: &'static str) -> Check<'_> {
+        Check {
+            out: &mut self.problems,
+            kind,
+            index: None,
         }
     }
 
     /// Number of particles added so far.
     pub fn particle_count(&self) -> usize {
-        self.particle_x.len()
+        self.particles.len()
     }
 
     /// Position (m) of particle `i`. Panics if there is no particle `i`.
     pub fn particle_position(&self, i: u32) -> Vec3<R> {
-        self.particle_x[i as usize]
+        self.particles.x[i as usize]
     }
 
     /// The problems recorded so far by the builder methods, in call order (see
@@ -177,58 +113,19 @@ impl<R: Real> ModelBuilder<R> {
         &self.problems
     }
 
-    /// The checks of item `kind[index]`.
-    fn check(&mut self, kind: &'static str, index: usize) -> Check<'_> {
-        Check {
-            out: &mut self.problems,
-            kind,
-            index: Some(index),
-        }
-    }
-
     /// Adds a particle at `x` (m) with velocity `v` (m/s) and mass `mass` (kg, finite and
     /// `>= 0`; 0 = pinned: inverse mass 0, so no force and no gravity moves it). Returns its
     /// index. `x`, `v` and the inverse mass `1 / mass` must be finite in `R` (a mass below
     /// `1 / R::MAX`, e.g. 1e-320 kg, is a problem, not a pinned particle).
     pub fn add_particle(&mut self, x: Vec3<R>, v: Vec3<R>, mass: R) -> u32 {
-        let k = self.particle_count();
-        let m = mass.to_f64();
-        let inv = if m > 0.0 { 1.0 / m } else { 0.0 };
-        let inv_r: R = lit(inv);
-        let mut c = self.check("particles", k);
-        if c.nonneg("mass", mass) && !inv_r.to_f64().is_finite() {
-            c.fail(
-                Some("mass"),
-                format!(
-                    "the inverse mass 1/{m:e} is not finite in {}: give a mass of at least \
-                     {:.1e} kg, or 0 to pin the particle",
-                    precision::<R>(),
-                    1.0 / max_of::<R>()
-                ),
-            );
-        }
-        self.push_particle(x, v, inv_r, false)
+        self.particles.add(&mut self.problems, x, v, mass)
     }
 
     /// Adds a particle with inverse mass `inv_mass` (1/kg, finite and `>= 0`; 0 = pinned).
     /// Returns its index.
     pub fn add_particle_inv_mass(&mut self, x: Vec3<R>, v: Vec3<R>, inv_mass: R) -> u32 {
-        self.push_particle(x, v, inv_mass, true)
-    }
-
-    fn push_particle(&mut self, x: Vec3<R>, v: Vec3<R>, inv_mass: R, check_inv: bool) -> u32 {
-        let k = self.particle_count();
-        let mut c = self.check("particles", k);
-        c.finite3("x", &x);
-        c.finite3("v", &v);
-        if check_inv {
-            c.nonneg("inv_mass", inv_mass);
-        }
-        self.particle_x.push(x);
-        self.particle_radii.push(None);
-        self.particle_v.push(v);
-        self.particle_inv_mass.push(inv_mass);
-        k as u32
+        self.particles
+            .push(&mut self.problems, x, v, inv_mass, true)
     }
 
     /// Adds a particle like [`ModelBuilder::add_particle`] with its own contact radius
@@ -245,129 +142,53 @@ impl<R: Real> ModelBuilder<R> {
     /// ([`Model::particle_radii`]) only if some particle's radius differs from
     /// `particle_radius`.
     pub fn set_particle_radius(&mut self, i: u32, radius: R) {
-        let n = self.particle_count();
-        let mut c = self.check("particles", i as usize);
-        if (i as usize) >= n {
-            c.fail(
-                None,
-                format!("set_particle_radius: particle index {i} out of range ({n} particles)"),
-            );
-        } else if c.nonneg("radius", radius) {
-            self.particle_radii[i as usize] = Some(radius);
-        }
+        self.particles.set_radius(&mut self.problems, i, radius)
     }
 
     /// The contact radius (m) of particle `i`: its own, or [`ModelBuilder::particle_radius`].
     /// Panics if there is no particle `i`.
     pub fn particle_radius_of(&self, i: u32) -> R {
-        self.particle_radii[i as usize].unwrap_or(self.particle_radius)
+        self.particles.radius_of(i, self.particle_radius)
     }
 
     /// Sets the inverse mass (1/kg, finite and `>= 0`) of particle `i` (0 pins it).
     pub fn set_particle_inv_mass(&mut self, i: u32, inv_mass: R) {
-        let n = self.particle_count();
-        let mut c = self.check("particles", i as usize);
-        if (i as usize) >= n {
-            c.fail(
-                None,
-                format!("set_particle_inv_mass: particle index {i} out of range ({n} particles)"),
-            );
-        } else if c.nonneg("inv_mass", inv_mass) {
-            self.particle_inv_mass[i as usize] = inv_mass;
-        }
-    }
-
-    /// Checks that `idx` are distinct particles of the scene (recording a problem of
-    /// `kind[index]` if not).
-    fn check_particles(&mut self, kind: &'static str, index: usize, idx: &[u32]) -> bool {
-        let n = self.particle_count();
-        self.check(kind, index).particles(n, idx)
-    }
-
-    /// `rest` (m) of `kind[index]` between particles `i`, `j`: finite and `> 0`.
-    fn check_rest(
-        &mut self,
-        kind: &'static str,
-        index: usize,
-        ij: [u32; 2],
-        rest: R,
-        derived: bool,
-    ) {
-        let r = rest.to_f64();
-        if r.is_finite() && r > 0.0 {
-            return;
-        }
-        let [i, j] = ij;
-        let why = if !derived {
-            String::new()
-        } else if r == 0.0 {
-            format!(": particles {i} and {j} are at the same position; move one")
-        } else {
-            format!(
-                ": the distance between particles {i} and {j} overflows{}",
-                overflow_hint::<R>()
-            )
-        };
-        self.check(kind, index).fail(
-            if derived { None } else { Some("rest") },
-            format!("the rest length must be finite and > 0 (got {r}){why}"),
-        );
+        self.particles.set_inv_mass(&mut self.problems, i, inv_mass)
     }
 
     /// Adds a spring between distinct particles `i` and `j` with rest length their current
     /// distance (computed in `R`; it must be finite and `> 0`), stiffness `ke` (N/m) and
     /// damping `kd` (N s/m), both finite and `>= 0`. Returns its index.
     pub fn add_spring(&mut self, i: u32, j: u32, ke: R, kd: R) -> u32 {
-        let k = self.spring_count();
-        let rest = if self.check_particles("springs", k, &[i, j]) {
-            let d = self.particle_x[i as usize] - self.particle_x[j as usize];
-            // The same sum order as numpy's norm of a 3-vector (the reference scene's rest
-            // lengths).
-            let rest = (d.x * d.x + d.y * d.y + d.z * d.z).sqrt();
-            self.check_rest("springs", k, [i, j], rest, true);
-            rest
-        } else {
-            lit(1.0)
-        };
-        self.push_spring(i, j, rest, ke, kd)
+        let (f, mut el) = self.parts();
+        f.springs.add(&mut el, i, j, ke, kd)
     }
 
     /// Adds a spring with an explicit rest length (m, finite and `> 0`). Returns its index.
     pub fn add_spring_with_rest(&mut self, i: u32, j: u32, rest: R, ke: R, kd: R) -> u32 {
-        let k = self.spring_count();
-        self.check_particles("springs", k, &[i, j]);
-        self.check_rest("springs", k, [i, j], rest, false);
-        self.push_spring(i, j, rest, ke, kd)
-    }
-
-    fn push_spring(&mut self, i: u32, j: u32, rest: R, ke: R, kd: R) -> u32 {
-        let mut c = self.check("springs", self.spring_pairs.len());
-        c.nonneg("ke", ke);
-        c.nonneg("kd", kd);
-        self.spring_pairs.push([i, j]);
-        self.spring_rest.push(rest);
-        self.spring_ke.push(ke);
-        self.spring_kd.push(kd);
-        (self.spring_pairs.len() - 1) as u32
+        let (f, mut el) = self.parts();
+        f.springs.add_with_rest(&mut el, i, j, rest, ke, kd)
     }
 
     /// Number of springs added so far.
     pub fn spring_count(&self) -> usize {
-        self.spring_pairs.len()
+        self.forces.springs.len()
     }
 
     /// Adds a triangle to the surface topology (used by [`ModelBuilder::add_bending_edges`]);
     /// it exerts no force of its own (see [`ModelBuilder::add_triangle_fem`]).
     /// Its vertices must be distinct particles.
     pub fn add_triangle(&mut self, i: u32, j: u32, k: u32) -> u32 {
-        self.check_particles("triangles", self.triangles.len(), &[i, j, k]);
-        self.triangles.push([i, j, k]);
-        (self.triangles.len() - 1) as u32
+        let t = &mut self.particles.triangles;
+        let n = self.particles.x.len();
+        crate::particles::check(&mut self.problems, "triangles", t.len()).particles(n, &[i, j, k]);
+        t.push([i, j, k]);
+        (t.len() - 1) as u32
     }
 
     /// The surface triangles added so far.
     pub fn triangles(&self) -> &[[u32; 3]] {
-        &self.triangles
+        &self.particles.triangles
     }
 
     /// Adds a StVK membrane triangle (also to the surface topology), rest shape from the current
@@ -377,102 +198,27 @@ impl<R: Real> ModelBuilder<R> {
     /// [`crate::validation::min_quality`], `Dm^-1` finite and area above `R::tiny()` in `R`;
     /// otherwise a problem of `triangle_fem[k]` is recorded.
     pub fn add_triangle_fem(&mut self, i: u32, j: u32, k: u32, mu: R, lambda: R, kd: R) -> u32 {
-        let e = self.tri_fem.len();
-        let ok = self.check_particles("triangle_fem", e, &[i, j, k]);
-        self.triangles.push([i, j, k]);
-        let (dm_inv, area) =
-            if ok {
-                let p = |i: u32| wide(self.particle_x[i as usize]);
-                let (a, b, c) = (p(i), p(j), p(k));
-                match triangle_rest(a, b, c) {
-                    Some((dm_inv, area)) => {
-                        let dm_inv = dm_inv.map(lit::<R>);
-                        let q = triangle_quality(a, b, c);
-                        let what = format!("the triangle on particles ({i}, {j}, {k})");
-                        let mut c = self.check("triangle_fem", e);
-                        if q < min_quality::<R>() {
-                            c.fail(
-                                None,
-                                format!(
-                            "{what} is nearly degenerate (flat): quality {q:.1e} (1 for an \
-                             equilateral triangle) is below {:.1e} in {}; move its vertices \
-                             apart or remove it",
-                            min_quality::<R>(), precision::<R>()),
-                            );
-                        } else if !dm_inv.iter().all(|v| v.to_f64().is_finite())
-                            || lit::<R>(area).to_f64().partial_cmp(&R::tiny().to_f64())
-                                != Some(std::cmp::Ordering::Greater)
-                        {
-                            c.fail(
-                                None,
-                                format!(
-                                    "{what} is too small or too large for {} (area {area:e} m^2, \
-                             rest-shape inverse not finite or area below {:e}); rescale the scene",
-                                    precision::<R>(),
-                                    R::tiny().to_f64()
-                                ),
-                            );
-                        }
-                        (dm_inv, lit(area))
-                    }
-                    None => {
-                        self.check("triangle_fem", e).fail(
-                            None,
-                            format!(
-                                "the triangle on particles ({i}, {j}, {k}) is degenerate (zero or \
-                             non-finite area); move its vertices apart or remove it"
-                            ),
-                        );
-                        (Mat22::identity(), lit(1.0))
-                    }
-                }
-            } else {
-                (Mat22::identity(), lit(1.0))
-            };
-        let mut c = self.check("triangle_fem", e);
-        c.nonneg("mu", mu);
-        c.finite("lambda", &[lambda]);
-        c.nonneg("kd", kd);
-        self.tri_fem.push([i, j, k]);
-        self.tri_dm_inv.push(dm_inv);
-        self.tri_area.push(area);
-        self.tri_mu.push(mu);
-        self.tri_lambda.push(lambda);
-        self.tri_kd.push(kd);
-        (self.tri_fem.len() - 1) as u32
+        let (f, mut el) = self.parts();
+        let e = f.triangle_fem.add(&mut el, i, j, k, mu, lambda, kd);
+        self.particles.triangles.push([i, j, k]);
+        e
     }
 
     /// Adds a bending element `(o1, o2, e0, e1)` (opposite vertices, then the shared edge) with
     /// rest angle `rest` (rad, finite), stiffness `ke` (N m/rad) and damping `kd` (N m s/rad),
     /// both finite and `>= 0`; the four particles must be distinct.
     pub fn add_bending(&mut self, quad: [u32; 4], rest: R, ke: R, kd: R) -> u32 {
-        let k = self.bend_quads.len();
-        self.check_particles("bending", k, &quad);
-        let mut c = self.check("bending", k);
-        c.finite("rest", &[rest]);
-        c.nonneg("ke", ke);
-        c.nonneg("kd", kd);
-        self.bend_quads.push(quad);
-        self.bend_rest.push(rest);
-        self.bend_ke.push(ke);
-        self.bend_kd.push(kd);
-        (self.bend_quads.len() - 1) as u32
+        let (f, mut el) = self.parts();
+        f.bending.add(&mut el, quad, rest, ke, kd)
     }
 
     /// Adds a bending element on every edge shared by two of the triangles added so far, in
     /// dFlex/Warp order (see [`bending_edges`]); returns how many. Call it once, after the
     /// triangles.
     pub fn add_bending_edges(&mut self, ke: R, kd: R, rest: RestAngle) -> usize {
-        let quads = bending_edges(&self.triangles);
-        let xs: Vec<Vec3<f64>> = self.particle_x.iter().map(|&p| wide(p)).collect();
-        for &q in &quads {
-            let angle = match rest {
-                RestAngle::Flat => 0.0,
-                RestAngle::Initial => dihedral_angle(&xs, q),
-            };
-            self.add_bending(q, lit(angle), ke, kd);
-        }
-        quads.len()
+        let (f, mut el) = self.parts();
+        let triangles = el.particles.triangles.clone();
+        f.bending.add_edges(&mut el, &triangles, ke, kd, rest)
     }
 
     /// Adds a stable Neo-Hookean tetrahedron, rest shape from the current positions; `mu`,
@@ -484,119 +230,46 @@ impl<R: Real> ModelBuilder<R> {
     /// otherwise a problem of `tets[k]` is recorded.
     #[allow(clippy::too_many_arguments)]
     pub fn add_tet(&mut self, i: u32, j: u32, k: u32, l: u32, mu: R, lambda: R, kd: R) -> u32 {
-        let e = self.tets.len();
-        let mut idx = [i, j, k, l];
-        let (mut dm_inv, mut vol) = (Mat33::identity(), 1.0);
-        if self.check_particles("tets", e, &idx) {
-            let p = |i: u32| wide(self.particle_x[i as usize]);
-            let what = format!("the tetrahedron on particles ({i}, {j}, {k}, {l})");
-            match tet_rest([p(i), p(j), p(k), p(l)]) {
-                None => self.check("tets", e).fail(
-                    None,
-                    format!(
-                        "{what} is degenerate (zero or non-finite volume); move a vertex off \
-                         the plane of the other three or remove it"
-                    ),
-                ),
-                Some(r) => {
-                    (dm_inv, vol) = r;
-                    if vol < 0.0 {
-                        idx = [i, k, j, l];
-                        (dm_inv, vol) =
-                            tet_rest([p(i), p(k), p(j), p(l)]).expect("reoriented tetrahedron");
-                    }
-                    let q = tet_quality([p(i), p(j), p(k), p(l)]);
-                    let finite = dm_inv.iter().all(|v| lit::<R>(*v).to_f64().is_finite());
-                    let mut c = self.check("tets", e);
-                    if q < min_quality::<R>() {
-                        c.fail(
-                            None,
-                            format!(
-                                "{what} is nearly degenerate (flat): quality {q:.1e} (1 for a \
-                             regular tetrahedron) is below {:.1e} in {}; move a vertex off the \
-                             plane of the other three or remove it",
-                                min_quality::<R>(),
-                                precision::<R>()
-                            ),
-                        );
-                    } else if !finite
-                        || lit::<R>(vol).to_f64().partial_cmp(&R::tiny().to_f64())
-                            != Some(std::cmp::Ordering::Greater)
-                    {
-                        c.fail(
-                            None,
-                            format!(
-                                "{what} is too small or too large for {} (volume {vol:e} m^3, \
-                             rest-shape inverse not finite or volume below {:e}); rescale the \
-                             scene",
-                                precision::<R>(),
-                                R::tiny().to_f64()
-                            ),
-                        );
-                    }
-                }
-            }
-        }
-        let mut c = self.check("tets", e);
-        c.nonneg("mu", mu);
-        c.positive("lambda", lambda);
-        c.nonneg("kd", kd);
-        self.tets.push(idx);
-        self.tet_dm_inv.push(dm_inv.map(lit));
-        self.tet_volume.push(lit(vol));
-        self.tet_mu.push(mu);
-        self.tet_lambda.push(lambda);
-        self.tet_kd.push(kd);
-        (self.tets.len() - 1) as u32
+        let (f, mut el) = self.parts();
+        f.tets.add(&mut el, [i, j, k, l], mu, lambda, kd)
     }
 
     /// Number of tetrahedra added so far.
     pub fn tet_count(&self) -> usize {
-        self.tets.len()
-    }
-
-    /// The checks of the single item `kind`.
-    pub(crate) fn check_one(&mut self, kind: &'static str) -> Check<'_> {
-        Check {
-            out: &mut self.problems,
-            kind,
-            index: None,
-        }
+        self.forces.tets.len()
     }
 
     /// Sets the ground plane for particle and body contact (unit normal; `ke`, `kd`, `mu`,
     /// `leak` finite and `>= 0`).
     pub fn set_ground(&mut self, ground: Ground<R>) {
         ground.check(&mut self.check_one("ground"));
-        self.ground = Some(ground);
+        self.forces.ground = Some(ground);
     }
 
     /// Sets linear drag / wind on every particle (`kd` finite and `>= 0`, `wind` finite).
     pub fn set_drag(&mut self, drag: Drag<R>) {
         drag.check(&mut self.check_one("drag"));
-        self.drag = Some(drag);
+        self.forces.drag = Some(drag);
     }
 
     /// Enables particle-particle contact (every parameter finite and `>= 0`).
     pub fn set_particle_contact(&mut self, contact: ParticleContact<R>) {
         contact.check(&mut self.check_one("particle_contact"));
-        self.particle_contact = Some(contact);
+        self.forces.particle_contact = Some(contact);
     }
 
     /// Adds a static analytic shape that particles collide with (finite position, unit
     /// orientation, sizes `> 0`). Returns its index.
     pub fn add_shape(&mut self, shape: Shape<R>) -> u32 {
-        let k = self.shapes.len();
-        shape.check(&mut self.check("shapes", k));
-        self.shapes.push(shape);
-        k as u32
+        let (f, mut el) = self.parts();
+        f.shape_contact.add(&mut el, shape)
     }
 
     /// Sets the contact parameters of particles against shapes (`margin` is unused; every
     /// parameter finite and `>= 0`).
     pub fn set_shape_contact(&mut self, contact: ParticleContact<R>) {
-        contact.check(&mut self.check_one("shape_contact"));
-        self.shape_contact = contact;
+        let (f, mut el) = self.parts();
+        f.shape_contact.set_contact(&mut el, contact)
     }
 
     /// Adds a rigid body: centre of mass at `x` (m), orientation `q`, velocity `v` (m/s),
@@ -613,81 +286,25 @@ impl<R: Real> ModelBuilder<R> {
         mass: R,
         inertia: Mat33<R>,
     ) -> u32 {
-        let mut c = self.check("bodies", self.bodies.len());
-        c.finite3("x", &x);
-        c.finite3("v", &v);
-        c.finite3("w", &w);
-        if c.finite("q", &[q.i, q.j, q.k, q.w]) && q.norm().to_f64() == 0.0 {
-            c.fail(Some("q"), "must be a nonzero quaternion".into());
-        }
-        let inertia_ok = c.finite("inertia", inertia.as_slice());
-        if c.nonneg("mass", mass) && mass.to_f64() > 0.0 {
-            if !(lit::<R>(1.0) / mass).to_f64().is_finite() {
-                c.fail(
-                    Some("mass"),
-                    format!(
-                        "the inverse mass 1/{:e} is not finite in {}; give a mass of at least \
-                         {:.1e} kg, or 0 for a static body",
-                        mass.to_f64(),
-                        precision::<R>(),
-                        1.0 / max_of::<R>()
-                    ),
-                );
-            }
-            let inv_ok = inertia
-                .try_inverse()
-                .is_some_and(|m| m.iter().all(|v| v.to_f64().is_finite()));
-            if inertia_ok && !inv_ok {
-                c.fail(
-                    Some("inertia"),
-                    "must be invertible (with a finite inverse) for a body with mass > 0".into(),
-                );
-            }
-        }
-        self.bodies.push(BodyDesc {
-            x,
-            q: q.normalize(),
-            v,
-            w,
-            mass,
-            inertia,
-        });
-        (self.bodies.len() - 1) as u32
+        self.bodies
+            .add(&mut self.problems, x, q, v, w, mass, inertia)
     }
 
     /// Adds a contact point `p` (m, body frame) to body `body`, which then touches the ground.
     /// `body` must exist and `p` be finite.
     pub fn add_body_contact_point(&mut self, body: u32, p: Vec3<R>) {
-        let nb = self.bodies.len();
-        let mut c = self.check("body_contact_points", self.body_contacts.len());
-        if (body as usize) >= nb {
-            c.fail(
-                Some("body"),
-                format!("body {body} out of range ({nb} bodies)"),
-            );
-        }
-        c.finite3("p", &p);
-        self.body_contacts.push((body, p));
+        self.bodies.add_contact_point(&mut self.problems, body, p)
     }
 
     /// Adds an XPBD distance constraint between particles `i` and `j`, rest distance their
     /// current distance (finite and `> 0`), compliance `compliance` (m/N, finite and `>= 0`;
     /// 0 = rigid). Returns its index.
     pub fn add_distance_constraint(&mut self, i: u32, j: u32, compliance: R) -> u32 {
-        let k = self.dist_pairs.len();
-        let rest = if self.check_particles("distance_constraints", k, &[i, j]) {
-            let d = self.particle_x[i as usize] - self.particle_x[j as usize];
-            self.check_rest("distance_constraints", k, [i, j], d.norm(), true);
-            d.norm()
-        } else {
-            lit(1.0)
+        let mut el = Elements {
+            particles: &self.particles,
+            problems: &mut self.problems,
         };
-        self.check("distance_constraints", k)
-            .nonneg("compliance", compliance);
-        self.dist_pairs.push([i, j]);
-        self.dist_rest.push(rest);
-        self.dist_compliance.push(compliance);
-        (self.dist_pairs.len() - 1) as u32
+        self.constraints.add(&mut el, i, j, compliance)
     }
 
     /// Adds a force component (see [`crate::forces`]): a force of the library built by hand,
@@ -701,8 +318,8 @@ impl<R: Real> ModelBuilder<R> {
 
     /// [`ModelBuilder::add_force`] for a boxed force.
     pub fn add_force_boxed(&mut self, force: Box<dyn Force<R>>) -> usize {
-        self.forces.0.push(force);
-        self.forces.0.len() - 1
+        self.added.0.push(force);
+        self.added.0.len() - 1
     }
 
     /// Builds the model: arrays for what the scene contains, nothing for the rest. Panics
@@ -751,135 +368,26 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     pub(crate) fn build_model(&self) -> Model<R> {
-        let n = self.particle_count();
-        let springs = (!self.spring_pairs.is_empty()).then(|| Springs {
-            pairs: Array::from_vec(self.spring_pairs.clone()).named("spring_pairs"),
-            rest: Array::from_vec(self.spring_rest.clone()).named("spring_rest"),
-            ke: Array::from_vec(self.spring_ke.clone()).named("spring_ke"),
-            kd: Array::from_vec(self.spring_kd.clone()).named("spring_kd"),
-        });
-        let bending = (!self.bend_quads.is_empty()).then(|| Bending {
-            quads: Array::from_vec(self.bend_quads.clone()).named("bend_quads"),
-            rest: Array::from_vec(self.bend_rest.clone()).named("bend_rest"),
-            ke: Array::from_vec(self.bend_ke.clone()).named("bend_ke"),
-            kd: Array::from_vec(self.bend_kd.clone()).named("bend_kd"),
-        });
-        let triangles = (!self.tri_fem.is_empty()).then(|| TriangleFem {
-            tris: Array::from_vec(self.tri_fem.clone()).named("tri_indices"),
-            dm_inv: Array::from_vec(self.tri_dm_inv.clone()).named("tri_dm_inv"),
-            area: Array::from_vec(self.tri_area.clone()).named("tri_area"),
-            mu: Array::from_vec(self.tri_mu.clone()).named("tri_mu"),
-            lambda: Array::from_vec(self.tri_lambda.clone()).named("tri_lambda"),
-            kd: Array::from_vec(self.tri_kd.clone()).named("tri_kd"),
-        });
-        let tets = (!self.tets.is_empty()).then(|| TetFem {
-            tets: Array::from_vec(self.tets.clone()).named("tet_indices"),
-            dm_inv: Array::from_vec(self.tet_dm_inv.clone()).named("tet_dm_inv"),
-            rest_volume: Array::from_vec(self.tet_volume.clone()).named("tet_volume"),
-            mu: Array::from_vec(self.tet_mu.clone()).named("tet_mu"),
-            lambda: Array::from_vec(self.tet_lambda.clone()).named("tet_lambda"),
-            kd: Array::from_vec(self.tet_kd.clone()).named("tet_kd"),
-            activation: Array::zeros(self.tets.len()).named("tet_activation"),
-        });
-        let shapes = (!self.shapes.is_empty()).then(|| {
-            let codes: Vec<(u32, Vec3<R>)> = self.shapes.iter().map(|s| s.kind.code()).collect();
-            Shapes {
-                kind: Array::from_vec(codes.iter().map(|c| c.0).collect()).named("shape_kind"),
-                pos: Array::from_vec(self.shapes.iter().map(|s| s.pos).collect())
-                    .named("shape_pos"),
-                rot: Array::from_vec(self.shapes.iter().map(|s| s.rot).collect())
-                    .named("shape_rot"),
-                size: Array::from_vec(codes.iter().map(|c| c.1).collect()).named("shape_size"),
-                ke: self.shape_contact.ke,
-                kd: self.shape_contact.kd,
-                damping_depth: self.shape_contact.damping_depth,
-                mu: self.shape_contact.mu,
-                leak: self.shape_contact.leak,
-            }
-        });
-        let bodies = (!self.bodies.is_empty()).then(|| {
-            let b = &self.bodies;
-            let inv_mass: Vec<R> = b
-                .iter()
-                .map(|b| {
-                    if b.mass > lit(0.0) {
-                        lit::<R>(1.0) / b.mass
-                    } else {
-                        lit(0.0)
-                    }
-                })
-                .collect();
-            let inv_inertia: Vec<Mat33<R>> = b
-                .iter()
-                .map(|b| {
-                    if b.mass > lit(0.0) {
-                        b.inertia.try_inverse().unwrap_or_else(Mat33::zeros)
-                    } else {
-                        Mat33::zeros()
-                    }
-                })
-                .collect();
-            let (cb, cp): (Vec<u32>, Vec<Vec3<R>>) = self.body_contacts.iter().copied().unzip();
-            RigidBodies {
-                inv_mass: Array::from_vec(inv_mass).named("body_inv_mass"),
-                inertia: Array::from_vec(b.iter().map(|b| b.inertia).collect())
-                    .named("body_inertia"),
-                inv_inertia: Array::from_vec(inv_inertia).named("body_inv_inertia"),
-                initial: BodyState {
-                    x: Array::from_vec(b.iter().map(|b| b.x).collect()).named("body_x"),
-                    q: Array::from_vec(b.iter().map(|b| b.q).collect()).named("body_q"),
-                    v: Array::from_vec(b.iter().map(|b| b.v).collect()).named("body_v"),
-                    w: Array::from_vec(b.iter().map(|b| b.w).collect()).named("body_w"),
-                },
-                contact_body: (!cb.is_empty())
-                    .then(|| Array::from_vec(cb).named("body_contact_body")),
-                contact_point: (!cp.is_empty())
-                    .then(|| Array::from_vec(cp).named("body_contact_point")),
-            }
-        });
-        let distance_constraints = (!self.dist_pairs.is_empty()).then(|| DistanceConstraints {
-            pairs: Array::from_vec(self.dist_pairs.clone()).named("dist_pairs"),
-            rest: Array::from_vec(self.dist_rest.clone()).named("dist_rest"),
-            compliance: Array::from_vec(self.dist_compliance.clone()).named("dist_compliance"),
-        });
+        let particles = self.particles.build(self.particle_radius);
         // The library's forces, in the order of `forces::BUILTIN_FORCES`, then the added ones.
-        let ground = self.ground;
-        let particle_contact = self.particle_contact;
-        let drag = self.drag;
-        let builtin: [Option<Box<dyn Force<R>>>; 8] = [
-            springs.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            bending.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            triangles.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            tets.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            ground.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            particle_contact.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            shapes.map(|f| Box::new(f) as Box<dyn Force<R>>),
-            drag.map(|f| Box::new(f) as Box<dyn Force<R>>),
-        ];
-        let forces = builtin
+        let forces = self
+            .forces
+            .build()
             .into_iter()
-            .flatten()
-            .chain(self.forces.0.iter().cloned())
+            .chain(self.added.0.iter().cloned())
             .collect();
         Model {
-            particle_count: n,
-            particle_x: Array::from_vec(self.particle_x.clone()).named("x0"),
-            particle_v: Array::from_vec(self.particle_v.clone()).named("v0"),
-            particle_inv_mass: Array::from_vec(self.particle_inv_mass.clone()).named("inv_mass"),
+            particle_count: self.particles.len(),
+            particle_x: particles.x,
+            particle_v: particles.v,
+            particle_inv_mass: particles.inv_mass,
             gravity: self.gravity,
             particle_radius: self.particle_radius,
-            particle_radii: self
-                .particle_radii
-                .iter()
-                .any(|r| r.is_some_and(|r| r != self.particle_radius))
-                .then(|| {
-                    let radii = (0..n as u32).map(|i| self.particle_radius_of(i)).collect();
-                    Array::from_vec(radii).named("particle_radius")
-                }),
-            triangles: self.triangles.clone(),
+            particle_radii: particles.radii,
+            triangles: self.particles.triangles.clone(),
             forces,
-            bodies,
-            distance_constraints,
+            bodies: self.bodies.build(),
+            distance_constraints: self.constraints.build(),
         }
     }
 }

@@ -8,7 +8,9 @@ use adflex_runtime::prelude::*;
 
 use crate::contact::ground::Ground;
 use crate::contact::law::{contact_depth, contact_force};
+use crate::particles::check;
 pub use crate::state::BodyState;
+use crate::validation::{max_of, precision, Problem};
 
 /// Ground contact of contact point `tid`, a point `contact_point` (m, body frame) of body
 /// `contact_body`: with `r` the point relative to the centre of mass in world frame,
@@ -207,5 +209,151 @@ impl<R: Real> RigidBodies<R> {
             self.len(),
             (&s.q, &s.v, &s.w, &self.inv_mass, &self.inertia, energy),
         );
+    }
+}
+
+/// A rigid body as the builder records it.
+#[derive(Clone, Copy, Debug)]
+struct BodyDesc<R: Real> {
+    x: Vec3<R>,
+    q: Quat<R>,
+    v: Vec3<R>,
+    w: Vec3<R>,
+    mass: R,
+    inertia: Mat33<R>,
+}
+
+/// The rigid bodies of a scene description (see
+/// [`ModelBuilder::add_body`](crate::ModelBuilder::add_body)).
+#[derive(Clone, Debug)]
+pub(crate) struct BodyParts<R: Real> {
+    bodies: Vec<BodyDesc<R>>,
+    contacts: Vec<(u32, Vec3<R>)>,
+}
+
+impl<R: Real> Default for BodyParts<R> {
+    fn default() -> Self {
+        BodyParts {
+            bodies: Vec::new(),
+            contacts: Vec::new(),
+        }
+    }
+}
+
+fn lit<R: Real>(x: f64) -> R {
+    R::lit(x)
+}
+
+impl<R: Real> BodyParts<R> {
+    /// A body, checked (see the builder method).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn add(
+        &mut self,
+        problems: &mut Vec<Problem>,
+        x: Vec3<R>,
+        q: Quat<R>,
+        v: Vec3<R>,
+        w: Vec3<R>,
+        mass: R,
+        inertia: Mat33<R>,
+    ) -> u32 {
+        let mut c = check(problems, "bodies", self.bodies.len());
+        c.finite3("x", &x);
+        c.finite3("v", &v);
+        c.finite3("w", &w);
+        if c.finite("q", &[q.i, q.j, q.k, q.w]) && q.norm().to_f64() == 0.0 {
+            c.fail(Some("q"), "must be a nonzero quaternion".into());
+        }
+        let inertia_ok = c.finite("inertia", inertia.as_slice());
+        if c.nonneg("mass", mass) && mass.to_f64() > 0.0 {
+            if !(lit::<R>(1.0) / mass).to_f64().is_finite() {
+                c.fail(
+                    Some("mass"),
+                    format!(
+                        "the inverse mass 1/{:e} is not finite in {}; give a mass of at least \
+                         {:.1e} kg, or 0 for a static body",
+                        mass.to_f64(),
+                        precision::<R>(),
+                        1.0 / max_of::<R>()
+                    ),
+                );
+            }
+            let inv_ok = inertia
+                .try_inverse()
+                .is_some_and(|m| m.iter().all(|v| v.to_f64().is_finite()));
+            if inertia_ok && !inv_ok {
+                c.fail(
+                    Some("inertia"),
+                    "must be invertible (with a finite inverse) for a body with mass > 0".into(),
+                );
+            }
+        }
+        self.bodies.push(BodyDesc {
+            x,
+            q: q.normalize(),
+            v,
+            w,
+            mass,
+            inertia,
+        });
+        (self.bodies.len() - 1) as u32
+    }
+
+    /// A contact point of a body, checked.
+    pub(crate) fn add_contact_point(&mut self, problems: &mut Vec<Problem>, body: u32, p: Vec3<R>) {
+        let nb = self.bodies.len();
+        let mut c = check(problems, "body_contact_points", self.contacts.len());
+        if (body as usize) >= nb {
+            c.fail(
+                Some("body"),
+                format!("body {body} out of range ({nb} bodies)"),
+            );
+        }
+        c.finite3("p", &p);
+        self.contacts.push((body, p));
+    }
+
+    /// The model's bodies, if the scene has any.
+    pub(crate) fn build(&self) -> Option<RigidBodies<R>> {
+        (!self.bodies.is_empty()).then(|| {
+            let b = &self.bodies;
+            let inv_mass: Vec<R> = b
+                .iter()
+                .map(|b| {
+                    if b.mass > lit(0.0) {
+                        lit::<R>(1.0) / b.mass
+                    } else {
+                        lit(0.0)
+                    }
+                })
+                .collect();
+            let inv_inertia: Vec<Mat33<R>> = b
+                .iter()
+                .map(|b| {
+                    if b.mass > lit(0.0) {
+                        b.inertia.try_inverse().unwrap_or_else(Mat33::zeros)
+                    } else {
+                        Mat33::zeros()
+                    }
+                })
+                .collect();
+            let (cb, cp): (Vec<u32>, Vec<Vec3<R>>) = self.contacts.iter().copied().unzip();
+            RigidBodies {
+                inv_mass: Array::from_vec(inv_mass).named("body_inv_mass"),
+                inertia: Array::from_vec(b.iter().map(|b| b.inertia).collect())
+                    .named("body_inertia"),
+                inv_inertia: Array::from_vec(inv_inertia).named("body_inv_inertia"),
+                initial: BodyState {
+                    x: Array::from_vec(b.iter().map(|b| b.x).collect()).named("body_x"),
+                    q: Array::from_vec(b.iter().map(|b| b.q).collect()).named("body_q"),
+                    v: Array::from_vec(b.iter().map(|b| b.v).collect()).named("body_v"),
+                    w: Array::from_vec(b.iter().map(|b| b.w).collect()).named("body_w"),
+                },
+                contact_body: (!cb.is_empty())
+                    .then(|| Array::from_vec(cb).named("body_contact_body")),
+                contact_point: (!cp.is_empty())
+                    .then(|| Array::from_vec(cp).named("body_contact_point")),
+            }
+        })
     }
 }

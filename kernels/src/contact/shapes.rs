@@ -5,7 +5,9 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use crate::forces::{Force, ForceContext, Param};
+use super::particle::ParticleContact;
+use crate::forces::{Force, ForceContext, ForcePart, Param};
+use crate::particles::Elements;
 
 use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 
@@ -409,5 +411,59 @@ impl<R: Real> Force<R> for Shapes<R> {
         visit("pos", &mut self.pos);
         visit("rot", &mut self.rot);
         visit("size", &mut self.size);
+    }
+}
+
+/// The shapes of a scene description and their contact parameters (see
+/// [`ModelBuilder::add_shape`](crate::ModelBuilder::add_shape),
+/// [`ModelBuilder::set_shape_contact`](crate::ModelBuilder::set_shape_contact)).
+#[derive(Clone, Debug)]
+pub(crate) struct ShapeParts<R: Real> {
+    shapes: Vec<Shape<R>>,
+    contact: ParticleContact<R>,
+}
+
+impl<R: Real> Default for ShapeParts<R> {
+    fn default() -> Self {
+        ShapeParts {
+            shapes: Vec::new(),
+            contact: ParticleContact::default(),
+        }
+    }
+}
+
+impl<R: Real> ShapeParts<R> {
+    pub(crate) fn add(&mut self, el: &mut Elements<'_, R>, shape: Shape<R>) -> u32 {
+        let k = self.shapes.len();
+        shape.check(&mut el.check("shapes", k));
+        self.shapes.push(shape);
+        k as u32
+    }
+
+    pub(crate) fn set_contact(&mut self, el: &mut Elements<'_, R>, contact: ParticleContact<R>) {
+        contact.check(&mut el.check_one("shape_contact"));
+        self.contact = contact;
+    }
+}
+
+impl<R: Real> ForcePart<R> for ShapeParts<R> {
+    fn build(&self) -> Option<Box<dyn Force<R>>> {
+        (!self.shapes.is_empty()).then(|| {
+            let codes: Vec<(u32, Vec3<R>)> = self.shapes.iter().map(|s| s.kind.code()).collect();
+            let c = &self.contact;
+            Box::new(Shapes {
+                kind: Array::from_vec(codes.iter().map(|c| c.0).collect()).named("shape_kind"),
+                pos: Array::from_vec(self.shapes.iter().map(|s| s.pos).collect())
+                    .named("shape_pos"),
+                rot: Array::from_vec(self.shapes.iter().map(|s| s.rot).collect())
+                    .named("shape_rot"),
+                size: Array::from_vec(codes.iter().map(|c| c.1).collect()).named("shape_size"),
+                ke: c.ke,
+                kd: c.kd,
+                damping_depth: c.damping_depth,
+                mu: c.mu,
+                leak: c.leak,
+            }) as Box<dyn Force<R>>
+        })
     }
 }

@@ -8,7 +8,8 @@ use std::collections::HashMap;
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, Param};
+use super::{Force, ForceContext, ForcePart, Param};
+use crate::particles::Elements;
 
 /// Accumulates the bending force of element `tid` into `f`.
 ///
@@ -223,5 +224,83 @@ impl<R: Real> Force<R> for Bending<R> {
         visit("rest", &mut self.rest);
         visit("ke", &mut self.ke);
         visit("kd", &mut self.kd);
+    }
+}
+
+/// The bending elements of a scene description (see
+/// [`ModelBuilder::add_bending`](crate::ModelBuilder::add_bending)).
+#[derive(Clone, Debug)]
+pub(crate) struct BendingParts<R: Real> {
+    quads: Vec<[u32; 4]>,
+    rest: Vec<R>,
+    ke: Vec<R>,
+    kd: Vec<R>,
+}
+
+impl<R: Real> Default for BendingParts<R> {
+    fn default() -> Self {
+        BendingParts {
+            quads: Vec::new(),
+            rest: Vec::new(),
+            ke: Vec::new(),
+            kd: Vec::new(),
+        }
+    }
+}
+
+impl<R: Real> BendingParts<R> {
+    pub(crate) fn add(
+        &mut self,
+        el: &mut Elements<'_, R>,
+        quad: [u32; 4],
+        rest: R,
+        ke: R,
+        kd: R,
+    ) -> u32 {
+        let k = self.quads.len();
+        el.distinct("bending", k, &quad);
+        let mut c = el.check("bending", k);
+        c.finite("rest", &[rest]);
+        c.nonneg("ke", ke);
+        c.nonneg("kd", kd);
+        self.quads.push(quad);
+        self.rest.push(rest);
+        self.ke.push(ke);
+        self.kd.push(kd);
+        (self.quads.len() - 1) as u32
+    }
+
+    /// An element on every edge shared by two of `triangles`; returns how many.
+    pub(crate) fn add_edges(
+        &mut self,
+        el: &mut Elements<'_, R>,
+        triangles: &[[u32; 3]],
+        ke: R,
+        kd: R,
+        rest: RestAngle,
+    ) -> usize {
+        let quads = bending_edges(triangles);
+        let xs = el.particles.wide_all();
+        for &q in &quads {
+            let angle = match rest {
+                RestAngle::Flat => 0.0,
+                RestAngle::Initial => dihedral_angle(&xs, q),
+            };
+            self.add(el, q, R::lit(angle), ke, kd);
+        }
+        quads.len()
+    }
+}
+
+impl<R: Real> ForcePart<R> for BendingParts<R> {
+    fn build(&self) -> Option<Box<dyn Force<R>>> {
+        (!self.quads.is_empty()).then(|| {
+            Box::new(Bending {
+                quads: Array::from_vec(self.quads.clone()).named("bend_quads"),
+                rest: Array::from_vec(self.rest.clone()).named("bend_rest"),
+                ke: Array::from_vec(self.ke.clone()).named("bend_ke"),
+                kd: Array::from_vec(self.kd.clone()).named("bend_kd"),
+            }) as Box<dyn Force<R>>
+        })
     }
 }

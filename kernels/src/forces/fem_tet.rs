@@ -13,7 +13,9 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, Param};
+use super::{Force, ForceContext, ForcePart, Param};
+use crate::particles::Elements;
+use crate::validation::{min_quality, precision};
 
 /// Accumulates the force of tetrahedron `tid` into `f`. `mu`, `lambda` (Pa), `kd` (Pa s),
 /// `activation` (dimensionless, 0 = passive).
@@ -234,5 +236,132 @@ impl<R: Real> Force<R> for TetFem<R> {
         visit("lambda", &mut self.lambda);
         visit("kd", &mut self.kd);
         visit("activation", &mut self.activation);
+    }
+}
+
+/// The tetrahedra of a scene description (see
+/// [`ModelBuilder::add_tet`](crate::ModelBuilder::add_tet)).
+#[derive(Clone, Debug)]
+pub(crate) struct TetParts<R: Real> {
+    tets: Vec<[u32; 4]>,
+    dm_inv: Vec<Mat33<R>>,
+    volume: Vec<R>,
+    mu: Vec<R>,
+    lambda: Vec<R>,
+    kd: Vec<R>,
+}
+
+impl<R: Real> Default for TetParts<R> {
+    fn default() -> Self {
+        TetParts {
+            tets: Vec::new(),
+            dm_inv: Vec::new(),
+            volume: Vec::new(),
+            mu: Vec::new(),
+            lambda: Vec::new(),
+            kd: Vec::new(),
+        }
+    }
+}
+
+fn lit<R: Real>(x: f64) -> R {
+    R::lit(x)
+}
+
+impl<R: Real> TetParts<R> {
+    pub(crate) fn len(&self) -> usize {
+        self.tets.len()
+    }
+
+    /// A tetrahedron with its rest shape from the current positions (reoriented if negative),
+    /// checked not degenerate.
+    pub(crate) fn add(
+        &mut self,
+        el: &mut Elements<'_, R>,
+        [i, j, k, l]: [u32; 4],
+        mu: R,
+        lambda: R,
+        kd: R,
+    ) -> u32 {
+        let e = self.tets.len();
+        let mut idx = [i, j, k, l];
+        let (mut dm_inv, mut vol) = (Mat33::identity(), 1.0);
+        if el.distinct("tets", e, &idx) {
+            let p = |i: u32| el.particles.wide(i);
+            let what = format!("the tetrahedron on particles ({i}, {j}, {k}, {l})");
+            match tet_rest([p(i), p(j), p(k), p(l)]) {
+                None => el.check("tets", e).fail(
+                    None,
+                    format!(
+                        "{what} is degenerate (zero or non-finite volume); move a vertex off \
+                         the plane of the other three or remove it"
+                    ),
+                ),
+                Some(r) => {
+                    (dm_inv, vol) = r;
+                    if vol < 0.0 {
+                        idx = [i, k, j, l];
+                        (dm_inv, vol) =
+                            tet_rest([p(i), p(k), p(j), p(l)]).expect("reoriented tetrahedron");
+                    }
+                    let q = tet_quality([p(i), p(j), p(k), p(l)]);
+                    let finite = dm_inv.iter().all(|v| lit::<R>(*v).to_f64().is_finite());
+                    let mut c = el.check("tets", e);
+                    if q < min_quality::<R>() {
+                        c.fail(
+                            None,
+                            format!(
+                                "{what} is nearly degenerate (flat): quality {q:.1e} (1 for a \
+                             regular tetrahedron) is below {:.1e} in {}; move a vertex off the \
+                             plane of the other three or remove it",
+                                min_quality::<R>(),
+                                precision::<R>()
+                            ),
+                        );
+                    } else if !finite
+                        || lit::<R>(vol).to_f64().partial_cmp(&R::tiny().to_f64())
+                            != Some(std::cmp::Ordering::Greater)
+                    {
+                        c.fail(
+                            None,
+                            format!(
+                                "{what} is too small or too large for {} (volume {vol:e} m^3, \
+                             rest-shape inverse not finite or volume below {:e}); rescale the \
+                             scene",
+                                precision::<R>(),
+                                R::tiny().to_f64()
+                            ),
+                        );
+                    }
+                }
+            }
+        }
+        let mut c = el.check("tets", e);
+        c.nonneg("mu", mu);
+        c.positive("lambda", lambda);
+        c.nonneg("kd", kd);
+        self.tets.push(idx);
+        self.dm_inv.push(dm_inv.map(lit));
+        self.volume.push(lit(vol));
+        self.mu.push(mu);
+        self.lambda.push(lambda);
+        self.kd.push(kd);
+        (self.tets.len() - 1) as u32
+    }
+}
+
+impl<R: Real> ForcePart<R> for TetParts<R> {
+    fn build(&self) -> Option<Box<dyn Force<R>>> {
+        (!self.tets.is_empty()).then(|| {
+            Box::new(TetFem {
+                tets: Array::from_vec(self.tets.clone()).named("tet_indices"),
+                dm_inv: Array::from_vec(self.dm_inv.clone()).named("tet_dm_inv"),
+                rest_volume: Array::from_vec(self.volume.clone()).named("tet_volume"),
+                mu: Array::from_vec(self.mu.clone()).named("tet_mu"),
+                lambda: Array::from_vec(self.lambda.clone()).named("tet_lambda"),
+                kd: Array::from_vec(self.kd.clone()).named("tet_kd"),
+                activation: Array::zeros(self.tets.len()).named("tet_activation"),
+            }) as Box<dyn Force<R>>
+        })
     }
 }

@@ -10,7 +10,9 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, Param};
+use super::{Force, ForceContext, ForcePart, Param};
+use crate::particles::Elements;
+use crate::validation::{min_quality, precision};
 
 /// Accumulates the membrane force of triangle `tid` into `f`. `mu`, `lambda` (Pa m, i.e.
 /// N/m: 2D Lame parameters), `kd` (N s/m: strain-rate damping).
@@ -205,5 +207,128 @@ impl<R: Real> Force<R> for TriangleFem<R> {
         visit("mu", &mut self.mu);
         visit("lambda", &mut self.lambda);
         visit("kd", &mut self.kd);
+    }
+}
+
+/// The membrane triangles of a scene description (see
+/// [`ModelBuilder::add_triangle_fem`](crate::ModelBuilder::add_triangle_fem)).
+#[derive(Clone, Debug)]
+pub(crate) struct TriangleParts<R: Real> {
+    tris: Vec<[u32; 3]>,
+    dm_inv: Vec<Mat22<R>>,
+    area: Vec<R>,
+    mu: Vec<R>,
+    lambda: Vec<R>,
+    kd: Vec<R>,
+}
+
+impl<R: Real> Default for TriangleParts<R> {
+    fn default() -> Self {
+        TriangleParts {
+            tris: Vec::new(),
+            dm_inv: Vec::new(),
+            area: Vec::new(),
+            mu: Vec::new(),
+            lambda: Vec::new(),
+            kd: Vec::new(),
+        }
+    }
+}
+
+fn lit<R: Real>(x: f64) -> R {
+    R::lit(x)
+}
+
+impl<R: Real> TriangleParts<R> {
+    /// A membrane triangle with its rest shape from the current positions, checked not
+    /// degenerate.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn add(
+        &mut self,
+        el: &mut Elements<'_, R>,
+        i: u32,
+        j: u32,
+        k: u32,
+        mu: R,
+        lambda: R,
+        kd: R,
+    ) -> u32 {
+        let e = self.tris.len();
+        let ok = el.distinct("triangle_fem", e, &[i, j, k]);
+        let (dm_inv, area) =
+            if ok {
+                let p = |i: u32| el.particles.wide(i);
+                let (a, b, c) = (p(i), p(j), p(k));
+                match triangle_rest(a, b, c) {
+                    Some((dm_inv, area)) => {
+                        let dm_inv = dm_inv.map(lit::<R>);
+                        let q = triangle_quality(a, b, c);
+                        let what = format!("the triangle on particles ({i}, {j}, {k})");
+                        let mut c = el.check("triangle_fem", e);
+                        if q < min_quality::<R>() {
+                            c.fail(
+                                None,
+                                format!(
+                            "{what} is nearly degenerate (flat): quality {q:.1e} (1 for an \
+                             equilateral triangle) is below {:.1e} in {}; move its vertices \
+                             apart or remove it",
+                            min_quality::<R>(), precision::<R>()),
+                            );
+                        } else if !dm_inv.iter().all(|v| v.to_f64().is_finite())
+                            || lit::<R>(area).to_f64().partial_cmp(&R::tiny().to_f64())
+                                != Some(std::cmp::Ordering::Greater)
+                        {
+                            c.fail(
+                                None,
+                                format!(
+                                    "{what} is too small or too large for {} (area {area:e} m^2, \
+                             rest-shape inverse not finite or area below {:e}); rescale the scene",
+                                    precision::<R>(),
+                                    R::tiny().to_f64()
+                                ),
+                            );
+                        }
+                        (dm_inv, lit(area))
+                    }
+                    None => {
+                        el.check("triangle_fem", e).fail(
+                            None,
+                            format!(
+                                "the triangle on particles ({i}, {j}, {k}) is degenerate (zero or \
+                             non-finite area); move its vertices apart or remove it"
+                            ),
+                        );
+                        (Mat22::identity(), lit(1.0))
+                    }
+                }
+            } else {
+                (Mat22::identity(), lit(1.0))
+            };
+        let mut c = el.check("triangle_fem", e);
+        c.nonneg("mu", mu);
+        c.finite("lambda", &[lambda]);
+        c.nonneg("kd", kd);
+        self.tris.push([i, j, k]);
+        self.dm_inv.push(dm_inv);
+        self.area.push(area);
+        self.mu.push(mu);
+        self.lambda.push(lambda);
+        self.kd.push(kd);
+        (self.tris.len() - 1) as u32
+    }
+}
+
+impl<R: Real> ForcePart<R> for TriangleParts<R> {
+    fn build(&self) -> Option<Box<dyn Force<R>>> {
+        (!self.tris.is_empty()).then(|| {
+            Box::new(TriangleFem {
+                tris: Array::from_vec(self.tris.clone()).named("tri_indices"),
+                dm_inv: Array::from_vec(self.dm_inv.clone()).named("tri_dm_inv"),
+                area: Array::from_vec(self.area.clone()).named("tri_area"),
+                mu: Array::from_vec(self.mu.clone()).named("tri_mu"),
+                lambda: Array::from_vec(self.lambda.clone()).named("tri_lambda"),
+                kd: Array::from_vec(self.kd.clone()).named("tri_kd"),
+            }) as Box<dyn Force<R>>
+        })
     }
 }

@@ -74,37 +74,78 @@ pub mod fem_tri;
 pub mod particle;
 pub mod spring;
 
-/// The names ([`Force::name`]) of every force type the library has, in the order
-/// [`ModelBuilder::finalize`](crate::ModelBuilder::finalize) adds them to a model. Each
-/// library force's `name` returns its entry here (tests check that a scene with every force
-/// lists exactly these).
-pub const BUILTIN_FORCES: &[&str] = &[
-    SPRINGS,
-    BENDING,
-    TRIANGLE_FEM,
-    TETS,
-    GROUND,
-    PARTICLE_CONTACT,
-    SHAPE_CONTACT,
-    DRAG,
-];
+/// A library force's part of a scene description: what
+/// [`ModelBuilder`](crate::ModelBuilder) records for it (its own file's builder methods check
+/// and record the elements), and the force component it becomes.
+pub(crate) trait ForcePart<R: Real>: Clone + Debug {
+    /// The force, or `None` if the scene has none of it.
+    fn build(&self) -> Option<Box<dyn Force<R>>>;
+}
 
-/// [`spring::Springs`].
-pub const SPRINGS: &str = "springs";
-/// [`bending::Bending`].
-pub const BENDING: &str = "bending";
-/// [`fem_tri::TriangleFem`].
-pub const TRIANGLE_FEM: &str = "triangle_fem";
-/// [`fem_tet::TetFem`].
-pub const TETS: &str = "tets";
-/// [`crate::contact::ground::Ground`].
-pub const GROUND: &str = "ground";
-/// [`crate::contact::particle::ParticleContact`].
-pub const PARTICLE_CONTACT: &str = "particle_contact";
-/// [`crate::contact::shapes::Shapes`].
-pub const SHAPE_CONTACT: &str = "shape_contact";
-/// [`particle::Drag`].
-pub const DRAG: &str = "drag";
+/// A force given whole to the builder (the ground, drag, particle contact): present once set.
+impl<R: Real, T: Force<R> + Clone + 'static> ForcePart<R> for Option<T> {
+    fn build(&self) -> Option<Box<dyn Force<R>>> {
+        self.clone().map(|f| Box::new(f) as Box<dyn Force<R>>)
+    }
+}
+
+/// The library's forces, listed once: each line gives the builder's field for the force's
+/// part, the part's type, and the force's name constant and name ([`Force::name`]). The list
+/// makes [`BUILTIN_FORCES`], the name constants and the builder's parts, and its order is the
+/// order in which a model evaluates the forces (which fixes the bits of the total force).
+macro_rules! library_forces {
+    ($($(#[$doc:meta])* $field:ident: $part:ty, $NAME:ident = $name:literal;)*) => {
+        /// The names ([`Force::name`]) of every force type the library has, in the order
+        /// [`ModelBuilder::finalize`](crate::ModelBuilder::finalize) adds them to a model.
+        /// Each library force's `name` returns its entry here (tests check that a scene with
+        /// every force lists exactly these).
+        pub const BUILTIN_FORCES: &[&str] = &[$($NAME),*];
+
+        $($(#[$doc])* pub const $NAME: &str = $name;)*
+
+        /// The library forces' parts of a scene description, in the order of
+        /// [`BUILTIN_FORCES`].
+        #[derive(Clone, Debug)]
+        pub(crate) struct ForceParts<R: Real> {
+            $(pub(crate) $field: $part,)*
+        }
+
+        impl<R: Real> Default for ForceParts<R> {
+            fn default() -> Self {
+                ForceParts { $($field: Default::default(),)* }
+            }
+        }
+
+        impl<R: Real> ForceParts<R> {
+            /// The forces the scene has, in the order of [`BUILTIN_FORCES`].
+            pub(crate) fn build(&self) -> Vec<Box<dyn Force<R>>> {
+                let mut forces = Vec::new();
+                $(forces.extend(ForcePart::<R>::build(&self.$field));)*
+                forces
+            }
+        }
+    };
+}
+
+library_forces! {
+    /// [`spring::Springs`].
+    springs: spring::SpringParts<R>, SPRINGS = "springs";
+    /// [`bending::Bending`].
+    bending: bending::BendingParts<R>, BENDING = "bending";
+    /// [`fem_tri::TriangleFem`].
+    triangle_fem: fem_tri::TriangleParts<R>, TRIANGLE_FEM = "triangle_fem";
+    /// [`fem_tet::TetFem`].
+    tets: fem_tet::TetParts<R>, TETS = "tets";
+    /// [`crate::contact::ground::Ground`].
+    ground: Option<crate::contact::ground::Ground<R>>, GROUND = "ground";
+    /// [`crate::contact::particle::ParticleContact`].
+    particle_contact: Option<crate::contact::particle::ParticleContact<R>>,
+        PARTICLE_CONTACT = "particle_contact";
+    /// [`crate::contact::shapes::Shapes`].
+    shape_contact: crate::contact::shapes::ShapeParts<R>, SHAPE_CONTACT = "shape_contact";
+    /// [`particle::Drag`].
+    drag: Option<particle::Drag<R>>, DRAG = "drag";
+}
 
 /// What a force reads besides its own arrays: the state and the step's control.
 #[derive(Clone, Copy, Debug)]

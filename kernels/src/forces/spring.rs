@@ -4,7 +4,8 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, Param};
+use super::{Force, ForceContext, ForcePart, Param};
+use crate::particles::Elements;
 
 /// Force of one damped spring on its second particle (the first gets the opposite).
 ///
@@ -117,5 +118,84 @@ impl<R: Real> Force<R> for Springs<R> {
         visit("rest", &mut self.rest);
         visit("ke", &mut self.ke);
         visit("kd", &mut self.kd);
+    }
+}
+
+/// The springs of a scene description (see [`ModelBuilder::add_spring`](crate::ModelBuilder::add_spring)).
+#[derive(Clone, Debug)]
+pub(crate) struct SpringParts<R: Real> {
+    pairs: Vec<[u32; 2]>,
+    rest: Vec<R>,
+    ke: Vec<R>,
+    kd: Vec<R>,
+}
+
+impl<R: Real> Default for SpringParts<R> {
+    fn default() -> Self {
+        SpringParts {
+            pairs: Vec::new(),
+            rest: Vec::new(),
+            ke: Vec::new(),
+            kd: Vec::new(),
+        }
+    }
+}
+
+impl<R: Real> SpringParts<R> {
+    pub(crate) fn len(&self) -> usize {
+        self.pairs.len()
+    }
+
+    /// A spring with the particles' current distance as rest length.
+    pub(crate) fn add(&mut self, el: &mut Elements<'_, R>, i: u32, j: u32, ke: R, kd: R) -> u32 {
+        let k = self.len();
+        let rest = if el.distinct("springs", k, &[i, j]) {
+            let rest = el.distance(i, j);
+            el.rest("springs", k, [i, j], rest, true);
+            rest
+        } else {
+            R::lit(1.0)
+        };
+        self.push(el, i, j, rest, ke, kd)
+    }
+
+    /// A spring with an explicit rest length.
+    pub(crate) fn add_with_rest(
+        &mut self,
+        el: &mut Elements<'_, R>,
+        i: u32,
+        j: u32,
+        rest: R,
+        ke: R,
+        kd: R,
+    ) -> u32 {
+        let k = self.len();
+        el.distinct("springs", k, &[i, j]);
+        el.rest("springs", k, [i, j], rest, false);
+        self.push(el, i, j, rest, ke, kd)
+    }
+
+    fn push(&mut self, el: &mut Elements<'_, R>, i: u32, j: u32, rest: R, ke: R, kd: R) -> u32 {
+        let mut c = el.check("springs", self.len());
+        c.nonneg("ke", ke);
+        c.nonneg("kd", kd);
+        self.pairs.push([i, j]);
+        self.rest.push(rest);
+        self.ke.push(ke);
+        self.kd.push(kd);
+        (self.len() - 1) as u32
+    }
+}
+
+impl<R: Real> ForcePart<R> for SpringParts<R> {
+    fn build(&self) -> Option<Box<dyn Force<R>>> {
+        (!self.pairs.is_empty()).then(|| {
+            Box::new(Springs {
+                pairs: Array::from_vec(self.pairs.clone()).named("spring_pairs"),
+                rest: Array::from_vec(self.rest.clone()).named("spring_rest"),
+                ke: Array::from_vec(self.ke.clone()).named("spring_ke"),
+                kd: Array::from_vec(self.kd.clone()).named("spring_kd"),
+            }) as Box<dyn Force<R>>
+        })
     }
 }
