@@ -16,6 +16,8 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use crate::particles::Elements;
+use crate::scene_file::reader::{sub, Checker, SceneError};
+use serde::Deserialize;
 
 /// One Jacobi pass over the constraints: reads positions `x` and multipliers `lambda`,
 /// accumulates position corrections into `dx` and writes the new multipliers `lambda_out`.
@@ -293,4 +295,32 @@ impl<R: Real> ConstraintParts<R> {
             compliance: Array::from_vec(self.compliance.clone()).named("dist_compliance"),
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct DistanceDesc {
+    i: u32,
+    j: u32,
+    #[serde(default)]
+    compliance: f64,
+}
+
+/// Loads the `distance_constraints` section.
+pub(crate) fn load<R: Real>(
+    d: &[DistanceDesc],
+    part: &mut ConstraintParts<R>,
+    el: &mut Elements<'_, R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, dc) in d.iter().enumerate() {
+        let n0 = el.problems.len();
+        part.add(el, dc.i, dc.j, R::lit(dc.compliance));
+        c.builder(el.problems, n0, |f| {
+            sub(&format!("distance_constraints[{k}]"), f, &["indices"])
+        })?;
+    }
+    Ok(())
 }

@@ -19,7 +19,7 @@ use crate::forces::spring::Springs;
 use crate::forces::{Force, ForceContext, ForceParts};
 use crate::particles::{Elements, Particles};
 use crate::precompiled::precompiled;
-use crate::rigid::{BodyParts, RigidBodies};
+use crate::rigid::{BodyParts, BodyRecord, RigidBodies};
 pub use crate::state::{BodyForces, Control, State};
 use crate::validation::{Check, ModelError, Problem};
 
@@ -286,8 +286,15 @@ impl<R: Real> ModelBuilder<R> {
         mass: R,
         inertia: Mat33<R>,
     ) -> u32 {
-        self.bodies
-            .add(&mut self.problems, x, q, v, w, mass, inertia)
+        let body = BodyRecord {
+            x,
+            q,
+            v,
+            w,
+            mass,
+            inertia,
+        };
+        self.bodies.add(&mut self.problems, body)
     }
 
     /// Adds a contact point `p` (m, body frame) to body `body`, which then touches the ground.

@@ -6,6 +6,9 @@
 use adflex_runtime::{Array, Real, Vec3};
 
 use crate::validation::{max_of, overflow_hint, precision, Check, Problem};
+use serde::Deserialize;
+
+use crate::scene_file::reader::{sub, v3, zero3, Checker, SceneError};
 
 fn lit<R: Real>(x: f64) -> R {
     R::lit(x)
@@ -143,6 +146,14 @@ impl<R: Real> Particles<R> {
         }
     }
 
+    /// Adds a surface triangle (topology) on distinct particles.
+    pub(crate) fn add_triangle(&mut self, problems: &mut Vec<Problem>, ijk: [u32; 3]) -> u32 {
+        let n = self.len();
+        check(problems, "triangles", self.triangles.len()).particles(n, &ijk);
+        self.triangles.push(ijk);
+        (self.triangles.len() - 1) as u32
+    }
+
     /// The model's particle arrays; per-particle radii only if some particle's radius differs
     /// from `radius`.
     pub(crate) fn build(&self, radius: R) -> ParticleArrays<R> {
@@ -160,6 +171,15 @@ impl<R: Real> Particles<R> {
                     Array::from_vec(radii).named("particle_radius")
                 }),
         }
+    }
+}
+
+/// The checks of the single item `kind`, recording into `problems`.
+pub(crate) fn check_one<'a>(problems: &'a mut Vec<Problem>, kind: &'static str) -> Check<'a> {
+    Check {
+        out: problems,
+        kind,
+        index: None,
     }
 }
 
@@ -191,11 +211,7 @@ impl<R: Real> Elements<'_, R> {
 
     /// The checks of the single item `kind`.
     pub(crate) fn check_one(&mut self, kind: &'static str) -> Check<'_> {
-        Check {
-            out: self.problems,
-            kind,
-            index: None,
-        }
+        check_one(self.problems, kind)
     }
 
     /// Checks that `idx` are distinct particles of the scene (recording a problem of
@@ -242,4 +258,35 @@ impl<R: Real> Elements<'_, R> {
             format!("the rest length must be finite and > 0 (got {r}){why}"),
         );
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ParticleDesc {
+    x: [f64; 3],
+    #[serde(default = "zero3")]
+    v: [f64; 3],
+    mass: f64,
+    radius: Option<f64>,
+}
+
+/// Loads the `particles` section.
+pub(crate) fn load<R: Real>(
+    d: &[ParticleDesc],
+    p: &mut Particles<R>,
+    problems: &mut Vec<Problem>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, pd) in d.iter().enumerate() {
+        let n0 = problems.len();
+        c.no_underflow::<R>(|| format!("particles[{k}].mass"), pd.mass)?;
+        let i = p.add(problems, v3(pd.x), v3(pd.v), R::lit(pd.mass));
+        if let Some(r) = pd.radius {
+            p.set_radius(problems, i, R::lit(r));
+        }
+        c.builder(problems, n0, |f| sub(&format!("particles[{k}]"), f, &[]))?;
+    }
+    Ok(())
 }

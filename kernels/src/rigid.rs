@@ -9,8 +9,10 @@ use adflex_runtime::prelude::*;
 use crate::contact::ground::Ground;
 use crate::contact::law::{contact_depth, contact_force};
 use crate::particles::check;
+use crate::scene_file::reader::{identity_quat, sub, v3, zero3, Checker, SceneError};
 pub use crate::state::BodyState;
 use crate::validation::{max_of, precision, Problem};
+use serde::Deserialize;
 
 /// Ground contact of contact point `tid`, a point `contact_point` (m, body frame) of body
 /// `contact_body`: with `r` the point relative to the centre of mass in world frame,
@@ -212,22 +214,23 @@ impl<R: Real> RigidBodies<R> {
     }
 }
 
-/// A rigid body as the builder records it.
+/// A rigid body as the builder records it (see
+/// [`ModelBuilder::add_body`](crate::ModelBuilder::add_body) for the fields).
 #[derive(Clone, Copy, Debug)]
-struct BodyDesc<R: Real> {
-    x: Vec3<R>,
-    q: Quat<R>,
-    v: Vec3<R>,
-    w: Vec3<R>,
-    mass: R,
-    inertia: Mat33<R>,
+pub(crate) struct BodyRecord<R: Real> {
+    pub(crate) x: Vec3<R>,
+    pub(crate) q: Quat<R>,
+    pub(crate) v: Vec3<R>,
+    pub(crate) w: Vec3<R>,
+    pub(crate) mass: R,
+    pub(crate) inertia: Mat33<R>,
 }
 
 /// The rigid bodies of a scene description (see
 /// [`ModelBuilder::add_body`](crate::ModelBuilder::add_body)).
 #[derive(Clone, Debug)]
 pub(crate) struct BodyParts<R: Real> {
-    bodies: Vec<BodyDesc<R>>,
+    bodies: Vec<BodyRecord<R>>,
     contacts: Vec<(u32, Vec3<R>)>,
 }
 
@@ -245,18 +248,16 @@ fn lit<R: Real>(x: f64) -> R {
 }
 
 impl<R: Real> BodyParts<R> {
-    /// A body, checked (see the builder method).
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn add(
-        &mut self,
-        problems: &mut Vec<Problem>,
-        x: Vec3<R>,
-        q: Quat<R>,
-        v: Vec3<R>,
-        w: Vec3<R>,
-        mass: R,
-        inertia: Mat33<R>,
-    ) -> u32 {
+    /// A body, checked (its orientation normalized).
+    pub(crate) fn add(&mut self, problems: &mut Vec<Problem>, body: BodyRecord<R>) -> u32 {
+        let BodyRecord {
+            x,
+            q,
+            v,
+            w,
+            mass,
+            inertia,
+        } = body;
         let mut c = check(problems, "bodies", self.bodies.len());
         c.finite3("x", &x);
         c.finite3("v", &v);
@@ -288,7 +289,7 @@ impl<R: Real> BodyParts<R> {
                 );
             }
         }
-        self.bodies.push(BodyDesc {
+        self.bodies.push(BodyRecord {
             x,
             q: q.normalize(),
             v,
@@ -356,4 +357,65 @@ impl<R: Real> BodyParts<R> {
             }
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct BodySection {
+    x: [f64; 3],
+    #[serde(default = "identity_quat")]
+    q: [f64; 4],
+    #[serde(default = "zero3")]
+    v: [f64; 3],
+    #[serde(default = "zero3")]
+    w: [f64; 3],
+    mass: f64,
+    inertia: [f64; 3],
+    #[serde(default)]
+    contact_points: Vec<[f64; 3]>,
+}
+
+/// Loads the `bodies` section (quaternions normalized, diagonal inertia).
+pub(crate) fn load<R: Real>(
+    d: &[BodySection],
+    part: &mut BodyParts<R>,
+    problems: &mut Vec<Problem>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, bd) in d.iter().enumerate() {
+        let path = |f: &str| format!("bodies[{k}].{f}");
+        c.finite(|| path("q"), &bd.q)?;
+        c.no_underflow::<R>(|| path("mass"), bd.mass)?;
+        let q = Quat::new(bd.q[3], bd.q[0], bd.q[1], bd.q[2]);
+        if !q.norm().is_normal() {
+            return Err(c.err(path("q"), "must be a nonzero quaternion [x, y, z, w]"));
+        }
+        for v in bd.inertia {
+            if bd.mass > 0.0 {
+                c.positive(|| path("inertia"), v)?;
+            } else {
+                c.nonneg(|| path("inertia"), v)?;
+            }
+        }
+        let q = q / q.norm();
+        let n0 = problems.len();
+        let body = BodyRecord {
+            x: v3(bd.x),
+            q: Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
+            v: v3(bd.v),
+            w: v3(bd.w),
+            mass: R::lit(bd.mass),
+            inertia: Mat33::from_diagonal(&v3(bd.inertia)),
+        };
+        let id = part.add(problems, body);
+        c.builder(problems, n0, |f| sub(&format!("bodies[{k}]"), f, &[]))?;
+        for (m, p) in bd.contact_points.iter().enumerate() {
+            let n0 = problems.len();
+            part.add_contact_point(problems, id, v3(*p));
+            c.builder(problems, n0, |_| format!("bodies[{k}].contact_points[{m}]"))?;
+        }
+    }
+    Ok(())
 }

@@ -368,7 +368,7 @@ fn a_rotated_cloth_grid_reads_as_built() {
 #[test]
 fn the_documented_scene_defaults_are_the_builders() {
     use adflex_kernels::prelude::{Ground, ParticleContact};
-    let src = include_str!("../src/scene_file.rs");
+    let src = include_str!("../src/scene_file/mod.rs");
     // `name (value)` pairs of the documented section starting with `//! - {section}`.
     let documented = |section: &str| -> Vec<(String, String)> {
         let start = src

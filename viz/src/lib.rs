@@ -40,6 +40,7 @@
 
 use std::path::{Path, PathBuf};
 
+mod color;
 pub mod export;
 pub mod gltf;
 pub mod overlay;

@@ -37,7 +37,7 @@ use adflex_kernels::model::State;
 use adflex_runtime::{Real, Vec3};
 use tiny_skia::{Pixmap, Rect, Transform};
 
-use crate::render::Rgba;
+use crate::color::Rgba;
 use crate::scene::{wide, Frame, Topology};
 
 /// A point to mark (a target, a goal, a destination): a ring with a cross, and a label.

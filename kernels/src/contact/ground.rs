@@ -5,7 +5,14 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
-use crate::forces::{Force, ForceContext, Param};
+use crate::forces::component::{Force, ForceContext, Param};
+use crate::particles::check_one;
+use crate::scene_file::reader::{sub, v3, Checker, SceneError};
+use crate::validation::Problem;
+use serde::Deserialize;
+
+/// The force's name ([`Force::name`]): `"ground"`.
+pub const NAME: &str = "ground";
 
 /// Ground contact of particle `tid`: the plane `dot(normal, x) = offset` (m), particles of
 /// radius `radius` (m); `c = contact_depth(dot(normal, x) - offset - radius, leak)` and
@@ -245,7 +252,7 @@ impl<R: Real> Ground<R> {
 /// no parameter arrays.
 impl<R: Real> Force<R> for Ground<R> {
     fn name(&self) -> &'static str {
-        crate::forces::GROUND
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         match cx.particle_radii {
@@ -270,4 +277,76 @@ impl<R: Real> Force<R> for Ground<R> {
         true
     }
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+// The defaults of `Ground::default` (one source).
+fn ground_ke() -> f64 {
+    Ground::<f64>::default().ke
+}
+fn ground_kd() -> f64 {
+    Ground::<f64>::default().kd
+}
+fn ground_damp_approach() -> bool {
+    Ground::<f64>::default().damp_approach
+}
+fn ground_damping_depth() -> f64 {
+    Ground::<f64>::default().damping_depth
+}
+fn ground_mu() -> f64 {
+    Ground::<f64>::default().mu
+}
+fn up() -> [f64; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct GroundDesc {
+    #[serde(default = "up")]
+    normal: [f64; 3],
+    #[serde(default)]
+    offset: f64,
+    #[serde(default = "ground_ke")]
+    ke: f64,
+    #[serde(default = "ground_kd")]
+    kd: f64,
+    #[serde(default = "ground_mu")]
+    mu: f64,
+    #[serde(default)]
+    leak: f64,
+    #[serde(default = "ground_damp_approach")]
+    damp_approach: bool,
+    #[serde(default = "ground_damping_depth")]
+    damping_depth: f64,
+}
+
+/// Loads the `ground` section (its normal normalized).
+pub(crate) fn load<R: Real>(
+    g: &GroundDesc,
+    part: &mut Option<Ground<R>>,
+    problems: &mut Vec<Problem>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    c.finite(|| "ground.normal".into(), &g.normal)?;
+    let nrm = Vec3::new(g.normal[0], g.normal[1], g.normal[2]);
+    if !nrm.norm().is_normal() {
+        return Err(c.err("ground.normal".into(), "must be a nonzero vector"));
+    }
+    let nrm = nrm.normalize();
+    let n0 = problems.len();
+    let ground = Ground {
+        normal: v3([nrm.x, nrm.y, nrm.z]),
+        offset: R::lit(g.offset),
+        ke: R::lit(g.ke),
+        kd: R::lit(g.kd),
+        mu: R::lit(g.mu),
+        leak: R::lit(g.leak),
+        damp_approach: g.damp_approach,
+        damping_depth: R::lit(g.damping_depth),
+    };
+    ground.check(&mut check_one(problems, "ground"));
+    *part = Some(ground);
+    c.builder(problems, n0, |f| sub("ground", f, &[]))
 }

@@ -8,9 +8,16 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use crate::forces::{Force, ForceContext, Param};
+use crate::forces::component::{Force, ForceContext, Param};
+use crate::particles::check_one;
+use crate::scene_file::reader::{sub, Checker, SceneError};
+use crate::validation::Problem;
+use serde::Deserialize;
 
 use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
+
+/// The force's name ([`Force::name`]): `"particle_contact"`.
+pub const NAME: &str = "particle_contact";
 
 /// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,
 /// whose surfaces are `gap` apart (m; negative in contact): what both pair kernels compute.
@@ -477,7 +484,7 @@ pub fn find_pairs<R: Real>(x: &[Vec3<R>], cutoff: R) -> Vec<[u32; 2]> {
 /// parameter arrays.
 impl<R: Real> Force<R> for ParticleContact<R> {
     fn name(&self) -> &'static str {
-        crate::forces::PARTICLE_CONTACT
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         match cx.particle_radii {
@@ -509,4 +516,65 @@ impl<R: Real> Force<R> for ParticleContact<R> {
         true
     }
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+// The defaults of `ParticleContact::default` (one source).
+fn contact_ke() -> f64 {
+    ParticleContact::<f64>::default().ke
+}
+fn contact_kd() -> f64 {
+    ParticleContact::<f64>::default().kd
+}
+fn contact_mu() -> f64 {
+    ParticleContact::<f64>::default().mu
+}
+fn contact_damping_depth() -> f64 {
+    ParticleContact::<f64>::default().damping_depth
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ContactDesc {
+    #[serde(default = "contact_ke")]
+    ke: f64,
+    #[serde(default = "contact_kd")]
+    kd: f64,
+    #[serde(default = "contact_damping_depth")]
+    damping_depth: f64,
+    #[serde(default = "contact_mu")]
+    mu: f64,
+    #[serde(default)]
+    leak: f64,
+    #[serde(default)]
+    margin: f64,
+}
+
+impl ContactDesc {
+    /// The contact parameters in `R`.
+    pub(crate) fn to_contact<R: Real>(&self) -> ParticleContact<R> {
+        ParticleContact {
+            ke: R::lit(self.ke),
+            kd: R::lit(self.kd),
+            damping_depth: R::lit(self.damping_depth),
+            mu: R::lit(self.mu),
+            leak: R::lit(self.leak),
+            margin: R::lit(self.margin),
+        }
+    }
+}
+
+/// Loads the `particle_contact` section.
+pub(crate) fn load<R: Real>(
+    cd: &ContactDesc,
+    part: &mut Option<ParticleContact<R>>,
+    problems: &mut Vec<Problem>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    let n0 = problems.len();
+    let contact = cd.to_contact();
+    contact.check(&mut check_one(problems, "particle_contact"));
+    *part = Some(contact);
+    c.builder(problems, n0, |f| sub("particle_contact", f, &[]))
 }

@@ -5,11 +5,17 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use super::particle::ContactDesc;
 use super::particle::ParticleContact;
-use crate::forces::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param};
 use crate::particles::Elements;
+use crate::scene_file::reader::{identity_quat, sub, v3, Checker, SceneError};
+use serde::Deserialize;
 
 use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
+
+/// The force's name ([`Force::name`]): `"shape_contact"`.
+pub const NAME: &str = "shape_contact";
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
 /// with `n` the outward normal (zero at the centre).
@@ -383,7 +389,7 @@ impl<R: Real> Shapes<R> {
 /// Contact of the particles with the shapes; the shapes' poses and sizes are differentiable.
 impl<R: Real> Force<R> for Shapes<R> {
     fn name(&self) -> &'static str {
-        crate::forces::SHAPE_CONTACT
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         match cx.particle_radii {
@@ -466,4 +472,87 @@ impl<R: Real> ForcePart<R> for ShapeParts<R> {
             }) as Box<dyn Force<R>>
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize, Clone, Copy, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub(crate) enum ShapeKindDesc {
+    Sphere,
+    Box,
+    Capsule,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ShapeDesc {
+    kind: ShapeKindDesc,
+    pos: [f64; 3],
+    #[serde(default = "identity_quat")]
+    rot: [f64; 4],
+    radius: Option<f64>,
+    half_extents: Option<[f64; 3]>,
+    half_length: Option<f64>,
+}
+
+/// Loads the `shape_contact` section.
+pub(crate) fn load_contact<R: Real>(
+    cd: &ContactDesc,
+    part: &mut ShapeParts<R>,
+    el: &mut Elements<'_, R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    let n0 = el.problems.len();
+    part.set_contact(el, cd.to_contact());
+    c.builder(el.problems, n0, |f| sub("shape_contact", f, &[]))
+}
+
+/// Loads the `shapes` section (quaternions normalized).
+pub(crate) fn load<R: Real>(
+    d: &[ShapeDesc],
+    part: &mut ShapeParts<R>,
+    el: &mut Elements<'_, R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, s) in d.iter().enumerate() {
+        let path = |f: &str| format!("shapes[{k}].{f}");
+        c.finite(|| path("rot"), &s.rot)?;
+        let q = Quat::new(s.rot[3], s.rot[0], s.rot[1], s.rot[2]);
+        if !q.norm().is_normal() {
+            return Err(c.err(path("rot"), "must be a nonzero quaternion [x, y, z, w]"));
+        }
+        let need = |v: Option<f64>, f: &str| -> Result<f64, SceneError> {
+            v.ok_or_else(|| c.err(format!("shapes[{k}]"), format!("missing field `{f}`")))
+        };
+        let kind = match s.kind {
+            ShapeKindDesc::Sphere => ShapeKind::Sphere {
+                radius: R::lit(need(s.radius, "radius")?),
+            },
+            ShapeKindDesc::Box => {
+                let h = s
+                    .half_extents
+                    .ok_or_else(|| c.err(format!("shapes[{k}]"), "missing field `half_extents`"))?;
+                ShapeKind::Box {
+                    half_extents: v3(h),
+                }
+            }
+            ShapeKindDesc::Capsule => ShapeKind::Capsule {
+                radius: R::lit(need(s.radius, "radius")?),
+                half_length: R::lit(need(s.half_length, "half_length")?),
+            },
+        };
+        let q = q / q.norm();
+        let n0 = el.problems.len();
+        part.add(
+            el,
+            Shape {
+                kind,
+                pos: v3(s.pos),
+                rot: Quat::new(R::lit(q.w), R::lit(q.i), R::lit(q.j), R::lit(q.k)),
+            },
+        );
+        c.builder(el.problems, n0, |f| sub(&format!("shapes[{k}]"), f, &[]))?;
+    }
+    Ok(())
 }

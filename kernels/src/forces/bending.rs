@@ -8,8 +8,13 @@ use std::collections::HashMap;
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param};
 use crate::particles::Elements;
+use crate::scene_file::reader::{sub, Checker, SceneError};
+use serde::Deserialize;
+
+/// The force's name ([`Force::name`]): `"bending"`.
+pub const NAME: &str = "bending";
 
 /// Accumulates the bending force of element `tid` into `f`.
 ///
@@ -211,7 +216,7 @@ pub fn dihedral_angle(x: &[Vec3<f64>], q: [u32; 4]) -> f64 {
 
 impl<R: Real> Force<R> for Bending<R> {
     fn name(&self) -> &'static str {
-        super::BENDING
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         Bending::eval(self, tape, cx.x, cx.v, f);
@@ -303,4 +308,47 @@ impl<R: Real> ForcePart<R> for BendingParts<R> {
             }) as Box<dyn Force<R>>
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize, Default, Clone, Copy)]
+#[serde(rename_all = "lowercase")]
+pub(crate) enum RestDesc {
+    #[default]
+    Flat,
+    Initial,
+}
+
+impl From<RestDesc> for RestAngle {
+    fn from(r: RestDesc) -> Self {
+        match r {
+            RestDesc::Flat => RestAngle::Flat,
+            RestDesc::Initial => RestAngle::Initial,
+        }
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct BendingDesc {
+    ke: f64,
+    #[serde(default)]
+    kd: f64,
+    #[serde(default)]
+    rest: RestDesc,
+}
+
+/// Loads the `bending` section: elements on the edges shared by two of `triangles` (the
+/// file's own).
+pub(crate) fn load<R: Real>(
+    bd: &BendingDesc,
+    triangles: &[[u32; 3]],
+    part: &mut BendingParts<R>,
+    el: &mut Elements<'_, R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    let n0 = el.problems.len();
+    part.add_edges(el, triangles, R::lit(bd.ke), R::lit(bd.kd), bd.rest.into());
+    c.builder(el.problems, n0, |f| sub("bending", f, &["indices"]))
 }

@@ -13,9 +13,14 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param};
 use crate::particles::Elements;
+use crate::scene_file::reader::{sub, Checker, SceneError};
 use crate::validation::{min_quality, precision};
+use serde::Deserialize;
+
+/// The force's name ([`Force::name`]): `"tets"`.
+pub const NAME: &str = "tets";
 
 /// Accumulates the force of tetrahedron `tid` into `f`. `mu`, `lambda` (Pa), `kd` (Pa s),
 /// `activation` (dimensionless, 0 = passive).
@@ -217,7 +222,7 @@ pub fn tet_rest(p: [Vec3<f64>; 4]) -> Option<(Mat33<f64>, f64)> {
 
 impl<R: Real> Force<R> for TetFem<R> {
     fn name(&self) -> &'static str {
-        super::TETS
+        NAME
     }
     /// Reads the control's `tet_activation` if it has one, else [`TetFem::activation`].
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
@@ -364,4 +369,50 @@ impl<R: Real> ForcePart<R> for TetParts<R> {
             }) as Box<dyn Force<R>>
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct TetDesc {
+    indices: [u32; 4],
+    mu: Option<f64>,
+    lambda: Option<f64>,
+    young: Option<f64>,
+    poisson: Option<f64>,
+    #[serde(default)]
+    kd: f64,
+}
+
+/// Loads the `tets` section (Lame parameters or Young's modulus and Poisson's ratio).
+pub(crate) fn load<R: Real>(
+    d: &[TetDesc],
+    part: &mut TetParts<R>,
+    el: &mut Elements<'_, R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, t) in d.iter().enumerate() {
+        let path = |f: &str| format!("tets[{k}].{f}");
+        let (mu, lambda) = match (t.mu, t.lambda, t.young, t.poisson) {
+            (Some(mu), Some(lambda), None, None) => (mu, lambda),
+            (None, None, Some(e), Some(nu)) => {
+                c.positive(|| path("young"), e)?;
+                if !(nu > -1.0 && nu < 0.5) {
+                    return Err(c.err(path("poisson"), format!("must be in (-1, 0.5) (got {nu})")));
+                }
+                snh_lame(e, nu)
+            }
+            _ => {
+                return Err(c.err(
+                    format!("tets[{k}]"),
+                    "give either `mu` and `lambda`, or `young` and `poisson`",
+                ))
+            }
+        };
+        let n0 = el.problems.len();
+        part.add(el, t.indices, R::lit(mu), R::lit(lambda), R::lit(t.kd));
+        c.builder(el.problems, n0, |f| sub(&format!("tets[{k}]"), f, &[]))?;
+    }
+    Ok(())
 }

@@ -10,9 +10,16 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param};
 use crate::particles::Elements;
+use crate::particles::Particles;
+use crate::scene_file::reader::{sub, Checker, SceneError};
+use crate::validation::Problem;
 use crate::validation::{min_quality, precision};
+use serde::Deserialize;
+
+/// The force's name ([`Force::name`]): `"triangle_fem"`.
+pub const NAME: &str = "triangle_fem";
 
 /// Accumulates the membrane force of triangle `tid` into `f`. `mu`, `lambda` (Pa m, i.e.
 /// N/m: 2D Lame parameters), `kd` (N s/m: strain-rate damping).
@@ -192,7 +199,7 @@ pub fn triangle_rest(p0: Vec3<f64>, p1: Vec3<f64>, p2: Vec3<f64>) -> Option<(Mat
 
 impl<R: Real> Force<R> for TriangleFem<R> {
     fn name(&self) -> &'static str {
-        super::TRIANGLE_FEM
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         TriangleFem::eval(self, tape, cx.x, cx.v, f);
@@ -331,4 +338,57 @@ impl<R: Real> ForcePart<R> for TriangleParts<R> {
             }) as Box<dyn Force<R>>
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct TriangleDesc {
+    indices: [u32; 3],
+    mu: Option<f64>,
+    lambda: Option<f64>,
+    #[serde(default)]
+    kd: f64,
+}
+
+/// Loads the `triangles` section: membranes (with `mu` and `lambda`) and topology.
+pub(crate) fn load<R: Real>(
+    d: &[TriangleDesc],
+    part: &mut TriangleParts<R>,
+    particles: &mut Particles<R>,
+    problems: &mut Vec<Problem>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, t) in d.iter().enumerate() {
+        let [i, j, l] = t.indices;
+        let n0 = problems.len();
+        match (t.mu, t.lambda) {
+            (Some(mu), Some(lambda)) => {
+                let mut el = Elements {
+                    particles,
+                    problems,
+                };
+                part.add(&mut el, i, j, l, R::lit(mu), R::lit(lambda), R::lit(t.kd));
+                particles.triangles.push([i, j, l]);
+            }
+            (None, None) => {
+                particles.add_triangle(problems, [i, j, l]);
+            }
+            (Some(_), None) => {
+                return Err(c.err(
+                    format!("triangles[{k}]"),
+                    "`mu` without `lambda`: a membrane needs both",
+                ))
+            }
+            (None, Some(_)) => {
+                return Err(c.err(
+                    format!("triangles[{k}]"),
+                    "`lambda` without `mu`: a membrane needs both",
+                ))
+            }
+        }
+        c.builder(problems, n0, |f| sub(&format!("triangles[{k}]"), f, &[]))?;
+    }
+    Ok(())
 }

@@ -61,40 +61,27 @@
 //! assert_eq!(model.requires_grad("push", "f0").unwrap(), 1);
 //! ```
 
-use std::any::Any;
-use std::fmt::Debug;
+use adflex_runtime::Real;
 
-use adflex_runtime::{AnyArray, Array, Element, Real, Tape, Vec3};
-
-use crate::state::Control;
+use crate::contact::{ground, particle as contact, shapes};
 
 pub mod bending;
+pub mod component;
 pub mod fem_tet;
 pub mod fem_tri;
 pub mod particle;
 pub mod spring;
 
-/// A library force's part of a scene description: what
-/// [`ModelBuilder`](crate::ModelBuilder) records for it (its own file's builder methods check
-/// and record the elements), and the force component it becomes.
-pub(crate) trait ForcePart<R: Real>: Clone + Debug {
-    /// The force, or `None` if the scene has none of it.
-    fn build(&self) -> Option<Box<dyn Force<R>>>;
-}
-
-/// A force given whole to the builder (the ground, drag, particle contact): present once set.
-impl<R: Real, T: Force<R> + Clone + 'static> ForcePart<R> for Option<T> {
-    fn build(&self) -> Option<Box<dyn Force<R>>> {
-        self.clone().map(|f| Box::new(f) as Box<dyn Force<R>>)
-    }
-}
+pub(crate) use component::ForcePart;
+pub use component::{Force, ForceClone, ForceContext, Param, ParamCopy};
 
 /// The library's forces, listed once: each line gives the builder's field for the force's
-/// part, the part's type, and the force's name constant and name ([`Force::name`]). The list
+/// part, the part's type, and the force's name constant (its [`Force::name`], defined in its
+/// file). The list
 /// makes [`BUILTIN_FORCES`], the name constants and the builder's parts, and its order is the
 /// order in which a model evaluates the forces (which fixes the bits of the total force).
 macro_rules! library_forces {
-    ($($(#[$doc:meta])* $field:ident: $part:ty, $NAME:ident = $name:literal;)*) => {
+    ($($(#[$doc:meta])* $field:ident: $part:ty, $NAME:ident = $name:expr;)*) => {
         /// The names ([`Force::name`]) of every force type the library has, in the order
         /// [`ModelBuilder::finalize`](crate::ModelBuilder::finalize) adds them to a model.
         /// Each library force's `name` returns its entry here (tests check that a scene with
@@ -129,191 +116,19 @@ macro_rules! library_forces {
 
 library_forces! {
     /// [`spring::Springs`].
-    springs: spring::SpringParts<R>, SPRINGS = "springs";
+    springs: spring::SpringParts<R>, SPRINGS = spring::NAME;
     /// [`bending::Bending`].
-    bending: bending::BendingParts<R>, BENDING = "bending";
+    bending: bending::BendingParts<R>, BENDING = bending::NAME;
     /// [`fem_tri::TriangleFem`].
-    triangle_fem: fem_tri::TriangleParts<R>, TRIANGLE_FEM = "triangle_fem";
+    triangle_fem: fem_tri::TriangleParts<R>, TRIANGLE_FEM = fem_tri::NAME;
     /// [`fem_tet::TetFem`].
-    tets: fem_tet::TetParts<R>, TETS = "tets";
+    tets: fem_tet::TetParts<R>, TETS = fem_tet::NAME;
     /// [`crate::contact::ground::Ground`].
-    ground: Option<crate::contact::ground::Ground<R>>, GROUND = "ground";
+    ground: Option<ground::Ground<R>>, GROUND = ground::NAME;
     /// [`crate::contact::particle::ParticleContact`].
-    particle_contact: Option<crate::contact::particle::ParticleContact<R>>,
-        PARTICLE_CONTACT = "particle_contact";
+    particle_contact: Option<contact::ParticleContact<R>>, PARTICLE_CONTACT = contact::NAME;
     /// [`crate::contact::shapes::Shapes`].
-    shape_contact: crate::contact::shapes::ShapeParts<R>, SHAPE_CONTACT = "shape_contact";
+    shape_contact: shapes::ShapeParts<R>, SHAPE_CONTACT = shapes::NAME;
     /// [`particle::Drag`].
-    drag: Option<particle::Drag<R>>, DRAG = "drag";
-}
-
-/// What a force reads besides its own arrays: the state and the step's control.
-#[derive(Clone, Copy, Debug)]
-pub struct ForceContext<'a, R: Real> {
-    /// Particle positions (m).
-    pub x: &'a Array<Vec3<R>>,
-    /// Particle velocities (m/s).
-    pub v: &'a Array<Vec3<R>>,
-    /// The step's control, if any.
-    pub control: Option<&'a Control<R>>,
-    /// The model's particle radius for contact (m), every particle's unless `particle_radii`
-    /// is given.
-    pub particle_radius: R,
-    /// Per-particle contact radii (m), if the model has them ([`crate::Model::particle_radii`]).
-    pub particle_radii: Option<&'a Array<R>>,
-}
-
-/// A force on the particles: a component of a [`Model`](crate::Model).
-///
-/// Implement it once, for a `Clone + Debug` struct holding the force's arrays (clones are
-/// array handles, which share the data): [`Force::name`], [`Force::eval`], and
-/// [`Force::params_mut`], the visitor over every differentiable parameter array the force
-/// reads. The visitor is the single list that
-/// [`ImplicitEuler`](crate::integrators::ImplicitEuler) copies (it evaluates the force with
-/// private copies substituted through the visitor and maps their gradients back), that
-/// [`Model::params`](crate::Model::params) and gradient checks perturb, and that
-/// [`Model::requires_grad`](crate::Model::requires_grad) finds by name: a parameter the
-/// visitor misses gets no gradient through `ImplicitEuler`.
-///
-/// The force must be differentiable through the tape, i.e. record `#[diff_kernel]` launches
-/// (or `record_fn` steps with a backward and a tangent): `ImplicitEuler` needs the adjoint and
-/// the tangent of the force.
-pub trait Force<R: Real>: ForceClone<R> + Debug + Send + Sync {
-    /// A short name (`"springs"`): what [`Model::force_named`](crate::Model::force_named)
-    /// and [`Model::requires_grad`](crate::Model::requires_grad) look for.
-    fn name(&self) -> &'static str;
-
-    /// Records the force's kernels on `tape`, accumulating the force on each particle (N)
-    /// into `f` (with `atomic_add`: other forces accumulate into the same array).
-    fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>);
-
-    /// Records the force's potential energy (J), added into `energy[0]`, and returns `true`;
-    /// the default (a force without a potential: drag, wind) records nothing and returns
-    /// `false`. For a force with damping or friction, the energy of its conservative part
-    /// (the library's springs, membranes, tetrahedra, bending and contact penalties do this).
-    ///
-    /// [`ImplicitEuler`](crate::integrators::ImplicitEuler)'s line search uses it: the
-    /// incremental potential it decreases is exact for the forces that define an energy, and
-    /// estimated from the force for the others, so defining one makes large steps converge
-    /// more reliably; its gradient should be minus the force at zero velocity (the library's
-    /// tests check it; bending's differs by a term second order in the bend, see
-    /// [`bending::bending_energy`]). A wrong energy cannot make a step wrong, since a step is
-    /// converged only when the residual is, but can make it fail to converge.
-    fn energy(&self, _cx: &ForceContext<'_, R>, _tape: &mut Tape, _energy: &Array<R>) -> bool {
-        false
-    }
-
-    /// Calls `visit(name, array)` for every differentiable parameter array the force reads
-    /// (not index arrays, not scalars), in a fixed order. `visit` may replace the array
-    /// ([`Param::substitute`]): the force must then read the replacement.
-    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param));
-}
-
-/// Cloning and downcasting of a boxed [`Force`]; implemented for every `Force + Clone`.
-pub trait ForceClone<R: Real> {
-    /// A clone (array handles shared) in a box.
-    fn clone_box(&self) -> Box<dyn Force<R>>;
-    /// The force as [`Any`], to downcast to its type.
-    fn as_any(&self) -> &dyn Any;
-}
-
-impl<R: Real, T: Force<R> + Clone + 'static> ForceClone<R> for T {
-    fn clone_box(&self) -> Box<dyn Force<R>> {
-        Box::new(self.clone())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
-    }
-}
-
-impl<R: Real> Clone for Box<dyn Force<R>> {
-    fn clone(&self) -> Self {
-        self.clone_box()
-    }
-}
-
-impl<R: Real> dyn Force<R> {
-    /// Handles of the parameter arrays ([`Force::params_mut`]), with their names. They share
-    /// the force's data and gradients: perturbing one perturbs the force.
-    pub fn params(&self) -> Vec<(&'static str, Box<dyn AnyArray>)> {
-        let mut copy = self.clone_box();
-        let mut out = Vec::new();
-        copy.params_mut(&mut |name, p| out.push((name, p.array().boxed())));
-        out
-    }
-
-    /// The force as a `T`, if it is one.
-    pub fn downcast_ref<T: 'static>(&self) -> Option<&T> {
-        self.as_any().downcast_ref()
-    }
-}
-
-/// A parameter array as [`Force::params_mut`] shows it: implemented by every
-/// [`Array<T>`](Array).
-pub trait Param: Send + Sync {
-    /// The array.
-    fn array(&self) -> &dyn AnyArray;
-    /// Marks the array as requiring a gradient ([`Array::requires_grad`]).
-    fn set_requires_grad(&self);
-    /// Replaces the array by a private copy of its data (requiring a gradient if `grads`) and
-    /// returns the pair.
-    fn substitute(&mut self, grads: bool) -> Box<dyn ParamCopy>;
-}
-
-/// A parameter array and the private copy that replaced it ([`Param::substitute`]).
-pub trait ParamCopy: Send + Sync {
-    /// The original array.
-    fn original(&self) -> &dyn AnyArray;
-    /// The private copy that replaced it.
-    fn copy(&self) -> &dyn AnyArray;
-    /// Adds the copy's gradient into the original's (if both have one).
-    fn add_grad(&self);
-    /// Zeroes the copy's gradient.
-    fn zero_copy_grad(&self);
-    /// Gives the copy the original's tangent buffer (`true`) or none (`false`).
-    fn share_tangent(&self, on: bool);
-}
-
-impl<T: Element> Param for Array<T> {
-    fn array(&self) -> &dyn AnyArray {
-        self
-    }
-    fn set_requires_grad(&self) {
-        let _ = self.clone().requires_grad();
-    }
-    fn substitute(&mut self, grads: bool) -> Box<dyn ParamCopy> {
-        let copy = self.deep_clone();
-        let copy = if grads { copy.requires_grad() } else { copy };
-        let original = std::mem::replace(self, copy.clone());
-        Box::new(Substituted { original, copy })
-    }
-}
-
-struct Substituted<T: Element> {
-    original: Array<T>,
-    copy: Array<T>,
-}
-
-impl<T: Element> ParamCopy for Substituted<T> {
-    fn original(&self) -> &dyn AnyArray {
-        &self.original
-    }
-    fn copy(&self) -> &dyn AnyArray {
-        &self.copy
-    }
-    fn add_grad(&self) {
-        if let (Some(g), Some(c)) = (self.original.grad_buffer(), self.copy.grad_buffer()) {
-            AnyArray::add_from(&g, &c);
-        }
-    }
-    fn zero_copy_grad(&self) {
-        self.copy.zero_grad();
-    }
-    fn share_tangent(&self, on: bool) {
-        self.copy.set_tangent(if on {
-            self.original.tangent_buffer()
-        } else {
-            None
-        });
-    }
+    drag: Option<particle::Drag<R>>, DRAG = particle::NAME;
 }

@@ -7,7 +7,14 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, Param};
+use crate::forces::component::{Force, ForceContext, Param};
+use crate::particles::check_one;
+use crate::scene_file::reader::{sub, v3, zero3, Checker, SceneError};
+use crate::validation::Problem;
+use serde::Deserialize;
+
+/// The force's name ([`Force::name`]): `"drag"`.
+pub const NAME: &str = "drag";
 
 /// Linear drag relative to the air: `f -= kd (v - v_air)` (`kd` in N s/m, `v_air` in m/s).
 /// With `v_air = 0` it is plain linear drag; otherwise wind.
@@ -85,10 +92,37 @@ impl<R: Real> Drag<R> {
 /// Drag has no parameter arrays (`kd` and `wind` are scalars, not differentiable).
 impl<R: Real> Force<R> for Drag<R> {
     fn name(&self) -> &'static str {
-        super::DRAG
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         Drag::eval(self, tape, cx.v, f);
     }
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct DragDesc {
+    kd: f64,
+    #[serde(default = "zero3")]
+    wind: [f64; 3],
+}
+
+/// Loads the `drag` section.
+pub(crate) fn load<R: Real>(
+    dr: &DragDesc,
+    part: &mut Option<Drag<R>>,
+    problems: &mut Vec<Problem>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    let n0 = problems.len();
+    let drag = Drag {
+        kd: R::lit(dr.kd),
+        wind: v3(dr.wind),
+    };
+    drag.check(&mut check_one(problems, "drag"));
+    *part = Some(drag);
+    c.builder(problems, n0, |f| sub("drag", f, &[]))
 }

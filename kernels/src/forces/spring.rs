@@ -4,8 +4,13 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use super::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param};
 use crate::particles::Elements;
+use crate::scene_file::reader::{sub, Checker, SceneError};
+use serde::Deserialize;
+
+/// The force's name ([`Force::name`]): `"springs"`.
+pub const NAME: &str = "springs";
 
 /// Force of one damped spring on its second particle (the first gets the opposite).
 ///
@@ -105,7 +110,7 @@ impl<R: Real> Springs<R> {
 
 impl<R: Real> Force<R> for Springs<R> {
     fn name(&self) -> &'static str {
-        super::SPRINGS
+        NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         Springs::eval(self, tape, cx.x, cx.v, f);
@@ -198,4 +203,37 @@ impl<R: Real> ForcePart<R> for SpringParts<R> {
             }) as Box<dyn Force<R>>
         })
     }
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct SpringDesc {
+    i: u32,
+    j: u32,
+    ke: f64,
+    #[serde(default)]
+    kd: f64,
+    rest: Option<f64>,
+}
+
+/// Loads the `springs` section.
+pub(crate) fn load<R: Real>(
+    d: &[SpringDesc],
+    part: &mut SpringParts<R>,
+    el: &mut Elements<'_, R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, s) in d.iter().enumerate() {
+        let n0 = el.problems.len();
+        match s.rest {
+            Some(r) => part.add_with_rest(el, s.i, s.j, R::lit(r), R::lit(s.ke), R::lit(s.kd)),
+            None => part.add(el, s.i, s.j, R::lit(s.ke), R::lit(s.kd)),
+        };
+        c.builder(el.problems, n0, |f| {
+            sub(&format!("springs[{k}]"), f, &["indices"])
+        })?;
+    }
+    Ok(())
 }

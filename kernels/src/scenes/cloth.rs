@@ -13,10 +13,13 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use crate::contact::ground::Ground;
+use crate::forces::bending::RestDesc;
 use crate::forces::bending::{bending_edges, dihedral_angle, RestAngle};
 use crate::integrators::{Integrator, SemiImplicitEuler};
 use crate::model::{Model, ModelBuilder};
+use crate::scene_file::reader::{identity_quat, v3, Checker, SceneError};
 use crate::state::State;
+use serde::Deserialize;
 
 /// A rectangular cloth: a grid of particles joined by structural and shear springs, split into
 /// triangles, with bending elements on every interior edge.
@@ -368,4 +371,92 @@ pub fn rollout<R: Real>(
             .sqrt();
     }
     Ok(out)
+}
+
+// ---- its scene-file section ------------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ClothGridDesc {
+    ni: usize,
+    nj: usize,
+    origin: [f64; 3],
+    spacing: f64,
+    mass: f64,
+    #[serde(default)]
+    pinned: Vec<[usize; 2]>,
+    spring_ke: f64,
+    #[serde(default)]
+    spring_kd: f64,
+    bend_ke: Option<f64>,
+    #[serde(default)]
+    bend_kd: f64,
+    #[serde(default)]
+    bend_rest: RestDesc,
+    #[serde(default = "identity_quat")]
+    rotation: [f64; 4],
+}
+
+/// Loads the `cloth_grids` section.
+pub(crate) fn load<R: Real>(
+    d: &[ClothGridDesc],
+    b: &mut ModelBuilder<R>,
+    c: &Checker,
+) -> Result<(), SceneError> {
+    for (k, g) in d.iter().enumerate() {
+        let path = |f: &str| format!("cloth_grids[{k}].{f}");
+        if g.ni < 2 || g.nj < 2 || g.ni.saturating_mul(g.nj) > 1 << 26 {
+            return Err(c.err(
+                path("ni"),
+                format!(
+                    "a grid needs 2 to 2^26 particles with at least 2 per side (got {} x {})",
+                    g.ni, g.nj
+                ),
+            ));
+        }
+        c.finite(|| path("origin"), &g.origin)?;
+        c.positive(|| path("spacing"), g.spacing)?;
+        c.nonneg(|| path("mass"), g.mass)?;
+        c.no_underflow::<R>(|| path("mass"), g.mass)?;
+        c.nonneg(|| path("spring_ke"), g.spring_ke)?;
+        c.nonneg(|| path("spring_kd"), g.spring_kd)?;
+        c.nonneg(|| path("bend_kd"), g.bend_kd)?;
+        if let Some(ke) = g.bend_ke {
+            c.nonneg(|| path("bend_ke"), ke)?;
+        }
+        for (m, p) in g.pinned.iter().enumerate() {
+            if p[0] >= g.ni || p[1] >= g.nj {
+                return Err(c.err(
+                    format!("cloth_grids[{k}].pinned[{m}]"),
+                    format!(
+                        "({}, {}) is outside the {} x {} grid",
+                        p[0], p[1], g.ni, g.nj
+                    ),
+                ));
+            }
+        }
+        let n0 = b.problems().len();
+        b.add_cloth_grid(&ClothGrid {
+            ni: g.ni,
+            nj: g.nj,
+            origin: v3(g.origin),
+            spacing: g.spacing,
+            mass: R::lit(g.mass),
+            pinned: g.pinned.iter().map(|p| (p[0], p[1])).collect(),
+            spring_ke: R::lit(g.spring_ke),
+            spring_kd: R::lit(g.spring_kd),
+            bend: g.bend_ke.map(|ke| (R::lit(ke), R::lit(g.bend_kd))),
+            bend_rest: g.bend_rest.into(),
+            rotation: Quat::new(
+                R::lit(g.rotation[3]),
+                R::lit(g.rotation[0]),
+                R::lit(g.rotation[1]),
+                R::lit(g.rotation[2]),
+            ),
+        });
+        if let Some(p) = b.problems().get(n0) {
+            return Err(c.err(format!("cloth_grids[{k}]"), p.to_string()));
+        }
+    }
+    Ok(())
 }
