@@ -15,7 +15,7 @@ use adflex_kernels::contact::ground::Ground;
 use adflex_kernels::contact::particle::ParticleContact;
 use adflex_kernels::contact::shapes::{Shape, ShapeKind};
 use adflex_kernels::forces::particle::Drag;
-use adflex_kernels::forces::{Force, ForceContext, Param, BUILTIN_FORCES};
+use adflex_kernels::forces::{Force, ForceContext, Param, BUILTIN_FORCES, LIBRARY_PARAMS};
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
@@ -187,34 +187,19 @@ fn the_scene_has_every_library_force() {
 
 /// `loss += |x - x0|^2 / dt^2 + <v, w>` over the particles: of the order of the forces'
 /// effect, so that central differences are not swamped by the rounding of `|x|`.
-/// The differentiable parameter arrays of each library force (the guide's table): a visitor
-/// that drops one would silently drop it from ImplicitEuler's copies and from the gradient
-/// checks below, which both iterate the visitor, so the list is pinned here.
-const PARAMS: &[(&str, &[&str])] = &[
-    ("springs", &["rest", "ke", "kd"]),
-    ("bending", &["rest", "ke", "kd"]),
-    ("triangle_fem", &["dm_inv", "area", "mu", "lambda", "kd"]),
-    (
-        "tets",
-        &["dm_inv", "rest_volume", "mu", "lambda", "kd", "activation"],
-    ),
-    ("ground", &[]),
-    ("particle_contact", &[]),
-    ("shape_contact", &["pos", "rot", "size"]),
-    ("drag", &[]),
-    ("anchors", &["anchor", "ke"]),
-];
-
 #[test]
 fn every_parameter_is_visited() {
     let m = every_force();
     for f in &m.forces {
         let got: Vec<&str> = f.params().iter().map(|(p, _)| *p).collect();
-        let want = PARAMS
-            .iter()
-            .find(|(n, _)| *n == f.name())
-            .unwrap_or_else(|| panic!("no parameter list for `{}` in PARAMS", f.name()))
-            .1;
+        // The library's forces: their `PARAMS` rows marked as arrays (a visitor that drops one
+        // would silently drop it from ImplicitEuler's copies and from the gradient checks
+        // below, which both iterate the visitor); the test's own force: its two arrays.
+        let want: Vec<&str> = match LIBRARY_PARAMS.iter().find(|(n, _)| *n == f.name()) {
+            Some((_, rows)) => rows.iter().filter(|r| r.array).map(|r| r.name).collect(),
+            None if f.name() == "anchors" => vec!["anchor", "ke"],
+            None => panic!("no parameter rows for `{}`", f.name()),
+        };
         assert_eq!(got, want, "parameters visited by `{}`", f.name());
     }
 }
@@ -447,10 +432,11 @@ fn requires_grad_with_a_wrong_name_names_the_parameters() {
     }
 }
 
-/// docs/guide.md's "Gradient targets" table lists as *array* exactly the parameters
+/// docs/guide.md's "Gradient targets" table is the library forces' `PARAMS` rows, row for
+/// row (force, parameter, units, array or scalar), and its *array* rows are exactly what
 /// `model.params()` gives for a scene with every library force.
 #[test]
-fn the_guides_parameter_table_is_the_models() {
+fn the_guides_parameter_table_is_the_forces() {
     let guide = include_str!("../../docs/guide.md");
     let start = guide
         .find("### Gradient targets: every parameter")
@@ -461,14 +447,31 @@ fn the_guides_parameter_table_is_the_models() {
             break;
         }
         let cells: Vec<&str> = line.split('|').map(str::trim).collect();
-        if cells.len() == 6 && cells[4] == "array" {
-            in_guide.push(format!(
-                "{}.{}",
-                cells[1].trim_matches('`'),
-                cells[2].trim_matches('`')
-            ));
+        if cells.len() == 6 && (cells[4] == "array" || cells[4] == "scalar") {
+            in_guide.push(cells[1..5].join(" | ").replace('`', ""));
         }
     }
+    let in_files: Vec<String> = LIBRARY_PARAMS
+        .iter()
+        .flat_map(|(force, rows)| {
+            rows.iter().map(move |r| {
+                let kind = if r.array { "array" } else { "scalar" };
+                format!("{force} | {} | {} | {kind}", r.name, r.units).replace('`', "")
+            })
+        })
+        .collect();
+    assert_eq!(
+        in_guide, in_files,
+        "docs/guide.md's parameter table vs the forces' PARAMS"
+    );
+    let arrays: Vec<String> = LIBRARY_PARAMS
+        .iter()
+        .flat_map(|(force, rows)| {
+            rows.iter()
+                .filter(|r| r.array)
+                .map(move |r| format!("{force}.{}", r.name))
+        })
+        .collect();
     let in_model: Vec<String> = every_force()
         .params()
         .iter()
@@ -476,7 +479,44 @@ fn the_guides_parameter_table_is_the_models() {
         .map(|(f, p, _)| format!("{f}.{p}"))
         .collect();
     assert_eq!(
-        in_guide, in_model,
-        "docs/guide.md's parameter table vs model.params()"
+        arrays, in_model,
+        "the forces' array PARAMS vs model.params()"
     );
+    // The guide's component table: its energy column is what `Force::energy` says.
+    let start = guide
+        .find("| force (`name()`) | builder |")
+        .expect("the component table");
+    let model = every_force();
+    let state = model.state();
+    for line in guide[start..]
+        .lines()
+        .skip(2)
+        .take_while(|l| l.starts_with('|'))
+    {
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        let force = cells[1].trim_matches('`');
+        let f = model.force_named(force).expect("a library force");
+        let has = f.energy(
+            &model.context(&state, None),
+            &mut Tape::new(),
+            &Array::zeros(1),
+        );
+        assert_eq!(
+            cells[4] == "yes",
+            has,
+            "the guide's energy column for {force}"
+        );
+    }
+    // A scalar row names a field of the component.
+    for (force, rows) in LIBRARY_PARAMS {
+        let f = model.force_named(force).expect("every library force");
+        let fields = format!("{f:?}");
+        for r in rows.iter().filter(|r| !r.array) {
+            assert!(
+                fields.contains(&format!(" {}: ", r.name)),
+                "{force}.{} is not a field of {fields}",
+                r.name
+            );
+        }
+    }
 }

@@ -5,7 +5,7 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
-use crate::forces::component::{Force, ForceContext, Param};
+use crate::forces::component::{Force, ForceContext, Param, ParamDoc};
 use crate::particles::check_one;
 use crate::scene_file::reader::{sub, v3, Checker, SceneError};
 use crate::validation::Problem;
@@ -13,6 +13,52 @@ use serde::Deserialize;
 
 /// The force's name ([`Force::name`]): `"ground"`.
 pub const NAME: &str = "ground";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "normal",
+        units: "1 (unit normal)",
+        array: false,
+    },
+    ParamDoc {
+        name: "offset",
+        units: "m",
+        array: false,
+    },
+    ParamDoc {
+        name: "ke",
+        units: "N/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "N·s/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "mu",
+        units: "1 (friction coefficient)",
+        array: false,
+    },
+    ParamDoc {
+        name: "leak",
+        units: "1 (gradient leak out of contact)",
+        array: false,
+    },
+    ParamDoc {
+        name: "damp_approach",
+        units: "bool",
+        array: false,
+    },
+    ParamDoc {
+        name: "damping_depth",
+        units: "m",
+        array: false,
+    },
+];
 
 /// Ground contact of particle `tid`: the plane `dot(normal, x) = offset` (m), particles of
 /// radius `radius` (m); `c = contact_depth(dot(normal, x) - offset - radius, leak)` and

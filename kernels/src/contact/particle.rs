@@ -8,7 +8,7 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, Param};
+use crate::forces::component::{Force, ForceContext, Param, ParamDoc};
 use crate::particles::check_one;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use crate::validation::Problem;
@@ -18,6 +18,42 @@ use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 
 /// The force's name ([`Force::name`]): `"particle_contact"`.
 pub const NAME: &str = "particle_contact";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "ke",
+        units: "N/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "N·s/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "damping_depth",
+        units: "m",
+        array: false,
+    },
+    ParamDoc {
+        name: "mu",
+        units: "1 (friction coefficient)",
+        array: false,
+    },
+    ParamDoc {
+        name: "leak",
+        units: "1 (gradient leak out of contact)",
+        array: false,
+    },
+    ParamDoc {
+        name: "margin",
+        units: "m",
+        array: false,
+    },
+];
 
 /// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,
 /// whose surfaces are `gap` apart (m; negative in contact): what both pair kernels compute.

@@ -7,7 +7,7 @@ use adflex_runtime::prelude::*;
 
 use super::particle::ContactDesc;
 use super::particle::ParticleContact;
-use crate::forces::component::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{identity_quat, sub, v3, Checker, SceneError};
 use serde::Deserialize;
@@ -16,6 +16,52 @@ use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 
 /// The force's name ([`Force::name`]): `"shape_contact"`.
 pub const NAME: &str = "shape_contact";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "pos",
+        units: "m (shape position)",
+        array: true,
+    },
+    ParamDoc {
+        name: "rot",
+        units: "unit quaternion (shape orientation)",
+        array: true,
+    },
+    ParamDoc {
+        name: "size",
+        units: "m (sphere radius, box half extents, capsule radius and half length)",
+        array: true,
+    },
+    ParamDoc {
+        name: "ke",
+        units: "N/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "N·s/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "damping_depth",
+        units: "m",
+        array: false,
+    },
+    ParamDoc {
+        name: "mu",
+        units: "1 (friction coefficient)",
+        array: false,
+    },
+    ParamDoc {
+        name: "leak",
+        units: "1 (gradient leak out of contact)",
+        array: false,
+    },
+];
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`
 /// with `n` the outward normal (zero at the centre).

@@ -8,13 +8,34 @@ use std::collections::HashMap;
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use serde::Deserialize;
 
 /// The force's name ([`Force::name`]): `"bending"`.
 pub const NAME: &str = "bending";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "rest",
+        units: "rad (rest dihedral angle)",
+        array: true,
+    },
+    ParamDoc {
+        name: "ke",
+        units: "N·m/rad",
+        array: true,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "N·m·s/rad",
+        array: true,
+    },
+];
 
 /// Accumulates the bending force of element `tid` into `f`.
 ///

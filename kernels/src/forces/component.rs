@@ -10,6 +10,18 @@ use adflex_runtime::{AnyArray, Array, Element, Real, Tape, Vec3};
 
 use crate::state::Control;
 
+/// One row of the guide's parameter table: a parameter of a library force, its units, and
+/// whether it is a differentiable array (visited by [`Force::params_mut`]) or a scalar.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ParamDoc {
+    /// The parameter's name (the visitor's name for an array, the field's for a scalar).
+    pub name: &'static str,
+    /// Its units (and what it is).
+    pub units: &'static str,
+    /// A differentiable array (one value per element), or a scalar shared by all elements.
+    pub array: bool,
+}
+
 /// What a force reads besides its own arrays: the state and the step's control.
 #[derive(Clone, Copy, Debug)]
 pub struct ForceContext<'a, R: Real> {

@@ -13,7 +13,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use crate::validation::{min_quality, precision};
@@ -21,6 +21,43 @@ use serde::Deserialize;
 
 /// The force's name ([`Force::name`]): `"tets"`.
 pub const NAME: &str = "tets";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "dm_inv",
+        units: "1/m (inverse rest shape, 3x3)",
+        array: true,
+    },
+    ParamDoc {
+        name: "rest_volume",
+        units: "m³",
+        array: true,
+    },
+    ParamDoc {
+        name: "mu",
+        units: "Pa (Lamé)",
+        array: true,
+    },
+    ParamDoc {
+        name: "lambda",
+        units: "Pa (Lamé)",
+        array: true,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "Pa·s (damping)",
+        array: true,
+    },
+    ParamDoc {
+        name: "activation",
+        units:
+            "1 (volumetric actuation, 0 = passive; `Control::tet_activation` overrides it per step)",
+        array: true,
+    },
+];
 
 /// Accumulates the force of tetrahedron `tid` into `f`. `mu`, `lambda` (Pa), `kd` (Pa s),
 /// `activation` (dimensionless, 0 = passive).

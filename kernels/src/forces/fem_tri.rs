@@ -10,7 +10,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::particles::Particles;
 use crate::scene_file::reader::{sub, Checker, SceneError};
@@ -20,6 +20,37 @@ use serde::Deserialize;
 
 /// The force's name ([`Force::name`]): `"triangle_fem"`.
 pub const NAME: &str = "triangle_fem";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "dm_inv",
+        units: "1/m (inverse rest shape, 2x2)",
+        array: true,
+    },
+    ParamDoc {
+        name: "area",
+        units: "m² (rest area)",
+        array: true,
+    },
+    ParamDoc {
+        name: "mu",
+        units: "Pa·m (Lamé, membrane)",
+        array: true,
+    },
+    ParamDoc {
+        name: "lambda",
+        units: "Pa·m (Lamé, membrane)",
+        array: true,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "Pa·m·s (damping)",
+        array: true,
+    },
+];
 
 /// Accumulates the membrane force of triangle `tid` into `f`. `mu`, `lambda` (Pa m, i.e.
 /// N/m: 2D Lame parameters), `kd` (N s/m: strain-rate damping).

@@ -73,22 +73,26 @@ pub mod particle;
 pub mod spring;
 
 pub(crate) use component::ForcePart;
-pub use component::{Force, ForceClone, ForceContext, Param, ParamCopy};
+pub use component::{Force, ForceClone, ForceContext, Param, ParamCopy, ParamDoc};
 
 /// The library's forces, listed once: each line gives the builder's field for the force's
-/// part, the part's type, and the force's name constant (its [`Force::name`], defined in its
-/// file). The list
-/// makes [`BUILTIN_FORCES`], the name constants and the builder's parts, and its order is the
+/// part, the part's type, the name constant, and the module whose `NAME` ([`Force::name`])
+/// and `PARAMS` (its rows of the guide's parameter table) it takes. The list
+/// makes [`BUILTIN_FORCES`], [`LIBRARY_PARAMS`], the name constants and the builder's parts, and its order is the
 /// order in which a model evaluates the forces (which fixes the bits of the total force).
 macro_rules! library_forces {
-    ($($(#[$doc:meta])* $field:ident: $part:ty, $NAME:ident = $name:expr;)*) => {
+    ($($(#[$doc:meta])* $field:ident: $part:ty, $NAME:ident = $module:ident;)*) => {
         /// The names ([`Force::name`]) of every force type the library has, in the order
         /// [`ModelBuilder::finalize`](crate::ModelBuilder::finalize) adds them to a model.
         /// Each library force's `name` returns its entry here (tests check that a scene with
         /// every force lists exactly these).
         pub const BUILTIN_FORCES: &[&str] = &[$($NAME),*];
 
-        $($(#[$doc])* pub const $NAME: &str = $name;)*
+        $($(#[$doc])* pub const $NAME: &str = $module::NAME;)*
+
+        /// Every library force's parameters (its `PARAMS`, the guide's table), in the order
+        /// of [`BUILTIN_FORCES`].
+        pub const LIBRARY_PARAMS: &[(&str, &[ParamDoc])] = &[$(($module::NAME, $module::PARAMS)),*];
 
         /// The library forces' parts of a scene description, in the order of
         /// [`BUILTIN_FORCES`].
@@ -116,19 +120,19 @@ macro_rules! library_forces {
 
 library_forces! {
     /// [`spring::Springs`].
-    springs: spring::SpringParts<R>, SPRINGS = spring::NAME;
+    springs: spring::SpringParts<R>, SPRINGS = spring;
     /// [`bending::Bending`].
-    bending: bending::BendingParts<R>, BENDING = bending::NAME;
+    bending: bending::BendingParts<R>, BENDING = bending;
     /// [`fem_tri::TriangleFem`].
-    triangle_fem: fem_tri::TriangleParts<R>, TRIANGLE_FEM = fem_tri::NAME;
+    triangle_fem: fem_tri::TriangleParts<R>, TRIANGLE_FEM = fem_tri;
     /// [`fem_tet::TetFem`].
-    tets: fem_tet::TetParts<R>, TETS = fem_tet::NAME;
+    tets: fem_tet::TetParts<R>, TETS = fem_tet;
     /// [`crate::contact::ground::Ground`].
-    ground: Option<ground::Ground<R>>, GROUND = ground::NAME;
+    ground: Option<ground::Ground<R>>, GROUND = ground;
     /// [`crate::contact::particle::ParticleContact`].
-    particle_contact: Option<contact::ParticleContact<R>>, PARTICLE_CONTACT = contact::NAME;
+    particle_contact: Option<contact::ParticleContact<R>>, PARTICLE_CONTACT = contact;
     /// [`crate::contact::shapes::Shapes`].
-    shape_contact: shapes::ShapeParts<R>, SHAPE_CONTACT = shapes::NAME;
+    shape_contact: shapes::ShapeParts<R>, SHAPE_CONTACT = shapes;
     /// [`particle::Drag`].
-    drag: Option<particle::Drag<R>>, DRAG = particle::NAME;
+    drag: Option<particle::Drag<R>>, DRAG = particle;
 }

@@ -7,7 +7,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, Param};
+use crate::forces::component::{Force, ForceContext, Param, ParamDoc};
 use crate::particles::check_one;
 use crate::scene_file::reader::{sub, v3, zero3, Checker, SceneError};
 use crate::validation::Problem;
@@ -15,6 +15,22 @@ use serde::Deserialize;
 
 /// The force's name ([`Force::name`]): `"drag"`.
 pub const NAME: &str = "drag";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "kd",
+        units: "N·s/m",
+        array: false,
+    },
+    ParamDoc {
+        name: "wind",
+        units: "m/s",
+        array: false,
+    },
+];
 
 /// Linear drag relative to the air: `f -= kd (v - v_air)` (`kd` in N s/m, `v_air` in m/s).
 /// With `v_air = 0` it is plain linear drag; otherwise wind.

@@ -4,13 +4,34 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param};
+use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use serde::Deserialize;
 
 /// The force's name ([`Force::name`]): `"springs"`.
 pub const NAME: &str = "springs";
+
+/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
+/// every parameter, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+pub const PARAMS: &[ParamDoc] = &[
+    ParamDoc {
+        name: "rest",
+        units: "m (rest length)",
+        array: true,
+    },
+    ParamDoc {
+        name: "ke",
+        units: "N/m",
+        array: true,
+    },
+    ParamDoc {
+        name: "kd",
+        units: "N·s/m",
+        array: true,
+    },
+];
 
 /// Force of one damped spring on its second particle (the first gets the opposite).
 ///
