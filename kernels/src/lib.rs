@@ -50,9 +50,6 @@ pub mod state;
 pub mod statics;
 pub mod tied;
 pub mod validation;
-/// The constraints' old module name (`constraints` beside `integrators::xpbd`).
-#[doc(hidden)]
-pub use constraints as xpbd;
 
 pub use integrators::{Integrator, SemiImplicitEuler};
 pub use model::{Model, ModelBuilder};

@@ -6,7 +6,6 @@
 
 mod common;
 
-use adflex_kernels::integrators::oscillator::Oscillator;
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
@@ -14,6 +13,7 @@ use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;
 use adflex_runtime::gradcheck::{dot_test, GradCheck};
 use adflex_runtime::prelude::*;
+use common::oscillator::Oscillator;
 use common::{spring_system, spring_system_with};
 
 /// `loss += |x|^2 / 2 + <v, (1, 2, -0.5)>` over the particles.

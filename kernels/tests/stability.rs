@@ -1,13 +1,15 @@
 //! Where each integrator is stable and where it fails, on an undamped spring
 //! (`omega = sqrt(k / m)`) and a stiff pendulum. Run with `--nocapture` for the figures.
 
-use adflex_kernels::integrators::oscillator::Oscillator;
+mod common;
+
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
 use adflex_kernels::prelude::Drag;
 use adflex_kernels::{Model, ModelBuilder};
 use adflex_runtime::{Tape, Vec3};
+use common::oscillator::Oscillator;
 
 /// Whether an energy ratio reached `threshold` (or overflowed to NaN).
 fn diverged(ratio: f64, threshold: f64) -> bool {

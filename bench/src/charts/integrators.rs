@@ -1,12 +1,17 @@
 //! Charts 1 and 2: the integrators of `adflex_kernels::integrators` on a mass-spring
-//! oscillator with an exact solution (`integrators::oscillator`).
+//! oscillator with an exact solution (`kernels/tests/common/oscillator.rs`).
 
-use adflex_kernels::integrators::oscillator::{Oscillator, Trajectory, REST_LENGTH};
+// The kernels' tests' fixture, shared by path (it is not part of the library's API).
+#[path = "../../../kernels/tests/common/oscillator.rs"]
+#[allow(dead_code)]
+mod oscillator;
+
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
 };
 use adflex_kernels::prelude::Drag;
 use adflex_runtime::{Tape, Vec3};
+use oscillator::{Oscillator, Trajectory, REST_LENGTH};
 use serde_json::json;
 
 use super::plot::{Chart, Series, Style};

@@ -36,9 +36,6 @@ pub(crate) mod common;
 pub mod explicit;
 pub mod implicit;
 pub mod midpoint;
-// A test fixture (a mass-spring oscillator with its exact solution), not API.
-#[doc(hidden)]
-pub mod oscillator;
 pub mod rk4;
 pub mod semi_implicit;
 pub mod xpbd;

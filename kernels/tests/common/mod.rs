@@ -2,6 +2,8 @@
 //! two checks every kernel gets (adjoint vs central differences, tangent vs adjoint).
 #![allow(dead_code, unused_macros, unused_imports)]
 
+pub mod oscillator;
+
 use adflex_kernels::{Model, ModelBuilder};
 use adflex_runtime::{Array, Mat22, Mat33, Quat, Vec3};
 

@@ -1,34 +1,19 @@
-//! A one-dimensional damped (or undamped) mass-spring oscillator with its exact solution: the
-//! test bench of the integrators' accuracy and stability (and of the benchmark charts of
-//! error against cost and stability against stiffness).
-//!
-//! The oscillator is a [`Model`] of two particles joined by one spring along `x`: an anchor
-//! pinned at the origin and a mass at `rest_length + displacement`. No gravity. It obeys
-//! `m u'' + c u' + k u = 0` exactly as long as the mass does not cross the anchor
-//! (`|u| < 1 m`, see [`Trajectory::max_displacement`]), so every integrator of this crate can be run on it and compared with
-//! [`Oscillator::exact`].
-//!
-//! ```
-//! use adflex_kernels::integrators::oscillator::Oscillator;
-//! use adflex_kernels::integrators::{ExplicitEuler, Rk4, SemiImplicitEuler};
-//!
-//! let osc = Oscillator { stiffness: 100.0, mass: 1.0, damping: 0.5, ..Oscillator::default() };
-//! let dt = 0.01;
-//! let steps = (1.0 / dt) as usize;
-//! let (u, _) = osc.exact(1.0);
-//! let err = |t: adflex_kernels::integrators::oscillator::Trajectory| (t.final_displacement() - u).abs();
-//! let e_rk4 = err(osc.simulate(&Rk4, dt, steps));
-//! let e_semi = err(osc.simulate(&SemiImplicitEuler, dt, steps));
-//! let e_expl = err(osc.simulate(&ExplicitEuler, dt, steps));
-//! assert!(e_rk4 < 1e-6 && e_rk4 < e_semi && e_semi < e_expl);
-//! ```
+// A one-dimensional damped (or undamped) mass-spring oscillator with its exact solution: the
+// test bench of the integrators' accuracy and stability (and of the benchmark charts of
+// error against cost and stability against stiffness).
+//
+// The oscillator is a `Model` of two particles joined by one spring along `x`: an anchor
+// pinned at the origin and a mass at `rest_length + displacement`. No gravity. It obeys
+// `m u'' + c u' + k u = 0` exactly as long as the mass does not cross the anchor
+// (`|u| < 1 m`, see `Trajectory::max_displacement`), so every integrator of the library can be run on it and compared with
+// `Oscillator::exact`.
 
 use std::time::Instant;
 
 use adflex_runtime::{Array, Error, Tape, Vec3};
 
-use super::Integrator;
-use crate::model::{Model, ModelBuilder};
+use adflex_kernels::integrators::Integrator;
+use adflex_kernels::{Model, ModelBuilder};
 
 /// Rest length of the oscillator's spring (m).
 pub const REST_LENGTH: f64 = 1.0;
@@ -104,7 +89,7 @@ impl Trajectory {
     }
 
     /// The largest energy along the trajectory over the initial energy (NaN or infinite if the
-    /// simulation blew up). See [`Trajectory::max_displacement`] for where it stops being
+    /// simulation blew up). See `Trajectory::max_displacement` for where it stops being
     /// that of a linear oscillator.
     pub fn max_energy_ratio(&self) -> f64 {
         let e0 = self.energy[0];
@@ -166,7 +151,7 @@ impl Oscillator {
         b
     }
 
-    /// The oscillator as a [`Model`]: particle 0 pinned at the origin, particle 1 (the mass) at
+    /// The oscillator as a `Model`: particle 0 pinned at the origin, particle 1 (the mass) at
     /// `(1 + u(0), 0, 0)`, one spring of rest length 1 m, stiffness `k` and damping `c`, no
     /// gravity.
     pub fn model(&self) -> Model<f64> {
