@@ -67,13 +67,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         .max_iters(cfg.max_iters)
         .grad_tol(1e-9)
         .progress(cfg.progress)
-        .minimize(&Params::new().with(&rest), |tape| {
-            let end =
-                SemiImplicitEuler.rollout(model, tape, &model.state(), None, cfg.dt, steps)?;
-            let loss = Array::zeros(1);
-            losses::distance_to_target(tape, &end.x, &[scene.center], cfg.target, 1.0, &loss);
-            Ok(loss)
-        })?;
+        .minimize(&Params::new().with(&rest), |tape| loss(&scene, cfg, tape))?;
     let frames = rollout(&mut Tape::new())?;
     let miss = (frames.last().unwrap().x.get(scene.center as usize) - cfg.target).norm();
     Ok(Outcome {
@@ -83,6 +77,41 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         first_guess,
         miss,
     })
+}
+
+/// The loss: the centre's squared distance from the target at the end of the rollout.
+fn loss(scene: &cage::CageScene<f64>, cfg: &Config, tape: &mut Tape) -> Result<Array<f64>, Error> {
+    let model = &scene.model;
+    let steps = (cfg.duration / cfg.dt).round() as usize;
+    let end = SemiImplicitEuler.rollout(model, tape, &model.state(), None, cfg.dt, steps)?;
+    let loss = Array::zeros(1);
+    losses::distance_to_target(tape, &end.x, &[scene.center], cfg.target, 1.0, &loss);
+    Ok(loss)
+}
+
+/// The optimizers side by side on the same problem from the same first guess, each given
+/// `evals` loss evaluations (a rollout and its gradient each): `(name, report)`.
+pub fn compare(cfg: &Config, evals: usize) -> Result<Vec<(&'static str, Report)>, Error> {
+    let methods: [(&'static str, Optimizer); 3] = [
+        ("L-BFGS", Optimizer::lbfgs()),
+        ("Adam (lr 0.01)", Optimizer::adam(0.01)),
+        (
+            "gradient descent (lr 0.1)",
+            Optimizer::gradient_descent(0.1),
+        ),
+    ];
+    let mut out = Vec::new();
+    for (name, optimizer) in methods {
+        let scene = cage::build::<f64>(cage::Cage::default());
+        let rest = scene.model.param::<f64>("springs", "rest")?;
+        let report = optimizer
+            .max_evals(evals)
+            .max_iters(evals)
+            .grad_tol(1e-12)
+            .minimize(&Params::new().with(&rest), |tape| loss(&scene, cfg, tape))?;
+        out.push((name, report));
+    }
+    Ok(out)
 }
 
 #[allow(dead_code)]
@@ -112,11 +141,38 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     let dir = std::path::Path::new("target/demos/cage");
     std::fs::create_dir_all(dir)?;
-    adflex::viz::plot::loss_curve(
-        dir.join("loss.svg"),
-        &out.report.losses(),
-        "cage: L-BFGS on 26 rest lengths",
-    )?;
+    for file in ["loss.svg", "loss.png"] {
+        adflex::viz::plot::loss_curve(
+            dir.join(file),
+            &out.report.losses(),
+            "cage: L-BFGS on 26 rest lengths",
+        )?;
+    }
+    // The optimizers compared: loss against rollouts (loss and gradient evaluations).
+    let runs = compare(&cfg, 40)?;
+    let curves: Vec<(&str, Vec<(f64, f64)>)> = runs
+        .iter()
+        .map(|(name, r)| {
+            let pts = r.history.iter().map(|it| (it.evaluations as f64, it.loss));
+            (*name, pts.collect())
+        })
+        .collect();
+    for (name, r) in &runs {
+        println!(
+            "{name}: loss {:.2e} after {} evaluations ({})",
+            r.loss, r.evaluations, r.stop
+        );
+    }
+    let series: Vec<(&str, &[(f64, f64)])> = curves.iter().map(|(n, p)| (*n, &p[..])).collect();
+    for file in ["optimizers.svg", "optimizers.png"] {
+        adflex::viz::plot::curves(
+            dir.join(file),
+            "cage: three optimizers on the same 26 rest lengths",
+            "rollouts (loss and gradient evaluations)",
+            "loss (m^2)",
+            &series,
+        )?;
+    }
     // The target, the centre's path, the first guess's end state behind the result, the
     // springs coloured by strain (red stretched, blue compressed) and the time.
     use adflex::viz::overlay::{ColorBy, Colormap, Ghost, Marker, Overlay, Trail, Values};
@@ -168,7 +224,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &overlay,
     )?;
     println!(
-        "pictures: {}/{{loss.svg, cage.gif, cage.png}}",
+        "pictures: {}/{{loss, optimizers}}.{{svg, png}}, cage.gif, cage.png",
         dir.display()
     );
     Ok(())

@@ -20,6 +20,22 @@ fn cage_centre_reaches_the_target_in_a_few_lbfgs_iterations() {
     assert!(l[3.min(l.len() - 1)] < 1e-4 * l[0], "{:?}", l);
 }
 
+/// The optimizers' chart of the cage demo: with the same budget of 40 rollouts, L-BFGS
+/// converges and ends far below Adam and gradient descent, which both lower the loss.
+#[test]
+fn cage_optimizers_compared_on_one_budget() {
+    let runs = cage::compare(&cage::Config::small(), 40).unwrap();
+    let names: Vec<&str> = runs.iter().map(|(n, _)| *n).collect();
+    assert_eq!(names.len(), 3);
+    let (lbfgs, others) = runs.split_first().unwrap();
+    assert!(lbfgs.1.converged(), "{}", lbfgs.1);
+    for (name, r) in others {
+        assert!(r.evaluations <= 40, "{name}: {}", r);
+        assert!(r.loss < r.initial_loss, "{name}: {}", r);
+        assert!(lbfgs.1.loss < 1e-6 * r.loss, "L-BFGS {} vs {name} {}", lbfgs.1, r);
+    }
+}
+
 #[path = "../examples/stiff_pendulum.rs"]
 #[allow(dead_code)]
 mod stiff_pendulum;

@@ -460,10 +460,19 @@ fn the_guides_parameter_table_is_the_forces() {
             })
         })
         .collect();
-    assert_eq!(
-        in_guide, in_files,
-        "docs/guide.md's parameter table vs the forces' PARAMS"
-    );
+    if in_guide != in_files {
+        let rows: Vec<String> = in_files
+            .iter()
+            .map(|r| {
+                let c: Vec<&str> = r.split(" | ").collect();
+                format!("| `{}` | `{}` | {} | {} |", c[0], c[1], c[2], c[3])
+            })
+            .collect();
+        panic!(
+            "docs/guide.md's parameter table is not the forces' PARAMS; its rows should be:\n{}",
+            rows.join("\n")
+        );
+    }
     let arrays: Vec<String> = LIBRARY_PARAMS
         .iter()
         .flat_map(|(force, rows)| {

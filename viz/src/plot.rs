@@ -1,11 +1,11 @@
-//! Line charts as SVG files, drawn with `plotters`: an optimization's loss curve
-//! ([`loss_curve`]) or several named curves, e.g. energy against time for several
-//! integrators ([`curves`]).
+//! Line charts drawn with `plotters`: an optimization's loss curve ([`loss_curve`]) or several
+//! named curves, e.g. energy against time for several integrators or the loss of several
+//! optimizers ([`curves`]).
 //!
-//! Output is SVG only: `plotters` writes text as SVG `<text>` elements (the viewer picks the
-//! font), so nothing here needs a font file or a system library. Its PNG output would need
-//! system fonts to draw text, so it is not offered; open the SVG in a browser, or convert it
-//! (e.g. `rsvg-convert`, Inkscape) if you need pixels.
+//! The path's extension picks the format: `.png` draws the chart in pixels (with the 8x8
+//! bitmap font of the overlays, so no font file or system library is needed), anything else
+//! writes SVG, whose text the viewer renders. Draw both for a report (`loss.svg` to zoom,
+//! `loss.png` to paste).
 //!
 //! ```
 //! let dir = std::env::temp_dir().join(format!("adflex-viz-doc-plot-{}", std::process::id()));
@@ -22,6 +22,9 @@ use plotters::coord::combinators::BindKeyPoints;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::prelude::*;
 
+use plotters::coord::Shift;
+
+use crate::raster::PixmapBackend;
 use crate::{Error, Result};
 
 /// Width and height (px) of the charts.
@@ -41,8 +44,8 @@ const PALETTE: [RGBColor; 8] = [
 
 type Series = (String, Vec<(f64, f64)>);
 
-/// Writes the losses of an optimization, one per iteration (x = 0, 1, ...), as an SVG line
-/// chart titled `title`. The y axis is logarithmic when every loss is positive and they span
+/// Writes the losses of an optimization, one per iteration (x = 0, 1, ...), as a line chart
+/// titled `title` (PNG for a `.png` path, SVG otherwise). The y axis is logarithmic when every loss is positive and they span
 /// more than two decades (max / min > 100), linear otherwise. Non-finite losses are left
 /// out; none finite (or none at all) is an [`Error::Empty`].
 ///
@@ -68,8 +71,8 @@ pub fn loss_curve(path: impl AsRef<Path>, losses: &[f64], title: &str) -> Result
     )
 }
 
-/// Writes several named curves (`(name, points)`, points as `(x, y)`) as one SVG line chart
-/// with axis labels and a legend; the y axis is logarithmic under the same rule as
+/// Writes several named curves (`(name, points)`, points as `(x, y)`) as one line chart with
+/// axis labels and a legend (PNG for a `.png` path, SVG otherwise); the y axis is logarithmic under the same rule as
 /// [`loss_curve`]. Non-finite points are left out; no finite point at all is an
 /// [`Error::Empty`].
 ///
@@ -173,33 +176,51 @@ fn chart(
         y1 = y1.max(y);
     }
     let xr = if x1 > x0 { x0..x1 } else { padded(x0, x1) };
-    let mut svg = String::new();
-    let drawn = if y0 > 0.0 && y1 / y0 > 100.0 {
-        let (lo, hi) = (y0 / 1.5, y1 * 1.5);
-        let yr = (lo..hi).log_scale().with_key_points(decades(lo, hi));
-        draw(&mut svg, title, x_label, y_label, xr, yr, &series, legend)
-    } else {
-        draw(
-            &mut svg,
-            title,
-            x_label,
-            y_label,
-            xr,
-            padded(y0, y1),
-            &series,
-            legend,
-        )
-    };
-    drawn.map_err(|message| Error::Encode {
+    let log = y0 > 0.0 && y1 / y0 > 100.0;
+    let labels = (title, x_label, y_label);
+    let encode = |message| Error::Encode {
         path: path.to_path_buf(),
         message,
-    })?;
-    std::fs::write(path, svg).map_err(|e| Error::io(path, e))
+    };
+    let png = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+    if png {
+        let mut pm = tiny_skia::Pixmap::new(SIZE.0, SIZE.1).expect("a nonzero chart size");
+        let root = PixmapBackend::new(&mut pm).into_drawing_area();
+        on(root, labels, xr, (y0, y1, log), &series, legend).map_err(encode)?;
+        let bytes = pm.encode_png().map_err(|e| encode(e.to_string()))?;
+        std::fs::write(path, bytes).map_err(|e| Error::io(path, e))
+    } else {
+        let mut svg = String::new();
+        let root = SVGBackend::with_string(&mut svg, SIZE).into_drawing_area();
+        on(root, labels, xr, (y0, y1, log), &series, legend).map_err(encode)?;
+        std::fs::write(path, svg).map_err(|e| Error::io(path, e))
+    }
+}
+
+/// Draws the chart on `root`, the y axis over `[y0, y1]`, logarithmic if `log`.
+fn on<DB: DrawingBackend>(
+    root: DrawingArea<DB, Shift>,
+    (title, x_label, y_label): (&str, &str, &str),
+    xr: Range<f64>,
+    (y0, y1, log): (f64, f64, bool),
+    series: &[Series],
+    legend: bool,
+) -> std::result::Result<(), String> {
+    if log {
+        let (lo, hi) = (y0 / 1.5, y1 * 1.5);
+        let yr = (lo..hi).log_scale().with_key_points(decades(lo, hi));
+        draw(root, title, x_label, y_label, xr, yr, series, legend)
+    } else {
+        let yr = padded(y0, y1);
+        draw(root, title, x_label, y_label, xr, yr, series, legend)
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
-fn draw<Y>(
-    svg: &mut String,
+fn draw<DB: DrawingBackend, Y>(
+    root: DrawingArea<DB, Shift>,
     title: &str,
     x_label: &str,
     y_label: &str,
@@ -213,13 +234,12 @@ where
     Y::CoordDescType: ValueFormatter<f64>,
 {
     let e = |e: &dyn std::fmt::Display| e.to_string();
-    let root = SVGBackend::with_string(svg, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|x| e(&x))?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
         .margin(16)
         .x_label_area_size(44)
-        .y_label_area_size(72)
+        .y_label_area_size(90)
         .build_cartesian_2d::<Range<f64>, Y>(xr, yr)
         .map_err(|x| e(&x))?;
     chart
@@ -245,6 +265,8 @@ where
     if legend {
         chart
             .configure_series_labels()
+            // 18 px: plotters' width estimate of a label then fits the PNG's 8 px glyphs.
+            .label_font(("sans-serif", 18))
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK.mix(0.4))
             .position(SeriesLabelPosition::UpperRight)

@@ -611,6 +611,76 @@ fn curves_have_a_legend() {
     assert!(text.matches("<polyline").count() + text.matches("<path").count() >= 2);
 }
 
+/// A `.png` path draws the same chart in pixels: the size of an SVG chart, each series in its
+/// colour, the title in dark text at the top, the y axis label drawn rotated (taller than
+/// wide).
+#[test]
+fn png_charts_draw_lines_and_text() {
+    let dir = TempDir::new("png-chart");
+    let a: Vec<(f64, f64)> = (0..50).map(|k| (k as f64 * 0.1, 1.0)).collect();
+    let b: Vec<(f64, f64)> = (0..50)
+        .map(|k| (k as f64 * 0.1, 1.0 + 0.05 * k as f64))
+        .collect();
+    let path = dir.path("e.png");
+    plot::curves(
+        &path,
+        "energy",
+        "time (s)",
+        "energy (J)",
+        &[("semi-implicit Euler", &a[..]), ("explicit Euler", &b[..])],
+    )
+    .unwrap();
+    let (w, h, px) = decode_png(&path);
+    assert_eq!((w, h), plot::SIZE);
+    let at = |x: u32, y: u32| px[(y * w + x) as usize];
+    let count = |f: &dyn Fn([u8; 4]) -> bool, x0: u32, x1: u32, y0: u32, y1: u32| {
+        let mut n = 0;
+        for y in y0..y1 {
+            for x in x0..x1 {
+                n += f(at(x, y)) as usize;
+            }
+        }
+        n
+    };
+    let dark = |c: [u8; 4]| c[0] < 60 && c[1] < 60 && c[2] < 60;
+    // The series' colours (blue, orange).
+    let blue = |c: [u8; 4]| c[2] > 150 && c[0] < 80;
+    let orange = |c: [u8; 4]| c[0] > 220 && c[1] > 100 && c[1] < 160 && c[2] < 60;
+    assert!(count(&blue, 0, w, 0, h) > 200, "the first series");
+    assert!(count(&orange, 0, w, 0, h) > 200, "the second series");
+    // The title: dark pixels in the top band, centred.
+    assert!(
+        count(&dark, w / 2 - 60, w / 2 + 60, 0, 40) > 50,
+        "the title"
+    );
+    // The y label, left of the axis: its dark pixels span more rows than columns.
+    let (mut rows, mut cols) = (
+        std::collections::BTreeSet::new(),
+        std::collections::BTreeSet::new(),
+    );
+    for y in 60..h - 60 {
+        for x in 0..30 {
+            if dark(at(x, y)) {
+                rows.insert(y);
+                cols.insert(x);
+            }
+        }
+    }
+    assert!(
+        rows.len() > 3 * cols.len() && cols.len() >= 6,
+        "rotated y label: {} rows, {} columns",
+        rows.len(),
+        cols.len()
+    );
+    // The other format from the same call, by extension: text a viewer renders.
+    plot::loss_curve(dir.path("l.svg"), &[3.0, 1.0], "svg").unwrap();
+    plot::loss_curve(dir.path("l.PNG"), &[3.0, 1.0], "png").unwrap();
+    assert!(std::fs::read_to_string(dir.path("l.svg"))
+        .unwrap()
+        .contains("<svg"));
+    assert_eq!(&std::fs::read(dir.path("l.PNG")).unwrap()[1..4], b"PNG");
+}
+
 // ---------------------------------------------------------------- errors
 
 #[test]
