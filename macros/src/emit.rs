@@ -3,7 +3,7 @@
 //! - Forward: the statements as written.
 //! - Adjoint of a block: replay the block's forward (no stores), declaring an adjoint `a<N>`
 //!   beside every value; seed; then walk the statements backward applying each op's rule
-//!   (`adj_<op>` in `adflex_runtime::math`). A nested `if` replays and reverses its taken
+//!   (`adj_<op>` in `adflex_runtime::__codegen`). A nested `if` replays and reverses its taken
 //!   branch. A dynamic loop's replay pushes each iteration's carried values (and index) on a
 //!   stack; its reverse pops them, replays that iteration's body and reverses it, so no
 //!   iteration is ever replayed with another iteration's values.
@@ -272,7 +272,7 @@ impl<'a> Emitter<'a> {
             Op::Builtin { f, args } => {
                 let f = Ident::new(f.name(), span);
                 let (rt, args) = (located(rt, span), vs_at(args, span));
-                quote_spanned!(span=> #rt::math::#f(#(#args),*))
+                quote_spanned!(span=> #rt::__codegen::#f(#(#args),*))
             }
             Op::Func { path, args } => {
                 let args = vs(args);
@@ -283,7 +283,7 @@ impl<'a> Emitter<'a> {
             }
             Op::Cast { arg, ty } => {
                 let x = v(*arg);
-                quote_spanned!(span=> #rt::math::cast::<_, #ty>(#x))
+                quote_spanned!(span=> #rt::__codegen::cast::<_, #ty>(#x))
             }
             Op::Typed { src, .. } => {
                 let x = v(*src);
@@ -580,14 +580,14 @@ impl<'a> Emitter<'a> {
                 let rt = &located(rt, span);
                 if args.len() == 1 {
                     let ax = a(args[0]);
-                    quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::#f(#(#xs,)* #an));)
+                    quote_spanned!(span=> #rt::acc(&mut #ax, #rt::__codegen::#f(#(#xs,)* #an));)
                 } else {
                     let gs: Vec<_> = (0..args.len())
                         .map(|i| local("__g", i, Span::call_site()))
                         .collect();
                     let axs = args.iter().map(|&x| a(x));
                     quote_spanned! {span=>
-                        let (#(#gs,)*) = #rt::math::#f(#(#xs,)* #an);
+                        let (#(#gs,)*) = #rt::__codegen::#f(#(#xs,)* #an);
                         #(#rt::acc(&mut #axs, #gs);)*
                     }
                 }
@@ -606,7 +606,7 @@ impl<'a> Emitter<'a> {
             }
             Op::Cast { arg, ty } => {
                 let (x, ax) = (v(*arg), a(*arg));
-                quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::adj_cast::<_, #ty>(#x, #an));)
+                quote_spanned!(span=> #rt::acc(&mut #ax, #rt::__codegen::adj_cast::<_, #ty>(#x, #an));)
             }
             Op::Typed { src, .. } => {
                 let ax = a(*src);
@@ -741,7 +741,7 @@ impl<'a> Emitter<'a> {
                 let f = format_ident!("tan_{}", f.name(), span = span);
                 let (xs, dxs) = (vs_at(args, span), ds_at(args, span));
                 let rt = &located(rt, span);
-                quote_spanned!(span=> #fwd let #dx = #rt::math::#f(#(#xs,)* #(#dxs),*);)
+                quote_spanned!(span=> #fwd let #dx = #rt::__codegen::#f(#(#xs,)* #(#dxs),*);)
             }
             Op::Func { path, args } => {
                 let (xs, dxs) = (vs(args), ds(args));
@@ -753,7 +753,7 @@ impl<'a> Emitter<'a> {
             Op::Cast { arg, ty } => {
                 let fwd = self.let_stmt(l);
                 let (y, dy) = (v(*arg), d(*arg));
-                quote_spanned!(span=> #fwd let #dx = #rt::math::tan_cast::<_, #ty>(#y, #dy);)
+                quote_spanned!(span=> #fwd let #dx = #rt::__codegen::tan_cast::<_, #ty>(#y, #dy);)
             }
             Op::Typed { src, ty } => {
                 let fwd = self.let_stmt(l);

@@ -201,7 +201,10 @@ fn kernel_items(
             }
         }
 
-        impl #impl_generics #rt::kernel::KernelBody<(#(#owned,)*)> for #name #where_clause {
+        // SAFETY: the body makes its views from `__exec` and drops them before it returns, and
+        // `scatter_indices` reports the indices the body's static scatters compute (see
+        // `KernelBody`'s contract); the macro generates both from one analysis.
+        unsafe impl #impl_generics #rt::kernel::KernelBody<(#(#owned,)*)> for #name #where_clause {
             const NAME: &'static str = #name_str;
             const PARAMS: &'static [#rt::kernel::ParamInfo] = &[#(#access),*];
             fn arrays(__args: &(#(#owned,)*)) -> ::std::vec::Vec<::std::option::Option<&dyn #rt::AnyArray>> {
@@ -483,7 +486,8 @@ fn kernel_stub(sig: &Signature, rt: &TokenStream, attrs: &[syn::Attribute]) -> T
             type Owned = ();
             fn to_owned(_: &__A) {}
         }
-        impl #rt::kernel::KernelBody<()> for #name {
+        // SAFETY: makes no views (never runs).
+        unsafe impl #rt::kernel::KernelBody<()> for #name {
             const NAME: &'static str = #name_str;
             const PARAMS: &'static [#rt::kernel::ParamInfo] = &[];
             fn arrays(_: &()) -> ::std::vec::Vec<::std::option::Option<&dyn #rt::AnyArray>> {

@@ -82,7 +82,7 @@ impl Op {
     }
 }
 
-/// A builtin rule of `adflex_runtime::math`: the operations the macro itself lowers to, or a
+/// A builtin rule of `adflex_runtime::__codegen`: the operations the macro itself lowers to, or a
 /// builtin the user calls by name. Emitted as `name(..)`, `adj_name(..)` and `tan_name(..)`.
 #[derive(Clone, PartialEq, Eq, Debug)]
 pub enum Builtin {
@@ -108,7 +108,7 @@ pub enum Builtin {
 }
 
 impl Builtin {
-    /// The name of the rule in `adflex_runtime::math`.
+    /// The name of the rule in `adflex_runtime::__codegen`.
     pub fn name(&self) -> &str {
         match self {
             Builtin::Add => "add",

@@ -21,7 +21,6 @@ use std::ops::Range;
 use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
-pub use crate::linger::{leader_waits, lingerers};
 use crate::region::Region;
 pub use crate::settings::{flush_subnormals, linger, set_flush_subnormals, set_linger};
 use crate::{settings, split};
@@ -360,13 +359,6 @@ mod choice {
             }
         }
     }
-}
-
-/// How many launches so far ran as a static split (see `docs/performance.md`, "How a parallel
-/// launch scatters"): for tests that a launch took that path.
-#[doc(hidden)]
-pub fn split_launches() -> u64 {
-    split::LAUNCHES.load(std::sync::atomic::Ordering::Relaxed)
 }
 
 /// Runs `kernel` in `mode` over `0..dim` on the calling thread only, in thread-id order (the

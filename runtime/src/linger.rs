@@ -19,8 +19,7 @@ static LINGERING: AtomicUsize = AtomicUsize::new(0);
 static LEADER_WAITS: AtomicUsize = AtomicUsize::new(0);
 
 /// Lingering jobs spawned and not yet started, and workers lingering now (for tests).
-#[doc(hidden)]
-pub fn lingerers() -> (usize, usize) {
+pub(crate) fn lingerers() -> (usize, usize) {
     (
         QUEUED.load(Ordering::Acquire),
         LINGERING.load(Ordering::Acquire),
@@ -29,8 +28,7 @@ pub fn lingerers() -> (usize, usize) {
 
 /// Times a launching thread, done with its share of a parallel launch, waited for the other
 /// shares (for tests).
-#[doc(hidden)]
-pub fn leader_waits() -> usize {
+pub(crate) fn leader_waits() -> usize {
     LEADER_WAITS.load(Ordering::Acquire)
 }
 

@@ -144,7 +144,13 @@ fn build<K: KernelBody<O>, O>(
 }
 
 /// Launches run split so far (for tests that check a launch took this path).
-pub(crate) static LAUNCHES: AtomicU64 = AtomicU64::new(0);
+static LAUNCHES: AtomicU64 = AtomicU64::new(0);
+
+/// How many launches so far ran as a static split (see `docs/performance.md`, "How a parallel
+/// launch scatters"): for tests that a launch took that path.
+pub(crate) fn launches() -> u64 {
+    LAUNCHES.load(Ordering::Relaxed)
+}
 
 /// Runs `kernel` over the plan's ranges in parallel (shares of `region`), then applies the
 /// heads' logs in order on the calling thread.

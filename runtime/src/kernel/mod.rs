@@ -85,7 +85,28 @@ pub trait Kernel<Args>: Copy + Send + Sync + 'static {
 }
 
 /// The body of a kernel over its owned arguments: what a launch or a tape runs.
-pub trait KernelBody<Owned>: Copy + Send + Sync + 'static {
+///
+/// `#[diff_kernel]` implements it; a hand-written implementation must keep the contract below,
+/// which the launch relies on for memory safety.
+///
+/// # Safety
+///
+/// - [`run`](Self::run) and [`scatter_indices`](Self::scatter_indices) make views
+///   ([`reader`], [`writer`], [`scatter`], ...) only from the `exec` they are given, and every
+///   view (and anything borrowed from one, such as a [`DirectScatter`]) is dropped before the
+///   call returns, on the thread that made it: none is stored (in a static, a thread-local,
+///   the kernel value, the arguments) or sent to another thread. A view points into buffers
+///   that the launch holds locked only for the duration of the call.
+/// - The logs [`run`](Self::run) returns are those of the scatters it made from `exec`
+///   ([`Scatter::finish`]).
+/// - If [`static_scatters`](Self::static_scatters) returns `Some`, then
+///   [`scatter_indices`](Self::scatter_indices) reports, for each thread id, the index of every
+///   scatter that [`run`](Self::run) may make into those targets (other than scatters through
+///   a view made with `AT_TID`, which the view checks), and the indices depend only on the
+///   thread id, constants and the arrays listed in [`StaticScatters::deps`]. A split launch
+///   (`crate::split`) lets two threads write different elements of one target directly on
+///   the strength of these indices: a scatter left out or mis-reported would be a data race.
+pub unsafe trait KernelBody<Owned>: Copy + Send + Sync + 'static {
     /// The kernel's name (its fn name).
     const NAME: &'static str;
     /// Its parameters in order.

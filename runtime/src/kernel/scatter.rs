@@ -52,6 +52,11 @@ impl<T: Element, const AT_TID: bool> Scatter<T, AT_TID> {
             && target
                 .as_ref()
                 .is_some_and(|t| !exec.shared_scatters.contains(&t.id()));
+        // Logs hold 32-bit indices: checked for every view that may log (not only those that
+        // do, which depends on the timing of the chunks), so the error does not either.
+        if !own && !exec.direct && target.is_some() && len as u64 > MAX_LOGGED_LEN {
+            too_long_to_log(&place, len)
+        }
         // A logged chunk whose turn it already is (every earlier chunk applied) writes directly.
         let logged = !own && !exec.direct && !exec.order.is_some_and(|(o, k)| o.is_turn(k));
         let (lo, hi) = match own {
@@ -191,6 +196,24 @@ impl<T: Element, const AT_TID: bool> Scatter<T, AT_TID> {
     }
 }
 
+/// The longest target a logging scatter takes: its log holds indices as `u32`.
+const MAX_LOGGED_LEN: u64 = 1 << 32;
+
+#[cold]
+#[inline(never)]
+fn too_long_to_log(place: &Place, len: usize) -> ! {
+    let array = match &place.name {
+        Some(n) => format!("array `{n}` (parameter `{}`)", place.site.param),
+        None => format!("parameter `{}`", place.site.param),
+    };
+    panic!(
+        "kernel `{}`: scatters into {array} of {len} elements in a parallel launch, whose \
+         scatter logs hold 32-bit indices (at most 2^32 elements); run it with \
+         `launch_serial`, on one thread, or scatter into smaller arrays",
+        place.site.kernel
+    )
+}
+
 /// A [`Scatter`] that writes directly (or has no target, and then ignores its adds): see
 /// [`Scatter::direct`]. Same methods, same bits.
 pub struct DirectScatter<'s, T: Element, const AT_TID: bool = false> {
@@ -277,4 +300,53 @@ pub fn tangent_scatter<T: Element, const AT_TID: bool>(
     site: &'static Site,
 ) -> Scatter<T, AT_TID> {
     scatter_of(a, a.tangent_buffer(), exec, site)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    static SITE: Site = Site {
+        kernel: "big",
+        param: "f",
+    };
+
+    /// A view of a logged chunk over `a`, told the target has `len` elements (no test can
+    /// allocate 2^32 of them; the view takes the length from its caller).
+    fn logged_view(a: &Array<f32>, len: usize) -> Scatter<f32> {
+        let exec = Exec::new(false, &[], &[], 0..1);
+        Scatter::new(Some(a.clone()), a.id(), &exec, Place::of(a, &SITE), len)
+    }
+
+    #[test]
+    fn a_logging_scatter_takes_targets_of_up_to_2_pow_32_elements() {
+        let a = Array::<f32>::zeros(1).named("forces");
+        let v = logged_view(&a, 1 << 32);
+        assert!(v.log.is_some(), "the view logs");
+        assert!(v.finish().0.is_none(), "nothing was logged");
+    }
+
+    #[test]
+    #[should_panic(
+        expected = "kernel `big`: scatters into array `forces` (parameter `f`) of 4294967297 \
+                    elements in a parallel launch"
+    )]
+    fn a_longer_target_is_refused_naming_kernel_and_array() {
+        let a = Array::<f32>::zeros(1).named("forces");
+        let _ = logged_view(&a, (1 << 32) + 1);
+    }
+
+    #[test]
+    fn a_direct_view_takes_longer_targets() {
+        let a = Array::<f32>::zeros(1);
+        let exec = Exec::new(true, &[], &[], 0..1);
+        let v = Scatter::<f32>::new(
+            Some(a.clone()),
+            a.id(),
+            &exec,
+            Place::of(&a, &SITE),
+            (1 << 32) + 1,
+        );
+        assert!(v.log.is_none());
+    }
 }
