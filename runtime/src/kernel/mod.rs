@@ -1,7 +1,7 @@
 //! The interface between `#[diff_kernel]`'s output and the runtime: the kernel traits (here),
-//! the [`Exec`] of a launch (`exec.rs`), the per-chunk views of arrays that generated code
-//! reads and writes through (`views.rs`: [`Reader`], [`OptReader`], [`Writer`]), the
-//! deterministic scatters behind `atomic_add` (`scatter.rs`: [`Scatter`]), and the index
+//! the `Exec` of a launch (`exec.rs`), the per-chunk views of arrays that generated code
+//! reads and writes through (`views.rs`: `Reader`, `OptReader`, `Writer`), the
+//! deterministic scatters behind `atomic_add` (`scatter.rs`: `Scatter`), and the index
 //! checks they share (`place.rs`). The logs that scatters keep are `crate::scatter_log`'s.
 //!
 //! Users do not implement these traits by hand; the macro does.
@@ -92,7 +92,7 @@ pub trait Kernel<Args>: Copy + Send + Sync + 'static {
 /// # Safety
 ///
 /// - [`run`](Self::run) and [`scatter_indices`](Self::scatter_indices) make views
-///   ([`reader`], [`writer`], [`scatter`], ...) only from the `exec` they are given, and every
+///   ([`reader`], [`writer`], [`scatter`](fn@scatter), ...) only from the `exec` they are given, and every
 ///   view (and anything borrowed from one, such as a [`DirectScatter`]) is dropped before the
 ///   call returns, on the thread that made it: none is stored (in a static, a thread-local,
 ///   the kernel value, the arguments) or sent to another thread. A view points into buffers
