@@ -39,6 +39,7 @@ mod ir;
 mod lanes;
 mod lower;
 mod signature;
+mod strategy;
 mod syntax;
 
 /// Compiles a kernel: a fn whose body runs once per thread id (`tid()`), reading `&Array<T>`
