@@ -1102,7 +1102,7 @@ fn zero_grads(arrays: &[&dyn AnyArray]) {
     use rayon::prelude::*;
     if rayon::current_num_threads() > 1 && arrays.len() > 1 {
         // Workers lingering after the forward's last launch take this work at once.
-        crate::region::Region::open().pool(|| {
+        crate::region::Region::host().pool(|| {
             arrays
                 .par_iter()
                 .with_min_len(4)
