@@ -1,5 +1,5 @@
 //! What the macro calls by a fixed name: the operators and component access, each a rule of
-//! `adflex_runtime::math` (`mul`, `adj_mul`, `tan_mul`, ...).
+//! `adflex_runtime::__codegen` (`mul`, `adj_mul`, `tan_mul`, ...).
 //!
 //! The builtin *functions* (`sqrt`, `dot`, `lerp`, ...) are not listed here: they are items of
 //! the runtime (`adflex_runtime::math::items`, the one list of them), and a call `f(..)` in a

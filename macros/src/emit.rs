@@ -3,7 +3,7 @@
 //! - Forward: the statements as written.
 //! - Adjoint of a block: replay the block's forward (no stores), declaring an adjoint `a<N>`
 //!   beside every value; seed; then walk the statements backward applying each op's rule
-//!   (`adj_<op>` in `adflex_runtime::math`). A nested `if` replays and reverses its taken
+//!   (`adj_<op>` in `adflex_runtime::__codegen`). A nested `if` replays and reverses its taken
 //!   branch. A dynamic loop's replay pushes each iteration's carried values (and index) on a
 //!   stack; its reverse pops them, replays that iteration's body and reverses it, so no
 //!   iteration is ever replayed with another iteration's values.
@@ -27,12 +27,15 @@ pub struct Emitter<'a> {
     used: HashSet<ValueId>,
     /// Scatters emitted so far (numbers them).
     sites: Cell<usize>,
+    /// The thread id this emitter names its locals for: `None` for the one id of a loop
+    /// iteration, `Some(lane)` for one of the two ids of [`crate::lanes`] (suffix `_l<lane>`).
+    lane: Option<usize>,
 }
 
 /// Generated code as a tree: straight-line statements, and the `if`s and gradient scatters
 /// that code for two interleaved thread ids treats apart ([`crate::lanes`]).
 pub enum Piece {
-    /// Statements of one thread id (names `v<N>`, `a<N>`, `__g<N>`, `__tid`).
+    /// Statements of one thread id (its locals named by the [`Emitter`] that made them).
     Code(TokenStream),
     /// `view.add(index, value);` into a gradient, numbered `site` in emission order.
     Scatter {
@@ -59,54 +62,45 @@ pub enum Piece {
     },
 }
 
-/// How [`render_as`] writes one thread id's names, statements and scatters.
-pub trait Names {
-    fn name(&self, i: &Ident) -> Ident;
-    fn code(&self, c: &TokenStream) -> TokenStream;
+/// How [`render_as`] writes a gradient scatter of one thread id.
+pub trait Scatters {
     fn scatter(
         &self,
         site: usize,
         view: &Ident,
-        index: Ident,
-        value: Ident,
+        index: &Ident,
+        value: &Ident,
         span: Span,
     ) -> TokenStream;
 }
 
-/// The names as emitted, scatters where they stand.
-struct AsEmitted;
+/// Scatters where they stand.
+struct InPlace;
 
-impl Names for AsEmitted {
-    fn name(&self, i: &Ident) -> Ident {
-        i.clone()
-    }
-    fn code(&self, c: &TokenStream) -> TokenStream {
-        c.clone()
-    }
-    fn scatter(&self, _: usize, view: &Ident, i: Ident, x: Ident, span: Span) -> TokenStream {
+impl Scatters for InPlace {
+    fn scatter(&self, _: usize, view: &Ident, i: &Ident, x: &Ident, span: Span) -> TokenStream {
         quote_spanned!(span=> #view.add(#i, #x);)
     }
 }
 
 /// The code of `pieces` for one thread id.
 pub fn render(pieces: &[Piece]) -> TokenStream {
-    render_as(pieces, &AsEmitted)
+    render_as(pieces, &InPlace)
 }
 
-/// The code of `pieces` for one thread id, written as `names` says.
-pub fn render_as(pieces: &[Piece], names: &dyn Names) -> TokenStream {
-    let all = |is: &[Ident]| is.iter().map(|i| names.name(i)).collect::<Vec<_>>();
+/// The code of `pieces` for one thread id, its scatters written as `scatters` says.
+pub fn render_as(pieces: &[Piece], scatters: &dyn Scatters) -> TokenStream {
     pieces
         .iter()
         .map(|p| match p {
-            Piece::Code(c) => names.code(c),
+            Piece::Code(c) => c.clone(),
             Piece::Scatter {
                 site,
                 view,
                 index,
                 value,
                 span,
-            } => names.scatter(*site, view, names.name(index), names.name(value), *span),
+            } => scatters.scatter(*site, view, index, value, *span),
             Piece::Phi {
                 cond,
                 outs,
@@ -115,14 +109,12 @@ pub fn render_as(pieces: &[Piece], names: &dyn Names) -> TokenStream {
                 els,
                 else_vals,
             } => {
-                let (c, o, t, e) = (names.name(cond), all(outs), all(then_vals), all(else_vals));
-                let (tb, eb) = (render_as(then, names), render_as(els, names));
-                quote!(let (#(#o,)*) = if #c { #tb (#(#t,)*) } else { #eb (#(#e,)*) };)
+                let (tb, eb) = (render_as(then, scatters), render_as(els, scatters));
+                quote!(let (#(#outs,)*) = if #cond { #tb (#(#then_vals,)*) } else { #eb (#(#else_vals,)*) };)
             }
             Piece::Branch { cond, then, els } => {
-                let c = names.name(cond);
-                let (tb, eb) = (render_as(then, names), render_as(els, names));
-                quote!(if #c { #tb } else { #eb })
+                let (tb, eb) = (render_as(then, scatters), render_as(els, scatters));
+                quote!(if #cond { #tb } else { #eb })
             }
         })
         .collect()
@@ -137,6 +129,20 @@ impl<'a> Emitter<'a> {
             rt,
             used,
             sites: Cell::new(0),
+            lane: None,
+        }
+    }
+
+    /// This emitter for thread id `lane` (0 or 1) of two per iteration ([`crate::lanes`]):
+    /// every local of the thread (values, adjoints, the thread id) named with the suffix
+    /// `_l<lane>`, the views shared; scatter sites numbered from 0 again, so that both ids
+    /// number theirs alike.
+    pub fn for_lane(&self, lane: usize) -> Self {
+        Emitter {
+            rt: self.rt,
+            used: self.used.clone(),
+            sites: Cell::new(0),
+            lane: Some(lane),
         }
     }
 
@@ -177,49 +183,102 @@ fn collect_uses(b: &Block, used: &mut HashSet<ValueId>) {
     }
 }
 
-fn local(prefix: &str, n: impl std::fmt::Display, span: Span) -> Ident {
-    Ident::new(&format!("{prefix}{n}"), Span::mixed_site().located_at(span))
+/// A local of the generated code, named `prefix` then `n` (and `_l<lane>` for one of two ids,
+/// see [`Emitter::for_lane`]).
+fn local(prefix: &str, n: impl std::fmt::Display, lane: Option<usize>, span: Span) -> Ident {
+    let name = match lane {
+        None => format!("{prefix}{n}"),
+        Some(l) => format!("{prefix}{n}_l{l}"),
+    };
+    Ident::new(&name, Span::mixed_site().located_at(span))
 }
-fn v(n: ValueId) -> Ident {
-    local("v", n, Span::call_site())
-}
-fn a(n: ValueId) -> Ident {
-    local("a", n, Span::call_site())
-}
-fn d(n: ValueId) -> Ident {
-    local("d", n, Span::call_site())
-}
-/// The view of array parameter `p` (reader, writer or scatter).
+/// The view of array parameter `p` (reader, writer or scatter; shared by both ids of a pair).
 pub fn view(p: usize) -> Ident {
-    local("__view", p, Span::call_site())
+    local("__view", p, None, Span::call_site())
 }
 /// The view of the gradient of array parameter `p`.
 pub fn grad_view(p: usize) -> Ident {
-    local("__grad", p, Span::call_site())
+    local("__grad", p, None, Span::call_site())
 }
 /// The view of the tangent of array parameter `p`.
 pub fn tangent_view(p: usize) -> Ident {
-    local("__tangent", p, Span::call_site())
-}
-/// The thread id.
-pub fn tid() -> Ident {
-    local("__tid", "", Span::call_site())
+    local("__tangent", p, None, Span::call_site())
 }
 
-fn vs(ids: &[ValueId]) -> Vec<Ident> {
-    ids.iter().map(|&i| v(i)).collect()
+/// The names of one thread id's locals.
+impl Emitter<'_> {
+    /// A local of this emitter's thread id.
+    fn local(&self, prefix: &str, n: impl std::fmt::Display) -> Ident {
+        local(prefix, n, self.lane, Span::call_site())
+    }
+    fn v(&self, n: ValueId) -> Ident {
+        self.local("v", n)
+    }
+    fn a(&self, n: ValueId) -> Ident {
+        self.local("a", n)
+    }
+    fn d(&self, n: ValueId) -> Ident {
+        self.local("d", n)
+    }
+    /// The thread id.
+    pub fn tid(&self) -> Ident {
+        self.local("__tid", "")
+    }
+    fn vs(&self, ids: &[ValueId]) -> Vec<Ident> {
+        ids.iter().map(|&i| self.v(i)).collect()
+    }
+    fn ds(&self, ids: &[ValueId]) -> Vec<Ident> {
+        ids.iter().map(|&i| self.d(i)).collect()
+    }
+    /// The arguments of a rule call, located at the user's expression: a type error in them
+    /// (`dot(f64, Vec3)`) points there, not at the attribute.
+    fn vs_at(&self, ids: &[ValueId], span: Span) -> Vec<Ident> {
+        ids.iter()
+            .map(|&i| local("v", i, self.lane, span))
+            .collect()
+    }
+    fn ds_at(&self, ids: &[ValueId], span: Span) -> Vec<Ident> {
+        ids.iter()
+            .map(|&i| local("d", i, self.lane, span))
+            .collect()
+    }
+    /// The identifiers of a value, its adjoint and its tangent (for the item assembly).
+    pub fn names(&self, x: ValueId) -> (Ident, Ident, Ident) {
+        (self.v(x), self.a(x), self.d(x))
+    }
+    fn pair(&self, x: ValueId) -> TokenStream {
+        let (x, dx) = (self.v(x), self.d(x));
+        quote!((#x, #dx))
+    }
+    /// `view.store(i, x)`, `view.add(i, x)` or `view.sub(i, x)`: a write of the forward
+    /// (values) or of the tangent (tangents), through the matching view.
+    fn store_call(
+        &self,
+        view: Ident,
+        kind: StoreKind,
+        i: Ident,
+        x: Ident,
+        span: Span,
+    ) -> TokenStream {
+        let t = self.tid();
+        match kind {
+            StoreKind::Store => quote_spanned!(span=> #view.store(#t, #i, #x);),
+            StoreKind::AtomicAdd => quote_spanned!(span=> #view.add(#i, #x);),
+            StoreKind::AtomicSub => quote_spanned!(span=> #view.sub(#i, #x);),
+        }
+    }
+    /// `if exit { break; }` after a loop body whose `break` or `return` set the exit flag.
+    fn loop_exit(&self, l: &Loop) -> TokenStream {
+        match l.exit {
+            Some(x) => {
+                let x = self.v(x);
+                quote!(if #x { break; })
+            }
+            None => quote!(),
+        }
+    }
 }
-fn ds(ids: &[ValueId]) -> Vec<Ident> {
-    ids.iter().map(|&i| d(i)).collect()
-}
-/// The arguments of a rule call, located at the user's expression: a type error in them
-/// (`dot(f64, Vec3)`) points there, not at the attribute.
-fn vs_at(ids: &[ValueId], span: Span) -> Vec<Ident> {
-    ids.iter().map(|&i| local("v", i, span)).collect()
-}
-fn ds_at(ids: &[ValueId], span: Span) -> Vec<Ident> {
-    ids.iter().map(|&i| local("d", i, span)).collect()
-}
+
 /// The `DiffFunc` a call `path(..)` calls: what `path` names in the user's scope *as a type*,
 /// so that a `#[diff_func]` (a unit struct) and a builtin (a braced struct of the runtime's
 /// prelude, beside the function of the same name) resolve alike, and the user's own function
@@ -266,63 +325,63 @@ impl<'a> Emitter<'a> {
         match op {
             Op::Const(t) => t.clone(),
             Op::Tid => {
-                let t = tid();
+                let t = self.tid();
                 quote!(#t)
             }
             Op::Builtin { f, args } => {
                 let f = Ident::new(f.name(), span);
-                let (rt, args) = (located(rt, span), vs_at(args, span));
-                quote_spanned!(span=> #rt::math::#f(#(#args),*))
+                let (rt, args) = (located(rt, span), self.vs_at(args, span));
+                quote_spanned!(span=> #rt::__codegen::#f(#(#args),*))
             }
             Op::Func { path, args } => {
-                let args = vs(args);
+                let args = self.vs(args);
                 {
                     let f = func_value(path, span);
                     quote_spanned!(span=> #rt::func::call((#(#args,)*), &#f))
                 }
             }
             Op::Cast { arg, ty } => {
-                let x = v(*arg);
-                quote_spanned!(span=> #rt::math::cast::<_, #ty>(#x))
+                let x = self.v(*arg);
+                quote_spanned!(span=> #rt::__codegen::cast::<_, #ty>(#x))
             }
             Op::Typed { src, .. } => {
-                let x = v(*src);
+                let x = self.v(*src);
                 quote!(#x)
             }
             Op::NativeBinary { op, a: x, b: y } => {
-                let (x, y) = (v(*x), v(*y));
+                let (x, y) = (self.v(*x), self.v(*y));
                 quote_spanned!(span=> (#x #op #y))
             }
             Op::NativeUnary { op, a: x } => {
-                let x = v(*x);
+                let x = self.v(*x);
                 quote_spanned!(span=> (#op #x))
             }
             Op::Tuple(items) => {
-                let items = vs(items);
+                let items = self.vs(items);
                 quote!((#(#items),*))
             }
             Op::Read { param, index } => {
-                let (r, i) = (view(*param), v(*index));
+                let (r, i) = (view(*param), self.v(*index));
                 quote_spanned!(span=> #r.get(#i))
             }
             Op::StopGrad(x) => {
-                let x = v(*x);
+                let x = self.v(*x);
                 quote!(#x)
             }
             Op::Zero => quote!(#rt::Value::zeroed()),
             Op::PlainCall { path, args } => {
-                let args = vs(args);
+                let args = self.vs(args);
                 quote_spanned!(span=> #path(#(#args),*))
             }
             Op::PlainMethod { recv, method, args } => {
-                let (r, args) = (v(*recv), vs(args));
+                let (r, args) = (self.v(*recv), self.vs(args));
                 quote_spanned!(span=> #r.#method(#(#args),*))
             }
         }
     }
 
     fn let_stmt(&self, l: &Let) -> TokenStream {
-        let (x, e) = (v(l.id), self.value_expr(&l.op, l.span));
+        let (x, e) = (self.v(l.id), self.value_expr(&l.op, l.span));
         match &l.op {
             Op::Typed { ty, .. } => quote!(let #x: #ty = #e;),
             _ => quote!(let #x = #e;),
@@ -351,7 +410,7 @@ impl<'a> Emitter<'a> {
                 Stmt::Let(l) => {
                     let mut code = self.let_stmt(l);
                     if mode == Replay::Top {
-                        let (x, ax) = (v(l.id), a(l.id));
+                        let (x, ax) = (self.v(l.id), self.a(l.id));
                         code.extend(quote!(let mut #ax = #rt::zero_like(&#x);));
                     }
                     out.push(Piece::Code(code));
@@ -364,7 +423,13 @@ impl<'a> Emitter<'a> {
                     span,
                 } => {
                     if mode == Replay::Forward {
-                        let store = store_call(view(*param), *kind, v(*index), v(*value), *span);
+                        let store = self.store_call(
+                            view(*param),
+                            *kind,
+                            self.v(*index),
+                            self.v(*value),
+                            *span,
+                        );
                         out.push(Piece::Code(store));
                     }
                 }
@@ -380,16 +445,16 @@ impl<'a> Emitter<'a> {
                         Replay::Nested
                     };
                     out.push(Piece::Phi {
-                        cond: v(*cond),
-                        outs: phis.iter().map(|p| v(p.out)).collect(),
+                        cond: self.v(*cond),
+                        outs: phis.iter().map(|p| self.v(p.out)).collect(),
                         then: self.replay(then_b, inner),
-                        then_vals: phis.iter().map(|p| v(p.then_v)).collect(),
+                        then_vals: phis.iter().map(|p| self.v(p.then_v)).collect(),
                         els: self.replay(else_b, inner),
-                        else_vals: phis.iter().map(|p| v(p.else_v)).collect(),
+                        else_vals: phis.iter().map(|p| self.v(p.else_v)).collect(),
                     });
                     if mode == Replay::Top {
                         let decls = phis.iter().map(|p| {
-                            let (x, ax) = (v(p.out), a(p.out));
+                            let (x, ax) = (self.v(p.out), self.a(p.out));
                             quote!(let mut #ax = #rt::zero_like(&#x);)
                         });
                         out.push(Piece::Code(quote!(#(#decls)*)));
@@ -404,11 +469,11 @@ impl<'a> Emitter<'a> {
     fn loop_header(&self, l: &Loop, k: &Ident) -> TokenStream {
         match l.range {
             Some((s, e, false)) => {
-                let (s, e) = (v(s), v(e));
+                let (s, e) = (self.v(s), self.v(e));
                 quote!(for #k in #s..#e)
             }
             Some((s, e, true)) => {
-                let (s, e) = (v(s), v(e));
+                let (s, e) = (self.v(s), self.v(e));
                 quote!(for #k in #s..=#e)
             }
             None => quote!(loop),
@@ -422,17 +487,17 @@ impl<'a> Emitter<'a> {
         } else {
             Replay::Nested
         };
-        let c = local("__carry", l.id, Span::call_site());
-        let st = local("__stack", l.id, Span::call_site());
-        let k = local("__k", l.id, Span::call_site());
-        let inits: Vec<_> = l.carried.iter().map(|c| v(c.init)).collect();
-        let inners: Vec<_> = l.carried.iter().map(|c| v(c.inner)).collect();
-        let nexts: Vec<_> = l.carried.iter().map(|c| v(c.next)).collect();
-        let outs: Vec<_> = l.carried.iter().map(|c| v(c.out)).collect();
+        let c = self.local("__carry", l.id);
+        let st = self.local("__stack", l.id);
+        let k = self.local("__k", l.id);
+        let inits: Vec<_> = l.carried.iter().map(|c| self.v(c.init)).collect();
+        let inners: Vec<_> = l.carried.iter().map(|c| self.v(c.inner)).collect();
+        let nexts: Vec<_> = l.carried.iter().map(|c| self.v(c.next)).collect();
+        let outs: Vec<_> = l.carried.iter().map(|c| self.v(c.out)).collect();
         let header = self.loop_header(l, &k);
         let index = match l.index {
             Some(i) => {
-                let i = v(i);
+                let i = self.v(i);
                 quote!(let #i = #k;)
             }
             None => quote!(),
@@ -448,7 +513,7 @@ impl<'a> Emitter<'a> {
             quote!()
         };
         let body = render(&self.replay(&l.body, inner_mode));
-        let exit = loop_exit(l);
+        let exit = self.loop_exit(l);
         let stack_decl = if mode == Replay::Top {
             quote!(let mut #st = ::std::vec::Vec::new();)
         } else {
@@ -456,7 +521,7 @@ impl<'a> Emitter<'a> {
         };
         let adj_outs = if mode == Replay::Top {
             let decl = l.carried.iter().map(|c| {
-                let (x, ax) = (v(c.out), a(c.out));
+                let (x, ax) = (self.v(c.out), self.a(c.out));
                 quote!(let mut #ax = #rt::zero_like(&#x);)
             });
             quote!(#(#decl)*)
@@ -491,7 +556,7 @@ impl<'a> Emitter<'a> {
         let rt = self.rt;
         let mut out = self.replay(b, Replay::Top);
         let seeds = seeds.iter().map(|(x, s)| {
-            let ax = a(*x);
+            let ax = self.a(*x);
             quote!(#rt::acc(&mut #ax, #s);)
         });
         out.push(Piece::Code(quote!(#(#seeds)*)));
@@ -513,8 +578,8 @@ impl<'a> Emitter<'a> {
                 kind,
                 span,
             } => {
-                let (g, i, ax) = (grad_view(*param), v(*index), a(*value));
-                let t = tid();
+                let (g, i, ax) = (grad_view(*param), self.v(*index), self.a(*value));
+                let t = self.tid();
                 out.push(Piece::Code(match kind {
                     // Takes the gradient: an earlier store to the element was overwritten.
                     StoreKind::Store => {
@@ -543,7 +608,7 @@ impl<'a> Emitter<'a> {
                     .map(|p| (p.else_v, self.adj_tokens(p.out)))
                     .collect();
                 out.push(Piece::Branch {
-                    cond: v(*cond),
+                    cond: self.v(*cond),
                     then: self.adjoint_pieces(then_b, &tseeds),
                     els: self.adjoint_pieces(else_b, &eseeds),
                 });
@@ -553,21 +618,21 @@ impl<'a> Emitter<'a> {
     }
 
     fn adj_tokens(&self, x: ValueId) -> TokenStream {
-        let ax = a(x);
+        let ax = self.a(x);
         quote!(#ax)
     }
 
     fn reverse_let(&self, l: &Let) -> Piece {
         let rt = self.rt;
         let span = l.span;
-        let an = a(l.id);
+        let an = self.a(l.id);
         if let Op::Read { param, index } = &l.op {
             let site = self.sites.get();
             self.sites.set(site + 1);
             return Piece::Scatter {
                 site,
                 view: grad_view(*param),
-                index: v(*index),
+                index: self.v(*index),
                 value: an,
                 span,
             };
@@ -576,40 +641,36 @@ impl<'a> Emitter<'a> {
             Op::Builtin { args, .. } if args.is_empty() => quote!(),
             Op::Builtin { f, args } => {
                 let f = format_ident!("adj_{}", f.name(), span = span);
-                let xs = vs_at(args, span);
+                let xs = self.vs_at(args, span);
                 let rt = &located(rt, span);
                 if args.len() == 1 {
-                    let ax = a(args[0]);
-                    quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::#f(#(#xs,)* #an));)
+                    let ax = self.a(args[0]);
+                    quote_spanned!(span=> #rt::acc(&mut #ax, #rt::__codegen::#f(#(#xs,)* #an));)
                 } else {
-                    let gs: Vec<_> = (0..args.len())
-                        .map(|i| local("__g", i, Span::call_site()))
-                        .collect();
-                    let axs = args.iter().map(|&x| a(x));
+                    let gs: Vec<_> = (0..args.len()).map(|i| self.local("__g", i)).collect();
+                    let axs = args.iter().map(|&x| self.a(x));
                     quote_spanned! {span=>
-                        let (#(#gs,)*) = #rt::math::#f(#(#xs,)* #an);
+                        let (#(#gs,)*) = #rt::__codegen::#f(#(#xs,)* #an);
                         #(#rt::acc(&mut #axs, #gs);)*
                     }
                 }
             }
             Op::Func { path, args } => {
-                let xs = vs(args);
+                let xs = self.vs(args);
                 let f = func_value(path, span);
-                let gs: Vec<_> = (0..args.len())
-                    .map(|i| local("__g", i, Span::call_site()))
-                    .collect();
-                let axs = args.iter().map(|&x| a(x));
+                let gs: Vec<_> = (0..args.len()).map(|i| self.local("__g", i)).collect();
+                let axs = args.iter().map(|&x| self.a(x));
                 quote_spanned! {span=>
                     let (#(#gs,)*) = #rt::func::call_adjoint((#(#xs,)*), #an, &#f);
                     #(#rt::acc(&mut #axs, #gs);)*
                 }
             }
             Op::Cast { arg, ty } => {
-                let (x, ax) = (v(*arg), a(*arg));
-                quote_spanned!(span=> #rt::acc(&mut #ax, #rt::math::adj_cast::<_, #ty>(#x, #an));)
+                let (x, ax) = (self.v(*arg), self.a(*arg));
+                quote_spanned!(span=> #rt::acc(&mut #ax, #rt::__codegen::adj_cast::<_, #ty>(#x, #an));)
             }
             Op::Typed { src, .. } => {
-                let ax = a(*src);
+                let ax = self.a(*src);
                 quote!(#rt::acc(&mut #ax, #an);)
             }
             _ => quote!(),
@@ -618,17 +679,17 @@ impl<'a> Emitter<'a> {
 
     fn reverse_loop(&self, l: &Loop) -> TokenStream {
         let rt = self.rt;
-        let st = local("__stack", l.id, Span::call_site());
-        let ac = local("__adj_carry", l.id, Span::call_site());
-        let k = local("__k", l.id, Span::call_site());
-        let cin = local("__carry_in", l.id, Span::call_site());
-        let adj_outs: Vec<_> = l.carried.iter().map(|c| a(c.out)).collect();
-        let inners: Vec<_> = l.carried.iter().map(|c| v(c.inner)).collect();
-        let adj_inners: Vec<_> = l.carried.iter().map(|c| a(c.inner)).collect();
-        let adj_inits: Vec<_> = l.carried.iter().map(|c| a(c.init)).collect();
+        let st = self.local("__stack", l.id);
+        let ac = self.local("__adj_carry", l.id);
+        let k = self.local("__k", l.id);
+        let cin = self.local("__carry_in", l.id);
+        let adj_outs: Vec<_> = l.carried.iter().map(|c| self.a(c.out)).collect();
+        let inners: Vec<_> = l.carried.iter().map(|c| self.v(c.inner)).collect();
+        let adj_inners: Vec<_> = l.carried.iter().map(|c| self.a(c.inner)).collect();
+        let adj_inits: Vec<_> = l.carried.iter().map(|c| self.a(c.init)).collect();
         let index = match l.index {
             Some(i) => {
-                let (x, ax) = (v(i), a(i));
+                let (x, ax) = (self.v(i), self.a(i));
                 quote!(let #x = #k; let mut #ax = #rt::zero_like(&#x);)
             }
             None => quote!(let _ = #k;),
@@ -674,11 +735,11 @@ impl<'a> Emitter<'a> {
                     kind,
                     span,
                 } => {
-                    out.extend(store_call(
+                    out.extend(self.store_call(
                         tangent_view(*param),
                         *kind,
-                        v(*index),
-                        d(*value),
+                        self.v(*index),
+                        self.d(*value),
                         *span,
                     ));
                 }
@@ -688,32 +749,32 @@ impl<'a> Emitter<'a> {
                     else_b,
                     phis,
                 } => {
-                    let c = v(*cond);
+                    let c = self.v(*cond);
                     let (tb, eb) = (self.tangent(then_b), self.tangent(else_b));
-                    let outs: Vec<_> = phis.iter().map(|p| pair(p.out)).collect();
-                    let tvs: Vec<_> = phis.iter().map(|p| pair(p.then_v)).collect();
-                    let evs: Vec<_> = phis.iter().map(|p| pair(p.else_v)).collect();
+                    let outs: Vec<_> = phis.iter().map(|p| self.pair(p.out)).collect();
+                    let tvs: Vec<_> = phis.iter().map(|p| self.pair(p.then_v)).collect();
+                    let evs: Vec<_> = phis.iter().map(|p| self.pair(p.else_v)).collect();
                     out.extend(quote! {
                         let (#(#outs,)*) = if #c { #tb (#(#tvs,)*) } else { #eb (#(#evs,)*) };
                     });
                 }
                 Stmt::Loop(l) => {
-                    let c = local("__carry", l.id, Span::call_site());
-                    let k = local("__k", l.id, Span::call_site());
-                    let inits: Vec<_> = l.carried.iter().map(|c| pair(c.init)).collect();
-                    let inners: Vec<_> = l.carried.iter().map(|c| pair(c.inner)).collect();
-                    let nexts: Vec<_> = l.carried.iter().map(|c| pair(c.next)).collect();
-                    let outs: Vec<_> = l.carried.iter().map(|c| pair(c.out)).collect();
+                    let c = self.local("__carry", l.id);
+                    let k = self.local("__k", l.id);
+                    let inits: Vec<_> = l.carried.iter().map(|c| self.pair(c.init)).collect();
+                    let inners: Vec<_> = l.carried.iter().map(|c| self.pair(c.inner)).collect();
+                    let nexts: Vec<_> = l.carried.iter().map(|c| self.pair(c.next)).collect();
+                    let outs: Vec<_> = l.carried.iter().map(|c| self.pair(c.out)).collect();
                     let header = self.loop_header(l, &k);
                     let index = match l.index {
                         Some(i) => {
-                            let (x, dx) = (v(i), d(i));
+                            let (x, dx) = (self.v(i), self.d(i));
                             quote!(let #x = #k; let #dx = #rt::zero_like(&#x);)
                         }
                         None => quote!(),
                     };
                     let body = self.tangent(&l.body);
-                    let exit = loop_exit(l);
+                    let exit = self.loop_exit(l);
                     out.extend(quote! {
                         let mut #c = (#(#inits,)*);
                         #header {
@@ -734,17 +795,17 @@ impl<'a> Emitter<'a> {
     fn tangent_let(&self, l: &Let) -> TokenStream {
         let rt = self.rt;
         let span = l.span;
-        let (x, dx) = (v(l.id), d(l.id));
+        let (x, dx) = (self.v(l.id), self.d(l.id));
         match &l.op {
             Op::Builtin { f, args } if !args.is_empty() => {
                 let fwd = self.let_stmt(l);
                 let f = format_ident!("tan_{}", f.name(), span = span);
-                let (xs, dxs) = (vs_at(args, span), ds_at(args, span));
+                let (xs, dxs) = (self.vs_at(args, span), self.ds_at(args, span));
                 let rt = &located(rt, span);
-                quote_spanned!(span=> #fwd let #dx = #rt::math::#f(#(#xs,)* #(#dxs),*);)
+                quote_spanned!(span=> #fwd let #dx = #rt::__codegen::#f(#(#xs,)* #(#dxs),*);)
             }
             Op::Func { path, args } => {
-                let (xs, dxs) = (vs(args), ds(args));
+                let (xs, dxs) = (self.vs(args), self.ds(args));
                 {
                     let f = func_value(path, span);
                     quote_spanned!(span=> let (#x, #dx) = #rt::func::call_tangent((#(#xs,)*), (#(#dxs,)*), &#f);)
@@ -752,17 +813,17 @@ impl<'a> Emitter<'a> {
             }
             Op::Cast { arg, ty } => {
                 let fwd = self.let_stmt(l);
-                let (y, dy) = (v(*arg), d(*arg));
-                quote_spanned!(span=> #fwd let #dx = #rt::math::tan_cast::<_, #ty>(#y, #dy);)
+                let (y, dy) = (self.v(*arg), self.d(*arg));
+                quote_spanned!(span=> #fwd let #dx = #rt::__codegen::tan_cast::<_, #ty>(#y, #dy);)
             }
             Op::Typed { src, ty } => {
                 let fwd = self.let_stmt(l);
-                let ds = d(*src);
+                let ds = self.d(*src);
                 quote!(#fwd let #dx: #ty = #ds;)
             }
             Op::Read { param, index } => {
                 let fwd = self.let_stmt(l);
-                let (t, i) = (tangent_view(*param), v(*index));
+                let (t, i) = (tangent_view(*param), self.v(*index));
                 quote_spanned!(span=> #fwd let #dx = #t.get(#i);)
             }
             _ => {
@@ -771,36 +832,4 @@ impl<'a> Emitter<'a> {
             }
         }
     }
-}
-
-/// `view.store(i, x)`, `view.add(i, x)` or `view.sub(i, x)`: a write of the forward (values) or
-/// of the tangent (tangents), through the matching view.
-fn store_call(view: Ident, kind: StoreKind, i: Ident, x: Ident, span: Span) -> TokenStream {
-    let t = tid();
-    match kind {
-        StoreKind::Store => quote_spanned!(span=> #view.store(#t, #i, #x);),
-        StoreKind::AtomicAdd => quote_spanned!(span=> #view.add(#i, #x);),
-        StoreKind::AtomicSub => quote_spanned!(span=> #view.sub(#i, #x);),
-    }
-}
-
-/// `if exit { break; }` after a loop body whose `break` or `return` set the exit flag.
-fn loop_exit(l: &Loop) -> TokenStream {
-    match l.exit {
-        Some(x) => {
-            let x = v(x);
-            quote!(if #x { break; })
-        }
-        None => quote!(),
-    }
-}
-
-fn pair(x: ValueId) -> TokenStream {
-    let (x, dx) = (v(x), d(x));
-    quote!((#x, #dx))
-}
-
-/// The identifiers of a value, its adjoint and its tangent (for the item assembly).
-pub fn names(x: ValueId) -> (Ident, Ident, Ident) {
-    (v(x), a(x), d(x))
 }

@@ -201,7 +201,10 @@ fn kernel_items(
             }
         }
 
-        impl #impl_generics #rt::kernel::KernelBody<(#(#owned,)*)> for #name #where_clause {
+        // SAFETY: the body makes its views from `__exec` and drops them before it returns, and
+        // `scatter_indices` reports the indices the body's static scatters compute (see
+        // `KernelBody`'s contract); the macro generates both from one analysis.
+        unsafe impl #impl_generics #rt::kernel::KernelBody<(#(#owned,)*)> for #name #where_clause {
             const NAME: &'static str = #name_str;
             const PARAMS: &'static [#rt::kernel::ParamInfo] = &[#(#access),*];
             fn arrays(__args: &(#(#owned,)*)) -> ::std::vec::Vec<::std::option::Option<&dyn #rt::AnyArray>> {
@@ -306,11 +309,12 @@ fn static_scatters(
         views.extend(quote!(let #vw = #rt::kernel::reader(&__args.#i, __exec, #site);));
     }
     let code = em.lets(&lets);
-    let t = emit::tid();
+    let t = em.tid();
     let t = &t;
+    let em = &em;
     let sinks = roots.iter().flat_map(|(slot, ix)| {
         ix.iter().map(move |x| {
-            let x = emit::names(*x).0;
+            let x = em.names(*x).0;
             quote!(__sink(#slot, #t, #rt::kernel::ToIndex::to_i128(#x));)
         })
     });
@@ -407,27 +411,38 @@ fn kernel_mode(
             }
         }
     }
-    let mut prologue = TokenStream::new();
-    for (p, val) in body.params.iter().enumerate() {
-        let Some(val) = *val else { continue }; // an array: read through its view
-        let i = syn::Index::from(p);
-        let (x, ax, dx) = emit::names(val);
-        prologue.extend(quote!(let #x = __args.#i;));
-        match mode {
-            Mode::Adjoint => prologue.extend(quote!(let mut #ax = #rt::zero_like(&#x);)),
-            Mode::Tangent => prologue.extend(quote!(let #dx = #rt::zero_like(&#x);)),
-            Mode::Forward => {}
+    // The parameters' values (and their adjoints or tangents) as the thread id of `em` names
+    // them.
+    let prologue = |em: &Emitter| {
+        let mut prologue = TokenStream::new();
+        for (p, val) in body.params.iter().enumerate() {
+            let Some(val) = *val else { continue }; // an array: read through its view
+            let i = syn::Index::from(p);
+            let (x, ax, dx) = em.names(val);
+            prologue.extend(quote!(let #x = __args.#i;));
+            match mode {
+                Mode::Adjoint => prologue.extend(quote!(let mut #ax = #rt::zero_like(&#x);)),
+                Mode::Tangent => prologue.extend(quote!(let #dx = #rt::zero_like(&#x);)),
+                Mode::Forward => {}
+            }
         }
-    }
-    // The adjoint's direct loop runs two ids per iteration where the kernel qualifies.
+        prologue
+    };
+    // The adjoint's direct loop runs two ids per iteration where the kernel qualifies: the
+    // adjoint emitted once per id, zipped.
     let mut pairs = TokenStream::new();
     let code = match mode {
         Mode::Forward => em.forward(&body.block),
         Mode::Adjoint => {
-            let pieces = em.adjoint_pieces(&body.block, &[]);
-            if lanes::qualifies(&body.block, &|p| at_tid.stores[p], rt) {
-                let (t0, t1) = (lanes::tid(0), lanes::tid(1));
-                let two = lanes::interleaved(&prologue, &pieces);
+            if lanes::qualifies(&body.block, &|p| at_tid.stores[p]) {
+                let [e0, e1] = lanes::emitters(em);
+                let (t0, t1) = (e0.tid(), e1.tid());
+                let (p0, p1) = (prologue(&e0), prologue(&e1));
+                let (c0, c1) = (
+                    e0.adjoint_pieces(&body.block, &[]),
+                    e1.adjoint_pieces(&body.block, &[]),
+                );
+                let two = lanes::interleaved([&p0, &p1], [&c0, &c1]);
                 pairs = quote! {
                     while __tids.len() >= 2 {
                         let #t0 = __tids.start;
@@ -437,11 +452,12 @@ fn kernel_mode(
                     }
                 };
             }
-            emit::render(&pieces)
+            em.adjoint(&body.block, &[])
         }
         Mode::Tangent => em.tangent(&body.block),
     };
-    let t = emit::tid();
+    let prologue = prologue(em);
+    let t = em.tid();
     let body = quote!(#prologue #code);
     if scatters.is_empty() {
         return quote! {
@@ -483,7 +499,8 @@ fn kernel_stub(sig: &Signature, rt: &TokenStream, attrs: &[syn::Attribute]) -> T
             type Owned = ();
             fn to_owned(_: &__A) {}
         }
-        impl #rt::kernel::KernelBody<()> for #name {
+        // SAFETY: makes no views (never runs).
+        unsafe impl #rt::kernel::KernelBody<()> for #name {
             const NAME: &'static str = #name_str;
             const PARAMS: &'static [#rt::kernel::ParamInfo] = &[];
             fn arrays(_: &()) -> ::std::vec::Vec<::std::option::Option<&dyn #rt::AnyArray>> {
@@ -517,17 +534,12 @@ fn func_items(
     let lints = lints();
     let args_ty = quote!((#(#tys,)*));
     // A function's parameters are all values (the signature refuses arrays).
-    let vals: Vec<_> = body
-        .params
-        .iter()
-        .flatten()
-        .map(|&p| emit::names(p))
-        .collect();
+    let vals: Vec<_> = body.params.iter().flatten().map(|&p| em.names(p)).collect();
     let xs: Vec<_> = vals.iter().map(|n| n.0.clone()).collect();
     let axs: Vec<_> = vals.iter().map(|n| n.1.clone()).collect();
     let dxs: Vec<_> = vals.iter().map(|n| n.2.clone()).collect();
     let r = body.ret.unwrap();
-    let (rv, _, rd) = emit::names(r);
+    let (rv, _, rd) = em.names(r);
     let (adjoint, tangent) = match custom {
         Some((adj, tan)) => (
             quote! {

@@ -14,16 +14,20 @@
 //! every element receives its additions in thread-id order. Where an `if` goes different ways
 //! for the two ids, each runs its branch alone, the first id first.
 //!
+//! The two ids' code is two emissions of the adjoint, one per id ([`Emitter::for_lane`]: every
+//! local of the id named with its suffix, `v3_l0` and `v3_l1`), zipped: no token of the user's
+//! is renamed, so no name of the user's can collide with the macro's.
+//!
 //! A kernel qualifies if it has no loop (iterations differ in number from id to id) and stores
 //! only at the thread id (the adjoint of a store elsewhere takes a gradient another id may
 //! take); its `if`s are emitted three times (both ids, each alone), so their nesting is
 //! bounded too.
 
-use proc_macro2::{Group, Ident, Span, TokenStream, TokenTree};
+use proc_macro2::{Ident, Span, TokenStream};
 use quote::{quote, quote_spanned};
 
-use crate::emit::{render_as, Names, Piece};
-use crate::ir::{Block, Op, Stmt, StoreKind};
+use crate::emit::{render_as, Emitter, Piece, Scatters};
+use crate::ir::{Block, Stmt, StoreKind};
 
 /// `if`s nested deeper than this keep one id per iteration (code grows 2x per level).
 const MAX_DEPTH: usize = 3;
@@ -34,13 +38,13 @@ const MAX_LETS: usize = 2000;
 const RUN: usize = 8;
 
 /// Whether the adjoint of a kernel with body `b` runs two ids per iteration; `distinct(p)`:
-/// every store into parameter `p` is at the thread id; `rt`: the path of the runtime crate.
-pub fn qualifies(b: &Block, distinct: &dyn Fn(usize) -> bool, rt: &TokenStream) -> bool {
+/// every store into parameter `p` is at the thread id.
+pub fn qualifies(b: &Block, distinct: &dyn Fn(usize) -> bool) -> bool {
     fn walk(b: &Block, depth: usize, distinct: &dyn Fn(usize) -> bool, lets: &mut usize) -> bool {
         b.stmts.iter().all(|s| match s {
-            Stmt::Let(l) => {
+            Stmt::Let(_) => {
                 *lets += 1;
-                !user_tokens(&l.op).is_some_and(names_a_local)
+                true
             }
             Stmt::Store { param, kind, .. } => *kind != StoreKind::Store || distinct(*param),
             Stmt::If { then_b, else_b, .. } => {
@@ -52,49 +56,19 @@ pub fn qualifies(b: &Block, distinct: &dyn Fn(usize) -> bool, rt: &TokenStream) 
         })
     }
     let mut lets = 0;
-    walk(b, 0, distinct, &mut lets) && lets <= MAX_LETS && !names_a_local(rt)
+    walk(b, 0, distinct, &mut lets) && lets <= MAX_LETS
 }
 
-/// The user's tokens `op` carries into the generated code.
-fn user_tokens(op: &Op) -> Option<&TokenStream> {
-    match op {
-        Op::Const(t)
-        | Op::Func { path: t, .. }
-        | Op::Cast { ty: t, .. }
-        | Op::Typed { ty: t, .. }
-        | Op::NativeBinary { op: t, .. }
-        | Op::NativeUnary { op: t, .. }
-        | Op::PlainCall { path: t, .. }
-        | Op::PlainMethod { method: t, .. } => Some(t),
-        Op::Tid
-        | Op::Builtin { .. }
-        | Op::Tuple(_)
-        | Op::Read { .. }
-        | Op::StopGrad(_)
-        | Op::Zero => None,
-    }
+/// The emitters of the two ids of an iteration, `tid(0)` and `tid(1) = tid(0) + 1`.
+pub fn emitters<'a>(em: &Emitter<'a>) -> [Emitter<'a>; 2] {
+    [em.for_lane(0), em.for_lane(1)]
 }
 
-/// Whether `code` contains an identifier named like a generated local (a constant `a1`, a
-/// function `v2`), which [`rename`] would rename: such a kernel keeps one id per iteration.
-fn names_a_local(code: &TokenStream) -> bool {
-    code.clone().into_iter().any(|t| match t {
-        TokenTree::Ident(i) => is_local(&i.to_string()),
-        TokenTree::Group(g) => names_a_local(&g.stream()),
-        _ => false,
-    })
-}
-
-/// The thread id of `lane` (0 or 1), named as [`rename`] names the id inside the code.
-pub fn tid(lane: usize) -> Ident {
-    lane_ident(&crate::emit::tid(), lane)
-}
-
-/// The body of one iteration for ids `tid(0)` and `tid(1) = tid(0) + 1`: `prologue` and
-/// `pieces` (the code of one id) for both, interleaved.
-pub fn interleaved(prologue: &TokenStream, pieces: &[Piece]) -> TokenStream {
+/// The body of one iteration for both ids: each id's `prologue` and `pieces` (the same code
+/// emitted for each, see [`emitters`]), interleaved.
+pub fn interleaved(prologue: [&TokenStream; 2], pieces: [&[Piece]; 2]) -> TokenStream {
     let mut sites = Vec::new();
-    scatter_sites(pieces, &mut sites);
+    scatter_sites(pieces[1], &mut sites);
     let decls = sites.iter().map(|&(site, ..)| {
         let k = kept(site);
         quote!(let mut #k = ::std::option::Option::None;)
@@ -107,7 +81,7 @@ pub fn interleaved(prologue: &TokenStream, pieces: &[Piece]) -> TokenStream {
             if let ::std::option::Option::Some((__i, __x)) = #k { #view.add(__i, __x); }
         }
     });
-    let (p0, p1) = (rename(prologue, 0), rename(prologue, 1));
+    let [p0, p1] = prologue;
     let code = both(pieces);
     quote! {
         #(#decls)*
@@ -138,49 +112,61 @@ fn kept(site: usize) -> Ident {
     Ident::new(&format!("__kept{site}"), Span::mixed_site())
 }
 
-/// The code of both ids: runs of up to [`RUN`] statements for the first id, then the same for
-/// the second; `if`s by [`both_if`].
-fn both(pieces: &[Piece]) -> TokenStream {
+/// The code of both ids (`pieces[lane]`, alike but for their names): runs of up to [`RUN`]
+/// statements for the first id, then the same for the second; `if`s by [`both_if`].
+fn both(pieces: [&[Piece]; 2]) -> TokenStream {
+    assert_eq!(
+        pieces[0].len(),
+        pieces[1].len(),
+        "two emissions of one code"
+    );
     let mut out = TokenStream::new();
-    let mut run: &[Piece] = &[];
-    let flush = |run: &mut &[Piece], out: &mut TokenStream| {
-        out.extend(alone(run, 0));
-        out.extend(alone(run, 1));
-        *run = &[];
+    let mut start = 0;
+    let flush = |start: &mut usize, end: usize, out: &mut TokenStream| {
+        out.extend(alone(&pieces[0][*start..end], 0));
+        out.extend(alone(&pieces[1][*start..end], 1));
+        *start = end;
     };
-    for (k, p) in pieces.iter().enumerate() {
+    for (k, p) in pieces[0].iter().enumerate() {
         if let Piece::Code(_) | Piece::Scatter { .. } = p {
-            run = &pieces[k - run.len()..=k];
-            if run.len() == RUN {
-                flush(&mut run, &mut out);
+            if k + 1 - start == RUN {
+                flush(&mut start, k + 1, &mut out);
             }
         } else {
-            flush(&mut run, &mut out);
-            out.extend(both_if(p));
+            flush(&mut start, k, &mut out);
+            out.extend(both_if(p, &pieces[1][k]));
+            start = k + 1;
         }
     }
-    flush(&mut run, &mut out);
+    flush(&mut start, pieces[0].len(), &mut out);
     out
 }
 
-/// An `if` for both ids: its branch for both if they take the same, else each its own alone.
-fn both_if(p: &Piece) -> TokenStream {
-    match p {
-        Piece::Phi {
-            cond,
-            outs,
-            then,
-            then_vals,
-            els,
-            else_vals,
-        } => {
-            let [c0, c1] = [0, 1].map(|l| lane_ident(cond, l));
-            let [o0, o1] = [0, 1].map(|l| lane_idents(outs, l));
-            let [t0, t1] = [0, 1].map(|l| lane_idents(then_vals, l));
-            let [e0, e1] = [0, 1].map(|l| lane_idents(else_vals, l));
-            let (tb, eb) = (both(then), both(els));
-            let [ta0, ta1] = [0, 1].map(|l| alone(then, l));
-            let [ea0, ea1] = [0, 1].map(|l| alone(els, l));
+/// An `if` for both ids (`p0` the first's, `p1` the second's): its branch for both if they
+/// take the same, else each its own alone.
+fn both_if(p0: &Piece, p1: &Piece) -> TokenStream {
+    match (p0, p1) {
+        (
+            Piece::Phi {
+                cond: c0,
+                outs: o0,
+                then: th0,
+                then_vals: t0,
+                els: el0,
+                else_vals: e0,
+            },
+            Piece::Phi {
+                cond: c1,
+                outs: o1,
+                then: th1,
+                then_vals: t1,
+                els: el1,
+                else_vals: e1,
+            },
+        ) => {
+            let (tb, eb) = (both([th0, th1]), both([el0, el1]));
+            let (ta0, ta1) = (alone(th0, 0), alone(th1, 1));
+            let (ea0, ea1) = (alone(el0, 0), alone(el1, 1));
             quote! {
                 let ((#(#o0,)*), (#(#o1,)*)) = if #c0 == #c1 {
                     if #c0 {
@@ -196,11 +182,21 @@ fn both_if(p: &Piece) -> TokenStream {
                 };
             }
         }
-        Piece::Branch { cond, then, els } => {
-            let [c0, c1] = [0, 1].map(|l| lane_ident(cond, l));
-            let (tb, eb) = (both(then), both(els));
-            let [ta0, ta1] = [0, 1].map(|l| alone(then, l));
-            let [ea0, ea1] = [0, 1].map(|l| alone(els, l));
+        (
+            Piece::Branch {
+                cond: c0,
+                then: th0,
+                els: el0,
+            },
+            Piece::Branch {
+                cond: c1,
+                then: th1,
+                els: el1,
+            },
+        ) => {
+            let (tb, eb) = (both([th0, th1]), both([el0, el1]));
+            let (ta0, ta1) = (alone(th0, 0), alone(th1, 1));
+            let (ea0, ea1) = (alone(el0, 0), alone(el1, 1));
             quote! {
                 if #c0 == #c1 {
                     if #c0 { #tb } else { #eb }
@@ -210,7 +206,7 @@ fn both_if(p: &Piece) -> TokenStream {
                 }
             }
         }
-        Piece::Code(_) | Piece::Scatter { .. } => unreachable!("`both` renders statements"),
+        _ => unreachable!("`both` zips two emissions of one code"),
     }
 }
 
@@ -219,17 +215,11 @@ fn alone(pieces: &[Piece], lane: usize) -> TokenStream {
     render_as(pieces, &Lane(lane))
 }
 
-/// The names of one of the two ids.
+/// The scatters of one of the two ids.
 struct Lane(usize);
 
-impl Names for Lane {
-    fn name(&self, i: &Ident) -> Ident {
-        lane_ident(i, self.0)
-    }
-    fn code(&self, c: &TokenStream) -> TokenStream {
-        rename(c, self.0)
-    }
-    fn scatter(&self, site: usize, view: &Ident, i: Ident, x: Ident, span: Span) -> TokenStream {
+impl Scatters for Lane {
+    fn scatter(&self, site: usize, view: &Ident, i: &Ident, x: &Ident, span: Span) -> TokenStream {
         if self.0 == 0 {
             quote_spanned!(span=> #view.add(#i, #x);)
         } else {
@@ -237,39 +227,4 @@ impl Names for Lane {
             quote!(#k = ::std::option::Option::Some((#i, #x));)
         }
     }
-}
-
-/// `code` with the names of one id's locals (`v<N>`, `a<N>`, `__g<N>`, `__tid`) given the
-/// suffix of `lane`.
-fn rename(code: &TokenStream, lane: usize) -> TokenStream {
-    code.clone()
-        .into_iter()
-        .map(|t| match t {
-            TokenTree::Ident(i) if is_local(&i.to_string()) => {
-                TokenTree::Ident(lane_ident(&i, lane))
-            }
-            TokenTree::Group(g) => {
-                let mut n = Group::new(g.delimiter(), rename(&g.stream(), lane));
-                n.set_span(g.span());
-                TokenTree::Group(n)
-            }
-            other => other,
-        })
-        .collect()
-}
-
-fn is_local(name: &str) -> bool {
-    let numbered = |prefix: &str| {
-        name.strip_prefix(prefix)
-            .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
-    };
-    name == "__tid" || numbered("v") || numbered("a") || numbered("__g")
-}
-
-fn lane_ident(i: &Ident, lane: usize) -> Ident {
-    Ident::new(&format!("{i}_l{lane}"), i.span())
-}
-
-fn lane_idents(is: &[Ident], lane: usize) -> Vec<Ident> {
-    is.iter().map(|i| lane_ident(i, lane)).collect()
 }

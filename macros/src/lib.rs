@@ -19,7 +19,7 @@
 //! kernel or a function is compiled. [`builtins`] lists the builtin functions, [`syntax`] holds
 //! the syntactic queries check and lower share.
 //!
-//! The macro knows no types: every operation is a call to a rule in `adflex_runtime::math`
+//! The macro knows no types: every operation is a call to a rule in `adflex_runtime::__codegen`
 //! (`add`, `adj_add`, `tan_add`, ..), which type inference resolves.
 //!
 //! The language and its errors are documented in docs/guide.md of the repository.
@@ -39,6 +39,7 @@ mod ir;
 mod lanes;
 mod lower;
 mod signature;
+mod strategy;
 mod syntax;
 
 /// Compiles a kernel: a fn whose body runs once per thread id (`tid()`), reading `&Array<T>`

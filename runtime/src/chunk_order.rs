@@ -14,7 +14,7 @@ use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Condvar, Mutex, PoisonError};
 
-use crate::kernel::ScatterLog;
+use crate::scatter_log::ScatterLog;
 
 /// Deposited chunks a worker may leave unapplied before it waits for them: bounds the memory
 /// of logs held while one slow chunk runs.

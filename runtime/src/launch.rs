@@ -18,22 +18,16 @@
 
 use std::ops::Range;
 
-use rayon::prelude::*;
-
 use crate::array::{AnyArray, Token};
 use crate::chunk_order::ChunkOrder;
 use crate::kernel::{Access, Exec, Kernel, KernelBody, Mode, ParamInfo, ScatterLog};
-use crate::linger;
-pub use crate::linger::{leader_waits, linger, lingerers, set_linger};
-use crate::split;
-use crate::subnormals::{self, Flush};
-pub use crate::subnormals::{flush_subnormals, set_flush_subnormals};
+use crate::region::Region;
+pub use crate::settings::{flush_subnormals, linger, set_flush_subnormals, set_linger};
+use crate::{settings, split};
 
 /// Thread ids per chunk.
 pub const CHUNK: usize = 2048;
-/// Launches with fewer thread ids than this run serially (rayon's per-call overhead is a few
-/// microseconds; see docs/performance.md).
-pub const SERIAL_BELOW: usize = 4096;
+pub use crate::settings::SERIAL_BELOW;
 
 /// A kernel bound to its (owned) arguments: what a tape records and replays.
 pub trait BoundLaunch: Send + Sync {
@@ -163,15 +157,14 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 
 fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: usize) {
     let arrays = K::arrays(args);
-    let flush = subnormals::flush_subnormals();
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked, shared| {
-        // This thread runs a serial launch and applies a split one's logs; workers enter too.
-        let _flush = Flush::enter(flush);
+        // This thread runs a serial launch and applies a split one's logs.
+        let region = Region::open();
         let threads = rayon::current_num_threads();
         // Two parameters scattering into one buffer (an array passed twice, read by both, in
         // the adjoint) keep two logs, which cannot be merged back into thread-id order: such
         // launches run serially.
-        let timed = dim >= SERIAL_BELOW && threads > 1 && shared.is_empty();
+        let timed = dim >= settings::serial_below() && threads > 1 && shared.is_empty();
         let key = (
             std::any::TypeId::of::<K>(),
             mode,
@@ -189,10 +182,9 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
             let logs = kernel.run(mode, args, 0..dim, &Exec::new(true, locked, shared, 0..dim));
             debug_assert!(logs.iter().all(|l| l.0.is_none()));
         } else {
-            linger::launch_starts();
             match split {
-                Some(plan) => split::run(kernel, args, mode, &plan, locked, shared, flush),
-                None => run_ordered(dim, flush, &|r, k, order| {
+                Some(plan) => split::run(kernel, args, mode, &plan, locked, shared, &region),
+                None => run_ordered(dim, &region, &|r, k, order| {
                     kernel.run(
                         mode,
                         args,
@@ -201,7 +193,8 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                     )
                 }),
             }
-            linger::launch_ended();
+            // The pool's workers linger from here (timed with the launch, as before).
+            region.end();
         }
         // The first launch that plans its split is not a fair sample of the parallel path
         // (a plan is made once per index arrays' version); later ones that plan again are.
@@ -368,13 +361,6 @@ mod choice {
     }
 }
 
-/// How many launches so far ran as a static split (see `docs/performance.md`, "How a parallel
-/// launch scatters"): for tests that a launch took that path.
-#[doc(hidden)]
-pub fn split_launches() -> u64 {
-    split::LAUNCHES.load(std::sync::atomic::Ordering::Relaxed)
-}
-
 /// Runs `kernel` in `mode` over `0..dim` on the calling thread only, in thread-id order (the
 /// same bits as [`launch_mode`]). It compiles less code per kernel than [`launch_mode`] (no
 /// thread-pool path): for programs with very many small kernels, such as generated tests.
@@ -384,9 +370,8 @@ where
 {
     let owned = K::to_owned(&args);
     let arrays = K::arrays(&owned);
-    let flush = subnormals::flush_subnormals();
     with_locks(K::NAME, K::PARAMS, &arrays, mode, &mut |locked, shared| {
-        let _flush = Flush::enter(flush);
+        let _region = Region::open();
         let _ = kernel.run(
             mode,
             &owned,
@@ -556,18 +541,12 @@ fn mark_written(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mo
 /// when every earlier chunk has applied its own (thread-id order, whatever the thread count),
 /// while later chunks run. A chunk whose log grows large applies it early, at its turn
 /// ([`crate::kernel::Scatter`]), so memory does not grow with the contributions.
-fn run_ordered(dim: usize, flush: bool, run: &RunChunk) {
+fn run_ordered(dim: usize, region: &Region, run: &RunChunk) {
     let chunks = dim.div_ceil(CHUNK);
     let order = ChunkOrder::default();
     let workers = rayon::current_num_threads().clamp(1, chunks.max(1));
-    let team = linger::Team::new(workers);
-    (0..workers).into_par_iter().for_each(|_| {
-        team.share(|| {
-            // Covers the chunks this worker runs and the logs it applies.
-            let _flush = Flush::enter(flush);
-            run_chunks(dim, &order, chunks, run)
-        })
-    });
+    // Each worker claims chunks until none is left, and applies logs.
+    region.shares(workers, |_| run_chunks(dim, &order, chunks, run));
 }
 
 /// Claims and runs chunks in order until none is left (one worker of [`run_ordered`]).

@@ -20,11 +20,52 @@ pub mod kernel;
 pub mod launch;
 mod linger;
 pub mod math;
+/// The code-generation path: every builtin of [`math`] with its adjoint (`adj_*`) and tangent
+/// (`tan_*`) rules, which only the code `#[diff_kernel]` and `#[diff_func]` emit calls. Not for
+/// users; hidden from the docs.
+#[doc(hidden)]
+pub mod __codegen {
+    pub use crate::math::cast::*;
+    pub use crate::math::component::*;
+    pub use crate::math::construct::*;
+    pub use crate::math::items::*;
+    pub use crate::math::matrix::*;
+    pub use crate::math::ops::*;
+    pub use crate::math::quaternion::*;
+    pub use crate::math::scalar::*;
+    pub use crate::math::vector::*;
+    pub use crate::math::vector_space::*;
+}
 mod real;
+mod region;
+mod scatter_log;
+pub mod settings;
 mod split;
 mod subnormals;
 pub mod tape;
 mod value;
+
+/// Counters for the runtime's own tests (which path a launch took, whether workers linger):
+/// not part of the API; hidden from the docs.
+#[doc(hidden)]
+pub mod __test {
+    /// Lingering jobs spawned and not yet started, and workers lingering now.
+    pub fn lingerers() -> (usize, usize) {
+        crate::linger::lingerers()
+    }
+
+    /// Times a launching thread, done with its share of a parallel launch, waited for the
+    /// other shares.
+    pub fn leader_waits() -> usize {
+        crate::linger::leader_waits()
+    }
+
+    /// How many launches so far ran as a static split (see `docs/performance.md`, "How a
+    /// parallel launch scatters").
+    pub fn split_launches() -> u64 {
+        crate::split::launches()
+    }
+}
 
 pub use array::{AnyArray, Array, Element};
 pub use error::Error;

@@ -1,13 +1,15 @@
 //! After a parallel launch, the pool's other workers wait for the next one awake, for a while
-//! ([`set_linger`]), instead of going to sleep.
+//! ([`Settings::linger`](crate::settings::Settings::linger)), instead of going to sleep; within
+//! one, the launching thread waits for the other shares awake ([`Team`]). Only
+//! `crate::region` calls this.
 
 use std::sync::atomic::{AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
+use crate::settings;
+
 /// Bumped when a parallel launch starts: lingering workers go back to the pool to take its work.
 static EPOCH: AtomicU64 = AtomicU64::new(0);
-/// How long workers linger, in nanoseconds.
-static LINGER_NS: AtomicU64 = AtomicU64::new(500_000);
 /// Lingering jobs spawned and not yet started (at most one per worker: a job nobody takes,
 /// all workers busy with other work, is not spawned again at every launch).
 static QUEUED: AtomicUsize = AtomicUsize::new(0);
@@ -16,45 +18,8 @@ static LINGERING: AtomicUsize = AtomicUsize::new(0);
 /// Times a launching thread waited for the other shares of its launch ([`Team`]).
 static LEADER_WAITS: AtomicUsize = AtomicUsize::new(0);
 
-/// How long, after a parallel launch, the pool's other workers busy-wait for the next launch
-/// before they may sleep (the default: 0.5 ms). See [`set_linger`].
-pub fn linger() -> Duration {
-    Duration::from_nanos(LINGER_NS.load(Ordering::Relaxed))
-}
-
-/// Sets how long, after a parallel launch, the pool's other workers busy-wait for the next
-/// launch (process-wide); `Duration::ZERO` lets them sleep at once, as rayon's idle workers
-/// do.
-///
-/// A rayon worker that finds no work sleeps after a few microseconds. Waking it costs the
-/// launching thread a system call and the worker tens of microseconds before it runs: on a
-/// 2-core virtual machine a parallel launch of two 100 us halves took 176 us when it came 50 us
-/// after the previous one, and 101 us when it came at once (docs/performance.md). A simulation
-/// step is a few launches of 0.05 to 1 ms with a little host work between them (recording
-/// them, allocating the next state), so every parallel launch paid that. So after a parallel
-/// launch, the pool's other workers spin until the next parallel launch starts or this time
-/// has passed, as OpenMP runtimes do (`KMP_BLOCKTIME`, `OMP_WAIT_POLICY`). Within a launch,
-/// the launching thread, done with its share, waits for the other shares spinning too, at
-/// most this long. The cost is CPU time on those cores, at most this long per parallel
-/// launch; a program that launches rarely and shares its cores may prefer `Duration::ZERO`.
-/// Results do not depend on it.
-///
-/// ```
-/// use std::time::Duration;
-/// use adflex_runtime::launch::{linger, set_linger};
-/// assert_eq!(linger(), Duration::from_micros(500));
-/// set_linger(Duration::ZERO); // workers sleep as soon as a launch ends
-/// assert_eq!(linger(), Duration::ZERO);
-/// set_linger(Duration::from_micros(500));
-/// ```
-pub fn set_linger(time: Duration) {
-    let ns = u64::try_from(time.as_nanos()).unwrap_or(u64::MAX);
-    LINGER_NS.store(ns, Ordering::Relaxed)
-}
-
 /// Lingering jobs spawned and not yet started, and workers lingering now (for tests).
-#[doc(hidden)]
-pub fn lingerers() -> (usize, usize) {
+pub(crate) fn lingerers() -> (usize, usize) {
     (
         QUEUED.load(Ordering::Acquire),
         LINGERING.load(Ordering::Acquire),
@@ -63,8 +28,7 @@ pub fn lingerers() -> (usize, usize) {
 
 /// Times a launching thread, done with its share of a parallel launch, waited for the other
 /// shares (for tests).
-#[doc(hidden)]
-pub fn leader_waits() -> usize {
+pub(crate) fn leader_waits() -> usize {
     LEADER_WAITS.load(Ordering::Acquire)
 }
 
@@ -75,9 +39,9 @@ pub(crate) fn launch_starts() {
 }
 
 /// Called when a parallel launch has ended: up to one job per other worker of the current
-/// pool spins until the next parallel launch starts or [`linger`] has passed.
+/// pool spins until the next parallel launch starts or [`Settings::linger`](crate::settings::Settings::linger) has passed.
 pub(crate) fn launch_ended() {
-    let ns = LINGER_NS.load(Ordering::Relaxed);
+    let ns = settings::linger_ns();
     if ns == 0 {
         return;
     }
@@ -116,7 +80,7 @@ pub(crate) fn launch_ended() {
 
 /// The shares of one parallel launch, counted as they start and finish. The launching
 /// thread, done with its own share while the others still run theirs, waits for them awake
-/// (at most [`linger`]) rather than in rayon's join, where it sleeps after a few microseconds:
+/// (at most [`Settings::linger`](crate::settings::Settings::linger)) rather than in rayon's join, where it sleeps after a few microseconds:
 /// waking it then cost 30 to 50 us per launch on a 2-core virtual machine, 5% of the cloth's
 /// step (docs/performance.md).
 pub(crate) struct Team {
@@ -137,9 +101,9 @@ pub(crate) enum Wait {
     /// A share had not started: it may be queued on the launching thread itself, which
     /// returns to rayon to run it.
     NotStarted = 2,
-    /// [`linger`] passed first (a share preempted by another process); rayon's join waits on.
+    /// [`Settings::linger`](crate::settings::Settings::linger) passed first (a share preempted by another process); rayon's join waits on.
     TimedOut = 3,
-    /// Lingering is off ([`set_linger`] with zero).
+    /// Lingering is off ([`set_linger`](crate::settings::set_linger) with zero).
     Off = 4,
 }
 
@@ -177,7 +141,7 @@ impl Team {
     }
 
     fn wait_for_others(&self) -> Wait {
-        let ns = LINGER_NS.load(Ordering::Relaxed);
+        let ns = settings::linger_ns();
         if ns == 0 {
             return Wait::Off;
         }
@@ -205,6 +169,7 @@ mod tests {
     use std::sync::atomic::AtomicBool;
 
     use super::*;
+    use crate::settings::set_linger;
 
     /// Spins until `flag` is set (at most 5 s).
     fn until(flag: &AtomicBool) {

@@ -17,11 +17,8 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
-use rayon::prelude::*;
-
 use crate::kernel::{Exec, Halo, KernelBody, Mode, ScatterLog};
-use crate::linger::Team;
-use crate::subnormals::Flush;
+use crate::region::Region;
 
 /// A split of one launch: each range with the end of its head, and the first-touch maps.
 pub(crate) struct Plan {
@@ -147,9 +144,16 @@ fn build<K: KernelBody<O>, O>(
 }
 
 /// Launches run split so far (for tests that check a launch took this path).
-pub(crate) static LAUNCHES: AtomicU64 = AtomicU64::new(0);
+static LAUNCHES: AtomicU64 = AtomicU64::new(0);
 
-/// Runs `kernel` over the plan's ranges in parallel, then applies the heads' logs in order.
+/// How many launches so far ran as a static split (see `docs/performance.md`, "How a parallel
+/// launch scatters"): for tests that a launch took that path.
+pub(crate) fn launches() -> u64 {
+    LAUNCHES.load(Ordering::Relaxed)
+}
+
+/// Runs `kernel` over the plan's ranges in parallel (shares of `region`), then applies the
+/// heads' logs in order on the calling thread.
 pub(crate) fn run<K: KernelBody<O>, O: Sync>(
     kernel: &K,
     args: &O,
@@ -157,7 +161,7 @@ pub(crate) fn run<K: KernelBody<O>, O: Sync>(
     plan: &Plan,
     locked: &[(u64, bool)],
     shared: &[u64],
-    flush: bool,
+    region: &Region,
 ) {
     LAUNCHES.fetch_add(1, Ordering::Relaxed);
     // The maps by the ids of this launch's arrays (scatters find theirs by array id).
@@ -169,43 +173,36 @@ pub(crate) fn run<K: KernelBody<O>, O: Sync>(
         .zip(&plan.firsts)
         .filter_map(|(&p, m)| Some((arrays.get(p).copied().flatten()?.id(), m.clone())))
         .collect();
-    let team = Team::new(plan.ranges.len());
-    let logs: Vec<Vec<ScatterLog>> = plan
-        .ranges
-        .par_iter()
-        .map(|(range, head_end)| {
-            team.share(|| {
-                let _flush = Flush::enter(flush);
-                let head = range.start..*head_end;
-                let logs = match head.is_empty() {
-                    true => Vec::new(),
-                    false => {
-                        let halo = Halo {
-                            firsts: &firsts,
-                            bound: range.start as u32,
-                        };
-                        kernel.run(
-                            mode,
-                            args,
-                            head.clone(),
-                            &Exec::halo(locked, shared, head, halo),
-                        )
-                    }
+    let logs: Vec<Vec<ScatterLog>> = region.shares(plan.ranges.len(), |r| {
+        let (range, head_end) = &plan.ranges[r];
+        let head = range.start..*head_end;
+        let logs = match head.is_empty() {
+            true => Vec::new(),
+            false => {
+                let halo = Halo {
+                    firsts: &firsts,
+                    bound: range.start as u32,
                 };
-                let tail = *head_end..range.end;
-                if !tail.is_empty() {
-                    let direct = kernel.run(
-                        mode,
-                        args,
-                        tail.clone(),
-                        &Exec::new(true, locked, shared, tail),
-                    );
-                    debug_assert!(direct.iter().all(|l| l.0.is_none()));
-                }
-                logs
-            })
-        })
-        .collect();
+                kernel.run(
+                    mode,
+                    args,
+                    head.clone(),
+                    &Exec::halo(locked, shared, head, halo),
+                )
+            }
+        };
+        let tail = *head_end..range.end;
+        if !tail.is_empty() {
+            let direct = kernel.run(
+                mode,
+                args,
+                tail.clone(),
+                &Exec::new(true, locked, shared, tail),
+            );
+            debug_assert!(direct.iter().all(|l| l.0.is_none()));
+        }
+        logs
+    });
     for log in logs.iter().flatten().filter_map(|l| l.0.as_deref()) {
         // SAFETY: every range has finished; logs go in range order, each in thread-id order.
         unsafe { log.apply() }

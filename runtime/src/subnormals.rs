@@ -1,59 +1,6 @@
-//! Subnormal floats inside launches: flushed to zero by default ([`set_flush_subnormals`]).
-
-use std::sync::atomic::{AtomicBool, Ordering};
-
-static FLUSH: AtomicBool = AtomicBool::new(true);
-
-/// Whether launches that start now flush subnormal floats to zero (the default: `true`).
-/// See [`set_flush_subnormals`].
-pub fn flush_subnormals() -> bool {
-    FLUSH.load(Ordering::Relaxed)
-}
-
-/// Sets whether launches that start from now on flush subnormal floats to zero (process-wide;
-/// a launch already running keeps its mode). `false` gives IEEE gradual underflow.
-///
-/// Arithmetic that produces or reads a subnormal number (below `f32::MIN_POSITIVE`,
-/// about 1.2e-38, or `f64::MIN_POSITIVE`, 2.2e-308) takes a slow microcode path on many x86
-/// CPUs, up to a hundred times slower than a normal operation. Simulations make such values as
-/// a matter of course: a perturbation that spreads from a pinned corner of a cloth decays
-/// through them, and so do the adjoints of a long rollout. On an Intel Xeon they made the
-/// cloth scene of `docs/scenes.md` up to 1.6x slower (docs/performance.md).
-///
-/// So every launch (forward, adjoint, tangent, on every thread that runs part of it, including
-/// the application of its ordered scatters) runs with the CPU flushing subnormal results to
-/// zero and reading subnormal inputs as zero (x86's FTZ and DAZ bits, aarch64's FZ bit), as
-/// TensorFlow, XLA and GPUs do; the previous mode is restored when the launch ends, so host
-/// code never sees it. Results change only where an exact computation would have a
-/// magnitude below `MIN_POSITIVE`; every path of a launch (serial or parallel, any thread
-/// count) runs in the same mode, so results stay bitwise identical across thread counts.
-/// [`set_flush_subnormals`]`(false)` keeps IEEE subnormals (exact gradual underflow) for
-/// launches that start afterwards. On other architectures the setting has no effect. A
-/// constant the compiler folds ahead of time follows IEEE rules and may stay subnormal.
-///
-/// ```
-/// use adflex_runtime::prelude::*;
-/// use adflex_runtime::launch::{flush_subnormals, set_flush_subnormals};
-/// use adflex_macros::diff_kernel;
-/// #[diff_kernel]
-/// fn scale(x: &Array<f32>, s: f32, y: &Array<f32>) {
-///     let t = tid();
-///     y[t] = x[t] * s;
-/// }
-/// let x = Array::from_vec(vec![1e-20f32]);
-/// let y = Array::zeros(1);
-/// assert!(flush_subnormals());
-/// launch(scale, 1, (&x, 1e-20, &y));
-/// # #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
-/// assert_eq!(y.get(0), 0.0); // 1e-40 is subnormal: flushed
-/// set_flush_subnormals(false);
-/// launch(scale, 1, (&x, 1e-20, &y));
-/// assert!(y.get(0) > 0.0 && y.get(0) < f32::MIN_POSITIVE); // IEEE gradual underflow
-/// set_flush_subnormals(true);
-/// ```
-pub fn set_flush_subnormals(on: bool) {
-    FLUSH.store(on, Ordering::Relaxed)
-}
+//! Subnormal floats inside launches: the guard that flushes them to zero on one thread
+//! ([`Settings::flush_subnormals`](crate::settings::Settings::flush_subnormals) says why;
+//! `crate::region` enters it on every thread of a launch).
 
 /// Puts this thread's floating-point unit in flush-to-zero mode while alive (if `on`), and
 /// restores the mode it found when dropped.

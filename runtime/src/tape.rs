@@ -1102,11 +1102,12 @@ fn zero_grads(arrays: &[&dyn AnyArray]) {
     use rayon::prelude::*;
     if rayon::current_num_threads() > 1 && arrays.len() > 1 {
         // Workers lingering after the forward's last launch take this work at once.
-        crate::linger::launch_starts();
-        arrays
-            .par_iter()
-            .with_min_len(4)
-            .for_each(|a| a.reset_grad());
+        crate::region::Region::host().pool(|| {
+            arrays
+                .par_iter()
+                .with_min_len(4)
+                .for_each(|a| a.reset_grad())
+        });
     } else {
         arrays.iter().for_each(|a| a.reset_grad());
     }

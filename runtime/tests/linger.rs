@@ -6,9 +6,8 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use adflex_runtime::launch::{
-    leader_waits, linger, lingerers, set_linger, split_launches, SERIAL_BELOW,
-};
+use adflex_runtime::__test::{leader_waits, lingerers, split_launches};
+use adflex_runtime::launch::{linger, set_linger, SERIAL_BELOW};
 use adflex_runtime::prelude::*;
 
 #[adflex_macros::diff_kernel]

@@ -128,8 +128,9 @@ fn two_ids_at_a_time_give_the_bits_of_one_at_a_time() {
     }
 }
 
-/// A constant named like the macro's locals (`a<N>`), which the second id's renaming must
-/// leave alone.
+/// A constant named like the macro's locals (`a<N>`): the two ids' code is emitted with names
+/// of their own (`a1_l0`, `a1_l1`), so the user's `a1` keeps its meaning and the kernel still
+/// runs two ids per iteration.
 mod consts {
     #[allow(non_upper_case_globals)]
     pub const a1: f64 = 3.0;

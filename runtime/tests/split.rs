@@ -8,7 +8,7 @@ mod common;
 
 use std::sync::{Mutex, MutexGuard, PoisonError};
 
-use adflex_runtime::launch::split_launches;
+use adflex_runtime::__test::split_launches;
 use adflex_runtime::prelude::*;
 use common::{grid_pairs, random, shuffled};
 

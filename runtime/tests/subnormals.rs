@@ -5,7 +5,8 @@
 
 mod common;
 
-use adflex_runtime::launch::{flush_subnormals, split_launches, SERIAL_BELOW};
+use adflex_runtime::__test::split_launches;
+use adflex_runtime::launch::{flush_subnormals, SERIAL_BELOW};
 use adflex_runtime::prelude::*;
 use common::{grid_pairs, random, shuffled};
 

@@ -27,10 +27,10 @@ macro_rules! adjoint_tuple {
         let _ = $g;
     }};
     ($adj:ident, [$a:ident], $g:ident) => {
-        (super::$adj($a, $g),)
+        (crate::__codegen::$adj($a, $g),)
     };
     ($adj:ident, [$($a:ident),+], $g:ident) => {
-        super::$adj($($a,)+ $g)
+        crate::__codegen::$adj($($a,)+ $g)
     };
 }
 
@@ -47,7 +47,7 @@ macro_rules! items {
             impl<$($gen)*> DiffFunc<($($t,)*), $o> for $f {
                 #[inline(always)]
                 fn forward(&self, ($($a,)*): ($($t,)*)) -> $o {
-                    super::$f($($a),*)
+                    crate::__codegen::$f($($a),*)
                 }
                 #[inline(always)]
                 #[allow(unused_variables, clippy::unused_unit)]
@@ -56,7 +56,7 @@ macro_rules! items {
                 }
                 #[inline(always)]
                 fn tangent(&self, ($($a,)*): ($($t,)*), ($($da,)*): ($($t,)*)) -> ($o, $o) {
-                    (super::$f($($a),*), super::$tan($($a,)* $($da),*))
+                    (crate::__codegen::$f($($a),*), crate::__codegen::$tan($($a,)* $($da),*))
                 }
             }
         )*
@@ -69,7 +69,7 @@ macro_rules! items {
         /// item (for kernels), and nothing of the rules (`adj_*`, `tan_*`, the rule traits),
         /// which only generated code calls.
         pub mod builtins_prelude {
-            $(pub use crate::math::$f;)*
+            $(pub use crate::__codegen::$f;)*
             pub use super::constants_prelude::*;
         }
     };
@@ -79,7 +79,7 @@ macro_rules! items {
 macro_rules! constants {
     ($($f:ident [$($gen:tt)*] -> $o:ty;)*) => {
         mod constants_prelude {
-            $(pub use crate::math::$f;)*
+            $(pub use crate::__codegen::$f;)*
         }
         $(
         #[doc = concat!("The builtin [`", stringify!($f), "`](fn@super::", stringify!($f),
@@ -90,13 +90,13 @@ macro_rules! constants {
         impl<$($gen)*> DiffFunc<(), $o> for $f {
             #[inline(always)]
             fn forward(&self, _: ()) -> $o {
-                super::$f()
+                crate::__codegen::$f()
             }
             #[inline(always)]
             fn adjoint(&self, _: (), _: $o) {}
             #[inline(always)]
             fn tangent(&self, _: (), _: ()) -> ($o, $o) {
-                let v = super::$f();
+                let v = crate::__codegen::$f();
                 (v, crate::zero_like(&v))
             }
         }

@@ -3,6 +3,7 @@
 
 use super::check::*;
 use super::*;
+use crate::__codegen::*;
 use crate::{acc, Mat33, Quat, Real, Vec3};
 
 /// A damped spring written the way `#[diff_func]` lowers it: every operation is a rule call,

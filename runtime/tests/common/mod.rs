@@ -25,7 +25,9 @@ impl<'a, const W: bool> Kernel<(&'a Array<f64>, f64, &'a Array<f64>)> for Square
     }
 }
 
-impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
+// SAFETY: the views are made from `exec` and dropped before `run` returns; no static
+// scatters are claimed.
+unsafe impl<const W: bool> KernelBody<SquareArgs> for Square<W> {
     const NAME: &'static str = if W { "bad_square" } else { "square" };
     const PARAMS: &'static [ParamInfo] = &[
         p("x", Access::Read),
@@ -89,7 +91,9 @@ impl<'a> Kernel<(&'a Array<f64>, &'a Array<f64>)> for SumSq {
     }
 }
 
-impl KernelBody<SumSqArgs> for SumSq {
+// SAFETY: the views are made from `exec` and dropped before `run` returns; no static
+// scatters are claimed.
+unsafe impl KernelBody<SumSqArgs> for SumSq {
     const NAME: &'static str = "sum_sq";
     const PARAMS: &'static [ParamInfo] = &[p("x", Access::Read), p("loss", Access::Atomic)];
     fn arrays(a: &SumSqArgs) -> Vec<Option<&dyn AnyArray>> {
@@ -147,7 +151,9 @@ impl<'a> Kernel<(&'a Array<f64>, &'a Array<f64>)> for Sqrt {
     }
 }
 
-impl KernelBody<SqrtArgs> for Sqrt {
+// SAFETY: the views are made from `exec` and dropped before `run` returns; no static
+// scatters are claimed.
+unsafe impl KernelBody<SqrtArgs> for Sqrt {
     const NAME: &'static str = "sqrt";
     const PARAMS: &'static [ParamInfo] = &[p("x", Access::Read), p("y", Access::Store)];
     fn arrays(a: &SqrtArgs) -> Vec<Option<&dyn AnyArray>> {
@@ -228,7 +234,9 @@ impl<'a> Kernel<StepRefs<'a>> for Step {
     }
 }
 
-impl KernelBody<StepArgs> for Step {
+// SAFETY: the views are made from `exec` and dropped before `run` returns; no static
+// scatters are claimed.
+unsafe impl KernelBody<StepArgs> for Step {
     const NAME: &'static str = "step";
     const PARAMS: &'static [ParamInfo] = &[
         p("x", Access::Read),
@@ -343,7 +351,9 @@ impl<'a> Kernel<(&'a Array<f64>, &'a Array<u32>, &'a Array<f64>)> for GatherScat
     }
 }
 
-impl KernelBody<GsArgs> for GatherScatter {
+// SAFETY: the views are made from `exec` and dropped before `run` returns; no static
+// scatters are claimed.
+unsafe impl KernelBody<GsArgs> for GatherScatter {
     const NAME: &'static str = "gather_scatter";
     const PARAMS: &'static [ParamInfo] = &[
         p("x", Access::Read),
@@ -480,7 +490,9 @@ impl<'a> Kernel<(&'a Array<f64>, &'a Array<f64>)> for MisclaimedScatter {
     }
 }
 
-impl KernelBody<SumSqArgs> for MisclaimedScatter {
+// SAFETY: the views are made from `exec` and dropped before `run` returns; no static
+// scatters are claimed.
+unsafe impl KernelBody<SumSqArgs> for MisclaimedScatter {
     const NAME: &'static str = "misclaimed";
     const PARAMS: &'static [ParamInfo] = &[p("x", Access::Read), p("loss", Access::Atomic)];
     fn arrays(a: &SumSqArgs) -> Vec<Option<&dyn AnyArray>> {
