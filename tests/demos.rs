@@ -32,7 +32,12 @@ fn cage_optimizers_compared_on_one_budget() {
     for (name, r) in others {
         assert!(r.evaluations <= 40, "{name}: {}", r);
         assert!(r.loss < r.initial_loss, "{name}: {}", r);
-        assert!(lbfgs.1.loss < 1e-6 * r.loss, "L-BFGS {} vs {name} {}", lbfgs.1, r);
+        assert!(
+            lbfgs.1.loss < 1e-6 * r.loss,
+            "L-BFGS {} vs {name} {}",
+            lbfgs.1,
+            r
+        );
     }
 }
 

@@ -179,11 +179,7 @@ impl<R: Real> ModelBuilder<R> {
     /// it exerts no force of its own (see [`ModelBuilder::add_triangle_fem`]).
     /// Its vertices must be distinct particles.
     pub fn add_triangle(&mut self, i: u32, j: u32, k: u32) -> u32 {
-        let t = &mut self.particles.triangles;
-        let n = self.particles.x.len();
-        crate::particles::check(&mut self.problems, "triangles", t.len()).particles(n, &[i, j, k]);
-        t.push([i, j, k]);
-        (t.len() - 1) as u32
+        self.particles.add_triangle(&mut self.problems, [i, j, k])
     }
 
     /// The surface triangles added so far.
@@ -198,10 +194,9 @@ impl<R: Real> ModelBuilder<R> {
     /// [`crate::validation::min_quality`], `Dm^-1` finite and area above `R::tiny()` in `R`;
     /// otherwise a problem of `triangle_fem[k]` is recorded.
     pub fn add_triangle_fem(&mut self, i: u32, j: u32, k: u32, mu: R, lambda: R, kd: R) -> u32 {
-        let (f, mut el) = self.parts();
-        let e = f.triangle_fem.add(&mut el, i, j, k, mu, lambda, kd);
-        self.particles.triangles.push([i, j, k]);
-        e
+        let part = &mut self.forces.triangle_fem;
+        let (particles, problems) = (&mut self.particles, &mut self.problems);
+        crate::forces::fem_tri::add_membrane(part, particles, problems, [i, j, k], [mu, lambda, kd])
     }
 
     /// Adds a bending element `(o1, o2, e0, e1)` (opposite vertices, then the shared edge) with
@@ -213,7 +208,7 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// Adds a bending element on every edge shared by two of the triangles added so far, in
-    /// dFlex/Warp order (see [`bending_edges`]); returns how many. Call it once, after the
+    /// dFlex/Warp order (see [`bending_edges`](crate::forces::bending::bending_edges)); returns how many. Call it once, after the
     /// triangles.
     pub fn add_bending_edges(&mut self, ke: R, kd: R, rest: RestAngle) -> usize {
         let (f, mut el) = self.parts();
@@ -242,20 +237,18 @@ impl<R: Real> ModelBuilder<R> {
     /// Sets the ground plane for particle and body contact (unit normal; `ke`, `kd`, `mu`,
     /// `leak` finite and `>= 0`).
     pub fn set_ground(&mut self, ground: Ground<R>) {
-        ground.check(&mut self.check_one("ground"));
-        self.forces.ground = Some(ground);
+        crate::contact::ground::set(&mut self.forces.ground, &mut self.problems, ground)
     }
 
     /// Sets linear drag / wind on every particle (`kd` finite and `>= 0`, `wind` finite).
     pub fn set_drag(&mut self, drag: Drag<R>) {
-        drag.check(&mut self.check_one("drag"));
-        self.forces.drag = Some(drag);
+        crate::forces::particle::set(&mut self.forces.drag, &mut self.problems, drag)
     }
 
     /// Enables particle-particle contact (every parameter finite and `>= 0`).
     pub fn set_particle_contact(&mut self, contact: ParticleContact<R>) {
-        contact.check(&mut self.check_one("particle_contact"));
-        self.forces.particle_contact = Some(contact);
+        let part = &mut self.forces.particle_contact;
+        crate::contact::particle::set(part, &mut self.problems, contact)
     }
 
     /// Adds a static analytic shape that particles collide with (finite position, unit

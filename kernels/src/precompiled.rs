@@ -9,7 +9,6 @@
 //! rebuild time after an edit (`docs/performance.md`, "The edit-compile cycle"). The functions
 //! here are generic shims: they call a non-generic instantiation compiled once, in this crate,
 //! for the scalar type at hand.
-
 //!
 //! The macro is invoked next to the entry point it serves (`model.rs`: the model's build;
 //! `integrators/common.rs`: the rigid bodies' step; `integrators/implicit.rs`: implicit Euler's

@@ -8,7 +8,7 @@
 //! `a = w f + g` the accelerations of [`Model::eval_accelerations`] at zero velocity, the
 //! residual is the net force `r(x) = M a(x) = f(x) + M g` (N) and its Jacobian is `-K`, `K =
 //! -dr/dx` the stiffness matrix (symmetric for springs, membranes, tetrahedra). Each Newton
-//! iteration solves `K d = r` by [`krylov::solve`] (CG, then BiCGSTAB if CG meets negative
+//! iteration solves `K d = r` by [`krylov::solve`](crate::solver::krylov::solve) (CG, then BiCGSTAB if CG meets negative
 //! curvature, e.g. from compressed springs) and moves `x += alpha d`, with a backtracking line
 //! search on `|r|^2` (or on the potential energy, whose gradient is `-r`, when the residual
 //! does not decrease along `d`). `K` is never formed: `K u` is one pass of the **tangent**
@@ -40,7 +40,9 @@
 //! `"Equilibrium Newton"` (nothing is recorded), and an adjoint solve that does is
 //! `tape.backward`'s error naming `"Equilibrium adjoint linear solve"`, unless
 //! [`Equilibrium::on_failure`] says otherwise. A NaN or infinite position or parameter, or a
-//! model with rigid bodies (which this solve does not handle), is [`Error::InvalidInput`].
+//! model with rigid bodies (which this solve does not handle), is [`Error::InvalidInput`]. A
+//! force whose tangent or adjoint pass fails (a custom step without a tangent) is that pass's
+//! error, naming the force and `"Equilibrium"`, from `solve` or from `tape.backward`.
 //!
 //! ```
 //! use adflex_kernels::prelude::*;
@@ -78,13 +80,15 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
-    add_into, check_inputs, check_visited, copies, epsilon, flat, forces_only, is_f32, max_abs,
-    record, unflat, Copies, Dofs, Needs, Point,
+    add_into, check_inputs, check_visited, copies, epsilon, flat, forces_only, is_f32, record,
+    unflat, Copies, Dofs, Needs, Point,
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
 use crate::solver::krylov::{SolveInfo, SolveSettings};
-use crate::solver::newton::{dot, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure};
+use crate::solver::newton::{
+    dot, max_abs, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
+};
 pub use crate::solver::NewtonStats;
 use crate::state::State;
 

@@ -1,4 +1,4 @@
-//! Colours: [`Rgba`], shared by the renderer, the overlays and the plots.
+//! Colours: [`Rgba`], shared by the renderer, the overlays and the charts' pixel backend.
 
 use tiny_skia::Paint;
 

@@ -12,7 +12,7 @@
 //!   GIF of a rollout, or the raw pixels.
 //! - [`overlay`]: targets, trails, a ghost of the first guess, colours by a value with a
 //!   colour bar, captions, drawn over those pictures.
-//! - [`plot`]: SVG line charts with `plotters`: a loss curve, or several named curves.
+//! - [`plot`]: line charts with `plotters`, SVG or PNG: a loss curve, or several named curves.
 //!
 //! ```
 //! use adflex_kernels::prelude::*;

@@ -326,29 +326,30 @@ pub(crate) fn text(pm: &mut Pixmap, x: f32, y: f32, text: &str, color: Rgba) {
     }
     let mut paint = tiny_skia::Paint::default();
     paint.set_color_rgba8(color.r, color.g, color.b, color.a);
-    for (k, ch) in text.chars().enumerate() {
+    for (col, row) in glyph_pixels(text) {
+        let (px, py) = (x + col as f32 * SCALE, y + row as f32 * SCALE);
+        if let Some(r) = Rect::from_xywh(px, py, SCALE, SCALE) {
+            pm.fill_rect(r, &paint, Transform::identity(), None);
+        }
+    }
+}
+
+/// The set pixels of `text` in the 8x8 font (ASCII; other characters as `?`), as `(column,
+/// row)` in font pixels from the text's top left.
+pub(crate) fn glyph_pixels(text: &str) -> impl Iterator<Item = (i32, i32)> + '_ {
+    text.chars().enumerate().flat_map(|(k, ch)| {
         let code = if ch.is_ascii() {
             ch as usize
         } else {
             '?' as usize
         };
         let glyph = font8x8::legacy::BASIC_LEGACY[code];
-        let x0 = x + k as f32 * 8.0 * SCALE;
-        for (row, bits) in glyph.iter().enumerate() {
-            for col in 0..8 {
-                if bits & (1 << col) != 0 {
-                    if let Some(r) = Rect::from_xywh(
-                        x0 + col as f32 * SCALE,
-                        y + row as f32 * SCALE,
-                        SCALE,
-                        SCALE,
-                    ) {
-                        pm.fill_rect(r, &paint, Transform::identity(), None);
-                    }
-                }
-            }
-        }
-    }
+        (0..8usize).flat_map(move |row| {
+            (0..8i32)
+                .filter(move |col| glyph[row] & (1 << col) != 0)
+                .map(move |col| (k as i32 * 8 + col, row as i32))
+        })
+    })
 }
 
 /// A short number for a key: 3 significant digits.

@@ -10,6 +10,9 @@ use plotters_backend::{
 };
 use tiny_skia::{FillRule, LineCap, Paint, PathBuilder, Pixmap, Rect, Stroke, Transform};
 
+use crate::color::Rgba;
+use crate::overlay::glyph_pixels;
+
 /// Never returned: drawing on a pixmap cannot fail (a shape off the pixmap is clipped).
 #[derive(Debug)]
 pub(crate) struct NoError;
@@ -39,11 +42,9 @@ fn paint(c: BackendColor) -> Option<Paint<'static>> {
     if c.alpha <= 0.0 {
         return None;
     }
-    let mut p = Paint::default();
     let a = (c.alpha.clamp(0.0, 1.0) * 255.0).round() as u8;
-    p.set_color_rgba8(c.rgb.0, c.rgb.1, c.rgb.2, a);
-    p.anti_alias = true;
-    Some(p)
+    let (r, g, b) = c.rgb;
+    Some(Rgba { r, g, b, a }.paint())
 }
 
 /// Font pixels per 8x8 glyph pixel for a text style of `size` (px): 1 up to 19 px (8 px per
@@ -229,29 +230,16 @@ impl DrawingBackend for PixmapBackend<'_> {
             VPos::Bottom => -h,
         };
         let transform = style.transform();
-        for (c, ch) in text.chars().enumerate() {
-            let code = if ch.is_ascii() {
-                ch as usize
-            } else {
-                '?' as usize
+        for (col, row) in glyph_pixels(text) {
+            // The font pixel's top left in the text's own frame, from the anchor.
+            let (u, v) = (dx + col * k, dy + row * k);
+            let (x, y) = match transform {
+                FontTransform::None => (pos.0 + u, pos.1 + v),
+                FontTransform::Rotate90 => (pos.0 - v - k, pos.1 + u),
+                FontTransform::Rotate180 => (pos.0 - u - k, pos.1 - v - k),
+                FontTransform::Rotate270 => (pos.0 + v, pos.1 - u - k),
             };
-            let glyph = font8x8::legacy::BASIC_LEGACY[code];
-            for (row, bits) in glyph.iter().enumerate() {
-                for col in 0..8 {
-                    if bits & (1 << col) == 0 {
-                        continue;
-                    }
-                    // The font pixel's top left in the text's own frame, from the anchor.
-                    let (u, v) = (dx + (c as i32 * 8 + col) * k, dy + row as i32 * k);
-                    let (x, y, ww, hh) = match transform {
-                        FontTransform::None => (pos.0 + u, pos.1 + v, k, k),
-                        FontTransform::Rotate90 => (pos.0 - v - k, pos.1 + u, k, k),
-                        FontTransform::Rotate180 => (pos.0 - u - k, pos.1 - v - k, k, k),
-                        FontTransform::Rotate270 => (pos.0 + v, pos.1 - u - k, k, k),
-                    };
-                    self.fill_rect(x as f32, y as f32, ww as f32, hh as f32, &p);
-                }
-            }
+            self.fill_rect(x as f32, y as f32, k as f32, k as f32, &p);
         }
         Ok(())
     }

@@ -392,7 +392,16 @@ pub(crate) fn load<R: Real>(
         damp_approach: g.damp_approach,
         damping_depth: R::lit(g.damping_depth),
     };
-    ground.check(&mut check_one(problems, "ground"));
-    *part = Some(ground);
+    set(part, problems, ground);
     c.builder(problems, n0, |f| sub("ground", f, &[]))
+}
+
+/// Sets the ground after its checks (the builder's `set_ground` and the loader).
+pub(crate) fn set<R: Real>(
+    part: &mut Option<Ground<R>>,
+    problems: &mut Vec<Problem>,
+    ground: Ground<R>,
+) {
+    ground.check(&mut check_one(problems, NAME));
+    *part = Some(ground);
 }

@@ -609,8 +609,17 @@ pub(crate) fn load<R: Real>(
     c: &Checker,
 ) -> Result<(), SceneError> {
     let n0 = problems.len();
-    let contact = cd.to_contact();
-    contact.check(&mut check_one(problems, "particle_contact"));
-    *part = Some(contact);
+    set(part, problems, cd.to_contact());
     c.builder(problems, n0, |f| sub("particle_contact", f, &[]))
+}
+
+/// Enables particle contact after its checks (the builder's `set_particle_contact` and the
+/// loader).
+pub(crate) fn set<R: Real>(
+    part: &mut Option<ParticleContact<R>>,
+    problems: &mut Vec<Problem>,
+    contact: ParticleContact<R>,
+) {
+    contact.check(&mut check_one(problems, NAME));
+    *part = Some(contact);
 }

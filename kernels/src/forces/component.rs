@@ -1,6 +1,7 @@
 //! The component interface of a force: the [`Force`] trait every force implements (the
 //! library's and a user's), what it reads ([`ForceContext`]), its parameter visitor
-//! ([`Param`], [`ParamCopy`]), and a library force's builder part ([`ForcePart`]). See
+//! ([`Param`], [`ParamCopy`]), its rows of the guide's parameter table ([`ParamDoc`]), and a
+//! library force's builder part (`ForcePart`, crate-internal). See
 //! [`crate::forces`] for an example.
 
 use std::any::Any;
@@ -72,7 +73,7 @@ pub trait Force<R: Real>: ForceClone<R> + Debug + Send + Sync {
     /// estimated from the force for the others, so defining one makes large steps converge
     /// more reliably; its gradient should be minus the force at zero velocity (the library's
     /// tests check it; bending's differs by a term second order in the bend, see
-    /// [`bending::bending_energy`]). A wrong energy cannot make a step wrong, since a step is
+    /// [`bending_energy`](crate::forces::bending::bending_energy)). A wrong energy cannot make a step wrong, since a step is
     /// converged only when the residual is, but can make it fail to converge.
     fn energy(&self, _cx: &ForceContext<'_, R>, _tape: &mut Tape, _energy: &Array<R>) -> bool {
         false

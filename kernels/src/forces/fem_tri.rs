@@ -383,6 +383,24 @@ pub(crate) struct TriangleDesc {
     kd: f64,
 }
 
+/// Adds a membrane triangle (`[mu, lambda, kd]`), which is also a surface triangle of the
+/// topology (the builder's `add_triangle_fem` and the loader).
+pub(crate) fn add_membrane<R: Real>(
+    part: &mut TriangleParts<R>,
+    particles: &mut Particles<R>,
+    problems: &mut Vec<Problem>,
+    [i, j, k]: [u32; 3],
+    [mu, lambda, kd]: [R; 3],
+) -> u32 {
+    let mut el = Elements {
+        particles,
+        problems,
+    };
+    let e = part.add(&mut el, i, j, k, mu, lambda, kd);
+    particles.triangles.push([i, j, k]);
+    e
+}
+
 /// Loads the `triangles` section: membranes (with `mu` and `lambda`) and topology.
 pub(crate) fn load<R: Real>(
     d: &[TriangleDesc],
@@ -396,12 +414,8 @@ pub(crate) fn load<R: Real>(
         let n0 = problems.len();
         match (t.mu, t.lambda) {
             (Some(mu), Some(lambda)) => {
-                let mut el = Elements {
-                    particles,
-                    problems,
-                };
-                part.add(&mut el, i, j, l, R::lit(mu), R::lit(lambda), R::lit(t.kd));
-                particles.triangles.push([i, j, l]);
+                let params = [R::lit(mu), R::lit(lambda), R::lit(t.kd)];
+                add_membrane(part, particles, problems, [i, j, l], params);
             }
             (None, None) => {
                 particles.add_triangle(problems, [i, j, l]);

@@ -138,7 +138,12 @@ pub(crate) fn load<R: Real>(
         kd: R::lit(dr.kd),
         wind: v3(dr.wind),
     };
-    drag.check(&mut check_one(problems, "drag"));
-    *part = Some(drag);
+    set(part, problems, drag);
     c.builder(problems, n0, |f| sub("drag", f, &[]))
+}
+
+/// Sets the drag after its checks (the builder's `set_drag` and the loader).
+pub(crate) fn set<R: Real>(part: &mut Option<Drag<R>>, problems: &mut Vec<Problem>, drag: Drag<R>) {
+    drag.check(&mut check_one(problems, NAME));
+    *part = Some(drag);
 }

@@ -301,23 +301,6 @@ pub(crate) fn epsilon<R: Real>() -> f64 {
     }
 }
 
-/// Whether a residual meets a tolerance: never if the residual is NaN or infinite (an
-/// infinite tolerance, from an infinite scale, would otherwise accept an infinite residual).
-pub(crate) fn within(residual: f64, tolerance: f64) -> bool {
-    residual.is_finite() && (residual <= tolerance || residual == 0.0)
-}
-
-/// `max |v_k|`, NaN if any `v_k` is NaN (`f64::max` would skip it and hide a NaN residual).
-pub(crate) fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0, |m: f64, x| {
-        if m.is_nan() || x.is_nan() {
-            f64::NAN
-        } else {
-            m.max(x.abs())
-        }
-    })
-}
-
 /// `a.grad += g` if `a` has a gradient buffer.
 pub(crate) fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
     if let Some(buf) = a.grad_buffer() {

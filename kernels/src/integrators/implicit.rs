@@ -98,7 +98,7 @@ use adflex_runtime::prelude::*;
 
 use super::common::{
     add_into, check_inputs, check_visited, copies, epsilon, finish_step, flat, forces_only, is_f32,
-    max_abs, particles, record, step_bodies, unflat, Copies, Dofs, Needs, Point,
+    particles, record, step_bodies, unflat, Copies, Dofs, Needs, Point,
 };
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
@@ -107,7 +107,7 @@ use crate::model::Model;
 use crate::precompiled::precompiled;
 use crate::solver::krylov::{SolveInfo, SolveSettings};
 use crate::solver::newton::{
-    direction, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
+    direction, max_abs, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::{Control, State};
