@@ -280,7 +280,7 @@ impl<R: Real> ShapeKind<R> {
 
 /// A static analytic shape in the world. No `Default`: the geometry has to be given
 /// ([`Shape::new`] sets the identity orientation); the contact parameters of all shapes are
-/// one [`ParticleContact`](crate::contact::particle::ParticleContact) ([`crate::ModelBuilder::set_shape_contact`], default
+/// one [`ParticleContact`] ([`crate::ModelBuilder::set_shape_contact`], default
 /// [`ParticleContact::default`](crate::contact::particle::ParticleContact)).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Shape<R: Real> {
@@ -349,7 +349,7 @@ pub struct Shapes<R: Real> {
     pub rot: Array<Quat<R>>,
     /// Size vector (m), see [`ShapeKind::code`].
     pub size: Array<Vec3<R>>,
-    /// Contact stiffness (N/m; default 1000, [`ParticleContact`](crate::contact::particle::ParticleContact)'s default, as are the
+    /// Contact stiffness (N/m; default 1000, [`ParticleContact`]'s default, as are the
     /// others).
     pub ke: R,
     /// Contact damping (N s/m; default 1), only in contact and while approaching, ramped in
