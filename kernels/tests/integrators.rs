@@ -11,7 +11,7 @@ use adflex_kernels::integrators::{
 };
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::diff_kernel;
-use adflex_runtime::gradcheck::{dot_test, GradCheck};
+use adflex_runtime::gradcheck::{dot_test, jacobian_fd, GradCheck};
 use adflex_runtime::prelude::*;
 use common::oscillator::Oscillator;
 use common::{spring_system, spring_system_with};
@@ -681,4 +681,136 @@ fn the_oscillator_ranks_the_methods_by_order() {
         e_rk4 < 1e-6 && e_rk4 < e_semi && e_semi < e_expl,
         "{e_rk4:e} {e_semi:e} {e_expl:e}"
     );
+}
+
+// ---------------------------------------------------------------- Jacobian products of rollouts
+
+/// A 10-step rollout of the spring system by `integrator`, from `v0`, with the springs' `ke`:
+/// the final positions and velocities.
+fn spring_rollout(
+    model: &Model<f64>,
+    integrator: &dyn Integrator<f64>,
+    v0: &Array<Vec3<f64>>,
+    tape: &mut Tape,
+) -> Vec<Box<dyn AnyArray>> {
+    let mut s = model.state();
+    s.v = v0.clone();
+    let end = integrator
+        .rollout(model, tape, &s, None, 0.01, 10)
+        .expect("rollout");
+    vec![end.x.boxed(), end.v.boxed()]
+}
+
+/// `J v`, `J^T w` and `J^T J v` of whole rollouts (explicit and implicit integrators) with
+/// respect to a parameter array and the initial velocities: `J v` against the Jacobian by
+/// central differences (f64), `J^T w` against `J v` by the dot test, and the Gauss-Newton
+/// product against `J^T (J v)` from `J` assembled column by column from tangent passes.
+#[test]
+fn jacobian_products_of_rollouts() {
+    let integrators: [(&str, Box<dyn Integrator<f64>>); 2] = [
+        ("semi-implicit Euler", Box::new(SemiImplicitEuler)),
+        (
+            "implicit Euler",
+            // Converged far below the differences' step (their noise is tolerance / h).
+            Box::new(ImplicitEuler {
+                tolerance: Some(1e-13),
+                ..ImplicitEuler::default()
+            }),
+        ),
+    ];
+    for (name, integrator) in &integrators {
+        let model = spring_system(40.0);
+        let ke = model.param::<f64>("springs", "ke").unwrap();
+        let v0 = model.state().v;
+        let inputs: [&dyn AnyArray; 2] = [&ke, &v0];
+        let n_in = ke.len() + 3 * v0.len();
+        let mut rng = common::Rng(0x5eed_0011);
+        let v: Vec<f64> = (0..n_in).map(|_| rng.uniform(-1.0, 1.0)).collect();
+
+        // J by central differences (before the tape is recorded: the differences write the
+        // inputs, which a recorded tape would then refuse as changed), and J v from it.
+        let fd = jacobian_fd(
+            |t| spring_rollout(&model, &**integrator, &v0, t),
+            &inputs,
+            1e-5,
+        )
+        .unwrap();
+        let mut tape = Tape::new();
+        let outs = spring_rollout(&model, &**integrator, &v0, &mut tape);
+        let outputs: Vec<&dyn AnyArray> = outs.iter().map(|o| &**o).collect();
+        let n_out = 2 * 3 * v0.len();
+        let jv = tape.jvp(&inputs, &v, &outputs).unwrap();
+        assert_eq!(jv.len(), n_out);
+
+        for (r, jv_r) in jv.iter().enumerate() {
+            let row: f64 = (0..n_in).map(|c| fd.data[r * n_in + c] * v[c]).sum();
+            let scale = jv.iter().fold(1e-3f64, |m, x| m.max(x.abs()));
+            assert!(
+                (jv_r - row).abs() <= 1e-6 * scale,
+                "{name}: (J v)[{r}] = {jv_r:e}, central differences {row:e}"
+            );
+        }
+
+        // The dot test: <J v, w> = <v, J^T w>.
+        let w: Vec<f64> = (0..n_out).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let jtw = tape.vjp(&outputs, &w, &inputs).unwrap();
+        let lhs: f64 = jv.iter().zip(&w).map(|(a, b)| a * b).sum();
+        let rhs: f64 = v.iter().zip(&jtw).map(|(a, b)| a * b).sum();
+        assert!(
+            (lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()),
+            "{name}: <J v, w> = {lhs:e}, <v, J^T w> = {rhs:e}"
+        );
+
+        // J from unit tangents; J^T (J v) from it against the Gauss-Newton product.
+        let mut j = vec![0.0; n_out * n_in];
+        for c in 0..n_in {
+            let mut e = vec![0.0; n_in];
+            e[c] = 1.0;
+            let col = tape.jvp(&inputs, &e, &outputs).unwrap();
+            for r in 0..n_out {
+                j[r * n_in + c] = col[r];
+            }
+        }
+        let gn = tape.gauss_newton(&inputs, &outputs, &v).unwrap();
+        for (c, gn_c) in gn.iter().enumerate() {
+            let want: f64 = (0..n_out).map(|r| j[r * n_in + c] * jv[r]).sum();
+            assert!(
+                (gn_c - want).abs() <= 1e-10 * want.abs().max(1.0),
+                "{name}: (J^T J v)[{c}] = {gn_c:e}, from J: {want:e}"
+            );
+        }
+    }
+}
+
+/// Jacobian products refuse a vector of the wrong length and an input that a recorded step
+/// writes, naming them.
+#[test]
+fn jacobian_products_name_their_mistakes() {
+    let model = spring_system(40.0);
+    let ke = model.param::<f64>("springs", "ke").unwrap();
+    let mut tape = Tape::new();
+    let s = SemiImplicitEuler
+        .step(&model, &mut tape, &model.state(), None, 0.01)
+        .unwrap();
+    let err = tape.jvp(&[&ke], &[1.0], &[&s.x]).unwrap_err().to_string();
+    assert!(
+        err.contains("Tape::jvp: v") && err.contains("spring_ke (5 scalars)"),
+        "{err}"
+    );
+    let err = tape
+        .vjp(&[&s.x], &[1.0; 3], &[&ke])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("Tape::vjp: w") && err.contains("12 scalars"),
+        "{err}"
+    );
+    let s2 = SemiImplicitEuler
+        .step(&model, &mut tape, &s, None, 0.01)
+        .unwrap();
+    let err = tape
+        .jvp(&[&s.x], &[0.0; 12], &[&s2.x])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("is written by a recorded step"), "{err}");
 }

@@ -36,6 +36,7 @@ pub mod __codegen {
     pub use crate::math::vector::*;
     pub use crate::math::vector_space::*;
 }
+pub mod products;
 mod real;
 mod region;
 mod scatter_log;

@@ -850,6 +850,14 @@ impl Tape {
     }
 
     /// [`Tape::backward_with`] without the checks, with extra sources (by id).
+    /// The ids of every array a recorded step writes.
+    pub(crate) fn written_ids(&self) -> HashSet<u64> {
+        self.records
+            .iter()
+            .flat_map(|r| r.writes.iter().map(|u| u.id))
+            .collect()
+    }
+
     pub(crate) fn backward_seeded(
         &mut self,
         seeds: &[&dyn AnyArray],

@@ -14,50 +14,16 @@ use serde::Deserialize;
 /// The force's name ([`Force::name`]): `"ground"`.
 pub const NAME: &str = "ground";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "normal",
-        units: "1 (unit normal)",
-        array: false,
-    },
-    ParamDoc {
-        name: "offset",
-        units: "m",
-        array: false,
-    },
-    ParamDoc {
-        name: "ke",
-        units: "N/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "N·s/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "mu",
-        units: "1 (friction coefficient)",
-        array: false,
-    },
-    ParamDoc {
-        name: "leak",
-        units: "1 (gradient leak out of contact)",
-        array: false,
-    },
-    ParamDoc {
-        name: "damp_approach",
-        units: "bool",
-        array: false,
-    },
-    ParamDoc {
-        name: "damping_depth",
-        units: "m",
-        array: false,
-    },
+    ParamDoc::scalar("normal", "1 (unit normal)"),
+    ParamDoc::scalar("offset", "m"),
+    ParamDoc::scalar("ke", "N/m"),
+    ParamDoc::scalar("kd", "N·s/m"),
+    ParamDoc::scalar("mu", "1 (friction coefficient)"),
+    ParamDoc::scalar("leak", "1 (gradient leak out of contact)"),
+    ParamDoc::scalar("damp_approach", "bool"),
+    ParamDoc::scalar("damping_depth", "m"),
 ];
 
 /// Ground contact of particle `tid`: the plane `dot(normal, x) = offset` (m), particles of

@@ -19,40 +19,14 @@ use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 /// The force's name ([`Force::name`]): `"particle_contact"`.
 pub const NAME: &str = "particle_contact";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "ke",
-        units: "N/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "N·s/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "damping_depth",
-        units: "m",
-        array: false,
-    },
-    ParamDoc {
-        name: "mu",
-        units: "1 (friction coefficient)",
-        array: false,
-    },
-    ParamDoc {
-        name: "leak",
-        units: "1 (gradient leak out of contact)",
-        array: false,
-    },
-    ParamDoc {
-        name: "margin",
-        units: "m",
-        array: false,
-    },
+    ParamDoc::scalar("ke", "N/m"),
+    ParamDoc::scalar("kd", "N·s/m"),
+    ParamDoc::scalar("damping_depth", "m"),
+    ParamDoc::scalar("mu", "1 (friction coefficient)"),
+    ParamDoc::scalar("leak", "1 (gradient leak out of contact)"),
+    ParamDoc::scalar("margin", "m"),
 ];
 
 /// The contact force (N) on particle `i` of a pair at `xij = x_i - x_j`, `vij = v_i - v_j`,

@@ -17,50 +17,19 @@ use super::law::{contact_damping, contact_depth, contact_force, penalty_energy};
 /// The force's name ([`Force::name`]): `"shape_contact"`.
 pub const NAME: &str = "shape_contact";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "pos",
-        units: "m (shape position)",
-        array: true,
-    },
-    ParamDoc {
-        name: "rot",
-        units: "unit quaternion (shape orientation)",
-        array: true,
-    },
-    ParamDoc {
-        name: "size",
-        units: "m (sphere radius, box half extents, capsule radius and half length)",
-        array: true,
-    },
-    ParamDoc {
-        name: "ke",
-        units: "N/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "N·s/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "damping_depth",
-        units: "m",
-        array: false,
-    },
-    ParamDoc {
-        name: "mu",
-        units: "1 (friction coefficient)",
-        array: false,
-    },
-    ParamDoc {
-        name: "leak",
-        units: "1 (gradient leak out of contact)",
-        array: false,
-    },
+    ParamDoc::array("pos", "m (shape position)"),
+    ParamDoc::array("rot", "unit quaternion (shape orientation)"),
+    ParamDoc::array(
+        "size",
+        "m (sphere radius, box half extents, capsule radius and half length)",
+    ),
+    ParamDoc::scalar("ke", "N/m"),
+    ParamDoc::scalar("kd", "N·s/m"),
+    ParamDoc::scalar("damping_depth", "m"),
+    ParamDoc::scalar("mu", "1 (friction coefficient)"),
+    ParamDoc::scalar("leak", "1 (gradient leak out of contact)"),
 ];
 
 /// SDF of a sphere of radius `size.x` (m) at the origin: `(n, d)` packed as `(n.x, n.y, n.z, d)`

@@ -16,25 +16,11 @@ use serde::Deserialize;
 /// The force's name ([`Force::name`]): `"bending"`.
 pub const NAME: &str = "bending";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "rest",
-        units: "rad (rest dihedral angle)",
-        array: true,
-    },
-    ParamDoc {
-        name: "ke",
-        units: "N·m/rad",
-        array: true,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "N·m·s/rad",
-        array: true,
-    },
+    ParamDoc::array("rest", "rad (rest dihedral angle)"),
+    ParamDoc::array("ke", "N·m/rad"),
+    ParamDoc::array("kd", "N·m·s/rad"),
 ];
 
 /// Accumulates the bending force of element `tid` into `f`.

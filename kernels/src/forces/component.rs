@@ -11,8 +11,11 @@ use adflex_runtime::{AnyArray, Array, Element, Real, Tape, Vec3};
 
 use crate::state::Control;
 
-/// One row of the guide's parameter table: a parameter of a library force, its units, and
-/// whether it is a differentiable array (visited by [`Force::params_mut`]) or a scalar.
+/// One row of the guide's parameter table (`docs/guide.md`, "Gradient targets"): a parameter
+/// of a library force, its units, and whether it is a differentiable array (what
+/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements. Each
+/// library force lists its rows in its file (`PARAMS`); tests check the guide, the visitor
+/// and the component's fields against them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ParamDoc {
     /// The parameter's name (the visitor's name for an array, the field's for a scalar).
@@ -21,6 +24,26 @@ pub struct ParamDoc {
     pub units: &'static str,
     /// A differentiable array (one value per element), or a scalar shared by all elements.
     pub array: bool,
+}
+
+impl ParamDoc {
+    /// A differentiable parameter array.
+    pub const fn array(name: &'static str, units: &'static str) -> Self {
+        ParamDoc {
+            name,
+            units,
+            array: true,
+        }
+    }
+
+    /// A scalar shared by all the force's elements (not a gradient target).
+    pub const fn scalar(name: &'static str, units: &'static str) -> Self {
+        ParamDoc {
+            name,
+            units,
+            array: false,
+        }
+    }
 }
 
 /// What a force reads besides its own arrays: the state and the step's control.

@@ -22,35 +22,13 @@ use serde::Deserialize;
 /// The force's name ([`Force::name`]): `"tets"`.
 pub const NAME: &str = "tets";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "dm_inv",
-        units: "1/m (inverse rest shape, 3x3)",
-        array: true,
-    },
-    ParamDoc {
-        name: "rest_volume",
-        units: "m³",
-        array: true,
-    },
-    ParamDoc {
-        name: "mu",
-        units: "Pa (Lamé)",
-        array: true,
-    },
-    ParamDoc {
-        name: "lambda",
-        units: "Pa (Lamé)",
-        array: true,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "Pa·s (damping)",
-        array: true,
-    },
+    ParamDoc::array("dm_inv", "1/m (inverse rest shape, 3x3)"),
+    ParamDoc::array("rest_volume", "m³"),
+    ParamDoc::array("mu", "Pa (Lamé)"),
+    ParamDoc::array("lambda", "Pa (Lamé)"),
+    ParamDoc::array("kd", "Pa·s (damping)"),
     ParamDoc {
         name: "activation",
         units:

@@ -21,35 +21,13 @@ use serde::Deserialize;
 /// The force's name ([`Force::name`]): `"triangle_fem"`.
 pub const NAME: &str = "triangle_fem";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "dm_inv",
-        units: "1/m (inverse rest shape, 2x2)",
-        array: true,
-    },
-    ParamDoc {
-        name: "area",
-        units: "m² (rest area)",
-        array: true,
-    },
-    ParamDoc {
-        name: "mu",
-        units: "Pa·m (Lamé, membrane)",
-        array: true,
-    },
-    ParamDoc {
-        name: "lambda",
-        units: "Pa·m (Lamé, membrane)",
-        array: true,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "Pa·m·s (damping)",
-        array: true,
-    },
+    ParamDoc::array("dm_inv", "1/m (inverse rest shape, 2x2)"),
+    ParamDoc::array("area", "m² (rest area)"),
+    ParamDoc::array("mu", "Pa·m (Lamé, membrane)"),
+    ParamDoc::array("lambda", "Pa·m (Lamé, membrane)"),
+    ParamDoc::array("kd", "Pa·m·s (damping)"),
 ];
 
 /// Accumulates the membrane force of triangle `tid` into `f`. `mu`, `lambda` (Pa m, i.e.

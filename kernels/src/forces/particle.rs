@@ -16,20 +16,10 @@ use serde::Deserialize;
 /// The force's name ([`Force::name`]): `"drag"`.
 pub const NAME: &str = "drag";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "kd",
-        units: "N·s/m",
-        array: false,
-    },
-    ParamDoc {
-        name: "wind",
-        units: "m/s",
-        array: false,
-    },
+    ParamDoc::scalar("kd", "N·s/m"),
+    ParamDoc::scalar("wind", "m/s"),
 ];
 
 /// Linear drag relative to the air: `f -= kd (v - v_air)` (`kd` in N s/m, `v_air` in m/s).

@@ -12,25 +12,11 @@ use serde::Deserialize;
 /// The force's name ([`Force::name`]): `"springs"`.
 pub const NAME: &str = "springs";
 
-/// The force's row of the guide's parameter table (`docs/guide.md`, "Gradient targets"):
-/// every parameter, its units, and whether it is a differentiable array (what
-/// [`Force::params_mut`] visits, in its order) or a scalar shared by all elements.
+/// The force's rows of the guide's parameter table (see [`ParamDoc`]).
 pub const PARAMS: &[ParamDoc] = &[
-    ParamDoc {
-        name: "rest",
-        units: "m (rest length)",
-        array: true,
-    },
-    ParamDoc {
-        name: "ke",
-        units: "N/m",
-        array: true,
-    },
-    ParamDoc {
-        name: "kd",
-        units: "N·s/m",
-        array: true,
-    },
+    ParamDoc::array("rest", "m (rest length)"),
+    ParamDoc::array("ke", "N/m"),
+    ParamDoc::array("kd", "N·s/m"),
 ];
 
 /// Force of one damped spring on its second particle (the first gets the opposite).

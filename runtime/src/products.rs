@@ -1,0 +1,184 @@
+//! Jacobian products of what a tape recorded: with `J` the Jacobian of chosen output arrays
+//! with respect to chosen input arrays (through every recorded step: kernels, custom steps,
+//! implicit solves, a whole rollout),
+//! - [`Tape::jvp`]: `J v`, one tangent (forward-mode) pass;
+//! - [`Tape::vjp`]: `J^T w`, one adjoint (reverse-mode) pass;
+//! - [`Tape::gauss_newton`]: `J^T (J v)`, both: the Gauss-Newton approximation of the Hessian
+//!   of `0.5 |r|^2` times `v`, for residuals `r` (the outputs), what a matrix-free
+//!   Gauss-Newton or Levenberg-Marquardt solver needs.
+//!
+//! Vectors are flat `f64`: each array's scalars in order (an `Array<Vec3<R>>` of `n` elements
+//! gives `3 n`: `x0, y0, z0, x1, ..`), the arrays one after the other in the order given.
+//! The inputs must be leaves of the tape (no recorded step writes them: parameters, an initial
+//! state); every other array the tape reads is held constant. The passes overwrite the
+//! tangent and gradient buffers of the arrays on the tape (as `tangent` and `backward` do), so
+//! call them apart from a gradient you still need.
+//!
+//! ```
+//! use adflex_runtime::prelude::*;
+//! use adflex_macros::diff_kernel;
+//!
+//! #[diff_kernel]
+//! fn square(x: &Array<f64>, k: &Array<f64>, y: &Array<f64>) {
+//!     let i = tid();
+//!     y[i] = k[0] * x[i] * x[i];
+//! }
+//!
+//! let x = Array::from_vec(vec![1.0, 2.0]);
+//! let k = Array::from_vec(vec![3.0]);
+//! let y = Array::zeros(2);
+//! let mut tape = Tape::new();
+//! tape.launch(square, 2, (&x, &k, &y));
+//! // y = k x^2: J = [[2 k x0, 0, x0^2], [0, 2 k x1, x1^2]] over (x0, x1, k).
+//! let jv = tape.jvp(&[&x, &k], &[1.0, 0.0, 1.0], &[&y]).unwrap();
+//! assert_eq!(jv, vec![6.0 + 1.0, 4.0]);
+//! let jtw = tape.vjp(&[&y], &[1.0, 1.0], &[&x, &k]).unwrap();
+//! assert_eq!(jtw, vec![6.0, 12.0, 5.0]);
+//! let gn = tape.gauss_newton(&[&x, &k], &[&y], &[1.0, 0.0, 1.0]).unwrap();
+//! assert_eq!(gn, vec![6.0 * 7.0, 12.0 * 4.0, 7.0 + 4.0 * 4.0]);
+//! ```
+
+use std::collections::HashSet;
+
+use crate::array::AnyArray;
+use crate::error::Error;
+use crate::tape::Tape;
+
+fn scalars(a: &dyn AnyArray) -> usize {
+    a.len() * a.element_dim()
+}
+
+/// `v`'s length against the arrays' scalars, or an error naming `what` and the arrays.
+fn check_len(what: &str, arrays: &[&dyn AnyArray], v: &[f64]) -> Result<(), Error> {
+    let n: usize = arrays.iter().map(|&a| scalars(a)).sum();
+    if v.len() == n {
+        return Ok(());
+    }
+    let names: Vec<String> = arrays
+        .iter()
+        .map(|a| format!("{} ({} scalars)", a.label(), scalars(*a)))
+        .collect();
+    Err(Error::InvalidInput {
+        what: what.to_string(),
+        message: format!(
+            "has {} entries, the arrays {} have {n} scalars together",
+            v.len(),
+            names.join(", ")
+        ),
+    })
+}
+
+/// The arrays' scalars of `buffer` (their tangent or gradient), zeros where there is none.
+fn flat(
+    arrays: &[&dyn AnyArray],
+    buffer: impl Fn(&dyn AnyArray) -> Option<Box<dyn AnyArray>>,
+) -> Vec<f64> {
+    let mut out = Vec::new();
+    for &a in arrays {
+        match buffer(a) {
+            Some(b) => out.extend((0..scalars(a)).map(|k| b.scalar(k))),
+            None => out.resize(out.len() + scalars(a), 0.0),
+        }
+    }
+    out
+}
+
+impl Tape {
+    /// The inputs must be leaves: an error naming one that a recorded step writes (its tangent
+    /// would be an output of the tangent pass, not an input).
+    fn check_leaves(&self, what: &str, inputs: &[&dyn AnyArray]) -> Result<(), Error> {
+        let written = self.written_ids();
+        match inputs.iter().find(|a| written.contains(&a.id())) {
+            None => Ok(()),
+            Some(a) => Err(Error::InvalidInput {
+                what: format!("{what}: input `{}`", a.label()),
+                message: "is written by a recorded step; Jacobian products are with respect \
+                          to the tape's leaves (parameters, an initial state), not to an \
+                          intermediate array"
+                    .into(),
+            }),
+        }
+    }
+
+    /// `J v`, `J` the Jacobian of `outputs` with respect to `inputs` (leaves of the tape), by
+    /// one tangent pass ([`Tape::tangent`]) with `v` on the inputs and zero on every other
+    /// array the tape reads. `v` has the inputs' scalars, the result the outputs' (see the
+    /// [module docs](crate::products)).
+    ///
+    /// Errors: [`Error::InvalidInput`] if `v` has the wrong length or an input is written by
+    /// a recorded step; the errors of [`Tape::tangent`] (a custom step without a tangent, an
+    /// array changed since it was recorded).
+    pub fn jvp(
+        &mut self,
+        inputs: &[&dyn AnyArray],
+        v: &[f64],
+        outputs: &[&dyn AnyArray],
+    ) -> Result<Vec<f64>, Error> {
+        check_len("Tape::jvp: v", inputs, v)?;
+        self.check_leaves("Tape::jvp", inputs)?;
+        let chosen: HashSet<u64> = inputs.iter().map(|a| a.id()).collect();
+        for input in self.inputs() {
+            if !chosen.contains(&input.array.id()) {
+                input.array.reset_tangent();
+            }
+        }
+        let mut k = 0;
+        for &a in inputs {
+            a.reset_tangent();
+            let t = a.tangent_any().expect("reset_tangent allocates it");
+            for i in 0..scalars(a) {
+                t.set_scalar(i, v[k]);
+                k += 1;
+            }
+        }
+        self.tangent()?;
+        Ok(flat(outputs, |a| a.tangent_any()))
+    }
+
+    /// `J^T w`, `J` the Jacobian of `outputs` with respect to `inputs` (leaves of the tape), by
+    /// one adjoint pass seeded with `w` on the outputs. `w` has the outputs' scalars, the
+    /// result the inputs'. The inputs need not require grad; the gradient buffers on the tape
+    /// are zeroed first and hold the pass's results after.
+    ///
+    /// Errors: [`Error::InvalidInput`] if `w` has the wrong length or an input is written by
+    /// a recorded step; the errors of [`Tape::backward`].
+    pub fn vjp(
+        &mut self,
+        outputs: &[&dyn AnyArray],
+        w: &[f64],
+        inputs: &[&dyn AnyArray],
+    ) -> Result<Vec<f64>, Error> {
+        check_len("Tape::vjp: w", outputs, w)?;
+        self.check_leaves("Tape::vjp", inputs)?;
+        self.zero();
+        for &a in inputs.iter().chain(outputs) {
+            a.zero_grad();
+        }
+        let mut k = 0;
+        for &o in outputs {
+            o.ensure_grad();
+            let g = o.grad_any().expect("ensure_grad allocates it");
+            for i in 0..scalars(o) {
+                g.set_scalar(i, w[k]);
+                k += 1;
+            }
+        }
+        let sources = inputs.iter().map(|a| a.id()).collect();
+        self.backward_seeded(outputs, &sources)?;
+        Ok(flat(inputs, |a| a.grad_any()))
+    }
+
+    /// The Gauss-Newton product `J^T (J v)`: [`Tape::jvp`], then [`Tape::vjp`] seeded with its
+    /// result. For residuals `r` (the outputs) of a least-squares loss `0.5 |r|^2`, the
+    /// Gauss-Newton approximation of the loss's Hessian (with respect to the inputs) times
+    /// `v`, at the cost of one tangent and one adjoint pass, without forming `J`.
+    pub fn gauss_newton(
+        &mut self,
+        inputs: &[&dyn AnyArray],
+        outputs: &[&dyn AnyArray],
+        v: &[f64],
+    ) -> Result<Vec<f64>, Error> {
+        let jv = self.jvp(inputs, v, outputs)?;
+        self.vjp(outputs, &jv, inputs)
+    }
+}
