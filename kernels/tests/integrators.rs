@@ -782,8 +782,8 @@ fn jacobian_products_of_rollouts() {
     }
 }
 
-/// Jacobian products refuse a vector of the wrong length and an input that a recorded step
-/// writes, naming them.
+/// Jacobian products refuse a vector of the wrong length, an input that a recorded step
+/// writes and an output no step wrote, naming them.
 #[test]
 fn jacobian_products_name_their_mistakes() {
     let model = spring_system(40.0);
@@ -813,4 +813,19 @@ fn jacobian_products_name_their_mistakes() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("is written by a recorded step"), "{err}");
+    // An output the tape never wrote would give zeros: refused.
+    let elsewhere = Array::<Vec3<f64>>::zeros(4).named("elsewhere");
+    let err = tape
+        .jvp(&[&ke], &[0.0; 5], &[&elsewhere])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("output `elsewhere`") && err.contains("another tape"),
+        "{err}"
+    );
+    let err = tape
+        .vjp(&[&elsewhere], &[0.0; 12], &[&ke])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("output `elsewhere`"), "{err}");
 }

@@ -84,17 +84,35 @@ fn flat(
 }
 
 impl Tape {
-    /// The inputs must be leaves: an error naming one that a recorded step writes (its tangent
-    /// would be an output of the tangent pass, not an input).
-    fn check_leaves(&self, what: &str, inputs: &[&dyn AnyArray]) -> Result<(), Error> {
+    /// The inputs must be leaves (an input a recorded step writes would have its tangent
+    /// computed, not given), and every output written by a recorded step or one of the inputs
+    /// (an array the tape never wrote, from another tape say, would silently give zeros):
+    /// an error naming the first that is not.
+    fn check_arrays(
+        &self,
+        what: &str,
+        inputs: &[&dyn AnyArray],
+        outputs: &[&dyn AnyArray],
+    ) -> Result<(), Error> {
         let written = self.written_ids();
-        match inputs.iter().find(|a| written.contains(&a.id())) {
-            None => Ok(()),
-            Some(a) => Err(Error::InvalidInput {
+        if let Some(a) = inputs.iter().find(|a| written.contains(&a.id())) {
+            return Err(Error::InvalidInput {
                 what: format!("{what}: input `{}`", a.label()),
                 message: "is written by a recorded step; Jacobian products are with respect \
                           to the tape's leaves (parameters, an initial state), not to an \
                           intermediate array"
+                    .into(),
+            });
+        }
+        let given: HashSet<u64> = inputs.iter().map(|a| a.id()).collect();
+        match outputs
+            .iter()
+            .find(|o| !written.contains(&o.id()) && !given.contains(&o.id()))
+        {
+            None => Ok(()),
+            Some(o) => Err(Error::InvalidInput {
+                what: format!("{what}: output `{}`", o.label()),
+                message: "no step recorded on this tape writes it (is it from another tape?)"
                     .into(),
             }),
         }
@@ -105,8 +123,9 @@ impl Tape {
     /// array the tape reads. `v` has the inputs' scalars, the result the outputs' (see the
     /// [module docs](crate::products)).
     ///
-    /// Errors: [`Error::InvalidInput`] if `v` has the wrong length or an input is written by
-    /// a recorded step; the errors of [`Tape::tangent`] (a custom step without a tangent, an
+    /// Errors: [`Error::InvalidInput`] if `v` has the wrong length, an input is written by a
+    /// recorded step, or an output is neither written by one nor an input; the errors of
+    /// [`Tape::tangent`] (a custom step without a tangent, an
     /// array changed since it was recorded).
     pub fn jvp(
         &mut self,
@@ -115,7 +134,7 @@ impl Tape {
         outputs: &[&dyn AnyArray],
     ) -> Result<Vec<f64>, Error> {
         check_len("Tape::jvp: v", inputs, v)?;
-        self.check_leaves("Tape::jvp", inputs)?;
+        self.check_arrays("Tape::jvp", inputs, outputs)?;
         let chosen: HashSet<u64> = inputs.iter().map(|a| a.id()).collect();
         for input in self.inputs() {
             if !chosen.contains(&input.array.id()) {
@@ -140,8 +159,7 @@ impl Tape {
     /// result the inputs'. The inputs need not require grad; the gradient buffers on the tape
     /// are zeroed first and hold the pass's results after.
     ///
-    /// Errors: [`Error::InvalidInput`] if `w` has the wrong length or an input is written by
-    /// a recorded step; the errors of [`Tape::backward`].
+    /// Errors: [`Error::InvalidInput`] as for [`Tape::jvp`]; the errors of [`Tape::backward`].
     pub fn vjp(
         &mut self,
         outputs: &[&dyn AnyArray],
@@ -149,7 +167,7 @@ impl Tape {
         inputs: &[&dyn AnyArray],
     ) -> Result<Vec<f64>, Error> {
         check_len("Tape::vjp: w", outputs, w)?;
-        self.check_leaves("Tape::vjp", inputs)?;
+        self.check_arrays("Tape::vjp", inputs, outputs)?;
         self.zero();
         for &a in inputs.iter().chain(outputs) {
             a.zero_grad();
