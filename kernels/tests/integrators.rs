@@ -829,3 +829,61 @@ fn jacobian_products_name_their_mistakes() {
         .to_string();
     assert!(err.contains("output `elsewhere`"), "{err}");
 }
+
+/// `rollout_jvp`, one step on a tape at a time, gives bit for bit the `J v` of a tape of the
+/// whole rollout (explicit and implicit integrators), with respect to `ke` and the initial
+/// state.
+#[test]
+fn rollout_jvp_is_the_whole_tapes() {
+    use adflex_runtime::checkpoint::Checkpoint;
+    use adflex_runtime::products::rollout_jvp;
+    let integrators: [(&str, Box<dyn Integrator<f64>>); 2] = [
+        ("semi-implicit Euler", Box::new(SemiImplicitEuler)),
+        ("implicit Euler", Box::new(ImplicitEuler::default())),
+    ];
+    for (name, integrator) in &integrators {
+        let model = spring_system(40.0);
+        let ke = model.param::<f64>("springs", "ke").unwrap();
+        let init = model.state();
+        let mut rng = common::Rng(0x5eed_0022);
+        let v_ke: Vec<f64> = (0..ke.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let v_init: Vec<f64> = (0..6 * init.x.len())
+            .map(|_| rng.uniform(-1.0, 1.0))
+            .collect();
+        let (end, stepwise) = rollout_jvp(
+            &init,
+            10,
+            |tape, s, _| integrator.step(&model, tape, s, None, 0.01),
+            &[&ke],
+            &v_ke,
+            &v_init,
+        )
+        .unwrap();
+        let mut tape = Tape::new();
+        let whole = integrator
+            .rollout(&model, &mut tape, &init, None, 0.01, 10)
+            .unwrap();
+        let inputs: Vec<&dyn AnyArray> = [&ke as &dyn AnyArray]
+            .into_iter()
+            .chain(init.arrays())
+            .collect();
+        let v: Vec<f64> = v_ke.iter().chain(&v_init).copied().collect();
+        let jv = tape.jvp(&inputs, &v, &whole.arrays()).unwrap();
+        assert_eq!(end.x.to_vec(), whole.x.to_vec(), "{name}: the same rollout");
+        assert!(jv.iter().any(|x| *x != 0.0), "{name}");
+        assert_eq!(stepwise, jv, "{name}: stepwise vs whole-tape J v");
+    }
+    // A tangent of the wrong length is named.
+    let model = spring_system(40.0);
+    let err = rollout_jvp(
+        &model.state(),
+        1,
+        |tape, s, _| SemiImplicitEuler.step(&model, tape, s, None, 0.01),
+        &[],
+        &[],
+        &[0.0; 3],
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("rollout_jvp: v_init"), "{err}");
+}

@@ -5,7 +5,8 @@
 //! - [`Tape::vjp`]: `J^T w`, one adjoint (reverse-mode) pass;
 //! - [`Tape::gauss_newton`]: `J^T (J v)`, both: the Gauss-Newton approximation of the Hessian
 //!   of `0.5 |r|^2` times `v`, for residuals `r` (the outputs), what a matrix-free
-//!   Gauss-Newton or Levenberg-Marquardt solver needs.
+//!   Gauss-Newton or Levenberg-Marquardt solver needs;
+//! - [`rollout_jvp`]: `J v` of a rollout run one step on a tape at a time (memory of one step).
 //!
 //! Vectors are flat `f64`: each array's scalars in order (an `Array<Vec3<R>>` of `n` elements
 //! gives `3 n`: `x0, y0, z0, x1, ..`), the arrays one after the other in the order given.
@@ -41,6 +42,7 @@
 use std::collections::HashSet;
 
 use crate::array::AnyArray;
+use crate::checkpoint::Checkpoint;
 use crate::error::Error;
 use crate::tape::Tape;
 
@@ -199,4 +201,44 @@ impl Tape {
         let jv = self.jvp(inputs, v, outputs)?;
         self.vjp(outputs, &jv, inputs)
     }
+}
+
+/// `J v` of a rollout without keeping it on a tape: the rollout runs step by step, each step
+/// recorded on a fresh tape and its tangent pass run at once with the tangents the previous
+/// step left on the state, so memory is one step's, whatever the number of steps (forward
+/// mode needs no checkpoints). `step(tape, state, k)` records step `k` and returns the new
+/// state (as for [`crate::checkpoint::checkpointed`]); `params` are the leaves every step
+/// reads (stiffnesses, controls), with tangent `v_params`, and `v_init` is the tangent of
+/// `init` (its [`Checkpoint::arrays`] in order). Returns the final state and its tangent
+/// (flat over its arrays): bit for bit what [`Tape::jvp`] gives on a tape of the whole
+/// rollout.
+///
+/// Errors: [`Error::InvalidInput`] for a vector of the wrong length; a step's error, or
+/// its tangent pass's, with the step's index.
+pub fn rollout_jvp<S: Checkpoint>(
+    init: &S,
+    steps: usize,
+    mut step: impl FnMut(&mut Tape, &S, usize) -> Result<S, Error>,
+    params: &[&dyn AnyArray],
+    v_params: &[f64],
+    v_init: &[f64],
+) -> Result<(S, Vec<f64>), Error> {
+    check_len("rollout_jvp: v_params", params, v_params)?;
+    check_len("rollout_jvp: v_init", &init.arrays(), v_init)?;
+    let mut state = init.snapshot();
+    let mut v_state = v_init.to_vec();
+    for k in 0..steps {
+        let mut tape = Tape::new();
+        let next =
+            step(&mut tape, &state, k).map_err(|e| e.in_context(format!("rollout step {k}")))?;
+        let mut inputs: Vec<&dyn AnyArray> = params.to_vec();
+        inputs.extend(state.arrays());
+        let mut v = v_params.to_vec();
+        v.extend_from_slice(&v_state);
+        v_state = tape
+            .jvp(&inputs, &v, &next.arrays())
+            .map_err(|e| e.in_context(format!("rollout step {k}")))?;
+        state = next;
+    }
+    Ok((state, v_state))
 }
