@@ -828,6 +828,12 @@ fn jacobian_products_name_their_mistakes() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("output `elsewhere`"), "{err}");
+    // An input given twice would have its first tangent overwritten: refused.
+    let err = tape
+        .jvp(&[&ke, &ke], &[0.0; 10], &[&s.x])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("is given twice"), "{err}");
 }
 
 /// `rollout_jvp`, one step on a tape at a time, gives bit for bit the `J v` of a tape of the

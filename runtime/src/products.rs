@@ -86,8 +86,8 @@ fn flat(
 }
 
 impl Tape {
-    /// The inputs must be leaves (an input a recorded step writes would have its tangent
-    /// computed, not given), and every output written by a recorded step or one of the inputs
+    /// The inputs must be distinct leaves (an input a recorded step writes would have its
+    /// tangent computed, not given), and every output written by a recorded step or one of the inputs
     /// (an array the tape never wrote, from another tape say, would silently give zeros):
     /// an error naming the first that is not.
     fn check_arrays(
@@ -106,7 +106,13 @@ impl Tape {
                     .into(),
             });
         }
-        let given: HashSet<u64> = inputs.iter().map(|a| a.id()).collect();
+        let mut given = HashSet::new();
+        if let Some(a) = inputs.iter().find(|a| !given.insert(a.id())) {
+            return Err(Error::InvalidInput {
+                what: format!("{what}: input `{}`", a.label()),
+                message: "is given twice; give each input array once".into(),
+            });
+        }
         match outputs
             .iter()
             .find(|o| !written.contains(&o.id()) && !given.contains(&o.id()))
