@@ -1,0 +1,378 @@
+//! Checking a description and laying out the model's arrays.
+
+use adflex_runtime::prelude::*;
+
+use super::model::{
+    ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, JointType,
+    LinkInfo,
+};
+
+fn err(element: String, message: impl Into<String>) -> ArticulationError {
+    ArticulationError::new(element, message)
+}
+
+fn finite3(v: &Vec3<f64>) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+/// Checks mass properties: finite, mass >= 0, inertia symmetric positive semi-definite with
+/// principal moments that satisfy the triangle inequality (a real body's do).
+pub(crate) fn check_inertial(i: &Inertial) -> Result<(), String> {
+    if !i.mass.is_finite() || !finite3(&i.com) || !i.inertia.iter().all(|x| x.is_finite()) {
+        return Err("mass, centre of mass and inertia must be finite".into());
+    }
+    if i.mass < 0.0 {
+        return Err(format!("mass {} is negative", i.mass));
+    }
+    let scale = i.inertia.abs().max().max(f64::MIN_POSITIVE);
+    if (i.inertia - i.inertia.transpose()).abs().max() > 1e-9 * scale {
+        return Err("inertia is not symmetric".into());
+    }
+    let e = i.inertia.symmetric_eigenvalues();
+    let tol = 1e-9 * scale;
+    if e.iter().any(|&x| x < -tol) {
+        return Err(format!(
+            "inertia is not positive semi-definite (principal moments {:.6e}, {:.6e}, {:.6e})",
+            e[0], e[1], e[2]
+        ));
+    }
+    for k in 0..3 {
+        if e[k] > e[(k + 1) % 3] + e[(k + 2) % 3] + tol {
+            return Err(format!(
+                "principal moments {:.6e}, {:.6e}, {:.6e} break the triangle inequality \
+                 (no rigid body has them)",
+                e[0], e[1], e[2]
+            ));
+        }
+    }
+    if i.mass == 0.0 && i.inertia.abs().max() > 0.0 {
+        return Err("a massless link has an inertia; give it a mass or no inertia".into());
+    }
+    Ok(())
+}
+
+pub(crate) fn finalize<R: Real>(
+    b: &ArticulationBuilder,
+) -> Result<Articulations<R>, ArticulationError> {
+    let links = b.links();
+    let n = links.len();
+    let name = |l: usize| format!("link \"{}\"", links[l].name);
+    let joint_name = |l: usize| {
+        let j = &links[l].joint.name;
+        if j.is_empty() {
+            links[l].name.clone()
+        } else {
+            j.clone()
+        }
+    };
+    if !finite3(&b.gravity) {
+        return Err(err("gravity".into(), "must be finite"));
+    }
+    if !(b.limit_ke >= 0.0 && b.limit_kd >= 0.0) || !b.limit_ke.is_finite() {
+        return Err(err(
+            "limit_ke/limit_kd".into(),
+            "must be finite and non-negative",
+        ));
+    }
+    // Checks, in the order the links were added.
+    for (l, d) in links.iter().enumerate() {
+        if let Some(p) = d.parent {
+            if p.0 >= l {
+                return Err(err(
+                    name(l),
+                    format!(
+                        "its parent (link {}) must be added before it (parents first)",
+                        p.0
+                    ),
+                ));
+            }
+        }
+        check_inertial(&d.inertial).map_err(|m| err(name(l), m))?;
+        let j = &d.joint;
+        let je = || format!("joint \"{}\"", joint_name(l));
+        let q = j.origin.rot;
+        if !finite3(&j.origin.pos) || !q.coords.iter().all(|x| x.is_finite()) {
+            return Err(err(je(), "origin must be finite"));
+        }
+        if q.norm() < 1e-12 {
+            return Err(err(je(), "origin's quaternion has norm 0"));
+        }
+        if j.kind.is_scalar() && (!finite3(&j.axis) || j.axis.norm() < 1e-12) {
+            return Err(err(je(), "axis must be finite and non-zero"));
+        }
+        for (v, what) in [
+            (j.damping, "damping"),
+            (j.armature, "armature"),
+            (j.kp, "kp"),
+            (j.kv, "kv"),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(err(
+                    je(),
+                    format!("{what} {v} must be finite and non-negative"),
+                ));
+            }
+        }
+        if let Some((lo, hi)) = j.limits {
+            if !j.kind.is_scalar() {
+                return Err(err(
+                    je(),
+                    "limits apply to revolute and prismatic joints only",
+                ));
+            }
+            if lo.is_nan() || hi.is_nan() || lo > hi {
+                return Err(err(
+                    je(),
+                    format!("limits [{lo}, {hi}]: lower must be <= upper"),
+                ));
+            }
+        }
+        if d.parent.is_some() && j.kind == JointType::Free {
+            // Allowed (a floating child), but rare: nothing to check.
+        }
+    }
+
+    // Topology: articulations are the trees under each root; links stay in the order given
+    // (parents first), grouped by tree.
+    let mut root_of = vec![0usize; n];
+    for l in 0..n {
+        root_of[l] = match links[l].parent {
+            None => l,
+            Some(p) => root_of[p.0],
+        };
+    }
+    let roots: Vec<usize> = (0..n).filter(|&l| links[l].parent.is_none()).collect();
+    let mut order = Vec::with_capacity(n);
+    for &r in &roots {
+        order.extend((0..n).filter(|&l| root_of[l] == r));
+    }
+    let mut new_index = vec![0usize; n];
+    for (i, &l) in order.iter().enumerate() {
+        new_index[l] = i;
+    }
+    let parent: Vec<Option<usize>> = order
+        .iter()
+        .map(|&l| links[l].parent.map(|p| new_index[p.0]))
+        .collect();
+
+    // Coordinates and velocities, link by link.
+    let (mut q_start, mut qd_start) = (Vec::with_capacity(n), Vec::with_capacity(n + 1));
+    let (mut nq, mut nv) = (0usize, 0usize);
+    let mut neutral = Vec::new();
+    for &l in &order {
+        let k = links[l].joint.kind;
+        q_start.push(nq as u32);
+        qd_start.push(nv as u32);
+        nq += k.nq();
+        nv += k.nv();
+        match k {
+            JointType::Ball => neutral.extend([0.0, 0.0, 0.0, 1.0]),
+            JointType::Free => neutral.extend([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
+            _ => neutral.extend(std::iter::repeat(0.0).take(k.nq())),
+        }
+    }
+    qd_start.push(nv as u32);
+
+    // Chains (root first) and subtrees (self first, then descendants in order).
+    let mut chain_start = vec![0u32];
+    let mut chain = Vec::new();
+    for i in 0..n {
+        let mut c = vec![i as u32];
+        let mut p = parent[i];
+        while let Some(j) = p {
+            c.push(j as u32);
+            p = parent[j];
+        }
+        c.reverse();
+        chain.extend(c);
+        chain_start.push(chain.len() as u32);
+    }
+    let mut subtree_start = vec![0u32];
+    let mut subtree = Vec::new();
+    for i in 0..n {
+        subtree.push(i as u32);
+        for j in i + 1..n {
+            let mut p = parent[j];
+            while let Some(k) = p {
+                if k == i {
+                    subtree.push(j as u32);
+                    break;
+                }
+                p = parent[k];
+            }
+        }
+        subtree_start.push(subtree.len() as u32);
+    }
+
+    // Articulations.
+    let mut arts: Vec<ArticulationInfo> = Vec::new();
+    let mut art_of = vec![0usize; n];
+    let mut m_len = 0;
+    for (i, p) in parent.iter().enumerate() {
+        if p.is_none() {
+            arts.push(ArticulationInfo {
+                links: i..i,
+                q: q_start[i] as usize..q_start[i] as usize,
+                dofs: qd_start[i] as usize..qd_start[i] as usize,
+                m_offset: 0,
+            });
+        }
+        let a = arts.len() - 1;
+        art_of[i] = a;
+        let info = &mut arts[a];
+        info.links.end = i + 1;
+        info.q.end = q_start[i] as usize + links[order[i]].joint.kind.nq();
+        info.dofs.end = qd_start[i + 1] as usize;
+    }
+    for a in &mut arts {
+        a.m_offset = m_len;
+        m_len += a.dofs.len() * a.dofs.len();
+    }
+
+    // Per velocity.
+    let mut dof = DofArrays::default();
+    for (i, &l) in order.iter().enumerate() {
+        let j = &links[l].joint;
+        let art = &arts[art_of[i]];
+        let (lo, hi) = j.limits.unwrap_or((f64::NEG_INFINITY, f64::INFINITY));
+        for k in 0..j.kind.nv() {
+            let d = qd_start[i] as usize + k;
+            dof.link.push(i as u32);
+            dof.index.push(k as u32);
+            dof.q.push(if j.kind.is_scalar() { q_start[i] } else { 0 });
+            dof.scalar.push(j.kind.is_scalar() as u32);
+            dof.art_start.push(art.dofs.start as u32);
+            dof.m_row
+                .push((art.m_offset + (d - art.dofs.start) * art.dofs.len()) as u32);
+            dof.armature.push(j.armature);
+            dof.damping.push(j.damping);
+            dof.kp.push(j.kp);
+            dof.kv.push(j.kv);
+            dof.lower.push(lo);
+            dof.upper.push(hi);
+        }
+    }
+
+    let r = |x: f64| R::lit(x);
+    let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
+    let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
+    let infos = order
+        .iter()
+        .enumerate()
+        .map(|(i, &l)| LinkInfo {
+            name: links[l].name.clone(),
+            joint: joint_name(l),
+            kind: links[l].joint.kind,
+            parent: parent[i],
+            q: q_start[i] as usize..q_start[i] as usize + links[l].joint.kind.nq(),
+            dofs: qd_start[i] as usize..qd_start[i + 1] as usize,
+            articulation: art_of[i],
+        })
+        .collect();
+    let model = Articulations {
+        links: infos,
+        articulations: arts,
+        n_q: nq,
+        n_dof: nv,
+        gravity: v3(&b.gravity),
+        limit_ke: r(b.limit_ke),
+        limit_kd: r(b.limit_kd),
+        neutral: neutral.iter().map(|&x| r(x)).collect(),
+        chain_start: Array::from_vec(chain_start),
+        chain: Array::from_vec(chain),
+        subtree_start: Array::from_vec(subtree_start),
+        subtree: Array::from_vec(subtree),
+        joint_type: Array::from_vec(order.iter().map(|&l| links[l].joint.kind.code()).collect()),
+        q_start: Array::from_vec(q_start),
+        qd_start: Array::from_vec(qd_start),
+        joint_pos: Array::from_vec(order.iter().map(|&l| v3(&links[l].joint.origin.pos)).collect()),
+        joint_rot: Array::from_vec(
+            order
+                .iter()
+                .map(|&l| {
+                    let q = links[l].joint.origin.rot.normalize();
+                    Quat::new(r(q.w), r(q.i), r(q.j), r(q.k))
+                })
+                .collect(),
+        ),
+        joint_axis: Array::from_vec(
+            order
+                .iter()
+                .map(|&l| {
+                    let a = &links[l].joint.axis;
+                    v3(&if a.norm() > 0.0 { a.normalize() } else { Vec3::z() })
+                })
+                .collect(),
+        ),
+        mass: rs(&order.iter().map(|&l| links[l].inertial.mass).collect::<Vec<_>>()),
+        com: Array::from_vec(order.iter().map(|&l| v3(&links[l].inertial.com)).collect()),
+        inertia: Array::from_vec(
+            order
+                .iter()
+                .map(|&l| links[l].inertial.inertia.map(r))
+                .collect(),
+        ),
+        dof_link: Array::from_vec(dof.link),
+        dof_index: Array::from_vec(dof.index),
+        dof_q: Array::from_vec(dof.q),
+        dof_scalar: Array::from_vec(dof.scalar),
+        dof_art_start: Array::from_vec(dof.art_start),
+        dof_m_row: Array::from_vec(dof.m_row),
+        armature: rs(&dof.armature),
+        damping: rs(&dof.damping),
+        kp: rs(&dof.kp),
+        kv: rs(&dof.kv),
+        lower: rs(&dof.lower),
+        upper: rs(&dof.upper),
+        m_len,
+    };
+    check_mass_matrix(&model)?;
+    Ok(model)
+}
+
+#[derive(Default)]
+struct DofArrays {
+    link: Vec<u32>,
+    index: Vec<u32>,
+    q: Vec<u32>,
+    scalar: Vec<u32>,
+    art_start: Vec<u32>,
+    m_row: Vec<u32>,
+    armature: Vec<f64>,
+    damping: Vec<f64>,
+    kp: Vec<f64>,
+    kv: Vec<f64>,
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+}
+
+/// A joint whose motion moves no mass makes the mass matrix singular: found from the
+/// diagonal at the neutral configuration (and the Cholesky factorization).
+fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<(), ArticulationError> {
+    let mut tape = Tape::new();
+    let q = Array::from_vec(model.neutral.clone());
+    let m = model.mass_matrix(&mut tape, &q).to_vec();
+    for a in &model.articulations {
+        let n = a.dofs.len();
+        for i in 0..n {
+            let d = m[a.m_offset + i * n + i].to_f64();
+            if !(d > 0.0) {
+                let l = model.dof_link.get(a.dofs.start + i) as usize;
+                return Err(err(
+                    format!("joint \"{}\"", model.links[l].joint),
+                    "its motion moves no mass or inertia (the mass matrix is singular); \
+                     give the links it carries mass, or the joint an armature",
+                ));
+            }
+        }
+    }
+    super::dynamics::factor_all(model, &m).map_err(|(art, _)| {
+        let l = model.articulations[art].links.start;
+        err(
+            format!("articulation of link \"{}\"", model.links[l].name),
+            "its mass matrix is singular at the neutral configuration (two joints move the \
+             same way, or a joint moves no mass); add mass or armature",
+        )
+    })?;
+    Ok(())
+}

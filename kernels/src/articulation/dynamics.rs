@@ -1,0 +1,662 @@
+//! The algorithms on a tape: kinematics, inverse dynamics (RNEA), the mass matrix (CRBA),
+//! forward dynamics (a Cholesky solve recorded as one custom step with its adjoint and
+//! tangent), the semi-implicit step, and the derivatives of the forward dynamics.
+
+use std::sync::Arc;
+
+use adflex_runtime::prelude::*;
+use adflex_runtime::{AnyArray, Element};
+
+use super::kernels::*;
+use super::model::{Articulations, JointType};
+
+/// Coordinates and velocities of every articulation of a model.
+#[derive(Clone, Debug)]
+pub struct ArticulationState<R: Real> {
+    /// Coordinates (`Articulations::n_q`; see [`JointType`] for each joint's).
+    pub q: Array<R>,
+    /// Velocities (`Articulations::n_dof`).
+    pub qd: Array<R>,
+}
+
+/// Actuation of the joints, per velocity: a force or torque `tau`, and the targets of the
+/// joints' PD actuators (`kp (target_q - q) + kv (target_qd - qd)` on revolute and prismatic
+/// joints with gains).
+#[derive(Clone, Debug)]
+pub struct ArticulationControl<R: Real> {
+    /// Generalized forces (N or N m; a free joint's are the wrench in its link frame, force
+    /// first).
+    pub tau: Array<R>,
+    /// PD position targets (rad or m; per velocity, used on scalar joints).
+    pub target_q: Array<R>,
+    /// PD velocity targets.
+    pub target_qd: Array<R>,
+}
+
+/// World poses of the links and the joints' motion vectors (world frame, at the origin).
+#[derive(Clone, Debug)]
+pub struct Kinematics<R: Real> {
+    /// Link frame origins (m).
+    pub link_p: Array<Vec3<R>>,
+    /// Link frame rotations.
+    pub link_r: Array<Quat<R>>,
+    /// Angular part of each velocity's motion vector.
+    pub s_w: Array<Vec3<R>>,
+    /// Linear part (velocity of the point at the world origin).
+    pub s_v: Array<Vec3<R>>,
+}
+
+/// The derivatives of the forward dynamics `qdd(q, qd, tau)`, as Pinocchio's
+/// `computeABADerivatives` gives them: `dq[i][j]` is the derivative of `qdd[i]` along the
+/// `j`-th tangent direction of the configuration (see [`Articulations::tangent_to_coords`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct QddDerivatives {
+    /// `d qdd / d q` (tangent space), `n_dof x n_dof`.
+    pub dq: Vec<Vec<f64>>,
+    /// `d qdd / d qd`.
+    pub dqd: Vec<Vec<f64>>,
+    /// `d qdd / d tau` (the inverse mass matrix).
+    pub dtau: Vec<Vec<f64>>,
+}
+
+impl<R: Real> Articulations<R> {
+    /// The neutral state: zero joint positions, identity quaternions, at rest.
+    pub fn state(&self) -> ArticulationState<R> {
+        ArticulationState {
+            q: Array::from_vec(self.neutral.clone()),
+            qd: Array::zeros(self.n_dof),
+        }
+    }
+
+    /// A control with no actuation (PD targets 0).
+    pub fn control(&self) -> ArticulationControl<R> {
+        ArticulationControl {
+            tau: Array::zeros(self.n_dof),
+            target_q: Array::zeros(self.n_dof),
+            target_qd: Array::zeros(self.n_dof),
+        }
+    }
+
+    fn check_len<T: Element>(&self, a: &Array<T>, n: usize, what: &str) {
+        assert!(
+            a.len() == n,
+            "articulations: `{what}` has {} elements, the model needs {n}",
+            a.len()
+        );
+    }
+
+    /// Forward kinematics at `q`.
+    pub fn kinematics(&self, tape: &mut Tape, q: &Array<R>) -> Kinematics<R> {
+        self.check_len(q, self.n_q, "q");
+        let (n, nd) = (self.n_links(), self.n_dof);
+        let k = Kinematics {
+            link_p: Array::zeros(n),
+            link_r: Array::zeros(n),
+            s_w: Array::zeros(nd),
+            s_v: Array::zeros(nd),
+        };
+        tape.launch(
+            articulation_fk,
+            n,
+            (
+                &self.chain_start,
+                &self.chain,
+                &self.joint_type,
+                &self.q_start,
+                &self.joint_pos,
+                &self.joint_rot,
+                &self.joint_axis,
+                q,
+                &k.link_p,
+                &k.link_r,
+            ),
+        );
+        tape.launch(
+            articulation_motion,
+            nd,
+            (
+                &self.dof_link,
+                &self.dof_index,
+                &self.joint_type,
+                &self.joint_axis,
+                &k.link_p,
+                &k.link_r,
+                &k.s_w,
+                &k.s_v,
+            ),
+        );
+        k
+    }
+
+    /// World spatial inertias of the links (`h`, `J`; see the kernels' docs).
+    fn link_inertias(&self, tape: &mut Tape, k: &Kinematics<R>) -> (Array<Vec3<R>>, Array<Mat33<R>>) {
+        let n = self.n_links();
+        let (h, j) = (Array::zeros(n), Array::zeros(n));
+        tape.launch(
+            articulation_inertia,
+            n,
+            (&k.link_p, &k.link_r, &self.mass, &self.com, &self.inertia, &h, &j),
+        );
+        (h, j)
+    }
+
+    /// Inverse dynamics by the recursive Newton-Euler algorithm, from kinematics already
+    /// computed: the generalized forces that produce `qdd` at `(q, qd)` under gravity.
+    fn rnea(
+        &self,
+        tape: &mut Tape,
+        k: &Kinematics<R>,
+        inertias: &(Array<Vec3<R>>, Array<Mat33<R>>),
+        qd: &Array<R>,
+        qdd: &Array<R>,
+    ) -> Array<R> {
+        self.check_len(qd, self.n_dof, "qd");
+        self.check_len(qdd, self.n_dof, "qdd");
+        let n = self.n_links();
+        let [w, v, aw, av, fn_, ff] = [(); 6].map(|_| Array::<Vec3<R>>::zeros(n));
+        tape.launch(
+            articulation_motion_state,
+            n,
+            (
+                &self.chain_start,
+                &self.chain,
+                &self.qd_start,
+                &k.s_w,
+                &k.s_v,
+                qd,
+                qdd,
+                self.gravity,
+                &w,
+                &v,
+                &aw,
+                &av,
+            ),
+        );
+        tape.launch(
+            articulation_link_wrench,
+            n,
+            (&self.mass, &inertias.0, &inertias.1, &w, &v, &aw, &av, &fn_, &ff),
+        );
+        let tau = Array::zeros(self.n_dof);
+        tape.launch(
+            articulation_joint_force,
+            self.n_dof,
+            (
+                &self.dof_link,
+                &self.subtree_start,
+                &self.subtree,
+                &k.s_w,
+                &k.s_v,
+                &fn_,
+                &ff,
+                &tau,
+            ),
+        );
+        tau
+    }
+
+    /// The joint-space mass matrix by the composite-rigid-body algorithm, from kinematics.
+    fn crba(
+        &self,
+        tape: &mut Tape,
+        k: &Kinematics<R>,
+        inertias: &(Array<Vec3<R>>, Array<Mat33<R>>),
+    ) -> Array<R> {
+        let n = self.n_links();
+        let (cm, ch, cj) = (Array::zeros(n), Array::zeros(n), Array::zeros(n));
+        tape.launch(
+            articulation_composite,
+            n,
+            (
+                &self.subtree_start,
+                &self.subtree,
+                &self.mass,
+                &inertias.0,
+                &inertias.1,
+                &cm,
+                &ch,
+                &cj,
+            ),
+        );
+        let m = Array::zeros(self.m_len);
+        tape.launch(
+            articulation_mass_matrix,
+            self.n_dof,
+            (
+                &self.dof_link,
+                &self.dof_art_start,
+                &self.dof_m_row,
+                &self.chain_start,
+                &self.chain,
+                &self.subtree_start,
+                &self.subtree,
+                &self.qd_start,
+                &self.armature,
+                &k.s_w,
+                &k.s_v,
+                &cm,
+                &ch,
+                &cj,
+                &m,
+            ),
+        );
+        m
+    }
+
+    /// The joint-space mass matrix `M(q)` (armature included): one row-major block of
+    /// `n x n` per articulation, at [`ArticulationInfo::m_offset`](super::ArticulationInfo)
+    /// (read one with [`Articulations::block`]).
+    pub fn mass_matrix(&self, tape: &mut Tape, q: &Array<R>) -> Array<R> {
+        let k = self.kinematics(tape, q);
+        let i = self.link_inertias(tape, &k);
+        self.crba(tape, &k, &i)
+    }
+
+    /// The bias forces `c(q, qd)` (Coriolis, centrifugal and gravity; `M qdd + c = tau`).
+    pub fn bias_forces(&self, tape: &mut Tape, q: &Array<R>, qd: &Array<R>) -> Array<R> {
+        self.inverse_dynamics(tape, q, qd, &Array::zeros(self.n_dof))
+    }
+
+    /// Inverse dynamics (RNEA): `tau = M(q) qdd + c(q, qd)`.
+    pub fn inverse_dynamics(
+        &self,
+        tape: &mut Tape,
+        q: &Array<R>,
+        qd: &Array<R>,
+        qdd: &Array<R>,
+    ) -> Array<R> {
+        let k = self.kinematics(tape, q);
+        let i = self.link_inertias(tape, &k);
+        self.rnea(tape, &k, &i, qd, qdd)
+    }
+
+    /// Forward dynamics: `qdd = M(q)^-1 (tau - c(q, qd))` (no damping, limits or PD; see
+    /// [`Articulations::step`] for those). The solve is a Cholesky factorization per
+    /// articulation, recorded as one step whose adjoint and tangent reuse the factors.
+    ///
+    /// Errors if a mass matrix is not positive definite (naming the articulation).
+    pub fn forward_dynamics(
+        &self,
+        tape: &mut Tape,
+        q: &Array<R>,
+        qd: &Array<R>,
+        tau: &Array<R>,
+    ) -> Result<Array<R>, Error> {
+        self.check_len(tau, self.n_dof, "tau");
+        let k = self.kinematics(tape, q);
+        let i = self.link_inertias(tape, &k);
+        let c = self.rnea(tape, &k, &i, qd, &Array::zeros(self.n_dof));
+        let m = self.crba(tape, &k, &i);
+        let rhs = Array::zeros(self.n_dof);
+        tape.launch(
+            crate::articulation::kernels::articulation_sub,
+            self.n_dof,
+            (tau, &c, &rhs),
+        );
+        self.solve(tape, &m, &rhs)
+    }
+
+    /// One semi-implicit Euler step: `qdd` from the dynamics with the control's torques and
+    /// PD actuators, joint damping and limits; `qd' = qd + qdd dt`, then `q'` from `qd'`
+    /// (quaternions by the exponential map, renormalized). Returns the new state; every
+    /// launch is on `tape`.
+    pub fn step(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        control: Option<&ArticulationControl<R>>,
+        dt: R,
+    ) -> Result<ArticulationState<R>, Error> {
+        if !(dt.to_f64() > 0.0) || !dt.to_f64().is_finite() {
+            return Err(Error::InvalidInput {
+                what: "dt".into(),
+                message: format!("{} must be finite and positive", dt.to_f64()),
+            });
+        }
+        let own;
+        let control = match control {
+            Some(c) => c,
+            None => {
+                own = self.control();
+                &own
+            }
+        };
+        self.check_len(&control.tau, self.n_dof, "control.tau");
+        self.check_len(&control.target_q, self.n_dof, "control.target_q");
+        self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
+        let (q, qd) = (&state.q, &state.qd);
+        let k = self.kinematics(tape, q);
+        let i = self.link_inertias(tape, &k);
+        let c = self.rnea(tape, &k, &i, qd, &Array::zeros(self.n_dof));
+        let m = self.crba(tape, &k, &i);
+        let rhs = Array::zeros(self.n_dof);
+        tape.launch(
+            articulation_rhs,
+            self.n_dof,
+            (
+                &self.dof_q,
+                &self.dof_scalar,
+                q,
+                qd,
+                &control.tau,
+                &control.target_q,
+                &control.target_qd,
+                &self.kp,
+                &self.kv,
+                &self.damping,
+                &self.lower,
+                &self.upper,
+                self.limit_ke,
+                self.limit_kd,
+                &c,
+                &rhs,
+            ),
+        );
+        let qdd = self.solve(tape, &m, &rhs)?;
+        let next = ArticulationState {
+            q: Array::zeros(self.n_q),
+            qd: Array::zeros(self.n_dof),
+        };
+        tape.launch(
+            articulation_integrate,
+            self.n_links(),
+            (
+                &self.joint_type,
+                &self.q_start,
+                &self.qd_start,
+                q,
+                qd,
+                &qdd,
+                dt,
+                &next.q,
+                &next.qd,
+            ),
+        );
+        Ok(next)
+    }
+
+    /// `qdd = M^-1 rhs`, one block per articulation, recorded on the tape with its adjoint
+    /// (`rhs_bar += M^-1 qdd_bar`, `M_bar -= (M^-1 qdd_bar) qdd^T`) and tangent
+    /// (`dqdd = M^-1 (drhs - dM qdd)`).
+    fn solve(&self, tape: &mut Tape, m: &Array<R>, rhs: &Array<R>) -> Result<Array<R>, Error> {
+        let mv: Vec<R> = m.to_vec();
+        let factors = factor_all(self, &mv).map_err(|(art, d)| {
+            let l = self.links[self.dof_link.get(self.articulations[art].dofs.start + d) as usize]
+                .joint
+                .clone();
+            Error::Other(format!(
+                "articulations: the mass matrix of articulation {art} is not positive definite \
+                 (at joint \"{l}\"; pivot {d}): a joint moves no mass, or the state is not finite"
+            ))
+        })?;
+        let factors = Arc::new(factors);
+        let blocks: Arc<Vec<(usize, usize, usize)>> = Arc::new(
+            self.articulations
+                .iter()
+                .map(|a| (a.dofs.start, a.dofs.len(), a.m_offset))
+                .collect(),
+        );
+        let b: Vec<f64> = rhs.to_vec().iter().map(|x| x.to_f64()).collect();
+        let x = solve_all(&factors, &blocks, &b);
+        let qdd = Array::<R>::zeros(self.n_dof);
+        let out = qdd.clone();
+        let (fb, bb, qb, mb, rb) = (
+            factors.clone(),
+            blocks.clone(),
+            qdd.clone(),
+            m.clone(),
+            rhs.clone(),
+        );
+        let (ft, bt, qt, mt, rt) = (factors, blocks, qdd.clone(), m.clone(), rhs.clone());
+        tape.record_fn(
+            "articulation_solve",
+            &[m, rhs],
+            &[&qdd],
+            || out.assign(&x.iter().map(|&v| R::lit(v)).collect::<Vec<_>>()),
+            move || {
+                let Some(g) = qb.grad_buffer() else {
+                    return Ok(());
+                };
+                let g: Vec<f64> = g.to_vec().iter().map(|v| v.to_f64()).collect();
+                let lam = solve_all(&fb, &bb, &g);
+                if let Some(rg) = rb.grad_buffer() {
+                    rg.modify(|s| {
+                        for (d, l) in s.iter_mut().zip(&lam) {
+                            *d += R::lit(*l);
+                        }
+                    });
+                }
+                if let Some(mg) = mb.grad_buffer() {
+                    let x: Vec<f64> = qb.to_vec().iter().map(|v| v.to_f64()).collect();
+                    mg.modify(|s| {
+                        for &(start, n, off) in bb.iter() {
+                            for a in 0..n {
+                                for c in 0..n {
+                                    s[off + a * n + c] -= R::lit(lam[start + a] * x[start + c]);
+                                }
+                            }
+                        }
+                    });
+                }
+                Ok(())
+            },
+        )
+        .with_tangent(move || {
+            let x: Vec<f64> = qt.to_vec().iter().map(|v| v.to_f64()).collect();
+            let mut b = match rt.tangent_buffer() {
+                Some(t) => t.to_vec().iter().map(|v| v.to_f64()).collect(),
+                None => vec![0.0; x.len()],
+            };
+            if let Some(dm) = mt.tangent_buffer() {
+                let dm = dm.to_vec();
+                for &(start, n, off) in bt.iter() {
+                    for a in 0..n {
+                        for c in 0..n {
+                            b[start + a] -= dm[off + a * n + c].to_f64() * x[start + c];
+                        }
+                    }
+                }
+            }
+            let dx = solve_all(&ft, &bt, &b);
+            qt.ensure_tangent()
+                .assign(&dx.iter().map(|&v| R::lit(v)).collect::<Vec<_>>());
+        });
+        Ok(qdd)
+    }
+
+    /// Row-major block of articulation `art` of a mass-matrix array, as rows.
+    pub fn block(&self, m: &Array<R>, art: usize) -> Vec<Vec<f64>> {
+        let a = &self.articulations[art];
+        let n = a.dofs.len();
+        let v = m.to_vec();
+        (0..n)
+            .map(|i| {
+                (0..n)
+                    .map(|j| v[a.m_offset + i * n + j].to_f64())
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// The coordinates' velocity for a tangent vector `v` at `q` (the differential at 0 of
+    /// [`Articulations::integrate`]): scalar joints `dq = v`; a quaternion `r` (ball, or a
+    /// free joint's rotation) `dr = r (v/2, 0)` (the angular velocity is in the link frame); a
+    /// free joint's position `dp = R(r) v_lin`.
+    pub fn tangent_to_coords(&self, q: &[f64], v: &[f64]) -> Vec<f64> {
+        let mut dq = vec![0.0; self.n_q];
+        for l in &self.links {
+            let (s, d) = (l.q.start, l.dofs.start);
+            match l.kind {
+                JointType::Fixed => {}
+                JointType::Revolute | JointType::Prismatic => dq[s] = v[d],
+                JointType::Ball => quat_tangent(&q[s..s + 4], &v[d..d + 3], &mut dq[s..s + 4]),
+                JointType::Free => {
+                    let r = &q[s + 3..s + 7];
+                    let p = rotate_xyzw(r, &v[d..d + 3]);
+                    dq[s..s + 3].copy_from_slice(&p);
+                    quat_tangent(r, &v[d + 3..d + 6], &mut dq[s + 3..s + 7]);
+                }
+            }
+        }
+        dq
+    }
+
+    /// `q (+) v`: the configuration reached from `q` along the tangent vector `v` (scalar
+    /// joints add; quaternions `r exp(v/2)` renormalized; a free joint's position
+    /// `p + R(r) v_lin`). Use it for finite differences on the configuration manifold.
+    pub fn integrate(&self, q: &[f64], v: &[f64]) -> Vec<f64> {
+        let mut out = q.to_vec();
+        for l in &self.links {
+            let (s, d) = (l.q.start, l.dofs.start);
+            match l.kind {
+                JointType::Fixed => {}
+                JointType::Revolute | JointType::Prismatic => out[s] += v[d],
+                JointType::Ball => quat_exp(&q[s..s + 4], &v[d..d + 3], &mut out[s..s + 4]),
+                JointType::Free => {
+                    let p = rotate_xyzw(&q[s + 3..s + 7], &v[d..d + 3]);
+                    for k in 0..3 {
+                        out[s + k] += p[k];
+                    }
+                    quat_exp(&q[s + 3..s + 7], &v[d + 3..d + 6], &mut out[s + 3..s + 7]);
+                }
+            }
+        }
+        out
+    }
+
+    /// The derivatives of the forward dynamics at `(q, qd, tau)` (as Pinocchio's
+    /// `computeABADerivatives`), by one tangent pass over the recorded dynamics per column.
+    pub fn forward_dynamics_derivatives(
+        &self,
+        q: &[R],
+        qd: &[R],
+        tau: &[R],
+    ) -> Result<QddDerivatives, Error> {
+        let mut tape = Tape::new();
+        let (qa, qda, ta) = (
+            Array::from_vec(q.to_vec()),
+            Array::from_vec(qd.to_vec()),
+            Array::from_vec(tau.to_vec()),
+        );
+        let qdd = self.forward_dynamics(&mut tape, &qa, &qda, &ta)?;
+        let n = self.n_dof;
+        let qf: Vec<f64> = q.iter().map(|x| x.to_f64()).collect();
+        let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &ta];
+        let mut cols = [vec![], vec![], vec![]];
+        for j in 0..n {
+            let mut e = vec![0.0; n];
+            e[j] = 1.0;
+            for (which, col) in cols.iter_mut().enumerate() {
+                let mut v = vec![0.0; self.n_q + 2 * n];
+                match which {
+                    0 => v[..self.n_q].copy_from_slice(&self.tangent_to_coords(&qf, &e)),
+                    1 => v[self.n_q + j] = 1.0,
+                    _ => v[self.n_q + n + j] = 1.0,
+                }
+                col.push(tape.jvp(&inputs, &v, &[&qdd])?);
+            }
+        }
+        let rows = |c: &Vec<Vec<f64>>| (0..n).map(|i| (0..n).map(|j| c[j][i]).collect()).collect();
+        Ok(QddDerivatives {
+            dq: rows(&cols[0]),
+            dqd: rows(&cols[1]),
+            dtau: rows(&cols[2]),
+        })
+    }
+}
+
+/// `r (v/2, 0)` for `r = (x, y, z, w)`.
+fn quat_tangent(r: &[f64], v: &[f64], out: &mut [f64]) {
+    let (x, y, z, w) = (r[0], r[1], r[2], r[3]);
+    let (a, b, c) = (0.5 * v[0], 0.5 * v[1], 0.5 * v[2]);
+    // (w, u) (0, h) = (-u.h, w h + u x h)
+    out[0] = w * a + (y * c - z * b);
+    out[1] = w * b + (z * a - x * c);
+    out[2] = w * c + (x * b - y * a);
+    out[3] = -(x * a + y * b + z * c);
+}
+
+/// `normalize(r exp(v/2))`.
+fn quat_exp(r: &[f64], v: &[f64], out: &mut [f64]) {
+    let th = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let (k, c) = if th < 1e-8 {
+        (0.5, 1.0)
+    } else {
+        ((0.5 * th).sin() / th, (0.5 * th).cos())
+    };
+    let (x, y, z, w) = (r[0], r[1], r[2], r[3]);
+    let (a, b, cc) = (k * v[0], k * v[1], k * v[2]);
+    let mut o = [
+        w * a + x * c + (y * cc - z * b),
+        w * b + y * c + (z * a - x * cc),
+        w * cc + z * c + (x * b - y * a),
+        w * c - (x * a + y * b + z * cc),
+    ];
+    let n = o.iter().map(|e| e * e).sum::<f64>().sqrt();
+    o.iter_mut().for_each(|e| *e /= n);
+    out.copy_from_slice(&o);
+}
+
+/// `R(r) v` for a unit `r = (x, y, z, w)`.
+fn rotate_xyzw(r: &[f64], v: &[f64]) -> [f64; 3] {
+    let q = Quat::new(r[3], r[0], r[1], r[2]).normalize();
+    let p = super::model::rotate(&q, &Vec3::new(v[0], v[1], v[2]));
+    [p.x, p.y, p.z]
+}
+
+/// Cholesky factors (lower, row-major) of every articulation's block; on failure the
+/// articulation and the pivot.
+pub(crate) fn factor_all<R: Real>(
+    model: &Articulations<R>,
+    m: &[R],
+) -> Result<Vec<Vec<f64>>, (usize, usize)> {
+    model
+        .articulations
+        .iter()
+        .enumerate()
+        .map(|(ai, a)| {
+            let n = a.dofs.len();
+            let mut l = vec![0.0; n * n];
+            for i in 0..n {
+                for j in 0..=i {
+                    let mut s = m[a.m_offset + i * n + j].to_f64();
+                    for k in 0..j {
+                        s -= l[i * n + k] * l[j * n + k];
+                    }
+                    if i == j {
+                        if !(s > 0.0) || !s.is_finite() {
+                            return Err((ai, i));
+                        }
+                        l[i * n + i] = s.sqrt();
+                    } else {
+                        l[i * n + j] = s / l[j * n + j];
+                    }
+                }
+            }
+            Ok(l)
+        })
+        .collect()
+}
+
+/// `M^-1 b` per block from the factors.
+fn solve_all(factors: &[Vec<f64>], blocks: &[(usize, usize, usize)], b: &[f64]) -> Vec<f64> {
+    let mut x = b.to_vec();
+    for (l, &(start, n, _)) in factors.iter().zip(blocks) {
+        let y = &mut x[start..start + n];
+        for i in 0..n {
+            let mut s = y[i];
+            for k in 0..i {
+                s -= l[i * n + k] * y[k];
+            }
+            y[i] = s / l[i * n + i];
+        }
+        for i in (0..n).rev() {
+            let mut s = y[i];
+            for k in i + 1..n {
+                s -= l[k * n + i] * y[k];
+            }
+            y[i] = s / l[i * n + i];
+        }
+    }
+    x
+}

@@ -1,0 +1,444 @@
+//! The articulation kernels: forward kinematics, joint motion vectors, velocities and
+//! accelerations, link inertias and forces, the joint-space mass matrix and the
+//! semi-implicit step.
+//!
+//! Everything is in the world frame, with spatial vectors at the world origin: a twist is
+//! `(w, v)` (angular velocity; velocity of the body point at the origin), a wrench `(n, f)`
+//! (moment about the origin; force). A link's spatial inertia is `(m, h, J)`: mass, first
+//! moment `h = m c` (c the world centre of mass) and the rotational inertia about the origin
+//! `J = R I R^T + m (|c|^2 1 - c c^T)`; it maps a twist to the momentum
+//! `(J w + h x v, m v - h x w)`. These three add, so a subtree's composite inertia is a sum.
+//!
+//! Each kernel runs one thread per link or per degree of freedom and walks the link's chain
+//! of ancestors (or its subtree) itself, `O(links x depth)` in all: the threads of one launch
+//! are independent, so every pass is one launch, whatever the depth of the tree.
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+/// World pose of link `tid`: from the root, for each joint `j` on its chain, the parent
+/// frame moves to the joint frame (`joint_pos[j]`, `joint_rot[j]`) and then by the joint's
+/// motion: revolute, a rotation by `q` about `joint_axis[j]`; prismatic, a translation by
+/// `q` along it; ball, the rotation `normalize(q[s..s+4])` (x, y, z, w); free, the
+/// translation `q[s..s+3]` (in the joint frame) then the rotation `normalize(q[s+3..s+7])`.
+#[diff_kernel]
+pub fn articulation_fk<R: Real>(
+    chain_start: &Array<u32>,
+    chain: &Array<u32>,
+    joint_type: &Array<u32>,
+    q_start: &Array<u32>,
+    joint_pos: &Array<Vec3<R>>,
+    joint_rot: &Array<Quat<R>>,
+    joint_axis: &Array<Vec3<R>>,
+    q: &Array<R>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+) {
+    let l = tid();
+    let mut p = vec3(0.0, 0.0, 0.0);
+    let mut r = quat_identity();
+    let c0 = chain_start[l] as usize;
+    let c1 = chain_start[l + 1] as usize;
+    for k in c0..c1 {
+        let j = chain[k] as usize;
+        p = p + quat_rotate(r, joint_pos[j]);
+        r = r * joint_rot[j];
+        let jt = joint_type[j];
+        let s = q_start[j] as usize;
+        // 1 revolute, 2 prismatic, 3 ball, 4 free (`JointType`); 0 fixed moves nothing.
+        if jt == 1 {
+            r = r * quat_from_axis_angle(joint_axis[j], q[s]);
+        } else if jt == 2 {
+            p = p + quat_rotate(r, joint_axis[j] * q[s]);
+        } else if jt == 3 {
+            r = r * quat_normalize(quat(q[s], q[s + 1], q[s + 2], q[s + 3]));
+        } else if jt == 4 {
+            p = p + quat_rotate(r, vec3(q[s], q[s + 1], q[s + 2]));
+            r = r * quat_normalize(quat(q[s + 3], q[s + 4], q[s + 5], q[s + 6]));
+        }
+    }
+    link_p[l] = p;
+    link_r[l] = r;
+}
+
+/// Motion vector (column of the joint's motion subspace, world frame, at the origin) of
+/// degree of freedom `tid`, the `k`-th of the joint of link `l`: for an axis `u` of rotation
+/// through the link's origin `p`, `(u, p x u)`; for a translation along `u`, `(0, u)`. The
+/// axes are the joint's axis (revolute, prismatic), the link frame's axes (ball: angular
+/// velocity in the link frame) or, for a free joint, the link frame's axes for the linear
+/// velocity (k < 3) and then for the angular velocity, both in the link frame (Pinocchio's
+/// convention).
+#[diff_kernel]
+pub fn articulation_motion<R: Real>(
+    dof_link: &Array<u32>,
+    dof_index: &Array<u32>,
+    joint_type: &Array<u32>,
+    joint_axis: &Array<Vec3<R>>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+) {
+    let d = tid();
+    let l = dof_link[d] as usize;
+    let k = dof_index[d];
+    let jt = joint_type[l];
+    let mut e = joint_axis[l];
+    let mut angular = jt != 2;
+    let mut kk = k;
+    if jt == 4 {
+        angular = k >= 3;
+        if k >= 3 {
+            kk = k - 3;
+        }
+    }
+    if jt == 3 || jt == 4 {
+        e = vec3(
+            select(kk == 0, 1.0, 0.0),
+            select(kk == 1, 1.0, 0.0),
+            select(kk == 2, 1.0, 0.0),
+        );
+    }
+    let u = quat_rotate(link_r[l], e);
+    if angular {
+        s_w[d] = u;
+        s_v[d] = cross(link_p[l], u);
+    } else {
+        s_w[d] = u * 0.0;
+        s_v[d] = u;
+    }
+}
+
+/// Twist `(w, v)` and spatial acceleration `(aw, av)` of link `tid`: along its chain,
+/// `v_j = v_parent + S_j qd_j` and `a_j = a_parent + S_j qdd_j + v_parent x S_j qd_j`
+/// (the motion cross product `(w1, v1) x (w2, v2) = (w1 x w2, w1 x v2 + v1 x w2)`), from
+/// `a_root = (0, -g)`: gravity enters as an upward acceleration of the world.
+#[diff_kernel]
+pub fn articulation_motion_state<R: Real>(
+    chain_start: &Array<u32>,
+    chain: &Array<u32>,
+    qd_start: &Array<u32>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+    qd: &Array<R>,
+    qdd: &Array<R>,
+    gravity: Vec3<R>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    link_aw: &Array<Vec3<R>>,
+    link_av: &Array<Vec3<R>>,
+) {
+    let l = tid();
+    let mut w = gravity * 0.0;
+    let mut v = gravity * 0.0;
+    let mut aw = gravity * 0.0;
+    let mut av = -gravity;
+    let c0 = chain_start[l] as usize;
+    let c1 = chain_start[l + 1] as usize;
+    for k in c0..c1 {
+        let j = chain[k] as usize;
+        let d0 = qd_start[j] as usize;
+        let d1 = qd_start[j + 1] as usize;
+        let mut dw = gravity * 0.0;
+        let mut dv = gravity * 0.0;
+        for d in d0..d1 {
+            dw = dw + s_w[d] * qd[d];
+            dv = dv + s_v[d] * qd[d];
+            aw = aw + s_w[d] * qdd[d];
+            av = av + s_v[d] * qdd[d];
+        }
+        aw = aw + cross(w, dw);
+        av = av + cross(w, dv) + cross(v, dw);
+        w = w + dw;
+        v = v + dv;
+    }
+    link_w[l] = w;
+    link_v[l] = v;
+    link_aw[l] = aw;
+    link_av[l] = av;
+}
+
+/// World spatial inertia of link `tid` (see the module docs): `h = m c`,
+/// `J = R I R^T + m (|c|^2 1 - c c^T)` with `c = p + R com`.
+#[diff_kernel]
+pub fn articulation_inertia<R: Real>(
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    mass: &Array<R>,
+    com: &Array<Vec3<R>>,
+    inertia: &Array<Mat33<R>>,
+    link_h: &Array<Vec3<R>>,
+    link_j: &Array<Mat33<R>>,
+) {
+    let l = tid();
+    let rm = quat_to_mat33(link_r[l]);
+    let c = link_p[l] + rm * com[l];
+    let m = mass[l];
+    link_h[l] = c * m;
+    link_j[l] = rm * inertia[l] * transpose(rm) + (mat33_identity() * dot(c, c) - outer(c, c)) * m;
+}
+
+/// Net wrench `(n, f)` on link `tid` needed for its motion: `f = I a + v x* I v`, with the
+/// force cross product `(w, v) x* (n, f) = (w x n + v x f, w x f)`.
+#[diff_kernel]
+pub fn articulation_link_wrench<R: Real>(
+    mass: &Array<R>,
+    link_h: &Array<Vec3<R>>,
+    link_j: &Array<Mat33<R>>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    link_aw: &Array<Vec3<R>>,
+    link_av: &Array<Vec3<R>>,
+    link_n: &Array<Vec3<R>>,
+    link_f: &Array<Vec3<R>>,
+) {
+    let l = tid();
+    let m = mass[l];
+    let h = link_h[l];
+    let jm = link_j[l];
+    let w = link_w[l];
+    let v = link_v[l];
+    let aw = link_aw[l];
+    let av = link_av[l];
+    let pn = jm * w + cross(h, v);
+    let pf = v * m - cross(h, w);
+    let an = jm * aw + cross(h, av);
+    let af = av * m - cross(h, aw);
+    link_n[l] = an + cross(w, pn) + cross(v, pf);
+    link_f[l] = af + cross(w, pf);
+}
+
+/// Composite inertia of the subtree of link `tid` (the link and its descendants): the sum of
+/// their spatial inertias.
+#[diff_kernel]
+pub fn articulation_composite<R: Real>(
+    subtree_start: &Array<u32>,
+    subtree: &Array<u32>,
+    mass: &Array<R>,
+    link_h: &Array<Vec3<R>>,
+    link_j: &Array<Mat33<R>>,
+    comp_m: &Array<R>,
+    comp_h: &Array<Vec3<R>>,
+    comp_j: &Array<Mat33<R>>,
+) {
+    let l = tid();
+    let mut m = mass[l] * 0.0;
+    let mut h = link_h[l] * 0.0;
+    let mut jm = link_j[l] * 0.0;
+    let s0 = subtree_start[l] as usize;
+    let s1 = subtree_start[l + 1] as usize;
+    for k in s0..s1 {
+        let i = subtree[k] as usize;
+        m = m + mass[i];
+        h = h + link_h[i];
+        jm = jm + link_j[i];
+    }
+    comp_m[l] = m;
+    comp_h[l] = h;
+    comp_j[l] = jm;
+}
+
+/// Generalized force of degree of freedom `tid` that produces the links' wrenches:
+/// `tau = S^T F`, `F` the sum of the wrenches of the subtree of its link.
+#[diff_kernel]
+pub fn articulation_joint_force<R: Real>(
+    dof_link: &Array<u32>,
+    subtree_start: &Array<u32>,
+    subtree: &Array<u32>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+    link_n: &Array<Vec3<R>>,
+    link_f: &Array<Vec3<R>>,
+    tau: &Array<R>,
+) {
+    let d = tid();
+    let l = dof_link[d] as usize;
+    let mut n = s_w[d] * 0.0;
+    let mut f = s_w[d] * 0.0;
+    let s0 = subtree_start[l] as usize;
+    let s1 = subtree_start[l + 1] as usize;
+    for k in s0..s1 {
+        let i = subtree[k] as usize;
+        n = n + link_n[i];
+        f = f + link_f[i];
+    }
+    tau[d] = dot(s_w[d], n) + dot(s_v[d], f);
+}
+
+/// Row `tid` of the joint-space mass matrix (CRBA in the world frame): for degrees of
+/// freedom `a`, `b` of one articulation, `M[a][b] = S_a . Ic_i S_b` with `i` the deeper of
+/// their two links when one is an ancestor of (or is) the other, and 0 otherwise; armature on
+/// the diagonal. Row `a` starts at `m_row[a]` of `m`; `art_start[a]` is the articulation's
+/// first degree of freedom.
+#[diff_kernel]
+pub fn articulation_mass_matrix<R: Real>(
+    dof_link: &Array<u32>,
+    art_start: &Array<u32>,
+    m_row: &Array<u32>,
+    chain_start: &Array<u32>,
+    chain: &Array<u32>,
+    subtree_start: &Array<u32>,
+    subtree: &Array<u32>,
+    qd_start: &Array<u32>,
+    armature: &Array<R>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+    comp_m: &Array<R>,
+    comp_h: &Array<Vec3<R>>,
+    comp_j: &Array<Mat33<R>>,
+    m: &Array<R>,
+) {
+    let a = tid();
+    let la = dof_link[a] as usize;
+    let row = m_row[a] as usize;
+    let first = art_start[a] as usize;
+    let wa = s_w[a];
+    let va = s_v[a];
+    // Ic_la S_a: the momentum of the subtree of `la` moving with `S_a`.
+    let mc = comp_m[la];
+    let hc = comp_h[la];
+    let na = comp_j[la] * wa + cross(hc, va);
+    let fa = va * mc - cross(hc, wa);
+    let c0 = chain_start[la] as usize;
+    let c1 = chain_start[la + 1] as usize;
+    for k in c0..c1 {
+        let j = chain[k] as usize;
+        let d0 = qd_start[j] as usize;
+        let d1 = qd_start[j + 1] as usize;
+        for b in d0..d1 {
+            let mut e = dot(s_w[b], na) + dot(s_v[b], fa);
+            if b == a {
+                e = e + armature[a];
+            }
+            m[row + b - first] = e;
+        }
+    }
+    // Strict descendants: the subtree list starts with the link itself.
+    let s0 = subtree_start[la] as usize + 1;
+    let s1 = subtree_start[la + 1] as usize;
+    for k in s0..s1 {
+        let i = subtree[k] as usize;
+        let mi = comp_m[i];
+        let hi = comp_h[i];
+        let ni = comp_j[i] * wa + cross(hi, va);
+        let fi = va * mi - cross(hi, wa);
+        let d0 = qd_start[i] as usize;
+        let d1 = qd_start[i + 1] as usize;
+        for b in d0..d1 {
+            m[row + b - first] = dot(s_w[b], ni) + dot(s_v[b], fi);
+        }
+    }
+}
+
+/// Right-hand side of the forward dynamics for degree of freedom `tid`:
+/// `tau + kp (q_target - q) + kv (qd_target - qd) - damping qd + limit - bias`, with the PD
+/// and limit terms only on revolute and prismatic joints (`dof_q[d]` is the coordinate). The
+/// limit pushes back by `limit_ke (lower - q) - limit_kd qd` below `lower` (and likewise above
+/// `upper`).
+#[diff_kernel]
+pub fn articulation_rhs<R: Real>(
+    dof_q: &Array<u32>,
+    dof_scalar: &Array<u32>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    tau: &Array<R>,
+    target_q: &Array<R>,
+    target_qd: &Array<R>,
+    kp: &Array<R>,
+    kv: &Array<R>,
+    damping: &Array<R>,
+    lower: &Array<R>,
+    upper: &Array<R>,
+    limit_ke: R,
+    limit_kd: R,
+    bias: &Array<R>,
+    rhs: &Array<R>,
+) {
+    let d = tid();
+    let v = qd[d];
+    let mut f = tau[d] - damping[d] * v - bias[d];
+    if dof_scalar[d] == 1 {
+        let x = q[dof_q[d] as usize];
+        f = f + kp[d] * (target_q[d] - x) + kv[d] * (target_qd[d] - v);
+        if x < lower[d] {
+            f = f + limit_ke * (lower[d] - x) - limit_kd * v;
+        } else if x > upper[d] {
+            f = f + limit_ke * (upper[d] - x) - limit_kd * v;
+        }
+    }
+    rhs[d] = f;
+}
+
+/// Semi-implicit Euler step of the joint of link `tid`: `qd' = qd + qdd dt`, then
+/// revolute/prismatic `q' = q + qd' dt`; ball `quat' = normalize(quat exp(w' dt))` with the
+/// angular velocity `w'` in the link frame; free, also `p' = p + R(quat) v' dt` with the
+/// linear velocity `v'` in the link frame. The quaternion stays on the unit sphere, and
+/// `exp` uses its series near zero rotation (no division by `|w|`).
+#[diff_kernel]
+pub fn articulation_integrate<R: Real>(
+    joint_type: &Array<u32>,
+    q_start: &Array<u32>,
+    qd_start: &Array<u32>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    qdd: &Array<R>,
+    dt: R,
+    q_new: &Array<R>,
+    qd_new: &Array<R>,
+) {
+    let l = tid();
+    let jt = joint_type[l];
+    let s = q_start[l] as usize;
+    let d0 = qd_start[l] as usize;
+    let d1 = qd_start[l + 1] as usize;
+    for d in d0..d1 {
+        qd_new[d] = qd[d] + qdd[d] * dt;
+    }
+    if jt == 1 || jt == 2 {
+        q_new[s] = q[s] + (qd[d0] + qdd[d0] * dt) * dt;
+    } else if jt == 3 || jt == 4 {
+        // The rotation's velocities are the joint's last three.
+        let a = d1 - 3;
+        let w = vec3(
+            qd[a] + qdd[a] * dt,
+            qd[a + 1] + qdd[a + 1] * dt,
+            qd[a + 2] + qdd[a + 2] * dt,
+        ) * dt;
+        let mut rs = s;
+        if jt == 4 {
+            rs = s + 3;
+        }
+        let r = quat(q[rs], q[rs + 1], q[rs + 2], q[rs + 3]);
+        if jt == 4 {
+            let v = vec3(
+                qd[d0] + qdd[d0] * dt,
+                qd[d0 + 1] + qdd[d0 + 1] * dt,
+                qd[d0 + 2] + qdd[d0 + 2] * dt,
+            );
+            let p = quat_rotate(quat_normalize(r), v) * dt;
+            q_new[s] = q[s] + p.x;
+            q_new[s + 1] = q[s + 1] + p.y;
+            q_new[s + 2] = q[s + 2] + p.z;
+        }
+        let th2 = dot(w, w);
+        let mut k = 0.5 - th2 / 48.0;
+        let mut c = 1.0 - th2 / 8.0;
+        if th2 > 1e-8 {
+            let th = sqrt(th2);
+            k = sin(th * 0.5) / th;
+            c = cos(th * 0.5);
+        }
+        let r1 = quat_normalize(r * quat(w.x * k, w.y * k, w.z * k, c));
+        q_new[rs] = r1.x;
+        q_new[rs + 1] = r1.y;
+        q_new[rs + 2] = r1.z;
+        q_new[rs + 3] = r1.w;
+    }
+}
+
+/// `out = a - b`, per element.
+#[diff_kernel]
+pub fn articulation_sub<R: Real>(a: &Array<R>, b: &Array<R>, out: &Array<R>) {
+    let d = tid();
+    out[d] = a[d] - b[d];
+}

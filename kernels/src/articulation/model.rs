@@ -1,0 +1,600 @@
+//! Describing articulations: joints, inertias, the builder and the finished model.
+
+use std::fmt;
+use std::ops::Range;
+
+use adflex_runtime::prelude::*;
+
+/// The kind of a joint, which says how the link moves relative to its parent.
+///
+/// | kind | coordinates `q` | velocities `qd` |
+/// |---|---|---|
+/// | `Fixed` | none | none |
+/// | `Revolute` | angle (rad) about the axis | angular rate (rad/s) |
+/// | `Prismatic` | offset (m) along the axis | rate (m/s) |
+/// | `Ball` | unit quaternion `x, y, z, w` | angular velocity in the link frame (rad/s) |
+/// | `Free` | position (m) in the parent frame, then a unit quaternion `x, y, z, w` | linear velocity of the link origin, then angular velocity, both in the link frame |
+///
+/// These are Pinocchio's conventions (`JointModelSpherical`, `JointModelFreeFlyer`), so that
+/// `q`, `qd`, `M(q)` and the derivatives compare entry for entry. MuJoCo orders a quaternion
+/// `w, x, y, z` and gives a free joint's linear velocity in the world frame; convert when
+/// comparing (the reference script `kernels/tests/references/robots.py` shows how).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum JointType {
+    /// Welded to the parent.
+    Fixed,
+    /// Rotation about an axis through the link frame's origin.
+    Revolute,
+    /// Translation along an axis.
+    Prismatic,
+    /// Any rotation about the link frame's origin.
+    Ball,
+    /// Any motion (a floating base).
+    Free,
+}
+
+impl JointType {
+    /// Number of coordinates in `q`.
+    pub fn nq(self) -> usize {
+        match self {
+            JointType::Fixed => 0,
+            JointType::Revolute | JointType::Prismatic => 1,
+            JointType::Ball => 4,
+            JointType::Free => 7,
+        }
+    }
+
+    /// Number of velocities (degrees of freedom) in `qd`.
+    pub fn nv(self) -> usize {
+        match self {
+            JointType::Fixed => 0,
+            JointType::Revolute | JointType::Prismatic => 1,
+            JointType::Ball => 3,
+            JointType::Free => 6,
+        }
+    }
+
+    /// The code the kernels use (see `articulation_fk`).
+    pub(crate) fn code(self) -> u32 {
+        match self {
+            JointType::Fixed => 0,
+            JointType::Revolute => 1,
+            JointType::Prismatic => 2,
+            JointType::Ball => 3,
+            JointType::Free => 4,
+        }
+    }
+
+    /// True for the joints with one coordinate (PD targets and limits apply to them).
+    pub fn is_scalar(self) -> bool {
+        self.nq() == 1
+    }
+}
+
+/// A rigid transform: position and unit quaternion (`x, y, z, w`, nalgebra's `Quaternion`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pose {
+    /// Translation (m).
+    pub pos: Vec3<f64>,
+    /// Rotation.
+    pub rot: Quat<f64>,
+}
+
+impl Pose {
+    /// The identity.
+    pub fn identity() -> Self {
+        Pose {
+            pos: Vec3::zeros(),
+            rot: Quat::identity(),
+        }
+    }
+
+    /// A translation.
+    pub fn at(pos: Vec3<f64>) -> Self {
+        Pose {
+            pos,
+            rot: Quat::identity(),
+        }
+    }
+
+    /// A translation and a rotation.
+    pub fn new(pos: Vec3<f64>, rot: Quat<f64>) -> Self {
+        Pose { pos, rot }
+    }
+
+    /// `self * other`: `other` expressed in `self`'s parent frame.
+    pub fn compose(&self, other: &Pose) -> Pose {
+        Pose {
+            pos: self.pos + rotate(&self.rot, &other.pos),
+            rot: self.rot * other.rot,
+        }
+    }
+
+    /// Maps a point of this frame to the parent frame.
+    pub fn transform_point(&self, p: &Vec3<f64>) -> Vec3<f64> {
+        self.pos + rotate(&self.rot, p)
+    }
+
+    /// Maps a direction of this frame to the parent frame.
+    pub fn transform_vector(&self, v: &Vec3<f64>) -> Vec3<f64> {
+        rotate(&self.rot, v)
+    }
+}
+
+/// `q v q*` for a unit `q`.
+pub(crate) fn rotate(q: &Quat<f64>, v: &Vec3<f64>) -> Vec3<f64> {
+    let u = q.imag();
+    let t = u.cross(v) * 2.0;
+    v + t * q.w + u.cross(&t)
+}
+
+/// The rotation matrix of a unit quaternion.
+pub(crate) fn rotation_matrix(q: &Quat<f64>) -> Mat33<f64> {
+    Mat33::from_columns(&[
+        rotate(q, &Vec3::x()),
+        rotate(q, &Vec3::y()),
+        rotate(q, &Vec3::z()),
+    ])
+}
+
+/// A joint: its kind, where it sits on the parent link, its axis and its passive and actuation
+/// properties. The link's frame is the joint's frame: at `q = 0` it is `origin` in the parent
+/// link's frame, and the joint moves it from there.
+///
+/// ```
+/// use adflex_kernels::articulation::{Joint, Pose};
+/// use adflex_runtime::Vec3;
+/// let elbow = Joint::revolute(Vec3::new(0.0, 1.0, 0.0))
+///     .origin(Pose::at(Vec3::new(0.0, 0.0, 0.3)))
+///     .limits(-2.0, 2.0)
+///     .damping(0.1)
+///     .armature(0.01);
+/// assert_eq!(elbow.limits, Some((-2.0, 2.0)));
+/// ```
+#[derive(Clone, Debug, PartialEq)]
+pub struct Joint {
+    /// The kind.
+    pub kind: JointType,
+    /// Name, for errors and lookup (the link's name when empty).
+    pub name: String,
+    /// The joint frame in the parent link's frame at `q = 0`.
+    pub origin: Pose,
+    /// Axis in the joint frame (revolute, prismatic; normalized by the builder).
+    pub axis: Vec3<f64>,
+    /// Lower and upper position limits (rad or m), revolute and prismatic only.
+    pub limits: Option<(f64, f64)>,
+    /// Viscous damping (N m s/rad or N s/m) on every velocity of the joint.
+    pub damping: f64,
+    /// Armature (rotor inertia, kg m^2 or kg) added to the mass matrix's diagonal.
+    pub armature: f64,
+    /// Position gain of a PD actuator toward `target_q` (N m/rad or N/m; 0 = none).
+    pub kp: f64,
+    /// Velocity gain toward `target_qd` (N m s/rad or N s/m; 0 = none).
+    pub kv: f64,
+}
+
+impl Joint {
+    fn new(kind: JointType, axis: Vec3<f64>) -> Self {
+        Joint {
+            kind,
+            name: String::new(),
+            origin: Pose::identity(),
+            axis,
+            limits: None,
+            damping: 0.0,
+            armature: 0.0,
+            kp: 0.0,
+            kv: 0.0,
+        }
+    }
+
+    /// Welded to the parent.
+    pub fn fixed() -> Self {
+        Self::new(JointType::Fixed, Vec3::z())
+    }
+
+    /// Rotation about `axis` (joint frame).
+    pub fn revolute(axis: Vec3<f64>) -> Self {
+        Self::new(JointType::Revolute, axis)
+    }
+
+    /// Translation along `axis` (joint frame).
+    pub fn prismatic(axis: Vec3<f64>) -> Self {
+        Self::new(JointType::Prismatic, axis)
+    }
+
+    /// A spherical joint.
+    pub fn ball() -> Self {
+        Self::new(JointType::Ball, Vec3::z())
+    }
+
+    /// A floating joint (six degrees of freedom).
+    pub fn free() -> Self {
+        Self::new(JointType::Free, Vec3::z())
+    }
+
+    /// Sets the name.
+    pub fn name(mut self, name: impl Into<String>) -> Self {
+        self.name = name.into();
+        self
+    }
+
+    /// Sets the joint frame in the parent link's frame.
+    pub fn origin(mut self, origin: Pose) -> Self {
+        self.origin = origin;
+        self
+    }
+
+    /// Sets position limits.
+    pub fn limits(mut self, lower: f64, upper: f64) -> Self {
+        self.limits = Some((lower, upper));
+        self
+    }
+
+    /// Sets viscous damping.
+    pub fn damping(mut self, damping: f64) -> Self {
+        self.damping = damping;
+        self
+    }
+
+    /// Sets the armature.
+    pub fn armature(mut self, armature: f64) -> Self {
+        self.armature = armature;
+        self
+    }
+
+    /// Sets a PD actuator's gains.
+    pub fn pd(mut self, kp: f64, kv: f64) -> Self {
+        self.kp = kp;
+        self.kv = kv;
+        self
+    }
+}
+
+/// Mass properties of a link, in its frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Inertial {
+    /// Mass (kg).
+    pub mass: f64,
+    /// Centre of mass (m).
+    pub com: Vec3<f64>,
+    /// Rotational inertia about the centre of mass, in the link's axes (kg m^2).
+    pub inertia: Mat33<f64>,
+}
+
+impl Inertial {
+    /// `mass` at `com` with `inertia` about it.
+    pub fn new(mass: f64, com: Vec3<f64>, inertia: Mat33<f64>) -> Self {
+        Inertial { mass, com, inertia }
+    }
+
+    /// No mass (a frame, or an intermediate link of a compound joint).
+    pub fn massless() -> Self {
+        Self::new(0.0, Vec3::zeros(), Mat33::zeros())
+    }
+
+    /// A point mass.
+    pub fn point(mass: f64, com: Vec3<f64>) -> Self {
+        Self::new(mass, com, Mat33::zeros())
+    }
+
+    /// A solid sphere of `mass` and `radius` centred at `com`.
+    pub fn sphere(mass: f64, radius: f64, com: Vec3<f64>) -> Self {
+        Self::new(mass, com, Mat33::identity() * (0.4 * mass * radius * radius))
+    }
+
+    /// A solid box of `mass` and half extents `half`, centred at `com`, axis aligned.
+    pub fn cuboid(mass: f64, half: Vec3<f64>, com: Vec3<f64>) -> Self {
+        let (x, y, z) = (half.x * half.x, half.y * half.y, half.z * half.z);
+        let i = Mat33::from_diagonal(&Vec3::new(y + z, x + z, x + y)) * (mass / 3.0);
+        Self::new(mass, com, i)
+    }
+
+    /// The sum of two bodies' mass properties in one frame.
+    pub fn combine(&self, other: &Inertial) -> Inertial {
+        let m = self.mass + other.mass;
+        if m <= 0.0 {
+            return Inertial::massless();
+        }
+        let c = (self.com * self.mass + other.com * other.mass) / m;
+        let shift = |i: &Inertial| {
+            let d = i.com - c;
+            i.inertia + (Mat33::identity() * d.dot(&d) - d * d.transpose()) * i.mass
+        };
+        Inertial::new(m, c, shift(self) + shift(other))
+    }
+
+    /// These mass properties seen from a frame in which this one is at `pose`.
+    pub fn transformed(&self, pose: &Pose) -> Inertial {
+        let r = rotation_matrix(&pose.rot);
+        Inertial::new(
+            self.mass,
+            pose.transform_point(&self.com),
+            r * self.inertia * r.transpose(),
+        )
+    }
+}
+
+/// A link of an [`ArticulationBuilder`], by its index.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct LinkId(pub usize);
+
+/// A link as described: name, parent, the joint to the parent, mass properties.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinkDesc {
+    /// Name (unique within the builder for lookups; errors use it).
+    pub name: String,
+    /// The parent link (`None`: the world; the link is the root of an articulation).
+    pub parent: Option<LinkId>,
+    /// The joint to the parent (or to the world).
+    pub joint: Joint,
+    /// Mass properties.
+    pub inertial: Inertial,
+}
+
+/// What is wrong with a described articulation (or robot file): the element, where it is,
+/// and what to do.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ArticulationError {
+    /// The element: `link "forearm"`, `joint "elbow"`, `<joint name="elbow">`.
+    pub element: String,
+    /// The file, when read from one.
+    pub file: Option<String>,
+    /// The line in the file (1-based), when read from one.
+    pub line: Option<u32>,
+    /// What is wrong and what to do about it.
+    pub message: String,
+}
+
+impl ArticulationError {
+    pub(crate) fn new(element: impl Into<String>, message: impl Into<String>) -> Self {
+        ArticulationError {
+            element: element.into(),
+            file: None,
+            line: None,
+            message: message.into(),
+        }
+    }
+}
+
+impl fmt::Display for ArticulationError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match (&self.file, self.line) {
+            (Some(file), Some(line)) => write!(f, "{file}:{line}: ")?,
+            (Some(file), None) => write!(f, "{file}: ")?,
+            (None, Some(line)) => write!(f, "line {line}: ")?,
+            (None, None) => {}
+        }
+        write!(f, "{}: {}", self.element, self.message)
+    }
+}
+
+impl std::error::Error for ArticulationError {}
+
+/// Builds articulated bodies: trees of links joined by joints. Several trees (roots) make
+/// several articulations in one model.
+///
+/// ```
+/// use adflex_kernels::articulation::*;
+/// use adflex_runtime::{Tape, Vec3};
+///
+/// // A pendulum: a 1 kg point mass 0.5 m below a revolute joint about y.
+/// let mut b = ArticulationBuilder::new();
+/// b.add_link(
+///     "pole",
+///     None,
+///     Joint::revolute(Vec3::y()),
+///     Inertial::point(1.0, Vec3::new(0.0, 0.0, -0.5)),
+/// );
+/// let model = b.finalize::<f64>().unwrap();
+/// let mut tape = Tape::new();
+/// let q = model.state().q;
+/// let m = model.mass_matrix(&mut tape, &q);
+/// assert!((m.get(0) - 0.25).abs() < 1e-12); // m l^2
+/// ```
+#[derive(Clone, Debug)]
+pub struct ArticulationBuilder {
+    links: Vec<LinkDesc>,
+    /// Gravity (m/s^2); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
+    pub gravity: Vec3<f64>,
+    /// Stiffness of the joint limits (N m/rad or N/m).
+    pub limit_ke: f64,
+    /// Damping of the joint limits while violated.
+    pub limit_kd: f64,
+}
+
+impl Default for ArticulationBuilder {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl ArticulationBuilder {
+    /// An empty builder with gravity `(0, 0, -9.81)`.
+    pub fn new() -> Self {
+        ArticulationBuilder {
+            links: Vec::new(),
+            gravity: Vec3::new(0.0, 0.0, -9.81),
+            limit_ke: 1e4,
+            limit_kd: 10.0,
+        }
+    }
+
+    /// Adds a link joined to `parent` (or to the world) by `joint`. Everything is checked by
+    /// [`ArticulationBuilder::finalize`].
+    pub fn add_link(
+        &mut self,
+        name: impl Into<String>,
+        parent: Option<LinkId>,
+        joint: Joint,
+        inertial: Inertial,
+    ) -> LinkId {
+        self.links.push(LinkDesc {
+            name: name.into(),
+            parent,
+            joint,
+            inertial,
+        });
+        LinkId(self.links.len() - 1)
+    }
+
+    /// The links described so far.
+    pub fn links(&self) -> &[LinkDesc] {
+        &self.links
+    }
+
+    /// The link called `name`.
+    pub fn find(&self, name: &str) -> Option<LinkId> {
+        self.links.iter().position(|l| l.name == name).map(LinkId)
+    }
+
+    /// Adds every link of `other` (its articulations become more articulations of this one);
+    /// returns the id of `other`'s first link here.
+    pub fn add_builder(&mut self, other: &ArticulationBuilder) -> LinkId {
+        let base = self.links.len();
+        for l in &other.links {
+            let mut l = l.clone();
+            l.parent = l.parent.map(|p| LinkId(p.0 + base));
+            self.links.push(l);
+        }
+        LinkId(base)
+    }
+
+    /// Checks the description and builds the model.
+    ///
+    /// Errors name the link or joint: a parent added after its child or missing, a
+    /// non-finite number, a negative mass, an inertia that is not symmetric positive
+    /// semi-definite (or breaks the triangle inequality), a zero axis or quaternion, limits
+    /// with `lower > upper`, a negative damping, armature or gain, and a joint whose motion
+    /// moves no mass (the mass matrix would be singular).
+    pub fn finalize<R: Real>(&self) -> Result<Articulations<R>, ArticulationError> {
+        super::build::finalize(self)
+    }
+}
+
+/// Where an articulation's links, coordinates and velocities are in the model's arrays.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ArticulationInfo {
+    /// Its links (its root first).
+    pub links: Range<usize>,
+    /// Its coordinates in `q`.
+    pub q: Range<usize>,
+    /// Its velocities in `qd`.
+    pub dofs: Range<usize>,
+    /// Where its mass-matrix block (row-major, `dofs.len()` squared) starts.
+    pub m_offset: usize,
+}
+
+/// A link of the model: names, joint and where its joint's coordinates are.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinkInfo {
+    /// The link's name.
+    pub name: String,
+    /// Its joint's name.
+    pub joint: String,
+    /// Its joint's kind.
+    pub kind: JointType,
+    /// Its parent (`None`: the world).
+    pub parent: Option<usize>,
+    /// Its joint's coordinates in `q`.
+    pub q: Range<usize>,
+    /// Its joint's velocities in `qd`.
+    pub dofs: Range<usize>,
+    /// The articulation it belongs to.
+    pub articulation: usize,
+}
+
+/// Articulated bodies ready to simulate: the topology as index arrays for the kernels, the
+/// joints and the mass properties. Build with [`ArticulationBuilder`], or load with
+/// [`urdf`](super::urdf) or [`mjcf`](super::mjcf).
+///
+/// The links are ordered parents first. Every array the kernels read is a field, so a
+/// parameter (a mass, an inertia, a joint placement) can require grad and be optimized.
+#[derive(Clone, Debug)]
+pub struct Articulations<R: Real> {
+    /// The links.
+    pub links: Vec<LinkInfo>,
+    /// The articulations.
+    pub articulations: Vec<ArticulationInfo>,
+    /// Number of coordinates.
+    pub n_q: usize,
+    /// Number of velocities (degrees of freedom).
+    pub n_dof: usize,
+    /// Gravity (m/s^2).
+    pub gravity: Vec3<R>,
+    /// Stiffness of the joint limits.
+    pub limit_ke: R,
+    /// Damping of the joint limits while violated.
+    pub limit_kd: R,
+    /// The neutral configuration: zeros and identity quaternions.
+    pub neutral: Vec<R>,
+    /// Per link: its chain from the root to itself, `chain[chain_start[l]..chain_start[l+1]]`.
+    pub chain_start: Array<u32>,
+    /// See `chain_start`.
+    pub chain: Array<u32>,
+    /// Per link: itself then its descendants, `subtree[subtree_start[l]..subtree_start[l+1]]`.
+    pub subtree_start: Array<u32>,
+    /// See `subtree_start`.
+    pub subtree: Array<u32>,
+    /// Per link: its joint's kind (`JointType` code).
+    pub joint_type: Array<u32>,
+    /// Per link: its joint's first coordinate.
+    pub q_start: Array<u32>,
+    /// Per link, and one past the end: its joint's first velocity.
+    pub qd_start: Array<u32>,
+    /// Per link: the joint frame in the parent's frame at `q = 0` (m).
+    pub joint_pos: Array<Vec3<R>>,
+    /// Its rotation.
+    pub joint_rot: Array<Quat<R>>,
+    /// Per link: the joint's unit axis (joint frame).
+    pub joint_axis: Array<Vec3<R>>,
+    /// Per link: mass (kg).
+    pub mass: Array<R>,
+    /// Per link: centre of mass in the link frame (m).
+    pub com: Array<Vec3<R>>,
+    /// Per link: inertia about the centre of mass, link axes (kg m^2).
+    pub inertia: Array<Mat33<R>>,
+    /// Per velocity: its link.
+    pub dof_link: Array<u32>,
+    /// Per velocity: its index within its joint.
+    pub dof_index: Array<u32>,
+    /// Per velocity: its coordinate, for revolute and prismatic joints.
+    pub dof_q: Array<u32>,
+    /// Per velocity: 1 for revolute and prismatic joints.
+    pub dof_scalar: Array<u32>,
+    /// Per velocity: its articulation's first velocity.
+    pub dof_art_start: Array<u32>,
+    /// Per velocity: where its row of the mass matrix starts.
+    pub dof_m_row: Array<u32>,
+    /// Per velocity: armature.
+    pub armature: Array<R>,
+    /// Per velocity: viscous damping.
+    pub damping: Array<R>,
+    /// Per velocity: PD position gain.
+    pub kp: Array<R>,
+    /// Per velocity: PD velocity gain.
+    pub kv: Array<R>,
+    /// Per velocity: lower limit (`-inf` when none).
+    pub lower: Array<R>,
+    /// Per velocity: upper limit (`inf` when none).
+    pub upper: Array<R>,
+    /// Length of the mass-matrix array (the sum of the blocks' sizes).
+    pub m_len: usize,
+}
+
+impl<R: Real> Articulations<R> {
+    /// The index of the link called `name`.
+    pub fn link(&self, name: &str) -> Option<usize> {
+        self.links.iter().position(|l| l.name == name)
+    }
+
+    /// The index of the link whose joint is called `name`.
+    pub fn joint(&self, name: &str) -> Option<usize> {
+        self.links.iter().position(|l| l.joint == name)
+    }
+
+    /// Number of links.
+    pub fn n_links(&self) -> usize {
+        self.links.len()
+    }
+}

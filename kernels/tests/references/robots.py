@@ -1,0 +1,180 @@
+"""Reference dynamics of adflex's robot models from Pinocchio and MuJoCo.
+
+Writes robots.json beside this script: for each model, random states and the mass matrix,
+the bias forces, the forward dynamics and (Pinocchio) the derivatives of the forward dynamics,
+all in adflex's conventions (see `adflex_kernels::articulation`): quaternions x, y, z, w; a
+free joint's velocity is the linear then the angular velocity, both in the link frame
+(Pinocchio's); derivatives with respect to q in the tangent space.
+
+Run it with the repository's script (it makes the pinned venv):
+    kernels/tests/references/regenerate.sh
+"""
+import json
+import pathlib
+
+import numpy as np
+import pinocchio as pin
+import mujoco
+
+HERE = pathlib.Path(__file__).resolve().parent
+ROBOTS = HERE.parent.parent / "robots"
+RNG = np.random.default_rng(20261126)
+
+
+def quat_xyzw(rng):
+    q = rng.normal(size=4)
+    return q / np.linalg.norm(q)
+
+
+def random_state(joints, rng, neutral=False):
+    """A state in adflex's coordinates: per joint (kind, nq, nv) in model order."""
+    q, v = [], []
+    for kind in joints:
+        if kind in ("revolute", "prismatic"):
+            q.append(0.0 if neutral else rng.uniform(-1.2, 1.2))
+            v.append(0.0 if neutral else rng.normal())
+        elif kind == "ball":
+            q.extend([0, 0, 0, 1] if neutral else quat_xyzw(rng))
+            v.extend([0, 0, 0] if neutral else rng.normal(size=3))
+        elif kind == "free":
+            q.extend([0, 0, 0] if neutral else rng.normal(size=3))
+            q.extend([0, 0, 0, 1] if neutral else quat_xyzw(rng))
+            v.extend([0] * 6 if neutral else rng.normal(size=6))
+    return np.array(q, float), np.array(v, float)
+
+
+def pin_kind(jm):
+    name = jm.shortname()
+    if name == "JointModelFreeFlyer":
+        return "free"
+    if name == "JointModelSpherical":
+        return "ball"
+    if name.startswith("JointModelP"):
+        return "prismatic"
+    if name.startswith("JointModelR"):
+        return "revolute"
+    raise ValueError(name)
+
+
+def to_pin_q(model, q_adflex):
+    """adflex's q to Pinocchio's (continuous joints are (cos, sin) there)."""
+    out, k = [], 0
+    for jm in model.joints[1:]:
+        name = jm.shortname()
+        if name.startswith("JointModelRUB"):
+            out.extend([np.cos(q_adflex[k]), np.sin(q_adflex[k])])
+            k += 1
+        else:
+            n = jm.nq
+            out.extend(q_adflex[k:k + n])
+            k += n
+    return np.array(out)
+
+
+def pinocchio_model(file, floating):
+    path = str(ROBOTS / file)
+    if file.endswith(".urdf"):
+        if floating:
+            return pin.buildModelFromUrdf(path, pin.JointModelFreeFlyer())
+        return pin.buildModelFromUrdf(path)
+    return pin.buildModelFromMJCF(path)
+
+
+def pinocchio_reference(file, floating, n_random=4):
+    model = pinocchio_model(file, floating)
+    data = model.createData()
+    kinds = [pin_kind(jm) for jm in model.joints[1:]]
+    names = list(model.names[1:])
+    states = []
+    for s in range(n_random + 1):
+        q, v = random_state(kinds, RNG, neutral=(s == 0))
+        tau = np.zeros(model.nv) if s == 0 else RNG.normal(size=model.nv)
+        qp = to_pin_q(model, q)
+        m = pin.crba(model, data, qp)
+        m = np.triu(m) + np.triu(m, 1).T
+        bias = pin.rnea(model, data, qp, v, np.zeros(model.nv))
+        qdd = pin.aba(model, data, qp, v, tau)
+        pin.computeABADerivatives(model, data, qp, v, tau)
+        states.append({
+            "q": q.tolist(), "qd": v.tolist(), "tau": tau.tolist(),
+            "mass_matrix": m.tolist(), "bias": bias.tolist(), "qdd": qdd.tolist(),
+            "dqdd_dq": np.array(data.ddq_dq).tolist(),
+            "dqdd_dqd": np.array(data.ddq_dv).tolist(),
+            "dqdd_dtau": (np.triu(data.Minv) + np.triu(data.Minv, 1).T).tolist(),
+        })
+    return {
+        "file": file, "floating_base": floating, "reference": f"pinocchio {pin.__version__}",
+        "joints": [{"name": n, "kind": k} for n, k in zip(names, kinds)],
+        "states": states,
+    }
+
+
+def mujoco_reference(file, n_random=4):
+    """M, bias and qacc from MuJoCo (no contact), converted to adflex's conventions."""
+    model = mujoco.MjModel.from_xml_path(str(ROBOTS / file))
+    data = mujoco.MjData(model)
+    kinds, names = [], []
+    for j in range(model.njnt):
+        t = model.jnt_type[j]
+        kinds.append({mujoco.mjtJoint.mjJNT_FREE: "free", mujoco.mjtJoint.mjJNT_BALL: "ball",
+                      mujoco.mjtJoint.mjJNT_SLIDE: "prismatic",
+                      mujoco.mjtJoint.mjJNT_HINGE: "revolute"}[t])
+        names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j))
+    states = []
+    for s in range(n_random + 1):
+        q, v = random_state(kinds, RNG, neutral=(s == 0))
+        tau = np.zeros(model.nv) if s == 0 else RNG.normal(size=model.nv)
+        # adflex -> MuJoCo: quaternions w first; a free joint's linear velocity in world.
+        qm, vm, T = q.copy(), v.copy(), np.eye(model.nv)
+        for j, kind in enumerate(kinds):
+            a, d = model.jnt_qposadr[j], model.jnt_dofadr[j]
+            if kind == "ball":
+                qm[a:a + 4] = np.roll(q[a:a + 4], 1)
+            if kind == "free":
+                qm[a + 3:a + 7] = np.roll(q[a + 3:a + 7], 1)
+                R = np.zeros(9)
+                mujoco.mju_quat2Mat(R, qm[a + 3:a + 7])
+                T[d:d + 3, d:d + 3] = R.reshape(3, 3)
+        vm = T @ v
+        data.qpos[:] = qm
+        data.qvel[:] = vm
+        data.qfrc_applied[:] = 0
+        data.ctrl[:] = 0
+        mujoco.mj_forward(model, data)
+        m = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, m, data.qM)
+        c = data.qfrc_bias.copy()
+        # qd_mj = T qd: M_a = T^T M T, c_a = T^T (c + M Tdot qd), Tdot qd = R (w x v_local).
+        tdot = np.zeros(model.nv)
+        for j, kind in enumerate(kinds):
+            if kind == "free":
+                d = model.jnt_dofadr[j]
+                tdot[d:d + 3] = T[d:d + 3, d:d + 3] @ np.cross(v[d + 3:d + 6], v[d:d + 3])
+        ma = T.T @ m @ T
+        ca = T.T @ (c + m @ tdot)
+        qdd = np.linalg.solve(ma, tau - ca)
+        states.append({"q": q.tolist(), "qd": v.tolist(), "tau": tau.tolist(),
+                       "mass_matrix": ma.tolist(), "bias": ca.tolist(), "qdd": qdd.tolist()})
+    return {
+        "file": file, "floating_base": False, "reference": f"mujoco {mujoco.__version__}",
+        "joints": [{"name": n, "kind": k} for n, k in zip(names, kinds)],
+        "states": states,
+        "body_mass": model.body_mass[1:].tolist(),
+    }
+
+
+def main():
+    models = [
+        pinocchio_reference("cartpole.urdf", False),
+        pinocchio_reference("arm7.urdf", False),
+        pinocchio_reference("quadruped.urdf", True),
+    ]
+    for f in sorted(ROBOTS.glob("*.xml")):
+        models.append(mujoco_reference(f.name))
+    out = {"generated_by": "kernels/tests/references/robots.py", "models": models}
+    (HERE / "robots.json").write_text(json.dumps(out, indent=1) + "\n")
+    print("wrote", HERE / "robots.json", [m["file"] for m in models])
+
+
+if __name__ == "__main__":
+    main()
