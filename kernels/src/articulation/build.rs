@@ -113,6 +113,22 @@ pub(crate) fn finalize<R: Real>(
                 ));
             }
         }
+        if !j.initial.is_empty() {
+            let quat = j.initial.len().saturating_sub(4);
+            if j.initial.len() != j.kind.nq() || j.initial.iter().any(|x| !x.is_finite()) {
+                return Err(err(
+                    je(),
+                    format!(
+                        "initial coordinates: {} finite numbers needed, {:?} given",
+                        j.kind.nq(),
+                        j.initial
+                    ),
+                ));
+            }
+            if j.kind.nq() > 1 && j.initial[quat..].iter().map(|x| x * x).sum::<f64>() < 1e-24 {
+                return Err(err(je(), "initial quaternion has norm 0"));
+            }
+        }
         if let Some((lo, hi)) = j.limits {
             if !j.kind.is_scalar() {
                 return Err(err(
@@ -165,6 +181,17 @@ pub(crate) fn finalize<R: Real>(
         qd_start.push(nv as u32);
         nq += k.nq();
         nv += k.nv();
+        let init = &links[l].joint.initial;
+        if !init.is_empty() {
+            let mut v = init.clone();
+            if k.nq() > 1 {
+                let quat = &mut v[k.nq() - 4..];
+                let n = quat.iter().map(|x| x * x).sum::<f64>().sqrt();
+                quat.iter_mut().for_each(|x| *x /= n);
+            }
+            neutral.extend(v);
+            continue;
+        }
         match k {
             JointType::Ball => neutral.extend([0.0, 0.0, 0.0, 1.0]),
             JointType::Free => neutral.extend([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
@@ -277,7 +304,7 @@ pub(crate) fn finalize<R: Real>(
         gravity: v3(&b.gravity),
         limit_ke: r(b.limit_ke),
         limit_kd: r(b.limit_kd),
-        neutral: neutral.iter().map(|&x| r(x)).collect(),
+        q0: neutral.iter().map(|&x| r(x)).collect(),
         chain_start: Array::from_vec(chain_start),
         chain: Array::from_vec(chain),
         subtree_start: Array::from_vec(subtree_start),
@@ -350,7 +377,7 @@ struct DofArrays {
 /// diagonal at the neutral configuration (and the Cholesky factorization).
 fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<(), ArticulationError> {
     let mut tape = Tape::new();
-    let q = Array::from_vec(model.neutral.clone());
+    let q = Array::from_vec(model.q0.clone());
     let m = model.mass_matrix(&mut tape, &q).to_vec();
     for a in &model.articulations {
         let n = a.dofs.len();

@@ -60,10 +60,10 @@ pub struct QddDerivatives {
 }
 
 impl<R: Real> Articulations<R> {
-    /// The neutral state: zero joint positions, identity quaternions, at rest.
+    /// The initial state: [`Articulations::q0`], at rest.
     pub fn state(&self) -> ArticulationState<R> {
         ArticulationState {
-            q: Array::from_vec(self.neutral.clone()),
+            q: Array::from_vec(self.q0.clone()),
             qd: Array::zeros(self.n_dof),
         }
     }

@@ -43,6 +43,7 @@
 mod build;
 mod dynamics;
 pub mod kernels;
+pub mod mjcf;
 mod model;
 pub mod urdf;
 mod xml;

@@ -171,6 +171,9 @@ pub struct Joint {
     pub kp: f64,
     /// Velocity gain toward `target_qd` (N m s/rad or N s/m; 0 = none).
     pub kv: f64,
+    /// The joint's initial coordinates (`JointType::nq` of them); empty: zeros and the
+    /// identity quaternion.
+    pub initial: Vec<f64>,
 }
 
 impl Joint {
@@ -185,6 +188,7 @@ impl Joint {
             armature: 0.0,
             kp: 0.0,
             kv: 0.0,
+            initial: Vec::new(),
         }
     }
 
@@ -240,6 +244,12 @@ impl Joint {
     /// Sets the armature.
     pub fn armature(mut self, armature: f64) -> Self {
         self.armature = armature;
+        self
+    }
+
+    /// Sets the initial coordinates (e.g. a free joint's `x, y, z, qx, qy, qz, qw`).
+    pub fn initial(mut self, q: &[f64]) -> Self {
+        self.initial = q.to_vec();
         self
     }
 
@@ -443,6 +453,10 @@ impl ArticulationBuilder {
         &self.links
     }
 
+    pub(crate) fn links_mut(&mut self) -> &mut [LinkDesc] {
+        &mut self.links
+    }
+
     /// The link called `name`.
     pub fn find(&self, name: &str) -> Option<LinkId> {
         self.links.iter().position(|l| l.name == name).map(LinkId)
@@ -526,8 +540,9 @@ pub struct Articulations<R: Real> {
     pub limit_ke: R,
     /// Damping of the joint limits while violated.
     pub limit_kd: R,
-    /// The neutral configuration: zeros and identity quaternions.
-    pub neutral: Vec<R>,
+    /// The initial configuration ([`Articulations::state`] starts there): each joint's
+    /// [`Joint::initial`], or zeros and identity quaternions.
+    pub q0: Vec<R>,
     /// Per link: its chain from the root to itself, `chain[chain_start[l]..chain_start[l+1]]`.
     pub chain_start: Array<u32>,
     /// See `chain_start`.

@@ -1,0 +1,912 @@
+//! Reading a subset of MuJoCo's MJCF.
+//!
+//! Read: `<compiler angle eulerseq inertiafromgeom autolimits>`, `<option timestep gravity>`,
+//! `<default>` classes (nested, with `joint`, `geom`, `motor` and `position` defaults),
+//! `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis childclass>`,
+//! `<joint type="hinge|slide|ball|free" pos axis range limited damping armature>`,
+//! `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|plane" size fromto pos quat mass
+//! density>`, `<inertial pos quat mass diaginertia|fullinertia>`, and `<actuator>` with
+//! `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`. Visual-only
+//! elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`, `<camera>`, `<light>`) are passed
+//! over. Anything else is an error naming the element and its line: MuJoCo would simulate it,
+//! and silently dropping it would simulate a different robot.
+//!
+//! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
+//! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
+//! as MuJoCo's `inertiafromgeom="auto"`. Several joints in one body become a chain of
+//! massless links, in order, each moving about its own `pos`.
+//!
+//! ```
+//! use adflex_kernels::articulation::mjcf;
+//! let xml = r#"<mujoco model="pendulum">
+//!   <compiler angle="radian"/>
+//!   <worldbody>
+//!     <body name="pole" pos="0 0 1">
+//!       <joint name="hinge" type="hinge" axis="0 1 0" range="-1 1"/>
+//!       <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02"/>
+//!     </body>
+//!   </worldbody>
+//!   <actuator><motor joint="hinge" gear="2"/></actuator>
+//! </mujoco>"#;
+//! let robot = mjcf::parse(xml).unwrap();
+//! assert_eq!(robot.actuators.len(), 1);
+//! let model = robot.builder.finalize::<f64>().unwrap();
+//! assert_eq!(model.n_dof, 1);
+//!
+//! let err = mjcf::parse(&xml.replace("hinge\" axis", "screw\" axis")).unwrap_err();
+//! assert_eq!(err.line, Some(5));
+//! assert!(err.to_string().contains("screw"), "{err}");
+//! ```
+
+use std::collections::HashMap;
+use std::f64::consts::PI;
+use std::path::Path;
+
+use adflex_runtime::{Mat33, Quat, Vec3};
+use roxmltree::Node;
+
+use super::build::check_inertial;
+use super::model::{
+    ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId,
+    Pose,
+};
+use super::xml::{self, children, Source};
+
+/// A robot read from MJCF: the builder, its actuators and geometry.
+#[derive(Clone, Debug)]
+pub struct Mjcf {
+    /// The links and joints (set gravity or add more, then finalize).
+    pub builder: ArticulationBuilder,
+    /// The actuators, in file order.
+    pub actuators: Vec<Actuator>,
+    /// `<option timestep>`, if given (s).
+    pub timestep: Option<f64>,
+    /// The geoms: on links, and the world's (planes are the ground).
+    pub geoms: Vec<Geom>,
+}
+
+/// How an actuator acts on its joint.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ActuatorKind {
+    /// A force or torque `gear * ctrl`.
+    Motor {
+        /// The gear.
+        gear: f64,
+    },
+    /// A PD servo `kp (ctrl - q) - kv qd` (the joint's `kp`, `kv` are set from it).
+    Position {
+        /// Position gain.
+        kp: f64,
+        /// Velocity gain.
+        kv: f64,
+    },
+}
+
+/// An actuator on one joint.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Actuator {
+    /// Its name (empty if none).
+    pub name: String,
+    /// The joint's name.
+    pub joint: String,
+    /// What it does.
+    pub kind: ActuatorKind,
+    /// The control's range, if limited.
+    pub ctrlrange: Option<(f64, f64)>,
+}
+
+/// The shape of a geom.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum GeomShape {
+    /// A sphere of this radius.
+    Sphere(f64),
+    /// A capsule along z: radius, half-length of the cylinder.
+    Capsule(f64, f64),
+    /// A cylinder along z: radius, half-length.
+    Cylinder(f64, f64),
+    /// A box of these half extents.
+    Box(Vec3<f64>),
+    /// A plane through the origin with normal z.
+    Plane,
+}
+
+/// A geom: its shape, where it is and whose it is.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Geom {
+    /// Name (empty if none).
+    pub name: String,
+    /// The link it is on (`None`: the world).
+    pub link: Option<LinkId>,
+    /// Its frame in the link's frame (or the world's).
+    pub pose: Pose,
+    /// Its shape.
+    pub shape: GeomShape,
+    /// Sliding friction coefficient.
+    pub friction: f64,
+}
+
+/// Reads the MJCF file at `path`.
+pub fn load(path: impl AsRef<Path>) -> Result<Mjcf, ArticulationError> {
+    let path = path.as_ref();
+    let text = xml::read(path)?;
+    parse_named(&text, Some(&path.display().to_string()))
+}
+
+/// Reads MJCF text.
+pub fn parse(text: &str) -> Result<Mjcf, ArticulationError> {
+    parse_named(text, None)
+}
+
+/// Attribute defaults of one class, per element tag.
+type Class = HashMap<String, HashMap<String, String>>;
+
+struct Reader<'a> {
+    src: Source<'a>,
+    radians: bool,
+    eulerseq: Vec<(usize, bool)>,
+    from_geoms: Option<bool>,
+    classes: HashMap<String, Class>,
+    builder: ArticulationBuilder,
+    geoms: Vec<Geom>,
+    joints: HashMap<String, ()>,
+}
+
+const SKIPPED: &[&str] = &["visual", "asset", "statistic", "size", "extension"];
+const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
+
+fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError> {
+    let doc = xml::parse(text, file)?;
+    let mut r = Reader {
+        src: Source {
+            file: file.map(str::to_string),
+            doc: &doc,
+        },
+        radians: false,
+        eulerseq: vec![(0, true), (1, true), (2, true)],
+        from_geoms: None,
+        classes: HashMap::new(),
+        builder: ArticulationBuilder::new(),
+        geoms: Vec::new(),
+        joints: HashMap::new(),
+    };
+    let root = doc.root_element();
+    if root.tag_name().name() != "mujoco" {
+        return Err(r.src.error(root, "the root element of an MJCF file must be <mujoco>"));
+    }
+    r.src.only_attributes(root, &["model"])?;
+    let items = children(
+        &r.src,
+        root,
+        &["compiler", "option", "default", "worldbody", "actuator"],
+        SKIPPED,
+    )?;
+    let mut timestep = None;
+    // Settings first: they apply to the whole file wherever they are.
+    for n in &items {
+        match n.tag_name().name() {
+            "compiler" => r.compiler(*n)?,
+            "option" => {
+                r.src.only_attributes(*n, &["timestep", "gravity"])?;
+                children(&r.src, *n, &[], &[])?;
+                timestep = r.src.number(*n, "timestep")?;
+                if let Some(g) = r.src.vec3(*n, "gravity")? {
+                    r.builder.gravity = g;
+                }
+            }
+            "default" => r.default(*n, None)?,
+            _ => {}
+        }
+    }
+    let mut actuators = Vec::new();
+    for n in &items {
+        match n.tag_name().name() {
+            "worldbody" => r.worldbody(*n)?,
+            "actuator" => {
+                for a in children(&r.src, *n, &["motor", "position"], &[])? {
+                    actuators.push(r.actuator(a)?);
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(Mjcf {
+        builder: r.builder,
+        actuators,
+        timestep,
+        geoms: r.geoms,
+    })
+}
+
+impl<'a> Reader<'a> {
+    fn compiler(&mut self, n: Node) -> Result<(), ArticulationError> {
+        self.src
+            .only_attributes(n, &["angle", "eulerseq", "inertiafromgeom", "autolimits"])?;
+        children(&self.src, n, &[], &[])?;
+        match n.attribute("angle") {
+            None | Some("degree") => self.radians = false,
+            Some("radian") => self.radians = true,
+            Some(o) => {
+                return Err(self
+                    .src
+                    .error(n, format!("angle=\"{o}\": use \"degree\" or \"radian\"")))
+            }
+        }
+        if let Some(seq) = n.attribute("eulerseq") {
+            let parsed: Option<Vec<(usize, bool)>> = seq
+                .chars()
+                .map(|c| {
+                    let axis = "xyz".find(c.to_ascii_lowercase())?;
+                    Some((axis, c.is_ascii_lowercase()))
+                })
+                .collect();
+            match parsed {
+                Some(p) if p.len() == 3 => self.eulerseq = p,
+                _ => {
+                    return Err(self.src.error(
+                        n,
+                        format!("eulerseq=\"{seq}\": three of x, y, z, X, Y, Z"),
+                    ))
+                }
+            }
+        }
+        match n.attribute("inertiafromgeom") {
+            None | Some("auto") => self.from_geoms = None,
+            Some("true") => self.from_geoms = Some(true),
+            Some("false") => self.from_geoms = Some(false),
+            Some(o) => {
+                return Err(self.src.error(
+                    n,
+                    format!("inertiafromgeom=\"{o}\": use auto, true or false"),
+                ))
+            }
+        }
+        match n.attribute("autolimits") {
+            None | Some("true") => Ok(()),
+            Some(o) => Err(self.src.error(
+                n,
+                format!("autolimits=\"{o}\" is not supported (limits follow `range`)"),
+            )),
+        }
+    }
+
+    fn default(&mut self, n: Node, parent: Option<&str>) -> Result<(), ArticulationError> {
+        self.src.only_attributes(n, &["class"])?;
+        let name = match (n.attribute("class"), parent) {
+            (Some(c), _) => c.to_string(),
+            (None, None) => "main".to_string(),
+            (None, Some(_)) => {
+                return Err(self.src.error(n, "a nested <default> needs a `class`"))
+            }
+        };
+        let mut class = parent
+            .and_then(|p| self.classes.get(p).cloned())
+            .unwrap_or_default();
+        let kids = children(
+            &self.src,
+            n,
+            &["default", "joint", "geom", "motor", "position"],
+            &["site", "camera", "light", "mesh", "material"],
+        )?;
+        for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
+            let entry = class.entry(k.tag_name().name().to_string()).or_default();
+            for a in k.attributes() {
+                entry.insert(a.name().to_string(), a.value().to_string());
+            }
+        }
+        self.classes.insert(name.clone(), class);
+        for k in kids.iter().filter(|k| k.tag_name().name() == "default") {
+            self.default(*k, Some(&name))?;
+        }
+        Ok(())
+    }
+
+    /// The value of attribute `name` of `n`: its own, or its class's default.
+    fn attr<'n>(&'n self, n: Node<'n, 'n>, class: &str, name: &str) -> Option<&'n str> {
+        if let Some(v) = n.attribute(name) {
+            return Some(v);
+        }
+        let class = n.attribute("class").unwrap_or(class);
+        self.classes
+            .get(class)
+            .and_then(|c| c.get(n.tag_name().name()))
+            .and_then(|m| m.get(name))
+            .map(String::as_str)
+    }
+
+    /// Numbers from an attribute (own or default), checked.
+    fn nums(
+        &self,
+        n: Node,
+        class: &str,
+        name: &str,
+        counts: &[usize],
+    ) -> Result<Option<Vec<f64>>, ArticulationError> {
+        let Some(text) = self.attr(n, class, name) else {
+            return Ok(None);
+        };
+        let v: Vec<f64> = text
+            .split_whitespace()
+            .map(|t| t.parse::<f64>().ok().filter(|x| x.is_finite()))
+            .collect::<Option<Vec<_>>>()
+            .ok_or_else(|| {
+                self.src.error(
+                    n,
+                    format!("attribute `{name}=\"{text}\"` has a value that is not a finite number"),
+                )
+            })?;
+        if !counts.contains(&v.len()) {
+            return Err(self.src.error(
+                n,
+                format!(
+                    "attribute `{name}=\"{text}\"` needs {} numbers, has {}",
+                    counts
+                        .iter()
+                        .map(|c| c.to_string())
+                        .collect::<Vec<_>>()
+                        .join(" or "),
+                    v.len()
+                ),
+            ));
+        }
+        Ok(Some(v))
+    }
+
+    fn angle(&self, x: f64) -> f64 {
+        if self.radians {
+            x
+        } else {
+            x * PI / 180.0
+        }
+    }
+
+    /// The orientation of a frame element (`quat`, `euler`, `axisangle`, `xyaxes`, `zaxis`).
+    fn orientation(&self, n: Node, class: &str) -> Result<Quat<f64>, ArticulationError> {
+        let given: Vec<&str> = ["quat", "euler", "axisangle", "xyaxes", "zaxis"]
+            .into_iter()
+            .filter(|a| n.attribute(*a).is_some())
+            .collect();
+        if given.len() > 1 {
+            return Err(self.src.error(
+                n,
+                format!("gives its orientation twice ({})", given.join(", ")),
+            ));
+        }
+        let axis_angle = |a: Vec3<f64>, t: f64| {
+            let (s, c) = (0.5 * t).sin_cos();
+            Quat::from_parts(c, a.normalize() * s)
+        };
+        if let Some(q) = self.nums(n, class, "quat", &[4])? {
+            let q = Quat::new(q[0], q[1], q[2], q[3]);
+            if q.norm() < 1e-12 {
+                return Err(self.src.error(n, "quat has norm 0"));
+            }
+            return Ok(q.normalize());
+        }
+        if let Some(e) = self.nums(n, class, "euler", &[3])? {
+            let mut q = Quat::identity();
+            for (k, &(axis, intrinsic)) in self.eulerseq.iter().enumerate() {
+                let r = axis_angle(Vec3::ith(axis, 1.0), self.angle(e[k]));
+                q = if intrinsic { q * r } else { r * q };
+            }
+            return Ok(q);
+        }
+        if let Some(a) = self.nums(n, class, "axisangle", &[4])? {
+            let axis = Vec3::new(a[0], a[1], a[2]);
+            if axis.norm() < 1e-12 {
+                return Err(self.src.error(n, "axisangle has a zero axis"));
+            }
+            return Ok(axis_angle(axis, self.angle(a[3])));
+        }
+        if let Some(a) = self.nums(n, class, "zaxis", &[3])? {
+            let z = Vec3::new(a[0], a[1], a[2]);
+            if z.norm() < 1e-12 {
+                return Err(self.src.error(n, "zaxis is zero"));
+            }
+            return Ok(from_to(&Vec3::z(), &z.normalize()));
+        }
+        if let Some(a) = self.nums(n, class, "xyaxes", &[6])? {
+            let x = Vec3::new(a[0], a[1], a[2]);
+            let y0 = Vec3::new(a[3], a[4], a[5]);
+            let y = y0 - x * (x.dot(&y0) / x.norm_squared().max(1e-300));
+            let z = x.cross(&y);
+            if x.norm() < 1e-12 || z.norm() < 1e-12 {
+                return Err(self.src.error(n, "xyaxes are zero or parallel"));
+            }
+            let m = Mat33::from_columns(&[x.normalize(), y.normalize(), z.normalize()]);
+            let r = nalgebra::Rotation3::from_matrix_unchecked(m);
+            return Ok(*nalgebra::UnitQuaternion::from_rotation_matrix(&r).quaternion());
+        }
+        Ok(Quat::identity())
+    }
+
+    fn worldbody(&mut self, n: Node) -> Result<(), ArticulationError> {
+        self.src.only_attributes(n, &["childclass"])?;
+        let class = n.attribute("childclass").unwrap_or("main").to_string();
+        for c in children(&self.src, n, &["body", "geom"], BODY_SKIPPED)? {
+            match c.tag_name().name() {
+                "body" => self.body(c, None, Vec3::zeros(), &class)?,
+                _ => {
+                    let (g, _) = self.geom(c, &class, None)?;
+                    self.geoms.push(g);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads `<body>` `n`, whose parent's link is `parent` with its frame at `offset` in the
+    /// parent body's frame.
+    fn body(
+        &mut self,
+        n: Node,
+        parent: Option<LinkId>,
+        offset: Vec3<f64>,
+        class: &str,
+    ) -> Result<(), ArticulationError> {
+        self.src.only_attributes(
+            n,
+            &[
+                "name",
+                "pos",
+                "quat",
+                "euler",
+                "axisangle",
+                "xyaxes",
+                "zaxis",
+                "childclass",
+                "gravcomp",
+            ],
+        )?;
+        if self.attr(n, class, "gravcomp").is_some() {
+            return Err(self.src.error(n, "gravcomp is not supported"));
+        }
+        let class = n.attribute("childclass").unwrap_or(class).to_string();
+        let name = n.attribute("name").map(str::to_string).unwrap_or_else(|| {
+            format!("body{}", self.builder.links().len())
+        });
+        let pos = self.src.vec3(n, "pos")?.unwrap_or_else(Vec3::zeros);
+        let rot = self.orientation(n, &class)?;
+        let body_pose = Pose::new(pos - offset, rot);
+        let kids = children(
+            &self.src,
+            n,
+            &["body", "joint", "freejoint", "geom", "inertial"],
+            BODY_SKIPPED,
+        )?;
+        // Joints, in order.
+        let mut joints = Vec::new();
+        for j in kids.iter().filter(|k| {
+            matches!(k.tag_name().name(), "joint" | "freejoint")
+        }) {
+            joints.push((*j, self.joint(*j, &class)?));
+        }
+        if joints.iter().any(|(_, (j, _))| j.kind == super::JointType::Free)
+            && (joints.len() > 1 || parent.is_some())
+        {
+            let node = joints[0].0;
+            return Err(self.src.error(
+                node,
+                "a free joint must be the only joint of a body of the worldbody",
+            ));
+        }
+        // Mass properties in the body frame.
+        let inertial_node = kids.iter().find(|k| k.has_tag_name("inertial"));
+        let mut geoms = Vec::new();
+        let mut from_geoms = Inertial::massless();
+        for g in kids.iter().filter(|k| k.has_tag_name("geom")) {
+            let (geom, inertial) = self.geom(*g, &class, Some(LinkId(0)))?;
+            if let Some(i) = inertial {
+                from_geoms = from_geoms.combine(&i);
+            }
+            geoms.push(geom);
+        }
+        let use_geoms = match self.from_geoms {
+            Some(b) => b,
+            None => inertial_node.is_none(),
+        };
+        let inertial = if use_geoms {
+            from_geoms
+        } else if let Some(i) = inertial_node {
+            self.inertial(*i)?
+        } else {
+            Inertial::massless()
+        };
+        // One link per joint (massless but the last), each frame at its joint's `pos`.
+        let mut link = parent;
+        let mut at = Vec3::zeros();
+        if joints.is_empty() {
+            let id = self.builder.add_link(
+                name.clone(),
+                link,
+                Joint::fixed().name(format!("{name}_weld")).origin(body_pose),
+                inertial,
+            );
+            link = Some(id);
+        }
+        let count = joints.len();
+        for (k, (_, (mut joint, jpos))) in joints.into_iter().enumerate() {
+            if joint.kind == super::JointType::Free {
+                // MuJoCo's free joint: q is the body's pose in the world; the body's `pos` and
+                // orientation are its initial value.
+                let r = rot.normalize();
+                joint.initial = vec![pos.x, pos.y, pos.z, r.i, r.j, r.k, r.w];
+                link = Some(self.builder.add_link(name.clone(), None, joint, inertial));
+                continue;
+            }
+            let origin = if k == 0 {
+                Pose::new(body_pose.transform_point(&jpos), rot)
+            } else {
+                Pose::at(jpos - at)
+            };
+            at = jpos;
+            let last = k + 1 == count;
+            let link_name = if last {
+                name.clone()
+            } else {
+                format!("{name}:{}", joint.name)
+            };
+            let mass = if last {
+                inertial.transformed(&Pose::at(-jpos))
+            } else {
+                Inertial::massless()
+            };
+            link = Some(
+                self.builder
+                    .add_link(link_name, link, joint.origin(origin), mass),
+            );
+        }
+        for mut g in geoms {
+            g.link = link;
+            g.pose.pos -= at;
+            self.geoms.push(g);
+        }
+        for b in kids.iter().filter(|k| k.has_tag_name("body")) {
+            self.body(*b, link, at, &class)?;
+        }
+        Ok(())
+    }
+
+    /// A joint and its `pos` in the body frame.
+    fn joint(&mut self, n: Node, class: &str) -> Result<(Joint, Vec3<f64>), ArticulationError> {
+        let known = [
+            "name", "type", "pos", "axis", "range", "limited", "damping", "armature", "class",
+            "stiffness", "springref", "ref", "frictionloss", "group",
+        ];
+        self.src.only_attributes(n, &known)?;
+        if let Some(a) = self.attr(n, class, "class") {
+            if !self.classes.contains_key(a) {
+                return Err(self.src.error(n, format!("class \"{a}\" is not defined")));
+            }
+        }
+        let kind = if n.has_tag_name("freejoint") {
+            "free"
+        } else {
+            self.attr(n, class, "type").unwrap_or("hinge")
+        }
+        .to_string();
+        let kind = kind.as_str();
+        let axis = self
+            .nums(n, class, "axis", &[3])?
+            .map(|a| Vec3::new(a[0], a[1], a[2]))
+            .unwrap_or_else(Vec3::z);
+        if axis.norm() < 1e-12 {
+            return Err(self.src.error(n, "axis is zero"));
+        }
+        let mut j = match kind {
+            "hinge" => Joint::revolute(axis),
+            "slide" => Joint::prismatic(axis),
+            "ball" => Joint::ball(),
+            "free" => Joint::free(),
+            o => {
+                return Err(self.src.error(
+                    n,
+                    format!("joint type `{o}` is not supported (hinge, slide, ball, free)"),
+                ))
+            }
+        };
+        for unsupported in ["stiffness", "frictionloss", "ref", "springref"] {
+            if let Some(v) = self.nums(n, class, unsupported, &[1])? {
+                if v[0] != 0.0 {
+                    return Err(self.src.error(
+                        n,
+                        format!("`{unsupported}` is not supported; remove it or set it to 0"),
+                    ));
+                }
+            }
+        }
+        let name = n
+            .attribute("name")
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("joint{}", self.builder.links().len()));
+        if self.joints.insert(name.clone(), ()).is_some() {
+            return Err(self.src.error(n, "a second joint with this name"));
+        }
+        j = j.name(name);
+        let range = self.nums(n, class, "range", &[2])?;
+        let limited = self.attr(n, class, "limited").unwrap_or("auto");
+        if let Some(r) = range {
+            if limited != "false" && (kind == "hinge" || kind == "slide") {
+                let s = |x| if kind == "hinge" { self.angle(x) } else { x };
+                let (lo, hi) = (s(r[0]), s(r[1]));
+                if lo > hi {
+                    return Err(self.src.error(n, format!("range: lower {lo} > upper {hi}")));
+                }
+                j = j.limits(lo, hi);
+            } else if n.attribute("limited") == Some("true") {
+                return Err(self.src.error(n, "limits on ball and free joints are not supported"));
+            }
+        } else if limited == "true" && (kind == "hinge" || kind == "slide") {
+            return Err(self.src.error(n, "limited=\"true\" needs a `range`"));
+        }
+        for (attr, set) in [("damping", 0), ("armature", 1)] {
+            if let Some(v) = self.nums(n, class, attr, &[1])? {
+                if v[0] < 0.0 {
+                    return Err(self.src.error(n, format!("{attr} {} is negative", v[0])));
+                }
+                j = if set == 0 { j.damping(v[0]) } else { j.armature(v[0]) };
+            }
+        }
+        let pos = if kind == "free" {
+            Vec3::zeros()
+        } else {
+            self.nums(n, class, "pos", &[3])?
+                .map(|a| Vec3::new(a[0], a[1], a[2]))
+                .unwrap_or_else(Vec3::zeros)
+        };
+        Ok((j, pos))
+    }
+
+    /// A geom (in its body's frame) and its mass properties, if it has any.
+    fn geom(
+        &self,
+        n: Node,
+        class: &str,
+        on_link: Option<LinkId>,
+    ) -> Result<(Geom, Option<Inertial>), ArticulationError> {
+        let known = [
+            "name", "type", "size", "fromto", "pos", "quat", "euler", "axisangle", "xyaxes",
+            "zaxis", "mass", "density", "class", "rgba", "material", "friction", "contype",
+            "conaffinity", "condim", "group", "solref", "solimp", "margin",
+        ];
+        self.src.only_attributes(n, &known)?;
+        let kind = self.attr(n, class, "type").unwrap_or("sphere");
+        let size = self.nums(n, class, "size", &[1, 2, 3])?.unwrap_or_default();
+        let fromto = self.nums(n, class, "fromto", &[6])?;
+        let need = |k: usize| -> Result<(), ArticulationError> {
+            if size.len() < k || size[..k].iter().any(|&s| s <= 0.0) {
+                Err(self.src.error(
+                    n,
+                    format!("a {kind} needs {k} positive size value{}", if k > 1 { "s" } else { "" }),
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        let mut pose = Pose::new(
+            self.nums(n, class, "pos", &[3])?
+                .map(|a| Vec3::new(a[0], a[1], a[2]))
+                .unwrap_or_else(Vec3::zeros),
+            self.orientation(n, class)?,
+        );
+        let mut half = 0.0;
+        if let Some(f) = &fromto {
+            if !matches!(kind, "capsule" | "cylinder" | "box") {
+                return Err(self.src.error(n, format!("fromto does not apply to a {kind}")));
+            }
+            let (a, b) = (Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5]));
+            if (b - a).norm() < 1e-12 {
+                return Err(self.src.error(n, "fromto has two equal points"));
+            }
+            half = 0.5 * (b - a).norm();
+            pose = Pose::new(0.5 * (a + b), from_to(&Vec3::z(), &(b - a).normalize()));
+        }
+        let shape = match kind {
+            "sphere" => {
+                need(1)?;
+                GeomShape::Sphere(size[0])
+            }
+            "capsule" | "cylinder" => {
+                if fromto.is_some() {
+                    need(1)?;
+                } else {
+                    need(2)?;
+                    half = size[1];
+                }
+                if kind == "capsule" {
+                    GeomShape::Capsule(size[0], half)
+                } else {
+                    GeomShape::Cylinder(size[0], half)
+                }
+            }
+            "box" => {
+                need(3)?;
+                GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
+            }
+            "plane" => {
+                if on_link.is_some() {
+                    return Err(self.src.error(n, "a plane must be a geom of the worldbody"));
+                }
+                GeomShape::Plane
+            }
+            o => {
+                return Err(self.src.error(
+                    n,
+                    format!("geom type `{o}` is not supported (sphere, capsule, cylinder, box, plane)"),
+                ))
+            }
+        };
+        let friction = self
+            .nums(n, class, "friction", &[1, 2, 3])?
+            .map(|f| f[0])
+            .unwrap_or(1.0);
+        let geom = Geom {
+            name: n.attribute("name").unwrap_or("").to_string(),
+            link: on_link,
+            pose,
+            shape,
+            friction,
+        };
+        if on_link.is_none() {
+            return Ok((geom, None));
+        }
+        let volume_and_inertia = |s: &GeomShape| -> (f64, Vec3<f64>) {
+            // Volume, and the principal moments per unit mass.
+            match *s {
+                GeomShape::Sphere(r) => (4.0 / 3.0 * PI * r.powi(3), Vec3::repeat(0.4 * r * r)),
+                GeomShape::Box(h) => (
+                    8.0 * h.x * h.y * h.z,
+                    Vec3::new(h.y * h.y + h.z * h.z, h.x * h.x + h.z * h.z, h.x * h.x + h.y * h.y)
+                        / 3.0,
+                ),
+                GeomShape::Cylinder(r, h) => {
+                    let l = 2.0 * h;
+                    let t = (3.0 * r * r + l * l) / 12.0;
+                    (PI * r * r * l, Vec3::new(t, t, 0.5 * r * r))
+                }
+                GeomShape::Capsule(r, h) => {
+                    // A cylinder and two hemispheres, exactly.
+                    let l = 2.0 * h;
+                    let (vc, vs) = (PI * r * r * l, 4.0 / 3.0 * PI * r.powi(3));
+                    let (fc, fs) = (vc / (vc + vs), vs / (vc + vs));
+                    let t = fc * (3.0 * r * r + l * l) / 12.0
+                        + fs * (0.4 * r * r + l * (3.0 * r + 2.0 * l) / 8.0);
+                    (vc + vs, Vec3::new(t, t, fc * 0.5 * r * r + fs * 0.4 * r * r))
+                }
+                GeomShape::Plane => (0.0, Vec3::zeros()),
+            }
+        };
+        let (volume, per_mass) = volume_and_inertia(&shape);
+        let mass = match (
+            self.nums(n, class, "mass", &[1])?,
+            self.nums(n, class, "density", &[1])?,
+        ) {
+            (Some(m), _) => m[0],
+            (None, Some(d)) => d[0] * volume,
+            (None, None) => 1000.0 * volume,
+        };
+        if mass < 0.0 {
+            return Err(self.src.error(n, format!("mass {mass} is negative")));
+        }
+        let local = Inertial::new(mass, Vec3::zeros(), Mat33::from_diagonal(&(per_mass * mass)));
+        Ok((geom, Some(local.transformed(&pose))))
+    }
+
+    fn inertial(&self, n: Node) -> Result<Inertial, ArticulationError> {
+        self.src.only_attributes(
+            n,
+            &["pos", "quat", "euler", "axisangle", "xyaxes", "zaxis", "mass", "diaginertia", "fullinertia"],
+        )?;
+        children(&self.src, n, &[], &[])?;
+        let pos = self
+            .src
+            .vec3(n, "pos")?
+            .ok_or_else(|| self.src.error(n, "needs `pos`"))?;
+        let mass = self
+            .src
+            .number(n, "mass")?
+            .ok_or_else(|| self.src.error(n, "needs `mass`"))?;
+        if mass <= 0.0 {
+            return Err(self.src.error(
+                n,
+                format!(
+                    "mass {mass} is {}: a body without mass has no <inertial>",
+                    if mass < 0.0 { "negative" } else { "zero" }
+                ),
+            ));
+        }
+        let rot = self.orientation(n, "main")?;
+        let inertia = match (
+            self.src.vec3(n, "diaginertia")?,
+            self.src.numbers(n, "fullinertia", 6)?,
+        ) {
+            (Some(d), None) => Mat33::from_diagonal(&d),
+            (None, Some(f)) => Mat33::new(f[0], f[3], f[4], f[3], f[1], f[5], f[4], f[5], f[2]),
+            _ => {
+                return Err(self
+                    .src
+                    .error(n, "needs one of `diaginertia` and `fullinertia`"))
+            }
+        };
+        let i = Inertial::new(mass, Vec3::zeros(), inertia).transformed(&Pose::new(pos, rot));
+        check_inertial(&i).map_err(|m| self.src.error(n, m))?;
+        Ok(i)
+    }
+
+    fn actuator(&mut self, n: Node) -> Result<Actuator, ArticulationError> {
+        let tag = n.tag_name().name();
+        let class = "main";
+        self.src.only_attributes(
+            n,
+            &["name", "joint", "gear", "ctrlrange", "ctrllimited", "kp", "kv", "class", "forcerange", "forcelimited"],
+        )?;
+        if self.attr(n, class, "forcerange").is_some() || self.attr(n, class, "forcelimited") == Some("true") {
+            return Err(self.src.error(n, "forcerange is not supported"));
+        }
+        let joint = self.src.required(n, "joint")?.to_string();
+        let Some(link) = self.builder.links().iter().position(|l| l.joint.name == joint) else {
+            return Err(self.src.error(n, format!("joint \"{joint}\" is not defined")));
+        };
+        let gear = self.nums(n, class, "gear", &[1, 6])?.map(|g| g[0]).unwrap_or(1.0);
+        let ctrlrange = match self.nums(n, class, "ctrlrange", &[2])? {
+            Some(r) if self.attr(n, class, "ctrllimited") != Some("false") => {
+                if r[0] > r[1] {
+                    return Err(self.src.error(n, "ctrlrange: lower > upper"));
+                }
+                Some((r[0], r[1]))
+            }
+            _ => None,
+        };
+        let kind = if tag == "motor" {
+            ActuatorKind::Motor { gear }
+        } else {
+            let kp = self.nums(n, class, "kp", &[1])?.map(|v| v[0]).unwrap_or(1.0);
+            let kv = self.nums(n, class, "kv", &[1])?.map(|v| v[0]).unwrap_or(0.0);
+            if kp < 0.0 || kv < 0.0 {
+                return Err(self.src.error(n, "kp and kv must be non-negative"));
+            }
+            if !self.builder.links()[link].joint.kind.is_scalar() {
+                return Err(self.src.error(n, "a position actuator needs a hinge or slide joint"));
+            }
+            let j = &mut self.builder.links_mut()[link].joint;
+            j.kp = kp * gear;
+            j.kv = kv * gear;
+            ActuatorKind::Position { kp, kv }
+        };
+        Ok(Actuator {
+            name: n.attribute("name").unwrap_or("").to_string(),
+            joint,
+            kind,
+            ctrlrange,
+        })
+    }
+}
+
+/// The shortest rotation taking unit `a` to unit `b`.
+fn from_to(a: &Vec3<f64>, b: &Vec3<f64>) -> Quat<f64> {
+    let c = a.dot(b);
+    if c < -1.0 + 1e-12 {
+        // Opposite: half a turn about any axis orthogonal to `a`.
+        let o = if a.x.abs() < 0.9 { Vec3::x() } else { Vec3::y() };
+        return Quat::from_parts(0.0, a.cross(&o).normalize());
+    }
+    Quat::from_parts(1.0 + c, a.cross(b)).normalize()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::model::{rotate, rotation_matrix};
+    use super::*;
+
+    #[test]
+    fn from_to_rotates_a_onto_b() {
+        for (a, b) in [
+            (Vec3::z(), Vec3::new(1.0, 2.0, -0.5).normalize()),
+            (Vec3::z(), -Vec3::z()),
+            (Vec3::z(), Vec3::z()),
+        ] {
+            let q = from_to(&a, &b);
+            assert!((rotate(&q, &a) - b).norm() < 1e-12);
+            assert!((rotation_matrix(&q) * a - b).norm() < 1e-12);
+        }
+    }
+}
