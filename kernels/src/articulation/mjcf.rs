@@ -643,6 +643,14 @@ impl<'a> Reader<'a> {
                 if v[0] < 0.0 {
                     return Err(self.src.error(n, format!("{attr} {} is negative", v[0])));
                 }
+                if set == 1 && kind == "free" && v[0] != 0.0 {
+                    // MuJoCo adds it to the world-frame linear velocities, which are not this
+                    // joint's coordinates: the motion would differ.
+                    return Err(self.src.error(
+                        n,
+                        "armature on a free joint is not supported; set armature=\"0\"",
+                    ));
+                }
                 j = if set == 0 { j.damping(v[0]) } else { j.armature(v[0]) };
             }
         }
