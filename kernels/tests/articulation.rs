@@ -209,3 +209,191 @@ fn forward_dynamics_derivatives_match_central_differences() {
         assert!(worst.iter().all(|&w| w < 1e-6), "{file}: {worst:?}");
     }
 }
+
+/// A free box, spinning and falling: one link on a free joint.
+fn spinning_box() -> Articulations<f64> {
+    use adflex_kernels::articulation::{ArticulationBuilder, Inertial, Joint};
+    use adflex_runtime::Vec3;
+    let mut b = ArticulationBuilder::new();
+    b.add_link(
+        "box",
+        None,
+        Joint::free().initial(&[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]),
+        Inertial::cuboid(2.0, Vec3::new(0.3, 0.2, 0.1), Vec3::new(0.05, 0.0, 0.0)),
+    );
+    b.finalize().unwrap()
+}
+
+/// Rolls `model` out for `steps` semi-implicit steps from `(q, qd)` with per-step torques
+/// `taus` and PD targets; returns the final state's `(q, qd)` on `tape`.
+fn rollout(
+    model: &Articulations<f64>,
+    tape: &mut Tape,
+    q: &Array<f64>,
+    qd: &Array<f64>,
+    taus: &[Array<f64>],
+    dt: f64,
+) -> (Array<f64>, Array<f64>) {
+    use adflex_kernels::articulation::{ArticulationControl, ArticulationState};
+    let mut s = ArticulationState {
+        q: q.clone(),
+        qd: qd.clone(),
+    };
+    let idle = model.control();
+    for tau in taus {
+        let c = ArticulationControl {
+            tau: tau.clone(),
+            ..idle.clone()
+        };
+        s = model.step(tape, &s, Some(&c), dt).unwrap();
+    }
+    (s.q, s.qd)
+}
+
+#[test]
+fn rollout_gradients_match_central_differences() {
+    let mut rng = adflex_testkit::Rng(11);
+    let models = [
+        ("spinning box", spinning_box()),
+        ("cartpole", load("cartpole.urdf", false)),
+        ("arm7", load("arm7.urdf", false)),
+        ("quadruped", load("quadruped.urdf", true)),
+        ("humanoid", load("humanoid.xml", false)),
+    ];
+    for (name, model) in &models {
+        let n = model.n_dof;
+        let steps = 40;
+        let dt = 2e-3;
+        // Inside the joint limits, so that no limit switches on (a kink) during the rollout.
+        let (lower, upper) = (model.lower.to_vec(), model.upper.to_vec());
+        let start: Vec<f64> = (0..n)
+            .map(|d| {
+                let (lo, hi) = (lower[d].max(-0.5), upper[d].min(0.5));
+                rng.uniform(lo + 0.3 * (hi - lo), hi - 0.3 * (hi - lo))
+            })
+            .collect();
+        let q0 = model.integrate(&model.q0, &start);
+        let qd0: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let taus0: Vec<Vec<f64>> = (0..steps)
+            .map(|_| (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect())
+            .collect();
+        let w: Vec<f64> = (0..model.n_q + n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        // J^T w by one backward pass over the rollout.
+        let q = Array::from_vec(q0.clone());
+        let qd = Array::from_vec(qd0.clone());
+        let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
+        let mut tape = Tape::new();
+        let (qf, qdf) = rollout(model, &mut tape, &q, &qd, &taus, dt);
+        let mut inputs: Vec<&dyn adflex_runtime::AnyArray> = vec![&q, &qd, &model.mass, &model.joint_pos];
+        inputs.extend(taus.iter().map(|t| t as &dyn adflex_runtime::AnyArray));
+        let grad = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
+        assert!(grad.iter().all(|g| g.is_finite()), "{name}: a non-finite gradient");
+        // Central differences along random directions of every input at once.
+        // Perturbed copies of the parameters (`Articulations::clone` shares the arrays).
+        let (mass0, jpos0) = (model.mass.to_vec(), model.joint_pos.to_vec());
+        let loss = |v: &[f64], h: f64| -> f64 {
+            let mut k = 0;
+            let mut take = |x: &[f64]| -> Vec<f64> {
+                let out = x.iter().zip(&v[k..]).map(|(a, b)| a + h * b).collect();
+                k += x.len();
+                out
+            };
+            let q = Array::from_vec(take(&q0));
+            let qd = Array::from_vec(take(&qd0));
+            let mass = Array::from_vec(take(&mass0));
+            let jp: Vec<f64> = jpos0.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+            let joint_pos = Array::from_vec(
+                take(&jp)
+                    .chunks(3)
+                    .map(|c| adflex_runtime::Vec3::new(c[0], c[1], c[2]))
+                    .collect(),
+            );
+            let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(take(t))).collect();
+            let m = Articulations {
+                mass,
+                joint_pos,
+                ..model.clone()
+            };
+            let mut tape = Tape::new();
+            let (qf, qdf) = rollout(&m, &mut tape, &q, &qd, &taus, dt);
+            let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
+            f.iter().zip(&w).map(|(a, b)| a * b).sum()
+        };
+        let mut worst = 0.0f64;
+        // One direction per input (initial q, qd, masses, joint placements, torques), then
+        // all at once.
+        let sizes = [model.n_q, n, model.n_links(), 3 * model.n_links(), n * steps];
+        for group in 0..=sizes.len() {
+            let start: usize = sizes[..group.min(sizes.len())].iter().sum();
+            let end = if group == sizes.len() { grad.len() } else { start + sizes[group] };
+            let start = if group == sizes.len() { 0 } else { start };
+            let v: Vec<f64> = (0..grad.len())
+                .map(|i| if (start..end).contains(&i) { rng.uniform(-1.0, 1.0) } else { 0.0 })
+                .collect();
+            let h = 1e-6;
+            let fd = (loss(&v, h) - loss(&v, -h)) / (2.0 * h);
+            let an: f64 = grad.iter().zip(&v).map(|(a, b)| a * b).sum();
+            worst = worst.max((fd - an).abs() / an.abs().max(1e-2));
+        }
+        println!("{name}: rollout gradient vs central differences {worst:.1e}");
+        assert!(worst < 1e-6, "{name}: {worst:.2e}");
+    }
+}
+
+#[test]
+fn gradients_are_finite_and_right_at_singular_configurations() {
+    // (model, q0, qd0): identity quaternion and no angular velocity; a straight chain at rest;
+    // a joint exactly at its limit.
+    let cartpole = load("cartpole.urdf", false);
+    let arm = load("arm7.urdf", false);
+    let cases = [
+        ("box at rest, identity", spinning_box(), None, 0.0),
+        ("straight arm at rest", arm, None, 0.0),
+        ("slider at its limit", cartpole, Some(vec![4.0, 0.0]), 0.0),
+    ];
+    for (name, model, q0, v0) in cases {
+        let q0 = q0.unwrap_or_else(|| model.q0.clone());
+        let qd0 = vec![v0; model.n_dof];
+        let taus0 = vec![vec![0.0; model.n_dof]; 20];
+        let w: Vec<f64> = (0..model.n_q + model.n_dof).map(|i| 1.0 + 0.1 * i as f64).collect();
+        let (q, qd) = (Array::from_vec(q0.clone()), Array::from_vec(qd0.clone()));
+        let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
+        let mut tape = Tape::new();
+        let (qf, qdf) = rollout(&model, &mut tape, &q, &qd, &taus, 1e-3);
+        let g = tape.vjp(&[&qf, &qdf], &w, &[&q, &qd]).unwrap();
+        assert!(g.iter().all(|x| x.is_finite()), "{name}: {g:?}");
+        // Central differences of each velocity (the kinks are in q at a limit).
+        // At the limit, only the slider's own velocity has a known side (the pole's moves the
+        // cart into or away from the limit, depending on the sign).
+        let checked = if name.contains("limit") { 1 } else { model.n_dof };
+        for j in 0..checked {
+            let f = |h: f64| {
+                let mut qd = qd0.clone();
+                qd[j] += h;
+                let mut tape = Tape::new();
+                let (qf, qdf) = rollout(
+                    &model,
+                    &mut tape,
+                    &Array::from_vec(q0.clone()),
+                    &Array::from_vec(qd),
+                    &taus,
+                    1e-3,
+                );
+                let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
+                f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+            };
+            // At the limit the force switches on for motion into it: the gradient is the
+            // one-sided derivative of the free side (`x == upper` is not a violation).
+            let (fd, tol) = if name.contains("limit") {
+                ((f(0.0) - f(-1e-7)) / 1e-7, 1e-5)
+            } else {
+                ((f(1e-6) - f(-1e-6)) / 2e-6, 1e-6)
+            };
+            let an = g[model.n_q + j];
+            assert!(
+                (fd - an).abs() <= tol * an.abs().max(1.0),
+                "{name}: velocity {j}: {an} vs central differences {fd}"
+            );
+        }
+    }
+}
