@@ -3,7 +3,7 @@
 //! Pinocchio's and central differences, rollouts' gradients, and bad robot files.
 
 use adflex_kernels::articulation::{mjcf, urdf, Articulations, JointType};
-use adflex_runtime::{Array, Tape};
+use adflex_runtime::{Array, Quat, Tape};
 use serde_json::Value;
 
 const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/robots");
@@ -395,5 +395,109 @@ fn gradients_are_finite_and_right_at_singular_configurations() {
                 "{name}: velocity {j}: {an} vs central differences {fd}"
             );
         }
+    }
+}
+
+#[test]
+fn a_box_comes_to_rest_on_the_ground() {
+    use adflex_kernels::articulation::{ArticulationBuilder, GroundContact, Inertial, Joint, Pose};
+    use adflex_runtime::Vec3;
+    let mut b = ArticulationBuilder::new();
+    let half = Vec3::new(0.2, 0.1, 0.05);
+    let l = b.add_link(
+        "box",
+        None,
+        Joint::free().initial(&[0.0, 0.0, 0.3, 0.1, 0.0, 0.0, 1.0]),
+        Inertial::cuboid(1.0, half, Vec3::zeros()),
+    );
+    b.add_contact_box(l, &Pose::identity(), half);
+    b.ground = Some(GroundContact::default());
+    let model = b.finalize::<f64>().unwrap();
+    let mut tape = Tape::new();
+    let mut s = model.state();
+    for _ in 0..1500 {
+        s = model.step(&mut tape, &s, None, 1e-3).unwrap();
+    }
+    let q = s.q.to_vec();
+    let speed = s.qd.to_vec().iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    // Resting flat on four corners: sunk by m g / (4 ke).
+    let expected = 0.05 - 9.81 / (4.0 * 1e4);
+    assert!((q[2] - expected).abs() < 1e-4, "height {} vs {expected}", q[2]);
+    assert!(speed < 1e-3, "still moving: {speed}");
+    // Flat: the body's z axis is the world's.
+    let r = Quat::new(q[6], q[3], q[4], q[5]);
+    let z = r * Quat::new(0.0, 0.0, 0.0, 1.0) * r.conjugate();
+    assert!(z.k > 1.0 - 1e-6, "tilted: {z:?}");
+}
+
+#[test]
+fn quadruped_rollout_through_ground_contact_has_right_gradients() {
+    // The MJCF ant dropped onto its floor, its hips and ankles driven by torques.
+    let robot = mjcf::load(format!("{ROBOTS}/ant.xml")).unwrap();
+    let mut b = robot.builder;
+    assert!(b.ground.is_some() && b.contacts().len() > 8);
+    let mass: f64 = b.links().iter().map(|l| l.inertial.mass).sum();
+    println!("ant mass {mass}");
+    let g = b.ground.as_mut().unwrap();
+    // A contact as stiff as the ant is light (about 1 cm sag on one foot).
+    (g.ke, g.kd) = (mass * 9.81 / 0.01, mass * 5.0);
+    b.limit_ke = 10.0;
+    b.limit_kd = 0.1;
+    let model = b.finalize::<f64>().unwrap();
+    let n = model.n_dof;
+    let steps = 250;
+    let dt = 2e-3;
+    let mut rng = adflex_testkit::Rng(5);
+    // The ankles start inside their ranges.
+    let (lower, upper) = (model.lower.to_vec(), model.upper.to_vec());
+    let mid: Vec<f64> = (0..n)
+        .map(|d| if lower[d].is_finite() { 0.5 * (lower[d] + upper[d]) } else { 0.0 })
+        .collect();
+    let q0 = model.integrate(&model.q0, &mid);
+    let qd0 = vec![0.0; n];
+    let taus0: Vec<Vec<f64>> = (0..steps)
+        .map(|_| {
+            (0..n)
+                .map(|d| if d < 6 { 0.0 } else { rng.uniform(-0.05, 0.05) })
+                .collect()
+        })
+        .collect();
+    let w: Vec<f64> = (0..model.n_q + n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
+    let mut tape = Tape::new();
+    let q = Array::from_vec(q0.clone());
+    let qd = Array::from_vec(qd0.clone());
+    let (qf, qdf) = rollout(&model, &mut tape, &q, &qd, &taus, dt);
+    // It landed: the torso is held up by the legs, above the ground and below its start.
+    let z = qf.get(2);
+    assert!(z > 0.1 && z < 0.7, "torso height {z}");
+    let inputs: Vec<&dyn adflex_runtime::AnyArray> =
+        taus.iter().map(|t| t as &dyn adflex_runtime::AnyArray).collect();
+    let g = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
+    assert!(g.iter().all(|x| x.is_finite()));
+    let f = |v: &[f64], h: f64| {
+        let taus: Vec<Array<f64>> = taus0
+            .iter()
+            .enumerate()
+            .map(|(s, t)| Array::from_vec(t.iter().enumerate().map(|(d, x)| x + h * v[s * n + d]).collect()))
+            .collect();
+        let mut tape = Tape::new();
+        let (qf, qdf) = rollout(
+            &model,
+            &mut tape,
+            &Array::from_vec(q0.clone()),
+            &Array::from_vec(qd0.clone()),
+            &taus,
+            dt,
+        );
+        let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
+        f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    for _ in 0..3 {
+        let v: Vec<f64> = (0..g.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let fd = (f(&v, 1e-6) - f(&v, -1e-6)) / 2e-6;
+        let an: f64 = g.iter().zip(&v).map(|(a, b)| a * b).sum();
+        println!("through contact: {an} vs central differences {fd}");
+        assert!((fd - an).abs() <= 1e-4 * an.abs().max(1e-2), "{an} vs {fd}");
     }
 }

@@ -148,6 +148,20 @@ pub(crate) fn finalize<R: Real>(
         }
     }
 
+    if let Some(g) = &b.ground {
+        g.check().map_err(|m| err("ground".into(), m))?;
+    }
+    for (k, &(l, c, r)) in b.contacts().iter().enumerate() {
+        if l.0 >= n {
+            return Err(err(format!("contact {k}"), format!("link {} does not exist", l.0)));
+        }
+        if !finite3(&c) || !(r.is_finite() && r >= 0.0) {
+            return Err(err(
+                format!("contact {k} on {}", name(l.0)),
+                "centre must be finite and radius finite and non-negative",
+            ));
+        }
+    }
     // Topology: articulations are the trees under each root; links stay in the order given
     // (parents first), grouped by tree.
     let mut root_of = vec![0usize; n];
@@ -352,6 +366,10 @@ pub(crate) fn finalize<R: Real>(
         lower: rs(&dof.lower),
         upper: rs(&dof.upper),
         m_len,
+        contact_link: Array::from_vec(b.contacts().iter().map(|c| new_index[c.0 .0] as u32).collect()),
+        contact_pos: Array::from_vec(b.contacts().iter().map(|c| v3(&c.1)).collect()),
+        contact_radius: rs(&b.contacts().iter().map(|c| c.2).collect::<Vec<_>>()),
+        ground: b.ground.map(|g| g.to()),
     };
     check_mass_matrix(&model)?;
     Ok(model)

@@ -150,6 +150,18 @@ impl<R: Real> Articulations<R> {
         qd: &Array<R>,
         qdd: &Array<R>,
     ) -> Array<R> {
+        self.rnea_twists(tape, k, inertias, qd, qdd).0
+    }
+
+    /// [`Self::rnea`] and the links' twists `(w, v)`.
+    fn rnea_twists(
+        &self,
+        tape: &mut Tape,
+        k: &Kinematics<R>,
+        inertias: &(Array<Vec3<R>>, Array<Mat33<R>>),
+        qd: &Array<R>,
+        qdd: &Array<R>,
+    ) -> (Array<R>, Array<Vec3<R>>, Array<Vec3<R>>) {
         self.check_len(qd, self.n_dof, "qd");
         self.check_len(qdd, self.n_dof, "qdd");
         let n = self.n_links();
@@ -189,6 +201,63 @@ impl<R: Real> Articulations<R> {
                 &k.s_v,
                 &fn_,
                 &ff,
+                &tau,
+            ),
+        );
+        (tau, w, v)
+    }
+
+    /// Generalized forces of the ground contact, `J^T` of the contact wrenches (zeros
+    /// without contact).
+    fn contact_forces(
+        &self,
+        tape: &mut Tape,
+        k: &Kinematics<R>,
+        w: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+    ) -> Array<R> {
+        let tau = Array::zeros(self.n_dof);
+        let Some(g) = &self.ground else {
+            return tau;
+        };
+        if self.contact_link.is_empty() {
+            return tau;
+        }
+        let n = self.n_links();
+        let (en, ef) = (Array::zeros(n), Array::zeros(n));
+        tape.launch(
+            super::contact::articulation_ground_contact,
+            self.contact_link.len(),
+            (
+                &self.contact_link,
+                &self.contact_pos,
+                &self.contact_radius,
+                &k.link_p,
+                &k.link_r,
+                w,
+                v,
+                g.normal,
+                g.offset,
+                g.ke,
+                g.kd,
+                g.mu,
+                g.leak,
+                g.damping_depth,
+                &en,
+                &ef,
+            ),
+        );
+        tape.launch(
+            articulation_joint_force,
+            self.n_dof,
+            (
+                &self.dof_link,
+                &self.subtree_start,
+                &self.subtree,
+                &k.s_w,
+                &k.s_v,
+                &en,
+                &ef,
                 &tau,
             ),
         );
@@ -297,7 +366,7 @@ impl<R: Real> Articulations<R> {
     }
 
     /// One semi-implicit Euler step: `qdd` from the dynamics with the control's torques and
-    /// PD actuators, joint damping and limits; `qd' = qd + qdd dt`, then `q'` from `qd'`
+    /// PD actuators, joint damping and limits, and the ground contact of the contact spheres; `qd' = qd + qdd dt`, then `q'` from `qd'`
     /// (quaternions by the exponential map, renormalized). Returns the new state; every
     /// launch is on `tape`.
     pub fn step(
@@ -325,9 +394,12 @@ impl<R: Real> Articulations<R> {
         self.check_len(&control.target_q, self.n_dof, "control.target_q");
         self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
         let (q, qd) = (&state.q, &state.qd);
+        self.check_len(q, self.n_q, "state.q");
+        self.check_len(qd, self.n_dof, "state.qd");
         let k = self.kinematics(tape, q);
         let i = self.link_inertias(tape, &k);
-        let c = self.rnea(tape, &k, &i, qd, &Array::zeros(self.n_dof));
+        let (c, w, v) = self.rnea_twists(tape, &k, &i, qd, &Array::zeros(self.n_dof));
+        let tau_ext = self.contact_forces(tape, &k, &w, &v);
         let m = self.crba(tape, &k, &i);
         let rhs = Array::zeros(self.n_dof);
         tape.launch(
@@ -339,6 +411,7 @@ impl<R: Real> Articulations<R> {
                 q,
                 qd,
                 &control.tau,
+                &tau_ext,
                 &control.target_q,
                 &control.target_qd,
                 &self.kp,

@@ -331,7 +331,7 @@ pub fn articulation_mass_matrix<R: Real>(
 }
 
 /// Right-hand side of the forward dynamics for degree of freedom `tid`:
-/// `tau + kp (q_target - q) + kv (qd_target - qd) - damping qd + limit - bias`, with the PD
+/// `tau + tau_ext + kp (q_target - q) + kv (qd_target - qd) - damping qd + limit - bias`, with the PD
 /// and limit terms only on revolute and prismatic joints (`dof_q[d]` is the coordinate). The
 /// limit pushes back by `limit_ke (lower - q) - limit_kd qd` below `lower` (and likewise above
 /// `upper`).
@@ -342,6 +342,7 @@ pub fn articulation_rhs<R: Real>(
     q: &Array<R>,
     qd: &Array<R>,
     tau: &Array<R>,
+    tau_ext: &Array<R>,
     target_q: &Array<R>,
     target_qd: &Array<R>,
     kp: &Array<R>,
@@ -356,7 +357,7 @@ pub fn articulation_rhs<R: Real>(
 ) {
     let d = tid();
     let v = qd[d];
-    let mut f = tau[d] - damping[d] * v - bias[d];
+    let mut f = tau[d] + tau_ext[d] - damping[d] * v - bias[d];
     if dof_scalar[d] == 1 {
         let x = q[dof_q[d] as usize];
         f = f + kp[d] * (target_q[d] - x) + kv[d] * (target_qd[d] - v);

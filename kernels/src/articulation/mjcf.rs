@@ -11,6 +11,12 @@
 //! over. Anything else is an error naming the element and its line: MuJoCo would simulate it,
 //! and silently dropping it would simulate a different robot.
 //!
+//! Geoms with `contype` other than 0 touch the ground, a `plane` geom of the worldbody, with
+//! [`GroundContact`]'s law, a stiffness that lets the robot's weight sink one contact by 5 mm,
+//! half the critical damping of a quarter of its mass, and the plane's `friction` (MuJoCo's
+//! soft constraints are not reproduced: set `builder.ground` to tune it): a sphere, a capsule by its end spheres, a
+//! box by its corners; a cylinder has mass but no contact.
+//!
 //! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
 //! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
 //! as MuJoCo's `inertiafromgeom="auto"`. Several joints in one body become a chain of
@@ -46,6 +52,7 @@ use adflex_runtime::{Mat33, Quat, Vec3};
 use roxmltree::Node;
 
 use super::build::check_inertial;
+use super::contact::GroundContact;
 use super::model::{
     ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId,
     Pose,
@@ -208,6 +215,15 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
             }
             _ => {}
         }
+    }
+    // The ground's stiffness from the robot's weight (5 mm sag on one contact), damped at half
+    // the critical rate of a quarter of the mass: MuJoCo's contacts are soft constraints with
+    // a time constant, not springs, so a fixed stiffness would suit only one size of robot.
+    let mass: f64 = r.builder.links().iter().map(|l| l.inertial.mass).sum();
+    let weight = mass * r.builder.gravity.norm().max(1.0);
+    if let (Some(g), true) = (r.builder.ground.as_mut(), mass > 0.0) {
+        g.ke = weight / 0.005;
+        g.kd = 0.5 * (g.ke * mass).sqrt();
     }
     Ok(Mjcf {
         builder: r.builder,
@@ -427,6 +443,23 @@ impl<'a> Reader<'a> {
                 "body" => self.body(c, None, Vec3::zeros(), &class)?,
                 _ => {
                     let (g, _) = self.geom(c, &class, None)?;
+                    if g.shape == GeomShape::Plane && self.attr(c, &class, "contype") != Some("0") {
+                        if self.builder.ground.is_some() {
+                            return Err(self.src.error(c, "a second ground plane"));
+                        }
+                        let normal = g.pose.transform_vector(&Vec3::z());
+                        self.builder.ground = Some(GroundContact {
+                            normal,
+                            offset: normal.dot(&g.pose.pos),
+                            mu: g.friction,
+                            ..GroundContact::default()
+                        });
+                    } else if g.shape != GeomShape::Plane {
+                        return Err(self.src.error(
+                            c,
+                            "only a plane can be a geom of the worldbody (put others in a body)",
+                        ));
+                    }
                     self.geoms.push(g);
                 }
             }
@@ -498,7 +531,8 @@ impl<'a> Reader<'a> {
             if let Some(i) = inertial {
                 from_geoms = from_geoms.combine(&i);
             }
-            geoms.push(geom);
+            let touches = self.attr(*g, &class, "contype") != Some("0");
+            geoms.push((geom, touches));
         }
         let use_geoms = match self.from_geoms {
             Some(b) => b,
@@ -555,9 +589,12 @@ impl<'a> Reader<'a> {
                     .add_link(link_name, link, joint.origin(origin), mass),
             );
         }
-        for mut g in geoms {
+        for (mut g, touches) in geoms {
             g.link = link;
             g.pose.pos -= at;
+            if let (Some(l), true) = (link, touches) {
+                self.add_contact(l, &g);
+            }
             self.geoms.push(g);
         }
         for b in kids.iter().filter(|k| k.has_tag_name("body")) {
@@ -886,6 +923,23 @@ impl<'a> Reader<'a> {
             kind,
             ctrlrange,
         })
+    }
+}
+
+impl Reader<'_> {
+    /// The contact spheres of a geom on `link` (its frame): a sphere; a capsule's end
+    /// spheres; a box's corners. Cylinders have mass but no contact.
+    fn add_contact(&mut self, link: LinkId, g: &Geom) {
+        match g.shape {
+            GeomShape::Sphere(r) => self.builder.add_contact_sphere(link, g.pose.pos, r),
+            GeomShape::Capsule(r, h) => {
+                let a = g.pose.transform_point(&Vec3::new(0.0, 0.0, -h));
+                let b = g.pose.transform_point(&Vec3::new(0.0, 0.0, h));
+                self.builder.add_contact_capsule(link, a, b, r);
+            }
+            GeomShape::Box(half) => self.builder.add_contact_box(link, &g.pose, half),
+            GeomShape::Cylinder(..) | GeomShape::Plane => {}
+        }
     }
 }
 

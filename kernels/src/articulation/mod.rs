@@ -41,6 +41,7 @@
 //! ```
 
 mod build;
+pub mod contact;
 mod dynamics;
 pub mod kernels;
 pub mod mjcf;
@@ -48,6 +49,7 @@ mod model;
 pub mod urdf;
 mod xml;
 
+pub use contact::GroundContact;
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, Joint,

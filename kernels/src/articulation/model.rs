@@ -5,6 +5,8 @@ use std::ops::Range;
 
 use adflex_runtime::prelude::*;
 
+use super::contact::GroundContact;
+
 /// The kind of a joint, which says how the link moves relative to its parent.
 ///
 /// | kind | coordinates `q` | velocities `qd` |
@@ -405,6 +407,10 @@ impl std::error::Error for ArticulationError {}
 #[derive(Clone, Debug)]
 pub struct ArticulationBuilder {
     links: Vec<LinkDesc>,
+    /// Contact spheres: link, centre in the link frame (m), radius (m).
+    contacts: Vec<(LinkId, Vec3<f64>, f64)>,
+    /// The ground the contact spheres touch (`None`: no contact).
+    pub ground: Option<GroundContact<f64>>,
     /// Gravity (m/s^2); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
     pub gravity: Vec3<f64>,
     /// Stiffness of the joint limits (N m/rad or N/m).
@@ -424,6 +430,8 @@ impl ArticulationBuilder {
     pub fn new() -> Self {
         ArticulationBuilder {
             links: Vec::new(),
+            contacts: Vec::new(),
+            ground: None,
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
@@ -448,6 +456,34 @@ impl ArticulationBuilder {
         LinkId(self.links.len() - 1)
     }
 
+    /// Adds a contact sphere of `radius` (m; 0 for a point) centred at `centre` in `link`'s
+    /// frame. It touches the ground ([`ArticulationBuilder::ground`]).
+    pub fn add_contact_sphere(&mut self, link: LinkId, centre: Vec3<f64>, radius: f64) {
+        self.contacts.push((link, centre, radius));
+    }
+
+    /// Adds a box of half extents `half` at `pose` in `link`'s frame, touching by its eight
+    /// corners.
+    pub fn add_contact_box(&mut self, link: LinkId, pose: &Pose, half: Vec3<f64>) {
+        for k in 0..8 {
+            let s = |b: usize| if k & (1 << b) == 0 { -1.0 } else { 1.0 };
+            let corner = Vec3::new(s(0) * half.x, s(1) * half.y, s(2) * half.z);
+            self.add_contact_sphere(link, pose.transform_point(&corner), 0.0);
+        }
+    }
+
+    /// Adds a capsule of `radius` whose axis runs from `a` to `b` (link frame), touching by
+    /// the spheres at its ends (exact against a plane).
+    pub fn add_contact_capsule(&mut self, link: LinkId, a: Vec3<f64>, b: Vec3<f64>, radius: f64) {
+        self.add_contact_sphere(link, a, radius);
+        self.add_contact_sphere(link, b, radius);
+    }
+
+    /// The contact spheres: link, centre, radius.
+    pub fn contacts(&self) -> &[(LinkId, Vec3<f64>, f64)] {
+        &self.contacts
+    }
+
     /// The links described so far.
     pub fn links(&self) -> &[LinkDesc] {
         &self.links
@@ -470,6 +506,12 @@ impl ArticulationBuilder {
             let mut l = l.clone();
             l.parent = l.parent.map(|p| LinkId(p.0 + base));
             self.links.push(l);
+        }
+        for &(l, c, r) in &other.contacts {
+            self.contacts.push((LinkId(l.0 + base), c, r));
+        }
+        if self.ground.is_none() {
+            self.ground = other.ground;
         }
         LinkId(base)
     }
@@ -595,6 +637,14 @@ pub struct Articulations<R: Real> {
     pub upper: Array<R>,
     /// Length of the mass-matrix array (the sum of the blocks' sizes).
     pub m_len: usize,
+    /// Per contact sphere: its link.
+    pub contact_link: Array<u32>,
+    /// Per contact sphere: its centre in the link frame (m).
+    pub contact_pos: Array<Vec3<R>>,
+    /// Per contact sphere: its radius (m).
+    pub contact_radius: Array<R>,
+    /// The ground and its contact law (`None`: no contact).
+    pub ground: Option<GroundContact<R>>,
 }
 
 impl<R: Real> Articulations<R> {
