@@ -501,3 +501,107 @@ fn quadruped_rollout_through_ground_contact_has_right_gradients() {
         assert!((fd - an).abs() <= 1e-4 * an.abs().max(1e-2), "{an} vs {fd}");
     }
 }
+
+/// Parses a URDF and returns its error.
+fn urdf_error(text: &str) -> adflex_kernels::articulation::ArticulationError {
+    match urdf::parse(text, &urdf::UrdfOptions::default()).and_then(|b| b.finalize::<f64>()) {
+        Ok(_) => panic!("accepted:\n{text}"),
+        Err(e) => e,
+    }
+}
+
+fn mjcf_error(text: &str) -> adflex_kernels::articulation::ArticulationError {
+    match mjcf::parse(text).and_then(|m| m.builder.finalize::<f64>()) {
+        Ok(_) => panic!("accepted:\n{text}"),
+        Err(e) => e,
+    }
+}
+
+const URDF: &str = r#"<robot name="r">
+  <link name="a"/>
+  <link name="b">
+    <inertial><mass value="1"/><inertia ixx="0.1" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/></inertial>
+  </link>
+  <joint name="j" type="revolute">
+    <parent link="a"/><child link="b"/><axis xyz="0 0 1"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0"/>
+  </joint>
+</robot>"#;
+
+#[test]
+fn bad_urdf_is_refused_naming_the_element_and_line() {
+    assert!(urdf::parse(URDF, &Default::default()).unwrap().finalize::<f64>().is_ok());
+    let cases: [(&str, &str, u32, &str); 9] = [
+        ("<parent link=\"a\"/>", "<parent link=\"z\"/>", 6, "parent link \"z\" is not defined"),
+        ("<mass value=\"1\"/>", "<mass value=\"0\"/>", 4, "zero"),
+        ("<mass value=\"1\"/>", "<mass value=\"-2\"/>", 4, "negative"),
+        ("ixx=\"0.1\"", "ixx=\"-0.1\"", 4, "positive semi-definite"),
+        ("ixx=\"0.1\"", "ixx=\"0.5\"", 4, "triangle inequality"),
+        ("type=\"revolute\"", "type=\"screw\"", 6, "joint type `screw`"),
+        ("xyz=\"0 0 0.1\"", "xyz=\"0 NaN 0.1\"", 8, "not a finite number"),
+        ("<axis xyz=\"0 0 1\"/>", "<axis xyz=\"0 0 0\"/>", 7, "axis is zero"),
+        ("<link name=\"a\"/>", "<link name=\"a\"/><foo/>", 2, "<foo>"),
+    ];
+    for (from, to, line, message) in cases {
+        let e = urdf_error(&URDF.replacen(from, to, 1));
+        assert_eq!(e.line, Some(line), "{e}");
+        assert!(e.to_string().contains(message), "{e}");
+    }
+    // A cycle: b is the parent of a too (a then has a parent, and no link is the root).
+    let cycle = URDF.replace(
+        "</robot>",
+        "<joint name=\"k\" type=\"fixed\"><parent link=\"b\"/><child link=\"a\"/></joint></robot>",
+    );
+    assert!(urdf_error(&cycle).to_string().contains("cycle"));
+    // Two parents.
+    let two = URDF.replace(
+        "</robot>",
+        "<link name=\"c\"/><joint name=\"k\" type=\"fixed\"><parent link=\"c\"/><child link=\"b\"/></joint></robot>",
+    );
+    assert!(urdf_error(&two).to_string().contains("child of a second joint"));
+}
+
+const MJCF: &str = r#"<mujoco>
+  <worldbody>
+    <body name="a" pos="0 0 1" quat="1 0 0 0">
+      <joint name="j" type="hinge" axis="0 1 0"/>
+      <inertial pos="0 0 -0.5" mass="1" diaginertia="0.1 0.1 0.1"/>
+    </body>
+  </worldbody>
+</mujoco>"#;
+
+#[test]
+fn bad_mjcf_is_refused_naming_the_element_and_line() {
+    assert!(mjcf::parse(MJCF).unwrap().builder.finalize::<f64>().is_ok());
+    let cases: [(&str, &str, u32, &str); 8] = [
+        ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
+        ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
+        ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
+        ("diaginertia=\"0.1 0.1 0.1\"", "diaginertia=\"0.1 0.1 0.3\"", 5, "triangle"),
+        ("type=\"hinge\"", "type=\"screw\"", 4, "screw"),
+        ("axis=\"0 1 0\"", "axis=\"0 nan 0\"", 4, "not a finite number"),
+        ("<worldbody>", "<worldbody><tendon/>", 2, "<tendon>"),
+        ("<joint name", "<joint stiffness=\"3\" name", 4, "stiffness"),
+    ];
+    for (from, to, line, message) in cases {
+        let e = mjcf_error(&MJCF.replacen(from, to, 1));
+        assert_eq!(e.line, Some(line), "{e}");
+        assert!(e.to_string().contains(message), "{e}");
+    }
+    // Unsupported top-level physics is refused, not dropped.
+    let e = mjcf_error(&MJCF.replace("</mujoco>", "<equality/></mujoco>"));
+    assert!(e.to_string().contains("<equality>"), "{e}");
+    // An actuator on a joint that does not exist.
+    let e = mjcf_error(&MJCF.replace("</mujoco>", "<actuator><motor joint=\"k\"/></actuator></mujoco>"));
+    assert!(e.to_string().contains("joint \"k\" is not defined"), "{e}");
+}
+
+#[test]
+fn a_joint_that_moves_no_mass_is_refused() {
+    use adflex_kernels::articulation::{ArticulationBuilder, Inertial, Joint};
+    use adflex_runtime::Vec3;
+    let mut b = ArticulationBuilder::new();
+    b.add_link("a", None, Joint::revolute(Vec3::z()).name("spin"), Inertial::point(1.0, Vec3::zeros()));
+    let e = b.finalize::<f64>().unwrap_err();
+    assert!(e.to_string().contains("joint \"spin\"") && e.to_string().contains("no mass"), "{e}");
+}
