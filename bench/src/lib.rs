@@ -9,6 +9,7 @@ pub mod hand;
 pub mod kernels_cmp;
 pub mod overhead;
 pub mod peers;
+pub mod robots;
 pub mod scatter;
 pub mod scene_file;
 pub mod small;

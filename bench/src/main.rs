@@ -13,6 +13,9 @@
 //!   JSON line
 //! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--rounds R] [--no-python]
 //!   [--wait-each L]`: adflex and the peer scripts, as JSONL
+//! - `robots [--python PATH] [--steps 200] [--reps 5]`: articulated robots (arm, quadruped)
+//!   per step, forward and backward, and `d qdd / d(q, qd, tau)`; with `--python`, MuJoCo and
+//!   Pinocchio in the same run, and the ratios
 //! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
 //!   serde_json, time and peak RSS of each in its own process, as JSON lines
 //! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG
@@ -99,6 +102,7 @@ fn main() {
                 }
             }
         }
+        "robots" => robots::main(rest),
         "cloth" => match cloth::parse(rest) {
             Ok(o) => println!("{}", cloth::run(&o)),
             Err(e) => {
@@ -107,7 +111,7 @@ fn main() {
             }
         },
         _ => {
-            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file> [options] (see src/main.rs)");
+            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots> [options] (see src/main.rs)");
             std::process::exit(2);
         }
     }

@@ -205,7 +205,10 @@ fn forward_dynamics_derivatives_match_central_differences() {
                 }
             }
         }
-        println!("{file}: central differences vs tangent passes: dq {:.1e}, dqd {:.1e}, dtau {:.1e}", worst[0], worst[1], worst[2]);
+        println!(
+            "{file}: central differences vs tangent passes: dq {:.1e}, dqd {:.1e}, dtau {:.1e}",
+            worst[0], worst[1], worst[2]
+        );
         assert!(worst.iter().all(|&w| w < 1e-6), "{file}: {worst:?}");
     }
 }
@@ -284,10 +287,14 @@ fn rollout_gradients_match_central_differences() {
         let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
         let mut tape = Tape::new();
         let (qf, qdf) = rollout(model, &mut tape, &q, &qd, &taus, dt);
-        let mut inputs: Vec<&dyn adflex_runtime::AnyArray> = vec![&q, &qd, &model.mass, &model.joint_pos];
+        let mut inputs: Vec<&dyn adflex_runtime::AnyArray> =
+            vec![&q, &qd, &model.mass, &model.joint_pos];
         inputs.extend(taus.iter().map(|t| t as &dyn adflex_runtime::AnyArray));
         let grad = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
-        assert!(grad.iter().all(|g| g.is_finite()), "{name}: a non-finite gradient");
+        assert!(
+            grad.iter().all(|g| g.is_finite()),
+            "{name}: a non-finite gradient"
+        );
         // Central differences along random directions of every input at once.
         // Perturbed copies of the parameters (`Articulations::clone` shares the arrays).
         let (mass0, jpos0) = (model.mass.to_vec(), model.joint_pos.to_vec());
@@ -322,13 +329,29 @@ fn rollout_gradients_match_central_differences() {
         let mut worst = 0.0f64;
         // One direction per input (initial q, qd, masses, joint placements, torques), then
         // all at once.
-        let sizes = [model.n_q, n, model.n_links(), 3 * model.n_links(), n * steps];
+        let sizes = [
+            model.n_q,
+            n,
+            model.n_links(),
+            3 * model.n_links(),
+            n * steps,
+        ];
         for group in 0..=sizes.len() {
             let start: usize = sizes[..group.min(sizes.len())].iter().sum();
-            let end = if group == sizes.len() { grad.len() } else { start + sizes[group] };
+            let end = if group == sizes.len() {
+                grad.len()
+            } else {
+                start + sizes[group]
+            };
             let start = if group == sizes.len() { 0 } else { start };
             let v: Vec<f64> = (0..grad.len())
-                .map(|i| if (start..end).contains(&i) { rng.uniform(-1.0, 1.0) } else { 0.0 })
+                .map(|i| {
+                    if (start..end).contains(&i) {
+                        rng.uniform(-1.0, 1.0)
+                    } else {
+                        0.0
+                    }
+                })
                 .collect();
             let h = 1e-6;
             let fd = (loss(&v, h) - loss(&v, -h)) / (2.0 * h);
@@ -355,7 +378,9 @@ fn gradients_are_finite_and_right_at_singular_configurations() {
         let q0 = q0.unwrap_or_else(|| model.q0.clone());
         let qd0 = vec![v0; model.n_dof];
         let taus0 = vec![vec![0.0; model.n_dof]; 20];
-        let w: Vec<f64> = (0..model.n_q + model.n_dof).map(|i| 1.0 + 0.1 * i as f64).collect();
+        let w: Vec<f64> = (0..model.n_q + model.n_dof)
+            .map(|i| 1.0 + 0.1 * i as f64)
+            .collect();
         let (q, qd) = (Array::from_vec(q0.clone()), Array::from_vec(qd0.clone()));
         let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
         let mut tape = Tape::new();
@@ -365,7 +390,11 @@ fn gradients_are_finite_and_right_at_singular_configurations() {
         // Central differences of each velocity (the kinks are in q at a limit).
         // At the limit, only the slider's own velocity has a known side (the pole's moves the
         // cart into or away from the limit, depending on the sign).
-        let checked = if name.contains("limit") { 1 } else { model.n_dof };
+        let checked = if name.contains("limit") {
+            1
+        } else {
+            model.n_dof
+        };
         for j in 0..checked {
             let f = |h: f64| {
                 let mut qd = qd0.clone();
@@ -422,7 +451,11 @@ fn a_box_comes_to_rest_on_the_ground() {
     let speed = s.qd.to_vec().iter().fold(0.0f64, |m, x| m.max(x.abs()));
     // Resting flat on four corners: sunk by m g / (4 ke).
     let expected = 0.05 - 9.81 / (4.0 * 1e4);
-    assert!((q[2] - expected).abs() < 1e-4, "height {} vs {expected}", q[2]);
+    assert!(
+        (q[2] - expected).abs() < 1e-4,
+        "height {} vs {expected}",
+        q[2]
+    );
     assert!(speed < 1e-3, "still moving: {speed}");
     // Flat: the body's z axis is the world's.
     let r = Quat::new(q[6], q[3], q[4], q[5]);
@@ -451,7 +484,13 @@ fn quadruped_rollout_through_ground_contact_has_right_gradients() {
     // The ankles start inside their ranges.
     let (lower, upper) = (model.lower.to_vec(), model.upper.to_vec());
     let mid: Vec<f64> = (0..n)
-        .map(|d| if lower[d].is_finite() { 0.5 * (lower[d] + upper[d]) } else { 0.0 })
+        .map(|d| {
+            if lower[d].is_finite() {
+                0.5 * (lower[d] + upper[d])
+            } else {
+                0.0
+            }
+        })
         .collect();
     let q0 = model.integrate(&model.q0, &mid);
     let qd0 = vec![0.0; n];
@@ -471,15 +510,24 @@ fn quadruped_rollout_through_ground_contact_has_right_gradients() {
     // It landed: the torso is held up by the legs, above the ground and below its start.
     let z = qf.get(2);
     assert!(z > 0.1 && z < 0.7, "torso height {z}");
-    let inputs: Vec<&dyn adflex_runtime::AnyArray> =
-        taus.iter().map(|t| t as &dyn adflex_runtime::AnyArray).collect();
+    let inputs: Vec<&dyn adflex_runtime::AnyArray> = taus
+        .iter()
+        .map(|t| t as &dyn adflex_runtime::AnyArray)
+        .collect();
     let g = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
     assert!(g.iter().all(|x| x.is_finite()));
     let f = |v: &[f64], h: f64| {
         let taus: Vec<Array<f64>> = taus0
             .iter()
             .enumerate()
-            .map(|(s, t)| Array::from_vec(t.iter().enumerate().map(|(d, x)| x + h * v[s * n + d]).collect()))
+            .map(|(s, t)| {
+                Array::from_vec(
+                    t.iter()
+                        .enumerate()
+                        .map(|(d, x)| x + h * v[s * n + d])
+                        .collect(),
+                )
+            })
             .collect();
         let mut tape = Tape::new();
         let (qf, qdf) = rollout(
@@ -530,16 +578,39 @@ const URDF: &str = r#"<robot name="r">
 
 #[test]
 fn bad_urdf_is_refused_naming_the_element_and_line() {
-    assert!(urdf::parse(URDF, &Default::default()).unwrap().finalize::<f64>().is_ok());
+    assert!(urdf::parse(URDF, &Default::default())
+        .unwrap()
+        .finalize::<f64>()
+        .is_ok());
     let cases: [(&str, &str, u32, &str); 9] = [
-        ("<parent link=\"a\"/>", "<parent link=\"z\"/>", 6, "parent link \"z\" is not defined"),
+        (
+            "<parent link=\"a\"/>",
+            "<parent link=\"z\"/>",
+            6,
+            "parent link \"z\" is not defined",
+        ),
         ("<mass value=\"1\"/>", "<mass value=\"0\"/>", 4, "zero"),
         ("<mass value=\"1\"/>", "<mass value=\"-2\"/>", 4, "negative"),
         ("ixx=\"0.1\"", "ixx=\"-0.1\"", 4, "positive semi-definite"),
         ("ixx=\"0.1\"", "ixx=\"0.5\"", 4, "triangle inequality"),
-        ("type=\"revolute\"", "type=\"screw\"", 6, "joint type `screw`"),
-        ("xyz=\"0 0 0.1\"", "xyz=\"0 NaN 0.1\"", 8, "not a finite number"),
-        ("<axis xyz=\"0 0 1\"/>", "<axis xyz=\"0 0 0\"/>", 7, "axis is zero"),
+        (
+            "type=\"revolute\"",
+            "type=\"screw\"",
+            6,
+            "joint type `screw`",
+        ),
+        (
+            "xyz=\"0 0 0.1\"",
+            "xyz=\"0 NaN 0.1\"",
+            8,
+            "not a finite number",
+        ),
+        (
+            "<axis xyz=\"0 0 1\"/>",
+            "<axis xyz=\"0 0 0\"/>",
+            7,
+            "axis is zero",
+        ),
         ("<link name=\"a\"/>", "<link name=\"a\"/><foo/>", 2, "<foo>"),
     ];
     for (from, to, line, message) in cases {
@@ -558,7 +629,9 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
         "</robot>",
         "<link name=\"c\"/><joint name=\"k\" type=\"fixed\"><parent link=\"c\"/><child link=\"b\"/></joint></robot>",
     );
-    assert!(urdf_error(&two).to_string().contains("child of a second joint"));
+    assert!(urdf_error(&two)
+        .to_string()
+        .contains("child of a second joint"));
 }
 
 const MJCF: &str = r#"<mujoco>
@@ -577,9 +650,19 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
         ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
-        ("diaginertia=\"0.1 0.1 0.1\"", "diaginertia=\"0.1 0.1 0.3\"", 5, "triangle"),
+        (
+            "diaginertia=\"0.1 0.1 0.1\"",
+            "diaginertia=\"0.1 0.1 0.3\"",
+            5,
+            "triangle",
+        ),
         ("type=\"hinge\"", "type=\"screw\"", 4, "screw"),
-        ("axis=\"0 1 0\"", "axis=\"0 nan 0\"", 4, "not a finite number"),
+        (
+            "axis=\"0 1 0\"",
+            "axis=\"0 nan 0\"",
+            4,
+            "not a finite number",
+        ),
         ("<worldbody>", "<worldbody><tendon/>", 2, "<tendon>"),
         ("<joint name", "<joint stiffness=\"3\" name", 4, "stiffness"),
     ];
@@ -592,7 +675,10 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
     let e = mjcf_error(&MJCF.replace("</mujoco>", "<equality/></mujoco>"));
     assert!(e.to_string().contains("<equality>"), "{e}");
     // An actuator on a joint that does not exist.
-    let e = mjcf_error(&MJCF.replace("</mujoco>", "<actuator><motor joint=\"k\"/></actuator></mujoco>"));
+    let e = mjcf_error(&MJCF.replace(
+        "</mujoco>",
+        "<actuator><motor joint=\"k\"/></actuator></mujoco>",
+    ));
     assert!(e.to_string().contains("joint \"k\" is not defined"), "{e}");
 }
 
@@ -601,7 +687,15 @@ fn a_joint_that_moves_no_mass_is_refused() {
     use adflex_kernels::articulation::{ArticulationBuilder, Inertial, Joint};
     use adflex_runtime::Vec3;
     let mut b = ArticulationBuilder::new();
-    b.add_link("a", None, Joint::revolute(Vec3::z()).name("spin"), Inertial::point(1.0, Vec3::zeros()));
+    b.add_link(
+        "a",
+        None,
+        Joint::revolute(Vec3::z()).name("spin"),
+        Inertial::point(1.0, Vec3::zeros()),
+    );
     let e = b.finalize::<f64>().unwrap_err();
-    assert!(e.to_string().contains("joint \"spin\"") && e.to_string().contains("no mass"), "{e}");
+    assert!(
+        e.to_string().contains("joint \"spin\"") && e.to_string().contains("no mass"),
+        "{e}"
+    );
 }

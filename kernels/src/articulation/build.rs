@@ -153,7 +153,10 @@ pub(crate) fn finalize<R: Real>(
     }
     for (k, &(l, c, r)) in b.contacts().iter().enumerate() {
         if l.0 >= n {
-            return Err(err(format!("contact {k}"), format!("link {} does not exist", l.0)));
+            return Err(err(
+                format!("contact {k}"),
+                format!("link {} does not exist", l.0),
+            ));
         }
         if !finite3(&c) || !(r.is_finite() && r >= 0.0) {
             return Err(err(
@@ -326,7 +329,12 @@ pub(crate) fn finalize<R: Real>(
         joint_type: Array::from_vec(order.iter().map(|&l| links[l].joint.kind.code()).collect()),
         q_start: Array::from_vec(q_start),
         qd_start: Array::from_vec(qd_start),
-        joint_pos: Array::from_vec(order.iter().map(|&l| v3(&links[l].joint.origin.pos)).collect()),
+        joint_pos: Array::from_vec(
+            order
+                .iter()
+                .map(|&l| v3(&links[l].joint.origin.pos))
+                .collect(),
+        ),
         joint_rot: Array::from_vec(
             order
                 .iter()
@@ -341,11 +349,18 @@ pub(crate) fn finalize<R: Real>(
                 .iter()
                 .map(|&l| {
                     let a = &links[l].joint.axis;
-                    v3(&if a.norm() > 0.0 { a.normalize() } else { Vec3::z() })
+                    v3(&if a.norm() > 0.0 {
+                        a.normalize()
+                    } else {
+                        Vec3::z()
+                    })
                 })
                 .collect(),
         ),
-        mass: rs(&order.iter().map(|&l| links[l].inertial.mass).collect::<Vec<_>>()),
+        mass: rs(&order
+            .iter()
+            .map(|&l| links[l].inertial.mass)
+            .collect::<Vec<_>>()),
         com: Array::from_vec(order.iter().map(|&l| v3(&links[l].inertial.com)).collect()),
         inertia: Array::from_vec(
             order
@@ -366,7 +381,12 @@ pub(crate) fn finalize<R: Real>(
         lower: rs(&dof.lower),
         upper: rs(&dof.upper),
         m_len,
-        contact_link: Array::from_vec(b.contacts().iter().map(|c| new_index[c.0 .0] as u32).collect()),
+        contact_link: Array::from_vec(
+            b.contacts()
+                .iter()
+                .map(|c| new_index[c.0 .0] as u32)
+                .collect(),
+        ),
         contact_pos: Array::from_vec(b.contacts().iter().map(|c| v3(&c.1)).collect()),
         contact_radius: rs(&b.contacts().iter().map(|c| c.2).collect::<Vec<_>>()),
         ground: b.ground.map(|g| g.to()),

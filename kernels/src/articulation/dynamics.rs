@@ -129,13 +129,25 @@ impl<R: Real> Articulations<R> {
     }
 
     /// World spatial inertias of the links (`h`, `J`; see the kernels' docs).
-    fn link_inertias(&self, tape: &mut Tape, k: &Kinematics<R>) -> (Array<Vec3<R>>, Array<Mat33<R>>) {
+    fn link_inertias(
+        &self,
+        tape: &mut Tape,
+        k: &Kinematics<R>,
+    ) -> (Array<Vec3<R>>, Array<Mat33<R>>) {
         let n = self.n_links();
         let (h, j) = (Array::zeros(n), Array::zeros(n));
         tape.launch(
             articulation_inertia,
             n,
-            (&k.link_p, &k.link_r, &self.mass, &self.com, &self.inertia, &h, &j),
+            (
+                &k.link_p,
+                &k.link_r,
+                &self.mass,
+                &self.com,
+                &self.inertia,
+                &h,
+                &j,
+            ),
         );
         (h, j)
     }
@@ -187,7 +199,17 @@ impl<R: Real> Articulations<R> {
         tape.launch(
             articulation_link_wrench,
             n,
-            (&self.mass, &inertias.0, &inertias.1, &w, &v, &aw, &av, &fn_, &ff),
+            (
+                &self.mass,
+                &inertias.0,
+                &inertias.1,
+                &w,
+                &v,
+                &aw,
+                &av,
+                &fn_,
+                &ff,
+            ),
         );
         let tau = Array::zeros(self.n_dof);
         tape.launch(
@@ -543,11 +565,7 @@ impl<R: Real> Articulations<R> {
         let n = a.dofs.len();
         let v = m.to_vec();
         (0..n)
-            .map(|i| {
-                (0..n)
-                    .map(|j| v[a.m_offset + i * n + j].to_f64())
-                    .collect()
-            })
+            .map(|i| (0..n).map(|j| v[a.m_offset + i * n + j].to_f64()).collect())
             .collect()
     }
 

@@ -53,10 +53,7 @@ use roxmltree::Node;
 
 use super::build::check_inertial;
 use super::contact::GroundContact;
-use super::model::{
-    ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId,
-    Pose,
-};
+use super::model::{ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose};
 use super::xml::{self, children, Source};
 
 /// A robot read from MJCF: the builder, its actuators and geometry.
@@ -178,7 +175,9 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
-        return Err(r.src.error(root, "the root element of an MJCF file must be <mujoco>"));
+        return Err(r
+            .src
+            .error(root, "the root element of an MJCF file must be <mujoco>"));
     }
     r.src.only_attributes(root, &["model"])?;
     let items = children(
@@ -258,10 +257,9 @@ impl<'a> Reader<'a> {
             match parsed {
                 Some(p) if p.len() == 3 => self.eulerseq = p,
                 _ => {
-                    return Err(self.src.error(
-                        n,
-                        format!("eulerseq=\"{seq}\": three of x, y, z, X, Y, Z"),
-                    ))
+                    return Err(self
+                        .src
+                        .error(n, format!("eulerseq=\"{seq}\": three of x, y, z, X, Y, Z")))
                 }
             }
         }
@@ -290,9 +288,7 @@ impl<'a> Reader<'a> {
         let name = match (n.attribute("class"), parent) {
             (Some(c), _) => c.to_string(),
             (None, None) => "main".to_string(),
-            (None, Some(_)) => {
-                return Err(self.src.error(n, "a nested <default> needs a `class`"))
-            }
+            (None, Some(_)) => return Err(self.src.error(n, "a nested <default> needs a `class`")),
         };
         let mut class = parent
             .and_then(|p| self.classes.get(p).cloned())
@@ -347,7 +343,9 @@ impl<'a> Reader<'a> {
             .ok_or_else(|| {
                 self.src.error(
                     n,
-                    format!("attribute `{name}=\"{text}\"` has a value that is not a finite number"),
+                    format!(
+                        "attribute `{name}=\"{text}\"` has a value that is not a finite number"
+                    ),
                 )
             })?;
         if !counts.contains(&v.len()) {
@@ -494,9 +492,10 @@ impl<'a> Reader<'a> {
             return Err(self.src.error(n, "gravcomp is not supported"));
         }
         let class = n.attribute("childclass").unwrap_or(class).to_string();
-        let name = n.attribute("name").map(str::to_string).unwrap_or_else(|| {
-            format!("body{}", self.builder.links().len())
-        });
+        let name = n
+            .attribute("name")
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("body{}", self.builder.links().len()));
         let pos = self.src.vec3(n, "pos")?.unwrap_or_else(Vec3::zeros);
         let rot = self.orientation(n, &class)?;
         let body_pose = Pose::new(pos - offset, rot);
@@ -508,12 +507,15 @@ impl<'a> Reader<'a> {
         )?;
         // Joints, in order.
         let mut joints = Vec::new();
-        for j in kids.iter().filter(|k| {
-            matches!(k.tag_name().name(), "joint" | "freejoint")
-        }) {
+        for j in kids
+            .iter()
+            .filter(|k| matches!(k.tag_name().name(), "joint" | "freejoint"))
+        {
             joints.push((*j, self.joint(*j, &class)?));
         }
-        if joints.iter().any(|(_, (j, _))| j.kind == super::JointType::Free)
+        if joints
+            .iter()
+            .any(|(_, (j, _))| j.kind == super::JointType::Free)
             && (joints.len() > 1 || parent.is_some())
         {
             let node = joints[0].0;
@@ -552,7 +554,9 @@ impl<'a> Reader<'a> {
             let id = self.builder.add_link(
                 name.clone(),
                 link,
-                Joint::fixed().name(format!("{name}_weld")).origin(body_pose),
+                Joint::fixed()
+                    .name(format!("{name}_weld"))
+                    .origin(body_pose),
                 inertial,
             );
             link = Some(id);
@@ -606,8 +610,20 @@ impl<'a> Reader<'a> {
     /// A joint and its `pos` in the body frame.
     fn joint(&mut self, n: Node, class: &str) -> Result<(Joint, Vec3<f64>), ArticulationError> {
         let known = [
-            "name", "type", "pos", "axis", "range", "limited", "damping", "armature", "class",
-            "stiffness", "springref", "ref", "frictionloss", "group",
+            "name",
+            "type",
+            "pos",
+            "axis",
+            "range",
+            "limited",
+            "damping",
+            "armature",
+            "class",
+            "stiffness",
+            "springref",
+            "ref",
+            "frictionloss",
+            "group",
         ];
         self.src.only_attributes(n, &known)?;
         if let Some(a) = self.attr(n, class, "class") {
@@ -670,7 +686,9 @@ impl<'a> Reader<'a> {
                 }
                 j = j.limits(lo, hi);
             } else if n.attribute("limited") == Some("true") {
-                return Err(self.src.error(n, "limits on ball and free joints are not supported"));
+                return Err(self
+                    .src
+                    .error(n, "limits on ball and free joints are not supported"));
             }
         } else if limited == "true" && (kind == "hinge" || kind == "slide") {
             return Err(self.src.error(n, "limited=\"true\" needs a `range`"));
@@ -688,7 +706,11 @@ impl<'a> Reader<'a> {
                         "armature on a free joint is not supported; set armature=\"0\"",
                     ));
                 }
-                j = if set == 0 { j.damping(v[0]) } else { j.armature(v[0]) };
+                j = if set == 0 {
+                    j.damping(v[0])
+                } else {
+                    j.armature(v[0])
+                };
             }
         }
         let pos = if kind == "free" {
@@ -709,9 +731,29 @@ impl<'a> Reader<'a> {
         on_link: Option<LinkId>,
     ) -> Result<(Geom, Option<Inertial>), ArticulationError> {
         let known = [
-            "name", "type", "size", "fromto", "pos", "quat", "euler", "axisangle", "xyaxes",
-            "zaxis", "mass", "density", "class", "rgba", "material", "friction", "contype",
-            "conaffinity", "condim", "group", "solref", "solimp", "margin",
+            "name",
+            "type",
+            "size",
+            "fromto",
+            "pos",
+            "quat",
+            "euler",
+            "axisangle",
+            "xyaxes",
+            "zaxis",
+            "mass",
+            "density",
+            "class",
+            "rgba",
+            "material",
+            "friction",
+            "contype",
+            "conaffinity",
+            "condim",
+            "group",
+            "solref",
+            "solimp",
+            "margin",
         ];
         self.src.only_attributes(n, &known)?;
         let kind = self.attr(n, class, "type").unwrap_or("sphere");
@@ -721,7 +763,10 @@ impl<'a> Reader<'a> {
             if size.len() < k || size[..k].iter().any(|&s| s <= 0.0) {
                 Err(self.src.error(
                     n,
-                    format!("a {kind} needs {k} positive size value{}", if k > 1 { "s" } else { "" }),
+                    format!(
+                        "a {kind} needs {k} positive size value{}",
+                        if k > 1 { "s" } else { "" }
+                    ),
                 ))
             } else {
                 Ok(())
@@ -736,7 +781,9 @@ impl<'a> Reader<'a> {
         let mut half = 0.0;
         if let Some(f) = &fromto {
             if !matches!(kind, "capsule" | "cylinder" | "box") {
-                return Err(self.src.error(n, format!("fromto does not apply to a {kind}")));
+                return Err(self
+                    .src
+                    .error(n, format!("fromto does not apply to a {kind}")));
             }
             let (a, b) = (Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5]));
             if (b - a).norm() < 1e-12 {
@@ -745,41 +792,42 @@ impl<'a> Reader<'a> {
             half = 0.5 * (b - a).norm();
             pose = Pose::new(0.5 * (a + b), from_to(&Vec3::z(), &(b - a).normalize()));
         }
-        let shape = match kind {
-            "sphere" => {
-                need(1)?;
-                GeomShape::Sphere(size[0])
-            }
-            "capsule" | "cylinder" => {
-                if fromto.is_some() {
+        let shape =
+            match kind {
+                "sphere" => {
                     need(1)?;
-                } else {
-                    need(2)?;
-                    half = size[1];
+                    GeomShape::Sphere(size[0])
                 }
-                if kind == "capsule" {
-                    GeomShape::Capsule(size[0], half)
-                } else {
-                    GeomShape::Cylinder(size[0], half)
+                "capsule" | "cylinder" => {
+                    if fromto.is_some() {
+                        need(1)?;
+                    } else {
+                        need(2)?;
+                        half = size[1];
+                    }
+                    if kind == "capsule" {
+                        GeomShape::Capsule(size[0], half)
+                    } else {
+                        GeomShape::Cylinder(size[0], half)
+                    }
                 }
-            }
-            "box" => {
-                need(3)?;
-                GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
-            }
-            "plane" => {
-                if on_link.is_some() {
-                    return Err(self.src.error(n, "a plane must be a geom of the worldbody"));
+                "box" => {
+                    need(3)?;
+                    GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
                 }
-                GeomShape::Plane
-            }
-            o => {
-                return Err(self.src.error(
+                "plane" => {
+                    if on_link.is_some() {
+                        return Err(self.src.error(n, "a plane must be a geom of the worldbody"));
+                    }
+                    GeomShape::Plane
+                }
+                o => return Err(self.src.error(
                     n,
-                    format!("geom type `{o}` is not supported (sphere, capsule, cylinder, box, plane)"),
-                ))
-            }
-        };
+                    format!(
+                        "geom type `{o}` is not supported (sphere, capsule, cylinder, box, plane)"
+                    ),
+                )),
+            };
         let friction = self
             .nums(n, class, "friction", &[1, 2, 3])?
             .map(|f| f[0])
@@ -800,8 +848,11 @@ impl<'a> Reader<'a> {
                 GeomShape::Sphere(r) => (4.0 / 3.0 * PI * r.powi(3), Vec3::repeat(0.4 * r * r)),
                 GeomShape::Box(h) => (
                     8.0 * h.x * h.y * h.z,
-                    Vec3::new(h.y * h.y + h.z * h.z, h.x * h.x + h.z * h.z, h.x * h.x + h.y * h.y)
-                        / 3.0,
+                    Vec3::new(
+                        h.y * h.y + h.z * h.z,
+                        h.x * h.x + h.z * h.z,
+                        h.x * h.x + h.y * h.y,
+                    ) / 3.0,
                 ),
                 GeomShape::Cylinder(r, h) => {
                     let l = 2.0 * h;
@@ -815,7 +866,10 @@ impl<'a> Reader<'a> {
                     let (fc, fs) = (vc / (vc + vs), vs / (vc + vs));
                     let t = fc * (3.0 * r * r + l * l) / 12.0
                         + fs * (0.4 * r * r + l * (3.0 * r + 2.0 * l) / 8.0);
-                    (vc + vs, Vec3::new(t, t, fc * 0.5 * r * r + fs * 0.4 * r * r))
+                    (
+                        vc + vs,
+                        Vec3::new(t, t, fc * 0.5 * r * r + fs * 0.4 * r * r),
+                    )
                 }
                 GeomShape::Plane => (0.0, Vec3::zeros()),
             }
@@ -832,14 +886,28 @@ impl<'a> Reader<'a> {
         if mass < 0.0 {
             return Err(self.src.error(n, format!("mass {mass} is negative")));
         }
-        let local = Inertial::new(mass, Vec3::zeros(), Mat33::from_diagonal(&(per_mass * mass)));
+        let local = Inertial::new(
+            mass,
+            Vec3::zeros(),
+            Mat33::from_diagonal(&(per_mass * mass)),
+        );
         Ok((geom, Some(local.transformed(&pose))))
     }
 
     fn inertial(&self, n: Node) -> Result<Inertial, ArticulationError> {
         self.src.only_attributes(
             n,
-            &["pos", "quat", "euler", "axisangle", "xyaxes", "zaxis", "mass", "diaginertia", "fullinertia"],
+            &[
+                "pos",
+                "quat",
+                "euler",
+                "axisangle",
+                "xyaxes",
+                "zaxis",
+                "mass",
+                "diaginertia",
+                "fullinertia",
+            ],
         )?;
         children(&self.src, n, &[], &[])?;
         let pos = self
@@ -882,16 +950,39 @@ impl<'a> Reader<'a> {
         let class = "main";
         self.src.only_attributes(
             n,
-            &["name", "joint", "gear", "ctrlrange", "ctrllimited", "kp", "kv", "class", "forcerange", "forcelimited"],
+            &[
+                "name",
+                "joint",
+                "gear",
+                "ctrlrange",
+                "ctrllimited",
+                "kp",
+                "kv",
+                "class",
+                "forcerange",
+                "forcelimited",
+            ],
         )?;
-        if self.attr(n, class, "forcerange").is_some() || self.attr(n, class, "forcelimited") == Some("true") {
+        if self.attr(n, class, "forcerange").is_some()
+            || self.attr(n, class, "forcelimited") == Some("true")
+        {
             return Err(self.src.error(n, "forcerange is not supported"));
         }
         let joint = self.src.required(n, "joint")?.to_string();
-        let Some(link) = self.builder.links().iter().position(|l| l.joint.name == joint) else {
-            return Err(self.src.error(n, format!("joint \"{joint}\" is not defined")));
+        let Some(link) = self
+            .builder
+            .links()
+            .iter()
+            .position(|l| l.joint.name == joint)
+        else {
+            return Err(self
+                .src
+                .error(n, format!("joint \"{joint}\" is not defined")));
         };
-        let gear = self.nums(n, class, "gear", &[1, 6])?.map(|g| g[0]).unwrap_or(1.0);
+        let gear = self
+            .nums(n, class, "gear", &[1, 6])?
+            .map(|g| g[0])
+            .unwrap_or(1.0);
         let ctrlrange = match self.nums(n, class, "ctrlrange", &[2])? {
             Some(r) if self.attr(n, class, "ctrllimited") != Some("false") => {
                 if r[0] > r[1] {
@@ -904,13 +995,21 @@ impl<'a> Reader<'a> {
         let kind = if tag == "motor" {
             ActuatorKind::Motor { gear }
         } else {
-            let kp = self.nums(n, class, "kp", &[1])?.map(|v| v[0]).unwrap_or(1.0);
-            let kv = self.nums(n, class, "kv", &[1])?.map(|v| v[0]).unwrap_or(0.0);
+            let kp = self
+                .nums(n, class, "kp", &[1])?
+                .map(|v| v[0])
+                .unwrap_or(1.0);
+            let kv = self
+                .nums(n, class, "kv", &[1])?
+                .map(|v| v[0])
+                .unwrap_or(0.0);
             if kp < 0.0 || kv < 0.0 {
                 return Err(self.src.error(n, "kp and kv must be non-negative"));
             }
             if !self.builder.links()[link].joint.kind.is_scalar() {
-                return Err(self.src.error(n, "a position actuator needs a hinge or slide joint"));
+                return Err(self
+                    .src
+                    .error(n, "a position actuator needs a hinge or slide joint"));
             }
             let j = &mut self.builder.links_mut()[link].joint;
             j.kp = kp * gear;
@@ -948,7 +1047,11 @@ fn from_to(a: &Vec3<f64>, b: &Vec3<f64>) -> Quat<f64> {
     let c = a.dot(b);
     if c < -1.0 + 1e-12 {
         // Opposite: half a turn about any axis orthogonal to `a`.
-        let o = if a.x.abs() < 0.9 { Vec3::x() } else { Vec3::y() };
+        let o = if a.x.abs() < 0.9 {
+            Vec3::x()
+        } else {
+            Vec3::y()
+        };
         return Quat::from_parts(0.0, a.cross(&o).normalize());
     }
     Quat::from_parts(1.0 + c, a.cross(b)).normalize()

@@ -292,7 +292,11 @@ impl Inertial {
 
     /// A solid sphere of `mass` and `radius` centred at `com`.
     pub fn sphere(mass: f64, radius: f64, com: Vec3<f64>) -> Self {
-        Self::new(mass, com, Mat33::identity() * (0.4 * mass * radius * radius))
+        Self::new(
+            mass,
+            com,
+            Mat33::identity() * (0.4 * mass * radius * radius),
+        )
     }
 
     /// A solid box of `mass` and half extents `half`, centred at `com`, axis aligned.

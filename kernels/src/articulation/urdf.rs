@@ -129,7 +129,10 @@ fn parse_named(
             .ok_or_else(|| src.error(*n, "needs a <child link=\"...\"/>"))?;
         let child_name = src.required(child, "link")?;
         let &c = index.get(child_name).ok_or_else(|| {
-            src.error(*n, format!("its child link \"{child_name}\" is not defined"))
+            src.error(
+                *n,
+                format!("its child link \"{child_name}\" is not defined"),
+            )
         })?;
         if !index.contains_key(&uj.parent) {
             return Err(src.error(
@@ -247,7 +250,10 @@ fn link_inertial(src: &Source, link: Node) -> Result<Inertial, ArticulationError
         .find(|c| c.has_tag_name("inertia"))
         .ok_or_else(|| src.error(n, "needs <inertia ixx ixy ixz iyy iyz izz/>"))?;
     let mut v = [0.0; 6];
-    for (k, name) in ["ixx", "ixy", "ixz", "iyy", "iyz", "izz"].iter().enumerate() {
+    for (k, name) in ["ixx", "ixy", "ixz", "iyy", "iyz", "izz"]
+        .iter()
+        .enumerate()
+    {
         v[k] = src
             .number(i_node, name)?
             .ok_or_else(|| src.error(i_node, format!("needs the attribute `{name}`")))?;

@@ -30,7 +30,11 @@ impl Source<'_> {
     }
 
     /// The attribute `name` of `node`, required.
-    pub fn required<'n>(&self, node: Node<'n, 'n>, name: &str) -> Result<&'n str, ArticulationError> {
+    pub fn required<'n>(
+        &self,
+        node: Node<'n, 'n>,
+        name: &str,
+    ) -> Result<&'n str, ArticulationError> {
         node.attribute(name)
             .ok_or_else(|| self.error(node, format!("needs the attribute `{name}`")))
     }

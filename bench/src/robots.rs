@@ -1,0 +1,137 @@
+//! `robots [--python PATH] [--steps 200] [--reps 5]`: the articulation family on the
+//! repository's robots (`kernels/robots/`): the time of a semi-implicit step recorded on a tape
+//! (forward), of a step's forward and backward, and of the full `d qdd / d(q, qd, tau)`, for
+//! the 7-DoF arm and the quadruped (`ant.xml`, free base and ground contact), on 1 and 2
+//! threads; with `--python`, the peers' script `bench/peers/robots.py` (MuJoCo's `mj_step`,
+//! Pinocchio's `computeABADerivatives`) in the same run, and the ratios. One JSON line each.
+
+use std::process::Command;
+use std::time::Instant;
+
+use adflex_kernels::articulation::{mjcf, urdf, Articulations};
+use adflex_runtime::prelude::*;
+
+const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../kernels/robots");
+
+fn load(name: &str) -> Articulations<f64> {
+    let b = if name == "arm7" {
+        urdf::load(format!("{ROBOTS}/arm7.urdf"), &Default::default()).expect("arm7")
+    } else {
+        mjcf::load(format!("{ROBOTS}/ant.xml"))
+            .expect("ant")
+            .builder
+    };
+    b.finalize().expect("a valid robot")
+}
+
+/// Microseconds per step: the best of `reps` rollouts of `steps` steps (forward only, or
+/// forward and backward).
+fn per_step(model: &Articulations<f64>, steps: usize, reps: usize, backward: bool) -> f64 {
+    let mut best = f64::INFINITY;
+    let qd0: Vec<f64> = (0..model.n_dof)
+        .map(|i| 0.1 * ((i % 5) as f64 - 2.0))
+        .collect();
+    for _ in 0..reps {
+        let q = Array::from_vec(model.q0.clone());
+        let qd = Array::from_vec(qd0.clone());
+        let t0 = Instant::now();
+        let mut tape = Tape::new();
+        let mut s = adflex_kernels::articulation::ArticulationState { q: q.clone(), qd };
+        for _ in 0..steps {
+            s = model.step(&mut tape, &s, None, 1e-3).expect("a step");
+        }
+        if backward {
+            let w = vec![1.0; model.n_q];
+            tape.vjp(&[&s.q], &w, &[&q]).expect("a gradient");
+        }
+        best = best.min(t0.elapsed().as_secs_f64());
+    }
+    1e6 * best / steps as f64
+}
+
+/// Microseconds per `forward_dynamics_derivatives` call.
+fn derivatives(model: &Articulations<f64>, reps: usize) -> f64 {
+    let q = model.q0.clone();
+    let qd = vec![0.1; model.n_dof];
+    let tau = vec![0.2; model.n_dof];
+    let mut best = f64::INFINITY;
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        for _ in 0..20 {
+            model
+                .forward_dynamics_derivatives(&q, &qd, &tau)
+                .expect("derivatives");
+        }
+        best = best.min(t0.elapsed().as_secs_f64() / 20.0);
+    }
+    1e6 * best
+}
+
+pub fn main(rest: &[String]) {
+    let arg = |name: &str| {
+        rest.iter()
+            .position(|a| a == name)
+            .and_then(|k| rest.get(k + 1))
+            .cloned()
+    };
+    let steps: usize = arg("--steps").and_then(|v| v.parse().ok()).unwrap_or(200);
+    let reps: usize = arg("--reps").and_then(|v| v.parse().ok()).unwrap_or(5);
+    let mut ours = std::collections::HashMap::new();
+    for name in ["arm7", "quadruped"] {
+        let model = load(name);
+        for threads in [1, 2] {
+            let (fwd, both) = adflex_runtime::with_threads(threads, || {
+                (
+                    per_step(&model, steps, reps, false),
+                    per_step(&model, steps, reps, true),
+                )
+            });
+            ours.insert((name, threads, "step"), fwd);
+            println!(
+                "{{\"system\": \"adflex\", \"model\": \"{name}\", \"threads\": {threads}, \
+                 \"step_us\": {fwd:.2}, \"step_forward_backward_us\": {both:.2}}}"
+            );
+        }
+        if name == "arm7" {
+            let d = adflex_runtime::with_threads(1, || derivatives(&model, reps));
+            ours.insert((name, 1, "derivatives"), d);
+            println!(
+                "{{\"system\": \"adflex\", \"model\": \"arm7\", \"threads\": 1, \
+                 \"forward_dynamics_derivatives_us\": {d:.2}}}"
+            );
+        }
+    }
+    let Some(python) = arg("--python") else {
+        return;
+    };
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/peers/robots.py");
+    let out = Command::new(&python)
+        .arg(script)
+        .output()
+        .expect("the peers' python runs");
+    let text = String::from_utf8_lossy(&out.stdout);
+    print!("{text}");
+    for line in text.lines() {
+        let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else {
+            continue;
+        };
+        let (model, what, us) = (
+            v["model"].as_str().unwrap_or(""),
+            v["what"].as_str().unwrap_or(""),
+            v["us"].as_f64().unwrap_or(f64::NAN),
+        );
+        let key = match what {
+            "mj_step" => ("step", if model == "arm7" { "arm7" } else { "quadruped" }),
+            "computeABADerivatives" => ("derivatives", "arm7"),
+            _ => continue,
+        };
+        if let Some(o) = ours.get(&(key.1, 1, key.0)) {
+            println!(
+                "{{\"ratio\": \"adflex {} / {} {what}\", \"model\": \"{model}\", \"value\": {:.2}}}",
+                key.0,
+                v["peer"].as_str().unwrap_or(""),
+                o / us
+            );
+        }
+    }
+}
