@@ -481,47 +481,59 @@ fn lock_targets<'a>(
     arrays: &[Option<&'a dyn AnyArray>],
     mode: Mode,
 ) -> LockTargets<'a> {
-    let mut targets: LockTargets = Vec::with_capacity(2 * arrays.len());
-    let mut add =
-        |a: Target<'a>, write: bool| match targets.iter_mut().find(|(b, _)| b.id() == a.id()) {
-            Some((_, w)) => *w |= write,
-            None => targets.push((a, write)),
-        };
-    for (i, (p, a)) in params.iter().zip(arrays).enumerate() {
-        let Some(a) = a else { continue };
-        let writes = p.access.writes();
-        for (q, b) in params.iter().zip(arrays).take(i) {
-            if let Some(b) = b {
-                if a.id() == b.id() && (writes || q.access.writes()) {
-                    panic!(
-                        "kernel `{kernel}`: array `{}` is passed as both `{}` and `{}`, and the \
-                         kernel writes one of them; pass distinct arrays",
-                        a.label(),
-                        q.name,
-                        p.name
-                    );
-                }
-            }
+    // Each array's id once (a kernel has tens of parameters: sorting beats comparing pairs).
+    let mut uses: Vec<(u64, usize)> = arrays
+        .iter()
+        .enumerate()
+        .filter_map(|(i, a)| a.map(|a| (a.id(), i)))
+        .collect();
+    uses.sort_unstable();
+    for w in uses.windows(2) {
+        let ((a, q), (b, p)) = (w[0], w[1]);
+        if a == b && (params[q].access.writes() || params[p].access.writes()) {
+            panic!(
+                "kernel `{kernel}`: array `{}` is passed as both `{}` and `{}`, and the kernel \
+                 writes one of them; pass distinct arrays",
+                arrays[q].map(|a| a.label()).unwrap_or_default(),
+                params[q].name,
+                params[p].name
+            );
         }
-        add(Target::Array(*a), writes && mode == Mode::Forward);
+    }
+    let mut targets: Vec<(u64, Target<'a>, bool)> = Vec::with_capacity(2 * arrays.len());
+    for &(id, i) in &uses {
+        let (p, a) = (&params[i], arrays[i].expect("only present arrays are used"));
+        let writes = p.access.writes();
+        targets.push((id, Target::Array(a), writes && mode == Mode::Forward));
         match mode {
             Mode::Forward => {}
             // Reads scatter into their gradients, stores take theirs, atomics read theirs.
             Mode::Adjoint => {
                 if let Some(g) = a.grad_any() {
-                    add(Target::Buffer(g), p.access != Access::Atomic);
+                    targets.push((g.id(), Target::Buffer(g), p.access != Access::Atomic));
                 }
             }
             // Reads read their tangents, stores and atomics write theirs.
             Mode::Tangent => {
                 if let Some(t) = a.tangent_any() {
-                    add(Target::Buffer(t), writes);
+                    targets.push((t.id(), Target::Buffer(t), writes));
                 }
             }
         }
     }
-    targets.sort_by_key(|(a, _)| a.id());
-    targets
+    // Sorted by id, each once, for writing if any use writes it.
+    targets.sort_by_key(|t| t.0);
+    let mut out: LockTargets = Vec::with_capacity(targets.len());
+    let mut last = None;
+    for (id, t, write) in targets {
+        if last == Some(id) {
+            out.last_mut().expect("a previous target").1 |= write;
+        } else {
+            out.push((t, write));
+            last = Some(id);
+        }
+    }
+    out
 }
 
 /// Bumps the versions of what the launch wrote: the arrays it writes in forward mode; in the

@@ -33,6 +33,36 @@ pub struct ArticulationControl<R: Real> {
     pub target_qd: Array<R>,
 }
 
+/// What [`Articulations::pass`] computes with.
+struct PassInput<'a, R: Real> {
+    q: &'a Array<R>,
+    qd: &'a Array<R>,
+    qdd: Option<&'a Array<R>>,
+    tau: &'a Array<R>,
+    control: Option<&'a ArticulationControl<R>>,
+    contact: bool,
+}
+
+impl<'a, R: Real> PassInput<'a, R> {
+    fn new(q: &'a Array<R>, qd: &'a Array<R>, tau: &'a Array<R>) -> Self {
+        PassInput {
+            q,
+            qd,
+            qdd: None,
+            tau,
+            control: None,
+            contact: false,
+        }
+    }
+}
+
+/// What it gives: inverse-dynamics forces, the mass matrix, the right-hand side.
+struct Pass<R: Real> {
+    tau_id: Array<R>,
+    m: Array<R>,
+    rhs: Array<R>,
+}
+
 /// World poses of the links and the joints' motion vectors (world frame, at the origin).
 #[derive(Clone, Debug)]
 pub struct Kinematics<R: Real> {
@@ -85,8 +115,17 @@ impl<R: Real> Articulations<R> {
         );
     }
 
-    /// Forward kinematics at `q`.
+    /// Forward kinematics at `q`: link poses and motion vectors.
     pub fn kinematics(&self, tape: &mut Tape, q: &Array<R>) -> Kinematics<R> {
+        self.kinematics_inertias(tape, q).0
+    }
+
+    /// Kinematics and the links' world spatial inertias (`h`, `J`; see the kernels' docs).
+    fn kinematics_inertias(
+        &self,
+        tape: &mut Tape,
+        q: &Array<R>,
+    ) -> (Kinematics<R>, Array<Vec3<R>>, Array<Mat33<R>>) {
         self.check_len(q, self.n_q, "q");
         let (n, nd) = (self.n_links(), self.n_dof);
         let k = Kinematics {
@@ -95,224 +134,120 @@ impl<R: Real> Articulations<R> {
             s_w: Array::zeros(nd),
             s_v: Array::zeros(nd),
         };
+        let (h, j) = (Array::zeros(n), Array::zeros(n));
         tape.launch(
-            articulation_fk,
+            articulation_kinematics,
             n,
             (
                 &self.chain_start,
                 &self.chain,
                 &self.joint_type,
                 &self.q_start,
+                &self.qd_start,
                 &self.joint_pos,
                 &self.joint_rot,
                 &self.joint_axis,
+                &self.mass,
+                &self.com,
+                &self.inertia,
                 q,
-                &k.link_p,
-                &k.link_r,
-            ),
-        );
-        tape.launch(
-            articulation_motion,
-            nd,
-            (
-                &self.dof_link,
-                &self.dof_index,
-                &self.joint_type,
-                &self.joint_axis,
                 &k.link_p,
                 &k.link_r,
                 &k.s_w,
                 &k.s_v,
-            ),
-        );
-        k
-    }
-
-    /// World spatial inertias of the links (`h`, `J`; see the kernels' docs).
-    fn link_inertias(
-        &self,
-        tape: &mut Tape,
-        k: &Kinematics<R>,
-    ) -> (Array<Vec3<R>>, Array<Mat33<R>>) {
-        let n = self.n_links();
-        let (h, j) = (Array::zeros(n), Array::zeros(n));
-        tape.launch(
-            articulation_inertia,
-            n,
-            (
-                &k.link_p,
-                &k.link_r,
-                &self.mass,
-                &self.com,
-                &self.inertia,
                 &h,
                 &j,
             ),
         );
-        (h, j)
+        (k, h, j)
     }
 
-    /// Inverse dynamics by the recursive Newton-Euler algorithm, from kinematics already
-    /// computed: the generalized forces that produce `qdd` at `(q, qd)` under gravity.
-    fn rnea(
-        &self,
-        tape: &mut Tape,
-        k: &Kinematics<R>,
-        inertias: &(Array<Vec3<R>>, Array<Mat33<R>>),
-        qd: &Array<R>,
-        qdd: &Array<R>,
-    ) -> Array<R> {
-        self.rnea_twists(tape, k, inertias, qd, qdd).0
-    }
-
-    /// [`Self::rnea`] and the links' twists `(w, v)`.
-    fn rnea_twists(
-        &self,
-        tape: &mut Tape,
-        k: &Kinematics<R>,
-        inertias: &(Array<Vec3<R>>, Array<Mat33<R>>),
-        qd: &Array<R>,
-        qdd: &Array<R>,
-    ) -> (Array<R>, Array<Vec3<R>>, Array<Vec3<R>>) {
+    /// The three passes of the dynamics at `(q, qd, qdd)` (`qdd = 0` when `None`): kinematics,
+    /// link dynamics (and, with `contact`, the ground's wrenches), joint space. The
+    /// right-hand side is `tau - tau_id`, plus the passive and PD terms with a control.
+    fn pass(&self, tape: &mut Tape, input: PassInput<'_, R>) -> Pass<R> {
+        let PassInput {
+            q,
+            qd,
+            qdd,
+            tau,
+            control,
+            contact,
+        } = input;
         self.check_len(qd, self.n_dof, "qd");
-        self.check_len(qdd, self.n_dof, "qdd");
-        let n = self.n_links();
-        let [w, v, aw, av, fn_, ff] = [(); 6].map(|_| Array::<Vec3<R>>::zeros(n));
+        self.check_len(tau, self.n_dof, "tau");
+        let (n, nd) = (self.n_links(), self.n_dof);
+        let (k, h, j) = self.kinematics_inertias(tape, q);
+        let zeros = || Array::<R>::zeros(nd);
+        let qdd = match qdd {
+            Some(a) => {
+                self.check_len(a, nd, "qdd");
+                a.clone()
+            }
+            None => zeros(),
+        };
+        let [w, v, ln, lf, ch] = [(); 5].map(|_| Array::<Vec3<R>>::zeros(n));
+        let (cm, cj) = (Array::zeros(n), Array::zeros(n));
         tape.launch(
-            articulation_motion_state,
+            articulation_link_dynamics,
             n,
             (
                 &self.chain_start,
                 &self.chain,
+                &self.subtree_start,
+                &self.subtree,
                 &self.qd_start,
                 &k.s_w,
                 &k.s_v,
+                &self.mass,
+                &h,
+                &j,
                 qd,
-                qdd,
+                &qdd,
                 self.gravity,
                 &w,
                 &v,
-                &aw,
-                &av,
-            ),
-        );
-        tape.launch(
-            articulation_link_wrench,
-            n,
-            (
-                &self.mass,
-                &inertias.0,
-                &inertias.1,
-                &w,
-                &v,
-                &aw,
-                &av,
-                &fn_,
-                &ff,
-            ),
-        );
-        let tau = Array::zeros(self.n_dof);
-        tape.launch(
-            articulation_joint_force,
-            self.n_dof,
-            (
-                &self.dof_link,
-                &self.subtree_start,
-                &self.subtree,
-                &k.s_w,
-                &k.s_v,
-                &fn_,
-                &ff,
-                &tau,
-            ),
-        );
-        (tau, w, v)
-    }
-
-    /// Generalized forces of the ground contact, `J^T` of the contact wrenches (zeros
-    /// without contact).
-    fn contact_forces(
-        &self,
-        tape: &mut Tape,
-        k: &Kinematics<R>,
-        w: &Array<Vec3<R>>,
-        v: &Array<Vec3<R>>,
-    ) -> Array<R> {
-        let tau = Array::zeros(self.n_dof);
-        let Some(g) = &self.ground else {
-            return tau;
-        };
-        if self.contact_link.is_empty() {
-            return tau;
-        }
-        let n = self.n_links();
-        let (en, ef) = (Array::zeros(n), Array::zeros(n));
-        tape.launch(
-            super::contact::articulation_ground_contact,
-            self.contact_link.len(),
-            (
-                &self.contact_link,
-                &self.contact_pos,
-                &self.contact_radius,
-                &k.link_p,
-                &k.link_r,
-                w,
-                v,
-                g.normal,
-                g.offset,
-                g.ke,
-                g.kd,
-                g.mu,
-                g.leak,
-                g.damping_depth,
-                &en,
-                &ef,
-            ),
-        );
-        tape.launch(
-            articulation_joint_force,
-            self.n_dof,
-            (
-                &self.dof_link,
-                &self.subtree_start,
-                &self.subtree,
-                &k.s_w,
-                &k.s_v,
-                &en,
-                &ef,
-                &tau,
-            ),
-        );
-        tau
-    }
-
-    /// The joint-space mass matrix by the composite-rigid-body algorithm, from kinematics.
-    fn crba(
-        &self,
-        tape: &mut Tape,
-        k: &Kinematics<R>,
-        inertias: &(Array<Vec3<R>>, Array<Mat33<R>>),
-    ) -> Array<R> {
-        let n = self.n_links();
-        let (cm, ch, cj) = (Array::zeros(n), Array::zeros(n), Array::zeros(n));
-        tape.launch(
-            articulation_composite,
-            n,
-            (
-                &self.subtree_start,
-                &self.subtree,
-                &self.mass,
-                &inertias.0,
-                &inertias.1,
+                &ln,
+                &lf,
                 &cm,
                 &ch,
                 &cj,
             ),
         );
-        let m = Array::zeros(self.m_len);
+        let (en, ef) = (Array::zeros(n), Array::zeros(n));
+        if let (true, Some(g), false) = (contact, &self.ground, self.contact_link.is_empty()) {
+            tape.launch(
+                super::contact::articulation_ground_contact,
+                self.contact_link.len(),
+                (
+                    &self.contact_link,
+                    &self.contact_pos,
+                    &self.contact_radius,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    g.normal,
+                    g.offset,
+                    g.ke,
+                    g.kd,
+                    g.mu,
+                    g.leak,
+                    g.damping_depth,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
+        let (tz, qz) = (zeros(), zeros());
+        let (target_q, target_qd, passive) = match control {
+            Some(c) => (&c.target_q, &c.target_qd, 1u32),
+            None => (&tz, &qz, 0u32),
+        };
+        let (tau_id, m, rhs) = (zeros(), Array::zeros(self.m_len), zeros());
         tape.launch(
-            articulation_mass_matrix,
-            self.n_dof,
+            articulation_joint_space,
+            nd,
             (
                 &self.dof_link,
                 &self.dof_art_start,
@@ -322,30 +257,51 @@ impl<R: Real> Articulations<R> {
                 &self.subtree_start,
                 &self.subtree,
                 &self.qd_start,
-                &self.armature,
                 &k.s_w,
                 &k.s_v,
+                &ln,
+                &lf,
+                &en,
+                &ef,
                 &cm,
                 &ch,
                 &cj,
+                &self.armature,
+                passive,
+                &self.dof_q,
+                &self.dof_scalar,
+                q,
+                qd,
+                tau,
+                target_q,
+                target_qd,
+                &self.kp,
+                &self.kv,
+                &self.damping,
+                &self.lower,
+                &self.upper,
+                self.limit_ke,
+                self.limit_kd,
+                &tau_id,
                 &m,
+                &rhs,
             ),
         );
-        m
+        Pass { tau_id, m, rhs }
     }
 
     /// The joint-space mass matrix `M(q)` (armature included): one row-major block of
     /// `n x n` per articulation, at [`ArticulationInfo::m_offset`](super::ArticulationInfo)
     /// (read one with [`Articulations::block`]).
     pub fn mass_matrix(&self, tape: &mut Tape, q: &Array<R>) -> Array<R> {
-        let k = self.kinematics(tape, q);
-        let i = self.link_inertias(tape, &k);
-        self.crba(tape, &k, &i)
+        let z = Array::zeros(self.n_dof);
+        self.pass(tape, PassInput::new(q, &z, &z)).m
     }
 
     /// The bias forces `c(q, qd)` (Coriolis, centrifugal and gravity; `M qdd + c = tau`).
     pub fn bias_forces(&self, tape: &mut Tape, q: &Array<R>, qd: &Array<R>) -> Array<R> {
-        self.inverse_dynamics(tape, q, qd, &Array::zeros(self.n_dof))
+        let z = Array::zeros(self.n_dof);
+        self.pass(tape, PassInput::new(q, qd, &z)).tau_id
     }
 
     /// Inverse dynamics (RNEA): `tau = M(q) qdd + c(q, qd)`.
@@ -356,13 +312,14 @@ impl<R: Real> Articulations<R> {
         qd: &Array<R>,
         qdd: &Array<R>,
     ) -> Array<R> {
-        let k = self.kinematics(tape, q);
-        let i = self.link_inertias(tape, &k);
-        self.rnea(tape, &k, &i, qd, qdd)
+        let z = Array::zeros(self.n_dof);
+        let mut input = PassInput::new(q, qd, &z);
+        input.qdd = Some(qdd);
+        self.pass(tape, input).tau_id
     }
 
-    /// Forward dynamics: `qdd = M(q)^-1 (tau - c(q, qd))` (no damping, limits or PD; see
-    /// [`Articulations::step`] for those). The solve is a Cholesky factorization per
+    /// Forward dynamics: `qdd = M(q)^-1 (tau - c(q, qd))` (no damping, limits, PD or contact;
+    /// see [`Articulations::step`] for those). The solve is a Cholesky factorization per
     /// articulation, recorded as one step whose adjoint and tangent reuse the factors.
     ///
     /// Errors if a mass matrix is not positive definite (naming the articulation).
@@ -373,24 +330,14 @@ impl<R: Real> Articulations<R> {
         qd: &Array<R>,
         tau: &Array<R>,
     ) -> Result<Array<R>, Error> {
-        self.check_len(tau, self.n_dof, "tau");
-        let k = self.kinematics(tape, q);
-        let i = self.link_inertias(tape, &k);
-        let c = self.rnea(tape, &k, &i, qd, &Array::zeros(self.n_dof));
-        let m = self.crba(tape, &k, &i);
-        let rhs = Array::zeros(self.n_dof);
-        tape.launch(
-            crate::articulation::kernels::articulation_sub,
-            self.n_dof,
-            (tau, &c, &rhs),
-        );
-        self.solve(tape, &m, &rhs)
+        let p = self.pass(tape, PassInput::new(q, qd, tau));
+        self.solve(tape, &p.m, &p.rhs)
     }
 
     /// One semi-implicit Euler step: `qdd` from the dynamics with the control's torques and
-    /// PD actuators, joint damping and limits, and the ground contact of the contact spheres; `qd' = qd + qdd dt`, then `q'` from `qd'`
-    /// (quaternions by the exponential map, renormalized). Returns the new state; every
-    /// launch is on `tape`.
+    /// PD actuators, joint damping and limits, and the ground contact of the contact spheres;
+    /// `qd' = qd + qdd dt`, then `q'` from `qd'` (quaternions by the exponential map,
+    /// renormalized). Returns the new state; every launch is on `tape`.
     pub fn step(
         &self,
         tape: &mut Tape,
@@ -412,42 +359,18 @@ impl<R: Real> Articulations<R> {
                 &own
             }
         };
-        self.check_len(&control.tau, self.n_dof, "control.tau");
         self.check_len(&control.target_q, self.n_dof, "control.target_q");
         self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
         let (q, qd) = (&state.q, &state.qd);
-        self.check_len(q, self.n_q, "state.q");
-        self.check_len(qd, self.n_dof, "state.qd");
-        let k = self.kinematics(tape, q);
-        let i = self.link_inertias(tape, &k);
-        let (c, w, v) = self.rnea_twists(tape, &k, &i, qd, &Array::zeros(self.n_dof));
-        let tau_ext = self.contact_forces(tape, &k, &w, &v);
-        let m = self.crba(tape, &k, &i);
-        let rhs = Array::zeros(self.n_dof);
-        tape.launch(
-            articulation_rhs,
-            self.n_dof,
-            (
-                &self.dof_q,
-                &self.dof_scalar,
-                q,
-                qd,
-                &control.tau,
-                &tau_ext,
-                &control.target_q,
-                &control.target_qd,
-                &self.kp,
-                &self.kv,
-                &self.damping,
-                &self.lower,
-                &self.upper,
-                self.limit_ke,
-                self.limit_kd,
-                &c,
-                &rhs,
-            ),
+        let p = self.pass(
+            tape,
+            PassInput {
+                control: Some(control),
+                contact: true,
+                ..PassInput::new(q, qd, &control.tau)
+            },
         );
-        let qdd = self.solve(tape, &m, &rhs)?;
+        let qdd = self.solve(tape, &p.m, &p.rhs)?;
         let next = ArticulationState {
             q: Array::zeros(self.n_q),
             qd: Array::zeros(self.n_dof),

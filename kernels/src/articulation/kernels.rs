@@ -16,23 +16,43 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-/// World pose of link `tid`: from the root, for each joint `j` on its chain, the parent
-/// frame moves to the joint frame (`joint_pos[j]`, `joint_rot[j]`) and then by the joint's
-/// motion: revolute, a rotation by `q` about `joint_axis[j]`; prismatic, a translation by
-/// `q` along it; ball, the rotation `normalize(q[s..s+4])` (x, y, z, w); free, the
-/// translation `q[s..s+3]` (in the joint frame) then the rotation `normalize(q[s+3..s+7])`.
+/// Kinematics of link `tid`: its world pose, the motion vectors of its joint's velocities and
+/// its world spatial inertia.
+///
+/// **Pose.** From the root, for each joint `j` on the link's chain, the parent frame moves to
+/// the joint frame (`joint_pos[j]`, `joint_rot[j]`) and then by the joint's motion: revolute,
+/// a rotation by `q` about `joint_axis[j]`; prismatic, a translation by `q` along it; ball, the
+/// rotation `normalize(q[s..s+4])` (x, y, z, w); free, the translation `q[s..s+3]` (in the
+/// joint frame) then the rotation `normalize(q[s+3..s+7])`.
+///
+/// **Motion vectors** (columns of the joint's motion subspace, world frame, at the origin):
+/// for a rotation axis `u` through the link origin `p`, `(u, p x u)`; for a translation along
+/// `u`, `(0, u)`. The axes are the joint's axis (revolute, prismatic), the link frame's axes
+/// (ball: angular velocity in the link frame), or, for a free joint, the link frame's axes for
+/// the linear velocity (first three) and then the angular velocity (Pinocchio's convention).
+///
+/// **Inertia** (see the module docs): `h = m c`, `J = R I R^T + m (|c|^2 1 - c c^T)` with
+/// `c = p + R com`.
 #[diff_kernel]
-pub fn articulation_fk<R: Real>(
+pub fn articulation_kinematics<R: Real>(
     chain_start: &Array<u32>,
     chain: &Array<u32>,
     joint_type: &Array<u32>,
     q_start: &Array<u32>,
+    qd_start: &Array<u32>,
     joint_pos: &Array<Vec3<R>>,
     joint_rot: &Array<Quat<R>>,
     joint_axis: &Array<Vec3<R>>,
+    mass: &Array<R>,
+    com: &Array<Vec3<R>>,
+    inertia: &Array<Mat33<R>>,
     q: &Array<R>,
     link_p: &Array<Vec3<R>>,
     link_r: &Array<Quat<R>>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+    link_h: &Array<Vec3<R>>,
+    link_j: &Array<Mat33<R>>,
 ) {
     let l = tid();
     let mut p = vec3(0.0, 0.0, 0.0);
@@ -59,74 +79,73 @@ pub fn articulation_fk<R: Real>(
     }
     link_p[l] = p;
     link_r[l] = r;
-}
-
-/// Motion vector (column of the joint's motion subspace, world frame, at the origin) of
-/// degree of freedom `tid`, the `k`-th of the joint of link `l`: for an axis `u` of rotation
-/// through the link's origin `p`, `(u, p x u)`; for a translation along `u`, `(0, u)`. The
-/// axes are the joint's axis (revolute, prismatic), the link frame's axes (ball: angular
-/// velocity in the link frame) or, for a free joint, the link frame's axes for the linear
-/// velocity (k < 3) and then for the angular velocity, both in the link frame (Pinocchio's
-/// convention).
-#[diff_kernel]
-pub fn articulation_motion<R: Real>(
-    dof_link: &Array<u32>,
-    dof_index: &Array<u32>,
-    joint_type: &Array<u32>,
-    joint_axis: &Array<Vec3<R>>,
-    link_p: &Array<Vec3<R>>,
-    link_r: &Array<Quat<R>>,
-    s_w: &Array<Vec3<R>>,
-    s_v: &Array<Vec3<R>>,
-) {
-    let d = tid();
-    let l = dof_link[d] as usize;
-    let k = dof_index[d];
     let jt = joint_type[l];
-    let mut e = joint_axis[l];
-    let mut angular = jt != 2;
-    let mut kk = k;
-    if jt == 4 {
-        angular = k >= 3;
-        if k >= 3 {
-            kk = k - 3;
+    let d0 = qd_start[l] as usize;
+    let d1 = qd_start[l + 1] as usize;
+    for d in d0..d1 {
+        let k = d - d0;
+        let mut e = joint_axis[l];
+        let mut angular = jt != 2;
+        let mut kk = k;
+        if jt == 4 {
+            angular = k >= 3;
+            if k >= 3 {
+                kk = k - 3;
+            }
+        }
+        if jt == 3 || jt == 4 {
+            e = vec3(
+                select(kk == 0, 1.0, 0.0),
+                select(kk == 1, 1.0, 0.0),
+                select(kk == 2, 1.0, 0.0),
+            );
+        }
+        let u = quat_rotate(r, e);
+        if angular {
+            s_w[d] = u;
+            s_v[d] = cross(p, u);
+        } else {
+            s_w[d] = u * 0.0;
+            s_v[d] = u;
         }
     }
-    if jt == 3 || jt == 4 {
-        e = vec3(
-            select(kk == 0, 1.0, 0.0),
-            select(kk == 1, 1.0, 0.0),
-            select(kk == 2, 1.0, 0.0),
-        );
-    }
-    let u = quat_rotate(link_r[l], e);
-    if angular {
-        s_w[d] = u;
-        s_v[d] = cross(link_p[l], u);
-    } else {
-        s_w[d] = u * 0.0;
-        s_v[d] = u;
-    }
+    let rm = quat_to_mat33(r);
+    let c = p + rm * com[l];
+    let m = mass[l];
+    link_h[l] = c * m;
+    link_j[l] = rm * inertia[l] * transpose(rm) + (mat33_identity() * dot(c, c) - outer(c, c)) * m;
 }
 
-/// Twist `(w, v)` and spatial acceleration `(aw, av)` of link `tid`: along its chain,
-/// `v_j = v_parent + S_j qd_j` and `a_j = a_parent + S_j qdd_j + v_parent x S_j qd_j`
-/// (the motion cross product `(w1, v1) x (w2, v2) = (w1 x w2, w1 x v2 + v1 x w2)`), from
-/// `a_root = (0, -g)`: gravity enters as an upward acceleration of the world.
+/// Dynamics of link `tid`: its twist `(w, v)`, the wrench `(n, f)` its motion needs, and the
+/// composite inertia of its subtree.
+///
+/// Along the chain, `v_j = v_parent + S_j qd_j` and `a_j = a_parent + S_j qdd_j + v_parent x
+/// S_j qd_j` (the motion cross product `(w1, v1) x (w2, v2) = (w1 x w2, w1 x v2 + v1 x w2)`),
+/// from `a_root = (0, -g)`: gravity enters as an upward acceleration of the world. The wrench is
+/// `I a + v x* I v` with the force cross product `(w, v) x* (n, f) = (w x n + v x f, w x f)`;
+/// the composite inertia is the sum of the subtree's `(m, h, J)`.
 #[diff_kernel]
-pub fn articulation_motion_state<R: Real>(
+pub fn articulation_link_dynamics<R: Real>(
     chain_start: &Array<u32>,
     chain: &Array<u32>,
+    subtree_start: &Array<u32>,
+    subtree: &Array<u32>,
     qd_start: &Array<u32>,
     s_w: &Array<Vec3<R>>,
     s_v: &Array<Vec3<R>>,
+    mass: &Array<R>,
+    link_h: &Array<Vec3<R>>,
+    link_j: &Array<Mat33<R>>,
     qd: &Array<R>,
     qdd: &Array<R>,
     gravity: Vec3<R>,
     link_w: &Array<Vec3<R>>,
     link_v: &Array<Vec3<R>>,
-    link_aw: &Array<Vec3<R>>,
-    link_av: &Array<Vec3<R>>,
+    link_n: &Array<Vec3<R>>,
+    link_f: &Array<Vec3<R>>,
+    comp_m: &Array<R>,
+    comp_h: &Array<Vec3<R>>,
+    comp_j: &Array<Mat33<R>>,
 ) {
     let l = tid();
     let mut w = gravity * 0.0;
@@ -154,124 +173,49 @@ pub fn articulation_motion_state<R: Real>(
     }
     link_w[l] = w;
     link_v[l] = v;
-    link_aw[l] = aw;
-    link_av[l] = av;
-}
-
-/// World spatial inertia of link `tid` (see the module docs): `h = m c`,
-/// `J = R I R^T + m (|c|^2 1 - c c^T)` with `c = p + R com`.
-#[diff_kernel]
-pub fn articulation_inertia<R: Real>(
-    link_p: &Array<Vec3<R>>,
-    link_r: &Array<Quat<R>>,
-    mass: &Array<R>,
-    com: &Array<Vec3<R>>,
-    inertia: &Array<Mat33<R>>,
-    link_h: &Array<Vec3<R>>,
-    link_j: &Array<Mat33<R>>,
-) {
-    let l = tid();
-    let rm = quat_to_mat33(link_r[l]);
-    let c = link_p[l] + rm * com[l];
-    let m = mass[l];
-    link_h[l] = c * m;
-    link_j[l] = rm * inertia[l] * transpose(rm) + (mat33_identity() * dot(c, c) - outer(c, c)) * m;
-}
-
-/// Net wrench `(n, f)` on link `tid` needed for its motion: `f = I a + v x* I v`, with the
-/// force cross product `(w, v) x* (n, f) = (w x n + v x f, w x f)`.
-#[diff_kernel]
-pub fn articulation_link_wrench<R: Real>(
-    mass: &Array<R>,
-    link_h: &Array<Vec3<R>>,
-    link_j: &Array<Mat33<R>>,
-    link_w: &Array<Vec3<R>>,
-    link_v: &Array<Vec3<R>>,
-    link_aw: &Array<Vec3<R>>,
-    link_av: &Array<Vec3<R>>,
-    link_n: &Array<Vec3<R>>,
-    link_f: &Array<Vec3<R>>,
-) {
-    let l = tid();
     let m = mass[l];
     let h = link_h[l];
     let jm = link_j[l];
-    let w = link_w[l];
-    let v = link_v[l];
-    let aw = link_aw[l];
-    let av = link_av[l];
     let pn = jm * w + cross(h, v);
     let pf = v * m - cross(h, w);
     let an = jm * aw + cross(h, av);
     let af = av * m - cross(h, aw);
     link_n[l] = an + cross(w, pn) + cross(v, pf);
     link_f[l] = af + cross(w, pf);
-}
-
-/// Composite inertia of the subtree of link `tid` (the link and its descendants): the sum of
-/// their spatial inertias.
-#[diff_kernel]
-pub fn articulation_composite<R: Real>(
-    subtree_start: &Array<u32>,
-    subtree: &Array<u32>,
-    mass: &Array<R>,
-    link_h: &Array<Vec3<R>>,
-    link_j: &Array<Mat33<R>>,
-    comp_m: &Array<R>,
-    comp_h: &Array<Vec3<R>>,
-    comp_j: &Array<Mat33<R>>,
-) {
-    let l = tid();
-    let mut m = mass[l] * 0.0;
-    let mut h = link_h[l] * 0.0;
-    let mut jm = link_j[l] * 0.0;
+    let mut cm = m * 0.0;
+    let mut ch = h * 0.0;
+    let mut cj = jm * 0.0;
     let s0 = subtree_start[l] as usize;
     let s1 = subtree_start[l + 1] as usize;
     for k in s0..s1 {
         let i = subtree[k] as usize;
-        m = m + mass[i];
-        h = h + link_h[i];
-        jm = jm + link_j[i];
+        cm = cm + mass[i];
+        ch = ch + link_h[i];
+        cj = cj + link_j[i];
     }
-    comp_m[l] = m;
-    comp_h[l] = h;
-    comp_j[l] = jm;
+    comp_m[l] = cm;
+    comp_h[l] = ch;
+    comp_j[l] = cj;
 }
 
-/// Generalized force of degree of freedom `tid` that produces the links' wrenches:
-/// `tau = S^T F`, `F` the sum of the wrenches of the subtree of its link.
+/// The joint-space quantities of degree of freedom `tid`: its generalized force, its row of
+/// the mass matrix, and its right-hand side of the forward dynamics.
+///
+/// **Force** `tau_id = S^T F`, `F` the sum over the subtree of its link of the links' wrenches
+/// less the external ones (`ext_n`, `ext_f`, e.g. contact): inverse dynamics with the `qdd` of
+/// [`articulation_link_dynamics`], the bias forces with `qdd = 0`.
+///
+/// **Mass matrix** (CRBA in the world frame): for degrees of freedom `a`, `b` of one
+/// articulation, `M[a][b] = S_a . Ic_i S_b` with `i` the deeper of their links when one is an
+/// ancestor of (or is) the other, and 0 otherwise; armature on the diagonal. Row `a` starts at
+/// `m_row[a]` of `m`; `art_start[a]` is the articulation's first degree of freedom.
+///
+/// **Right-hand side** `tau - tau_id`, and when `passive` is 1 also
+/// `+ kp (q_target - q) + kv (qd_target - qd) - damping qd + limit` (PD and limit terms on
+/// revolute and prismatic joints, `dof_q[d]` their coordinate; the limit pushes back by
+/// `limit_ke (lower - q) - limit_kd qd` below `lower`, likewise above `upper`).
 #[diff_kernel]
-pub fn articulation_joint_force<R: Real>(
-    dof_link: &Array<u32>,
-    subtree_start: &Array<u32>,
-    subtree: &Array<u32>,
-    s_w: &Array<Vec3<R>>,
-    s_v: &Array<Vec3<R>>,
-    link_n: &Array<Vec3<R>>,
-    link_f: &Array<Vec3<R>>,
-    tau: &Array<R>,
-) {
-    let d = tid();
-    let l = dof_link[d] as usize;
-    let mut n = s_w[d] * 0.0;
-    let mut f = s_w[d] * 0.0;
-    let s0 = subtree_start[l] as usize;
-    let s1 = subtree_start[l + 1] as usize;
-    for k in s0..s1 {
-        let i = subtree[k] as usize;
-        n = n + link_n[i];
-        f = f + link_f[i];
-    }
-    tau[d] = dot(s_w[d], n) + dot(s_v[d], f);
-}
-
-/// Row `tid` of the joint-space mass matrix (CRBA in the world frame): for degrees of
-/// freedom `a`, `b` of one articulation, `M[a][b] = S_a . Ic_i S_b` with `i` the deeper of
-/// their two links when one is an ancestor of (or is) the other, and 0 otherwise; armature on
-/// the diagonal. Row `a` starts at `m_row[a]` of `m`; `art_start[a]` is the articulation's
-/// first degree of freedom.
-#[diff_kernel]
-pub fn articulation_mass_matrix<R: Real>(
+pub fn articulation_joint_space<R: Real>(
     dof_link: &Array<u32>,
     art_start: &Array<u32>,
     m_row: &Array<u32>,
@@ -280,21 +224,54 @@ pub fn articulation_mass_matrix<R: Real>(
     subtree_start: &Array<u32>,
     subtree: &Array<u32>,
     qd_start: &Array<u32>,
-    armature: &Array<R>,
     s_w: &Array<Vec3<R>>,
     s_v: &Array<Vec3<R>>,
+    link_n: &Array<Vec3<R>>,
+    link_f: &Array<Vec3<R>>,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
     comp_m: &Array<R>,
     comp_h: &Array<Vec3<R>>,
     comp_j: &Array<Mat33<R>>,
+    armature: &Array<R>,
+    passive: u32,
+    dof_q: &Array<u32>,
+    dof_scalar: &Array<u32>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    tau: &Array<R>,
+    target_q: &Array<R>,
+    target_qd: &Array<R>,
+    kp: &Array<R>,
+    kv: &Array<R>,
+    damping: &Array<R>,
+    lower: &Array<R>,
+    upper: &Array<R>,
+    limit_ke: R,
+    limit_kd: R,
+    tau_id: &Array<R>,
     m: &Array<R>,
+    rhs: &Array<R>,
 ) {
     let a = tid();
     let la = dof_link[a] as usize;
-    let row = m_row[a] as usize;
-    let first = art_start[a] as usize;
     let wa = s_w[a];
     let va = s_v[a];
-    // Ic_la S_a: the momentum of the subtree of `la` moving with `S_a`.
+    // Generalized force.
+    let mut fn_ = wa * 0.0;
+    let mut ff = wa * 0.0;
+    let s0 = subtree_start[la] as usize;
+    let s1 = subtree_start[la + 1] as usize;
+    for k in s0..s1 {
+        let i = subtree[k] as usize;
+        fn_ = fn_ + link_n[i] - ext_n[i];
+        ff = ff + link_f[i] - ext_f[i];
+    }
+    let tid_a = dot(wa, fn_) + dot(va, ff);
+    tau_id[a] = tid_a;
+    // Row of the mass matrix: Ic_la S_a against the ancestors' motion vectors.
+    let row = m_row[a] as usize;
+    let first = art_start[a] as usize;
     let mc = comp_m[la];
     let hc = comp_h[la];
     let na = comp_j[la] * wa + cross(hc, va);
@@ -313,10 +290,8 @@ pub fn articulation_mass_matrix<R: Real>(
             m[row + b - first] = e;
         }
     }
-    // Strict descendants: the subtree list starts with the link itself.
-    let s0 = subtree_start[la] as usize + 1;
-    let s1 = subtree_start[la + 1] as usize;
-    for k in s0..s1 {
+    // Strict descendants (the subtree list starts with the link itself): Ic_i S_a.
+    for k in s0 + 1..s1 {
         let i = subtree[k] as usize;
         let mi = comp_m[i];
         let hi = comp_h[i];
@@ -328,46 +303,22 @@ pub fn articulation_mass_matrix<R: Real>(
             m[row + b - first] = dot(s_w[b], ni) + dot(s_v[b], fi);
         }
     }
-}
-
-/// Right-hand side of the forward dynamics for degree of freedom `tid`:
-/// `tau + tau_ext + kp (q_target - q) + kv (qd_target - qd) - damping qd + limit - bias`, with the PD
-/// and limit terms only on revolute and prismatic joints (`dof_q[d]` is the coordinate). The
-/// limit pushes back by `limit_ke (lower - q) - limit_kd qd` below `lower` (and likewise above
-/// `upper`).
-#[diff_kernel]
-pub fn articulation_rhs<R: Real>(
-    dof_q: &Array<u32>,
-    dof_scalar: &Array<u32>,
-    q: &Array<R>,
-    qd: &Array<R>,
-    tau: &Array<R>,
-    tau_ext: &Array<R>,
-    target_q: &Array<R>,
-    target_qd: &Array<R>,
-    kp: &Array<R>,
-    kv: &Array<R>,
-    damping: &Array<R>,
-    lower: &Array<R>,
-    upper: &Array<R>,
-    limit_ke: R,
-    limit_kd: R,
-    bias: &Array<R>,
-    rhs: &Array<R>,
-) {
-    let d = tid();
-    let v = qd[d];
-    let mut f = tau[d] + tau_ext[d] - damping[d] * v - bias[d];
-    if dof_scalar[d] == 1 {
-        let x = q[dof_q[d] as usize];
-        f = f + kp[d] * (target_q[d] - x) + kv[d] * (target_qd[d] - v);
-        if x < lower[d] {
-            f = f + limit_ke * (lower[d] - x) - limit_kd * v;
-        } else if x > upper[d] {
-            f = f + limit_ke * (upper[d] - x) - limit_kd * v;
+    // Right-hand side.
+    let mut f = tau[a] - tid_a;
+    if passive == 1 {
+        let v = qd[a];
+        f = f - damping[a] * v;
+        if dof_scalar[a] == 1 {
+            let x = q[dof_q[a] as usize];
+            f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v);
+            if x < lower[a] {
+                f = f + limit_ke * (lower[a] - x) - limit_kd * v;
+            } else if x > upper[a] {
+                f = f + limit_ke * (upper[a] - x) - limit_kd * v;
+            }
         }
     }
-    rhs[d] = f;
+    rhs[a] = f;
 }
 
 /// Semi-implicit Euler step of the joint of link `tid`: `qd' = qd + qdd dt`, then
@@ -435,11 +386,4 @@ pub fn articulation_integrate<R: Real>(
         q_new[rs + 2] = r1.z;
         q_new[rs + 3] = r1.w;
     }
-}
-
-/// `out = a - b`, per element.
-#[diff_kernel]
-pub fn articulation_sub<R: Real>(a: &Array<R>, b: &Array<R>, out: &Array<R>) {
-    let d = tid();
-    out[d] = a[d] - b[d];
 }

@@ -792,42 +792,43 @@ impl<'a> Reader<'a> {
             half = 0.5 * (b - a).norm();
             pose = Pose::new(0.5 * (a + b), from_to(&Vec3::z(), &(b - a).normalize()));
         }
-        let shape =
-            match kind {
-                "sphere" => {
+        let shape = match kind {
+            "sphere" => {
+                need(1)?;
+                GeomShape::Sphere(size[0])
+            }
+            "capsule" | "cylinder" => {
+                if fromto.is_some() {
                     need(1)?;
-                    GeomShape::Sphere(size[0])
+                } else {
+                    need(2)?;
+                    half = size[1];
                 }
-                "capsule" | "cylinder" => {
-                    if fromto.is_some() {
-                        need(1)?;
-                    } else {
-                        need(2)?;
-                        half = size[1];
-                    }
-                    if kind == "capsule" {
-                        GeomShape::Capsule(size[0], half)
-                    } else {
-                        GeomShape::Cylinder(size[0], half)
-                    }
+                if kind == "capsule" {
+                    GeomShape::Capsule(size[0], half)
+                } else {
+                    GeomShape::Cylinder(size[0], half)
                 }
-                "box" => {
-                    need(3)?;
-                    GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
+            }
+            "box" => {
+                need(3)?;
+                GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
+            }
+            "plane" => {
+                if on_link.is_some() {
+                    return Err(self.src.error(n, "a plane must be a geom of the worldbody"));
                 }
-                "plane" => {
-                    if on_link.is_some() {
-                        return Err(self.src.error(n, "a plane must be a geom of the worldbody"));
-                    }
-                    GeomShape::Plane
-                }
-                o => return Err(self.src.error(
+                GeomShape::Plane
+            }
+            o => {
+                return Err(self.src.error(
                     n,
                     format!(
                         "geom type `{o}` is not supported (sphere, capsule, cylinder, box, plane)"
                     ),
-                )),
-            };
+                ))
+            }
+        };
         let friction = self
             .nums(n, class, "friction", &[1, 2, 3])?
             .map(|f| f[0])
