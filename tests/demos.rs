@@ -1,6 +1,9 @@
 //! Every demo of `examples/` at a test size, asserting its success criterion. Each example
 //! is included as a module: its `run(&Config::small())` is what `main` runs at full size.
 
+#[path = "../examples/arm_identification.rs"]
+#[allow(dead_code)]
+mod arm_identification;
 #[path = "../examples/cage.rs"]
 #[allow(dead_code)]
 mod cage;
@@ -253,4 +256,17 @@ fn cartpole_swings_up_and_stays_upright() {
     );
     // It did swing: the pole passed through horizontal on the way.
     assert!(out.frames.iter().any(|s| s.q.get(1).cos().abs() < 0.2));
+}
+
+/// The arm's seven link masses, started 30% off, are recovered from a recorded trajectory.
+#[test]
+fn arm_masses_are_identified_from_a_trajectory() {
+    let out = arm_identification::run(&arm_identification::Config::small()).unwrap();
+    assert!(out.mass_error.0 > 0.29);
+    assert!(
+        out.mass_error.1 < 1e-4,
+        "mass error {:.2e}: {}",
+        out.mass_error.1,
+        out.report
+    );
 }

@@ -402,10 +402,18 @@ impl<R: Real> Articulations<R> {
             let l = self.links[self.dof_link.get(self.articulations[art].dofs.start + d) as usize]
                 .joint
                 .clone();
-            Error::Other(format!(
-                "articulations: the mass matrix of articulation {art} is not positive definite \
-                 (at joint \"{l}\"; pivot {d}): a joint moves no mass, or the state is not finite"
-            ))
+            let finite = mv.iter().all(|x| x.to_f64().is_finite());
+            // An input that cannot be computed with (an optimizer's line search backs off).
+            Error::InvalidInput {
+                what: format!("mass matrix of articulation {art} (joint \"{l}\", pivot {d})"),
+                message: if finite {
+                    "is not positive definite: a joint moves no mass (a mass or inertia \
+                     parameter at or below zero?)"
+                        .into()
+                } else {
+                    "is not finite: the state or a parameter is not finite".into()
+                },
+            }
         })?;
         let factors = Arc::new(factors);
         let blocks: Arc<Vec<(usize, usize, usize)>> = Arc::new(
