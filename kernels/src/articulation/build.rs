@@ -297,6 +297,26 @@ pub(crate) fn finalize<R: Real>(
         }
     }
 
+    // Contact pairs: spheres of links that are neither the same nor joined directly.
+    let mut pairs: Vec<(u32, u32)> = Vec::new();
+    if b.link_contact {
+        if b.ground.is_none() {
+            return Err(err(
+                "link_contact".into(),
+                "needs a ground (its contact law is the pairs' too)",
+            ));
+        }
+        let c = b.contacts();
+        for i in 0..c.len() {
+            for j in i + 1..c.len() {
+                let (la, lb) = (new_index[c[i].0 .0], new_index[c[j].0 .0]);
+                let joined = la == lb || parent[la] == Some(lb) || parent[lb] == Some(la);
+                if !joined && (c[i].2 > 0.0 || c[j].2 > 0.0) {
+                    pairs.push((i as u32, j as u32));
+                }
+            }
+        }
+    }
     let r = |x: f64| R::lit(x);
     let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
     let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
@@ -390,6 +410,8 @@ pub(crate) fn finalize<R: Real>(
         contact_pos: Array::from_vec(b.contacts().iter().map(|c| v3(&c.1)).collect()),
         contact_radius: rs(&b.contacts().iter().map(|c| c.2).collect::<Vec<_>>()),
         ground: b.ground.map(|g| g.to()),
+        pair_a: Array::from_vec(pairs.iter().map(|p| p.0).collect()),
+        pair_b: Array::from_vec(pairs.iter().map(|p| p.1).collect()),
     };
     check_mass_matrix(&model)?;
     Ok(model)

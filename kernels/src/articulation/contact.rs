@@ -114,3 +114,50 @@ pub fn articulation_ground_contact<R: Real>(
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
 }
+
+/// Contact of a pair of contact spheres on two links (`pair_a[tid]`, `pair_b[tid]`, indices
+/// of contact spheres): at signed distance `d = |cb - ca| - ra - rb` along `n = (cb - ca) /
+/// |cb - ca|`, the point `x` midway between the surfaces gets the ground's law with the
+/// relative velocity `v_b(x) - v_a(x)`: `f = contact_force(n, contact_depth(d, leak), ...)`
+/// pushes `b` (wrench `(x x f, f)`) and `-f` pushes `a`.
+#[diff_kernel]
+pub fn articulation_pair_contact<R: Real>(
+    pair_a: &Array<u32>,
+    pair_b: &Array<u32>,
+    contact_link: &Array<u32>,
+    contact_pos: &Array<Vec3<R>>,
+    contact_radius: &Array<R>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    damping_depth: R,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let i = pair_a[t] as usize;
+    let j = pair_b[t] as usize;
+    let la = contact_link[i] as usize;
+    let lb = contact_link[j] as usize;
+    let ca = link_p[la] + quat_rotate(link_r[la], contact_pos[i]);
+    let cb = link_p[lb] + quat_rotate(link_r[lb], contact_pos[j]);
+    let n = normalize(cb - ca);
+    let ra = contact_radius[i];
+    let rb = contact_radius[j];
+    let d = length(cb - ca) - ra - rb;
+    let x = ca + n * (ra + 0.5 * d);
+    let va = link_v[la] + cross(link_w[la], x);
+    let vb = link_v[lb] + cross(link_w[lb], x);
+    let c = contact_depth(d, leak);
+    let kdc = contact_damping(c, kd, 0.0, damping_depth);
+    let f = contact_force(n, c, vb - va, ke, kdc, mu);
+    ext_n.atomic_add(lb, cross(x, f));
+    ext_f.atomic_add(lb, f);
+    ext_n.atomic_sub(la, cross(x, f));
+    ext_f.atomic_sub(la, f);
+}

@@ -239,6 +239,30 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
+        if let (true, Some(g), false) = (contact, &self.ground, self.pair_a.is_empty()) {
+            tape.launch(
+                super::contact::articulation_pair_contact,
+                self.pair_a.len(),
+                (
+                    &self.pair_a,
+                    &self.pair_b,
+                    &self.contact_link,
+                    &self.contact_pos,
+                    &self.contact_radius,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    g.ke,
+                    g.kd,
+                    g.mu,
+                    g.leak,
+                    g.damping_depth,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
         let (tz, qz) = (zeros(), zeros());
         let (target_q, target_qd, passive) = match control {
             Some(c) => (&c.target_q, &c.target_qd, 1u32),

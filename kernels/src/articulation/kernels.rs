@@ -323,9 +323,11 @@ pub fn articulation_joint_space<R: Real>(
 
 /// Semi-implicit Euler step of the joint of link `tid`: `qd' = qd + qdd dt`, then
 /// revolute/prismatic `q' = q + qd' dt`; ball `quat' = normalize(quat exp(w' dt))` with the
-/// angular velocity `w'` in the link frame; free, also `p' = p + R(quat) v' dt` with the
-/// linear velocity `v'` in the link frame. The quaternion stays on the unit sphere, and
-/// `exp` uses its series near zero rotation (no division by `|w|`).
+/// angular velocity `w'` in the link frame. A free joint's linear velocity is stepped in the
+/// world frame, where a body without force keeps it exactly: `u' = R (v + (a + w x v) dt)`
+/// (`a` its `qdd`, `w x v` the frame's rotation it contains), `p' = p + u' dt`, and
+/// `v' = R'^T u'` in the new link frame. The quaternion stays on the unit sphere, and `exp`
+/// uses its series near zero rotation (no division by `|w|`).
 #[diff_kernel]
 pub fn articulation_integrate<R: Real>(
     joint_type: &Array<u32>,
@@ -343,35 +345,27 @@ pub fn articulation_integrate<R: Real>(
     let s = q_start[l] as usize;
     let d0 = qd_start[l] as usize;
     let d1 = qd_start[l + 1] as usize;
-    for d in d0..d1 {
-        qd_new[d] = qd[d] + qdd[d] * dt;
-    }
     if jt == 1 || jt == 2 {
-        q_new[s] = q[s] + (qd[d0] + qdd[d0] * dt) * dt;
+        let v = qd[d0] + qdd[d0] * dt;
+        qd_new[d0] = v;
+        q_new[s] = q[s] + v * dt;
     } else if jt == 3 || jt == 4 {
         // The rotation's velocities are the joint's last three.
         let a = d1 - 3;
-        let w = vec3(
+        let w1 = vec3(
             qd[a] + qdd[a] * dt,
             qd[a + 1] + qdd[a + 1] * dt,
             qd[a + 2] + qdd[a + 2] * dt,
-        ) * dt;
+        );
+        qd_new[a] = w1.x;
+        qd_new[a + 1] = w1.y;
+        qd_new[a + 2] = w1.z;
+        let w = w1 * dt;
         let mut rs = s;
         if jt == 4 {
             rs = s + 3;
         }
-        let r = quat(q[rs], q[rs + 1], q[rs + 2], q[rs + 3]);
-        if jt == 4 {
-            let v = vec3(
-                qd[d0] + qdd[d0] * dt,
-                qd[d0 + 1] + qdd[d0 + 1] * dt,
-                qd[d0 + 2] + qdd[d0 + 2] * dt,
-            );
-            let p = quat_rotate(quat_normalize(r), v) * dt;
-            q_new[s] = q[s] + p.x;
-            q_new[s + 1] = q[s + 1] + p.y;
-            q_new[s + 2] = q[s + 2] + p.z;
-        }
+        let r = quat_normalize(quat(q[rs], q[rs + 1], q[rs + 2], q[rs + 3]));
         let th2 = dot(w, w);
         let mut k = 0.5 - th2 / 48.0;
         let mut c = 1.0 - th2 / 8.0;
@@ -385,5 +379,18 @@ pub fn articulation_integrate<R: Real>(
         q_new[rs + 1] = r1.y;
         q_new[rs + 2] = r1.z;
         q_new[rs + 3] = r1.w;
+        if jt == 4 {
+            let v = vec3(qd[d0], qd[d0 + 1], qd[d0 + 2]);
+            let acc = vec3(qdd[d0], qdd[d0 + 1], qdd[d0 + 2]);
+            let w0 = vec3(qd[a], qd[a + 1], qd[a + 2]);
+            let u = quat_rotate(r, v + (acc + cross(w0, v)) * dt);
+            q_new[s] = q[s] + u.x * dt;
+            q_new[s + 1] = q[s + 1] + u.y * dt;
+            q_new[s + 2] = q[s + 2] + u.z * dt;
+            let v1 = quat_rotate_inv(r1, u);
+            qd_new[d0] = v1.x;
+            qd_new[d0 + 1] = v1.y;
+            qd_new[d0 + 2] = v1.z;
+        }
     }
 }

@@ -415,6 +415,10 @@ pub struct ArticulationBuilder {
     contacts: Vec<(LinkId, Vec3<f64>, f64)>,
     /// The ground the contact spheres touch (`None`: no contact).
     pub ground: Option<GroundContact<f64>>,
+    /// Whether contact spheres of different links touch each other too (with the ground's
+    /// law; default false). Links joined to each other directly never touch, nor two
+    /// radius-0 points (box corners).
+    pub link_contact: bool,
     /// Gravity (m/s^2); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
     pub gravity: Vec3<f64>,
     /// Stiffness of the joint limits (N m/rad or N/m).
@@ -436,6 +440,7 @@ impl ArticulationBuilder {
             links: Vec::new(),
             contacts: Vec::new(),
             ground: None,
+            link_contact: false,
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
@@ -649,6 +654,11 @@ pub struct Articulations<R: Real> {
     pub contact_radius: Array<R>,
     /// The ground and its contact law (`None`: no contact).
     pub ground: Option<GroundContact<R>>,
+    /// Pairs of contact spheres that touch each other (with the ground's law), when
+    /// [`ArticulationBuilder::link_contact`] is set.
+    pub pair_a: Array<u32>,
+    /// See `pair_a`.
+    pub pair_b: Array<u32>,
 }
 
 impl<R: Real> Articulations<R> {

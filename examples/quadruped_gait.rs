@@ -1,0 +1,184 @@
+//! An open-loop gait for a quadruped, found by gradients through ground contact.
+//!
+//! The ant of `kernels/robots/ant.xml` (a free torso, four legs of a hip and an ankle, 14
+//! degrees of freedom, capsule feet on a frictional floor) is driven by one sine per joint,
+//! `tau_j = a_j sin(2 pi f t + phi_j)`, at a fixed frequency. L-BFGS tunes the 8 amplitudes and
+//! 8 phases (amplitudes within 0.5 N m) to carry the torso as far as possible along +x in
+//! `duration` seconds: the loss is `-x_T + 0.5 y_T^2 + 0.01 |a|^2`, through every contact of
+//! the rollout on the tape.
+//!
+//! Run: `cargo run --release --example quadruped_gait`
+
+use adflex::kernels::articulation::{mjcf, ArticulationControl, ArticulationState, Articulations};
+use adflex::optim::{Bounds, Optimizer, Params, Report};
+use adflex::prelude::*;
+
+/// The joint torques at time `t`: `tau[6 + j] = a[j] sin(w t + phi[j])` (the free joint's six
+/// are not driven).
+#[diff_kernel]
+fn gait(a: &Array<f64>, phi: &Array<f64>, w: f64, t: f64, tau: &Array<f64>) {
+    let j = tid();
+    tau[j + 6] = a[j] * sin(w * t + phi[j]);
+}
+
+/// `-x + 0.5 y^2` of the torso (coordinates 0 and 1 of the free joint).
+#[diff_kernel]
+fn distance(q: &Array<f64>, loss: &Array<f64>) {
+    loss.atomic_add(0, 0.5 * q[1] * q[1] - q[0]);
+}
+
+/// `w |a|^2`.
+#[diff_kernel]
+fn effort(a: &Array<f64>, w: f64, loss: &Array<f64>) {
+    let j = tid();
+    loss.atomic_add(0, w * a[j] * a[j]);
+}
+
+/// What the demo runs.
+pub struct Config {
+    pub duration: f64,
+    pub dt: f64,
+    pub frequency: f64,
+    pub max_iters: usize,
+    pub progress: bool,
+}
+
+impl Config {
+    pub fn full() -> Self {
+        Config {
+            duration: 2.0,
+            dt: 2e-3,
+            frequency: 2.0,
+            max_iters: 40,
+            progress: true,
+        }
+    }
+
+    pub fn small() -> Self {
+        Config {
+            duration: 1.0,
+            dt: 2e-3,
+            frequency: 2.0,
+            max_iters: 15,
+            progress: false,
+        }
+    }
+}
+
+/// What it found.
+pub struct Outcome {
+    pub report: Report,
+    /// Distance the torso moved along x (m): with the first guess, and found.
+    pub distance: (f64, f64),
+    /// The torso's lowest height during the found gait (m).
+    pub lowest: f64,
+}
+
+/// The ant, its limits softened to suit its light links, joints at the middle of their
+/// ranges.
+pub fn ant() -> Articulations<f64> {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/kernels/robots/ant.xml");
+    let mut b = mjcf::load(path)
+        .expect("the repository's ant loads")
+        .builder;
+    b.limit_ke = 10.0;
+    b.limit_kd = 0.1;
+    let mut model: Articulations<f64> = b.finalize().expect("a valid robot");
+    let (lo, hi) = (model.lower.to_vec(), model.upper.to_vec());
+    let mid: Vec<f64> = (0..model.n_dof)
+        .map(|d| {
+            if lo[d].is_finite() {
+                0.5 * (lo[d] + hi[d])
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    model.q0 = model.integrate(&model.q0, &mid);
+    model
+}
+
+fn rollout(
+    model: &Articulations<f64>,
+    cfg: &Config,
+    a: &Array<f64>,
+    phi: &Array<f64>,
+    tape: &mut Tape,
+) -> Result<Vec<ArticulationState<f64>>, Error> {
+    let steps = (cfg.duration / cfg.dt).round() as usize;
+    let w = 2.0 * std::f64::consts::PI * cfg.frequency;
+    let mut states = vec![model.state()];
+    for k in 0..steps {
+        let control = ArticulationControl {
+            tau: Array::zeros(model.n_dof),
+            ..model.control()
+        };
+        tape.launch(gait, 8, (a, phi, w, k as f64 * cfg.dt, &control.tau));
+        let next = model.step(tape, states.last().unwrap(), Some(&control), cfg.dt)?;
+        states.push(next);
+    }
+    Ok(states)
+}
+
+pub fn run(cfg: &Config) -> Result<Outcome, Error> {
+    let model = ant();
+    let a = Array::from_vec(vec![0.3; 8]);
+    let phi = Array::from_vec((0..8).map(|j| 0.8 * j as f64).collect());
+    let x = |s: &[ArticulationState<f64>]| s.last().unwrap().q.get(0) - s[0].q.get(0);
+    let first = x(&rollout(&model, cfg, &a, &phi, &mut Tape::new())?);
+    let report = Optimizer::lbfgs()
+        .max_iters(cfg.max_iters)
+        .progress(cfg.progress)
+        .minimize(
+            &Params::new()
+                .bounded(&a, Bounds::between(-0.5, 0.5))
+                .with(&phi),
+            |tape| {
+                let states = rollout(&model, cfg, &a, &phi, tape)?;
+                let loss = Array::zeros(1);
+                tape.launch(distance, 1, (&states.last().unwrap().q, &loss));
+                tape.launch(effort, 8, (&a, 1e-2, &loss));
+                Ok(loss)
+            },
+        )?;
+    let states = rollout(&model, cfg, &a, &phi, &mut Tape::new())?;
+    Ok(Outcome {
+        report,
+        distance: (first, x(&states)),
+        lowest: states
+            .iter()
+            .map(|s| s.q.get(2))
+            .fold(f64::INFINITY, f64::min),
+    })
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let start = std::time::Instant::now();
+    let cfg = if std::env::args().any(|a| a == "--small") {
+        Config::small()
+    } else {
+        Config::full()
+    };
+    let out = run(&cfg)?;
+    println!("{}", out.report);
+    println!(
+        "torso moved {:.3} m along x in {} s (first guess {:.3} m; lowest torso height {:.3} m) \
+         ({:.1} s)",
+        out.distance.1,
+        cfg.duration,
+        out.distance.0,
+        out.lowest,
+        start.elapsed().as_secs_f64()
+    );
+    let dir = std::path::Path::new("target/demos/quadruped");
+    std::fs::create_dir_all(dir)?;
+    for file in ["loss.svg", "loss.png"] {
+        adflex::viz::plot::loss_curve(
+            dir.join(file),
+            &out.report.losses(),
+            "quadruped gait: L-BFGS on 8 amplitudes and 8 phases",
+        )?;
+    }
+    println!("pictures: {}/loss.{{svg, png}}", dir.display());
+    Ok(())
+}
