@@ -730,7 +730,9 @@ fn link_spheres_collide_conserving_momentum_with_right_gradients() {
     let steps = 300;
     let run = |v0: f64, tape: &mut Tape| {
         let q = Array::from_vec(model.q0.clone());
-        let qd = Array::from_vec(vec![v0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let qd = Array::from_vec(vec![
+            v0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        ]);
         let taus = vec![Array::zeros(12); steps];
         let (qf, qdf) = rollout(&model, tape, &q, &qd, &taus, 1e-3);
         (q, qd, qf, qdf)
@@ -746,8 +748,15 @@ fn link_spheres_collide_conserving_momentum_with_right_gradients() {
         (r * l * r.conjugate()).imag()
     };
     let momentum = world(0, 0) + world(7, 6);
-    assert!((momentum.x - 1.0).abs() < 1e-9 && momentum.y.abs() < 1e-9, "{momentum:?}");
-    assert!(world(7, 6).x > 0.5, "the second ball was hit: {:?}", world(7, 6));
+    assert!(
+        (momentum.x - 1.0).abs() < 1e-9 && momentum.y.abs() < 1e-9,
+        "{momentum:?}"
+    );
+    assert!(
+        world(7, 6).x > 0.5,
+        "the second ball was hit: {:?}",
+        world(7, 6)
+    );
     // d(final x of ball b)/d(initial speed of a) through the collision.
     let mut w = vec![0.0; 14 + 12];
     w[7] = 1.0;
@@ -779,5 +788,8 @@ fn a_spinning_free_body_keeps_its_world_velocity() {
         s = model.step(&mut tape, &s, None, 1e-3).unwrap();
     }
     let end = com_velocity(&s);
-    assert!((end - start).norm() < 2e-3 * start.norm(), "{start:?} -> {end:?}");
+    assert!(
+        (end - start).norm() < 2e-3 * start.norm(),
+        "{start:?} -> {end:?}"
+    );
 }

@@ -68,7 +68,7 @@ pub(crate) fn finalize<R: Real>(
     if !finite3(&b.gravity) {
         return Err(err("gravity".into(), "must be finite"));
     }
-    if !(b.limit_ke >= 0.0 && b.limit_kd >= 0.0) || !b.limit_ke.is_finite() {
+    if !(b.limit_ke >= 0.0 && b.limit_kd >= 0.0 && b.limit_ke.is_finite()) {
         return Err(err(
             "limit_ke/limit_kd".into(),
             "must be finite and non-negative",
@@ -158,7 +158,7 @@ pub(crate) fn finalize<R: Real>(
                 format!("link {} does not exist", l.0),
             ));
         }
-        if !finite3(&c) || !(r.is_finite() && r >= 0.0) {
+        if !(finite3(&c) && r.is_finite() && r >= 0.0) {
             return Err(err(
                 format!("contact {k} on {}", name(l.0)),
                 "centre must be finite and radius finite and non-negative",
@@ -212,7 +212,7 @@ pub(crate) fn finalize<R: Real>(
         match k {
             JointType::Ball => neutral.extend([0.0, 0.0, 0.0, 1.0]),
             JointType::Free => neutral.extend([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
-            _ => neutral.extend(std::iter::repeat(0.0).take(k.nq())),
+            _ => neutral.extend(vec![0.0; k.nq()]),
         }
     }
     qd_start.push(nv as u32);

@@ -21,7 +21,7 @@ pub struct GroundContact<R: Real> {
     /// Friction coefficient (default 0.8).
     pub mu: R,
     /// Gradient leak out of contact (default 0: exact gradients; see
-    /// [`contact_depth`](crate::contact::law::contact_depth)).
+    /// [`contact_depth`]).
     pub leak: R,
     /// Depth over which the damping rises to `kd` (m; default 1e-3).
     pub damping_depth: R,
