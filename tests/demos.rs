@@ -16,6 +16,9 @@ mod inverse_design;
 #[path = "../examples/parameter_estimation.rs"]
 #[allow(dead_code)]
 mod parameter_estimation;
+#[path = "../examples/quadruped_gait.rs"]
+#[allow(dead_code)]
+mod quadruped_gait;
 
 #[test]
 fn cage_centre_reaches_the_target_in_a_few_lbfgs_iterations() {
@@ -269,4 +272,18 @@ fn arm_masses_are_identified_from_a_trajectory() {
         out.mass_error.1,
         out.report
     );
+}
+
+/// The quadruped's open-loop gait, tuned through ground contact, carries the torso forward
+/// (a small figure at this size: 1 s and 15 iterations) and keeps it off the ground.
+#[test]
+fn quadruped_gait_moves_forward_through_contact() {
+    let out = quadruped_gait::run(&quadruped_gait::Config::small()).unwrap();
+    assert!(
+        out.distance.1 > out.distance.0 && out.distance.1 > 0.0,
+        "moved {:?}: {}",
+        out.distance,
+        out.report
+    );
+    assert!(out.lowest > 0.3, "the torso fell: {}", out.lowest);
 }

@@ -498,7 +498,8 @@ impl ArticulationBuilder {
         &self.links
     }
 
-    pub(crate) fn links_mut(&mut self) -> &mut [LinkDesc] {
+    /// The links described so far, to edit (e.g. a loaded robot's gains or damping).
+    pub fn links_mut(&mut self) -> &mut [LinkDesc] {
         &mut self.links
     }
 
