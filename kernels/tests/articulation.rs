@@ -793,3 +793,53 @@ fn a_spinning_free_body_keeps_its_world_velocity() {
         "{start:?} -> {end:?}"
     );
 }
+
+#[test]
+fn a_muscle_lifts_a_pendulum_with_right_gradients() {
+    use adflex_kernels::articulation::{
+        ArticulationBuilder, ArticulationControl, Inertial, Joint, Muscle,
+    };
+    use adflex_runtime::Vec3;
+    let mut b = ArticulationBuilder::new();
+    let base = b.add_link("base", None, Joint::fixed(), Inertial::massless());
+    let pole = b.add_link(
+        "pole",
+        Some(base),
+        Joint::revolute(Vec3::y()).name("hinge"),
+        Inertial::sphere(1.0, 0.05, Vec3::new(0.0, 0.0, -0.5)),
+    );
+    b.add_muscle(Muscle {
+        name: "lifter".into(),
+        origin: (base, Vec3::new(0.3, 0.0, 0.2)),
+        insertion: (pole, Vec3::new(0.0, 0.0, -0.3)),
+        f_max: 50.0,
+        l_opt: 0.4,
+        tendon_slack: 0.1,
+        v_max: 10.0,
+    });
+    let model = b.finalize::<f64>().unwrap();
+    let steps = 400;
+    let run = |a: f64, tape: &mut Tape| {
+        let act = Array::from_vec(vec![a]);
+        let mut s = model.state();
+        let c = ArticulationControl {
+            activation: act.clone(),
+            ..model.control()
+        };
+        for _ in 0..steps {
+            s = model.step(tape, &s, Some(&c), 1e-3).unwrap();
+        }
+        (act, s)
+    };
+    // Passive: it swings a little (the tendon is stretched); active: it is pulled toward the
+    // origin's side (a rotation about +y moving the bob toward +x is negative).
+    let passive = run(0.0, &mut Tape::new()).1.q.get(0);
+    let mut tape = Tape::new();
+    let (act, s) = run(0.5, &mut tape);
+    let active = s.q.get(0);
+    assert!(active < passive - 0.1, "active {active}, passive {passive}");
+    let g = tape.vjp(&[&s.q], &[1.0], &[&act]).unwrap()[0];
+    let f = |a: f64| run(a, &mut Tape::new()).1.q.get(0);
+    let fd = (f(0.5 + 1e-6) - f(0.5 - 1e-6)) / 2e-6;
+    assert!((g - fd).abs() < 1e-6 * fd.abs().max(1e-3), "{g} vs {fd}");
+}

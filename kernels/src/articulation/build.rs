@@ -165,6 +165,37 @@ pub(crate) fn finalize<R: Real>(
             ));
         }
     }
+    for (k, m) in b.muscles().iter().enumerate() {
+        let e = || format!("muscle \"{}\" ({k})", m.name);
+        if m.origin.0 .0 >= n || m.insertion.0 .0 >= n {
+            return Err(err(e(), "its origin or insertion link does not exist"));
+        }
+        if !(finite3(&m.origin.1) && finite3(&m.insertion.1)) {
+            return Err(err(e(), "attachment points must be finite"));
+        }
+        for (v, what, positive) in [
+            (m.f_max, "f_max", false),
+            (m.l_opt, "l_opt", true),
+            (m.tendon_slack, "tendon_slack", false),
+            (m.v_max, "v_max", true),
+        ] {
+            if !(v.is_finite() && (v > 0.0 || (!positive && v == 0.0))) {
+                return Err(err(
+                    e(),
+                    format!(
+                        "{what} {v} must be finite and {}",
+                        if positive { "positive" } else { "non-negative" }
+                    ),
+                ));
+            }
+        }
+        if m.origin.0 == m.insertion.0 {
+            return Err(err(
+                e(),
+                "origin and insertion are on the same link: it would pull on nothing",
+            ));
+        }
+    }
     // Topology: articulations are the trees under each root; links stay in the order given
     // (parents first), grouped by tree.
     let mut root_of = vec![0usize; n];
@@ -410,6 +441,31 @@ pub(crate) fn finalize<R: Real>(
         contact_pos: Array::from_vec(b.contacts().iter().map(|c| v3(&c.1)).collect()),
         contact_radius: rs(&b.contacts().iter().map(|c| c.2).collect::<Vec<_>>()),
         ground: b.ground.map(|g| g.to()),
+        muscle_origin_link: Array::from_vec(
+            b.muscles()
+                .iter()
+                .map(|m| new_index[m.origin.0 .0] as u32)
+                .collect(),
+        ),
+        muscle_origin_pos: Array::from_vec(b.muscles().iter().map(|m| v3(&m.origin.1)).collect()),
+        muscle_insertion_link: Array::from_vec(
+            b.muscles()
+                .iter()
+                .map(|m| new_index[m.insertion.0 .0] as u32)
+                .collect(),
+        ),
+        muscle_insertion_pos: Array::from_vec(
+            b.muscles().iter().map(|m| v3(&m.insertion.1)).collect(),
+        ),
+        muscle_f_max: rs(&b.muscles().iter().map(|m| m.f_max).collect::<Vec<_>>()),
+        muscle_l_opt: rs(&b.muscles().iter().map(|m| m.l_opt).collect::<Vec<_>>()),
+        muscle_tendon_slack: rs(&b
+            .muscles()
+            .iter()
+            .map(|m| m.tendon_slack)
+            .collect::<Vec<_>>()),
+        muscle_v_max: rs(&b.muscles().iter().map(|m| m.v_max).collect::<Vec<_>>()),
+        muscle_names: b.muscles().iter().map(|m| m.name.clone()).collect(),
         pair_a: Array::from_vec(pairs.iter().map(|p| p.0).collect()),
         pair_b: Array::from_vec(pairs.iter().map(|p| p.1).collect()),
     };

@@ -31,6 +31,9 @@ pub struct ArticulationControl<R: Real> {
     pub target_q: Array<R>,
     /// PD velocity targets.
     pub target_qd: Array<R>,
+    /// Muscle activations in `[0, 1]`, one per muscle (see
+    /// [`Muscle`](super::Muscle)).
+    pub activation: Array<R>,
 }
 
 /// What [`Articulations::pass`] computes with.
@@ -104,6 +107,7 @@ impl<R: Real> Articulations<R> {
             tau: Array::zeros(self.n_dof),
             target_q: Array::zeros(self.n_dof),
             target_qd: Array::zeros(self.n_dof),
+            activation: Array::zeros(self.muscle_f_max.len()),
         }
     }
 
@@ -263,6 +267,30 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
+        if let (Some(c), false) = (control, self.muscle_f_max.is_empty()) {
+            self.check_len(&c.activation, self.muscle_f_max.len(), "control.activation");
+            tape.launch(
+                super::muscle::articulation_muscles,
+                self.muscle_f_max.len(),
+                (
+                    &self.muscle_origin_link,
+                    &self.muscle_origin_pos,
+                    &self.muscle_insertion_link,
+                    &self.muscle_insertion_pos,
+                    &self.muscle_f_max,
+                    &self.muscle_l_opt,
+                    &self.muscle_tendon_slack,
+                    &self.muscle_v_max,
+                    &c.activation,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
         let (tz, qz) = (zeros(), zeros());
         let (target_q, target_qd, passive) = match control {
             Some(c) => (&c.target_q, &c.target_qd, 1u32),
@@ -358,8 +386,9 @@ impl<R: Real> Articulations<R> {
         self.solve(tape, &p.m, &p.rhs)
     }
 
-    /// One semi-implicit Euler step: `qdd` from the dynamics with the control's torques and
-    /// PD actuators, joint damping and limits, and the ground contact of the contact spheres;
+    /// One semi-implicit Euler step: `qdd` from the dynamics with the control's torques, PD
+    /// actuators and muscle activations, joint damping and limits, and the ground contact of
+    /// the contact spheres;
     /// `qd' = qd + qdd dt`, then `q'` from `qd'` (quaternions by the exponential map,
     /// renormalized). Returns the new state; every launch is on `tape`.
     pub fn step(

@@ -46,6 +46,7 @@ mod dynamics;
 pub mod kernels;
 pub mod mjcf;
 mod model;
+pub mod muscle;
 pub mod urdf;
 mod xml;
 
@@ -53,5 +54,5 @@ pub use contact::GroundContact;
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, Joint,
-    JointType, LinkDesc, LinkId, LinkInfo, Pose,
+    JointType, LinkDesc, LinkId, LinkInfo, Muscle, Pose,
 };

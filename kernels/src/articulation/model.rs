@@ -331,6 +331,26 @@ impl Inertial {
     }
 }
 
+/// A Hill-type muscle-tendon unit between two links (see
+/// [`muscle`](super::muscle) for its force).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Muscle {
+    /// Name, for errors.
+    pub name: String,
+    /// The origin: a link and a point in its frame (m).
+    pub origin: (LinkId, Vec3<f64>),
+    /// The insertion: a link and a point in its frame (m).
+    pub insertion: (LinkId, Vec3<f64>),
+    /// Peak isometric force (N).
+    pub f_max: f64,
+    /// Optimal fibre length (m).
+    pub l_opt: f64,
+    /// Tendon slack length (m; the tendon is rigid).
+    pub tendon_slack: f64,
+    /// Maximum shortening speed, in optimal lengths per second (typically 10).
+    pub v_max: f64,
+}
+
 /// A link of an [`ArticulationBuilder`], by its index.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct LinkId(pub usize);
@@ -415,6 +435,8 @@ pub struct ArticulationBuilder {
     contacts: Vec<(LinkId, Vec3<f64>, f64)>,
     /// The ground the contact spheres touch (`None`: no contact).
     pub ground: Option<GroundContact<f64>>,
+    /// Muscle-tendon units.
+    muscles: Vec<Muscle>,
     /// Whether contact spheres of different links touch each other too (with the ground's
     /// law; default false). Links joined to each other directly never touch, nor two
     /// radius-0 points (box corners).
@@ -441,6 +463,7 @@ impl ArticulationBuilder {
             contacts: Vec::new(),
             ground: None,
             link_contact: false,
+            muscles: Vec::new(),
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
@@ -488,6 +511,18 @@ impl ArticulationBuilder {
         self.add_contact_sphere(link, b, radius);
     }
 
+    /// Adds a muscle-tendon unit; returns its index (its activation's in
+    /// [`ArticulationControl::activation`](super::ArticulationControl)).
+    pub fn add_muscle(&mut self, muscle: Muscle) -> usize {
+        self.muscles.push(muscle);
+        self.muscles.len() - 1
+    }
+
+    /// The muscles.
+    pub fn muscles(&self) -> &[Muscle] {
+        &self.muscles
+    }
+
     /// The contact spheres: link, centre, radius.
     pub fn contacts(&self) -> &[(LinkId, Vec3<f64>, f64)] {
         &self.contacts
@@ -519,6 +554,12 @@ impl ArticulationBuilder {
         }
         for &(l, c, r) in &other.contacts {
             self.contacts.push((LinkId(l.0 + base), c, r));
+        }
+        for m in &other.muscles {
+            let mut m = m.clone();
+            m.origin.0 = LinkId(m.origin.0 .0 + base);
+            m.insertion.0 = LinkId(m.insertion.0 .0 + base);
+            self.muscles.push(m);
         }
         if self.ground.is_none() {
             self.ground = other.ground;
@@ -660,6 +701,25 @@ pub struct Articulations<R: Real> {
     pub pair_a: Array<u32>,
     /// See `pair_a`.
     pub pair_b: Array<u32>,
+    /// Per muscle: origin link and point, insertion link and point, `f_max`, `l_opt`,
+    /// `tendon_slack`, `v_max` (see [`Muscle`]).
+    pub muscle_origin_link: Array<u32>,
+    /// See `muscle_origin_link`.
+    pub muscle_origin_pos: Array<Vec3<R>>,
+    /// See `muscle_origin_link`.
+    pub muscle_insertion_link: Array<u32>,
+    /// See `muscle_origin_link`.
+    pub muscle_insertion_pos: Array<Vec3<R>>,
+    /// See `muscle_origin_link`.
+    pub muscle_f_max: Array<R>,
+    /// See `muscle_origin_link`.
+    pub muscle_l_opt: Array<R>,
+    /// See `muscle_origin_link`.
+    pub muscle_tendon_slack: Array<R>,
+    /// See `muscle_origin_link`.
+    pub muscle_v_max: Array<R>,
+    /// Muscle names.
+    pub muscle_names: Vec<String>,
 }
 
 impl<R: Real> Articulations<R> {
