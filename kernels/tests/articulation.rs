@@ -582,7 +582,7 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
         .unwrap()
         .finalize::<f64>()
         .is_ok());
-    let cases: [(&str, &str, u32, &str); 9] = [
+    let cases: [(&str, &str, u32, &str); 8] = [
         (
             "<parent link=\"a\"/>",
             "<parent link=\"z\"/>",
@@ -592,7 +592,6 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
         ("<mass value=\"1\"/>", "<mass value=\"0\"/>", 4, "zero"),
         ("<mass value=\"1\"/>", "<mass value=\"-2\"/>", 4, "negative"),
         ("ixx=\"0.1\"", "ixx=\"-0.1\"", 4, "positive semi-definite"),
-        ("ixx=\"0.1\"", "ixx=\"0.5\"", 4, "triangle inequality"),
         (
             "type=\"revolute\"",
             "type=\"screw\"",
@@ -652,9 +651,9 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
         (
             "diaginertia=\"0.1 0.1 0.1\"",
-            "diaginertia=\"0.1 0.1 0.3\"",
+            "diaginertia=\"0.1 -0.1 0.3\"",
             5,
-            "triangle",
+            "semi-definite",
         ),
         ("type=\"hinge\"", "type=\"screw\"", 4, "screw"),
         (
@@ -842,4 +841,28 @@ fn a_muscle_lifts_a_pendulum_with_right_gradients() {
     let f = |a: f64| run(a, &mut Tape::new()).1.q.get(0);
     let fd = (f(0.5 + 1e-6) - f(0.5 - 1e-6)) / 2e-6;
     assert!((g - fd).abs() < 1e-6 * fd.abs().max(1e-3), "{g} vs {fd}");
+}
+
+#[test]
+fn the_same_robot_runs_in_f32() {
+    // The arm, swinging under gravity from a bent pose (no limit reached).
+    let path = format!("{ROBOTS}/arm7.urdf");
+    let b = urdf::load(&path, &Default::default()).unwrap();
+    let mut m64: Articulations<f64> = b.finalize().unwrap();
+    let mut m32: Articulations<f32> = b.finalize().unwrap();
+    m64.q0 = vec![0.3; 7];
+    m32.q0 = vec![0.3; 7];
+    let (mut s64, mut s32) = (m64.state(), m32.state());
+    let (mut t64, mut t32) = (Tape::new(), Tape::new());
+    for _ in 0..200 {
+        s64 = m64.step(&mut t64, &s64, None, 1e-3).unwrap();
+        s32 = m32.step(&mut t32, &s32, None, 1e-3).unwrap();
+    }
+    let (a, b) = (s64.q.to_vec(), s32.q.to_vec());
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - *y as f64).abs())
+        .fold(0.0, f64::max);
+    assert!(worst < 1e-4, "f32 and f64 differ by {worst}");
 }

@@ -571,7 +571,7 @@ impl ArticulationBuilder {
     ///
     /// Errors name the link or joint: a parent added after its child or missing, a
     /// non-finite number, a negative mass, an inertia that is not symmetric positive
-    /// semi-definite (or breaks the triangle inequality), a zero axis or quaternion, limits
+    /// semi-definite, a zero axis or quaternion, limits
     /// with `lower > upper`, a negative damping, armature or gain, and a joint whose motion
     /// moves no mass (the mass matrix would be singular).
     pub fn finalize<R: Real>(&self) -> Result<Articulations<R>, ArticulationError> {
