@@ -15,6 +15,7 @@ fn load(file: &str, floating: bool) -> Articulations<f64> {
             &path,
             &urdf::UrdfOptions {
                 floating_base: floating,
+                ..Default::default()
             },
         )
     } else {
@@ -865,4 +866,93 @@ fn the_same_robot_runs_in_f32() {
         .map(|(x, y)| (x - *y as f64).abs())
         .fold(0.0, f64::max);
     assert!(worst < 1e-4, "f32 and f64 differ by {worst}");
+}
+
+#[test]
+fn urdf_quadruped_stands_on_its_collision_spheres_with_right_gradients() {
+    use adflex_kernels::articulation::GroundContact;
+    let options = urdf::UrdfOptions {
+        floating_base: true,
+        collisions: true,
+    };
+    let mut b = urdf::load(format!("{ROBOTS}/quadruped.urdf"), &options).unwrap();
+    assert_eq!(b.contacts().len(), 8 + 4, "a box's corners and four feet");
+    b.ground = Some(GroundContact::default());
+    let mut model: Articulations<f64> = b.finalize().unwrap();
+    model.q0[2] = 0.25; // the torso 25 cm up
+    let n = model.n_dof;
+    let steps = 400;
+    let mut rng = adflex_testkit::Rng(3);
+    let taus0: Vec<Vec<f64>> = (0..steps)
+        .map(|_| {
+            (0..n)
+                .map(|d| if d < 6 { 0.0 } else { rng.uniform(-0.2, 0.2) })
+                .collect()
+        })
+        .collect();
+    let w: Vec<f64> = (0..model.n_q + n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let run = |taus: &[Array<f64>], tape: &mut Tape| {
+        rollout(
+            &model,
+            tape,
+            &Array::from_vec(model.q0.clone()),
+            &Array::zeros(n),
+            taus,
+            1e-3,
+        )
+    };
+    let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
+    let mut tape = Tape::new();
+    let (qf, qdf) = run(&taus, &mut tape);
+    let z = qf.get(2);
+    assert!(
+        z > 0.05 && z < 0.25,
+        "torso height {z}: it stands on its feet"
+    );
+    let inputs: Vec<&dyn adflex_runtime::AnyArray> = taus
+        .iter()
+        .map(|t| t as &dyn adflex_runtime::AnyArray)
+        .collect();
+    let g = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
+    let f = |v: &[f64], h: f64| {
+        let taus: Vec<Array<f64>> = taus0
+            .iter()
+            .enumerate()
+            .map(|(s, t)| {
+                Array::from_vec(
+                    t.iter()
+                        .enumerate()
+                        .map(|(d, x)| x + h * v[s * n + d])
+                        .collect(),
+                )
+            })
+            .collect();
+        let (qf, qdf) = run(&taus, &mut Tape::new());
+        let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
+        f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    for _ in 0..2 {
+        let v: Vec<f64> = (0..g.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let fd = (f(&v, 1e-6) - f(&v, -1e-6)) / 2e-6;
+        let an: f64 = g.iter().zip(&v).map(|(a, b)| a * b).sum();
+        assert!((fd - an).abs() <= 1e-4 * an.abs().max(1e-2), "{an} vs {fd}");
+    }
+}
+
+#[test]
+fn urdf_collisions_outside_the_shapes_are_refused_when_read() {
+    let with_mesh = URDF.replace(
+        "<link name=\"b\">",
+        "<link name=\"b\"><collision><geometry><mesh filename=\"b.stl\"/></geometry></collision>",
+    );
+    // Ignored by default (meshes are most robots' collision geometry)...
+    assert!(urdf::parse(&with_mesh, &Default::default()).is_ok());
+    // ... and refused, naming the element and line, when contact shapes are asked for.
+    let options = urdf::UrdfOptions {
+        collisions: true,
+        ..Default::default()
+    };
+    let e = urdf::parse(&with_mesh, &options).unwrap_err();
+    assert_eq!(e.line, Some(3), "{e}");
+    assert!(e.to_string().contains("<mesh>"), "{e}");
 }

@@ -51,6 +51,11 @@ use super::xml::{self, children, Source};
 pub struct UrdfOptions {
     /// Put the root link on a free joint (a floating base) instead of welding it to the world.
     pub floating_base: bool,
+    /// Read `<collision>` geometry as contact shapes: `<sphere>`, `<box>` (by its corners) and
+    /// `<capsule radius length>` (along z, by its end spheres); a `<cylinder>` or `<mesh>` is
+    /// then an error naming it. Default false: no contact shapes (most robots' collision
+    /// geometry is meshes). Set the builder's `ground` for them to touch.
+    pub collisions: bool,
 }
 
 /// Reads the URDF file at `path` into a builder (add more, set gravity, then finalize).
@@ -203,7 +208,71 @@ fn parse_named(
             "is on a cycle of joints, not on the tree under the root",
         ));
     }
+    if options.collisions {
+        for (l, (node, _, _)) in links.iter().enumerate() {
+            let link = id[l].expect("every link is on the tree");
+            for c in node.children().filter(|c| c.has_tag_name("collision")) {
+                collision(&src, c, link, &mut b)?;
+            }
+        }
+    }
     Ok(b)
+}
+
+/// A `<collision>`'s geometry as contact shapes on `link`.
+fn collision(
+    src: &Source,
+    c: Node,
+    link: LinkId,
+    b: &mut ArticulationBuilder,
+) -> Result<(), ArticulationError> {
+    children(src, c, &["origin", "geometry"], &[])?;
+    let pose = origin(src, c)?;
+    let g = c
+        .children()
+        .find(|n| n.has_tag_name("geometry"))
+        .ok_or_else(|| src.error(c, "needs a <geometry>"))?;
+    let shapes = children(
+        src,
+        g,
+        &["sphere", "box", "capsule", "cylinder", "mesh"],
+        &[],
+    )?;
+    let Some(&shape) = shapes.first() else {
+        return Err(src.error(g, "needs a shape"));
+    };
+    let positive = |name: &str| -> Result<f64, ArticulationError> {
+        match src.number(shape, name)? {
+            Some(v) if v > 0.0 => Ok(v),
+            _ => Err(src.error(shape, format!("needs a positive `{name}`"))),
+        }
+    };
+    match shape.tag_name().name() {
+        "sphere" => b.add_contact_sphere(link, pose.pos, positive("radius")?),
+        "box" => {
+            let size = src
+                .vec3(shape, "size")?
+                .filter(|v| v.iter().all(|&x| x > 0.0))
+                .ok_or_else(|| src.error(shape, "needs a positive `size`"))?;
+            b.add_contact_box(link, &pose, size * 0.5);
+        }
+        "capsule" => {
+            let (r, h) = (positive("radius")?, 0.5 * positive("length")?);
+            let a = pose.transform_point(&Vec3::new(0.0, 0.0, -h));
+            let e = pose.transform_point(&Vec3::new(0.0, 0.0, h));
+            b.add_contact_capsule(link, a, e, r);
+        }
+        other => {
+            return Err(src.error(
+                shape,
+                format!(
+                    "<{other}> is not supported as a contact shape (sphere, box, capsule); read \
+                     the robot with UrdfOptions::collisions = false for no contact shapes"
+                ),
+            ))
+        }
+    }
+    Ok(())
 }
 
 fn origin(src: &Source, node: Node) -> Result<Pose, ArticulationError> {
