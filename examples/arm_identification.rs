@@ -117,7 +117,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         .into_iter()
         .map(|a| a.deep_clone())
         .collect();
-    // The first guess: masses off by 30%, centres of mass shifted by up to 3 cm.
+    // The first guess: masses off by 30% (the centres of mass are known).
     model.mass.modify(|m| {
         for (i, x) in m.iter_mut().enumerate().skip(1) {
             *x *= if i % 2 == 0 { 1.3 } else { 0.7 };

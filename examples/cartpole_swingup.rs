@@ -3,12 +3,12 @@
 //! The cart-pole of `kernels/robots/cartpole.urdf` (a 1 kg cart on a rail, a 0.1 kg pole of
 //! 1 m) starts hanging down at rest. The controls are the cart's force in each of 240 frames of
 //! 1/60 s (4 semi-implicit substeps each). L-BFGS minimizes, through the whole 960-step rollout
-//! on the tape, `c(T) + mean(c(t) over the last eighth)` with
+//! on the tape, `c(T) + 4 mean(c(t) over the last eighth)` with
 //! `c = 10 (1 - cos theta) + xd^2 + thetad^2 + 0.1 x^2` (upright and still at the end, and
 //! held there) plus a small effort term `1e-4 mean(u^2)`.
 //!
 //! Run: `cargo run --release --example cartpole_swingup` (pictures in
-//! `target/demos/cartpole/`).
+//! `target/demos/cartpole_swingup/`).
 
 use adflex::kernels::articulation::{urdf, ArticulationControl, ArticulationState, Articulations};
 use adflex::optim::{Optimizer, Params, Report};
@@ -171,7 +171,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         start.elapsed().as_secs_f64(),
         out.report.history.len().saturating_sub(1)
     );
-    let dir = std::path::Path::new("target/demos/cartpole");
+    let dir = std::path::Path::new("target/demos/cartpole_swingup");
     std::fs::create_dir_all(dir)?;
     for file in ["loss.svg", "loss.png"] {
         adflex::viz::plot::loss_curve(

@@ -182,7 +182,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         out.lowest,
         start.elapsed().as_secs_f64()
     );
-    let dir = std::path::Path::new("target/demos/quadruped");
+    let dir = std::path::Path::new("target/demos/quadruped_gait");
     std::fs::create_dir_all(dir)?;
     for file in ["loss.svg", "loss.png"] {
         adflex::viz::plot::loss_curve(

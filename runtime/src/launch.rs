@@ -481,7 +481,9 @@ fn lock_targets<'a>(
     arrays: &[Option<&'a dyn AnyArray>],
     mode: Mode,
 ) -> LockTargets<'a> {
-    // Each array's id once (a kernel has tens of parameters: sorting beats comparing pairs).
+    debug_assert_eq!(params.len(), arrays.len());
+    // Every use's array id, sorted: an alias is two neighbours (a kernel has tens of
+    // parameters, so sorting beats comparing every pair).
     let mut uses: Vec<(u64, usize)> = arrays
         .iter()
         .enumerate()

@@ -43,6 +43,18 @@ pub(crate) fn check_inertial(i: &Inertial) -> Result<(), String> {
     Ok(())
 }
 
+/// A mass read from a file: an element that gives one must give a positive one (`what`, "a
+/// link" or "a body", without mass has none).
+pub(crate) fn check_mass(mass: f64, what: &str) -> Result<(), String> {
+    if mass > 0.0 {
+        return Ok(());
+    }
+    Err(format!(
+        "mass {mass} is {}: {what} without mass has no <inertial>",
+        if mass < 0.0 { "negative" } else { "zero" }
+    ))
+}
+
 pub(crate) fn finalize<R: Real>(
     b: &ArticulationBuilder,
 ) -> Result<Articulations<R>, ArticulationError> {
@@ -60,7 +72,8 @@ pub(crate) fn finalize<R: Real>(
     if !finite3(&b.gravity) {
         return Err(err("gravity".into(), "must be finite"));
     }
-    if !(b.limit_ke >= 0.0 && b.limit_kd >= 0.0 && b.limit_ke.is_finite()) {
+    if !(b.limit_ke >= 0.0 && b.limit_kd >= 0.0 && b.limit_ke.is_finite() && b.limit_kd.is_finite())
+    {
         return Err(err(
             "limit_ke/limit_kd".into(),
             "must be finite and non-negative",

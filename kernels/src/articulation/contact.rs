@@ -7,6 +7,21 @@ use adflex_runtime::prelude::*;
 
 use crate::contact::law::{contact_damping, contact_depth, contact_force};
 
+/// The shape of a geom (MJCF) or collision element (URDF), in its own frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum GeomShape {
+    /// A sphere of this radius.
+    Sphere(f64),
+    /// A capsule along z: radius, half-length of the cylinder.
+    Capsule(f64, f64),
+    /// A cylinder along z: radius, half-length.
+    Cylinder(f64, f64),
+    /// A box of these half extents.
+    Box(Vec3<f64>),
+    /// A plane through the origin with normal z.
+    Plane,
+}
+
 /// The ground plane links touch, and its contact law.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GroundContact<R: Real> {

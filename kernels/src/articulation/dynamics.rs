@@ -543,6 +543,17 @@ impl<R: Real> Articulations<R> {
         Ok(qdd)
     }
 
+    fn check_slices(&self, q: &[f64], v: &[f64], what: &str) {
+        assert!(
+            q.len() == self.n_q && v.len() == self.n_dof,
+            "Articulations::{what}: q has {} elements (the model needs {}), v {} (needs {})",
+            q.len(),
+            self.n_q,
+            v.len(),
+            self.n_dof
+        );
+    }
+
     /// Row-major block of articulation `art` of a mass-matrix array, as rows.
     pub fn block(&self, m: &Array<R>, art: usize) -> Vec<Vec<f64>> {
         let a = &self.articulations[art];
@@ -558,6 +569,7 @@ impl<R: Real> Articulations<R> {
     /// free joint's rotation) `dr = r (v/2, 0)` (the angular velocity is in the link frame); a
     /// free joint's position `dp = R(r) v_lin`.
     pub fn tangent_to_coords(&self, q: &[f64], v: &[f64]) -> Vec<f64> {
+        self.check_slices(q, v, "tangent_to_coords");
         let mut dq = vec![0.0; self.n_q];
         for l in &self.links {
             let (s, d) = (l.q.start, l.dofs.start);
@@ -580,6 +592,7 @@ impl<R: Real> Articulations<R> {
     /// joints add; quaternions `r exp(v/2)` renormalized; a free joint's position
     /// `p + R(r) v_lin`). Use it for finite differences on the configuration manifold.
     pub fn integrate(&self, q: &[f64], v: &[f64]) -> Vec<f64> {
+        self.check_slices(q, v, "integrate");
         let mut out = q.to_vec();
         for l in &self.links {
             let (s, d) = (l.q.start, l.dofs.start);
@@ -607,6 +620,18 @@ impl<R: Real> Articulations<R> {
         qd: &[R],
         tau: &[R],
     ) -> Result<QddDerivatives, Error> {
+        for (v, n, what) in [
+            (q, self.n_q, "q"),
+            (qd, self.n_dof, "qd"),
+            (tau, self.n_dof, "tau"),
+        ] {
+            if v.len() != n {
+                return Err(Error::InvalidInput {
+                    what: format!("forward_dynamics_derivatives: {what}"),
+                    message: format!("has {} elements, the model needs {n}", v.len()),
+                });
+            }
+        }
         let mut tape = Tape::new();
         let (qa, qda, ta) = (
             Array::from_vec(q.to_vec()),

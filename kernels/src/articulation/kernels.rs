@@ -62,14 +62,16 @@ pub fn articulation_kinematics<R: Real>(
     for k in c0..c1 {
         let j = chain[k] as usize;
         p = p + quat_rotate(r, joint_pos[j]);
-        r = r * joint_rot[j];
+        // Normalized here, so that an optimized placement or axis stays a rotation and a unit.
+        r = r * quat_normalize(joint_rot[j]);
+        let axis = normalize(joint_axis[j]);
         let jt = joint_type[j];
         let s = q_start[j] as usize;
         // 1 revolute, 2 prismatic, 3 ball, 4 free (`JointType`); 0 fixed moves nothing.
         if jt == 1 {
-            r = r * quat_from_axis_angle(joint_axis[j], q[s]);
+            r = r * quat_from_axis_angle(axis, q[s]);
         } else if jt == 2 {
-            p = p + quat_rotate(r, joint_axis[j] * q[s]);
+            p = p + quat_rotate(r, axis * q[s]);
         } else if jt == 3 {
             r = r * quat_normalize(quat(q[s], q[s + 1], q[s + 2], q[s + 3]));
         } else if jt == 4 {
@@ -84,7 +86,7 @@ pub fn articulation_kinematics<R: Real>(
     let d1 = qd_start[l + 1] as usize;
     for d in d0..d1 {
         let k = d - d0;
-        let mut e = joint_axis[l];
+        let mut e = normalize(joint_axis[l]);
         let mut angular = jt != 2;
         let mut kk = k;
         if jt == 4 {
@@ -113,7 +115,9 @@ pub fn articulation_kinematics<R: Real>(
     let c = p + rm * com[l];
     let m = mass[l];
     link_h[l] = c * m;
-    link_j[l] = rm * inertia[l] * transpose(rm) + (mat33_identity() * dot(c, c) - outer(c, c)) * m;
+    // The symmetric part of the inertia: an optimized one stays symmetric in effect.
+    let ic = (inertia[l] + transpose(inertia[l])) * 0.5;
+    link_j[l] = rm * ic * transpose(rm) + (mat33_identity() * dot(c, c) - outer(c, c)) * m;
 }
 
 /// Dynamics of link `tid`: its twist `(w, v)`, the wrench `(n, f)` its motion needs, and the

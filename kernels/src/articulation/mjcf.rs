@@ -51,9 +51,12 @@ use std::path::Path;
 use adflex_runtime::{Mat33, Quat, Vec3};
 use roxmltree::Node;
 
-use super::build::check_inertial;
+use super::build::{check_inertial, check_mass};
+pub use super::contact::GeomShape;
 use super::contact::GroundContact;
-use super::model::{ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose};
+use super::model::{
+    axis_angle, ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose,
+};
 use super::xml::{self, children, Source};
 
 /// A robot read from MJCF: the builder, its actuators and geometry.
@@ -77,7 +80,8 @@ pub enum ActuatorKind {
         /// The gear.
         gear: f64,
     },
-    /// A PD servo `kp (ctrl - q) - kv qd` (the joint's `kp`, `kv` are set from it).
+    /// A servo: MuJoCo's force `gear (kp (ctrl - gear q) - kv gear qd)`, which is the joint's
+    /// PD with `kp gear^2`, `kv gear^2` (set from it) toward `target_q = ctrl / gear`.
     Position {
         /// Position gain.
         kp: f64,
@@ -97,21 +101,6 @@ pub struct Actuator {
     pub kind: ActuatorKind,
     /// The control's range, if limited.
     pub ctrlrange: Option<(f64, f64)>,
-}
-
-/// The shape of a geom.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum GeomShape {
-    /// A sphere of this radius.
-    Sphere(f64),
-    /// A capsule along z: radius, half-length of the cylinder.
-    Capsule(f64, f64),
-    /// A cylinder along z: radius, half-length.
-    Cylinder(f64, f64),
-    /// A box of these half extents.
-    Box(Vec3<f64>),
-    /// A plane through the origin with normal z.
-    Plane,
 }
 
 /// A geom: its shape, where it is and whose it is.
@@ -385,10 +374,7 @@ impl<'a> Reader<'a> {
                 format!("gives its orientation twice ({})", given.join(", ")),
             ));
         }
-        let axis_angle = |a: Vec3<f64>, t: f64| {
-            let (s, c) = (0.5 * t).sin_cos();
-            Quat::from_parts(c, a.normalize() * s)
-        };
+        let axis_angle = |a: Vec3<f64>, t: f64| axis_angle(&a.normalize(), t);
         if let Some(q) = self.nums(n, class, "quat", &[4])? {
             let q = Quat::new(q[0], q[1], q[2], q[3]);
             if q.norm() < 1e-12 {
@@ -490,6 +476,13 @@ impl<'a> Reader<'a> {
         )?;
         if self.attr(n, class, "gravcomp").is_some() {
             return Err(self.src.error(n, "gravcomp is not supported"));
+        }
+        if let Some(c) = n.attribute("childclass") {
+            if !self.classes.contains_key(c) {
+                return Err(self
+                    .src
+                    .error(n, format!("childclass \"{c}\" is not defined")));
+            }
         }
         let class = n.attribute("childclass").unwrap_or(class).to_string();
         let name = n
@@ -597,7 +590,7 @@ impl<'a> Reader<'a> {
             g.link = link;
             g.pose.pos -= at;
             if let (Some(l), true) = (link, touches) {
-                self.add_contact(l, &g);
+                self.builder.add_contact_shape(l, &g.pose, &g.shape);
             }
             self.geoms.push(g);
         }
@@ -685,10 +678,13 @@ impl<'a> Reader<'a> {
                     return Err(self.src.error(n, format!("range: lower {lo} > upper {hi}")));
                 }
                 j = j.limits(lo, hi);
-            } else if n.attribute("limited") == Some("true") {
-                return Err(self
-                    .src
-                    .error(n, "limits on ball and free joints are not supported"));
+            } else if limited != "false" && kind == "ball" {
+                // MuJoCo would limit the cone of a ball joint with a range.
+                return Err(self.src.error(
+                    n,
+                    "a range on a ball joint (a cone limit) is not supported; remove it or set \
+                     limited=\"false\"",
+                ));
             }
         } else if limited == "true" && (kind == "hinge" || kind == "slide") {
             return Err(self.src.error(n, "limited=\"true\" needs a `range`"));
@@ -756,6 +752,11 @@ impl<'a> Reader<'a> {
             "margin",
         ];
         self.src.only_attributes(n, &known)?;
+        if let Some(a) = n.attribute("class") {
+            if !self.classes.contains_key(a) {
+                return Err(self.src.error(n, format!("class \"{a}\" is not defined")));
+            }
+        }
         let kind = self.attr(n, class, "type").unwrap_or("sphere");
         let size = self.nums(n, class, "size", &[1, 2, 3])?.unwrap_or_default();
         let fromto = self.nums(n, class, "fromto", &[6])?;
@@ -811,8 +812,14 @@ impl<'a> Reader<'a> {
                 }
             }
             "box" => {
-                need(3)?;
-                GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
+                if fromto.is_some() {
+                    // The length from `fromto`, the cross-section from `size`.
+                    need(2)?;
+                    GeomShape::Box(Vec3::new(size[0], size[1], half))
+                } else {
+                    need(3)?;
+                    GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
+                }
             }
             "plane" => {
                 if on_link.is_some() {
@@ -919,15 +926,7 @@ impl<'a> Reader<'a> {
             .src
             .number(n, "mass")?
             .ok_or_else(|| self.src.error(n, "needs `mass`"))?;
-        if mass <= 0.0 {
-            return Err(self.src.error(
-                n,
-                format!(
-                    "mass {mass} is {}: a body without mass has no <inertial>",
-                    if mass < 0.0 { "negative" } else { "zero" }
-                ),
-            ));
-        }
+        check_mass(mass, "a body").map_err(|m| self.src.error(n, m))?;
         let rot = self.orientation(n, "main")?;
         let inertia = match (
             self.src.vec3(n, "diaginertia")?,
@@ -1012,9 +1011,11 @@ impl<'a> Reader<'a> {
                     .src
                     .error(n, "a position actuator needs a hinge or slide joint"));
             }
+            // MuJoCo's force on the joint is gear (kp (ctrl - gear q) - kv gear qd): a PD on q
+            // with gains gear^2 kp, gear^2 kv toward ctrl / gear.
             let j = &mut self.builder.links_mut()[link].joint;
-            j.kp = kp * gear;
-            j.kv = kv * gear;
+            j.kp = kp * gear * gear;
+            j.kv = kv * gear * gear;
             ActuatorKind::Position { kp, kv }
         };
         Ok(Actuator {
@@ -1023,23 +1024,6 @@ impl<'a> Reader<'a> {
             kind,
             ctrlrange,
         })
-    }
-}
-
-impl Reader<'_> {
-    /// The contact spheres of a geom on `link` (its frame): a sphere; a capsule's end
-    /// spheres; a box's corners. Cylinders have mass but no contact.
-    fn add_contact(&mut self, link: LinkId, g: &Geom) {
-        match g.shape {
-            GeomShape::Sphere(r) => self.builder.add_contact_sphere(link, g.pose.pos, r),
-            GeomShape::Capsule(r, h) => {
-                let a = g.pose.transform_point(&Vec3::new(0.0, 0.0, -h));
-                let b = g.pose.transform_point(&Vec3::new(0.0, 0.0, h));
-                self.builder.add_contact_capsule(link, a, b, r);
-            }
-            GeomShape::Box(half) => self.builder.add_contact_box(link, &g.pose, half),
-            GeomShape::Cylinder(..) | GeomShape::Plane => {}
-        }
     }
 }
 

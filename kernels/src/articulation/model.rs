@@ -5,7 +5,7 @@ use std::ops::Range;
 
 use adflex_runtime::prelude::*;
 
-use super::contact::GroundContact;
+use super::contact::{GeomShape, GroundContact};
 
 /// The kind of a joint, which says how the link moves relative to its parent.
 ///
@@ -15,7 +15,7 @@ use super::contact::GroundContact;
 /// | `Revolute` | angle (rad) about the axis | angular rate (rad/s) |
 /// | `Prismatic` | offset (m) along the axis | rate (m/s) |
 /// | `Ball` | unit quaternion `x, y, z, w` | angular velocity in the link frame (rad/s) |
-/// | `Free` | position (m) in the parent frame, then a unit quaternion `x, y, z, w` | linear velocity of the link origin, then angular velocity, both in the link frame |
+/// | `Free` | position (m) in the joint's frame (its origin in the parent; the world for a root), then a unit quaternion `x, y, z, w` | linear velocity of the link origin, then angular velocity, both in the link frame |
 ///
 /// These are Pinocchio's conventions (`JointModelSpherical`, `JointModelFreeFlyer`), so that
 /// `q`, `qd`, `M(q)` and the derivatives compare entry for entry. MuJoCo orders a quaternion
@@ -121,6 +121,12 @@ impl Pose {
     pub fn transform_vector(&self, v: &Vec3<f64>) -> Vec3<f64> {
         rotate(&self.rot, v)
     }
+}
+
+/// The rotation by `angle` (rad) about the unit `axis`.
+pub(crate) fn axis_angle(axis: &Vec3<f64>, angle: f64) -> Quat<f64> {
+    let (s, c) = (0.5 * angle).sin_cos();
+    Quat::from_parts(c, axis * s)
 }
 
 /// `q v q*` for a unit `q`.
@@ -501,6 +507,21 @@ impl ArticulationBuilder {
             let s = |b: usize| if k & (1 << b) == 0 { -1.0 } else { 1.0 };
             let corner = Vec3::new(s(0) * half.x, s(1) * half.y, s(2) * half.z);
             self.add_contact_sphere(link, pose.transform_point(&corner), 0.0);
+        }
+    }
+
+    /// Adds the contact spheres of `shape` at `pose` in `link`'s frame: a sphere; a box by its
+    /// corners; a capsule by its end spheres. A cylinder or a plane adds none.
+    pub fn add_contact_shape(&mut self, link: LinkId, pose: &Pose, shape: &GeomShape) {
+        match *shape {
+            GeomShape::Sphere(r) => self.add_contact_sphere(link, pose.pos, r),
+            GeomShape::Capsule(r, h) => {
+                let a = pose.transform_point(&Vec3::new(0.0, 0.0, -h));
+                let b = pose.transform_point(&Vec3::new(0.0, 0.0, h));
+                self.add_contact_capsule(link, a, b, r);
+            }
+            GeomShape::Box(half) => self.add_contact_box(link, pose, half),
+            GeomShape::Cylinder(..) | GeomShape::Plane => {}
         }
     }
 

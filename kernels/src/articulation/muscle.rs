@@ -36,6 +36,7 @@ pub fn muscle_force<R: Real>(lt: R, vt: R, a: R, f_max: R) -> R {
 /// Muscle `tid` from point `origin_pos` of link `origin_link` to point `insertion_pos` of
 /// link `insertion_link` (link frames): the force `F` of [`muscle_force`] along the line
 /// between them pulls each toward the other (wrenches `(x x f, f)` added to `ext_n`, `ext_f`).
+/// The activation is clamped to `[0, 1]`.
 #[diff_kernel]
 pub fn articulation_muscles<R: Real>(
     origin_link: &Array<u32>,
@@ -65,7 +66,7 @@ pub fn articulation_muscles<R: Real>(
     let vb = link_v[lb] + cross(link_w[lb], pb);
     let lt = (l - tendon_slack[t]) / l_opt[t];
     let vt = dot(vb - va, u) / (v_max[t] * l_opt[t]);
-    let f = u * muscle_force(lt, vt, activation[t], f_max[t]);
+    let f = u * muscle_force(lt, vt, clamp(activation[t], 0.0, 1.0), f_max[t]);
     ext_n.atomic_add(la, cross(pa, f));
     ext_f.atomic_add(la, f);
     ext_n.atomic_sub(lb, cross(pb, f));

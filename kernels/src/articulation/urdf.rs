@@ -42,8 +42,11 @@ use std::path::Path;
 use adflex_runtime::{Mat33, Quat, Vec3};
 use roxmltree::Node;
 
-use super::build::check_inertial;
-use super::model::{ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose};
+use super::build::{check_inertial, check_mass};
+use super::contact::GeomShape;
+use super::model::{
+    axis_angle, ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose,
+};
 use super::xml::{self, children, Source};
 
 /// How to read a URDF file.
@@ -75,11 +78,7 @@ pub fn parse(text: &str, options: &UrdfOptions) -> Result<ArticulationBuilder, A
 
 /// The rotation of URDF's `rpy`: about the fixed x, then y, then z axes.
 pub fn rpy(r: f64, p: f64, y: f64) -> Quat<f64> {
-    let axis = |a: Vec3<f64>, t: f64| {
-        let (s, c) = (0.5 * t).sin_cos();
-        Quat::from_parts(c, a * s)
-    };
-    axis(Vec3::z(), y) * axis(Vec3::y(), p) * axis(Vec3::x(), r)
+    axis_angle(&Vec3::z(), y) * axis_angle(&Vec3::y(), p) * axis_angle(&Vec3::x(), r)
 }
 
 struct UrdfJoint<'a, 'i> {
@@ -247,21 +246,16 @@ fn collision(
             _ => Err(src.error(shape, format!("needs a positive `{name}`"))),
         }
     };
-    match shape.tag_name().name() {
-        "sphere" => b.add_contact_sphere(link, pose.pos, positive("radius")?),
+    let geom = match shape.tag_name().name() {
+        "sphere" => GeomShape::Sphere(positive("radius")?),
         "box" => {
             let size = src
                 .vec3(shape, "size")?
                 .filter(|v| v.iter().all(|&x| x > 0.0))
                 .ok_or_else(|| src.error(shape, "needs a positive `size`"))?;
-            b.add_contact_box(link, &pose, size * 0.5);
+            GeomShape::Box(size * 0.5)
         }
-        "capsule" => {
-            let (r, h) = (positive("radius")?, 0.5 * positive("length")?);
-            let a = pose.transform_point(&Vec3::new(0.0, 0.0, -h));
-            let e = pose.transform_point(&Vec3::new(0.0, 0.0, h));
-            b.add_contact_capsule(link, a, e, r);
-        }
+        "capsule" => GeomShape::Capsule(positive("radius")?, 0.5 * positive("length")?),
         other => {
             return Err(src.error(
                 shape,
@@ -271,7 +265,8 @@ fn collision(
                 ),
             ))
         }
-    }
+    };
+    b.add_contact_shape(link, &pose, &geom);
     Ok(())
 }
 
@@ -305,15 +300,7 @@ fn link_inertial(src: &Source, link: Node) -> Result<Inertial, ArticulationError
     let mass = src
         .number(mass_node, "value")?
         .ok_or_else(|| src.error(mass_node, "needs the attribute `value`"))?;
-    if mass <= 0.0 {
-        return Err(src.error(
-            mass_node,
-            format!(
-                "mass {mass} is {}: a link without mass has no <inertial>",
-                if mass < 0.0 { "negative" } else { "zero" }
-            ),
-        ));
-    }
+    check_mass(mass, "a link").map_err(|m| src.error(mass_node, m))?;
     let i_node = n
         .children()
         .find(|c| c.has_tag_name("inertia"))
