@@ -212,8 +212,34 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ],
         )?;
     }
+    // The motion at a glance: the cart (a dot on the rail) and the 1 m pole, every half second.
+    let every = (0.5 / cfg.frame_dt).round() as usize;
+    let poses: Vec<(String, Vec<(f64, f64)>)> = out
+        .frames
+        .iter()
+        .enumerate()
+        .step_by(every)
+        .map(|(k, s)| {
+            let (x, th) = (s.q.get(0), s.q.get(1));
+            (
+                format!("t = {:.1} s", t(k)),
+                vec![(x, 0.0), (x + th.sin(), th.cos())],
+            )
+        })
+        .collect();
+    let series: Vec<(&str, &[(f64, f64)])> =
+        poses.iter().map(|(n, p)| (n.as_str(), &p[..])).collect();
+    for file in ["motion.svg", "motion.png"] {
+        adflex::viz::plot::curves(
+            dir.join(file),
+            "cart-pole swing-up: the pole every 0.5 s (cart at the lower end)",
+            "x (m)",
+            "z (m)",
+            &series,
+        )?;
+    }
     println!(
-        "pictures: {}/{{loss, trajectory}}.{{svg, png}}",
+        "pictures: {}/{{loss, trajectory, motion}}.{{svg, png}}",
         dir.display()
     );
     Ok(())

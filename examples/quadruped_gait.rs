@@ -75,6 +75,8 @@ pub struct Outcome {
     pub distance: (f64, f64),
     /// The torso's lowest height during the found gait (m).
     pub lowest: f64,
+    /// The torso's path `(t, x, y, z)` during the found gait.
+    pub path: Vec<(f64, f64, f64, f64)>,
     /// The found gait's distance simulated again with half the time step (m): a gait that
     /// exploited the discretization would not survive it.
     pub distance_half_dt: f64,
@@ -152,7 +154,13 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         progress: false,
     };
     let distance_half_dt = x(&rollout(&model, &half, &a, &phi, &mut Tape::new())?);
+    let path = states
+        .iter()
+        .enumerate()
+        .map(|(k, s)| (k as f64 * cfg.dt, s.q.get(0), s.q.get(1), s.q.get(2)))
+        .collect();
     Ok(Outcome {
+        path,
         distance_half_dt,
         report,
         distance: (first, x(&states)),
@@ -191,6 +199,31 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "quadruped gait: L-BFGS on 8 amplitudes and 8 phases",
         )?;
     }
-    println!("pictures: {}/loss.{{svg, png}}", dir.display());
+    // The torso's path: seen from above, and its height.
+    let top: Vec<(f64, f64)> = out.path.iter().map(|p| (p.1, p.2)).collect();
+    let x: Vec<(f64, f64)> = out.path.iter().map(|p| (p.0, p.1)).collect();
+    let z: Vec<(f64, f64)> = out.path.iter().map(|p| (p.0, p.3)).collect();
+    for file in ["path.svg", "path.png"] {
+        adflex::viz::plot::curves(
+            dir.join(file),
+            "quadruped gait: the torso's path seen from above",
+            "x (m)",
+            "y (m)",
+            &[("torso", &top[..])],
+        )?;
+    }
+    for file in ["progress.svg", "progress.png"] {
+        adflex::viz::plot::curves(
+            dir.join(file),
+            "quadruped gait: torso position along x and height",
+            "time (s)",
+            "m",
+            &[("x", &x[..]), ("height", &z[..])],
+        )?;
+    }
+    println!(
+        "pictures: {}/{{loss, path, progress}}.{{svg, png}}",
+        dir.display()
+    );
     Ok(())
 }
