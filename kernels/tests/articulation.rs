@@ -464,6 +464,58 @@ fn a_box_comes_to_rest_on_the_ground() {
     assert!(z.k > 1.0 - 1e-6, "tilted: {z:?}");
 }
 
+/// Rolls `model` out from `(q0, qd0)` under the torques `taus0` (one vector per step), checks
+/// `J^T w` of the final state (one backward pass, random `w`) against central differences
+/// along `directions` random directions of all the torques to 1e-4 relative (the tolerance
+/// through contact), and returns the final coordinates.
+fn check_torque_gradients(
+    model: &Articulations<f64>,
+    q0: &[f64],
+    qd0: &[f64],
+    taus0: &[Vec<f64>],
+    dt: f64,
+    directions: usize,
+    rng: &mut adflex_testkit::Rng,
+) -> Vec<f64> {
+    let n = model.n_dof;
+    let w: Vec<f64> = (0..model.n_q + n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let run = |h: f64, v: &[f64], tape: &mut Tape| {
+        let taus: Vec<Array<f64>> = taus0
+            .iter()
+            .enumerate()
+            .map(|(s, t)| {
+                let shifted = t.iter().enumerate().map(|(d, x)| x + h * v[s * n + d]);
+                Array::from_vec(shifted.collect())
+            })
+            .collect();
+        let (q, qd) = (Array::from_vec(q0.to_vec()), Array::from_vec(qd0.to_vec()));
+        let (qf, qdf) = rollout(model, tape, &q, &qd, &taus, dt);
+        (taus, qf, qdf)
+    };
+    let zero = vec![0.0; n * taus0.len()];
+    let mut tape = Tape::new();
+    let (taus, qf, qdf) = run(0.0, &zero, &mut tape);
+    let inputs: Vec<&dyn adflex_runtime::AnyArray> = taus
+        .iter()
+        .map(|t| t as &dyn adflex_runtime::AnyArray)
+        .collect();
+    let g = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
+    assert!(g.iter().all(|x| x.is_finite()), "a non-finite gradient");
+    let f = |v: &[f64], h: f64| {
+        let (_, qf, qdf) = run(h, v, &mut Tape::new());
+        let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
+        f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    for _ in 0..directions {
+        let v: Vec<f64> = (0..g.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let fd = (f(&v, 1e-6) - f(&v, -1e-6)) / 2e-6;
+        let an: f64 = g.iter().zip(&v).map(|(a, b)| a * b).sum();
+        println!("through contact: {an} vs central differences {fd}");
+        assert!((fd - an).abs() <= 1e-4 * an.abs().max(1e-2), "{an} vs {fd}");
+    }
+    qf.to_vec()
+}
+
 #[test]
 fn quadruped_rollout_through_ground_contact_has_right_gradients() {
     // The MJCF ant dropped onto its floor, its hips and ankles driven by torques.
@@ -502,53 +554,10 @@ fn quadruped_rollout_through_ground_contact_has_right_gradients() {
                 .collect()
         })
         .collect();
-    let w: Vec<f64> = (0..model.n_q + n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
-    let mut tape = Tape::new();
-    let q = Array::from_vec(q0.clone());
-    let qd = Array::from_vec(qd0.clone());
-    let (qf, qdf) = rollout(&model, &mut tape, &q, &qd, &taus, dt);
+    let qf = check_torque_gradients(&model, &q0, &qd0, &taus0, dt, 3, &mut rng);
     // It landed: the torso is held up by the legs, above the ground and below its start.
-    let z = qf.get(2);
+    let z = qf[2];
     assert!(z > 0.1 && z < 0.7, "torso height {z}");
-    let inputs: Vec<&dyn adflex_runtime::AnyArray> = taus
-        .iter()
-        .map(|t| t as &dyn adflex_runtime::AnyArray)
-        .collect();
-    let g = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
-    assert!(g.iter().all(|x| x.is_finite()));
-    let f = |v: &[f64], h: f64| {
-        let taus: Vec<Array<f64>> = taus0
-            .iter()
-            .enumerate()
-            .map(|(s, t)| {
-                Array::from_vec(
-                    t.iter()
-                        .enumerate()
-                        .map(|(d, x)| x + h * v[s * n + d])
-                        .collect(),
-                )
-            })
-            .collect();
-        let mut tape = Tape::new();
-        let (qf, qdf) = rollout(
-            &model,
-            &mut tape,
-            &Array::from_vec(q0.clone()),
-            &Array::from_vec(qd0.clone()),
-            &taus,
-            dt,
-        );
-        let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
-        f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
-    };
-    for _ in 0..3 {
-        let v: Vec<f64> = (0..g.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let fd = (f(&v, 1e-6) - f(&v, -1e-6)) / 2e-6;
-        let an: f64 = g.iter().zip(&v).map(|(a, b)| a * b).sum();
-        println!("through contact: {an} vs central differences {fd}");
-        assert!((fd - an).abs() <= 1e-4 * an.abs().max(1e-2), "{an} vs {fd}");
-    }
 }
 
 /// Parses a URDF and returns its error.
@@ -890,53 +899,13 @@ fn urdf_quadruped_stands_on_its_collision_spheres_with_right_gradients() {
                 .collect()
         })
         .collect();
-    let w: Vec<f64> = (0..model.n_q + n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let run = |taus: &[Array<f64>], tape: &mut Tape| {
-        rollout(
-            &model,
-            tape,
-            &Array::from_vec(model.q0.clone()),
-            &Array::zeros(n),
-            taus,
-            1e-3,
-        )
-    };
-    let taus: Vec<Array<f64>> = taus0.iter().map(|t| Array::from_vec(t.clone())).collect();
-    let mut tape = Tape::new();
-    let (qf, qdf) = run(&taus, &mut tape);
-    let z = qf.get(2);
+    let q0 = model.q0.clone();
+    let qf = check_torque_gradients(&model, &q0, &vec![0.0; n], &taus0, 1e-3, 2, &mut rng);
+    let z = qf[2];
     assert!(
         z > 0.05 && z < 0.25,
         "torso height {z}: it stands on its feet"
     );
-    let inputs: Vec<&dyn adflex_runtime::AnyArray> = taus
-        .iter()
-        .map(|t| t as &dyn adflex_runtime::AnyArray)
-        .collect();
-    let g = tape.vjp(&[&qf, &qdf], &w, &inputs).unwrap();
-    let f = |v: &[f64], h: f64| {
-        let taus: Vec<Array<f64>> = taus0
-            .iter()
-            .enumerate()
-            .map(|(s, t)| {
-                Array::from_vec(
-                    t.iter()
-                        .enumerate()
-                        .map(|(d, x)| x + h * v[s * n + d])
-                        .collect(),
-                )
-            })
-            .collect();
-        let (qf, qdf) = run(&taus, &mut Tape::new());
-        let f: Vec<f64> = qf.to_vec().into_iter().chain(qdf.to_vec()).collect();
-        f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
-    };
-    for _ in 0..2 {
-        let v: Vec<f64> = (0..g.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let fd = (f(&v, 1e-6) - f(&v, -1e-6)) / 2e-6;
-        let an: f64 = g.iter().zip(&v).map(|(a, b)| a * b).sum();
-        assert!((fd - an).abs() <= 1e-4 * an.abs().max(1e-2), "{an} vs {fd}");
-    }
 }
 
 #[test]
