@@ -11,6 +11,7 @@
 //! `target/demos/cartpole_swingup/`).
 
 use adflex::kernels::articulation::{urdf, ArticulationControl, ArticulationState, Articulations};
+use adflex::kernels::losses;
 use adflex::optim::{Optimizer, Params, Report};
 use adflex::prelude::*;
 
@@ -27,13 +28,6 @@ fn upright_cost(q: &Array<f64>, qd: &Array<f64>, w: f64, loss: &Array<f64>) {
     let up = 1.0 - cos(q[1]);
     let still = qd[0] * qd[0] + qd[1] * qd[1];
     loss.atomic_add(0, w * (10.0 * up + still + 0.1 * q[0] * q[0]));
-}
-
-/// The effort `w u[t]^2`, summed.
-#[diff_kernel]
-fn effort(u: &Array<f64>, w: f64, loss: &Array<f64>) {
-    let t = tid();
-    loss.atomic_add(0, w * u[t] * u[t]);
 }
 
 /// What the demo runs.
@@ -138,7 +132,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
                 let w = if k == 0 { 1.0 } else { 4.0 / hold as f64 };
                 tape.launch(upright_cost, 1, (&s.q, &s.qd, w, &loss));
             }
-            tape.launch(effort, cfg.frames, (&u, w, &loss));
+            losses::sum_of_squares(tape, &u, w, &loss);
             Ok(loss)
         })?;
     let frames = rollout(&model, cfg, &u, &mut Tape::new())?;

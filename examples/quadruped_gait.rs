@@ -13,6 +13,7 @@
 use adflex::kernels::articulation::{
     urdf, ArticulationControl, ArticulationState, Articulations, GroundContact,
 };
+use adflex::kernels::losses;
 use adflex::optim::{Bounds, Optimizer, Params, Report};
 use adflex::prelude::*;
 
@@ -28,13 +29,6 @@ fn gait(a: &Array<f64>, phi: &Array<f64>, w: f64, t: f64, target: &Array<f64>) {
 #[diff_kernel]
 fn distance(q: &Array<f64>, loss: &Array<f64>) {
     loss.atomic_add(0, 0.5 * q[1] * q[1] - q[0]);
-}
-
-/// `w |a|^2`.
-#[diff_kernel]
-fn effort(a: &Array<f64>, w: f64, loss: &Array<f64>) {
-    let j = tid();
-    loss.atomic_add(0, w * a[j] * a[j]);
 }
 
 /// What the demo runs.
@@ -141,7 +135,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
                 let states = rollout(&model, cfg, &a, &phi, tape)?;
                 let loss = Array::zeros(1);
                 tape.launch(distance, 1, (&states.last().unwrap().q, &loss));
-                tape.launch(effort, 8, (&a, 1e-2, &loss));
+                losses::sum_of_squares(tape, &a, 1e-2, &loss);
                 Ok(loss)
             },
         )?;
