@@ -925,3 +925,38 @@ fn urdf_collisions_outside_the_shapes_are_refused_when_read() {
     assert_eq!(e.line, Some(3), "{e}");
     assert!(e.to_string().contains("<mesh>"), "{e}");
 }
+
+#[test]
+fn checkpointed_robot_rollouts_give_the_whole_tapes_gradients() {
+    use adflex_kernels::articulation::ArticulationControl;
+    use adflex_runtime::checkpoint::checkpointed;
+    let model = load("arm7.urdf", false);
+    let tau = Array::from_vec(vec![0.3, -0.2, 0.1, 0.4, -0.1, 0.2, 0.05]).requires_grad();
+    let control = ArticulationControl {
+        tau: tau.clone(),
+        ..model.control()
+    };
+    let step = |tape: &mut Tape, s: &adflex_kernels::articulation::ArticulationState<f64>| {
+        model.step(tape, s, Some(&control), 1e-3)
+    };
+    let loss = |tape: &mut Tape, s: &adflex_kernels::articulation::ArticulationState<f64>| {
+        let l = Array::zeros(1);
+        adflex_kernels::losses::sum_of_squares(tape, &s.q, 1.0, &l);
+        Ok(l)
+    };
+    // The whole tape.
+    let mut tape = Tape::new();
+    let mut s = model.state();
+    for _ in 0..200 {
+        s = step(&mut tape, &s).unwrap();
+    }
+    let l = loss(&mut tape, &s).unwrap();
+    tape.backward(&l).unwrap();
+    let whole = tau.grad().unwrap().to_vec();
+    // Checkpointed every 20 steps.
+    tau.zero_grad();
+    let out = checkpointed(&model.state(), 200, 20, step, loss).unwrap();
+    assert_eq!(out.loss.get(0), l.get(0));
+    assert_eq!(tau.grad().unwrap().to_vec(), whole, "bit for bit");
+    assert!(whole.iter().any(|g| *g != 0.0));
+}

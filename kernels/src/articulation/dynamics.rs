@@ -19,6 +19,18 @@ pub struct ArticulationState<R: Real> {
     pub qd: Array<R>,
 }
 
+impl<R: Real> adflex_runtime::checkpoint::Checkpoint for ArticulationState<R> {
+    fn arrays(&self) -> Vec<&dyn AnyArray> {
+        vec![&self.q, &self.qd]
+    }
+    fn snapshot(&self) -> Self {
+        ArticulationState {
+            q: self.q.deep_clone(),
+            qd: self.qd.deep_clone(),
+        }
+    }
+}
+
 /// Actuation of the joints, per velocity: a force or torque `tau`, and the targets of the
 /// joints' PD actuators (`kp (target_q - q) + kv (target_qd - qd)` on revolute and prismatic
 /// joints with gains).
