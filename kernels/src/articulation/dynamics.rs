@@ -625,7 +625,8 @@ impl<R: Real> Articulations<R> {
     }
 
     /// The derivatives of the forward dynamics at `(q, qd, tau)` (as Pinocchio's
-    /// `computeABADerivatives`), by one tangent pass over the recorded dynamics per column.
+    /// `computeABADerivatives`): `d qdd / d q` and `d qdd / d qd` by one tangent pass over the
+    /// recorded dynamics per column, `d qdd / d tau = M^-1` from the mass matrix's factors.
     pub fn forward_dynamics_derivatives(
         &self,
         q: &[R],
@@ -654,7 +655,8 @@ impl<R: Real> Articulations<R> {
         let n = self.n_dof;
         let qf: Vec<f64> = q.iter().map(|x| x.to_f64()).collect();
         let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &ta];
-        let mut cols = [vec![], vec![], vec![]];
+        // d qdd / d q and d qdd / d qd by tangent passes, a column each.
+        let mut cols = [vec![], vec![]];
         for j in 0..n {
             let mut e = vec![0.0; n];
             e[j] = 1.0;
@@ -662,17 +664,34 @@ impl<R: Real> Articulations<R> {
                 let mut v = vec![0.0; self.n_q + 2 * n];
                 match which {
                     0 => v[..self.n_q].copy_from_slice(&self.tangent_to_coords(&qf, &e)),
-                    1 => v[self.n_q + j] = 1.0,
-                    _ => v[self.n_q + n + j] = 1.0,
+                    _ => v[self.n_q + j] = 1.0,
                 }
                 col.push(tape.jvp(&inputs, &v, &[&qdd])?);
             }
         }
         let rows = |c: &Vec<Vec<f64>>| (0..n).map(|i| (0..n).map(|j| c[j][i]).collect()).collect();
+        // d qdd / d tau = M^-1, block by block, from one mass matrix and its factors.
+        let m: Vec<R> = self.mass_matrix(&mut Tape::new(), &qa).to_vec();
+        let factors = factor_all(self, &m).map_err(|(art, d)| Error::InvalidInput {
+            what: format!("mass matrix of articulation {art} (pivot {d})"),
+            message: "is not positive definite".into(),
+        })?;
+        let blocks: Vec<(usize, usize, usize)> = self
+            .articulations
+            .iter()
+            .map(|a| (a.dofs.start, a.dofs.len(), a.m_offset))
+            .collect();
+        let dtau: Vec<Vec<f64>> = (0..n)
+            .map(|j| {
+                let mut e = vec![0.0; n];
+                e[j] = 1.0;
+                solve_all(&factors, &blocks, &e)
+            })
+            .collect();
         Ok(QddDerivatives {
             dq: rows(&cols[0]),
             dqd: rows(&cols[1]),
-            dtau: rows(&cols[2]),
+            dtau: rows(&dtau),
         })
     }
 }
