@@ -71,6 +71,10 @@ impl<'a, R: Real> PassInput<'a, R> {
     }
 }
 
+/// Cholesky factors of the mass-matrix blocks, and each block's `(first velocity, size,
+/// offset)`.
+type Factors = (Vec<Vec<f64>>, Vec<(usize, usize, usize)>);
+
 /// What it gives: inverse-dynamics forces, the mass matrix, the right-hand side.
 struct Pass<R: Real> {
     tau_id: Array<R>,
@@ -462,31 +466,8 @@ impl<R: Real> Articulations<R> {
     /// (`rhs_bar += M^-1 qdd_bar`, `M_bar -= (M^-1 qdd_bar) qdd^T`) and tangent
     /// (`dqdd = M^-1 (drhs - dM qdd)`).
     fn solve(&self, tape: &mut Tape, m: &Array<R>, rhs: &Array<R>) -> Result<Array<R>, Error> {
-        let mv: Vec<R> = m.to_vec();
-        let factors = factor_all(self, &mv).map_err(|(art, d)| {
-            let l = self.links[self.dof_link.get(self.articulations[art].dofs.start + d) as usize]
-                .joint
-                .clone();
-            let finite = mv.iter().all(|x| x.to_f64().is_finite());
-            // An input that cannot be computed with (an optimizer's line search backs off).
-            Error::InvalidInput {
-                what: format!("mass matrix of articulation {art} (joint \"{l}\", pivot {d})"),
-                message: if finite {
-                    "is not positive definite: a joint moves no mass (a mass or inertia \
-                     parameter at or below zero?)"
-                        .into()
-                } else {
-                    "is not finite: the state or a parameter is not finite".into()
-                },
-            }
-        })?;
-        let factors = Arc::new(factors);
-        let blocks: Arc<Vec<(usize, usize, usize)>> = Arc::new(
-            self.articulations
-                .iter()
-                .map(|a| (a.dofs.start, a.dofs.len(), a.m_offset))
-                .collect(),
-        );
+        let (factors, blocks) = self.factor(m)?;
+        let (factors, blocks) = (Arc::new(factors), Arc::new(blocks));
         let b: Vec<f64> = rhs.to_vec().iter().map(|x| x.to_f64()).collect();
         let x = solve_all(&factors, &blocks, &b);
         let qdd = Array::<R>::zeros(self.n_dof);
@@ -564,6 +545,36 @@ impl<R: Real> Articulations<R> {
             v.len(),
             self.n_dof
         );
+    }
+
+    /// The Cholesky factors of every block of the mass-matrix array `m`, and each block's
+    /// `(first velocity, size, offset in m)`. A block that cannot be factored is an
+    /// [`Error::InvalidInput`] naming the articulation, the joint and why (an input that
+    /// cannot be computed with: an optimizer's line search backs off from it).
+    fn factor(&self, m: &Array<R>) -> Result<Factors, Error> {
+        let mv: Vec<R> = m.to_vec();
+        let factors = factor_all(self, &mv).map_err(|(art, d)| {
+            let l = self.links[self.dof_link.get(self.articulations[art].dofs.start + d) as usize]
+                .joint
+                .clone();
+            let finite = mv.iter().all(|x| x.to_f64().is_finite());
+            Error::InvalidInput {
+                what: format!("mass matrix of articulation {art} (joint \"{l}\", pivot {d})"),
+                message: if finite {
+                    "is not positive definite: a joint moves no mass (a mass or inertia \
+                     parameter at or below zero?)"
+                        .into()
+                } else {
+                    "is not finite: the state or a parameter is not finite".into()
+                },
+            }
+        })?;
+        let blocks = self
+            .articulations
+            .iter()
+            .map(|a| (a.dofs.start, a.dofs.len(), a.m_offset))
+            .collect();
+        Ok((factors, blocks))
     }
 
     /// Row-major block of articulation `art` of a mass-matrix array, as rows.
@@ -651,7 +662,9 @@ impl<R: Real> Articulations<R> {
             Array::from_vec(qd.to_vec()),
             Array::from_vec(tau.to_vec()),
         );
-        let qdd = self.forward_dynamics(&mut tape, &qa, &qda, &ta)?;
+        // The forward dynamics' pass, kept for its mass matrix (`d qdd / d tau = M^-1`).
+        let p = self.pass(&mut tape, PassInput::new(&qa, &qda, &ta));
+        let qdd = self.solve(&mut tape, &p.m, &p.rhs)?;
         let n = self.n_dof;
         let qf: Vec<f64> = q.iter().map(|x| x.to_f64()).collect();
         let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &ta];
@@ -670,17 +683,8 @@ impl<R: Real> Articulations<R> {
             }
         }
         let rows = |c: &Vec<Vec<f64>>| (0..n).map(|i| (0..n).map(|j| c[j][i]).collect()).collect();
-        // d qdd / d tau = M^-1, block by block, from one mass matrix and its factors.
-        let m: Vec<R> = self.mass_matrix(&mut Tape::new(), &qa).to_vec();
-        let factors = factor_all(self, &m).map_err(|(art, d)| Error::InvalidInput {
-            what: format!("mass matrix of articulation {art} (pivot {d})"),
-            message: "is not positive definite".into(),
-        })?;
-        let blocks: Vec<(usize, usize, usize)> = self
-            .articulations
-            .iter()
-            .map(|a| (a.dofs.start, a.dofs.len(), a.m_offset))
-            .collect();
+        // d qdd / d tau = M^-1, block by block, from the mass matrix's factors.
+        let (factors, blocks) = self.factor(&p.m)?;
         let dtau: Vec<Vec<f64>> = (0..n)
             .map(|j| {
                 let mut e = vec![0.0; n];

@@ -301,6 +301,16 @@ impl<'a> Reader<'a> {
         Ok(())
     }
 
+    /// Refuses a `class` attribute naming no `<default>` class (its defaults would be lost).
+    fn check_class(&self, n: Node) -> Result<(), ArticulationError> {
+        match n.attribute("class") {
+            Some(a) if !self.classes.contains_key(a) => {
+                Err(self.src.error(n, format!("class \"{a}\" is not defined")))
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// The value of attribute `name` of `n`: its own, or its class's default.
     fn attr<'n>(&'n self, n: Node<'n, 'n>, class: &str, name: &str) -> Option<&'n str> {
         if let Some(v) = n.attribute(name) {
@@ -619,11 +629,7 @@ impl<'a> Reader<'a> {
             "group",
         ];
         self.src.only_attributes(n, &known)?;
-        if let Some(a) = self.attr(n, class, "class") {
-            if !self.classes.contains_key(a) {
-                return Err(self.src.error(n, format!("class \"{a}\" is not defined")));
-            }
-        }
+        self.check_class(n)?;
         let kind = if n.has_tag_name("freejoint") {
             "free"
         } else {
@@ -752,11 +758,7 @@ impl<'a> Reader<'a> {
             "margin",
         ];
         self.src.only_attributes(n, &known)?;
-        if let Some(a) = n.attribute("class") {
-            if !self.classes.contains_key(a) {
-                return Err(self.src.error(n, format!("class \"{a}\" is not defined")));
-            }
-        }
+        self.check_class(n)?;
         let kind = self.attr(n, class, "type").unwrap_or("sphere");
         let size = self.nums(n, class, "size", &[1, 2, 3])?.unwrap_or_default();
         let fromto = self.nums(n, class, "fromto", &[6])?;
@@ -968,6 +970,7 @@ impl<'a> Reader<'a> {
         {
             return Err(self.src.error(n, "forcerange is not supported"));
         }
+        self.check_class(n)?;
         let joint = self.src.required(n, "joint")?.to_string();
         let Some(link) = self
             .builder
