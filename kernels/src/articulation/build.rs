@@ -4,7 +4,7 @@ use adflex_runtime::prelude::*;
 
 use super::model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, JointType,
-    LinkInfo,
+    LinkInfo, WorldInfo,
 };
 
 fn err(element: String, message: impl Into<String>) -> ArticulationError {
@@ -69,8 +69,11 @@ pub(crate) fn finalize<R: Real>(
             j.clone()
         }
     };
-    if !finite3(&b.gravity) {
-        return Err(err("gravity".into(), "must be finite"));
+    let (world_of, gravity) = b.world_layout();
+    for (k, g) in gravity.iter().enumerate() {
+        if !finite3(g) {
+            return Err(err(format!("gravity of world {k}"), "must be finite"));
+        }
     }
     if !(b.limit_ke >= 0.0 && b.limit_kd >= 0.0 && b.limit_ke.is_finite() && b.limit_kd.is_finite())
     {
@@ -88,6 +91,18 @@ pub(crate) fn finalize<R: Real>(
                     format!(
                         "its parent (link {}) must be added before it (parents first)",
                         p.0
+                    ),
+                ));
+            }
+            if world_of[p.0] != world_of[l] {
+                return Err(err(
+                    name(l),
+                    format!(
+                        "it is in world {} and its parent {} in world {}: worlds do not share \
+                         links (add the whole robot with `add_world`)",
+                        world_of[l],
+                        name(p.0),
+                        world_of[p.0]
                     ),
                 ));
             }
@@ -174,6 +189,9 @@ pub(crate) fn finalize<R: Real>(
         let e = || format!("muscle \"{}\" ({k})", m.name);
         if m.origin.0 .0 >= n || m.insertion.0 .0 >= n {
             return Err(err(e(), "its origin or insertion link does not exist"));
+        }
+        if world_of[m.origin.0 .0] != world_of[m.insertion.0 .0] {
+            return Err(err(e(), "its origin and insertion are in different worlds"));
         }
         if !(finite3(&m.origin.1) && finite3(&m.insertion.1)) {
             return Err(err(e(), "attachment points must be finite"));
@@ -267,11 +285,20 @@ pub(crate) fn finalize<R: Real>(
         chain.extend(c);
         chain_start.push(chain.len() as u32);
     }
+    // A tree's links are contiguous: a subtree is searched for in its own tree only.
+    let mut tree_end = vec![n; n];
+    for i in (0..n.saturating_sub(1)).rev() {
+        tree_end[i] = if parent[i + 1].is_none() {
+            i + 1
+        } else {
+            tree_end[i + 1]
+        };
+    }
     let mut subtree_start = vec![0u32];
     let mut subtree = Vec::new();
     for i in 0..n {
         subtree.push(i as u32);
-        for j in i + 1..n {
+        for j in i + 1..tree_end[i] {
             let mut p = parent[j];
             while let Some(k) = p {
                 if k == i {
@@ -343,19 +370,74 @@ pub(crate) fn finalize<R: Real>(
             ));
         }
         let c = b.contacts();
-        for i in 0..c.len() {
-            for j in i + 1..c.len() {
-                let (la, lb) = (new_index[c[i].0 .0], new_index[c[j].0 .0]);
-                let joined = la == lb || parent[la] == Some(lb) || parent[lb] == Some(la);
-                if !joined && (c[i].2 > 0.0 || c[j].2 > 0.0) {
-                    pairs.push((i as u32, j as u32));
-                }
+        // Contacts of different worlds never touch: pairs are searched for world by world.
+        let mut by_world = vec![Vec::new(); gravity.len()];
+        for (k, ci) in c.iter().enumerate() {
+            by_world[world_of[ci.0 .0]].push(k);
+        }
+        let mut all = Vec::new();
+        for w in &by_world {
+            for (x, &i) in w.iter().enumerate() {
+                all.extend(w[x + 1..].iter().map(|&j| (i, j)));
+            }
+        }
+        all.sort_unstable();
+        for (i, j) in all {
+            let (la, lb) = (new_index[c[i].0 .0], new_index[c[j].0 .0]);
+            let joined = la == lb || parent[la] == Some(lb) || parent[lb] == Some(la);
+            if !joined && (c[i].2 > 0.0 || c[j].2 > 0.0) {
+                pairs.push((i as u32, j as u32));
             }
         }
     }
     let r = |x: f64| R::lit(x);
     let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
     let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
+    // Worlds: contiguous in the new order too (trees never span worlds, roots keep their order).
+    let link_world: Vec<usize> = order.iter().map(|&l| world_of[l]).collect();
+    let mut worlds: Vec<WorldInfo> = (0..gravity.len())
+        .map(|_| WorldInfo {
+            links: n..n,
+            articulations: arts.len()..arts.len(),
+            q: nq..nq,
+            dofs: nv..nv,
+        })
+        .collect();
+    let (mut q_world, mut dof_world) = (vec![0u32; nq], vec![0u32; nv]);
+    for (i, &w) in link_world.iter().enumerate() {
+        let l = &links[order[i]];
+        let q0 = q_start[i] as usize;
+        let (d0, d1) = (qd_start[i] as usize, qd_start[i + 1] as usize);
+        q_world[q0..q0 + l.joint.kind.nq()].fill(w as u32);
+        dof_world[d0..d1].fill(w as u32);
+        let info = &mut worlds[w];
+        if info.links.start == n {
+            *info = WorldInfo {
+                links: i..i,
+                articulations: art_of[i]..art_of[i],
+                q: q0..q0,
+                dofs: d0..d0,
+            };
+        }
+        info.links.end = i + 1;
+        info.articulations.end = art_of[i] + 1;
+        info.q.end = q0 + l.joint.kind.nq();
+        info.dofs.end = d1;
+    }
+    // An empty world sits where the next one starts.
+    for k in (0..worlds.len()).rev() {
+        if worlds[k].links.start == n {
+            if let Some(next) = worlds.get(k + 1).cloned() {
+                worlds[k] = WorldInfo {
+                    links: next.links.start..next.links.start,
+                    articulations: next.articulations.start..next.articulations.start,
+                    q: next.q.start..next.q.start,
+                    dofs: next.dofs.start..next.dofs.start,
+                };
+            }
+        }
+    }
+    debug_assert!(link_world.windows(2).all(|p| p[0] <= p[1]));
     let infos = order
         .iter()
         .enumerate()
@@ -374,7 +456,11 @@ pub(crate) fn finalize<R: Real>(
         articulations: arts,
         n_q: nq,
         n_dof: nv,
-        gravity: v3(&b.gravity),
+        worlds,
+        link_world: Array::from_vec(link_world.iter().map(|&w| w as u32).collect()),
+        q_world: Array::from_vec(q_world),
+        dof_world: Array::from_vec(dof_world),
+        gravity: Array::from_vec(gravity.iter().map(v3).collect()),
         limit_ke: r(b.limit_ke),
         limit_kd: r(b.limit_kd),
         q0: neutral.iter().map(|&x| r(x)).collect(),

@@ -224,7 +224,8 @@ impl<R: Real> Articulations<R> {
                 &j,
                 qd,
                 &qdd,
-                self.gravity,
+                &self.gravity,
+                &self.link_world,
                 &w,
                 &v,
                 &ln,
@@ -460,6 +461,73 @@ impl<R: Real> Articulations<R> {
             ),
         );
         Ok(next)
+    }
+
+    /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s, recorded
+    /// on the tape (gradients flow to both). With `from = &model.state()` it resets those
+    /// worlds ([`Articulations::reset_worlds`]); with a state of random draws it restarts them
+    /// there.
+    ///
+    /// Errors: a world index out of range, or a state of the wrong size, as
+    /// [`Error::InvalidInput`] naming it.
+    pub fn select_worlds(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        worlds: &[usize],
+        from: &ArticulationState<R>,
+    ) -> Result<ArticulationState<R>, Error> {
+        let mut take = vec![0u32; self.n_worlds()];
+        for &w in worlds {
+            if w >= take.len() {
+                return Err(Error::InvalidInput {
+                    what: format!("select_worlds: world {w}"),
+                    message: format!("the model has {} worlds", take.len()),
+                });
+            }
+            take[w] = 1;
+        }
+        for (s, what) in [(state, "state"), (from, "from")] {
+            if s.q.len() != self.n_q || s.qd.len() != self.n_dof {
+                return Err(Error::InvalidInput {
+                    what: format!("select_worlds: `{what}`"),
+                    message: format!(
+                        "has {} coordinates and {} velocities, the model {} and {}",
+                        s.q.len(),
+                        s.qd.len(),
+                        self.n_q,
+                        self.n_dof
+                    ),
+                });
+            }
+        }
+        let take = Array::from_vec(take);
+        let next = ArticulationState {
+            q: Array::zeros(self.n_q),
+            qd: Array::zeros(self.n_dof),
+        };
+        tape.launch(
+            articulation_select_worlds,
+            self.n_q,
+            (&self.q_world, &take, &state.q, &from.q, &next.q),
+        );
+        tape.launch(
+            articulation_select_worlds,
+            self.n_dof,
+            (&self.dof_world, &take, &state.qd, &from.qd, &next.qd),
+        );
+        Ok(next)
+    }
+
+    /// `state` with the worlds listed in `worlds` back at [`Articulations::state`] (see
+    /// [`Articulations::select_worlds`]).
+    pub fn reset_worlds(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        worlds: &[usize],
+    ) -> Result<ArticulationState<R>, Error> {
+        self.select_worlds(tape, state, worlds, &self.state())
     }
 
     /// `qdd = M^-1 rhs`, one block per articulation, recorded on the tape with its adjoint

@@ -125,7 +125,7 @@ pub fn articulation_kinematics<R: Real>(
 ///
 /// Along the chain, `v_j = v_parent + S_j qd_j` and `a_j = a_parent + S_j qdd_j + v_parent x
 /// S_j qd_j` (the motion cross product `(w1, v1) x (w2, v2) = (w1 x w2, w1 x v2 + v1 x w2)`),
-/// from `a_root = (0, -g)`: gravity enters as an upward acceleration of the world. The wrench is
+/// from `a_root = (0, -g)` (`g` the link's world's gravity): gravity enters as an upward acceleration of the world. The wrench is
 /// `I a + v x* I v` with the force cross product `(w, v) x* (n, f) = (w x n + v x f, w x f)`;
 /// the composite inertia is the sum of the subtree's `(m, h, J)`.
 #[diff_kernel]
@@ -142,7 +142,8 @@ pub fn articulation_link_dynamics<R: Real>(
     link_j: &Array<Mat33<R>>,
     qd: &Array<R>,
     qdd: &Array<R>,
-    gravity: Vec3<R>,
+    gravity: &Array<Vec3<R>>,
+    link_world: &Array<u32>,
     link_w: &Array<Vec3<R>>,
     link_v: &Array<Vec3<R>>,
     link_n: &Array<Vec3<R>>,
@@ -152,18 +153,19 @@ pub fn articulation_link_dynamics<R: Real>(
     comp_j: &Array<Mat33<R>>,
 ) {
     let l = tid();
-    let mut w = gravity * 0.0;
-    let mut v = gravity * 0.0;
-    let mut aw = gravity * 0.0;
-    let mut av = -gravity;
+    let g = gravity[link_world[l] as usize];
+    let mut w = g * 0.0;
+    let mut v = g * 0.0;
+    let mut aw = g * 0.0;
+    let mut av = -g;
     let c0 = chain_start[l] as usize;
     let c1 = chain_start[l + 1] as usize;
     for k in c0..c1 {
         let j = chain[k] as usize;
         let d0 = qd_start[j] as usize;
         let d1 = qd_start[j + 1] as usize;
-        let mut dw = gravity * 0.0;
-        let mut dv = gravity * 0.0;
+        let mut dw = g * 0.0;
+        let mut dv = g * 0.0;
         for d in d0..d1 {
             dw = dw + s_w[d] * qd[d];
             dv = dv + s_v[d] * qd[d];
@@ -396,5 +398,23 @@ pub fn articulation_integrate<R: Real>(
             qd_new[d0 + 1] = v1.y;
             qd_new[d0 + 2] = v1.z;
         }
+    }
+}
+
+/// `out[tid]` is `from[tid]` in the worlds `take` marks (non-zero, indexed by `world[tid]`),
+/// `keep[tid]` elsewhere: resetting some worlds of a state.
+#[diff_kernel]
+pub fn articulation_select_worlds<R: Real>(
+    world: &Array<u32>,
+    take: &Array<u32>,
+    keep: &Array<R>,
+    from: &Array<R>,
+    out: &Array<R>,
+) {
+    let t = tid();
+    if take[world[t] as usize] != 0 {
+        out[t] = from[t];
+    } else {
+        out[t] = keep[t];
     }
 }

@@ -54,5 +54,5 @@ pub use contact::GroundContact;
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, Joint,
-    JointType, LinkDesc, LinkId, LinkInfo, Muscle, Pose,
+    JointType, LinkDesc, LinkId, LinkInfo, Muscle, Pose, WorldInfo,
 };

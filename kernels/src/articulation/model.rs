@@ -447,12 +447,17 @@ pub struct ArticulationBuilder {
     /// law; default false). Links joined to each other directly never touch, nor two
     /// radius-0 points (box corners).
     pub link_contact: bool,
-    /// Gravity (m/s^2); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
+    /// Gravity (m/s^2) of the worlds not added by [`ArticulationBuilder::add_world`] (which
+    /// keep their own builder's); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
     pub gravity: Vec3<f64>,
     /// Stiffness of the joint limits (N m/rad or N/m).
     pub limit_ke: f64,
     /// Damping of the joint limits while violated.
     pub limit_kd: f64,
+    /// The worlds: each one's first link and gravity (`None`: [`ArticulationBuilder::gravity`]).
+    /// World 0 starts at link 0; links added with [`ArticulationBuilder::add_link`] go to the
+    /// last world.
+    worlds: Vec<(usize, Option<Vec3<f64>>)>,
 }
 
 impl Default for ArticulationBuilder {
@@ -473,6 +478,7 @@ impl ArticulationBuilder {
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
+            worlds: vec![(0, None)],
         }
     }
 
@@ -564,7 +570,8 @@ impl ArticulationBuilder {
         self.links.iter().position(|l| l.name == name).map(LinkId)
     }
 
-    /// Adds every link of `other` (its articulations become more articulations of this one);
+    /// Adds every link of `other` to the last world (its articulations become more
+    /// articulations of this world; its own worlds, if it has several, merge into this one);
     /// returns the id of `other`'s first link here.
     pub fn add_builder(&mut self, other: &ArticulationBuilder) -> LinkId {
         let base = self.links.len();
@@ -586,6 +593,108 @@ impl ArticulationBuilder {
             self.ground = other.ground;
         }
         LinkId(base)
+    }
+
+    /// Adds the worlds of `other` (usually one: a robot, a scene) as new worlds of this
+    /// builder, each with its own gravity (`other`'s); returns the index of the first. Worlds
+    /// share the ground's law and the joint-limit law but never touch each other, and each is
+    /// simulated in its own frame: they need no spacing in space, and a world's results are
+    /// the same bits whatever the other worlds are (see [`Articulations::worlds`]).
+    ///
+    /// An empty builder's first `add_world` fills world 0. Links added afterwards with
+    /// [`ArticulationBuilder::add_link`] go to the last world.
+    ///
+    /// ```
+    /// use adflex_kernels::articulation::*;
+    /// use adflex_runtime::Vec3;
+    ///
+    /// let mut pendulum = ArticulationBuilder::new();
+    /// pendulum.add_link("pole", None, Joint::revolute(Vec3::y()),
+    ///     Inertial::point(1.0, Vec3::new(0.0, 0.0, 0.5)));
+    /// let mut moon = pendulum.clone();
+    /// moon.gravity = Vec3::new(0.0, 0.0, -1.62);
+    ///
+    /// let mut b = ArticulationBuilder::new();
+    /// assert_eq!(b.add_world(&pendulum), 0);
+    /// assert_eq!(b.add_world(&moon), 1);
+    /// let model = b.finalize::<f64>().unwrap();
+    /// assert_eq!(model.worlds.len(), 2);
+    /// assert_eq!(model.gravity.get(1).z, -1.62);
+    /// ```
+    pub fn add_world(&mut self, other: &ArticulationBuilder) -> usize {
+        let first = if self.links.is_empty() && self.worlds.len() == 1 {
+            self.worlds.clear();
+            0
+        } else {
+            self.worlds.len()
+        };
+        for (k, &(start, g)) in other.worlds.iter().enumerate() {
+            let end = other.worlds.get(k + 1).map_or(other.links.len(), |w| w.0);
+            let base = self.links.len();
+            self.worlds.push((base, Some(g.unwrap_or(other.gravity))));
+            let remap = |l: LinkId| LinkId(l.0 - start + base);
+            for l in &other.links[start..end] {
+                let mut l = l.clone();
+                l.parent = l.parent.map(remap);
+                self.links.push(l);
+            }
+            let inside = |l: LinkId| (start..end).contains(&l.0);
+            for &(l, c, r) in other.contacts.iter().filter(|c| inside(c.0)) {
+                self.contacts.push((remap(l), c, r));
+            }
+            for m in other.muscles.iter().filter(|m| inside(m.origin.0)) {
+                let mut m = m.clone();
+                m.origin.0 = remap(m.origin.0);
+                m.insertion.0 = LinkId(m.insertion.0 .0 + base - start);
+                self.muscles.push(m);
+            }
+        }
+        if self.ground.is_none() {
+            self.ground = other.ground;
+        }
+        first
+    }
+
+    /// `n` copies of this builder's worlds, one after the other (for `n` copies of a robot
+    /// or a scene: [`ArticulationBuilder::add_world`] `n` times).
+    ///
+    /// # Panics
+    /// If `n` is 0.
+    pub fn replicate(&self, n: usize) -> ArticulationBuilder {
+        assert!(
+            n > 0,
+            "ArticulationBuilder::replicate(0): a model needs a world"
+        );
+        let mut b = ArticulationBuilder {
+            links: Vec::new(),
+            contacts: Vec::new(),
+            muscles: Vec::new(),
+            worlds: vec![(0, None)],
+            ..self.clone()
+        };
+        for _ in 0..n {
+            b.add_world(self);
+        }
+        b
+    }
+
+    /// Number of worlds (1 unless [`ArticulationBuilder::add_world`] added more).
+    pub fn world_count(&self) -> usize {
+        self.worlds.len()
+    }
+
+    /// The world of each link, and each world's gravity.
+    pub(crate) fn world_layout(&self) -> (Vec<usize>, Vec<Vec3<f64>>) {
+        let mut of = vec![0; self.links.len()];
+        for (k, &(start, _)) in self.worlds.iter().enumerate() {
+            of[start..].iter_mut().for_each(|w| *w = k);
+        }
+        let g = self
+            .worlds
+            .iter()
+            .map(|w| w.1.unwrap_or(self.gravity))
+            .collect();
+        (of, g)
     }
 
     /// Checks the description and builds the model.
@@ -611,6 +720,20 @@ pub struct ArticulationInfo {
     pub dofs: Range<usize>,
     /// Where its mass-matrix block (row-major, `dofs.len()` squared) starts.
     pub m_offset: usize,
+}
+
+/// Where a world's links, articulations, coordinates and velocities are in the model's arrays
+/// (each a contiguous range).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WorldInfo {
+    /// Its links.
+    pub links: Range<usize>,
+    /// Its articulations.
+    pub articulations: Range<usize>,
+    /// Its coordinates in `q`.
+    pub q: Range<usize>,
+    /// Its velocities in `qd`.
+    pub dofs: Range<usize>,
 }
 
 /// A link of the model: names, joint and where its joint's coordinates are.
@@ -644,12 +767,22 @@ pub struct Articulations<R: Real> {
     pub links: Vec<LinkInfo>,
     /// The articulations.
     pub articulations: Vec<ArticulationInfo>,
+    /// The worlds ([`ArticulationBuilder::add_world`]; one unless it added more). Worlds
+    /// never interact: one launch steps them all, and a world's results are bitwise the same
+    /// whatever the number, order and content of the others and the thread count.
+    pub worlds: Vec<WorldInfo>,
+    /// Per link: its world.
+    pub link_world: Array<u32>,
+    /// Per coordinate: its world.
+    pub q_world: Array<u32>,
+    /// Per velocity: its world.
+    pub dof_world: Array<u32>,
     /// Number of coordinates.
     pub n_q: usize,
     /// Number of velocities (degrees of freedom).
     pub n_dof: usize,
-    /// Gravity (m/s^2).
-    pub gravity: Vec3<R>,
+    /// Gravity per world (m/s^2): a parameter like the others (it can require grad).
+    pub gravity: Array<Vec3<R>>,
     /// Stiffness of the joint limits.
     pub limit_ke: R,
     /// Damping of the joint limits while violated.
@@ -757,5 +890,10 @@ impl<R: Real> Articulations<R> {
     /// Number of links.
     pub fn n_links(&self) -> usize {
         self.links.len()
+    }
+
+    /// Number of worlds.
+    pub fn n_worlds(&self) -> usize {
+        self.worlds.len()
     }
 }

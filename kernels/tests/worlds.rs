@@ -1,0 +1,348 @@
+//! Many worlds in one model: a world's loss and gradients are the same bits whatever the
+//! number, order and content of the other worlds and the thread count; per-world parameters
+//! get per-world gradients, shared ones the sum; resetting selected worlds.
+
+use adflex_kernels::articulation::{
+    urdf, ArticulationBuilder, ArticulationControl, ArticulationState, Articulations,
+    GroundContact, Inertial, Joint,
+};
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/robots");
+
+/// `loss[world[t]] += x[t]^2`: a per-world loss.
+#[diff_kernel]
+fn per_world_squares<R: Real>(world: &Array<u32>, x: &Array<R>, loss: &Array<R>) {
+    let t = tid();
+    loss.atomic_add(world[t] as usize, x[t] * x[t]);
+}
+
+fn quadruped() -> ArticulationBuilder {
+    let options = urdf::UrdfOptions {
+        floating_base: true,
+        collisions: true,
+    };
+    let mut b = urdf::load(format!("{ROBOTS}/quadruped.urdf"), &options).unwrap();
+    b.ground = Some(GroundContact::default());
+    b
+}
+
+/// The scene of identity `j`: a quadruped dropped from a height, with its own gravity, torso
+/// mass and joint angles.
+fn scene(base: &ArticulationBuilder, j: usize) -> ArticulationBuilder {
+    let mut b = base.clone();
+    let jf = j as f64;
+    b.gravity.z = -9.81 * (1.0 + 0.01 * jf);
+    let links = b.links_mut();
+    links[0].joint.initial = vec![0.0, 0.0, 0.22 + 0.005 * (j % 7) as f64, 0.0, 0.0, 0.0, 1.0];
+    links[0].inertial.mass *= 1.0 + 0.02 * jf;
+    for (k, l) in links.iter_mut().enumerate().skip(1) {
+        l.joint.initial = vec![0.1 * ((jf + k as f64) * 0.7).sin()];
+    }
+    b
+}
+
+/// What one world gave: its loss and its gradients (masses, gravity, initial velocities,
+/// torques of every step).
+#[derive(Debug, PartialEq)]
+struct WorldResult {
+    loss: f64,
+    mass: Vec<f64>,
+    gravity: [f64; 3],
+    qd0: Vec<f64>,
+    tau: Vec<f64>,
+}
+
+/// Builds the worlds `ids` (scene identities, in this order), rolls them out together, and
+/// returns each world's result.
+fn run(base: &ArticulationBuilder, ids: &[usize], steps: usize) -> Vec<WorldResult> {
+    let mut b = ArticulationBuilder::new();
+    for &j in ids {
+        b.add_world(&scene(base, j));
+    }
+    let model: Articulations<f64> = b.finalize().unwrap();
+    assert_eq!(model.n_worlds(), ids.len());
+    let _ = model.mass.clone().requires_grad();
+    let _ = model.gravity.clone().requires_grad();
+    let mut tape = Tape::new();
+    let s0 = model.state();
+    let _ = s0.qd.clone().requires_grad();
+    let mut s = ArticulationState {
+        q: s0.q.clone(),
+        qd: s0.qd.clone(),
+    };
+    let mut taus = Vec::new();
+    for k in 0..steps {
+        // Torques that depend on the world's identity, never on its place.
+        let mut tau = vec![0.0; model.n_dof];
+        for (w, &j) in model.worlds.iter().zip(ids) {
+            for (i, d) in w.dofs.clone().enumerate().skip(6) {
+                tau[d] = 0.3 * ((j + i) as f64 + 0.05 * k as f64).sin();
+            }
+        }
+        let tau = Array::from_vec(tau).requires_grad();
+        let c = ArticulationControl {
+            tau: tau.clone(),
+            ..model.control()
+        };
+        s = model.step(&mut tape, &s, Some(&c), 2e-3).unwrap();
+        taus.push(tau);
+    }
+    let loss = Array::zeros(model.n_worlds());
+    tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+    tape.launch(
+        per_world_squares,
+        model.n_dof,
+        (&model.dof_world, &s.qd, &loss),
+    );
+    tape.backward(&loss).unwrap();
+    let (mass, gravity, qd0) = (
+        model.mass.grad().unwrap().to_vec(),
+        model.gravity.grad().unwrap().to_vec(),
+        s0.qd.grad().unwrap().to_vec(),
+    );
+    let tau: Vec<Vec<f64>> = taus.iter().map(|t| t.grad().unwrap().to_vec()).collect();
+    model
+        .worlds
+        .iter()
+        .enumerate()
+        .map(|(w, info)| WorldResult {
+            loss: loss.get(w),
+            mass: mass[info.links.clone()].to_vec(),
+            gravity: [gravity[w].x, gravity[w].y, gravity[w].z],
+            qd0: qd0[info.dofs.clone()].to_vec(),
+            tau: tau
+                .iter()
+                .flat_map(|t| t[info.dofs.clone()].iter().copied())
+                .collect(),
+        })
+        .collect()
+}
+
+#[test]
+fn a_world_does_not_know_it_has_neighbours() {
+    let base = quadruped();
+    let steps = 60;
+    let ids: Vec<usize> = (0..64).collect();
+    // Every launch split across the threads (the default runs these small ones serially).
+    let defaults = adflex_runtime::settings::settings();
+    let mut parallel = defaults;
+    parallel.serial_below = 1;
+    parallel.apply();
+    let together = with_threads(2, || run(&base, &ids, steps));
+    let together3 = with_threads(3, || run(&base, &ids, steps));
+    adflex_runtime::settings::set_settings(defaults);
+    assert_eq!(together, together3, "2 and 3 threads");
+    // Sanity: the worlds differ, their feet touch the ground, and gradients are there.
+    assert_ne!(together[0], together[1]);
+    assert!(together.iter().all(|r| r.tau.iter().any(|g| *g != 0.0)));
+    assert!(together.iter().all(|r| r.gravity[2] != 0.0));
+    // Alone, on one thread and on two.
+    for j in [0, 17, 63] {
+        for threads in [1, 2] {
+            let alone = with_threads(threads, || run(&base, &[j], steps));
+            assert_eq!(
+                alone[0], together[j],
+                "world {j} alone on {threads} threads"
+            );
+        }
+    }
+    // In reverse order, on one thread.
+    let reversed: Vec<usize> = ids.iter().rev().copied().collect();
+    let back = with_threads(1, || run(&base, &reversed, steps));
+    for (w, &j) in reversed.iter().enumerate() {
+        assert_eq!(
+            back[w], together[j],
+            "world {j} at place {w} of the reversed order"
+        );
+    }
+}
+
+fn cartpole() -> ArticulationBuilder {
+    urdf::load(format!("{ROBOTS}/cartpole.urdf"), &Default::default()).unwrap()
+}
+
+#[test]
+fn a_thousand_cartpoles_give_each_world_its_own_bits() {
+    let base = cartpole();
+    let run_cartpoles = |w: usize| {
+        let ids: Vec<usize> = (0..w).map(|k| k % 8).collect();
+        let mut b = ArticulationBuilder::new();
+        for &j in &ids {
+            let mut s = base.clone();
+            let pole = s.find("pole").unwrap().0;
+            s.links_mut()[pole].joint.initial = vec![0.1 + 0.1 * j as f64];
+            b.add_world(&s);
+        }
+        let model: Articulations<f64> = b.finalize().unwrap();
+        let _ = model.mass.clone().requires_grad();
+        let mut tape = Tape::new();
+        let mut s = model.state();
+        for _ in 0..50 {
+            s = model.step(&mut tape, &s, None, 1e-2).unwrap();
+        }
+        let loss = Array::zeros(w);
+        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+        tape.backward(&loss).unwrap();
+        let g = model.mass.grad().unwrap().to_vec();
+        (loss.to_vec(), g)
+    };
+    let (l1024, g1024) = with_threads(2, || run_cartpoles(1024));
+    let (l8, g8) = run_cartpoles(8);
+    let n = g8.len() / 8; // links per cartpole
+    for w in 0..1024 {
+        let k = w % 8;
+        assert_eq!(l1024[w], l8[k], "world {w}'s loss");
+        assert_eq!(
+            g1024[n * w..n * w + n],
+            g8[n * k..n * k + n],
+            "world {w}'s gradient"
+        );
+    }
+    assert!(l8.iter().all(|l| *l > 0.0));
+    assert!(
+        (0..8).all(|k| g8[n * k + n - 1] != 0.0),
+        "the poles' masses matter: {g8:?}"
+    );
+}
+
+#[test]
+fn shared_parameters_get_the_sum_of_the_worlds_gradients() {
+    // One pole mass for four cartpoles, spread onto the model's per-link masses on the tape:
+    // its gradient is the sum of the four per-world gradients, which the per-world masses
+    // get one by one.
+    use adflex_kernels::tied::spread;
+    let model: Articulations<f64> = cartpole().replicate(4).finalize().unwrap();
+    let start = model.state();
+    let angles = [0.1, 0.4, -0.3, 1.0];
+    for (w, a) in model.worlds.iter().zip(angles) {
+        start.q.set(w.q.start + 1, a);
+    }
+    let roll = |tape: &mut Tape, model: &Articulations<f64>| {
+        let mut s = start.clone();
+        for _ in 0..30 {
+            s = model.step(tape, &s, None, 1e-2).unwrap();
+        }
+        let loss = Array::zeros(4);
+        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+        loss
+    };
+    // Per-world masses.
+    let _ = model.mass.clone().requires_grad();
+    let mut tape = Tape::new();
+    let loss = roll(&mut tape, &model);
+    tape.backward(&loss).unwrap();
+    let per_world = model.mass.grad().unwrap().to_vec();
+    // One mass per kind of link (rail, cart, pole), shared by the four worlds.
+    let n = model.worlds[0].links.len();
+    let shared = Array::from_vec(model.mass.to_vec()[..n].to_vec()).requires_grad();
+    let group = Array::from_vec((0..4 * n).map(|l| (l % n) as u32).collect::<Vec<u32>>());
+    let mut tied = model.clone();
+    tied.mass = Array::zeros(4 * n);
+    let mut tape = Tape::new();
+    tape.launch(spread, 4 * n, (&shared, &group, &tied.mass));
+    let loss2 = roll(&mut tape, &tied);
+    tape.backward(&loss2).unwrap();
+    assert_eq!(loss.to_vec(), loss2.to_vec());
+    let g = shared.grad().unwrap().to_vec();
+    let pole = n - 1;
+    let sum_poles: f64 = (0..4).map(|w| per_world[n * w + pole]).sum();
+    assert!(
+        (g[pole] - sum_poles).abs() <= 1e-12 * sum_poles.abs(),
+        "{g:?} vs {sum_poles}"
+    );
+    // The per-world gradients differ (the worlds started apart).
+    assert!(per_world[pole] != per_world[n + pole]);
+}
+
+#[test]
+fn per_world_gravity_gradients_match_central_differences() {
+    let mut b = ArticulationBuilder::new();
+    let mut pendulum = ArticulationBuilder::new();
+    pendulum.add_link(
+        "pole",
+        None,
+        Joint::revolute(Vec3::y()).initial(&[0.5]),
+        Inertial::point(1.0, Vec3::new(0.0, 0.0, 0.5)),
+    );
+    b.add_world(&pendulum);
+    pendulum.gravity = Vec3::new(0.0, 0.0, -1.62);
+    b.add_world(&pendulum);
+    let model: Articulations<f64> = b.finalize().unwrap();
+    let loss_at = |g: &[Vec3<f64>]| {
+        let mut m = model.clone();
+        m.gravity = Array::from_vec(g.to_vec()).requires_grad();
+        let mut tape = Tape::new();
+        let mut s = m.state();
+        for _ in 0..50 {
+            s = m.step(&mut tape, &s, None, 1e-2).unwrap();
+        }
+        let loss = Array::zeros(2);
+        tape.launch(per_world_squares, m.n_q, (&m.q_world, &s.q, &loss));
+        tape.backward(&loss).unwrap();
+        (loss.to_vec(), m.gravity.grad().unwrap().to_vec())
+    };
+    let g0 = model.gravity.to_vec();
+    let (l, grad) = loss_at(&g0);
+    assert_ne!(l[0], l[1], "the moon's pendulum swings slower");
+    let h = 1e-6;
+    for w in 0..2 {
+        let (mut up, mut down) = (g0.clone(), g0.clone());
+        up[w].z += h;
+        down[w].z -= h;
+        let (lu, ld) = (loss_at(&up).0, loss_at(&down).0);
+        let fd = (lu[w] - ld[w]) / (2.0 * h);
+        assert!(
+            (grad[w].z - fd).abs() < 1e-6 * fd.abs().max(1e-3),
+            "world {w}: {} vs {fd}",
+            grad[w].z
+        );
+        // The other world does not move.
+        assert_eq!(lu[1 - w], l[1 - w]);
+    }
+}
+
+#[test]
+fn resetting_selected_worlds() {
+    let model: Articulations<f64> = cartpole().replicate(3).finalize().unwrap();
+    let mut tape = Tape::new();
+    let mut s = model.state();
+    s.q.set(1, 0.3);
+    s.q.set(3, 0.2);
+    s.q.set(5, -0.2);
+    for _ in 0..20 {
+        s = model.step(&mut tape, &s, None, 1e-2).unwrap();
+    }
+    let moved = (s.q.to_vec(), s.qd.to_vec());
+    let r = model.reset_worlds(&mut tape, &s, &[1]).unwrap();
+    let (q, qd) = (r.q.to_vec(), r.qd.to_vec());
+    let w1 = &model.worlds[1];
+    assert_eq!(q[w1.q.clone()], model.q0[w1.q.clone()]);
+    assert!(qd[w1.dofs.clone()].iter().all(|v| *v == 0.0));
+    for w in [0, 2] {
+        let i = &model.worlds[w];
+        assert_eq!(q[i.q.clone()], moved.0[i.q.clone()]);
+        assert_eq!(qd[i.dofs.clone()], moved.1[i.dofs.clone()]);
+    }
+    let e = model.reset_worlds(&mut tape, &s, &[3]).unwrap_err();
+    assert!(e.to_string().contains("world 3"), "{e}");
+}
+
+#[test]
+fn worlds_do_not_share_links() {
+    let mut b = cartpole();
+    b.add_world(&cartpole());
+    let cart = b.find("cart").unwrap(); // world 0's
+    b.add_link(
+        "extra",
+        Some(cart),
+        Joint::revolute(Vec3::y()),
+        Inertial::point(1.0, Vec3::new(0.0, 0.0, 0.5)),
+    );
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(
+        e.contains("extra") && e.contains("world 1") && e.contains("world 0"),
+        "{e}"
+    );
+}
