@@ -15,3 +15,4 @@ pub mod scene_file;
 pub mod small;
 pub mod timing;
 pub mod topo;
+pub mod worlds;

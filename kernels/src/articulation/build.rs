@@ -228,11 +228,12 @@ pub(crate) fn finalize<R: Real>(
             Some(p) => root_of[p.0],
         };
     }
-    let roots: Vec<usize> = (0..n).filter(|&l| links[l].parent.is_none()).collect();
-    let mut order = Vec::with_capacity(n);
-    for &r in &roots {
-        order.extend((0..n).filter(|&l| root_of[l] == r));
+    // Each tree's links in the order given, trees in the order of their roots.
+    let mut tree_links: Vec<Vec<usize>> = vec![Vec::new(); n];
+    for l in 0..n {
+        tree_links[root_of[l]].push(l);
     }
+    let order: Vec<usize> = tree_links.into_iter().flatten().collect();
     let mut new_index = vec![0usize; n];
     for (i, &l) in order.iter().enumerate() {
         new_index[l] = i;

@@ -807,45 +807,56 @@ fn rotate_xyzw(r: &[f64], v: &[f64]) -> [f64; 3] {
     [p.x, p.y, p.z]
 }
 
+/// Blocks per parallel task of the factorization and the solves (many worlds of small
+/// robots: a task must outweigh rayon's few microseconds).
+const BLOCKS_PER_TASK: usize = 256;
+
 /// Cholesky factors (lower, row-major) of every articulation's block; on failure the
-/// articulation and the pivot.
+/// articulation and the pivot (the first failing one). Blocks are independent: in parallel
+/// over many worlds, the same bits.
 pub(crate) fn factor_all<R: Real>(
     model: &Articulations<R>,
     m: &[R],
 ) -> Result<Vec<Vec<f64>>, (usize, usize)> {
-    model
-        .articulations
-        .iter()
-        .enumerate()
-        .map(|(ai, a)| {
-            let n = a.dofs.len();
-            let mut l = vec![0.0; n * n];
-            for i in 0..n {
-                for j in 0..=i {
-                    let mut s = m[a.m_offset + i * n + j].to_f64();
-                    for k in 0..j {
-                        s -= l[i * n + k] * l[j * n + k];
+    use rayon::prelude::*;
+    let one = |(ai, a): (usize, &super::model::ArticulationInfo)| {
+        let n = a.dofs.len();
+        let mut l = vec![0.0; n * n];
+        for i in 0..n {
+            for j in 0..=i {
+                let mut s = m[a.m_offset + i * n + j].to_f64();
+                for k in 0..j {
+                    s -= l[i * n + k] * l[j * n + k];
+                }
+                if i == j {
+                    if !(s > 0.0) || !s.is_finite() {
+                        return Err((ai, i));
                     }
-                    if i == j {
-                        if !(s > 0.0) || !s.is_finite() {
-                            return Err((ai, i));
-                        }
-                        l[i * n + i] = s.sqrt();
-                    } else {
-                        l[i * n + j] = s / l[j * n + j];
-                    }
+                    l[i * n + i] = s.sqrt();
+                } else {
+                    l[i * n + j] = s / l[j * n + j];
                 }
             }
-            Ok(l)
-        })
+        }
+        Ok(l)
+    };
+    let arts = &model.articulations;
+    if arts.len() < 2 * BLOCKS_PER_TASK {
+        return arts.iter().enumerate().map(one).collect();
+    }
+    arts.par_iter()
+        .enumerate()
+        .with_min_len(BLOCKS_PER_TASK)
+        .map(one)
         .collect()
 }
 
 /// `M^-1 b` per block from the factors.
 fn solve_all(factors: &[Vec<f64>], blocks: &[(usize, usize, usize)], b: &[f64]) -> Vec<f64> {
+    use rayon::prelude::*;
     let mut x = b.to_vec();
-    for (l, &(start, n, _)) in factors.iter().zip(blocks) {
-        let y = &mut x[start..start + n];
+    let one = |(l, y): (&Vec<f64>, &mut [f64])| {
+        let n = y.len();
         for i in 0..n {
             let mut s = y[i];
             for k in 0..i {
@@ -860,6 +871,26 @@ fn solve_all(factors: &[Vec<f64>], blocks: &[(usize, usize, usize)], b: &[f64]) 
             }
             y[i] = s / l[i * n + i];
         }
+    };
+    // The blocks' slices of x (blocks are contiguous and in order).
+    let mut slices = Vec::with_capacity(blocks.len());
+    let mut rest = &mut x[..];
+    let mut at = 0;
+    for &(start, n, _) in blocks {
+        let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - at);
+        let (y, tail) = tail.split_at_mut(n);
+        slices.push(y);
+        rest = tail;
+        at = start + n;
+    }
+    if blocks.len() < 2 * BLOCKS_PER_TASK {
+        factors.iter().zip(slices).for_each(one);
+    } else {
+        factors
+            .par_iter()
+            .zip(slices)
+            .with_min_len(BLOCKS_PER_TASK)
+            .for_each(one);
     }
     x
 }

@@ -687,7 +687,8 @@ impl ArticulationBuilder {
     pub(crate) fn world_layout(&self) -> (Vec<usize>, Vec<Vec3<f64>>) {
         let mut of = vec![0; self.links.len()];
         for (k, &(start, _)) in self.worlds.iter().enumerate() {
-            of[start..].iter_mut().for_each(|w| *w = k);
+            let end = self.worlds.get(k + 1).map_or(of.len(), |w| w.0);
+            of[start..end].fill(k);
         }
         let g = self
             .worlds

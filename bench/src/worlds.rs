@@ -1,0 +1,166 @@
+//! `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]`: many
+//! worlds in one model. W cartpoles (`kernels/robots/cartpole.urdf`) rolled out for
+//! `frames x substeps` semi-implicit steps (dt 1/240 s, a force on each cart), forward and
+//! backward on one tape: the time per world-step at W = 1 and W = `--worlds` on 1 thread and
+//! on 2, and each case's peak memory (each case runs in its own process: `worlds-case`). With
+//! `--python`, MuJoCo's batched rollout of the same cartpoles (`bench/peers/worlds.py`,
+//! forward only) in the same run. One JSON line each, then the ratios.
+
+use std::process::Command;
+use std::time::Instant;
+
+use adflex_kernels::articulation::{urdf, ArticulationBuilder, ArticulationControl, Articulations};
+use adflex_runtime::prelude::*;
+use serde_json::{json, Value};
+
+const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../kernels/robots");
+
+fn arg(rest: &[String], name: &str) -> Option<usize> {
+    rest.iter()
+        .position(|a| a == name)
+        .and_then(|k| rest.get(k + 1))
+        .and_then(|v| v.parse().ok())
+}
+
+/// W cartpoles, world `w`'s pole tilted by `0.1 + 0.1 (w mod 8)`.
+fn cartpoles(worlds: usize) -> Articulations<f64> {
+    let base =
+        urdf::load(format!("{ROBOTS}/cartpole.urdf"), &Default::default()).expect("cartpole.urdf");
+    let pole = base.find("pole").expect("a pole").0;
+    let mut b = ArticulationBuilder::new();
+    for w in 0..worlds {
+        let mut s = base.clone();
+        s.links_mut()[pole].joint.initial = vec![0.1 + 0.1 * (w % 8) as f64];
+        b.add_world(&s);
+    }
+    b.finalize().expect("cartpoles")
+}
+
+/// Seconds for one rollout of `steps` steps and its backward pass (the gradient of the sum of
+/// the worlds' losses with respect to every step's forces).
+fn rollout(model: &Articulations<f64>, steps: usize) -> f64 {
+    let t0 = Instant::now();
+    let mut tape = Tape::new();
+    let mut s = model.state();
+    let idle = model.control();
+    let mut forces = Vec::with_capacity(steps);
+    for k in 0..steps {
+        let mut tau = vec![0.0; model.n_dof];
+        for (w, info) in model.worlds.iter().enumerate() {
+            tau[info.dofs.start] = 0.5 * (0.01 * k as f64 + w as f64).sin();
+        }
+        let tau = Array::from_vec(tau).requires_grad();
+        let c = ArticulationControl {
+            tau: tau.clone(),
+            ..idle.clone()
+        };
+        s = model
+            .step(&mut tape, &s, Some(&c), 1.0 / 240.0)
+            .expect("a step");
+        forces.push(tau);
+    }
+    let loss = Array::zeros(1);
+    adflex_kernels::losses::sum_of_squares(&mut tape, &s.q, 1.0, &loss);
+    tape.backward(&loss).expect("a gradient");
+    assert!(forces[0].grad().expect("a gradient").get(0).is_finite());
+    t0.elapsed().as_secs_f64()
+}
+
+/// One case in this process: a JSON line with the time per world-step and the peak memory.
+pub fn case(rest: &[String]) -> Value {
+    let worlds = arg(rest, "--worlds").unwrap_or(1024);
+    let threads = arg(rest, "--threads").unwrap_or(1);
+    let steps = arg(rest, "--frames").unwrap_or(240) * arg(rest, "--substeps").unwrap_or(4);
+    let reps = arg(rest, "--reps").unwrap_or(2);
+    if let Some(n) = arg(rest, "--serial-below") {
+        let mut s = adflex_runtime::settings::settings();
+        s.serial_below = n;
+        s.apply();
+    }
+    let model = cartpoles(worlds);
+    let best = with_threads(threads, || {
+        (0..reps.max(1))
+            .map(|_| rollout(&model, steps))
+            .fold(f64::INFINITY, f64::min)
+    });
+    json!({
+        "system": "adflex",
+        "model": "cartpole",
+        "worlds": worlds,
+        "threads": threads,
+        "steps": steps,
+        "forward_backward_us_per_world_step": 1e6 * best / (worlds * steps) as f64,
+        "peak_rss_mb": crate::timing::peak_rss_mb(),
+    })
+}
+
+pub fn main(rest: &[String]) {
+    let worlds = arg(rest, "--worlds").unwrap_or(1024);
+    let frames = arg(rest, "--frames").unwrap_or(240);
+    let substeps = arg(rest, "--substeps").unwrap_or(4);
+    let reps = arg(rest, "--reps").unwrap_or(2);
+    let me = std::env::current_exe().expect("the bench binary");
+    let mut ours = Vec::new();
+    for (w, t) in [(1, 1), (worlds, 1), (worlds, 2)] {
+        let out = Command::new(&me)
+            .args(["worlds-case", "--worlds", &w.to_string(), "--threads"])
+            .arg(t.to_string())
+            .args(["--frames", &frames.to_string(), "--substeps"])
+            .arg(substeps.to_string())
+            .args(["--reps", &reps.to_string()])
+            .output()
+            .expect("the bench runs itself");
+        let line = String::from_utf8_lossy(&out.stdout);
+        println!("{}", line.trim());
+        let v: Value = serde_json::from_str(line.trim()).expect("a JSON line");
+        ours.push(
+            v["forward_backward_us_per_world_step"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+        );
+    }
+    println!(
+        "{}",
+        json!({"ratio": format!("per world-step, W = {worlds} / W = 1 (1 thread)"),
+               "value": ours[1] / ours[0]})
+    );
+    println!(
+        "{}",
+        json!({"ratio": format!("speed-up of 2 threads over 1 at W = {worlds}"),
+               "value": ours[1] / ours[2]})
+    );
+    let Some(python) = rest
+        .iter()
+        .position(|a| a == "--python")
+        .and_then(|k| rest.get(k + 1))
+    else {
+        return;
+    };
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/peers/worlds.py");
+    let out = Command::new(python)
+        .arg(script)
+        .args(["--worlds", &worlds.to_string(), "--steps"])
+        .arg((frames * substeps).to_string())
+        .output()
+        .expect("the peer's python runs");
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        println!("{line}");
+        let Ok(v) = serde_json::from_str::<Value>(line) else {
+            continue;
+        };
+        let (w, t) = (v["worlds"].as_u64(), v["threads"].as_u64());
+        let k = match (w, t) {
+            (Some(1), Some(1)) => 0,
+            (Some(_), Some(1)) => 1,
+            _ => 2,
+        };
+        let us = v["us_per_world_step"].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "{}",
+            json!({"ratio": format!(
+                "adflex forward+backward / MuJoCo rollout forward, W = {}, {} thread(s)",
+                w.unwrap_or(0), t.unwrap_or(0)),
+                "value": ours[k] / us})
+        );
+    }
+}
