@@ -627,10 +627,24 @@ impl<R: Real> Articulations<R> {
                 .clone();
             let finite = mv.iter().all(|x| x.to_f64().is_finite());
             Error::InvalidInput {
-                what: format!("mass matrix of articulation {art} (joint \"{l}\", pivot {d})"),
+                what: format!(
+                    "mass matrix of articulation {art}{} (joint \"{l}\", pivot {d})",
+                    match self.worlds.len() {
+                        1 => String::new(),
+                        _ => format!(
+                            " in world {}",
+                            self.worlds
+                                .iter()
+                                .position(|w| w.articulations.contains(&art))
+                                .unwrap_or(0)
+                        ),
+                    }
+                ),
                 message: if finite {
                     "is not positive definite: a joint moves no mass (a mass or inertia \
-                     parameter at or below zero?)"
+                     parameter at or below zero), or the state blew up (a step unstable at \
+                     this dt: the stiffest term, e.g. the joint limits' `limit_ke`, needs a \
+                     smaller dt or a softer value)"
                         .into()
                 } else {
                     "is not finite: the state or a parameter is not finite".into()
