@@ -779,7 +779,7 @@ fn link_spheres_collide_conserving_momentum_with_right_gradients() {
 fn a_spinning_free_body_keeps_its_world_velocity() {
     // No force: the centre of mass... here the link origin (the box's centre of mass is off
     // it by 5 cm) moves with the body, so check the centre of mass's world velocity instead.
-    let mut model = spinning_box();
+    let model = spinning_box();
     model.gravity.set(0, adflex_runtime::Vec3::zeros());
     let mut tape = Tape::new();
     let mut s = model.state();

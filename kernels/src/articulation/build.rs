@@ -297,9 +297,9 @@ pub(crate) fn finalize<R: Real>(
     }
     let mut subtree_start = vec![0u32];
     let mut subtree = Vec::new();
-    for i in 0..n {
+    for (i, &end) in tree_end.iter().enumerate() {
         subtree.push(i as u32);
-        for j in i + 1..tree_end[i] {
+        for j in i + 1..end {
             let mut p = parent[j];
             while let Some(k) = p {
                 if k == i {
