@@ -382,3 +382,34 @@ fn checkpointed_rollouts_over_worlds_give_the_whole_tapes_per_world_gradients() 
     assert_eq!(tau.grad().unwrap().to_vec(), whole, "bit for bit");
     assert!(whole.iter().all(|g| *g != 0.0));
 }
+
+#[test]
+fn a_share_of_the_worlds_gives_the_same_bits() {
+    // Different quadrupeds; worlds 3..7 taken out of the ten by `worlds_in`.
+    let base = quadruped();
+    let mut all = ArticulationBuilder::new();
+    for j in 0..10 {
+        all.add_world(&scene(&base, j));
+    }
+    let roll = |b: &ArticulationBuilder| {
+        let model: Articulations<f64> = b.finalize().unwrap();
+        let _ = model.mass.clone().requires_grad();
+        let mut tape = Tape::new();
+        let mut s = model.state();
+        for _ in 0..40 {
+            s = model.step(&mut tape, &s, None, 2e-3).unwrap();
+        }
+        let loss = Array::zeros(model.n_worlds());
+        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+        tape.backward(&loss).unwrap();
+        (loss.to_vec(), model.mass.grad().unwrap().to_vec(), model)
+    };
+    let (l_all, g_all, m_all) = roll(&all);
+    let share = all.worlds_in(3..7);
+    assert_eq!(share.world_count(), 4);
+    let (l, g, m) = roll(&share);
+    assert_eq!(l[..], l_all[3..7]);
+    let links = m_all.worlds[3].links.start..m_all.worlds[6].links.end;
+    assert_eq!(g[..], g_all[links]);
+    assert_eq!(m.gravity.to_vec()[..], m_all.gravity.to_vec()[3..7]);
+}

@@ -665,17 +665,77 @@ impl ArticulationBuilder {
             n > 0,
             "ArticulationBuilder::replicate(0): a model needs a world"
         );
-        let mut b = ArticulationBuilder {
-            links: Vec::new(),
-            contacts: Vec::new(),
-            muscles: Vec::new(),
-            worlds: vec![(0, None)],
-            ..self.clone()
-        };
+        let mut b = self.clone_settings();
         for _ in 0..n {
             b.add_world(self);
         }
         b
+    }
+
+    /// A builder with only the worlds in `worlds` (their links, contacts, muscles and gravity;
+    /// the same ground and laws): one process's or thread's share of a scene whose worlds are
+    /// spread over several. World `worlds.start` of this builder is world 0 of the new one;
+    /// each world's results are the same bits in either (worlds never interact).
+    ///
+    /// # Panics
+    /// If the range is empty or past the last world.
+    pub fn worlds_in(&self, worlds: Range<usize>) -> ArticulationBuilder {
+        assert!(
+            !worlds.is_empty() && worlds.end <= self.worlds.len(),
+            "ArticulationBuilder::worlds_in({worlds:?}): the builder has {} worlds",
+            self.worlds.len()
+        );
+        let mut b = self.clone_settings();
+        for k in worlds {
+            let (start, g) = self.worlds[k];
+            let end = self.worlds.get(k + 1).map_or(self.links.len(), |w| w.0);
+            let one = ArticulationBuilder {
+                links: self.links[start..end]
+                    .iter()
+                    .map(|l| {
+                        let mut l = l.clone();
+                        l.parent = l.parent.map(|p| LinkId(p.0 - start));
+                        l
+                    })
+                    .collect(),
+                contacts: self
+                    .contacts
+                    .iter()
+                    .filter(|c| (start..end).contains(&c.0 .0))
+                    .map(|&(l, c, r)| (LinkId(l.0 - start), c, r))
+                    .collect(),
+                muscles: self
+                    .muscles
+                    .iter()
+                    .filter(|m| (start..end).contains(&m.origin.0 .0))
+                    .map(|m| {
+                        let mut m = m.clone();
+                        m.origin.0 = LinkId(m.origin.0 .0 - start);
+                        m.insertion.0 = LinkId(m.insertion.0 .0.wrapping_sub(start));
+                        m
+                    })
+                    .collect(),
+                worlds: vec![(0, Some(g.unwrap_or(self.gravity)))],
+                ..self.clone_settings()
+            };
+            b.add_world(&one);
+        }
+        b
+    }
+
+    /// This builder's settings (ground, laws, gravity) without links.
+    fn clone_settings(&self) -> ArticulationBuilder {
+        ArticulationBuilder {
+            links: Vec::new(),
+            contacts: Vec::new(),
+            muscles: Vec::new(),
+            worlds: vec![(0, None)],
+            ground: self.ground,
+            link_contact: self.link_contact,
+            gravity: self.gravity,
+            limit_ke: self.limit_ke,
+            limit_kd: self.limit_kd,
+        }
     }
 
     /// Number of worlds (1 unless [`ArticulationBuilder::add_world`] added more).
