@@ -1,8 +1,8 @@
 //! `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]`: many
 //! worlds in one model. W cartpoles (`kernels/robots/cartpole.urdf`) rolled out for
 //! `frames x substeps` semi-implicit steps (dt 1/240 s, a force on each cart), forward and
-//! backward on one tape: the time per world-step at W = 1 and W = `--worlds` on 1 thread and
-//! on 2, and each case's peak memory (each case runs in its own process: `worlds-case`). With
+//! backward: the time per world-step at W = 1 and W = `--worlds` on 1 thread and on 2 (one
+//! model, and the worlds in two shares, a model and tape each), and each case's peak memory (each case runs in its own process: `worlds-case`). With
 //! `--python`, MuJoCo's batched rollout of the same cartpoles (`bench/peers/worlds.py`,
 //! forward only) in the same run. One JSON line each, then the ratios.
 
@@ -77,10 +77,24 @@ pub fn case(rest: &[String]) -> Value {
         s.serial_below = n;
         s.apply();
     }
-    let model = cartpoles(worlds);
+    // `--shares k`: the worlds split into k models, each rolled out as its own task with its
+    // own tape (`adflex_distributed::run_worlds_in_threads`; a world's bits do not depend on
+    // its model's other worlds).
+    let shares = arg(rest, "--shares").unwrap_or(1);
+    let models: Vec<Articulations<f64>> = (0..shares)
+        .map(|k| cartpoles(adflex_distributed::shard(worlds, k, shares).len()))
+        .collect();
     let best = with_threads(threads, || {
         (0..reps.max(1))
-            .map(|_| rollout(&model, steps))
+            .map(|_| {
+                let t0 = Instant::now();
+                adflex_distributed::run_worlds_in_threads(shares, shares, |k| {
+                    rollout(&models[k.start], steps);
+                    Ok(vec![vec![]])
+                })
+                .expect("the shares run");
+                t0.elapsed().as_secs_f64()
+            })
             .fold(f64::INFINITY, f64::min)
     });
     json!({
@@ -88,6 +102,7 @@ pub fn case(rest: &[String]) -> Value {
         "model": "cartpole",
         "worlds": worlds,
         "threads": threads,
+        "shares": shares,
         "steps": steps,
         "forward_backward_us_per_world_step": 1e6 * best / (worlds * steps) as f64,
         "peak_rss_mb": crate::timing::peak_rss_mb(),
@@ -101,10 +116,11 @@ pub fn main(rest: &[String]) {
     let reps = arg(rest, "--reps").unwrap_or(2);
     let me = std::env::current_exe().expect("the bench binary");
     let mut ours = Vec::new();
-    for (w, t) in [(1, 1), (worlds, 1), (worlds, 2)] {
+    for (w, t, shares) in [(1, 1, 1), (worlds, 1, 1), (worlds, 2, 1), (worlds, 2, 2)] {
         let out = Command::new(&me)
             .args(["worlds-case", "--worlds", &w.to_string(), "--threads"])
             .arg(t.to_string())
+            .args(["--shares", &shares.to_string()])
             .args(["--frames", &frames.to_string(), "--substeps"])
             .arg(substeps.to_string())
             .args(["--reps", &reps.to_string()])
@@ -126,8 +142,14 @@ pub fn main(rest: &[String]) {
     );
     println!(
         "{}",
-        json!({"ratio": format!("speed-up of 2 threads over 1 at W = {worlds}"),
+        json!({"ratio": format!("speed-up of 2 threads over 1 at W = {worlds}, one model"),
                "value": ours[1] / ours[2]})
+    );
+    println!(
+        "{}",
+        json!({"ratio": format!(
+            "speed-up of 2 threads over 1 at W = {worlds}, two shares of the worlds"),
+               "value": ours[1] / ours[3]})
     );
     let Some(python) = rest
         .iter()
@@ -152,7 +174,7 @@ pub fn main(rest: &[String]) {
         let k = match (w, t) {
             (Some(1), Some(1)) => 0,
             (Some(_), Some(1)) => 1,
-            _ => 2,
+            _ => 3,
         };
         let us = v["us_per_world_step"].as_f64().unwrap_or(f64::NAN);
         println!(

@@ -18,7 +18,7 @@
 //! A rank that dies (killed, or exiting without finishing) is MPI's to report: `mpirun` ends
 //! the job and names the rank (tested in `tests/mpi.rs`).
 //!
-//! [`SingleProcess`] is the one-rank communicator; with the `mpi` feature, [`MpiComm`] runs
+//! [`SingleProcess`] is the one-rank communicator; with the `mpi` feature, `MpiComm` runs
 //! over MPI (Open MPI from Debian's packages here). `docs/distributed.md` explains running on
 //! a cluster.
 //!
@@ -254,6 +254,63 @@ pub fn run_worlds(
     Ok(WorldOutputs { per_world })
 }
 
+/// Runs `work` on `shards` contiguous shares of `n_worlds` worlds at once, as tasks of the
+/// current rayon pool (each share its own model and tape: a small robot's launches are too
+/// small to split, its worlds are not), and gathers the outputs in world order. The same bits
+/// as one share of all the worlds, or as [`run_worlds`] on any number of ranks.
+///
+/// Errors: [`DistributedError::RankFailed`] naming the first failing share (as its "rank"),
+/// for an error or a panic; [`DistributedError::BadOutput`] for a wrong number of outputs.
+///
+/// ```
+/// use adflex_distributed::*;
+///
+/// let out = run_worlds_in_threads(10, 2, |worlds| Ok(worlds.map(|w| vec![w as f64]).collect()))
+///     .unwrap();
+/// assert_eq!(out.per_world[7], vec![7.0]);
+/// ```
+pub fn run_worlds_in_threads(
+    n_worlds: usize,
+    shards: usize,
+    work: impl Fn(Range<usize>) -> Result<Vec<Vec<f64>>, String> + Sync,
+) -> Result<WorldOutputs, DistributedError> {
+    let shards = shards.max(1);
+    let mut results: Vec<Option<Result<Vec<Vec<f64>>, String>>> = vec![None; shards];
+    rayon::scope(|s| {
+        for (k, slot) in results.iter_mut().enumerate() {
+            let work = &work;
+            s.spawn(move |_| {
+                let mine = shard(n_worlds, k, shards);
+                *slot = Some(match catch_unwind(AssertUnwindSafe(|| work(mine))) {
+                    Ok(r) => r,
+                    Err(p) => Err(format!("panicked: {}", panic_message(&p))),
+                });
+            });
+        }
+    });
+    let mut per_world = Vec::with_capacity(n_worlds);
+    for (k, r) in results.into_iter().enumerate() {
+        let mine = shard(n_worlds, k, shards);
+        match r.unwrap_or_else(|| Err("did not run".into())) {
+            Ok(out) if out.len() == mine.len() => per_world.extend(out),
+            Ok(out) => {
+                return Err(DistributedError::BadOutput {
+                    rank: k,
+                    message: format!("{} outputs for {} worlds", out.len(), mine.len()),
+                })
+            }
+            Err(cause) => {
+                return Err(DistributedError::RankFailed {
+                    rank: k,
+                    worlds: mine,
+                    cause,
+                })
+            }
+        }
+    }
+    Ok(WorldOutputs { per_world })
+}
+
 fn panic_message(p: &Box<dyn std::any::Any + Send>) -> String {
     if let Some(s) = p.downcast_ref::<&str>() {
         s.to_string()
@@ -323,6 +380,32 @@ mod tests {
                 .collect();
             handles.into_iter().map(|h| h.join().unwrap()).collect()
         })
+    }
+
+    #[test]
+    fn shares_on_threads_give_the_same_outputs_and_name_a_failing_share() {
+        let work = |worlds: Range<usize>| -> Result<Vec<Vec<f64>>, String> {
+            Ok(worlds.map(|w| vec![(w as f64).sqrt()]).collect())
+        };
+        let one = run_worlds(&SingleProcess, 11, 1, work).unwrap();
+        for shards in [1, 2, 3, 11, 20] {
+            assert_eq!(run_worlds_in_threads(11, shards, work).unwrap(), one);
+        }
+        let e = run_worlds_in_threads(11, 3, |w| {
+            if w.start > 0 {
+                panic!("boom");
+            }
+            work(w)
+        })
+        .unwrap_err();
+        assert_eq!(
+            e,
+            DistributedError::RankFailed {
+                rank: 1,
+                worlds: 4..8,
+                cause: "panicked: boom".into()
+            }
+        );
     }
 
     #[test]
@@ -408,3 +491,7 @@ mod tests {
         }
     }
 }
+
+/// `docs/distributed.md`: running worlds over threads and processes (its examples are tested).
+#[doc = include_str!("../../docs/distributed.md")]
+pub mod guide {}
