@@ -287,6 +287,14 @@ impl<R: Real> ConstraintParts<R> {
         (self.pairs.len() - 1) as u32
     }
 
+    /// Appends `other`'s constraints as a new world's (particle indices shifted by `offset`).
+    pub(crate) fn append(&mut self, other: &Self, offset: u32) {
+        self.pairs
+            .extend(crate::forces::component::shifted(&other.pairs, offset));
+        self.rest.extend(&other.rest);
+        self.compliance.extend(&other.compliance);
+    }
+
     /// The model's constraints, if the scene has any.
     pub(crate) fn build(&self) -> Option<DistanceConstraints<R>> {
         (!self.pairs.is_empty()).then(|| DistanceConstraints {

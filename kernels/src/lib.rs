@@ -53,7 +53,7 @@ pub mod tied;
 pub mod validation;
 
 pub use integrators::{Integrator, SemiImplicitEuler};
-pub use model::{Model, ModelBuilder};
+pub use model::{Model, ModelBuilder, WorldRanges};
 pub use state::{BodyState, Control, State};
 pub use validation::{ModelError, Problem};
 

@@ -47,6 +47,8 @@ pub struct ModelBuilder<R: Real> {
     pub(crate) constraints: ConstraintParts<R>,
     added: AddedForces<R>,
     pub(crate) problems: Vec<Problem>,
+    /// Where each world's particles and bodies start ([`ModelBuilder::add_world`]).
+    worlds: Vec<(usize, usize)>,
 }
 
 /// The forces added with [`ModelBuilder::add_force`]. The builder only clones them (array
@@ -76,7 +78,97 @@ impl<R: Real> ModelBuilder<R> {
             constraints: ConstraintParts::default(),
             added: AddedForces::default(),
             problems: Vec::new(),
+            worlds: vec![(0, 0)],
         }
+    }
+
+    /// Adds the scene `other` as a new world (an empty builder's first `add_world` fills
+    /// world 0); returns its index. Its particles, elements and bodies are appended with their
+    /// indices shifted; the ground, drag, shapes and gravity are the environment the worlds
+    /// share (a world with another one is a problem at finalize). Worlds never interact, and
+    /// each is simulated in its own frame: they need no spacing, and a world's results are
+    /// the same bits whatever the other worlds (`kernels/tests/worlds.rs`).
+    ///
+    /// Not with worlds: particle-particle contact (`set_particle_contact`: it would cross
+    /// worlds) and forces added with [`ModelBuilder::add_force`] to `other` (add them to
+    /// the combined builder, over all particles); both are problems at finalize.
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_runtime::Vec3;
+    ///
+    /// let mut pendulum = ModelBuilder::<f64>::new();
+    /// let pin = pendulum.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    /// let bob = pendulum.add_particle(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), 1.0);
+    /// pendulum.add_spring(pin, bob, 1e3, 0.0);
+    /// let model = pendulum.replicate(4).finalize();
+    /// assert_eq!(model.worlds.len(), 4);
+    /// assert_eq!(model.worlds[2].particles, 4..6);
+    /// assert_eq!(model.particle_world.to_vec(), vec![0, 0, 1, 1, 2, 2, 3, 3]);
+    /// ```
+    pub fn add_world(&mut self, other: &ModelBuilder<R>) -> usize {
+        let empty = self.particles.len() == 0 && self.bodies.len() == 0 && self.worlds.len() == 1;
+        if empty {
+            self.worlds.clear();
+            self.gravity = other.gravity;
+            self.particle_radius = other.particle_radius;
+        }
+        let first = self.worlds.len();
+        let gravity_differs = self.gravity != other.gravity;
+        for &(p0, b0) in &other.worlds {
+            self.worlds
+                .push((self.particles.len() + p0, self.bodies.len() + b0));
+        }
+        let offset = self.particles.len() as u32;
+        self.particles.append(
+            &other.particles,
+            self.particle_radius,
+            other.particle_radius,
+        );
+        self.bodies.append(&other.bodies);
+        self.constraints.append(&other.constraints, offset);
+        self.problems.extend(other.problems.iter().cloned());
+        if let Err((force, why)) = self.forces.append(&other.forces, offset) {
+            self.check_one("worlds")
+                .fail(None, format!("`{force}` {why}"));
+        }
+        if gravity_differs {
+            let message = format!(
+                "is shared by all worlds of a particle model, and the world added has {:?} (the \
+                 model {:?})",
+                other.gravity, self.gravity
+            );
+            self.check_one("worlds").fail(Some("gravity"), message);
+        }
+        if !other.added.0.is_empty() {
+            let names: Vec<&str> = other.added.0.iter().map(|f| f.name()).collect();
+            self.check_one("worlds").fail(
+                None,
+                format!(
+                    "the world added has forces added with add_force ({names:?}), which cannot \
+                     be replicated: add them to the combined builder, over all particles"
+                ),
+            );
+        }
+        first
+    }
+
+    /// `n` copies of this scene as `n` worlds ([`ModelBuilder::add_world`] `n` times).
+    ///
+    /// # Panics
+    /// If `n` is 0.
+    pub fn replicate(&self, n: usize) -> ModelBuilder<R> {
+        assert!(n > 0, "ModelBuilder::replicate(0): a model needs a world");
+        let mut b = ModelBuilder::new();
+        for _ in 0..n {
+            b.add_world(self);
+        }
+        b
+    }
+
+    /// Number of worlds (1 unless [`ModelBuilder::add_world`] added more).
+    pub fn world_count(&self) -> usize {
+        self.worlds.len()
     }
 
     /// The library forces' parts, and what their elements are checked against.
@@ -347,6 +439,21 @@ impl<R: Real> ModelBuilder<R> {
         for p in &mut problems[self.problems.len()..] {
             p.param = None; // `gravity.gravity` reads as `gravity`
         }
+        if self.worlds.len() > 1 && self.forces.particle_contact.is_some() {
+            Check {
+                out: &mut problems,
+                kind: "worlds",
+                index: None,
+            }
+            .fail(
+                None,
+                format!(
+                    "particle-particle contact (set_particle_contact) with {} worlds would let \
+                     particles of different worlds touch; it is not available with worlds",
+                    self.worlds.len()
+                ),
+            );
+        }
         if problems.is_empty() {
             Ok(())
         } else {
@@ -376,7 +483,27 @@ impl<R: Real> ModelBuilder<R> {
             .into_iter()
             .chain(self.added.0.iter().cloned())
             .collect();
+        let n = self.particles.len();
+        let nb = self.bodies.len();
+        let worlds: Vec<WorldRanges> = self
+            .worlds
+            .iter()
+            .enumerate()
+            .map(|(k, &(p0, b0))| {
+                let (p1, b1) = self.worlds.get(k + 1).copied().unwrap_or((n, nb));
+                WorldRanges {
+                    particles: p0..p1,
+                    bodies: b0..b1,
+                }
+            })
+            .collect();
+        let mut particle_world = vec![0u32; n];
+        for (k, w) in worlds.iter().enumerate() {
+            particle_world[w.particles.clone()].fill(k as u32);
+        }
         Model {
+            worlds,
+            particle_world: Array::from_vec(particle_world).named("particle_world"),
             particle_count: self.particles.len(),
             particle_x: particles.x,
             particle_v: particles.v,
@@ -392,10 +519,23 @@ impl<R: Real> ModelBuilder<R> {
     }
 }
 
+/// Where a world's particles and bodies are in a [`Model`]'s arrays.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WorldRanges {
+    /// Its particles.
+    pub particles: std::ops::Range<usize>,
+    /// Its rigid bodies.
+    pub bodies: std::ops::Range<usize>,
+}
+
 /// A simulation model: constant arrays of the scene's components (only those it has) and the
 /// kernels that evaluate them.
 #[derive(Clone, Debug)]
 pub struct Model<R: Real> {
+    /// The worlds ([`ModelBuilder::add_world`]; one unless it added more).
+    pub worlds: Vec<WorldRanges>,
+    /// Per particle: its world (for per-world losses).
+    pub particle_world: Array<u32>,
     /// Number of particles.
     pub particle_count: usize,
     /// Initial particle positions (m); [`Model::state`] copies them.

@@ -51,6 +51,19 @@ impl<R: Real> Particles<R> {
         self.x.len()
     }
 
+    /// Appends `other`'s particles and triangles as a new world's; its particles without a
+    /// radius of their own get `other_radius` if it is not this scene's `radius`.
+    pub(crate) fn append(&mut self, other: &Self, radius: R, other_radius: R) {
+        let offset = self.len() as u32;
+        self.x.extend(&other.x);
+        self.v.extend(&other.v);
+        self.inv_mass.extend(&other.inv_mass);
+        let own = (other_radius != radius).then_some(other_radius);
+        self.radii.extend(other.radii.iter().map(|r| r.or(own)));
+        self.triangles
+            .extend(crate::forces::component::shifted(&other.triangles, offset));
+    }
+
     /// Particle `i`'s position in `f64` (m).
     pub(crate) fn wide(&self, i: u32) -> Vec3<f64> {
         let p = self.x[i as usize];

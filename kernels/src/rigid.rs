@@ -314,6 +314,19 @@ impl<R: Real> BodyParts<R> {
         self.contacts.push((body, p));
     }
 
+    /// Number of bodies.
+    pub(crate) fn len(&self) -> usize {
+        self.bodies.len()
+    }
+
+    /// Appends `other`'s bodies and contact points as a new world's.
+    pub(crate) fn append(&mut self, other: &Self) {
+        let offset = self.bodies.len() as u32;
+        self.bodies.extend(other.bodies.iter().cloned());
+        self.contacts
+            .extend(other.contacts.iter().map(|&(b, p)| (b + offset, p)));
+    }
+
     /// The model's bodies, if the scene has any.
     pub(crate) fn build(&self) -> Option<RigidBodies<R>> {
         (!self.bodies.is_empty()).then(|| {

@@ -413,3 +413,103 @@ fn a_share_of_the_worlds_gives_the_same_bits() {
     assert_eq!(g[..], g_all[links]);
     assert_eq!(m.gravity.to_vec()[..], m_all.gravity.to_vec()[3..7]);
 }
+
+// ---- particle worlds ----------------------------------------------------------------------
+
+use adflex_kernels::prelude::{ClothGrid, Ground, Integrator, ModelBuilder, SemiImplicitEuler};
+
+/// `loss[world[t]] += |x[t]|^2` per particle.
+#[diff_kernel]
+fn per_world_positions<R: Real>(world: &Array<u32>, x: &Array<Vec3<R>>, loss: &Array<R>) {
+    let t = tid();
+    loss.atomic_add(world[t] as usize, dot(x[t], x[t]));
+}
+
+/// Cloth `j`: its own size, stiffness and throw, dropped on the ground.
+fn cloth_scene(j: usize) -> ModelBuilder<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    let n = 4 + j % 3;
+    b.add_cloth_grid(&ClothGrid {
+        spring_ke: 40.0 + 5.0 * j as f64,
+        origin: Vec3::new(0.0, 0.05 + 0.01 * j as f64, 0.0),
+        ..ClothGrid::benchmark(n)
+    });
+    b.set_ground(Ground::default());
+    b
+}
+
+/// Each world's loss and gradients (initial velocities, spring stiffnesses).
+fn run_cloths(ids: &[usize]) -> Vec<(f64, Vec<Vec3<f64>>, Vec<f64>)> {
+    let mut b = ModelBuilder::<f64>::new();
+    let mut springs = vec![0];
+    for &j in ids {
+        b.add_world(&cloth_scene(j));
+        springs.push(b.spring_count());
+    }
+    let model = b.finalize();
+    assert_eq!(model.worlds.len(), ids.len());
+    let ke = model.springs().unwrap().ke.clone().requires_grad();
+    let s0 = model.state();
+    let _ = s0.v.clone().requires_grad();
+    let mut tape = Tape::new();
+    let s = SemiImplicitEuler
+        .rollout(&model, &mut tape, &s0, None, 1e-3, 150)
+        .unwrap();
+    let loss = Array::zeros(ids.len());
+    tape.launch(
+        per_world_positions,
+        model.particle_count,
+        (&model.particle_world, &s.x, &loss),
+    );
+    tape.backward(&loss).unwrap();
+    let (gv, gk) = (s0.v.grad().unwrap().to_vec(), ke.grad().unwrap().to_vec());
+    model
+        .worlds
+        .iter()
+        .enumerate()
+        .map(|(w, r)| {
+            (
+                loss.get(w),
+                gv[r.particles.clone()].to_vec(),
+                gk[springs[w]..springs[w + 1]].to_vec(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn a_cloth_world_does_not_know_it_has_neighbours() {
+    let ids: Vec<usize> = (0..24).collect();
+    let defaults = adflex_runtime::settings::settings();
+    let mut parallel = defaults;
+    parallel.serial_below = 1;
+    parallel.apply();
+    let together = with_threads(2, || run_cloths(&ids));
+    adflex_runtime::settings::set_settings(defaults);
+    assert!(together
+        .iter()
+        .all(|r| r.0 > 0.0 && r.2.iter().any(|g| *g != 0.0)));
+    for j in [0, 7, 23] {
+        assert_eq!(run_cloths(&[j])[0], together[j], "cloth {j} alone");
+    }
+    let reversed: Vec<usize> = ids.iter().rev().copied().collect();
+    let back = with_threads(1, || run_cloths(&reversed));
+    for (w, &j) in reversed.iter().enumerate() {
+        assert_eq!(back[w], together[j], "cloth {j} at place {w}");
+    }
+}
+
+#[test]
+fn particle_worlds_refuse_what_would_cross_them() {
+    use adflex_kernels::prelude::ParticleContact;
+    let mut b = cloth_scene(0);
+    b.set_particle_contact(ParticleContact::default());
+    let e = b.replicate(2).try_finalize().unwrap_err().to_string();
+    assert!(e.contains("particle-particle contact"), "{e}");
+    let mut moon = cloth_scene(1);
+    moon.gravity = Vec3::new(0.0, -1.62, 0.0);
+    let mut both = cloth_scene(0);
+    both.add_world(&moon);
+    let e = both.try_finalize().unwrap_err().to_string();
+    assert!(e.contains("gravity"), "{e}");
+}

@@ -468,6 +468,17 @@ impl<R: Real> ShapeParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for ShapeParts<R> {
+    fn append(&mut self, other: &Self, _offset: u32) -> Result<(), String> {
+        // The shapes are the worlds' shared environment.
+        let mut mine = (!self.shapes.is_empty()).then(|| self.clone());
+        let theirs = (!other.shapes.is_empty()).then(|| other.clone());
+        crate::forces::component::shared(&mut mine, &theirs)?;
+        if let Some(m) = mine {
+            *self = m;
+        }
+        Ok(())
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.shapes.is_empty()).then(|| {
             let codes: Vec<(u32, Vec3<R>)> = self.shapes.iter().map(|s| s.kind.code()).collect();

@@ -305,6 +305,15 @@ impl<R: Real> BendingParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for BendingParts<R> {
+    fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
+        self.quads
+            .extend(super::component::shifted(&other.quads, offset));
+        self.rest.extend(&other.rest);
+        self.ke.extend(&other.ke);
+        self.kd.extend(&other.kd);
+        Ok(())
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.quads.is_empty()).then(|| {
             Box::new(Bending {

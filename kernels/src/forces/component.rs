@@ -223,6 +223,11 @@ impl<T: Element> ParamCopy for Substituted<T> {
 pub(crate) trait ForcePart<R: Real>: Clone + Debug {
     /// The force, or `None` if the scene has none of it.
     fn build(&self) -> Option<Box<dyn Force<R>>>;
+
+    /// Appends `other`'s elements as a new world's: their particle indices shifted by
+    /// `offset`. A force given whole (the ground, drag, the shapes) is the worlds' shared
+    /// environment: `other`'s must be this one's if both have it (`Err` says so).
+    fn append(&mut self, other: &Self, offset: u32) -> Result<(), String>;
 }
 
 /// A force given whole to the builder (the ground, drag, particle contact): present once set.
@@ -230,4 +235,36 @@ impl<R: Real, T: Force<R> + Clone + 'static> ForcePart<R> for Option<T> {
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         self.clone().map(|f| Box::new(f) as Box<dyn Force<R>>)
     }
+
+    fn append(&mut self, other: &Self, _offset: u32) -> Result<(), String> {
+        shared(self, other)
+    }
+}
+
+/// Part of the environment every world shares: taken from `other` if `this` has none, else
+/// they must be the same (compared by their `Debug` form: every number).
+pub(crate) fn shared<T: Clone + Debug>(
+    this: &mut Option<T>,
+    other: &Option<T>,
+) -> Result<(), String> {
+    match (&*this, other) {
+        (_, None) => Ok(()),
+        (None, Some(o)) => {
+            *this = Some(o.clone());
+            Ok(())
+        }
+        (Some(a), Some(b)) if format!("{a:?}") == format!("{b:?}") => Ok(()),
+        (Some(a), Some(b)) => Err(format!(
+            "is shared by all worlds, and the world added has another one ({b:?}, the model \
+             {a:?})"
+        )),
+    }
+}
+
+/// Element indices shifted by `offset` (a new world's particles).
+pub(crate) fn shifted<const N: usize>(
+    v: &[[u32; N]],
+    offset: u32,
+) -> impl Iterator<Item = [u32; N]> + '_ {
+    v.iter().map(move |e| e.map(|i| i + offset))
 }

@@ -371,6 +371,17 @@ impl<R: Real> TetParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for TetParts<R> {
+    fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
+        self.tets
+            .extend(super::component::shifted(&other.tets, offset));
+        self.dm_inv.extend(&other.dm_inv);
+        self.volume.extend(&other.volume);
+        self.mu.extend(&other.mu);
+        self.lambda.extend(&other.lambda);
+        self.kd.extend(&other.kd);
+        Ok(())
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.tets.is_empty()).then(|| {
             Box::new(TetFem {

@@ -335,6 +335,17 @@ impl<R: Real> TriangleParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for TriangleParts<R> {
+    fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
+        self.tris
+            .extend(super::component::shifted(&other.tris, offset));
+        self.dm_inv.extend(&other.dm_inv);
+        self.area.extend(&other.area);
+        self.mu.extend(&other.mu);
+        self.lambda.extend(&other.lambda);
+        self.kd.extend(&other.kd);
+        Ok(())
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.tris.is_empty()).then(|| {
             Box::new(TriangleFem {

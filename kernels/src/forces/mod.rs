@@ -114,6 +114,14 @@ macro_rules! library_forces {
                 $(forces.extend(ForcePart::<R>::build(&self.$field));)*
                 forces
             }
+
+            /// Appends `other`'s forces as a new world's (see [`ForcePart::append`]); the
+            /// first force that cannot be, by name, with why.
+            pub(crate) fn append(&mut self, other: &Self, offset: u32) -> Result<(), (&'static str, String)> {
+                $(ForcePart::<R>::append(&mut self.$field, &other.$field, offset)
+                    .map_err(|e| ($NAME, e))?;)*
+                Ok(())
+            }
         }
     };
 }

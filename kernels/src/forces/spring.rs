@@ -200,6 +200,15 @@ impl<R: Real> SpringParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for SpringParts<R> {
+    fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
+        self.pairs
+            .extend(super::component::shifted(&other.pairs, offset));
+        self.rest.extend(&other.rest);
+        self.ke.extend(&other.ke);
+        self.kd.extend(&other.kd);
+        Ok(())
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.pairs.is_empty()).then(|| {
             Box::new(Springs {
