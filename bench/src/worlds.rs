@@ -109,7 +109,54 @@ pub fn case(rest: &[String]) -> Value {
     })
 }
 
+/// 256 cloths of 16 x 16 as worlds of one model against one 256 x 256 cloth (the same
+/// particles): seconds per step of `steps` steps forward and backward, best of `reps`, on
+/// `threads` threads.
+fn cloths(threads: usize, steps: usize, reps: usize) -> (f64, f64) {
+    use adflex_kernels::scenes::cloth;
+    let one = cloth::build::<f32>(256);
+    let small = cloth::build::<f32>(16);
+    let mut b = adflex_kernels::ModelBuilder::<f32>::new();
+    b.particle_radius = 0.01;
+    let mut grid = adflex_kernels::ModelBuilder::<f32>::new();
+    grid.particle_radius = 0.01;
+    grid.add_cloth_grid(&adflex_kernels::prelude::ClothGrid::benchmark(16));
+    grid.set_ground(small.model.ground().expect("the scene's ground"));
+    for _ in 0..256 {
+        b.add_world(&grid);
+    }
+    let model = b.finalize();
+    let many = cloth::Cloth {
+        n: 256, // the loss's scale: 1 / 256^2 over the same number of particles
+        initial: model.state(),
+        model,
+    };
+    let _ = many.initial.v.clone().requires_grad();
+    let _ = many.model.springs().expect("springs").ke.clone().requires_grad();
+    let time = |scene: &cloth::Cloth<f32>| {
+        with_threads(threads, || {
+            (0..reps.max(1))
+                .map(|_| {
+                    let t0 = Instant::now();
+                    cloth::rollout(scene, steps, true).expect("a cloth rollout");
+                    t0.elapsed().as_secs_f64() / steps as f64
+                })
+                .fold(f64::INFINITY, f64::min)
+        })
+    };
+    (time(&many), time(&one))
+}
+
 pub fn main(rest: &[String]) {
+    for threads in [1, 2] {
+        let (many, one) = cloths(threads, 50, 3);
+        println!(
+            "{}",
+            json!({"system": "adflex", "case": "256 cloths of 16 x 16 (worlds) vs one 256 x 256",
+                   "threads": threads, "worlds_s_per_step": many, "one_cloth_s_per_step": one,
+                   "ratio": many / one})
+        );
+    }
     let worlds = arg(rest, "--worlds").unwrap_or(1024);
     let frames = arg(rest, "--frames").unwrap_or(240);
     let substeps = arg(rest, "--substeps").unwrap_or(4);
