@@ -132,7 +132,13 @@ fn cloths(threads: usize, steps: usize, reps: usize) -> (f64, f64) {
         model,
     };
     let _ = many.initial.v.clone().requires_grad();
-    let _ = many.model.springs().expect("springs").ke.clone().requires_grad();
+    let _ = many
+        .model
+        .springs()
+        .expect("springs")
+        .ke
+        .clone()
+        .requires_grad();
     let time = |scene: &cloth::Cloth<f32>| {
         with_threads(threads, || {
             (0..reps.max(1))

@@ -566,6 +566,24 @@ pub struct Model<R: Real> {
     pub distance_constraints: Option<DistanceConstraints<R>>,
 }
 
+/// `out[tid]` is `from[tid]` in the worlds `take` marks (indexed by `world[tid]`), `keep[tid]`
+/// elsewhere: resetting some worlds of a state.
+#[adflex_macros::diff_kernel]
+pub fn select_worlds_vec3<R: Real>(
+    world: &Array<u32>,
+    take: &Array<u32>,
+    keep: &Array<Vec3<R>>,
+    from: &Array<Vec3<R>>,
+    out: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    if take[world[t] as usize] != 0 {
+        out[t] = from[t];
+    } else {
+        out[t] = keep[t];
+    }
+}
+
 impl<R: Real> Model<R> {
     /// The initial state: fresh copies of the initial arrays (gradients of a rollout from it
     /// land in its arrays; mark them with `requires_grad` first).
@@ -575,6 +593,79 @@ impl<R: Real> Model<R> {
             v: self.particle_v.deep_clone().named("v"),
             bodies: self.bodies.as_ref().map(|b| b.initial.deep_clone()),
         }
+    }
+
+    /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s (positions
+    /// and velocities), recorded on the tape; with `from = &model.state()` it resets them.
+    ///
+    /// Errors ([`Error::InvalidInput`]): a world out of range, states of the wrong size, or a
+    /// model with rigid bodies (not yet supported here).
+    pub fn select_worlds(
+        &self,
+        tape: &mut Tape,
+        state: &State<R>,
+        worlds: &[usize],
+        from: &State<R>,
+    ) -> Result<State<R>, Error> {
+        let invalid = |what: String, message: String| Error::InvalidInput { what, message };
+        if self.bodies.is_some() {
+            return Err(invalid(
+                "Model::select_worlds".into(),
+                "models with rigid bodies are not supported yet".into(),
+            ));
+        }
+        let mut take = vec![0u32; self.worlds.len()];
+        for &w in worlds {
+            if w >= take.len() {
+                return Err(invalid(
+                    format!("select_worlds: world {w}"),
+                    format!("the model has {} worlds", take.len()),
+                ));
+            }
+            take[w] = 1;
+        }
+        for (s, what) in [(state, "state"), (from, "from")] {
+            if s.x.len() != self.particle_count || s.v.len() != self.particle_count {
+                return Err(invalid(
+                    format!("select_worlds: `{what}`"),
+                    format!(
+                        "has {} positions and {} velocities, the model {} particles",
+                        s.x.len(),
+                        s.v.len(),
+                        self.particle_count
+                    ),
+                ));
+            }
+        }
+        let take = Array::from_vec(take);
+        let next = State {
+            x: Array::zeros(self.particle_count).named("x"),
+            v: Array::zeros(self.particle_count).named("v"),
+            bodies: None,
+        };
+        let n = self.particle_count;
+        tape.launch(
+            select_worlds_vec3,
+            n,
+            (&self.particle_world, &take, &state.x, &from.x, &next.x),
+        );
+        tape.launch(
+            select_worlds_vec3,
+            n,
+            (&self.particle_world, &take, &state.v, &from.v, &next.v),
+        );
+        Ok(next)
+    }
+
+    /// `state` with the worlds listed in `worlds` back at [`Model::state`] (see
+    /// [`Model::select_worlds`]).
+    pub fn reset_worlds(
+        &self,
+        tape: &mut Tape,
+        state: &State<R>,
+        worlds: &[usize],
+    ) -> Result<State<R>, Error> {
+        self.select_worlds(tape, state, worlds, &self.state())
     }
 
     /// The first force of type `T`, if the model has one (`model.force::<Springs<f64>>()`).

@@ -513,3 +513,32 @@ fn particle_worlds_refuse_what_would_cross_them() {
     let e = both.try_finalize().unwrap_err().to_string();
     assert!(e.contains("gravity"), "{e}");
 }
+
+#[test]
+fn resetting_selected_cloth_worlds_keeps_the_others_and_their_gradients() {
+    let model = cloth_scene(0).replicate(3).finalize();
+    let s0 = model.state();
+    let _ = s0.v.clone().requires_grad();
+    let mut tape = Tape::new();
+    let s = SemiImplicitEuler
+        .rollout(&model, &mut tape, &s0, None, 1e-3, 50)
+        .unwrap();
+    let r = model.reset_worlds(&mut tape, &s, &[1]).unwrap();
+    let (x, moved, start) = (r.x.to_vec(), s.x.to_vec(), model.particle_x.to_vec());
+    let w1 = model.worlds[1].particles.clone();
+    assert_eq!(x[w1.clone()], start[w1.clone()]);
+    let w2 = model.worlds[2].particles.clone();
+    assert_eq!(x[w2.clone()], moved[w2.clone()]);
+    // The gradient flows through the kept worlds only.
+    let loss = Array::zeros(3);
+    tape.launch(
+        per_world_positions,
+        model.particle_count,
+        (&model.particle_world, &r.x, &loss),
+    );
+    tape.backward(&loss).unwrap();
+    let g = s0.v.grad().unwrap().to_vec();
+    assert!(g[w1].iter().all(|v| v.norm() == 0.0));
+    assert!(g[w2].iter().any(|v| v.norm() > 0.0));
+    assert!(model.reset_worlds(&mut tape, &s, &[3]).is_err());
+}
