@@ -16,9 +16,10 @@
 //! - `robots [--python PATH] [--steps 200] [--reps 5]`: articulated robots (arm, quadruped)
 //!   per step, forward and backward, and `d qdd / d(q, qd, tau)`; with `--python`, MuJoCo and
 //!   Pinocchio in the same run, and the ratios
-//! - `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]`: many
-//!   worlds in one model (cartpoles), forward and backward: time per world-step at W = 1 and
-//!   W = 1024, on 1 and 2 threads, peak memory; with `--python`, MuJoCo's batched rollout
+//! - `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]
+//!   [--newton PATH]`: many worlds in one model (256 cloths against one; cartpoles), forward
+//!   and backward: time per world-step at W = 1 and W = 1024, on 1 and 2 threads, peak
+//!   memory; with `--python`, MuJoCo's batched rollout; with `--newton`, Newton's worlds
 //! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
 //!   serde_json, time and peak RSS of each in its own process, as JSON lines
 //! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG

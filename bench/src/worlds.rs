@@ -1,10 +1,14 @@
-//! `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]`: many
+//! `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]
+//! [--newton PATH]`: many
 //! worlds in one model. W cartpoles (`kernels/robots/cartpole.urdf`) rolled out for
 //! `frames x substeps` semi-implicit steps (dt 1/240 s, a force on each cart), forward and
 //! backward: the time per world-step at W = 1 and W = `--worlds` on 1 thread and on 2 (one
 //! model, and the worlds in two shares, a model and tape each), and each case's peak memory (each case runs in its own process: `worlds-case`). With
 //! `--python`, MuJoCo's batched rollout of the same cartpoles (`bench/peers/worlds.py`,
-//! forward only) in the same run. One JSON line each, then the ratios.
+//! forward only) in the same run; with `--newton`, Newton's worlds on the CPU
+//! (`bench/peers/newton_worlds.py`, Featherstone, forward and backward on a `wp.Tape`). One
+//! JSON line each, then the ratios. First, 256 cloths of 16 x 16 as worlds against one
+//! 256 x 256 cloth.
 
 use std::process::Command;
 use std::time::Instant;
@@ -204,6 +208,36 @@ pub fn main(rest: &[String]) {
             "speed-up of 2 threads over 1 at W = {worlds}, two shares of the worlds"),
                "value": ours[1] / ours[3]})
     );
+    if let Some(python) = rest
+        .iter()
+        .position(|a| a == "--newton")
+        .and_then(|k| rest.get(k + 1))
+    {
+        let script = concat!(env!("CARGO_MANIFEST_DIR"), "/peers/newton_worlds.py");
+        let out = Command::new(python)
+            .arg(script)
+            .args(["--worlds", &worlds.to_string(), "--steps"])
+            .arg((frames * substeps).to_string())
+            .output()
+            .expect("the Newton peer's python runs");
+        for line in String::from_utf8_lossy(&out.stdout).lines() {
+            println!("{line}");
+            let Ok(v) = serde_json::from_str::<Value>(line) else {
+                continue;
+            };
+            let k = if v["worlds"].as_u64() == Some(1) { 0 } else { 1 };
+            let us = v["forward_backward_us_per_world_step"]
+                .as_f64()
+                .unwrap_or(f64::NAN);
+            println!(
+                "{}",
+                json!({"ratio": format!(
+                    "adflex / Newton forward+backward, W = {}, 1 thread",
+                    v["worlds"]),
+                    "value": ours[k] / us})
+            );
+        }
+    }
     let Some(python) = rest
         .iter()
         .position(|a| a == "--python")
