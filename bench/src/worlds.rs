@@ -225,7 +225,11 @@ pub fn main(rest: &[String]) {
             let Ok(v) = serde_json::from_str::<Value>(line) else {
                 continue;
             };
-            let k = if v["worlds"].as_u64() == Some(1) { 0 } else { 1 };
+            let k = if v["worlds"].as_u64() == Some(1) {
+                0
+            } else {
+                1
+            };
             let us = v["forward_backward_us_per_world_step"]
                 .as_f64()
                 .unwrap_or(f64::NAN);

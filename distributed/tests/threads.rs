@@ -5,13 +5,6 @@ use adflex_distributed::*;
 use adflex_kernels::articulation::{urdf, ArticulationBuilder, Articulations};
 use adflex_runtime::prelude::*;
 
-/// `loss[world[t]] += x[t]^2`.
-#[adflex_macros::diff_kernel]
-fn per_world_squares(world: &Array<u32>, x: &Array<f64>, loss: &Array<f64>) {
-    let t = tid();
-    loss.atomic_add(world[t] as usize, x[t] * x[t]);
-}
-
 fn scene(n: usize) -> ArticulationBuilder {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -37,7 +30,7 @@ fn simulate(all: &ArticulationBuilder, worlds: std::ops::Range<usize>) -> Vec<Ve
         s = model.step(&mut tape, &s, None, 1e-2).unwrap();
     }
     let loss = Array::zeros(model.n_worlds());
-    tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+    adflex_kernels::losses::per_world_sum_of_squares(&mut tape, &model.q_world, &s.q, 1.0, &loss);
     tape.backward(&loss).unwrap();
     let g = model.mass.grad().unwrap().to_vec();
     model

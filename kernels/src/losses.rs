@@ -73,6 +73,25 @@ pub fn sum_sq<R: Real>(a: &Array<R>, scale: R, out: &Array<R>) {
     out.atomic_add(0, scale * a[t] * a[t]);
 }
 
+/// `out[world[t]] += scale * a[t]^2`: one sum per world.
+#[diff_kernel]
+pub fn sum_sq_per_world<R: Real>(world: &Array<u32>, a: &Array<R>, scale: R, out: &Array<R>) {
+    let t = tid();
+    out.atomic_add(world[t] as usize, scale * a[t] * a[t]);
+}
+
+/// `out[world[t]] += scale * |a[t]|^2`: one sum per world.
+#[diff_kernel]
+pub fn sum_sq_vec3_per_world<R: Real>(
+    world: &Array<u32>,
+    a: &Array<Vec3<R>>,
+    scale: R,
+    out: &Array<R>,
+) {
+    let t = tid();
+    out.atomic_add(world[t] as usize, scale * dot(a[t], a[t]));
+}
+
 /// `out[0] += scale * |x[t]|^2`.
 #[diff_kernel]
 pub fn sum_sq_vec3<R: Real>(a: &Array<Vec3<R>>, scale: R, out: &Array<R>) {
@@ -201,6 +220,30 @@ pub fn center_of_mass_to_target<R: Real>(
 /// Adds `scale * sum_i a[i]^2` (a regularizer on controls or parameters).
 pub fn sum_of_squares<R: Real>(tape: &mut Tape, a: &Array<R>, scale: R, out: &Array<R>) {
     tape.launch(sum_sq, a.len(), (a, scale, out));
+}
+
+/// Adds `scale * a[i]^2` to `out[world[i]]`: a loss per world (`world` an index array such as
+/// `Articulations::q_world`, `dof_world` or `Model::particle_world`; `out` one entry per
+/// world). Backpropagating `out` gives each world's parameters the gradient of its own loss.
+pub fn per_world_sum_of_squares<R: Real>(
+    tape: &mut Tape,
+    world: &Array<u32>,
+    a: &Array<R>,
+    scale: R,
+    out: &Array<R>,
+) {
+    tape.launch(sum_sq_per_world, a.len(), (world, a, scale, out));
+}
+
+/// [`per_world_sum_of_squares`] for an array of vectors (`scale |a[i]|^2` to `out[world[i]]`).
+pub fn per_world_sum_of_squares_vec3<R: Real>(
+    tape: &mut Tape,
+    world: &Array<u32>,
+    a: &Array<Vec3<R>>,
+    scale: R,
+    out: &Array<R>,
+) {
+    tape.launch(sum_sq_vec3_per_world, a.len(), (world, a, scale, out));
 }
 
 /// Adds `scale * sum_i |a[i]|^2` for an array of vectors (e.g. velocities: a kinetic-energy

@@ -35,6 +35,20 @@ fn every_loss_kernel_matches_finite_differences() {
     g.kernel(losses::sum_sq_vec3, 5, (&x, 2.0, &out))
         .unwrap()
         .assert_within(1e-7);
+    // Per world: worlds 0 and 1 of the 5 entries.
+    let world = Array::from_vec(vec![0u32, 1, 1, 0, 1]);
+    let per_world = Array::<f64>::zeros(2);
+    let b = Array::from_vec(rng.scalars(5, -2.0, 2.0));
+    g.kernel(losses::sum_sq_per_world, 5, (&world, &b, 0.5, &per_world))
+        .unwrap()
+        .assert_within(1e-7);
+    g.kernel(
+        losses::sum_sq_vec3_per_world,
+        5,
+        (&world, &x, 2.0, &per_world),
+    )
+    .unwrap()
+    .assert_within(1e-7);
 }
 
 fn chain() -> Model<f64> {

@@ -6,17 +6,9 @@ use adflex_kernels::articulation::{
     urdf, ArticulationBuilder, ArticulationControl, ArticulationState, Articulations,
     GroundContact, Inertial, Joint,
 };
-use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/robots");
-
-/// `loss[world[t]] += x[t]^2`: a per-world loss.
-#[diff_kernel]
-fn per_world_squares<R: Real>(world: &Array<u32>, x: &Array<R>, loss: &Array<R>) {
-    let t = tid();
-    loss.atomic_add(world[t] as usize, x[t] * x[t]);
-}
 
 fn quadruped() -> ArticulationBuilder {
     let options = urdf::UrdfOptions {
@@ -90,11 +82,13 @@ fn run(base: &ArticulationBuilder, ids: &[usize], steps: usize) -> Vec<WorldResu
         taus.push(tau);
     }
     let loss = Array::zeros(model.n_worlds());
-    tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
-    tape.launch(
-        per_world_squares,
-        model.n_dof,
-        (&model.dof_world, &s.qd, &loss),
+    adflex_kernels::losses::per_world_sum_of_squares(&mut tape, &model.q_world, &s.q, 1.0, &loss);
+    adflex_kernels::losses::per_world_sum_of_squares(
+        &mut tape,
+        &model.dof_world,
+        &s.qd,
+        1.0,
+        &loss,
     );
     tape.backward(&loss).unwrap();
     let (mass, gravity, qd0) = (
@@ -183,7 +177,13 @@ fn a_thousand_cartpoles_give_each_world_its_own_bits() {
             s = model.step(&mut tape, &s, None, 1e-2).unwrap();
         }
         let loss = Array::zeros(w);
-        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+        adflex_kernels::losses::per_world_sum_of_squares(
+            &mut tape,
+            &model.q_world,
+            &s.q,
+            1.0,
+            &loss,
+        );
         tape.backward(&loss).unwrap();
         let g = model.mass.grad().unwrap().to_vec();
         (loss.to_vec(), g)
@@ -225,7 +225,7 @@ fn shared_parameters_get_the_sum_of_the_worlds_gradients() {
             s = model.step(tape, &s, None, 1e-2).unwrap();
         }
         let loss = Array::zeros(4);
-        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+        adflex_kernels::losses::per_world_sum_of_squares(tape, &model.q_world, &s.q, 1.0, &loss);
         loss
     };
     // Per-world masses.
@@ -279,7 +279,7 @@ fn per_world_gravity_gradients_match_central_differences() {
             s = m.step(&mut tape, &s, None, 1e-2).unwrap();
         }
         let loss = Array::zeros(2);
-        tape.launch(per_world_squares, m.n_q, (&m.q_world, &s.q, &loss));
+        adflex_kernels::losses::per_world_sum_of_squares(&mut tape, &m.q_world, &s.q, 1.0, &loss);
         tape.backward(&loss).unwrap();
         (loss.to_vec(), m.gravity.grad().unwrap().to_vec())
     };
@@ -365,7 +365,7 @@ fn checkpointed_rollouts_over_worlds_give_the_whole_tapes_per_world_gradients() 
         |tape: &mut Tape, s: &ArticulationState<f64>| model.step(tape, s, Some(&control), 1e-2);
     let loss = |tape: &mut Tape, s: &ArticulationState<f64>| {
         let l = Array::zeros(model.n_worlds());
-        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &l));
+        adflex_kernels::losses::per_world_sum_of_squares(tape, &model.q_world, &s.q, 1.0, &l);
         Ok(l)
     };
     let mut tape = Tape::new();
@@ -400,7 +400,13 @@ fn a_share_of_the_worlds_gives_the_same_bits() {
             s = model.step(&mut tape, &s, None, 2e-3).unwrap();
         }
         let loss = Array::zeros(model.n_worlds());
-        tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+        adflex_kernels::losses::per_world_sum_of_squares(
+            &mut tape,
+            &model.q_world,
+            &s.q,
+            1.0,
+            &loss,
+        );
         tape.backward(&loss).unwrap();
         (loss.to_vec(), model.mass.grad().unwrap().to_vec(), model)
     };
@@ -417,13 +423,6 @@ fn a_share_of_the_worlds_gives_the_same_bits() {
 // ---- particle worlds ----------------------------------------------------------------------
 
 use adflex_kernels::prelude::{ClothGrid, Ground, Integrator, ModelBuilder, SemiImplicitEuler};
-
-/// `loss[world[t]] += |x[t]|^2` per particle.
-#[diff_kernel]
-fn per_world_positions<R: Real>(world: &Array<u32>, x: &Array<Vec3<R>>, loss: &Array<R>) {
-    let t = tid();
-    loss.atomic_add(world[t] as usize, dot(x[t], x[t]));
-}
 
 /// Cloth `j`: its own size, stiffness and throw, dropped on the ground.
 fn cloth_scene(j: usize) -> ModelBuilder<f64> {
@@ -456,10 +455,12 @@ fn run_cloths(ids: &[usize]) -> Vec<(f64, Vec<Vec3<f64>>, Vec<f64>)> {
         .rollout(&model, &mut tape, &s0, None, 1e-3, 150)
         .unwrap();
     let loss = Array::zeros(ids.len());
-    tape.launch(
-        per_world_positions,
-        model.particle_count,
-        (&model.particle_world, &s.x, &loss),
+    adflex_kernels::losses::per_world_sum_of_squares_vec3(
+        &mut tape,
+        &model.particle_world,
+        &s.x,
+        1.0,
+        &loss,
     );
     tape.backward(&loss).unwrap();
     let (gv, gk) = (s0.v.grad().unwrap().to_vec(), ke.grad().unwrap().to_vec());
@@ -531,10 +532,12 @@ fn resetting_selected_cloth_worlds_keeps_the_others_and_their_gradients() {
     assert_eq!(x[w2.clone()], moved[w2.clone()]);
     // The gradient flows through the kept worlds only.
     let loss = Array::zeros(3);
-    tape.launch(
-        per_world_positions,
-        model.particle_count,
-        (&model.particle_world, &r.x, &loss),
+    adflex_kernels::losses::per_world_sum_of_squares_vec3(
+        &mut tape,
+        &model.particle_world,
+        &r.x,
+        1.0,
+        &loss,
     );
     tape.backward(&loss).unwrap();
     let g = s0.v.grad().unwrap().to_vec();

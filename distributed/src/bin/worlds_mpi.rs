@@ -14,13 +14,6 @@ use adflex_runtime::prelude::*;
 
 const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../kernels/robots");
 
-/// `loss[world[t]] += x[t]^2`.
-#[adflex_macros::diff_kernel]
-fn per_world_squares(world: &Array<u32>, x: &Array<f64>, loss: &Array<f64>) {
-    let t = tid();
-    loss.atomic_add(world[t] as usize, x[t] * x[t]);
-}
-
 fn arg(args: &[String], name: &str) -> Option<String> {
     args.iter()
         .position(|a| a == name)
@@ -77,7 +70,7 @@ fn simulate(
         forces.push(tau);
     }
     let loss = Array::zeros(model.n_worlds());
-    tape.launch(per_world_squares, model.n_q, (&model.q_world, &s.q, &loss));
+    adflex_kernels::losses::per_world_sum_of_squares(&mut tape, &model.q_world, &s.q, 1.0, &loss);
     tape.backward(&loss).map_err(|e| e.to_string())?;
     let mass = model.mass.grad().map_err(|e| e.to_string())?.to_vec();
     let gravity = model.gravity.grad().map_err(|e| e.to_string())?.to_vec();
