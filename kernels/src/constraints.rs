@@ -287,6 +287,11 @@ impl<R: Real> ConstraintParts<R> {
         (self.pairs.len() - 1) as u32
     }
 
+    /// The first constraint whose particles are in different worlds.
+    pub(crate) fn spanning_worlds(&self, world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
+        crate::forces::component::first_spanning(&self.pairs, world_of)
+    }
+
     /// Appends `other`'s constraints as a new world's (particle indices shifted by `offset`).
     pub(crate) fn append(&mut self, other: &Self, offset: u32) {
         self.pairs

@@ -439,6 +439,35 @@ impl<R: Real> ModelBuilder<R> {
         for p in &mut problems[self.problems.len()..] {
             p.param = None; // `gravity.gravity` reads as `gravity`
         }
+        if self.worlds.len() > 1 {
+            let n = self.particles.len();
+            let mut world_of = vec![0u32; n];
+            for (k, &(p0, _)) in self.worlds.iter().enumerate() {
+                let p1 = self.worlds.get(k + 1).map_or(n, |w| w.0);
+                world_of[p0..p1].fill(k as u32);
+            }
+            let spanning = self.forces.spanning_worlds(&world_of).or_else(|| {
+                self.constraints
+                    .spanning_worlds(&world_of)
+                    .map(|(k, p)| ("distance_constraints", k, p))
+            });
+            if let Some((force, k, p)) = spanning {
+                let worlds: Vec<u32> = p.iter().map(|&i| world_of[i as usize]).collect();
+                Check {
+                    out: &mut problems,
+                    kind: force,
+                    index: Some(k),
+                }
+                .fail(
+                    None,
+                    format!(
+                        "joins particles {p:?} of worlds {worlds:?}: worlds must not share \
+                         elements (add each world's elements to its own builder before \
+                         add_world)"
+                    ),
+                );
+            }
+        }
         if self.worlds.len() > 1 && self.forces.particle_contact.is_some() {
             Check {
                 out: &mut problems,

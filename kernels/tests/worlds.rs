@@ -513,6 +513,12 @@ fn particle_worlds_refuse_what_would_cross_them() {
     both.add_world(&moon);
     let e = both.try_finalize().unwrap_err().to_string();
     assert!(e.contains("gravity"), "{e}");
+    // A spring added afterwards between two worlds would couple them.
+    let mut two = cloth_scene(0).replicate(2);
+    let last = two.particle_count() as u32 - 1;
+    two.add_spring(1, last, 10.0, 0.0);
+    let e = two.try_finalize().unwrap_err().to_string();
+    assert!(e.contains("springs[") && e.contains("worlds [0, 1]"), "{e}");
 }
 
 #[test]

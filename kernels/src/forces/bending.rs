@@ -305,6 +305,10 @@ impl<R: Real> BendingParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for BendingParts<R> {
+    fn spanning_worlds(&self, world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
+        super::component::first_spanning(&self.quads, world_of)
+    }
+
     fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
         self.quads
             .extend(super::component::shifted(&other.quads, offset));

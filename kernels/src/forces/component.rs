@@ -228,6 +228,24 @@ pub(crate) trait ForcePart<R: Real>: Clone + Debug {
     /// `offset`. A force given whole (the ground, drag, the shapes) is the worlds' shared
     /// environment: `other`'s must be this one's if both have it (`Err` says so).
     fn append(&mut self, other: &Self, offset: u32) -> Result<(), String>;
+
+    /// The first element whose particles are in different worlds (`world_of` per particle),
+    /// as `(element index, its particles)`: such an element would couple the worlds.
+    fn spanning_worlds(&self, _world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
+        None
+    }
+}
+
+/// The first of `elements` whose particles are not all in one world.
+pub(crate) fn first_spanning<const N: usize>(
+    elements: &[[u32; N]],
+    world_of: &[u32],
+) -> Option<(usize, Vec<u32>)> {
+    let w = |i: u32| world_of.get(i as usize).copied();
+    elements
+        .iter()
+        .position(|e| e.iter().any(|&i| w(i) != w(e[0])))
+        .map(|k| (k, elements[k].to_vec()))
 }
 
 /// A force given whole to the builder (the ground, drag, particle contact): present once set.

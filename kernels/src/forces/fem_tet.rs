@@ -371,6 +371,10 @@ impl<R: Real> TetParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for TetParts<R> {
+    fn spanning_worlds(&self, world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
+        super::component::first_spanning(&self.tets, world_of)
+    }
+
     fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
         self.tets
             .extend(super::component::shifted(&other.tets, offset));

@@ -335,6 +335,10 @@ impl<R: Real> TriangleParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for TriangleParts<R> {
+    fn spanning_worlds(&self, world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
+        super::component::first_spanning(&self.tris, world_of)
+    }
+
     fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
         self.tris
             .extend(super::component::shifted(&other.tris, offset));

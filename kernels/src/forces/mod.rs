@@ -117,6 +117,15 @@ macro_rules! library_forces {
 
             /// Appends `other`'s forces as a new world's (see [`ForcePart::append`]); the
             /// first force that cannot be, by name, with why.
+            /// The first element of a library force whose particles are in different
+            /// worlds: the force's name, the element and its particles.
+            pub(crate) fn spanning_worlds(&self, world_of: &[u32]) -> Option<(&'static str, usize, Vec<u32>)> {
+                $(if let Some((k, p)) = ForcePart::<R>::spanning_worlds(&self.$field, world_of) {
+                    return Some(($NAME, k, p));
+                })*
+                None
+            }
+
             pub(crate) fn append(&mut self, other: &Self, offset: u32) -> Result<(), (&'static str, String)> {
                 $(ForcePart::<R>::append(&mut self.$field, &other.$field, offset)
                     .map_err(|e| ($NAME, e))?;)*

@@ -200,6 +200,10 @@ impl<R: Real> SpringParts<R> {
 }
 
 impl<R: Real> ForcePart<R> for SpringParts<R> {
+    fn spanning_worlds(&self, world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
+        super::component::first_spanning(&self.pairs, world_of)
+    }
+
     fn append(&mut self, other: &Self, offset: u32) -> Result<(), String> {
         self.pairs
             .extend(super::component::shifted(&other.pairs, offset));
