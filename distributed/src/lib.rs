@@ -102,6 +102,12 @@ pub fn fingerprint(scene: &impl fmt::Debug) -> u64 {
 pub enum DistributedError {
     /// Rank `rank`'s scene differs from rank 0's (their fingerprints).
     ScenesDisagree { rank: usize, ours: u64, rank0: u64 },
+    /// Rank `rank` was given another number of worlds than rank 0.
+    WorldCountsDisagree {
+        rank: usize,
+        ours: usize,
+        rank0: usize,
+    },
     /// Rank `rank` failed while running its worlds (`worlds`): an error or a panic.
     RankFailed {
         rank: usize,
@@ -119,6 +125,11 @@ impl fmt::Display for DistributedError {
                 f,
                 "rank {rank}'s scene differs from rank 0's (fingerprint {ours:016x}, rank 0's \
                  {rank0:016x}): every rank must build the same scene"
+            ),
+            DistributedError::WorldCountsDisagree { rank, ours, rank0 } => write!(
+                f,
+                "rank {rank} runs {ours} worlds and rank 0 {rank0}: every rank must be given \
+                 the same number"
             ),
             DistributedError::RankFailed {
                 rank,
@@ -165,8 +176,11 @@ impl WorldOutputs {
 /// (numbers: a loss, gradients), or an error message. `scene` is the scene's
 /// [`fingerprint`], compared across ranks first.
 ///
+/// A rank whose share is empty (fewer worlds than ranks) does not call `work`.
+///
 /// Errors (the same on every rank): [`DistributedError::ScenesDisagree`] naming the first
-/// rank whose scene differs from rank 0's; [`DistributedError::RankFailed`] naming the first
+/// rank whose scene differs from rank 0's, [`DistributedError::WorldCountsDisagree`] the
+/// first given another `n_worlds`; [`DistributedError::RankFailed`] naming the first
 /// rank whose `work` returned an error or panicked, with its message;
 /// [`DistributedError::BadOutput`] if a rank returned a number of outputs other than its
 /// number of worlds.
@@ -177,46 +191,59 @@ pub fn run_worlds(
     work: impl FnOnce(Range<usize>) -> Result<Vec<Vec<f64>>, String>,
 ) -> Result<WorldOutputs, DistributedError> {
     let (rank, size) = (comm.rank(), comm.size());
-    // 1. The same scene everywhere.
-    let prints = comm.all_gather_bytes(&scene.to_le_bytes());
-    let print_of = |b: &[u8]| u64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
-    let rank0 = print_of(&prints[0]);
-    if let Some(r) = prints.iter().position(|p| print_of(p) != rank0) {
+    // 1. The same scene and number of worlds everywhere.
+    let mut mine = scene.to_le_bytes().to_vec();
+    mine.extend((n_worlds as u64).to_le_bytes());
+    let prints = comm.all_gather_bytes(&mine);
+    let word = |b: &[u8], k: usize| {
+        let w = b.get(8 * k..8 * k + 8).unwrap_or(&[0; 8]);
+        u64::from_le_bytes(w.try_into().unwrap_or([0; 8]))
+    };
+    let (print0, count0) = (word(&prints[0], 0), word(&prints[0], 1));
+    if let Some(r) = prints.iter().position(|p| word(p, 0) != print0) {
         return Err(DistributedError::ScenesDisagree {
             rank: r,
-            ours: print_of(&prints[r]),
-            rank0,
+            ours: word(&prints[r], 0),
+            rank0: print0,
+        });
+    }
+    if let Some(r) = prints.iter().position(|p| word(p, 1) != count0) {
+        return Err(DistributedError::WorldCountsDisagree {
+            rank: r,
+            ours: word(&prints[r], 1) as usize,
+            rank0: count0 as usize,
         });
     }
     // 2. This rank's worlds; a failure is a message for everyone.
+    // A rank without worlds (fewer worlds than ranks) runs nothing.
     let mine = shard(n_worlds, rank, size);
-    let result = match catch_unwind(AssertUnwindSafe(|| work(mine.clone()))) {
-        Ok(Ok(out)) if out.len() == mine.len() => Ok(out),
-        Ok(Ok(out)) => Err(format!(
-            "BAD{} outputs for {} worlds",
-            out.len(),
-            mine.len()
-        )),
-        Ok(Err(e)) => Err(e),
-        Err(p) => Err(format!("panicked: {}", panic_message(&p))),
+    // Status 0: outputs; 1: the work failed (message); 2: wrong number of outputs.
+    let result = match mine.is_empty() {
+        true => Ok(Vec::new()),
+        false => match catch_unwind(AssertUnwindSafe(|| work(mine.clone()))) {
+            Ok(Ok(out)) if out.len() == mine.len() => Ok(out),
+            Ok(Ok(out)) => Err((
+                2u8,
+                format!("{} outputs for {} worlds", out.len(), mine.len()),
+            )),
+            Ok(Err(e)) => Err((1, e)),
+            Err(p) => Err((1, format!("panicked: {}", panic_message(&p)))),
+        },
     };
     // 3. Status, then the outputs, from every rank.
     let status = match &result {
         Ok(_) => vec![0u8],
-        Err(e) => std::iter::once(1u8).chain(e.bytes()).collect(),
+        Err((code, e)) => std::iter::once(*code).chain(e.bytes()).collect(),
     };
     let statuses = comm.all_gather_bytes(&status);
     if let Some(r) = statuses.iter().position(|s| s.first() != Some(&0)) {
-        let cause = String::from_utf8_lossy(statuses[r].get(1..).unwrap_or(&[])).into_owned();
-        return Err(match cause.strip_prefix("BAD") {
-            Some(m) => DistributedError::BadOutput {
-                rank: r,
-                message: m.to_string(),
-            },
-            None => DistributedError::RankFailed {
+        let message = String::from_utf8_lossy(statuses[r].get(1..).unwrap_or(&[])).into_owned();
+        return Err(match statuses[r].first() {
+            Some(2) => DistributedError::BadOutput { rank: r, message },
+            _ => DistributedError::RankFailed {
                 rank: r,
                 worlds: shard(n_worlds, r, size),
-                cause,
+                cause: message,
             },
         });
     }
@@ -250,6 +277,12 @@ pub fn run_worlds(
             }
             per_world.push(out);
         }
+        if at != b.len() {
+            return Err(DistributedError::BadOutput {
+                rank: r,
+                message: format!("{} bytes left over", b.len() - at),
+            });
+        }
     }
     Ok(WorldOutputs { per_world })
 }
@@ -281,9 +314,12 @@ pub fn run_worlds_in_threads(
             let work = &work;
             s.spawn(move |_| {
                 let mine = shard(n_worlds, k, shards);
-                *slot = Some(match catch_unwind(AssertUnwindSafe(|| work(mine))) {
-                    Ok(r) => r,
-                    Err(p) => Err(format!("panicked: {}", panic_message(&p))),
+                *slot = Some(match mine.is_empty() {
+                    true => Ok(Vec::new()), // more shares than worlds
+                    false => match catch_unwind(AssertUnwindSafe(|| work(mine))) {
+                        Ok(r) => r,
+                        Err(p) => Err(format!("panicked: {}", panic_message(&p))),
+                    },
                 });
             });
         }
@@ -389,7 +425,12 @@ mod tests {
         };
         let one = run_worlds(&SingleProcess, 11, 1, work).unwrap();
         for shards in [1, 2, 3, 11, 20] {
-            assert_eq!(run_worlds_in_threads(11, shards, work).unwrap(), one);
+            // (20 shares of 11 worlds: `work` never sees an empty range.)
+            let checked = |w: Range<usize>| {
+                assert!(!w.is_empty());
+                work(w)
+            };
+            assert_eq!(run_worlds_in_threads(11, shards, checked).unwrap(), one);
         }
         let e = run_worlds_in_threads(11, 3, |w| {
             if w.start > 0 {
@@ -477,6 +518,40 @@ mod tests {
                 e.contains("rank 1") && e.contains("panicked: index out of bounds"),
                 "{e}"
             );
+        }
+        // Fewer worlds than ranks: the rank without worlds runs nothing.
+        for out in on_threads(3, |c| {
+            run_worlds(c, 2, 7, |w| {
+                assert!(!w.is_empty());
+                Ok(w.map(|w| vec![w as f64]).collect())
+            })
+        }) {
+            assert_eq!(out.unwrap().per_world, vec![vec![0.0], vec![1.0]]);
+        }
+        // A rank given another number of worlds.
+        for e in on_threads(2, |c| {
+            run_worlds(c, 4 + c.rank(), 7, |w| Ok(w.map(|_| vec![1.0]).collect()))
+        }) {
+            assert!(matches!(
+                e.unwrap_err(),
+                DistributedError::WorldCountsDisagree {
+                    rank: 1,
+                    ours: 5,
+                    rank0: 4
+                }
+            ));
+        }
+        // A user error that starts like a marker is still the user's error.
+        for e in on_threads(2, |c| {
+            run_worlds(c, 4, 7, |w| match c.rank() {
+                1 => Err("BAD input".into()),
+                _ => Ok(w.map(|_| vec![1.0]).collect()),
+            })
+        }) {
+            assert!(matches!(
+                e.unwrap_err(),
+                DistributedError::RankFailed { rank: 1, .. }
+            ));
         }
         let errors = on_threads(3, |c| {
             run_worlds(c, 4, if c.rank() == 2 { 8 } else { 7 }, |w| {

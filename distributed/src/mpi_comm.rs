@@ -38,8 +38,8 @@ impl Communicator for MpiComm {
     fn all_gather_bytes(&self, local: &[u8]) -> Vec<Vec<u8>> {
         let n = self.size();
         let mut counts = vec![0 as Count; n];
-        self.world
-            .all_gather_into(&(local.len() as Count), &mut counts[..]);
+        let len = Count::try_from(local.len()).expect("a rank's bytes fit MPI's 32-bit count");
+        self.world.all_gather_into(&len, &mut counts[..]);
         let displs: Vec<Count> = counts
             .iter()
             .scan(0, |at, &c| {
@@ -49,6 +49,12 @@ impl Communicator for MpiComm {
             })
             .collect();
         let total: usize = counts.iter().map(|&c| c as usize).sum();
+        // MPI counts are 32-bit: a gather past 2 GiB would wrap.
+        assert!(
+            total <= Count::MAX as usize,
+            "MpiComm::all_gather_bytes: {total} bytes from all ranks, more than MPI's 32-bit \
+             counts allow; gather fewer outputs per world or sums instead"
+        );
         let mut buf = vec![0u8; total];
         {
             let mut part = PartitionMut::new(&mut buf[..], counts.clone(), &displs[..]);

@@ -225,6 +225,10 @@ pub fn sum_of_squares<R: Real>(tape: &mut Tape, a: &Array<R>, scale: R, out: &Ar
 /// Adds `scale * a[i]^2` to `out[world[i]]`: a loss per world (`world` an index array such as
 /// `Articulations::q_world`, `dof_world` or `Model::particle_world`; `out` one entry per
 /// world). Backpropagating `out` gives each world's parameters the gradient of its own loss.
+///
+/// # Panics
+/// If `world` and `a` differ in length, or a world has no entry in `out`, with a message
+/// saying which.
 pub fn per_world_sum_of_squares<R: Real>(
     tape: &mut Tape,
     world: &Array<u32>,
@@ -232,7 +236,24 @@ pub fn per_world_sum_of_squares<R: Real>(
     scale: R,
     out: &Array<R>,
 ) {
+    check_per_world(world, a.len(), out.len());
     tape.launch(sum_sq_per_world, a.len(), (world, a, scale, out));
+}
+
+/// `world` must give one world per entry, each below `out`'s length.
+fn check_per_world(world: &Array<u32>, n: usize, worlds: usize) {
+    assert!(
+        world.len() == n,
+        "per_world_sum_of_squares: the index array has {} entries and the values {n} (pair \
+         `q_world` with `q`, `dof_world` with `qd`, `particle_world` with `x` or `v`)",
+        world.len()
+    );
+    if let Some(w) = world.to_vec().into_iter().find(|&w| w as usize >= worlds) {
+        panic!(
+            "per_world_sum_of_squares: world {w} has no entry in the loss array (length \
+             {worlds}: one per world)"
+        );
+    }
 }
 
 /// [`per_world_sum_of_squares`] for an array of vectors (`scale |a[i]|^2` to `out[world[i]]`).
@@ -243,6 +264,7 @@ pub fn per_world_sum_of_squares_vec3<R: Real>(
     scale: R,
     out: &Array<R>,
 ) {
+    check_per_world(world, a.len(), out.len());
     tape.launch(sum_sq_vec3_per_world, a.len(), (world, a, scale, out));
 }
 

@@ -49,6 +49,8 @@ pub struct ModelBuilder<R: Real> {
     pub(crate) problems: Vec<Problem>,
     /// Where each world's particles and bodies start ([`ModelBuilder::add_world`]).
     worlds: Vec<(usize, usize)>,
+    /// Whether `add_world` was called (see the articulations' builder).
+    world_added: bool,
 }
 
 /// The forces added with [`ModelBuilder::add_force`]. The builder only clones them (array
@@ -79,6 +81,7 @@ impl<R: Real> ModelBuilder<R> {
             added: AddedForces::default(),
             problems: Vec::new(),
             worlds: vec![(0, 0)],
+            world_added: false,
         }
     }
 
@@ -86,8 +89,10 @@ impl<R: Real> ModelBuilder<R> {
     /// world 0); returns its index. Its particles, elements and bodies are appended with their
     /// indices shifted; the ground, drag, shapes and gravity are the environment the worlds
     /// share (a world with another one is a problem at finalize). Worlds never interact, and
-    /// each is simulated in its own frame: they need no spacing, and a world's results are
-    /// the same bits whatever the other worlds (`kernels/tests/worlds.rs`).
+    /// each is simulated in its own frame: they need no spacing, and with the integrators made
+    /// of per-element kernels (all but `ImplicitEuler`, whose Newton iterations stop on a norm
+    /// over the whole model) a world's results are the same bits whatever the other worlds
+    /// (`kernels/tests/worlds.rs`).
     ///
     /// Not with worlds: particle-particle contact (`set_particle_contact`: it would cross
     /// worlds) and forces added with [`ModelBuilder::add_force`] to `other` (add them to
@@ -107,7 +112,8 @@ impl<R: Real> ModelBuilder<R> {
     /// assert_eq!(model.particle_world.to_vec(), vec![0, 0, 1, 1, 2, 2, 3, 3]);
     /// ```
     pub fn add_world(&mut self, other: &ModelBuilder<R>) -> usize {
-        let empty = self.particles.len() == 0 && self.bodies.len() == 0 && self.worlds.len() == 1;
+        let empty = self.particles.len() == 0 && self.bodies.len() == 0 && !self.world_added;
+        self.world_added = true;
         if empty {
             self.worlds.clear();
             self.gravity = other.gravity;

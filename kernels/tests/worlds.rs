@@ -551,3 +551,39 @@ fn resetting_selected_cloth_worlds_keeps_the_others_and_their_gradients() {
     assert!(g[w2].iter().any(|v| v.norm() > 0.0));
     assert!(model.reset_worlds(&mut tape, &s, &[3]).is_err());
 }
+
+#[test]
+fn empty_worlds_count_and_shared_laws_must_agree() {
+    // Empty worlds are worlds too: a share starting with one keeps its count.
+    assert_eq!(ArticulationBuilder::new().replicate(3).world_count(), 3);
+    let mut b = ArticulationBuilder::new();
+    b.add_world(&ArticulationBuilder::new());
+    b.add_world(&cartpole());
+    assert_eq!(b.world_count(), 2);
+    assert_eq!(b.worlds_in(0..2).world_count(), 2);
+    let m: Articulations<f64> = b.finalize().unwrap();
+    assert_eq!(m.worlds[0].links, 0..0);
+    assert_eq!(m.worlds[1].links, 0..3);
+    // Two worlds on different floors: refused, naming the world.
+    let mut soft = quadruped();
+    soft.ground = Some(GroundContact {
+        ke: 1e3,
+        ..GroundContact::default()
+    });
+    let mut two = quadruped();
+    two.add_world(&soft);
+    let e = two.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("world 1") && e.contains("ground"), "{e}");
+    // A robot without a floor of its own joins a model with one.
+    let mut mixed = quadruped();
+    mixed.add_world(&cartpole());
+    assert!(mixed.finalize::<f64>().is_ok());
+}
+
+#[test]
+#[should_panic(expected = "`gravity (one per world)` has 1 elements, the model needs 2")]
+fn a_gravity_array_of_the_wrong_length_is_refused_by_name() {
+    let mut model: Articulations<f64> = cartpole().replicate(2).finalize().unwrap();
+    model.gravity = Array::from_vec(vec![Vec3::new(0.0, 0.0, -9.81)]);
+    let _ = model.step(&mut Tape::new(), &model.state(), None, 1e-2);
+}

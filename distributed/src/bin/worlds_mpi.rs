@@ -110,10 +110,10 @@ fn main() {
                 Some("error") => return Err("simulated solver failure".into()),
                 Some("panic") => panic!("simulated panic"),
                 Some("exit") => std::process::exit(3),
+                // Killed by SIGKILL, as the OOM killer or a scheduler would.
                 Some("kill") => {
-                    let _ = std::process::Command::new("kill")
-                        .args(["-9", &std::process::id().to_string()])
-                        .status();
+                    // SAFETY: signals this process only; it never returns.
+                    unsafe { libc::kill(libc::getpid(), libc::SIGKILL) };
                     std::thread::sleep(std::time::Duration::from_secs(60));
                 }
                 _ => {}

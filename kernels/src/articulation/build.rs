@@ -69,6 +69,9 @@ pub(crate) fn finalize<R: Real>(
             j.clone()
         }
     };
+    if let Some(m) = b.mismatch() {
+        return Err(err("worlds".into(), m));
+    }
     let (world_of, gravity) = b.world_layout();
     for (k, g) in gravity.iter().enumerate() {
         if !finite3(g) {

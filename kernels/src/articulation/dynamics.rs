@@ -196,6 +196,7 @@ impl<R: Real> Articulations<R> {
         } = input;
         self.check_len(qd, self.n_dof, "qd");
         self.check_len(tau, self.n_dof, "tau");
+        self.check_len(&self.gravity, self.n_worlds(), "gravity (one per world)");
         let (n, nd) = (self.n_links(), self.n_dof);
         let (k, h, j) = self.kinematics_inertias(tape, q);
         let zeros = || Array::<R>::zeros(nd);
@@ -858,11 +859,15 @@ pub(crate) fn factor_all<R: Real>(
     if arts.len() < 2 * BLOCKS_PER_TASK {
         return arts.iter().enumerate().map(one).collect();
     }
-    arts.par_iter()
+    // Every block's result, then the first failure in articulation order (a parallel
+    // `collect` into a `Result` could report any failing block).
+    let all: Vec<Result<Vec<f64>, (usize, usize)>> = arts
+        .par_iter()
         .enumerate()
         .with_min_len(BLOCKS_PER_TASK)
         .map(one)
-        .collect()
+        .collect();
+    all.into_iter().collect()
 }
 
 /// `M^-1 b` per block from the factors.

@@ -458,6 +458,12 @@ pub struct ArticulationBuilder {
     /// World 0 starts at link 0; links added with [`ArticulationBuilder::add_link`] go to the
     /// last world.
     worlds: Vec<(usize, Option<Vec3<f64>>)>,
+    /// Whether `add_world` was called: an empty builder's first `add_world` fills world 0,
+    /// later ones (even of empty worlds) add worlds.
+    world_added: bool,
+    /// The first world added whose shared settings (ground, link contact, limit law) differ
+    /// from this builder's: [`ArticulationBuilder::finalize`] refuses it.
+    mismatch: Option<String>,
 }
 
 impl Default for ArticulationBuilder {
@@ -479,6 +485,8 @@ impl ArticulationBuilder {
             limit_ke: 1e4,
             limit_kd: 10.0,
             worlds: vec![(0, None)],
+            world_added: false,
+            mismatch: None,
         }
     }
 
@@ -622,12 +630,38 @@ impl ArticulationBuilder {
     /// assert_eq!(model.gravity.get(1).z, -1.62);
     /// ```
     pub fn add_world(&mut self, other: &ArticulationBuilder) -> usize {
-        let first = if self.links.is_empty() && self.worlds.len() == 1 {
+        let first = if self.links.is_empty() && !self.world_added {
+            // The first world sets the laws the worlds share.
             self.worlds.clear();
+            self.ground = other.ground;
+            self.link_contact = other.link_contact;
+            self.limit_ke = other.limit_ke;
+            self.limit_kd = other.limit_kd;
             0
         } else {
             self.worlds.len()
         };
+        self.world_added = true;
+        // A world without a ground of its own (nothing touches) takes the model's.
+        let with_ground = other.ground.is_some();
+        let shared = |b: &ArticulationBuilder| {
+            let ground = match with_ground {
+                true => format!("ground {:?}, ", b.ground),
+                false => String::new(),
+            };
+            format!(
+                "{ground}link_contact {}, limit_ke {}, limit_kd {}",
+                b.link_contact, b.limit_ke, b.limit_kd
+            )
+        };
+        if self.mismatch.is_none() && shared(self) != shared(other) {
+            self.mismatch = Some(format!(
+                "world {first} was added with other shared settings ({}) than the model's ({}): \
+                 the ground and the contact and limit laws are the same in every world",
+                shared(other),
+                shared(self)
+            ));
+        }
         for (k, &(start, g)) in other.worlds.iter().enumerate() {
             let end = other.worlds.get(k + 1).map_or(other.links.len(), |w| w.0);
             let base = self.links.len();
@@ -645,12 +679,10 @@ impl ArticulationBuilder {
             for m in other.muscles.iter().filter(|m| inside(m.origin.0)) {
                 let mut m = m.clone();
                 m.origin.0 = remap(m.origin.0);
-                m.insertion.0 = LinkId(m.insertion.0 .0 + base - start);
+                // (An insertion outside the world wraps to an index finalize refuses.)
+                m.insertion.0 = LinkId((m.insertion.0 .0 + base).wrapping_sub(start));
                 self.muscles.push(m);
             }
-        }
-        if self.ground.is_none() {
-            self.ground = other.ground;
         }
         first
     }
@@ -730,6 +762,8 @@ impl ArticulationBuilder {
             contacts: Vec::new(),
             muscles: Vec::new(),
             worlds: vec![(0, None)],
+            world_added: false,
+            mismatch: self.mismatch.clone(),
             ground: self.ground,
             link_contact: self.link_contact,
             gravity: self.gravity,
@@ -741,6 +775,11 @@ impl ArticulationBuilder {
     /// Number of worlds (1 unless [`ArticulationBuilder::add_world`] added more).
     pub fn world_count(&self) -> usize {
         self.worlds.len()
+    }
+
+    /// The first world added with other shared settings, if any.
+    pub(crate) fn mismatch(&self) -> Option<&str> {
+        self.mismatch.as_deref()
     }
 
     /// The world of each link, and each world's gravity.

@@ -115,8 +115,6 @@ macro_rules! library_forces {
                 forces
             }
 
-            /// Appends `other`'s forces as a new world's (see [`ForcePart::append`]); the
-            /// first force that cannot be, by name, with why.
             /// The first element of a library force whose particles are in different
             /// worlds: the force's name, the element and its particles.
             pub(crate) fn spanning_worlds(&self, world_of: &[u32]) -> Option<(&'static str, usize, Vec<u32>)> {
@@ -126,6 +124,8 @@ macro_rules! library_forces {
                 None
             }
 
+            /// Appends `other`'s forces as a new world's (see [`ForcePart::append`]); the
+            /// first force that cannot be, by name, with why.
             pub(crate) fn append(&mut self, other: &Self, offset: u32) -> Result<(), (&'static str, String)> {
                 $(ForcePart::<R>::append(&mut self.$field, &other.$field, offset)
                     .map_err(|e| ($NAME, e))?;)*
