@@ -601,6 +601,22 @@ pub struct Model<R: Real> {
     pub distance_constraints: Option<DistanceConstraints<R>>,
 }
 
+/// 1 for each world listed in `worlds`, 0 for the others (of `n`): which worlds a
+/// `select_worlds` takes. A world out of range is an [`Error::InvalidInput`] naming it.
+pub(crate) fn world_mask(worlds: &[usize], n: usize) -> Result<Array<u32>, Error> {
+    let mut take = vec![0u32; n];
+    for &w in worlds {
+        if w >= n {
+            return Err(Error::InvalidInput {
+                what: format!("select_worlds: world {w}"),
+                message: format!("the model has {n} worlds"),
+            });
+        }
+        take[w] = 1;
+    }
+    Ok(Array::from_vec(take))
+}
+
 /// `out[tid]` is `from[tid]` in the worlds `take` marks (indexed by `world[tid]`), `keep[tid]`
 /// elsewhere: resetting some worlds of a state.
 #[adflex_macros::diff_kernel]
@@ -649,16 +665,7 @@ impl<R: Real> Model<R> {
                 "models with rigid bodies are not supported yet".into(),
             ));
         }
-        let mut take = vec![0u32; self.worlds.len()];
-        for &w in worlds {
-            if w >= take.len() {
-                return Err(invalid(
-                    format!("select_worlds: world {w}"),
-                    format!("the model has {} worlds", take.len()),
-                ));
-            }
-            take[w] = 1;
-        }
+        let take = world_mask(worlds, self.worlds.len())?;
         for (s, what) in [(state, "state"), (from, "from")] {
             if s.x.len() != self.particle_count || s.v.len() != self.particle_count {
                 return Err(invalid(
@@ -672,7 +679,6 @@ impl<R: Real> Model<R> {
                 ));
             }
         }
-        let take = Array::from_vec(take);
         let next = State {
             x: Array::zeros(self.particle_count).named("x"),
             v: Array::zeros(self.particle_count).named("v"),

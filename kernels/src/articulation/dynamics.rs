@@ -478,16 +478,7 @@ impl<R: Real> Articulations<R> {
         worlds: &[usize],
         from: &ArticulationState<R>,
     ) -> Result<ArticulationState<R>, Error> {
-        let mut take = vec![0u32; self.n_worlds()];
-        for &w in worlds {
-            if w >= take.len() {
-                return Err(Error::InvalidInput {
-                    what: format!("select_worlds: world {w}"),
-                    message: format!("the model has {} worlds", take.len()),
-                });
-            }
-            take[w] = 1;
-        }
+        let take = crate::model::world_mask(worlds, self.n_worlds())?;
         for (s, what) in [(state, "state"), (from, "from")] {
             if s.q.len() != self.n_q || s.qd.len() != self.n_dof {
                 return Err(Error::InvalidInput {
@@ -502,7 +493,6 @@ impl<R: Real> Articulations<R> {
                 });
             }
         }
-        let take = Array::from_vec(take);
         let next = ArticulationState {
             q: Array::zeros(self.n_q),
             qd: Array::zeros(self.n_dof),

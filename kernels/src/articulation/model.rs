@@ -662,27 +662,8 @@ impl ArticulationBuilder {
                 shared(self)
             ));
         }
-        for (k, &(start, g)) in other.worlds.iter().enumerate() {
-            let end = other.worlds.get(k + 1).map_or(other.links.len(), |w| w.0);
-            let base = self.links.len();
-            self.worlds.push((base, Some(g.unwrap_or(other.gravity))));
-            let remap = |l: LinkId| LinkId(l.0 - start + base);
-            for l in &other.links[start..end] {
-                let mut l = l.clone();
-                l.parent = l.parent.map(remap);
-                self.links.push(l);
-            }
-            let inside = |l: LinkId| (start..end).contains(&l.0);
-            for &(l, c, r) in other.contacts.iter().filter(|c| inside(c.0)) {
-                self.contacts.push((remap(l), c, r));
-            }
-            for m in other.muscles.iter().filter(|m| inside(m.origin.0)) {
-                let mut m = m.clone();
-                m.origin.0 = remap(m.origin.0);
-                // (An insertion outside the world wraps to an index finalize refuses.)
-                m.insertion.0 = LinkId((m.insertion.0 .0 + base).wrapping_sub(start));
-                self.muscles.push(m);
-            }
+        for k in 0..other.worlds.len() {
+            self.append_world(other, k);
         }
         first
     }
@@ -718,41 +699,38 @@ impl ArticulationBuilder {
             self.worlds.len()
         );
         let mut b = self.clone_settings();
+        b.worlds.clear();
+        b.world_added = true;
         for k in worlds {
-            let (start, g) = self.worlds[k];
-            let end = self.worlds.get(k + 1).map_or(self.links.len(), |w| w.0);
-            let one = ArticulationBuilder {
-                links: self.links[start..end]
-                    .iter()
-                    .map(|l| {
-                        let mut l = l.clone();
-                        l.parent = l.parent.map(|p| LinkId(p.0 - start));
-                        l
-                    })
-                    .collect(),
-                contacts: self
-                    .contacts
-                    .iter()
-                    .filter(|c| (start..end).contains(&c.0 .0))
-                    .map(|&(l, c, r)| (LinkId(l.0 - start), c, r))
-                    .collect(),
-                muscles: self
-                    .muscles
-                    .iter()
-                    .filter(|m| (start..end).contains(&m.origin.0 .0))
-                    .map(|m| {
-                        let mut m = m.clone();
-                        m.origin.0 = LinkId(m.origin.0 .0 - start);
-                        m.insertion.0 = LinkId(m.insertion.0 .0.wrapping_sub(start));
-                        m
-                    })
-                    .collect(),
-                worlds: vec![(0, Some(g.unwrap_or(self.gravity)))],
-                ..self.clone_settings()
-            };
-            b.add_world(&one);
+            b.append_world(self, k);
         }
         b
+    }
+
+    /// Appends world `k` of `other` as a new world: its links, contacts and muscles with
+    /// their link ids shifted, and its gravity.
+    fn append_world(&mut self, other: &ArticulationBuilder, k: usize) {
+        let (start, g) = other.worlds[k];
+        let end = other.worlds.get(k + 1).map_or(other.links.len(), |w| w.0);
+        let base = self.links.len();
+        self.worlds.push((base, Some(g.unwrap_or(other.gravity))));
+        let remap = |l: LinkId| LinkId(l.0 - start + base);
+        for l in &other.links[start..end] {
+            let mut l = l.clone();
+            l.parent = l.parent.map(remap);
+            self.links.push(l);
+        }
+        let inside = |l: LinkId| (start..end).contains(&l.0);
+        for &(l, c, r) in other.contacts.iter().filter(|c| inside(c.0)) {
+            self.contacts.push((remap(l), c, r));
+        }
+        for m in other.muscles.iter().filter(|m| inside(m.origin.0)) {
+            let mut m = m.clone();
+            m.origin.0 = remap(m.origin.0);
+            // (An insertion outside the world wraps to an index finalize refuses.)
+            m.insertion.0 = LinkId((m.insertion.0 .0 + base).wrapping_sub(start));
+            self.muscles.push(m);
+        }
     }
 
     /// This builder's settings (ground, laws, gravity) without links.
