@@ -41,6 +41,7 @@ pub mod forces;
 pub mod integrators;
 pub mod losses;
 pub mod model;
+pub mod mpm;
 mod particles;
 mod precompiled;
 pub mod rigid;

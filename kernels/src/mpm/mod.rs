@@ -1,0 +1,22 @@
+//! Continua by the moving least squares material point method (MLS-MPM, Hu et al. 2018), in
+//! 2D: particles carry mass, velocity, the APIC affine matrix `C` and the deformation
+//! gradient `F`; each step scatters them to a grid with quadratic B-splines, updates the grid
+//! velocities with gravity and the walls, and gathers them back.
+//!
+//! - [`MpmBuilder`] describes the grid, walls, particles, [`Material`]s and actuators;
+//!   [`MpmBuilder::finalize`] checks it into an [`Mpm`].
+//! - [`Mpm::step`] records the three kernels of a step on a tape ([`kernels::mpm_p2g`],
+//!   [`kernels::mpm_grid_update`], [`kernels::mpm_g2p`]); every per-particle parameter, the
+//!   gravity, the initial state and the actuation can require gradients.
+//! - The particle-to-grid scatter is deterministic: the same bits on any number of threads.
+//! - [`MpmState`] implements [`Checkpoint`](adflex_runtime::checkpoint::Checkpoint), so long
+//!   rollouts keep only their checkpoints in memory.
+//!
+//! The model and the boundary conditions are those of DiffTaichi's `diffmpm` (Hu et al.
+//! 2020): [`scenes::walker`] builds its walking robot.
+
+pub mod kernels;
+mod model;
+pub mod scenes;
+
+pub use model::{Floor, Material, Mpm, MpmBuilder, MpmState};

@@ -1,0 +1,665 @@
+//! The MPM builder, model and state.
+
+use std::ops::Range;
+
+use adflex_runtime::checkpoint::Checkpoint;
+use adflex_runtime::prelude::*;
+use adflex_runtime::{AnyArray, Mat22, Vec2};
+
+use super::kernels::{
+    mpm_g2p, mpm_grid_update, mpm_p2g, mpm_weighted_sum, COROTATED, FLUID, NEO_HOOKEAN,
+};
+use crate::validation::{ModelError, Problem};
+
+/// The constitutive model of a particle, with its Lame parameters (Pa, in the model's units).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Material {
+    /// Fixed corotated elasticity (Stomakhin et al. 2012): robust to large rotations and
+    /// inversion; the model of DiffTaichi's `diffmpm`.
+    Corotated {
+        /// Shear modulus.
+        mu: f64,
+        /// Lame's first parameter.
+        lambda: f64,
+    },
+    /// Compressible neo-Hookean elasticity; a particle that inverts (`det F <= 0`) makes the
+    /// step fail.
+    NeoHookean {
+        /// Shear modulus.
+        mu: f64,
+        /// Lame's first parameter.
+        lambda: f64,
+    },
+    /// A weakly compressible fluid: pressure from the volume change alone, `bulk (J - 1) J`
+    /// in the Kirchhoff stress.
+    Fluid {
+        /// Bulk modulus.
+        bulk: f64,
+    },
+}
+
+impl Material {
+    /// Lame parameters from Young's modulus `e` and Poisson's ratio `nu` (`-1 < nu < 0.5`).
+    pub fn lame(e: f64, nu: f64) -> (f64, f64) {
+        (
+            e / (2.0 * (1.0 + nu)),
+            e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+        )
+    }
+
+    fn params(&self) -> (u32, f64, f64) {
+        match *self {
+            Material::Corotated { mu, lambda } => (COROTATED, mu, lambda),
+            Material::NeoHookean { mu, lambda } => (NEO_HOOKEAN, mu, lambda),
+            Material::Fluid { bulk } => (FLUID, 0.0, bulk),
+        }
+    }
+
+    /// The speed of the fastest wave at density `rho`: `sqrt((lambda + 2 mu) / rho)`.
+    fn wave_speed(&self, rho: f64) -> f64 {
+        let (_, mu, lambda) = self.params();
+        ((lambda + 2.0 * mu) / rho).sqrt()
+    }
+}
+
+/// What the floor does to the grid velocity of nodes within `bound` of it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Floor {
+    /// A velocity into the floor is zeroed entirely (what DiffTaichi's `diffmpm` does).
+    Sticky,
+    /// The normal velocity into the floor is removed and the tangential one reduced by
+    /// Coulomb friction with this coefficient (`>= 0`).
+    Coulomb(f64),
+}
+
+/// Describes an MLS-MPM scene in 2D: the grid, its walls, gravity and the particles with
+/// their materials and actuators. [`MpmBuilder::finalize`] checks it and returns an [`Mpm`].
+///
+/// The domain is `[0, n_grid dx]^2`; a node within `bound` nodes of a wall is a wall node
+/// (see [`Floor`]); particles must start at least `bound` cells away from the walls.
+///
+/// ```
+/// use adflex_kernels::mpm::*;
+/// use adflex_runtime::{Tape, Vec2};
+///
+/// // A jelly block dropped on the floor.
+/// let mut b = MpmBuilder::new(32, 1.0 / 32.0);
+/// b.add_rect(Vec2::new(0.3, 0.3), Vec2::new(0.2, 0.2), 1.0, 1.0,
+///     Material::Corotated { mu: 10.0, lambda: 10.0 });
+/// let mpm = b.finalize::<f64>().unwrap();
+/// let mut tape = Tape::new();
+/// let mut s = mpm.state();
+/// for _ in 0..100 {
+///     s = mpm.step(&mut tape, &s, None, 1e-3).unwrap();
+/// }
+/// assert!(s.x.get(0).y < 0.3 + 1.0 / 128.0); // it fell
+/// ```
+#[derive(Clone, Debug)]
+pub struct MpmBuilder {
+    n_grid: usize,
+    dx: f64,
+    bound: usize,
+    floor: Floor,
+    gravity: Vec2<f64>,
+    x: Vec<Vec2<f64>>,
+    v: Vec<Vec2<f64>>,
+    mass: Vec<f64>,
+    volume: Vec<f64>,
+    material: Vec<Material>,
+    actuator: Vec<Option<(usize, f64, Vec2<f64>)>>,
+    n_actuators: usize,
+    problems: Vec<Problem>,
+}
+
+impl MpmBuilder {
+    /// An empty scene on an `n_grid x n_grid` grid of spacing `dx`, with walls 3 nodes thick,
+    /// a sticky floor and gravity `(0, -3.8)` (DiffTaichi's `diffmpm` settings).
+    pub fn new(n_grid: usize, dx: f64) -> Self {
+        let mut problems = Vec::new();
+        if n_grid < 8 {
+            problems.push(problem(
+                "grid",
+                Some("n_grid"),
+                format!("must be at least 8 (got {n_grid})"),
+            ));
+        }
+        if !(dx.is_finite() && dx > 0.0) {
+            problems.push(problem(
+                "grid",
+                Some("dx"),
+                format!("must be finite and > 0 (got {dx})"),
+            ));
+        }
+        MpmBuilder {
+            n_grid,
+            dx,
+            bound: 3,
+            floor: Floor::Sticky,
+            gravity: Vec2::new(0.0, -3.8),
+            x: Vec::new(),
+            v: Vec::new(),
+            mass: Vec::new(),
+            volume: Vec::new(),
+            material: Vec::new(),
+            actuator: Vec::new(),
+            n_actuators: 0,
+            problems,
+        }
+    }
+
+    /// Wall thickness in nodes (default 3; at least 2, so that a particle's stencil never
+    /// leaves the grid while it is inside the walls).
+    pub fn set_bound(&mut self, bound: usize) -> &mut Self {
+        self.bound = bound;
+        self
+    }
+
+    /// What the floor does (default [`Floor::Sticky`]).
+    pub fn set_floor(&mut self, floor: Floor) -> &mut Self {
+        self.floor = floor;
+        self
+    }
+
+    /// Gravity (m/s^2; default `(0, -3.8)`).
+    pub fn set_gravity(&mut self, g: Vec2<f64>) -> &mut Self {
+        self.gravity = g;
+        self
+    }
+
+    /// Adds a particle at rest at `x` with `mass`, `volume` (its share of the body's rest
+    /// volume) and `material`; returns its index.
+    pub fn add_particle(
+        &mut self,
+        x: Vec2<f64>,
+        mass: f64,
+        volume: f64,
+        material: Material,
+    ) -> usize {
+        let i = self.x.len();
+        self.x.push(x);
+        self.v.push(Vec2::zeros());
+        self.mass.push(mass);
+        self.volume.push(volume);
+        self.material.push(material);
+        self.actuator.push(None);
+        i
+    }
+
+    /// Fills the rectangle `[min, min + size]` with particles, two per cell along each axis
+    /// (`floor(size / dx) * 2` per axis, evenly spaced, as DiffTaichi's `diffmpm`), each of
+    /// `mass`, `volume` and `material`; returns their indices.
+    pub fn add_rect(
+        &mut self,
+        min: Vec2<f64>,
+        size: Vec2<f64>,
+        mass: f64,
+        volume: f64,
+        material: Material,
+    ) -> Range<usize> {
+        let start = self.x.len();
+        let count = |l: f64| ((l / self.dx).floor().max(0.0) as usize) * 2;
+        let (nx, ny) = (count(size.x), count(size.y));
+        if nx == 0 || ny == 0 {
+            self.problems.push(problem(
+                "rect",
+                Some("size"),
+                format!(
+                    "{size:?} holds no particle: each side must be at least dx = {}",
+                    self.dx
+                ),
+            ));
+        }
+        let (hx, hy) = (size.x / nx.max(1) as f64, size.y / ny.max(1) as f64);
+        for i in 0..nx {
+            for j in 0..ny {
+                let x = min + Vec2::new((i as f64 + 0.5) * hx, (j as f64 + 0.5) * hy);
+                self.add_particle(x, mass, volume, material);
+            }
+        }
+        start..self.x.len()
+    }
+
+    /// Sets the initial velocity of particle `i`.
+    pub fn set_velocity(&mut self, i: usize, v: Vec2<f64>) -> &mut Self {
+        match self.v.get_mut(i) {
+            Some(slot) => *slot = v,
+            None => self.problems.push(problem_at(
+                "particles",
+                i,
+                Some("index"),
+                "no such particle".into(),
+            )),
+        }
+        self
+    }
+
+    /// Drives `particles` by actuator `actuator`: an active Kirchhoff stress
+    /// `a strength F d d^T F^T`, where `a` is the actuator's value in the step's actuation
+    /// array and `d` the fiber direction in the rest frame (normalized). DiffTaichi's
+    /// `diffmpm` uses `strength = 4` and `d = (0, 1)`.
+    pub fn actuate(
+        &mut self,
+        particles: Range<usize>,
+        actuator: usize,
+        strength: f64,
+        fiber: Vec2<f64>,
+    ) -> &mut Self {
+        let n = fiber.norm();
+        if !(n.is_finite() && n > 0.0) {
+            self.problems.push(problem(
+                "actuators",
+                Some("fiber"),
+                format!("{fiber:?} must be finite and not zero"),
+            ));
+        }
+        if !strength.is_finite() {
+            self.problems.push(problem(
+                "actuators",
+                Some("strength"),
+                format!("{strength} must be finite"),
+            ));
+        }
+        for p in particles {
+            match self.actuator.get_mut(p) {
+                Some(slot) => *slot = Some((actuator, strength, fiber / n)),
+                None => {
+                    self.problems.push(problem_at(
+                        "particles",
+                        p,
+                        Some("index"),
+                        "no such particle".into(),
+                    ));
+                    break;
+                }
+            }
+        }
+        self.n_actuators = self.n_actuators.max(actuator + 1);
+        self
+    }
+
+    /// Number of particles so far.
+    pub fn particle_count(&self) -> usize {
+        self.x.len()
+    }
+
+    /// Checks the scene and builds the model in precision `R`, or returns every problem:
+    /// a grid too small for its walls, particles outside the walls, non-finite or
+    /// non-positive masses and volumes, negative or non-finite Lame parameters.
+    pub fn finalize<R: Real>(&self) -> Result<Mpm<R>, ModelError> {
+        let mut problems = self.problems.clone();
+        let (n, dx, bound) = (self.n_grid, self.dx, self.bound);
+        if bound < 2 || 2 * bound + 3 > n {
+            problems.push(problem(
+                "grid",
+                Some("bound"),
+                format!("{bound} must be at least 2 and leave room inside an {n} x {n} grid"),
+            ));
+        }
+        if !(self.gravity.x.is_finite() && self.gravity.y.is_finite()) {
+            problems.push(problem(
+                "gravity",
+                None,
+                format!("{:?} must be finite", self.gravity),
+            ));
+        }
+        if let Floor::Coulomb(mu) = self.floor {
+            if !(mu.is_finite() && mu >= 0.0) {
+                problems.push(problem(
+                    "floor",
+                    Some("friction"),
+                    format!("{mu} must be finite and >= 0"),
+                ));
+            }
+        }
+        let (lo, hi) = (bound as f64 * dx, (n - bound.min(n)) as f64 * dx);
+        for (i, x) in self.x.iter().enumerate() {
+            if !(x.x >= lo && x.x <= hi && x.y >= lo && x.y <= hi) {
+                problems.push(problem_at(
+                    "particles",
+                    i,
+                    Some("x"),
+                    format!("{x:?} is outside the domain inside the walls, [{lo}, {hi}]^2"),
+                ));
+            }
+            if !(self.mass[i].is_finite() && self.mass[i] > 0.0) {
+                problems.push(problem_at(
+                    "particles",
+                    i,
+                    Some("mass"),
+                    format!("{} must be finite and > 0", self.mass[i]),
+                ));
+            }
+            if !(self.volume[i].is_finite() && self.volume[i] > 0.0) {
+                problems.push(problem_at(
+                    "particles",
+                    i,
+                    Some("volume"),
+                    format!("{} must be finite and > 0", self.volume[i]),
+                ));
+            }
+            let (_, mu, lambda) = self.material[i].params();
+            if !(mu.is_finite() && mu >= 0.0 && lambda.is_finite() && lambda >= 0.0) {
+                problems.push(problem_at(
+                    "particles",
+                    i,
+                    Some("material"),
+                    format!("{:?}: the moduli must be finite and >= 0", self.material[i]),
+                ));
+            }
+            if !(self.v[i].x.is_finite() && self.v[i].y.is_finite()) {
+                problems.push(problem_at(
+                    "particles",
+                    i,
+                    Some("v"),
+                    format!("{:?} must be finite", self.v[i]),
+                ));
+            }
+        }
+        if self.x.is_empty() {
+            problems.push(problem(
+                "particles",
+                None,
+                "the scene has no particle".into(),
+            ));
+        }
+        if !problems.is_empty() {
+            return Err(ModelError { problems });
+        }
+        let lit = |v: f64| R::lit(v);
+        let vec2 = |v: &Vec2<f64>| Vec2::new(lit(v.x), lit(v.y));
+        let np = self.x.len();
+        let params: Vec<_> = self.material.iter().map(Material::params).collect();
+        let stable_dt = (0..np)
+            .map(|i| dx / self.material[i].wave_speed(self.mass[i] / self.volume[i]))
+            .fold(f64::INFINITY, f64::min);
+        Ok(Mpm {
+            n_grid: n,
+            dx,
+            bound,
+            friction: match self.floor {
+                Floor::Sticky => -1.0,
+                Floor::Coulomb(mu) => mu,
+            },
+            gravity: Array::from_vec(vec![vec2(&self.gravity)]).named("mpm.gravity"),
+            mass: Array::from_vec(self.mass.iter().map(|&m| lit(m)).collect()).named("mpm.mass"),
+            volume: Array::from_vec(self.volume.iter().map(|&m| lit(m)).collect())
+                .named("mpm.volume"),
+            mu: Array::from_vec(params.iter().map(|p| lit(p.1)).collect()).named("mpm.mu"),
+            lambda: Array::from_vec(params.iter().map(|p| lit(p.2)).collect()).named("mpm.lambda"),
+            kind: Array::from_vec(params.iter().map(|p| p.0).collect()).named("mpm.kind"),
+            actuator: Array::from_vec(
+                self.actuator
+                    .iter()
+                    .map(|a| a.map_or(0, |a| a.0 as u32))
+                    .collect(),
+            )
+            .named("mpm.actuator"),
+            act_gain: Array::from_vec(
+                self.actuator
+                    .iter()
+                    .map(|a| lit(a.map_or(0.0, |a| a.1)))
+                    .collect(),
+            )
+            .named("mpm.act_gain"),
+            fiber: Array::from_vec(
+                self.actuator
+                    .iter()
+                    .map(|a| vec2(&a.map_or(Vec2::new(0.0, 1.0), |a| a.2)))
+                    .collect(),
+            )
+            .named("mpm.fiber"),
+            n_actuators: self.n_actuators,
+            no_actuation: Array::zeros(self.n_actuators.max(1)).named("mpm.no_actuation"),
+            x0: self.x.iter().map(vec2).collect(),
+            v0: self.v.iter().map(vec2).collect(),
+            stable_dt,
+        })
+    }
+}
+
+fn problem(item: &str, param: Option<&'static str>, message: String) -> Problem {
+    Problem {
+        item: item.into(),
+        param,
+        message,
+    }
+}
+
+fn problem_at(kind: &str, i: usize, param: Option<&'static str>, message: String) -> Problem {
+    problem(&format!("{kind}[{i}]"), param, message)
+}
+
+/// An MLS-MPM model in 2D (see the [module docs](super)): the grid and per-particle arrays,
+/// each a possible gradient target.
+#[derive(Clone, Debug)]
+pub struct Mpm<R: Real> {
+    /// Nodes per axis.
+    pub n_grid: usize,
+    /// Grid spacing.
+    pub dx: f64,
+    /// Wall thickness in nodes.
+    pub bound: usize,
+    /// Floor friction (negative: sticky).
+    pub friction: f64,
+    /// Gravity (one element).
+    pub gravity: Array<Vec2<R>>,
+    /// Particle masses.
+    pub mass: Array<R>,
+    /// Particle volumes.
+    pub volume: Array<R>,
+    /// Shear moduli.
+    pub mu: Array<R>,
+    /// Lame's first parameters (the bulk modulus of fluid particles).
+    pub lambda: Array<R>,
+    /// Material of each particle (the constants of [`super::kernels`]).
+    pub kind: Array<u32>,
+    /// Actuator of each particle (0 for passive ones, whose gain is 0).
+    pub actuator: Array<u32>,
+    /// Actuation strength of each particle (0: passive).
+    pub act_gain: Array<R>,
+    /// Fiber direction of each particle in the rest frame.
+    pub fiber: Array<Vec2<R>>,
+    /// Number of actuators: the length of a step's actuation array.
+    pub n_actuators: usize,
+    no_actuation: Array<R>,
+    x0: Vec<Vec2<R>>,
+    v0: Vec<Vec2<R>>,
+    stable_dt: f64,
+}
+
+/// The state of the particles: positions, velocities, APIC matrices `C` and deformation
+/// gradients `F`.
+#[derive(Clone, Debug)]
+pub struct MpmState<R: Real> {
+    /// Positions.
+    pub x: Array<Vec2<R>>,
+    /// Velocities.
+    pub v: Array<Vec2<R>>,
+    /// APIC affine velocity matrices.
+    pub c: Array<Mat22<R>>,
+    /// Deformation gradients.
+    pub f: Array<Mat22<R>>,
+}
+
+impl<R: Real> Checkpoint for MpmState<R> {
+    fn arrays(&self) -> Vec<&dyn AnyArray> {
+        vec![&self.x, &self.v, &self.c, &self.f]
+    }
+    fn snapshot(&self) -> Self {
+        MpmState {
+            x: self.x.deep_clone(),
+            v: self.v.deep_clone(),
+            c: self.c.deep_clone(),
+            f: self.f.deep_clone(),
+        }
+    }
+}
+
+impl<R: Real> Mpm<R> {
+    /// Number of particles.
+    pub fn particle_count(&self) -> usize {
+        self.mass.len()
+    }
+
+    /// The initial state: the builder's positions and velocities, `C = 0`, `F = I`.
+    pub fn state(&self) -> MpmState<R> {
+        let n = self.particle_count();
+        MpmState {
+            x: Array::from_vec(self.x0.clone()).named("mpm.x"),
+            v: Array::from_vec(self.v0.clone()).named("mpm.v"),
+            c: Array::zeros(n).named("mpm.C"),
+            f: Array::from_vec(vec![Mat22::identity(); n]).named("mpm.F"),
+        }
+    }
+
+    /// The largest time step the elastic waves allow: `dx / c` with `c = sqrt((lambda +
+    /// 2 mu) / rho)` the fastest wave speed over the particles (`rho = mass / volume`).
+    /// Steps fail beyond a fraction of it (see the guide's stability chart); the particles'
+    /// own speed must also stay below `dx / dt`.
+    pub fn stable_dt(&self) -> f64 {
+        self.stable_dt
+    }
+
+    /// One MLS-MPM step of `dt`: particle to grid ([`mpm_p2g`]), grid update
+    /// ([`mpm_grid_update`]), grid to particle ([`mpm_g2p`]), all on `tape`; returns the new
+    /// state. `actuation` holds one value per actuator (`None`: all zero).
+    ///
+    /// Errors ([`Error::InvalidInput`]) instead of a panic or a NaN later: a `dt` that is not
+    /// finite and positive, an actuation array of the wrong length, and a particle that is
+    /// not finite or has left the domain inside the walls (naming it; the step before was
+    /// unstable: reduce `dt` below [`Mpm::stable_dt`]).
+    pub fn step(
+        &self,
+        tape: &mut Tape,
+        state: &MpmState<R>,
+        actuation: Option<&Array<R>>,
+        dt: f64,
+    ) -> Result<MpmState<R>, Error> {
+        if !(dt.is_finite() && dt > 0.0) {
+            return Err(invalid("dt", format!("{dt} must be finite and positive")));
+        }
+        let actuation = match actuation {
+            None => &self.no_actuation,
+            Some(a) if a.len() == self.n_actuators && self.n_actuators > 0 => a,
+            Some(a) if a.is_empty() && self.n_actuators == 0 => &self.no_actuation,
+            Some(a) => {
+                return Err(invalid(
+                    &a.label(),
+                    format!(
+                        "the actuation array has {} elements; the model has {} actuators",
+                        a.len(),
+                        self.n_actuators
+                    ),
+                ));
+            }
+        };
+        self.check_inside(state)?;
+        let n = self.particle_count();
+        let ng = self.n_grid;
+        let (dx, dtr) = (R::lit(self.dx), R::lit(dt));
+        let f_out = Array::zeros(n).named("mpm.F");
+        let grid_mv = Array::zeros(ng * ng).named("mpm.grid_mv");
+        let grid_m = Array::zeros(ng * ng).named("mpm.grid_m");
+        tape.launch(
+            mpm_p2g,
+            n,
+            (
+                &state.x,
+                &state.v,
+                &state.c,
+                &state.f,
+                &self.mass,
+                &self.volume,
+                &self.mu,
+                &self.lambda,
+                &self.kind,
+                &self.actuator,
+                &self.act_gain,
+                &self.fiber,
+                actuation,
+                ng,
+                dx,
+                dtr,
+                &f_out,
+                &grid_mv,
+                &grid_m,
+            ),
+        );
+        let grid_v = Array::zeros(ng * ng).named("mpm.grid_v");
+        tape.launch(
+            mpm_grid_update,
+            ng * ng,
+            (
+                &grid_mv,
+                &grid_m,
+                &self.gravity,
+                ng,
+                self.bound,
+                R::lit(self.friction),
+                dtr,
+                &grid_v,
+            ),
+        );
+        let next = MpmState {
+            x: Array::zeros(n).named("mpm.x"),
+            v: Array::zeros(n).named("mpm.v"),
+            c: Array::zeros(n).named("mpm.C"),
+            f: f_out,
+        };
+        tape.launch(
+            mpm_g2p,
+            n,
+            (&state.x, &grid_v, ng, dx, dtr, &next.x, &next.v, &next.c),
+        );
+        Ok(next)
+    }
+
+    /// The mean position of the particles (one element), recorded on `tape` (DiffTaichi's
+    /// `diffmpm` loss is minus its `x`).
+    pub fn mean_position(&self, tape: &mut Tape, state: &MpmState<R>) -> Array<Vec2<R>> {
+        let out = Array::zeros(1).named("mpm.mean_position");
+        let n = self.particle_count();
+        tape.launch(
+            mpm_weighted_sum,
+            n,
+            (&state.x, R::lit(1.0 / n as f64), &out),
+        );
+        out
+    }
+
+    /// Every particle finite and inside the walls (so that its stencil is on the grid).
+    fn check_inside(&self, state: &MpmState<R>) -> Result<(), Error> {
+        // The stencil of x spans nodes floor(x / dx - 0.5) + 0..3.
+        let lo = self.dx;
+        let hi = (self.n_grid - 2) as f64 * self.dx;
+        let xs = state.x.to_vec();
+        if xs.len() != self.particle_count() {
+            return Err(invalid(
+                &state.x.label(),
+                format!(
+                    "{} positions for a model of {} particles",
+                    xs.len(),
+                    self.particle_count()
+                ),
+            ));
+        }
+        for (i, x) in xs.iter().enumerate() {
+            let (px, py) = (x.x.to_f64(), x.y.to_f64());
+            if !(px >= lo && px < hi && py >= lo && py < hi) {
+                return Err(invalid(&format!("{}[{i}]", state.x.label()), format!(
+                    "particle {i} at ({px}, {py}) is not finite or has left the grid [{lo}, {hi})^2: \
+                     the simulation is unstable; reduce dt below the model's stable_dt ({:.3e}) \
+                     or the speeds so that |v| dt < dx",
+                    self.stable_dt)));
+            }
+        }
+        Ok(())
+    }
+}
+
+fn invalid(what: &str, message: String) -> Error {
+    Error::InvalidInput {
+        what: what.into(),
+        message,
+    }
+}
