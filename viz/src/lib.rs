@@ -45,6 +45,7 @@ pub mod export;
 pub mod gltf;
 pub mod overlay;
 pub mod plot;
+pub mod points;
 mod raster;
 pub mod render;
 mod scene;

@@ -13,10 +13,11 @@
 //!   rollouts keep only their checkpoints in memory.
 //!
 //! The model and the boundary conditions are those of DiffTaichi's `diffmpm` (Hu et al.
-//! 2020): [`scenes::walker`] builds its walking robot.
+//! 2020): [`scenes::walker`] builds its walking robot, [`WalkerTask`] its controller and loss.
 
 pub mod kernels;
 mod model;
 pub mod scenes;
 
 pub use model::{Floor, Material, Mpm, MpmBuilder, MpmState};
+pub use scenes::WalkerTask;
