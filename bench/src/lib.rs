@@ -7,6 +7,7 @@ pub mod cloth;
 pub mod gen;
 pub mod hand;
 pub mod kernels_cmp;
+pub mod mpm;
 pub mod overhead;
 pub mod peers;
 pub mod robots;

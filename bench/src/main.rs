@@ -20,6 +20,9 @@
 //!   [--newton PATH]`: many worlds in one model (256 cloths against one; cartpoles), forward
 //!   and backward: time per world-step at W = 1 and W = 1024, on 1 and 2 threads, peak
 //!   memory; with `--python`, MuJoCo's batched rollout; with `--newton`, Newton's worlds
+//! - `mpm [--n-grid 128] [--steps 1024] [--iters 5] [--python PATH]`: DiffTaichi's MPM
+//!   walker, seconds per optimization iteration on 1 and 2 threads; with `--python`, the
+//!   Taichi script on the same scene in the same run, and the ratios
 //! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
 //!   serde_json, time and peak RSS of each in its own process, as JSON lines
 //! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG
@@ -108,6 +111,7 @@ fn main() {
         }
         "robots" => robots::main(rest),
         "worlds" => worlds::main(rest),
+        "mpm" => mpm::main(rest),
         "worlds-case" => println!("{}", worlds::case(rest)),
         "cloth" => match cloth::parse(rest) {
             Ok(o) => println!("{}", cloth::run(&o)),
@@ -117,7 +121,7 @@ fn main() {
             }
         },
         _ => {
-            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots> [options] (see src/main.rs)");
+            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots|worlds|mpm> [options] (see src/main.rs)");
             std::process::exit(2);
         }
     }
