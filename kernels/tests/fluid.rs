@@ -1,0 +1,259 @@
+//! Grid fluids: each kernel and whole smoke rollouts against central differences in f64 and
+//! forward mode against reverse mode, through both pressure solves; the projection's exact
+//! zero divergence; the Jacobi gradient tending to the CG one (implicit function theorem) as
+//! its iteration count grows; the CG step's constant tape length; errors.
+
+use adflex_kernels::fluid::kernels::{advect, divergence, pressure_jacobi, subtract_gradient};
+use adflex_kernels::fluid::{FluidGrid, Pressure};
+use adflex_kernels::solver::krylov::SolveSettings;
+use adflex_macros::diff_kernel;
+use adflex_runtime::gradcheck::{dot_test, GradCheck};
+use adflex_runtime::prelude::*;
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn field(&mut self, n: usize, lo: f64, hi: f64, name: &str) -> Array<f64> {
+        Array::from_vec(
+            (0..n)
+                .map(|_| lo + (hi - lo) * self.next())
+                .collect::<Vec<_>>(),
+        )
+        .named(name)
+    }
+}
+
+/// `loss[0] += (d - target)^2` summed over cells.
+#[diff_kernel]
+fn squared_error<R: Real>(d: &Array<R>, target: &Array<R>, loss: &Array<R>) {
+    let t = tid();
+    let e = d[t] - target[t];
+    loss.atomic_add(0, e * e);
+}
+
+#[test]
+fn each_kernel_matches_central_differences_and_its_tangent() {
+    let n = 8;
+    let c = n * n;
+    let mut r = Rng(3);
+    let q = r.field(c, -1.0, 1.0, "q");
+    let u = r.field(c, -2.0, 2.0, "u");
+    let v = r.field(c, -2.0, 2.0, "v");
+    let p = r.field(c, -1.0, 1.0, "p");
+    let out = Array::<f64>::zeros(c).named("out");
+    let out2 = Array::<f64>::zeros(c).named("out2");
+    // Advection backtraces up to 2 cells, some past the walls (clamped).
+    GradCheck::new()
+        .kernel(advect, c, (&q, &u, &v, n, 0.9, &out))
+        .unwrap()
+        .assert_within(1e-6);
+    let run = |tape: &mut Tape| {
+        let o = out.zeros_like();
+        tape.launch(advect, c, (&q, &u, &v, n, 0.9, &o));
+        vec![o.boxed()]
+    };
+    dot_test(run, &[&q, &u, &v], 1)
+        .unwrap()
+        .assert_within(1e-10);
+    GradCheck::new()
+        .kernel(divergence, c, (&u, &v, n, 0.1, &out))
+        .unwrap()
+        .assert_within(1e-6);
+    GradCheck::new()
+        .kernel(subtract_gradient, c, (&u, &v, &p, n, 0.1, &out, &out2))
+        .unwrap()
+        .assert_within(1e-6);
+    GradCheck::new()
+        .kernel(pressure_jacobi, c, (&p, &q, n, -0.04, &out))
+        .unwrap()
+        .assert_within(1e-6);
+    let run = |tape: &mut Tape| {
+        let (a, b, d, j) = (
+            out.zeros_like(),
+            out.zeros_like(),
+            out.zeros_like(),
+            out.zeros_like(),
+        );
+        tape.launch(divergence, c, (&u, &v, n, 0.1, &d));
+        tape.launch(subtract_gradient, c, (&u, &v, &p, n, 0.1, &a, &b));
+        tape.launch(pressure_jacobi, c, (&p, &q, n, -0.04, &j));
+        vec![a.boxed(), b.boxed(), d.boxed(), j.boxed()]
+    };
+    dot_test(run, &[&u, &v, &p, &q], 2)
+        .unwrap()
+        .assert_within(1e-10);
+}
+
+#[test]
+fn projection_leaves_no_divergence_and_jacobi_converges_to_it() {
+    let grid = FluidGrid::new(16, 1.0 / 16.0).unwrap();
+    let mut r = Rng(5);
+    let u = r.field(256, -1.0, 1.0, "u");
+    let v = r.field(256, -1.0, 1.0, "v");
+    let mut tape = Tape::new();
+    let before = grid.divergence(&mut tape, &u, &v).to_vec();
+    let (pu, pv) = grid.project(&mut tape, &u, &v, &Pressure::cg()).unwrap();
+    let after = grid.divergence(&mut tape, &pu, &pv).to_vec();
+    let max = |d: &[f64]| d.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(
+        max(&after) < 1e-8 * max(&before),
+        "{} -> {}",
+        max(&before),
+        max(&after)
+    );
+    // Jacobi's residual divergence falls with its iteration count.
+    let mut last = f64::INFINITY;
+    for k in [10, 100, 1000] {
+        let (ju, jv) = grid
+            .project(&mut tape, &u, &v, &Pressure::Jacobi(k))
+            .unwrap();
+        let d = max(&grid.divergence(&mut tape, &ju, &jv).to_vec());
+        assert!(d < last, "{k} iterations: {d} after {last}");
+        last = d;
+    }
+}
+
+/// `steps` steps of smoke from `(u0, v0)` carrying `d0`; the loss is the squared distance of
+/// the final density to `target`.
+fn smoke_loss(
+    grid: &FluidGrid,
+    tape: &mut Tape,
+    u0: &Array<f64>,
+    v0: &Array<f64>,
+    d0: &Array<f64>,
+    target: &Array<f64>,
+    steps: usize,
+    method: &Pressure,
+) -> Array<f64> {
+    let (mut u, mut v, mut d) = (u0.clone(), v0.clone(), d0.clone());
+    for _ in 0..steps {
+        (u, v, d) = grid.step(tape, &u, &v, &d, 0.03, method).unwrap();
+    }
+    let loss = Array::zeros(1).named("loss");
+    tape.launch(squared_error, grid.cells(), (&d, target, &loss));
+    loss
+}
+
+fn smoke_setup() -> (FluidGrid, [Array<f64>; 4]) {
+    let grid = FluidGrid::new(8, 1.0 / 8.0).unwrap();
+    let mut r = Rng(9);
+    let c = grid.cells();
+    (
+        grid,
+        [
+            r.field(c, -1.0, 1.0, "u0"),
+            r.field(c, -1.0, 1.0, "v0"),
+            r.field(c, 0.0, 1.0, "density0"),
+            r.field(c, 0.0, 1.0, "target"),
+        ],
+    )
+}
+
+#[test]
+fn smoke_rollout_gradients_match_central_differences_with_both_pressure_solves() {
+    let (grid, [u0, v0, d0, target]) = smoke_setup();
+    for method in [Pressure::Jacobi(20), Pressure::cg()] {
+        let report = GradCheck::new()
+            .run(
+                |tape| smoke_loss(&grid, tape, &u0, &v0, &d0, &target, 4, &method),
+                &[&u0, &v0, &d0],
+            )
+            .unwrap();
+        report.assert_within(1e-6);
+        assert!(u0.grad().unwrap().to_vec().iter().any(|g| *g != 0.0));
+        let run = |tape: &mut Tape| {
+            let (mut u, mut v, mut d) = (u0.clone(), v0.clone(), d0.clone());
+            for _ in 0..4 {
+                (u, v, d) = grid.step(tape, &u, &v, &d, 0.03, &method).unwrap();
+            }
+            vec![u.boxed(), v.boxed(), d.boxed()]
+        };
+        dot_test(run, &[&u0, &v0, &d0], 4)
+            .unwrap()
+            .assert_within(1e-10);
+    }
+}
+
+/// The gradient of the loss with respect to the initial velocity.
+fn velocity_gradient(method: &Pressure) -> (Vec<f64>, usize) {
+    let (grid, [u0, v0, d0, target]) = smoke_setup();
+    let _ = u0.clone().requires_grad();
+    let _ = v0.clone().requires_grad();
+    let mut tape = Tape::new();
+    let loss = smoke_loss(&grid, &mut tape, &u0, &v0, &d0, &target, 3, method);
+    tape.backward(&loss).unwrap();
+    let mut g = u0.grad().unwrap().to_vec();
+    g.extend(v0.grad().unwrap().to_vec());
+    (g, tape.len())
+}
+
+#[test]
+fn jacobi_gradients_tend_to_the_implicit_cg_gradient() {
+    let (cg, cg_len) = velocity_gradient(&Pressure::cg());
+    let norm = cg.iter().map(|g| g * g).sum::<f64>().sqrt();
+    let mut errors = Vec::new();
+    for k in [5, 20, 80, 320, 1280] {
+        let (j, len) = velocity_gradient(&Pressure::Jacobi(k));
+        let e = j
+            .iter()
+            .zip(&cg)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt()
+            / norm;
+        errors.push((k, e, len));
+    }
+    for w in errors.windows(2) {
+        assert!(w[1].1 < w[0].1, "{errors:?}");
+    }
+    assert!(errors.last().unwrap().1 < 1e-8, "{errors:?}");
+    // The CG step is one record per solve whatever its iteration count; Jacobi's k records.
+    assert!(errors[4].2 > cg_len + 3 * 1000, "{errors:?} vs {cg_len}");
+}
+
+#[test]
+fn bad_grids_inputs_and_unconverged_solves_are_errors() {
+    assert!(FluidGrid::new(7, 0.1)
+        .unwrap_err()
+        .to_string()
+        .contains("even"));
+    assert!(FluidGrid::new(8, f64::NAN)
+        .unwrap_err()
+        .to_string()
+        .contains("dx"));
+    let grid = FluidGrid::new(8, 0.125).unwrap();
+    let (u, short) = (
+        Array::<f64>::zeros(64),
+        Array::<f64>::zeros(10).named("short"),
+    );
+    let mut tape = Tape::new();
+    let e = grid
+        .step(&mut tape, &u, &short, &u, 0.01, &Pressure::cg())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("short") && e.contains("64 cells"), "{e}");
+    assert!(grid
+        .step(&mut tape, &u, &u, &u, 0.0, &Pressure::cg())
+        .is_err());
+    let mut r = Rng(1);
+    let (u, v) = (r.field(64, -1.0, 1.0, "u"), r.field(64, -1.0, 1.0, "v"));
+    let few = Pressure::Cg(SolveSettings {
+        rel_tol: 1e-14,
+        abs_tol: 0.0,
+        max_iter: 2,
+    });
+    let e = grid
+        .project(&mut tape, &u, &v, &few)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("fluid pressure CG (forward)") && e.contains("max_iter"),
+        "{e}"
+    );
+}
