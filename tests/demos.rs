@@ -379,3 +379,17 @@ fn mpm_walker_learns_to_walk_as_in_taichi() {
     );
     assert_eq!(out.frames.len(), 6);
 }
+
+#[path = "../examples/smoke_control.rs"]
+#[allow(dead_code)]
+mod smoke_control;
+
+/// Smoke control through the CG pressure solve's implicit adjoint: gradient descent on the
+/// initial velocity brings the final density much closer to the target.
+#[test]
+fn smoke_control_moves_the_smoke_towards_the_target() {
+    let out = smoke_control::run(&smoke_control::Config::small()).unwrap();
+    let (first, last) = (out.losses[0], *out.losses.last().unwrap());
+    assert!(last < 0.5 * first, "{first} -> {last}");
+    assert!(out.losses.iter().all(|l| l.is_finite()));
+}

@@ -4,9 +4,9 @@
 //! its iteration count grows; the CG step's constant tape length; errors.
 
 use adflex_kernels::fluid::kernels::{advect, divergence, pressure_jacobi, subtract_gradient};
+use adflex_kernels::fluid::scenes::squared_error;
 use adflex_kernels::fluid::{FluidGrid, Pressure};
 use adflex_kernels::solver::krylov::SolveSettings;
-use adflex_macros::diff_kernel;
 use adflex_runtime::gradcheck::{dot_test, GradCheck};
 use adflex_runtime::prelude::*;
 
@@ -27,14 +27,6 @@ impl Rng {
         )
         .named(name)
     }
-}
-
-/// `loss[0] += (d - target)^2` summed over cells.
-#[diff_kernel]
-fn squared_error<R: Real>(d: &Array<R>, target: &Array<R>, loss: &Array<R>) {
-    let t = tid();
-    let e = d[t] - target[t];
-    loss.atomic_add(0, e * e);
 }
 
 #[test]

@@ -1,5 +1,7 @@
-//! Pictures of 2D particle systems (the [MPM](adflex_kernels::mpm) family): frames side by
-//! side in one PNG, each particle a dot of its own colour, each frame with a caption.
+//! Pictures of 2D continua: particle systems (the [MPM](adflex_kernels::mpm) family) as
+//! frames side by side in one PNG, each particle a dot of its own colour
+//! ([`render_strip_png`]), and grid fields (the [fluids](adflex_kernels::fluid)) as grey
+//! levels ([`render_fields_png`]).
 //!
 //! ```
 //! use adflex_viz::points::{actuation_color, render_strip_png, Frame2d, StripOptions};
@@ -163,6 +165,75 @@ pub fn render_strip_png(
             (k as u32 * pw) as f32 + 6.0,
             6.0,
             &f.caption,
+            Rgba::rgb(0, 0, 0),
+        );
+    }
+    let bytes = pm.encode_png().map_err(|e| Error::Encode {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    std::fs::write(path, bytes).map_err(|e| Error::io(path, e))
+}
+
+/// Draws square scalar fields (`n x n`, cell `(i, j)` at index `i * n + j`, `i` along `x`,
+/// `j` up) left to right into one PNG at `path`, each cell a `cell_px` square, white at 0 and
+/// black at `max` (clamped), with a caption each.
+///
+/// Errors: [`Error::Empty`] for no fields, [`Error::Invalid`] for a field whose length is not
+/// a square or a size out of range, [`Error::Io`] / [`Error::Encode`] naming `path`.
+pub fn render_fields_png(
+    path: impl AsRef<Path>,
+    fields: &[(&[f64], &str)],
+    max: f64,
+    cell_px: u32,
+) -> Result<()> {
+    let path = path.as_ref();
+    let Some(first) = fields.first() else {
+        return Err(Error::Empty {
+            path: path.to_path_buf(),
+            what: "no fields",
+        });
+    };
+    let n = (first.0.len() as f64).sqrt().round() as usize;
+    if n == 0 || fields.iter().any(|f| f.0.len() != n * n) {
+        return Err(Error::Invalid(
+            "every field must hold n x n values for one n >= 1".into(),
+        ));
+    }
+    let side = n as u64 * cell_px as u64;
+    if cell_px == 0 || side * fields.len() as u64 > 65_535 || !(max > 0.0) {
+        return Err(Error::Invalid(format!(
+            "{} fields of {side} px (and max {max} > 0)",
+            fields.len()
+        )));
+    }
+    let mut pm = Pixmap::new((side * fields.len() as u64) as u32, side as u32)
+        .ok_or_else(|| Error::Invalid("picture too large".into()))?;
+    pm.fill(tiny_skia::Color::WHITE);
+    for (k, (field, caption)) in fields.iter().enumerate() {
+        for (t, &value) in field.iter().enumerate() {
+            let (i, j) = (t / n, t % n);
+            let g = (255.0 * (1.0 - (value / max).clamp(0.0, 1.0))).round() as u8;
+            let x = (k as u64 * side + i as u64 * cell_px as u64) as f32;
+            let y = ((n - 1 - j) as u64 * cell_px as u64) as f32;
+            if let Some(r) = Rect::from_xywh(x, y, cell_px as f32, cell_px as f32) {
+                let mut paint = Paint::default();
+                paint.set_color_rgba8(g, g, g, 255);
+                pm.fill_rect(r, &paint, Transform::identity(), None);
+            }
+        }
+        if k > 0 {
+            if let Some(r) = Rect::from_xywh((k as u64 * side) as f32, 0.0, 1.0, side as f32) {
+                let mut sep = Paint::default();
+                sep.set_color_rgba8(160, 160, 160, 255);
+                pm.fill_rect(r, &sep, Transform::identity(), None);
+            }
+        }
+        text(
+            &mut pm,
+            (k as u64 * side) as f32 + 6.0,
+            6.0,
+            caption,
             Rgba::rgb(0, 0, 0),
         );
     }

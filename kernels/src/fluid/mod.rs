@@ -323,3 +323,5 @@ fn invalid(what: &str, message: String) -> Error {
         message,
     }
 }
+
+pub mod scenes;
