@@ -113,6 +113,7 @@ fn projection_leaves_no_divergence_and_jacobi_converges_to_it() {
 
 /// `steps` steps of smoke from `(u0, v0)` carrying `d0`; the loss is the squared distance of
 /// the final density to `target`.
+#[allow(clippy::too_many_arguments)]
 fn smoke_loss(
     grid: &FluidGrid,
     tape: &mut Tape,

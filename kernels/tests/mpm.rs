@@ -232,7 +232,7 @@ fn the_scatter_is_deterministic_over_threads() {
     let _ = mpm.mu.clone().requires_grad();
     let act = Array::from_vec(vec![0.8, -0.5, 0.3, -0.9]).requires_grad();
     let defaults = adflex_runtime::settings::settings();
-    let mut parallel = defaults.clone();
+    let mut parallel = defaults;
     parallel.serial_below = 1;
     parallel.apply();
     let one = with_threads(1, || bits(&mpm, &act));

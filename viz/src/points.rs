@@ -201,7 +201,7 @@ pub fn render_fields_png(
         ));
     }
     let side = n as u64 * cell_px as u64;
-    if cell_px == 0 || side * fields.len() as u64 > 65_535 || !(max > 0.0) {
+    if cell_px == 0 || side * fields.len() as u64 > 65_535 || max.is_nan() || max <= 0.0 {
         return Err(Error::Invalid(format!(
             "{} fields of {side} px (and max {max} > 0)",
             fields.len()

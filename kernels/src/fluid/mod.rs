@@ -41,6 +41,9 @@ use adflex_runtime::prelude::*;
 use crate::solver::krylov::{cg, SolveSettings};
 use kernels::{advect, divergence, pressure_jacobi, subtract_gradient};
 
+/// The fields a smoke step carries: the velocity's `x` and `y` components and the density.
+pub type Flow<R> = (Array<R>, Array<R>, Array<R>);
+
 /// How the pressure equation is solved (see the [module docs](self)).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Pressure {
@@ -74,7 +77,7 @@ impl FluidGrid {
     /// A grid of `n x n` cells of size `dx`. Errors if `n` is odd or below 4 (the pressure
     /// operator is singular for odd `n`) or `dx` is not finite and positive.
     pub fn new(n: usize, dx: f64) -> Result<Self, Error> {
-        if n < 4 || n % 2 != 0 {
+        if n < 4 || n & 1 == 1 {
             return Err(invalid(
                 "n",
                 format!("{n}: the grid needs an even number of cells, at least 4"),
@@ -266,7 +269,7 @@ impl FluidGrid {
         density: &Array<R>,
         dt: f64,
         method: &Pressure,
-    ) -> Result<(Array<R>, Array<R>, Array<R>), Error> {
+    ) -> Result<Flow<R>, Error> {
         if !(dt.is_finite() && dt > 0.0) {
             return Err(invalid("dt", format!("{dt} must be finite and positive")));
         }

@@ -3,7 +3,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::{FluidGrid, Pressure};
+use super::{Flow, FluidGrid, Pressure};
 
 /// `loss[0] += (d - target)^2` over the cells.
 #[diff_kernel]
@@ -74,7 +74,7 @@ impl SmokeTask {
         Ok(self.rollout(&mut tape)?.2)
     }
 
-    fn rollout(&self, tape: &mut Tape) -> Result<(Array<f64>, Array<f64>, Array<f64>), Error> {
+    fn rollout(&self, tape: &mut Tape) -> Result<Flow<f64>, Error> {
         let (mut u, mut v, mut d) = (self.u0.clone(), self.v0.clone(), self.density0.clone());
         for _ in 0..self.steps {
             (u, v, d) = self
