@@ -17,7 +17,7 @@
 //!   is one more solve with `A^T = A` (the implicit function theorem: `d L / d b = A^-T
 //!   d L / d p`) and whose tangent is one solve too; memory independent of the iteration
 //!   count. A solve that does not converge is an error
-//!   ([`Error::NotConverged`](adflex_runtime::Error::NotConverged)), in the forward pass and
+//!   ([`Error::NotConverged`]), in the forward pass and
 //!   in the adjoint.
 //!
 //! As the Jacobi count grows, its gradient tends to the CG one (tested).
