@@ -70,25 +70,11 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     let before = task.final_density()?.to_vec();
     let mut losses = Vec::new();
     let mut times = Vec::new();
-    // Gradient descent with the step scaled to the gradient's largest entry, so that no
-    // velocity changes by more than `lr` cells per step in one iteration.
     for _ in 0..cfg.iterations {
         let start = std::time::Instant::now();
         losses.push(task.loss_and_grad()?);
         times.push(start.elapsed().as_secs_f64());
-        let (gu, gv) = (task.u0.grad()?.to_vec(), task.v0.grad()?.to_vec());
-        let big = gu
-            .iter()
-            .chain(&gv)
-            .fold(0.0f64, |m, g| m.max(g.abs()))
-            .max(1e-30);
-        for (p, g) in [(&task.u0, gu), (&task.v0, gv)] {
-            p.modify(|p| {
-                p.iter_mut()
-                    .zip(&g)
-                    .for_each(|(p, g)| *p -= cfg.lr * g / big)
-            });
-        }
+        task.descend(cfg.lr)?;
     }
     losses.push(task.loss_and_grad()?);
     times.sort_by(f64::total_cmp);

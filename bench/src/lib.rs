@@ -14,6 +14,7 @@ pub mod robots;
 pub mod scatter;
 pub mod scene_file;
 pub mod small;
+pub mod smoke;
 pub mod timing;
 pub mod topo;
 pub mod worlds;

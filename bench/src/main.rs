@@ -23,6 +23,9 @@
 //! - `mpm [--n-grid 128] [--steps 1024] [--iters 5] [--python PATH]`: DiffTaichi's MPM
 //!   walker, seconds per optimization iteration on 1 and 2 threads; with `--python`, the
 //!   Taichi script on the same scene in the same run, and the ratios
+//! - `smoke [--n 110] [--steps 100] [--iters 3] [--jacobi 30] [--python PATH]`: the
+//!   smoke-control task per optimization iteration, CG and Jacobi pressure; with `--python`,
+//!   Taichi (Jacobi) and JAX (CG and Jacobi) in the same run, their losses and the ratios
 //! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
 //!   serde_json, time and peak RSS of each in its own process, as JSON lines
 //! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG
@@ -112,6 +115,7 @@ fn main() {
         "robots" => robots::main(rest),
         "worlds" => worlds::main(rest),
         "mpm" => mpm::main(rest),
+        "smoke" => smoke::main(rest),
         "worlds-case" => println!("{}", worlds::case(rest)),
         "cloth" => match cloth::parse(rest) {
             Ok(o) => println!("{}", cloth::run(&o)),
@@ -121,7 +125,7 @@ fn main() {
             }
         },
         _ => {
-            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots|worlds|mpm> [options] (see src/main.rs)");
+            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots|worlds|mpm|smoke> [options] (see src/main.rs)");
             std::process::exit(2);
         }
     }
