@@ -45,7 +45,11 @@ pub fn main(rest: &[String]) {
     let mut mine = Vec::new();
     for (name, pressure) in [("cg", Pressure::cg()), ("jacobi", Pressure::Jacobi(k))] {
         let (losses, s) = ours(n, steps, iters, pressure);
-        let label = if name == "cg" { "cg".to_string() } else { format!("jacobi {k}") };
+        let label = if name == "cg" {
+            "cg".to_string()
+        } else {
+            format!("jacobi {k}")
+        };
         println!(
             "{}",
             json!({"peer": "adflex", "n": n, "steps": steps, "pressure": label, "losses": losses,
@@ -84,8 +88,14 @@ pub fn main(rest: &[String]) {
             .output()
             .expect("the peer's python runs");
         let text = String::from_utf8_lossy(&out.stdout);
-        let Some(v) = text.lines().find_map(|l| serde_json::from_str::<Value>(l).ok()) else {
-            eprintln!("{script} printed no result: {}", String::from_utf8_lossy(&out.stderr));
+        let Some(v) = text
+            .lines()
+            .find_map(|l| serde_json::from_str::<Value>(l).ok())
+        else {
+            eprintln!(
+                "{script} printed no result: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
             continue;
         };
         println!("{v}");

@@ -484,3 +484,225 @@ fn steps_are_stable_below_the_wave_speed_limit() {
     let err = run(8.0).unwrap_err();
     assert!(err.contains("stable_dt"), "{err}");
 }
+
+#[test]
+fn three_d_kernels_match_central_differences_and_their_tangents() {
+    use adflex_kernels::mpm::kernels::{mpm3_g2p, mpm3_grid_update, mpm3_p2g};
+    let (n, ng, dx, dt) = (6, 8usize, 1.0 / 8.0, 2e-3);
+    let mut r = Rng(17);
+    let mut v3 = |lo: f64, hi: f64| -> Vec<Vec3<f64>> {
+        (0..n)
+            .map(|_| Vec3::new(r.in_range(lo, hi), r.in_range(lo, hi), r.in_range(lo, hi)))
+            .collect()
+    };
+    let x = Array::from_vec(v3(0.35, 0.65)).named("x");
+    let v = Array::from_vec(v3(-1.0, 1.0)).named("v");
+    let fiber = Array::from_vec(v3(-1.0, 1.0)).named("fiber");
+    let mut r = Rng(19);
+    let mut mat = |s: f64, d: f64| -> Vec<Mat33<f64>> {
+        (0..n)
+            .map(|_| Mat33::from_fn(|i, j| if i == j { d } else { 0.0 } + r.in_range(-s, s)))
+            .collect()
+    };
+    let c = Array::from_vec(mat(3.0, 0.0)).named("C");
+    let f = Array::from_vec(mat(0.2, 1.0)).named("F");
+    let scalars = |lo: f64, hi: f64, seed: u64| {
+        let mut r = Rng(seed);
+        Array::from_vec((0..n).map(|_| r.in_range(lo, hi)).collect::<Vec<f64>>())
+    };
+    let (mass, volume) = (
+        scalars(0.5, 2.0, 1).named("mass"),
+        scalars(0.5, 2.0, 2).named("volume"),
+    );
+    let (mu, lambda) = (
+        scalars(5.0, 20.0, 3).named("mu"),
+        scalars(5.0, 20.0, 4).named("lambda"),
+    );
+    let act_gain = scalars(1.0, 4.0, 5).named("act_gain");
+    let kind = Array::from_vec((0..n as u32).map(|p| p % 3).collect::<Vec<u32>>());
+    let actuator = Array::from_vec((0..n as u32).map(|p| p % 2).collect::<Vec<u32>>());
+    let actuation = Array::from_vec(vec![0.3, -0.7]).named("actuation");
+    let cells = ng * ng * ng;
+    let (f_out, grid_mv, grid_m) = (
+        Array::<Mat33<f64>>::zeros(n).named("F_out"),
+        Array::<Vec3<f64>>::zeros(cells).named("grid_mv"),
+        Array::<f64>::zeros(cells).named("grid_m"),
+    );
+    GradCheck::new()
+        .kernel(
+            mpm3_p2g,
+            n,
+            (
+                &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &kind, &actuator, &act_gain, &fiber,
+                &actuation, ng, 3usize, dx, dt, &f_out, &grid_mv, &grid_m,
+            ),
+        )
+        .unwrap()
+        .assert_within(1e-6);
+    let run = |tape: &mut Tape| {
+        let (fo, mv, m) = (
+            f_out.zeros_like(),
+            grid_mv.zeros_like(),
+            grid_m.zeros_like(),
+        );
+        tape.launch(
+            mpm3_p2g,
+            n,
+            (
+                &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &kind, &actuator, &act_gain, &fiber,
+                &actuation, ng, 3usize, dx, dt, &fo, &mv, &m,
+            ),
+        );
+        vec![fo.boxed(), mv.boxed(), m.boxed()]
+    };
+    dot_test(run, &[&x, &v, &c, &f, &mu, &lambda, &fiber, &actuation], 6)
+        .unwrap()
+        .assert_within(1e-10);
+    let mut r = Rng(23);
+    let mv = Array::from_vec(
+        (0..cells)
+            .map(|_| {
+                Vec3::new(
+                    r.in_range(-1.0, 1.0),
+                    r.in_range(-1.0, 1.0),
+                    r.in_range(-1.0, 1.0),
+                )
+            })
+            .collect::<Vec<_>>(),
+    );
+    let m = Array::from_vec(
+        (0..cells)
+            .map(|_| r.in_range(0.5, 2.0))
+            .collect::<Vec<f64>>(),
+    );
+    let gravity = Array::from_vec(vec![Vec3::new(0.3, -3.8, 0.2)]);
+    let gv = Array::<Vec3<f64>>::zeros(cells);
+    for friction in [-1.0, 0.5] {
+        GradCheck::new()
+            .kernel(
+                mpm3_grid_update,
+                cells,
+                (&mv, &m, &gravity, ng, 2usize, friction, dt, &gv),
+            )
+            .unwrap()
+            .assert_within(1e-6);
+    }
+    let (xo, vo, co) = (x.zeros_like(), v.zeros_like(), c.zeros_like());
+    GradCheck::new()
+        .kernel(mpm3_g2p, n, (&x, &mv, ng, 3usize, dx, dt, &xo, &vo, &co))
+        .unwrap()
+        .assert_within(1e-6);
+    let run = |tape: &mut Tape| {
+        let (xo, vo, co) = (x.zeros_like(), v.zeros_like(), c.zeros_like());
+        tape.launch(mpm3_g2p, n, (&x, &mv, ng, 3usize, dx, dt, &xo, &vo, &co));
+        vec![xo.boxed(), vo.boxed(), co.boxed()]
+    };
+    dot_test(run, &[&x, &mv], 7).unwrap().assert_within(1e-10);
+}
+
+#[test]
+fn three_d_polar_rotation_is_a_rotation_and_leaves_a_symmetric_stretch() {
+    use adflex_kernels::mpm::kernels::polar_rotation3;
+    let mut r = Rng(29);
+    for _ in 0..20 {
+        let f =
+            Mat33::<f64>::from_fn(|i, j| if i == j { 1.0 } else { 0.0 } + r.in_range(-0.4, 0.4));
+        let rot = polar_rotation3::call(f);
+        assert!(
+            (rot.transpose() * rot - Mat33::identity()).norm() < 1e-12,
+            "{rot}"
+        );
+        let s = rot.transpose() * f;
+        assert!((s - s.transpose()).norm() < 1e-12, "{s}");
+        assert!(rot.determinant() > 0.0);
+    }
+}
+
+/// A jelly cube in 3D: free fall exactly as symplectic Euler, then a rollout's gradient
+/// with respect to the moduli and gravity against central differences, and forward mode
+/// against reverse mode.
+#[test]
+fn three_d_rollouts_fall_exactly_and_differentiate() {
+    let mut b = MpmBuilder::new_3d(16, 1.0 / 16.0);
+    let g = Vec3::new(0.4, -9.8, -0.3);
+    b.set_gravity(g);
+    b.add_rect(
+        Vec3::new(0.4, 0.5, 0.4),
+        Vec3::new(0.125, 0.125, 0.125),
+        1.0,
+        1.0,
+        Material::Corotated {
+            mu: 20.0,
+            lambda: 20.0,
+        },
+    );
+    let mpm = b.finalize::<f64>().unwrap();
+    assert_eq!(mpm.particle_count(), 4 * 4 * 4);
+    let (dt, steps) = (1e-3, 20);
+    let mut tape = Tape::new();
+    let s0 = mpm.state();
+    let mut s = s0.clone();
+    for _ in 0..steps {
+        s = mpm.step(&mut tape, &s, None, dt).unwrap();
+    }
+    let shift = g * (dt * dt * (steps * (steps + 1)) as f64 / 2.0);
+    for (x, x0) in s.x.to_vec().iter().zip(s0.x.to_vec()) {
+        assert!(
+            (x - (x0 + shift)).norm() < 1e-12,
+            "{x:?} vs {:?}",
+            x0 + shift
+        );
+    }
+
+    // On the floor (sticky, then Coulomb), with a spin so that the cube deforms.
+    for floor in [Floor::Sticky, Floor::Coulomb(0.4)] {
+        let mut b = MpmBuilder::new_3d(12, 1.0 / 12.0);
+        b.set_floor(floor);
+        let r = b.add_rect(
+            Vec3::new(0.35, 0.26, 0.35),
+            Vec3::new(0.25, 0.17, 0.25),
+            1.0,
+            1.0,
+            Material::NeoHookean {
+                mu: 10.0,
+                lambda: 10.0,
+            },
+        );
+        let xs: Vec<Vec3<f64>> = b.clone().finalize::<f64>().unwrap().state().x.to_vec();
+        for (p, x) in r.zip(&xs) {
+            b.set_velocity(p, Vec3::new(0.2 - (x.y - 0.35), -0.5, 0.3 * (x.x - 0.45)));
+        }
+        let mpm = b.finalize::<f64>().unwrap();
+        let loss = |tape: &mut Tape| {
+            let mut s = mpm.state();
+            for _ in 0..15 {
+                s = mpm.step(tape, &s, None, 2e-3).unwrap();
+            }
+            let c = mpm.mean_position(tape, &s);
+            let out = Array::zeros(1);
+            tape.launch(minus_x3, 1, (&c, &out));
+            out
+        };
+        GradCheck::new()
+            .run(loss, &[&mpm.mu, &mpm.lambda, &mpm.gravity, &mpm.mass])
+            .unwrap()
+            .assert_within(1e-6);
+        assert!(mpm.mu.grad().unwrap().to_vec().iter().any(|g| *g != 0.0));
+        let run = |tape: &mut Tape| {
+            let mut s = mpm.state();
+            for _ in 0..15 {
+                s = mpm.step(tape, &s, None, 2e-3).unwrap();
+            }
+            vec![s.x.boxed(), s.f.boxed()]
+        };
+        dot_test(run, &[&mpm.mu, &mpm.lambda, &mpm.gravity], 8)
+            .unwrap()
+            .assert_within(1e-10);
+    }
+}
+
+/// `loss[0] = -c[0].x + c[0].y + c[0].z` (3D).
+#[diff_kernel]
+fn minus_x3<R: Real>(c: &Array<Vec3<R>>, loss: &Array<R>) {
+    loss[0] = -c[0].x + c[0].y + c[0].z;
+}

@@ -103,7 +103,11 @@ impl SmokeTask {
     /// (`bench/peers/*_smoke.py`) take the same step.
     pub fn descend(&self, lr: f64) -> Result<(), Error> {
         let (gu, gv) = (self.u0.grad()?.to_vec(), self.v0.grad()?.to_vec());
-        let big = gu.iter().chain(&gv).fold(0.0f64, |m, g| m.max(g.abs())).max(1e-30);
+        let big = gu
+            .iter()
+            .chain(&gv)
+            .fold(0.0f64, |m, g| m.max(g.abs()))
+            .max(1e-30);
         for (p, g) in [(&self.u0, gu), (&self.v0, gv)] {
             p.modify(|p| p.iter_mut().zip(&g).for_each(|(p, g)| *p -= lr * g / big));
         }

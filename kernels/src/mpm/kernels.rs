@@ -216,3 +216,193 @@ pub fn mpm_g2p<R: Real>(
 pub fn mpm_weighted_sum<R: Real>(x: &Array<Vec2<R>>, weight: R, out: &Array<Vec2<R>>) {
     out.atomic_add(0, x[tid()] * weight);
 }
+
+/// The base node of the 3 x 3 x 3 stencil of a particle at `xg` (in cells), 3D.
+#[diff_func]
+pub fn stencil_base3<R: Real>(xg: Vec3<R>) -> Vec3<R> {
+    vec3(floor(xg.x - 0.5), floor(xg.y - 0.5), floor(xg.z - 0.5))
+}
+
+/// The rotation of the polar decomposition `F = R S` in 3D by Higham's iteration
+/// `R <- (R + R^-T) / 2` from `R = F`, 8 times (quadratic convergence; exact to rounding for
+/// the moderate stretches of elastic solids). Needs `det F > 0`.
+#[diff_func]
+pub fn polar_rotation3<R: Real>(f: Mat33<R>) -> Mat33<R> {
+    let mut r = f;
+    for _k in 0..8 {
+        r = (r + transpose(inverse(r))) * 0.5;
+    }
+    r
+}
+
+/// Kirchhoff stress in 3D, as [`kirchhoff_stress`].
+#[diff_func]
+pub fn kirchhoff_stress3<R: Real>(f: Mat33<R>, mu: R, lambda: R, kind: u32) -> Mat33<R> {
+    let j = determinant(f);
+    let id = mat33_identity();
+    if kind == 0 {
+        let r = polar_rotation3(f);
+        (f - r) * transpose(f) * (2.0 * mu) + id * (lambda * (j - 1.0) * j)
+    } else if kind == 1 {
+        (f * transpose(f) - id) * mu + id * (lambda * ln(j))
+    } else {
+        id * (lambda * (j - 1.0) * j)
+    }
+}
+
+/// Particle to grid in 3D ([`mpm_p2g`] on an `n_grid^3` grid, node `(i n + j) n + k`). A fluid
+/// particle's `F` becomes `J^(1/3) I`. `stencil` is 3: the outer loop over the stencil's
+/// first axis stays a loop (a bound that is not a literal), because the 27 copies of the body
+/// unrolled into one function overflow rustc's stack in debug builds.
+#[diff_kernel]
+pub fn mpm3_p2g<R: Real>(
+    x: &Array<Vec3<R>>,
+    v: &Array<Vec3<R>>,
+    c: &Array<Mat33<R>>,
+    f: &Array<Mat33<R>>,
+    mass: &Array<R>,
+    volume: &Array<R>,
+    mu: &Array<R>,
+    lambda: &Array<R>,
+    kind: &Array<u32>,
+    actuator: &Array<u32>,
+    act_gain: &Array<R>,
+    fiber: &Array<Vec3<R>>,
+    actuation: &Array<R>,
+    n_grid: usize,
+    stencil: usize,
+    dx: R,
+    dt: R,
+    f_out: &Array<Mat33<R>>,
+    grid_mv: &Array<Vec3<R>>,
+    grid_m: &Array<R>,
+) {
+    let p = tid();
+    let xg = x[p] / dx;
+    let base = stencil_base3(xg);
+    let fx = xg - base;
+    let bx = base.x as usize;
+    let by = base.y as usize;
+    let bz = base.z as usize;
+    let cp = c[p];
+    let mut fp = (mat33_identity() + cp * dt) * f[p];
+    let k = kind[p];
+    if k == 2 {
+        let s = pow(determinant(fp), 1.0 / 3.0);
+        fp = mat33_identity() * s;
+    }
+    f_out[p] = fp;
+    let d = fiber[p];
+    let a = actuation[actuator[p]] * act_gain[p];
+    let tau = kirchhoff_stress3(fp, mu[p], lambda[p], k) + fp * outer(d, d) * transpose(fp) * a;
+    let m = mass[p];
+    let affine = tau * (-(dt * volume[p] * 4.0) / (dx * dx)) + cp * m;
+    let mv = v[p] * m;
+    for i in 0..stencil {
+        let wx = bspline_weight(fx.x, i);
+        for j in 0..3 {
+            let wxy = wx * bspline_weight(fx.y, j);
+            for l in 0..3 {
+                let w = wxy * bspline_weight(fx.z, l);
+                let dpos = vec3(i as R - fx.x, j as R - fx.y, l as R - fx.z) * dx;
+                let node = ((bx + i) * n_grid + by + j) * n_grid + bz + l;
+                grid_mv.atomic_add(node, (mv + affine * dpos) * w);
+                grid_m.atomic_add(node, w * m);
+            }
+        }
+    }
+}
+
+/// Grid update in 3D ([`mpm_grid_update`]): the floor is the `y = 0` side, the other five
+/// sides are walls that stop a velocity into them.
+#[diff_kernel]
+pub fn mpm3_grid_update<R: Real>(
+    grid_mv: &Array<Vec3<R>>,
+    grid_m: &Array<R>,
+    gravity: &Array<Vec3<R>>,
+    n_grid: usize,
+    bound: usize,
+    friction: R,
+    dt: R,
+    grid_v: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let i = t / (n_grid * n_grid);
+    let j = (t / n_grid) % n_grid;
+    let k = t % n_grid;
+    let m = grid_m[t];
+    let mut vo = vec3(0.0, 0.0, 0.0);
+    if m > 0.0 {
+        vo = grid_mv[t] / m + gravity[0] * dt;
+    }
+    if (i < bound && vo.x < 0.0) || (i + bound > n_grid && vo.x > 0.0) {
+        vo = vec3(0.0, 0.0, 0.0);
+    }
+    if (k < bound && vo.z < 0.0) || (k + bound > n_grid && vo.z > 0.0) {
+        vo = vec3(0.0, 0.0, 0.0);
+    }
+    if j < bound && vo.y < 0.0 {
+        if friction < 0.0 {
+            vo = vec3(0.0, 0.0, 0.0);
+        } else {
+            let vt = vec3(vo.x, 0.0, vo.z);
+            let lit = length(vt) + 1e-10;
+            if lit + friction * vo.y <= 0.0 {
+                vo = vec3(0.0, 0.0, 0.0);
+            } else {
+                vo = vt * (1.0 + friction * vo.y / lit);
+            }
+        }
+    }
+    if j + bound > n_grid && vo.y > 0.0 {
+        vo = vec3(0.0, 0.0, 0.0);
+    }
+    grid_v[t] = vo;
+}
+
+/// Grid to particle in 3D ([`mpm_g2p`]); `stencil` is 3, as in [`mpm3_p2g`].
+#[diff_kernel]
+pub fn mpm3_g2p<R: Real>(
+    x: &Array<Vec3<R>>,
+    grid_v: &Array<Vec3<R>>,
+    n_grid: usize,
+    stencil: usize,
+    dx: R,
+    dt: R,
+    x_out: &Array<Vec3<R>>,
+    v_out: &Array<Vec3<R>>,
+    c_out: &Array<Mat33<R>>,
+) {
+    let p = tid();
+    let xp = x[p];
+    let xg = xp / dx;
+    let base = stencil_base3(xg);
+    let fx = xg - base;
+    let bx = base.x as usize;
+    let by = base.y as usize;
+    let bz = base.z as usize;
+    let mut nv = vec3(0.0, 0.0, 0.0);
+    let mut nc = mat33_identity() * 0.0;
+    for i in 0..stencil {
+        let wx = bspline_weight(fx.x, i);
+        for j in 0..3 {
+            let wxy = wx * bspline_weight(fx.y, j);
+            for l in 0..3 {
+                let w = wxy * bspline_weight(fx.z, l);
+                let dpos = vec3(i as R - fx.x, j as R - fx.y, l as R - fx.z);
+                let gv = grid_v[((bx + i) * n_grid + by + j) * n_grid + bz + l];
+                nv += gv * w;
+                nc += outer(gv, dpos) * (4.0 * w / dx);
+            }
+        }
+    }
+    v_out[p] = nv;
+    x_out[p] = xp + nv * dt;
+    c_out[p] = nc;
+}
+
+/// Adds `x[tid] * weight` into `out[0]`, 3D.
+#[diff_kernel]
+pub fn mpm3_weighted_sum<R: Real>(x: &Array<Vec3<R>>, weight: R, out: &Array<Vec3<R>>) {
+    out.atomic_add(0, x[tid()] * weight);
+}

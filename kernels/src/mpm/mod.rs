@@ -1,5 +1,5 @@
 //! Continua by the moving least squares material point method (MLS-MPM, Hu et al. 2018), in
-//! 2D: particles carry mass, velocity, the APIC affine matrix `C` and the deformation
+//! 2D ([`D2`], the default) and 3D ([`D3`], [`MpmBuilder::new_3d`]): particles carry mass, velocity, the APIC affine matrix `C` and the deformation
 //! gradient `F`; each step scatters them to a grid with quadratic B-splines, updates the grid
 //! velocities with gravity and the walls, and gathers them back.
 //!
@@ -15,9 +15,11 @@
 //! The model and the boundary conditions are those of DiffTaichi's `diffmpm` (Hu et al.
 //! 2020): [`scenes::walker`] builds its walking robot, [`WalkerTask`] its controller and loss.
 
+mod dim;
 pub mod kernels;
 mod model;
 pub mod scenes;
 
+pub use dim::{Dim, D2, D3};
 pub use model::{Floor, Material, Mpm, MpmBuilder, MpmState};
 pub use scenes::WalkerTask;

@@ -4,11 +4,10 @@ use std::ops::Range;
 
 use adflex_runtime::checkpoint::Checkpoint;
 use adflex_runtime::prelude::*;
-use adflex_runtime::{AnyArray, Mat22, Vec2};
+use adflex_runtime::AnyArray;
 
-use super::kernels::{
-    mpm_g2p, mpm_grid_update, mpm_p2g, mpm_weighted_sum, COROTATED, FLUID, NEO_HOOKEAN,
-};
+use super::dim::{Dim, D2, D3};
+use super::kernels::{COROTATED, FLUID, NEO_HOOKEAN};
 use crate::validation::{ModelError, Problem};
 
 /// The constitutive model of a particle, with its Lame parameters (Pa, in the model's units).
@@ -95,26 +94,41 @@ pub enum Floor {
 /// assert!(s.x.get(0).y < 0.3 + 1.0 / 128.0); // it fell
 /// ```
 #[derive(Clone, Debug)]
-pub struct MpmBuilder {
+pub struct MpmBuilder<D: Dim = D2> {
     n_grid: usize,
     dx: f64,
     bound: usize,
     floor: Floor,
-    gravity: Vec2<f64>,
-    x: Vec<Vec2<f64>>,
-    v: Vec<Vec2<f64>>,
+    gravity: D::V<f64>,
+    x: Vec<D::V<f64>>,
+    v: Vec<D::V<f64>>,
     mass: Vec<f64>,
     volume: Vec<f64>,
     material: Vec<Material>,
-    actuator: Vec<Option<(usize, f64, Vec2<f64>)>>,
+    actuator: Vec<Option<Drive<D::V<f64>>>>,
     n_actuators: usize,
     problems: Vec<Problem>,
 }
 
-impl MpmBuilder {
-    /// An empty scene on an `n_grid x n_grid` grid of spacing `dx`, with walls 3 nodes thick,
-    /// a sticky floor and gravity `(0, -3.8)` (DiffTaichi's `diffmpm` settings).
+impl MpmBuilder<D2> {
+    /// An empty 2D scene on an `n_grid x n_grid` grid of spacing `dx`, with walls 3 nodes
+    /// thick, a sticky floor and gravity `(0, -3.8)` (DiffTaichi's `diffmpm` settings).
     pub fn new(n_grid: usize, dx: f64) -> Self {
+        Self::with_dim(n_grid, dx)
+    }
+}
+
+impl MpmBuilder<D3> {
+    /// An empty 3D scene on an `n_grid^3` grid of spacing `dx`, with walls 3 nodes thick, a
+    /// sticky floor at `y = 0` and gravity `(0, -3.8, 0)`.
+    pub fn new_3d(n_grid: usize, dx: f64) -> Self {
+        Self::with_dim(n_grid, dx)
+    }
+}
+
+impl<D: Dim> MpmBuilder<D> {
+    /// An empty scene in `D` dimensions ([`MpmBuilder::new`], [`MpmBuilder::new_3d`]).
+    pub fn with_dim(n_grid: usize, dx: f64) -> Self {
         let mut problems = Vec::new();
         if n_grid < 8 {
             problems.push(problem(
@@ -135,7 +149,7 @@ impl MpmBuilder {
             dx,
             bound: 3,
             floor: Floor::Sticky,
-            gravity: Vec2::new(0.0, -3.8),
+            gravity: D::vector(&[0.0, -3.8, 0.0][..D::D]),
             x: Vec::new(),
             v: Vec::new(),
             mass: Vec::new(),
@@ -161,7 +175,7 @@ impl MpmBuilder {
     }
 
     /// Gravity (m/s^2; default `(0, -3.8)`).
-    pub fn set_gravity(&mut self, g: Vec2<f64>) -> &mut Self {
+    pub fn set_gravity(&mut self, g: D::V<f64>) -> &mut Self {
         self.gravity = g;
         self
     }
@@ -170,14 +184,14 @@ impl MpmBuilder {
     /// volume) and `material`; returns its index.
     pub fn add_particle(
         &mut self,
-        x: Vec2<f64>,
+        x: D::V<f64>,
         mass: f64,
         volume: f64,
         material: Material,
     ) -> usize {
         let i = self.x.len();
         self.x.push(x);
-        self.v.push(Vec2::zeros());
+        self.v.push(D::vector(&[0.0; 3][..D::D]));
         self.mass.push(mass);
         self.volume.push(volume);
         self.material.push(material);
@@ -185,21 +199,24 @@ impl MpmBuilder {
         i
     }
 
-    /// Fills the rectangle `[min, min + size]` with particles, two per cell along each axis
-    /// (`floor(size / dx) * 2` per axis, evenly spaced, as DiffTaichi's `diffmpm`), each of
-    /// `mass`, `volume` and `material`; returns their indices.
+    /// Fills the box `[min, min + size]` (a rectangle in 2D) with particles, two per cell
+    /// along each axis (`floor(size / dx) * 2` per axis, evenly spaced, as DiffTaichi's
+    /// `diffmpm`), each of `mass`, `volume` and `material`; returns their indices.
     pub fn add_rect(
         &mut self,
-        min: Vec2<f64>,
-        size: Vec2<f64>,
+        min: D::V<f64>,
+        size: D::V<f64>,
         mass: f64,
         volume: f64,
         material: Material,
     ) -> Range<usize> {
         let start = self.x.len();
-        let count = |l: f64| ((l / self.dx).floor().max(0.0) as usize) * 2;
-        let (nx, ny) = (count(size.x), count(size.y));
-        if nx == 0 || ny == 0 {
+        let (lo, len) = (D::components(&min), D::components(&size));
+        let counts: Vec<usize> = len
+            .iter()
+            .map(|&l| ((l / self.dx).floor().max(0.0) as usize) * 2)
+            .collect();
+        if counts.contains(&0) {
             self.problems.push(problem(
                 "rect",
                 Some("size"),
@@ -208,19 +225,25 @@ impl MpmBuilder {
                     self.dx
                 ),
             ));
+            return start..start;
         }
-        let (hx, hy) = (size.x / nx.max(1) as f64, size.y / ny.max(1) as f64);
-        for i in 0..nx {
-            for j in 0..ny {
-                let x = min + Vec2::new((i as f64 + 0.5) * hx, (j as f64 + 0.5) * hy);
-                self.add_particle(x, mass, volume, material);
+        let total: usize = counts.iter().product();
+        for k in 0..total {
+            // The first axis varies slowest.
+            let mut rest = k;
+            let mut c = vec![0.0; D::D];
+            for a in (0..D::D).rev() {
+                let i = rest % counts[a];
+                rest /= counts[a];
+                c[a] = lo[a] + (i as f64 + 0.5) * len[a] / counts[a] as f64;
             }
+            self.add_particle(D::vector(&c), mass, volume, material);
         }
         start..self.x.len()
     }
 
     /// Sets the initial velocity of particle `i`.
-    pub fn set_velocity(&mut self, i: usize, v: Vec2<f64>) -> &mut Self {
+    pub fn set_velocity(&mut self, i: usize, v: D::V<f64>) -> &mut Self {
         match self.v.get_mut(i) {
             Some(slot) => *slot = v,
             None => self.problems.push(problem_at(
@@ -242,9 +265,11 @@ impl MpmBuilder {
         particles: Range<usize>,
         actuator: usize,
         strength: f64,
-        fiber: Vec2<f64>,
+        fiber: D::V<f64>,
     ) -> &mut Self {
-        let n = fiber.norm();
+        let c = D::components(&fiber);
+        let n = c.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let unit = D::vector(&c.iter().map(|v| v / n).collect::<Vec<_>>());
         if !(n.is_finite() && n > 0.0) {
             self.problems.push(problem(
                 "actuators",
@@ -261,7 +286,13 @@ impl MpmBuilder {
         }
         for p in particles {
             match self.actuator.get_mut(p) {
-                Some(slot) => *slot = Some((actuator, strength, fiber / n)),
+                Some(slot) => {
+                    *slot = Some(Drive {
+                        actuator,
+                        strength,
+                        fiber: unit,
+                    })
+                }
                 None => {
                     self.problems.push(problem_at(
                         "particles",
@@ -285,17 +316,19 @@ impl MpmBuilder {
     /// Checks the scene and builds the model in precision `R`, or returns every problem:
     /// a grid too small for its walls, particles outside the walls, non-finite or
     /// non-positive masses and volumes, negative or non-finite Lame parameters.
-    pub fn finalize<R: Real>(&self) -> Result<Mpm<R>, ModelError> {
+    pub fn finalize<R: Real>(&self) -> Result<Mpm<R, D>, ModelError> {
         let mut problems = self.problems.clone();
         let (n, dx, bound) = (self.n_grid, self.dx, self.bound);
         if bound < 2 || 2 * bound + 3 > n {
             problems.push(problem(
                 "grid",
                 Some("bound"),
-                format!("{bound} must be at least 2 and leave room inside an {n} x {n} grid"),
+                format!(
+                    "{bound} must be at least 2 and leave room inside a grid of {n} nodes per axis"
+                ),
             ));
         }
-        if !(self.gravity.x.is_finite() && self.gravity.y.is_finite()) {
+        if !D::components(&self.gravity).iter().all(|g| g.is_finite()) {
             problems.push(problem(
                 "gravity",
                 None,
@@ -313,12 +346,15 @@ impl MpmBuilder {
         }
         let (lo, hi) = (bound as f64 * dx, (n - bound.min(n)) as f64 * dx);
         for (i, x) in self.x.iter().enumerate() {
-            if !(x.x >= lo && x.x <= hi && x.y >= lo && x.y <= hi) {
+            if !D::components(x).iter().all(|&c| c >= lo && c <= hi) {
                 problems.push(problem_at(
                     "particles",
                     i,
                     Some("x"),
-                    format!("{x:?} is outside the domain inside the walls, [{lo}, {hi}]^2"),
+                    format!(
+                        "{x:?} is outside the domain inside the walls, [{lo}, {hi}]^{}",
+                        D::D
+                    ),
                 ));
             }
             if !(self.mass[i].is_finite() && self.mass[i] > 0.0) {
@@ -346,7 +382,7 @@ impl MpmBuilder {
                     format!("{:?}: the moduli must be finite and >= 0", self.material[i]),
                 ));
             }
-            if !(self.v[i].x.is_finite() && self.v[i].y.is_finite()) {
+            if !D::components(&self.v[i]).iter().all(|c| c.is_finite()) {
                 problems.push(problem_at(
                     "particles",
                     i,
@@ -366,7 +402,7 @@ impl MpmBuilder {
             return Err(ModelError { problems });
         }
         let lit = |v: f64| R::lit(v);
-        let vec2 = |v: &Vec2<f64>| Vec2::new(lit(v.x), lit(v.y));
+        let vec2 = |v: &D::V<f64>| D::vector::<R>(&D::components(v));
         let np = self.x.len();
         let params: Vec<_> = self.material.iter().map(Material::params).collect();
         let stable_dt = (0..np)
@@ -390,21 +426,21 @@ impl MpmBuilder {
             actuator: Array::from_vec(
                 self.actuator
                     .iter()
-                    .map(|a| a.map_or(0, |a| a.0 as u32))
+                    .map(|a| a.map_or(0, |a| a.actuator as u32))
                     .collect(),
             )
             .named("mpm.actuator"),
             act_gain: Array::from_vec(
                 self.actuator
                     .iter()
-                    .map(|a| lit(a.map_or(0.0, |a| a.1)))
+                    .map(|a| lit(a.map_or(0.0, |a| a.strength)))
                     .collect(),
             )
             .named("mpm.act_gain"),
             fiber: Array::from_vec(
                 self.actuator
                     .iter()
-                    .map(|a| vec2(&a.map_or(Vec2::new(0.0, 1.0), |a| a.2)))
+                    .map(|a| vec2(&a.map_or(D::vector(&[0.0, 1.0, 0.0][..D::D]), |a| a.fiber)))
                     .collect(),
             )
             .named("mpm.fiber"),
@@ -415,6 +451,14 @@ impl MpmBuilder {
             stable_dt,
         })
     }
+}
+
+/// How a particle is driven: its actuator, the strength and the unit fiber direction.
+#[derive(Clone, Copy, Debug)]
+struct Drive<V> {
+    actuator: usize,
+    strength: f64,
+    fiber: V,
 }
 
 fn problem(item: &str, param: Option<&'static str>, message: String) -> Problem {
@@ -432,7 +476,7 @@ fn problem_at(kind: &str, i: usize, param: Option<&'static str>, message: String
 /// An MLS-MPM model in 2D (see the [module docs](super)): the grid and per-particle arrays,
 /// each a possible gradient target.
 #[derive(Clone, Debug)]
-pub struct Mpm<R: Real> {
+pub struct Mpm<R: Real, D: Dim = D2> {
     /// Nodes per axis.
     pub n_grid: usize,
     /// Grid spacing.
@@ -442,7 +486,7 @@ pub struct Mpm<R: Real> {
     /// Floor friction (negative: sticky).
     pub friction: f64,
     /// Gravity (one element).
-    pub gravity: Array<Vec2<R>>,
+    pub gravity: Array<D::V<R>>,
     /// Particle masses.
     pub mass: Array<R>,
     /// Particle volumes.
@@ -458,30 +502,30 @@ pub struct Mpm<R: Real> {
     /// Actuation strength of each particle (0: passive).
     pub act_gain: Array<R>,
     /// Fiber direction of each particle in the rest frame.
-    pub fiber: Array<Vec2<R>>,
+    pub fiber: Array<D::V<R>>,
     /// Number of actuators: the length of a step's actuation array.
     pub n_actuators: usize,
     no_actuation: Array<R>,
-    x0: Vec<Vec2<R>>,
-    v0: Vec<Vec2<R>>,
+    x0: Vec<D::V<R>>,
+    v0: Vec<D::V<R>>,
     stable_dt: f64,
 }
 
 /// The state of the particles: positions, velocities, APIC matrices `C` and deformation
 /// gradients `F`.
 #[derive(Clone, Debug)]
-pub struct MpmState<R: Real> {
+pub struct MpmState<R: Real, D: Dim = D2> {
     /// Positions.
-    pub x: Array<Vec2<R>>,
+    pub x: Array<D::V<R>>,
     /// Velocities.
-    pub v: Array<Vec2<R>>,
+    pub v: Array<D::V<R>>,
     /// APIC affine velocity matrices.
-    pub c: Array<Mat22<R>>,
+    pub c: Array<D::M<R>>,
     /// Deformation gradients.
-    pub f: Array<Mat22<R>>,
+    pub f: Array<D::M<R>>,
 }
 
-impl<R: Real> Checkpoint for MpmState<R> {
+impl<R: Real, D: Dim> Checkpoint for MpmState<R, D> {
     fn arrays(&self) -> Vec<&dyn AnyArray> {
         vec![&self.x, &self.v, &self.c, &self.f]
     }
@@ -495,20 +539,20 @@ impl<R: Real> Checkpoint for MpmState<R> {
     }
 }
 
-impl<R: Real> Mpm<R> {
+impl<R: Real, D: Dim> Mpm<R, D> {
     /// Number of particles.
     pub fn particle_count(&self) -> usize {
         self.mass.len()
     }
 
     /// The initial state: the builder's positions and velocities, `C = 0`, `F = I`.
-    pub fn state(&self) -> MpmState<R> {
+    pub fn state(&self) -> MpmState<R, D> {
         let n = self.particle_count();
         MpmState {
             x: Array::from_vec(self.x0.clone()).named("mpm.x"),
             v: Array::from_vec(self.v0.clone()).named("mpm.v"),
             c: Array::zeros(n).named("mpm.C"),
-            f: Array::from_vec(vec![Mat22::identity(); n]).named("mpm.F"),
+            f: Array::from_vec(vec![D::identity::<R>(); n]).named("mpm.F"),
         }
     }
 
@@ -531,10 +575,10 @@ impl<R: Real> Mpm<R> {
     pub fn step(
         &self,
         tape: &mut Tape,
-        state: &MpmState<R>,
+        state: &MpmState<R, D>,
         actuation: Option<&Array<R>>,
         dt: f64,
-    ) -> Result<MpmState<R>, Error> {
+    ) -> Result<MpmState<R, D>, Error> {
         if !(dt.is_finite() && dt > 0.0) {
             return Err(invalid("dt", format!("{dt} must be finite and positive")));
         }
@@ -554,81 +598,20 @@ impl<R: Real> Mpm<R> {
             }
         };
         self.check_inside(state)?;
-        let n = self.particle_count();
-        let ng = self.n_grid;
-        let (dx, dtr) = (R::lit(self.dx), R::lit(dt));
-        let f_out = Array::zeros(n).named("mpm.F");
-        let grid_mv = Array::zeros(ng * ng).named("mpm.grid_mv");
-        let grid_m = Array::zeros(ng * ng).named("mpm.grid_m");
-        tape.launch(
-            mpm_p2g,
-            n,
-            (
-                &state.x,
-                &state.v,
-                &state.c,
-                &state.f,
-                &self.mass,
-                &self.volume,
-                &self.mu,
-                &self.lambda,
-                &self.kind,
-                &self.actuator,
-                &self.act_gain,
-                &self.fiber,
-                actuation,
-                ng,
-                dx,
-                dtr,
-                &f_out,
-                &grid_mv,
-                &grid_m,
-            ),
-        );
-        let grid_v = Array::zeros(ng * ng).named("mpm.grid_v");
-        tape.launch(
-            mpm_grid_update,
-            ng * ng,
-            (
-                &grid_mv,
-                &grid_m,
-                &self.gravity,
-                ng,
-                self.bound,
-                R::lit(self.friction),
-                dtr,
-                &grid_v,
-            ),
-        );
-        let next = MpmState {
-            x: Array::zeros(n).named("mpm.x"),
-            v: Array::zeros(n).named("mpm.v"),
-            c: Array::zeros(n).named("mpm.C"),
-            f: f_out,
-        };
-        tape.launch(
-            mpm_g2p,
-            n,
-            (&state.x, &grid_v, ng, dx, dtr, &next.x, &next.v, &next.c),
-        );
-        Ok(next)
+        Ok(D::launch_step(self, tape, state, actuation, dt))
     }
 
     /// The mean position of the particles (one element), recorded on `tape` (DiffTaichi's
     /// `diffmpm` loss is minus its `x`).
-    pub fn mean_position(&self, tape: &mut Tape, state: &MpmState<R>) -> Array<Vec2<R>> {
+    pub fn mean_position(&self, tape: &mut Tape, state: &MpmState<R, D>) -> Array<D::V<R>> {
         let out = Array::zeros(1).named("mpm.mean_position");
         let n = self.particle_count();
-        tape.launch(
-            mpm_weighted_sum,
-            n,
-            (&state.x, R::lit(1.0 / n as f64), &out),
-        );
+        D::launch_weighted_sum(tape, &state.x, R::lit(1.0 / n as f64), &out);
         out
     }
 
     /// Every particle finite and inside the walls (so that its stencil is on the grid).
-    fn check_inside(&self, state: &MpmState<R>) -> Result<(), Error> {
+    fn check_inside(&self, state: &MpmState<R, D>) -> Result<(), Error> {
         // The stencil of x spans nodes floor(x / dx - 0.5) + 0..3.
         let lo = self.dx;
         let hi = (self.n_grid - 2) as f64 * self.dx;
@@ -644,13 +627,16 @@ impl<R: Real> Mpm<R> {
             ));
         }
         for (i, x) in xs.iter().enumerate() {
-            let (px, py) = (x.x.to_f64(), x.y.to_f64());
-            if !(px >= lo && px < hi && py >= lo && py < hi) {
-                return Err(invalid(&format!("{}[{i}]", state.x.label()), format!(
-                    "particle {i} at ({px}, {py}) is not finite or has left the grid [{lo}, {hi})^2: \
+            let c = D::components(x);
+            if !c.iter().all(|&c| c >= lo && c < hi) {
+                return Err(invalid(
+                    &format!("{}[{i}]", state.x.label()),
+                    format!(
+                    "particle {i} at {c:?} is not finite or has left the grid [{lo}, {hi})^{}: \
                      the simulation is unstable; reduce dt below the model's stable_dt ({:.3e}) \
                      or the speeds so that |v| dt < dx",
-                    self.stable_dt)));
+                    D::D, self.stable_dt),
+                ));
             }
         }
         Ok(())
