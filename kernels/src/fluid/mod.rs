@@ -1,5 +1,6 @@
-//! Grid fluids in 2D: an incompressible, inviscid fluid (smoke) on an `n x n` collocated grid
-//! of spacing `dx`, with closed walls. A step advects the velocity and any carried fields
+//! Grid fluids in 2D and 3D: an incompressible, inviscid fluid (smoke) on an `n x n` (or
+//! `n x n x n`, [`FluidGrid::new_3d`] with [`FluidGrid::step_3d`]) collocated grid of spacing
+//! `dx`, with closed walls. A step advects the velocity and any carried fields
 //! semi-Lagrangianly ([`kernels::advect`]), then projects the velocity onto zero divergence
 //! by a pressure solve. Every launch is on a tape, so a rollout differentiates with respect to
 //! the initial velocity, the carried fields and anything they depend on.
@@ -39,7 +40,10 @@ pub mod kernels;
 use adflex_runtime::prelude::*;
 
 use crate::solver::krylov::{cg, SolveSettings};
-use kernels::{advect, divergence, pressure_jacobi, subtract_gradient};
+use kernels::{
+    advect, advect3, divergence, divergence3, pressure_jacobi, pressure_jacobi3, subtract_gradient,
+    subtract_gradient3,
+};
 
 /// The fields a smoke step carries: the velocity's `x` and `y` components and the density.
 pub type Flow<R> = (Array<R>, Array<R>, Array<R>);
@@ -64,19 +68,31 @@ impl Pressure {
     }
 }
 
-/// An `n x n` grid of spacing `dx` (cell `(i, j)` at index `i * n + j`, `i` along `x`).
+/// An `n x n` grid (or `n x n x n`, [`FluidGrid::new_3d`]) of spacing `dx`: cell `(i, j)` at
+/// index `i * n + j`, `(i, j, k)` at `(i * n + j) * n + k`, `i` along `x`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FluidGrid {
     /// Cells per axis.
     pub n: usize,
     /// Cell size (m).
     pub dx: f64,
+    /// 2 or 3.
+    pub dim: usize,
 }
 
 impl FluidGrid {
     /// A grid of `n x n` cells of size `dx`. Errors if `n` is odd or below 4 (the pressure
     /// operator is singular for odd `n`) or `dx` is not finite and positive.
     pub fn new(n: usize, dx: f64) -> Result<Self, Error> {
+        Self::with_dim(n, dx, 2)
+    }
+
+    /// A 3D grid of `n x n x n` cells of size `dx` (the same conditions as [`FluidGrid::new`]).
+    pub fn new_3d(n: usize, dx: f64) -> Result<Self, Error> {
+        Self::with_dim(n, dx, 3)
+    }
+
+    fn with_dim(n: usize, dx: f64, dim: usize) -> Result<Self, Error> {
         if n < 4 || n & 1 == 1 {
             return Err(invalid(
                 "n",
@@ -86,12 +102,24 @@ impl FluidGrid {
         if !(dx.is_finite() && dx > 0.0) {
             return Err(invalid("dx", format!("{dx} must be finite and positive")));
         }
-        Ok(FluidGrid { n, dx })
+        Ok(FluidGrid { n, dx, dim })
     }
 
     /// Cells in the grid.
     pub fn cells(&self) -> usize {
-        self.n * self.n
+        self.n.pow(self.dim as u32)
+    }
+
+    /// An error unless the grid has `dim` dimensions.
+    fn want(&self, dim: usize, what: &str) -> Result<(), Error> {
+        if self.dim == dim {
+            Ok(())
+        } else {
+            Err(invalid(
+                what,
+                format!("is for {dim}D grids; this grid is {}D", self.dim),
+            ))
+        }
     }
 
     fn check<R: Real>(&self, a: &Array<R>) -> Result<(), Error> {
@@ -124,13 +152,33 @@ impl FluidGrid {
         out
     }
 
-    /// The divergence of `(u, v)` (closed walls), recorded on `tape`.
+    /// The divergence of `(u, v)` (closed walls), recorded on `tape` (2D grids; panics
+    /// otherwise, see [`FluidGrid::divergence_3d`]).
     pub fn divergence<R: Real>(&self, tape: &mut Tape, u: &Array<R>, v: &Array<R>) -> Array<R> {
+        assert_eq!(self.dim, 2, "FluidGrid::divergence is for 2D grids");
         let div = Array::zeros(self.cells()).named("divergence");
         tape.launch(
             divergence,
             self.cells(),
             (u, v, self.n, R::lit(self.dx), &div),
+        );
+        div
+    }
+
+    /// The divergence of `(u, v, w)` on a 3D grid, recorded on `tape` (panics on a 2D grid).
+    pub fn divergence_3d<R: Real>(
+        &self,
+        tape: &mut Tape,
+        u: &Array<R>,
+        v: &Array<R>,
+        w: &Array<R>,
+    ) -> Array<R> {
+        assert_eq!(self.dim, 3, "FluidGrid::divergence_3d is for 3D grids");
+        let div = Array::zeros(self.cells()).named("divergence");
+        tape.launch(
+            divergence3,
+            self.cells(),
+            (u, v, w, self.n, R::lit(self.dx), &div),
         );
         div
     }
@@ -149,11 +197,12 @@ impl FluidGrid {
                 let mut p = Array::zeros(self.cells()).named("pressure");
                 for _ in 0..*k {
                     let next = Array::zeros(self.cells()).named("pressure");
-                    tape.launch(
-                        pressure_jacobi,
-                        self.cells(),
-                        (&p, div, self.n, R::lit(scale), &next),
-                    );
+                    let args = (&p, div, self.n, R::lit(scale), &next);
+                    if self.dim == 2 {
+                        tape.launch(pressure_jacobi, self.cells(), args);
+                    } else {
+                        tape.launch(pressure_jacobi3, self.cells(), args);
+                    }
                     p = next;
                 }
                 Ok(p)
@@ -163,10 +212,11 @@ impl FluidGrid {
     }
 
     /// `A x = b` by CG on the host, or the error naming the solve.
-    fn solve(n: usize, b: &[f64], s: &SolveSettings, what: &str) -> Result<Vec<f64>, Error> {
+    fn solve(&self, b: &[f64], s: &SolveSettings, what: &str) -> Result<Vec<f64>, Error> {
+        let (n, dim) = (self.n, self.dim);
         let mut x = vec![0.0; b.len()];
         let info = cg(
-            |p, out| apply_pressure_operator(n, p, out),
+            |p, out| apply_pressure_operator(n, dim, p, out),
             b,
             &mut x,
             None,
@@ -177,7 +227,7 @@ impl FluidGrid {
         } else {
             Err(Error::NotConverged {
                 solver: format!("fluid pressure CG ({what})"),
-                context: format!("{n} x {n} grid"),
+                context: format!("{dim}D grid of {n} cells per axis"),
                 iterations: info.iterations,
                 residual: info.residual,
                 tolerance: info.tolerance,
@@ -194,9 +244,9 @@ impl FluidGrid {
         scale: f64,
         s: &SolveSettings,
     ) -> Result<Array<R>, Error> {
-        let n = self.n;
+        let grid = *self;
         let b: Vec<f64> = div.to_vec().iter().map(|d| scale * d.to_f64()).collect();
-        let x = Self::solve(n, &b, s, "forward")?;
+        let x = grid.solve(&b, s, "forward")?;
         let p = Array::from_vec(x.iter().map(|&v| R::lit(v)).collect()).named("pressure");
         let (pb, db, settings) = (p.clone(), div.clone(), *s);
         let (pt, dt) = (p.clone(), div.clone());
@@ -211,7 +261,7 @@ impl FluidGrid {
                     return Ok(());
                 };
                 let g: Vec<f64> = gp.to_vec().iter().map(|v| v.to_f64()).collect();
-                let lambda = Self::solve(n, &g, &settings, "adjoint")?;
+                let lambda = grid.solve(&g, &settings, "adjoint")?;
                 gd.modify(|gd| {
                     gd.iter_mut()
                         .zip(&lambda)
@@ -227,7 +277,7 @@ impl FluidGrid {
                 return Ok(());
             };
             let b: Vec<f64> = td.to_vec().iter().map(|d| scale * d.to_f64()).collect();
-            let x = Self::solve(n, &b, &settings, "tangent")?;
+            let x = grid.solve(&b, &settings, "tangent")?;
             out.modify(|o| o.iter_mut().zip(&x).for_each(|(o, x)| *o = R::lit(*x)));
             Ok(())
         });
@@ -243,6 +293,7 @@ impl FluidGrid {
         v: &Array<R>,
         method: &Pressure,
     ) -> Result<(Array<R>, Array<R>), Error> {
+        self.want(2, "FluidGrid::project")?;
         self.check(u)?;
         self.check(v)?;
         let div = self.divergence(tape, u, v);
@@ -270,9 +321,8 @@ impl FluidGrid {
         dt: f64,
         method: &Pressure,
     ) -> Result<Flow<R>, Error> {
-        if !(dt.is_finite() && dt > 0.0) {
-            return Err(invalid("dt", format!("{dt} must be finite and positive")));
-        }
+        self.want(2, "FluidGrid::step")?;
+        check_dt(dt)?;
         for a in [u, v, density] {
             self.check(a)?;
         }
@@ -284,39 +334,106 @@ impl FluidGrid {
     }
 }
 
-/// `out = A p` for the pressure operator of [`kernels::pressure_jacobi`] (host, f64).
-pub fn apply_pressure_operator(n: usize, p: &[f64], out: &mut [f64]) {
-    for i in 0..n {
-        for j in 0..n {
-            let t = i * n + j;
-            let mut diag = 0.0;
-            let mut off = 0.0;
-            if i + 1 < n {
-                diag += 1.0;
-                if i + 2 < n {
-                    off += p[t + 2 * n];
-                }
-            }
-            if i >= 1 {
-                diag += 1.0;
-                if i >= 2 {
-                    off += p[t - 2 * n];
-                }
-            }
-            if j + 1 < n {
-                diag += 1.0;
-                if j + 2 < n {
-                    off += p[t + 2];
-                }
-            }
-            if j >= 1 {
-                diag += 1.0;
-                if j >= 2 {
-                    off += p[t - 2];
-                }
-            }
-            out[t] = diag * p[t] - off;
+/// The 3D forms of [`FluidGrid::project`] and [`FluidGrid::step`].
+impl FluidGrid {
+    /// `(u, v, w)` projected onto zero divergence on a 3D grid.
+    pub fn project_3d<R: Real>(
+        &self,
+        tape: &mut Tape,
+        [u, v, w]: [&Array<R>; 3],
+        method: &Pressure,
+    ) -> Result<[Array<R>; 3], Error> {
+        self.want(3, "FluidGrid::project_3d")?;
+        for a in [u, v, w] {
+            self.check(a)?;
         }
+        let div = self.divergence_3d(tape, u, v, w);
+        let p = self.pressure(tape, &div, method)?;
+        let out = [(); 3].map(|_| Array::zeros(self.cells()).named("velocity"));
+        tape.launch(
+            subtract_gradient3,
+            self.cells(),
+            (
+                u,
+                v,
+                w,
+                &p,
+                self.n,
+                R::lit(self.dx),
+                &out[0],
+                &out[1],
+                &out[2],
+            ),
+        );
+        Ok(out)
+    }
+
+    /// One step of smoke on a 3D grid: the velocity `[u, v, w]` and the density advected
+    /// (trilinear), then the velocity projected. Returns the velocity and the density.
+    pub fn step_3d<R: Real>(
+        &self,
+        tape: &mut Tape,
+        velocity: [&Array<R>; 3],
+        density: &Array<R>,
+        dt: f64,
+        method: &Pressure,
+    ) -> Result<([Array<R>; 3], Array<R>), Error> {
+        self.want(3, "FluidGrid::step_3d")?;
+        check_dt(dt)?;
+        let [u, v, w] = velocity;
+        for a in [u, v, w, density] {
+            self.check(a)?;
+        }
+        let scale = R::lit(dt / self.dx);
+        let advected = |tape: &mut Tape, q: &Array<R>| {
+            let out = Array::zeros(self.cells()).named(format!("advected {}", q.label()));
+            tape.launch(advect3, self.cells(), (q, u, v, w, self.n, scale, &out));
+            out
+        };
+        let (au, av, aw, d) = (
+            advected(tape, u),
+            advected(tape, v),
+            advected(tape, w),
+            advected(tape, density),
+        );
+        let projected = self.project_3d(tape, [&au, &av, &aw], method)?;
+        Ok((projected, d))
+    }
+}
+
+/// `out = A p` for the pressure operator of [`kernels::pressure_jacobi`] (`dim = 2`) or
+/// [`kernels::pressure_jacobi3`] (`dim = 3`), on the host in f64.
+pub fn apply_pressure_operator(n: usize, dim: usize, p: &[f64], out: &mut [f64]) {
+    let cells = n.pow(dim as u32);
+    for (t, o) in out.iter_mut().enumerate().take(cells) {
+        let mut diag = 0.0;
+        let mut off = 0.0;
+        // Along each axis: the coordinate and the index stride.
+        for axis in 0..dim {
+            let stride = n.pow((dim - 1 - axis) as u32);
+            let c = (t / stride) % n;
+            if c + 1 < n {
+                diag += 1.0;
+                if c + 2 < n {
+                    off += p[t + 2 * stride];
+                }
+            }
+            if c >= 1 {
+                diag += 1.0;
+                if c >= 2 {
+                    off += p[t - 2 * stride];
+                }
+            }
+        }
+        *o = diag * p[t] - off;
+    }
+}
+
+fn check_dt(dt: f64) -> Result<(), Error> {
+    if dt.is_finite() && dt > 0.0 {
+        Ok(())
+    } else {
+        Err(invalid("dt", format!("{dt} must be finite and positive")))
     }
 }
 
