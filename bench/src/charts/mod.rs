@@ -1,6 +1,7 @@
 //! `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,...]`: every chart of
 //! docs/performance.md as SVG, with the numbers behind each in `<name>.json`.
 
+pub mod continua;
 pub mod gradients;
 pub mod integrators;
 pub mod peers;
@@ -44,7 +45,7 @@ type ChartFn = fn(&Opts) -> Result<serde_json::Value, Box<dyn std::error::Error>
 
 pub fn main(o: &Opts) -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&o.out)?;
-    let charts: [(&str, ChartFn); 6] = [
+    let charts: [(&str, ChartFn); 7] = [
         ("integrators_error_vs_cost", |o| {
             integrators::error_vs_cost(&o.out, o.quick)
         }),
@@ -61,6 +62,7 @@ pub fn main(o: &Opts) -> Result<(), Box<dyn std::error::Error>> {
             gradients::long_horizon(&o.out, o.quick)
         }),
         ("peers", |o| peers::chart(&o.out, &o.peers)),
+        ("mpm_stability", |o| continua::mpm_stability(&o.out, o.quick)),
     ];
     for (name, f) in charts {
         if let Some(only) = &o.only {
