@@ -153,13 +153,7 @@ pub fn render_strip_png(
                 );
             }
         }
-        if k > 0 {
-            if let Some(r) = Rect::from_xywh((k as u32 * pw) as f32, 0.0, 1.0, ph as f32) {
-                let mut sep = Paint::default();
-                sep.set_color_rgba8(160, 160, 160, 255);
-                pm.fill_rect(r, &sep, Transform::identity(), None);
-            }
-        }
+        separator(&mut pm, k, (k as u32 * pw) as f32, ph as f32);
         text(
             &mut pm,
             (k as u32 * pw) as f32 + 6.0,
@@ -168,11 +162,7 @@ pub fn render_strip_png(
             Rgba::rgb(0, 0, 0),
         );
     }
-    let bytes = pm.encode_png().map_err(|e| Error::Encode {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    std::fs::write(path, bytes).map_err(|e| Error::io(path, e))
+    save(&pm, path)
 }
 
 /// Draws square scalar fields (`n x n`, cell `(i, j)` at index `i * n + j`, `i` along `x`,
@@ -181,6 +171,15 @@ pub fn render_strip_png(
 ///
 /// Errors: [`Error::Empty`] for no fields, [`Error::Invalid`] for a field whose length is not
 /// a square or a size out of range, [`Error::Io`] / [`Error::Encode`] naming `path`.
+///
+/// ```
+/// use adflex_viz::points::render_fields_png;
+/// let ramp: Vec<f64> = (0..16).map(|t| t as f64 / 15.0).collect();
+/// let path = std::env::temp_dir().join(format!("adflex-fields-{}.png", std::process::id()));
+/// render_fields_png(&path, &[(&ramp[..], "ramp"), (&ramp[..], "again")], 1.0, 8).unwrap();
+/// assert!(render_fields_png(&path, &[(&ramp[..3], "not square")], 1.0, 8).is_err());
+/// # std::fs::remove_file(&path).ok();
+/// ```
 pub fn render_fields_png(
     path: impl AsRef<Path>,
     fields: &[(&[f64], &str)],
@@ -222,13 +221,7 @@ pub fn render_fields_png(
                 pm.fill_rect(r, &paint, Transform::identity(), None);
             }
         }
-        if k > 0 {
-            if let Some(r) = Rect::from_xywh((k as u64 * side) as f32, 0.0, 1.0, side as f32) {
-                let mut sep = Paint::default();
-                sep.set_color_rgba8(160, 160, 160, 255);
-                pm.fill_rect(r, &sep, Transform::identity(), None);
-            }
-        }
+        separator(&mut pm, k, (k as u64 * side) as f32, side as f32);
         text(
             &mut pm,
             (k as u64 * side) as f32 + 6.0,
@@ -237,6 +230,22 @@ pub fn render_fields_png(
             Rgba::rgb(0, 0, 0),
         );
     }
+    save(&pm, path)
+}
+
+/// A grey line on the left edge of panel `k` (none before the first).
+fn separator(pm: &mut Pixmap, k: usize, x: f32, height: f32) {
+    if k == 0 {
+        return;
+    }
+    if let Some(r) = Rect::from_xywh(x, 0.0, 1.0, height) {
+        let mut sep = Paint::default();
+        sep.set_color_rgba8(160, 160, 160, 255);
+        pm.fill_rect(r, &sep, Transform::identity(), None);
+    }
+}
+
+fn save(pm: &Pixmap, path: &Path) -> Result<()> {
     let bytes = pm.encode_png().map_err(|e| Error::Encode {
         path: path.to_path_buf(),
         message: e.to_string(),

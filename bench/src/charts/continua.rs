@@ -71,7 +71,10 @@ pub fn mpm_stability(
             }
             lo.exp()
         };
-        eprintln!("  E {e:.0e}: largest stable dt {dt:.3e} ({:.2} of dx / c)", dt / theory(e));
+        eprintln!(
+            "  E {e:.0e}: largest stable dt {dt:.3e} ({:.2} of dx / c)",
+            dt / theory(e)
+        );
         data.push(json!({"E": e, "dt_max": dt, "dx_over_c": theory(e), "ratio": dt / theory(e)}));
         found.push((e, dt));
     }
@@ -86,7 +89,9 @@ pub fn mpm_stability(
          below 100x that of the fall (bisection on log dt). The dashed line is Mpm::stable_dt, \
          dx over the P-wave speed sqrt((lambda + 2 mu) / rho)."
     ));
-    chart.series.push(Series::new("measured", found, Style::Line, 0));
+    chart
+        .series
+        .push(Series::new("measured", found, Style::Line, 0));
     chart.series.push(Series::new(
         "dx / c (Mpm::stable_dt)",
         es.iter().map(|&e| (e, theory(e))).collect(),

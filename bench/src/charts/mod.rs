@@ -62,7 +62,9 @@ pub fn main(o: &Opts) -> Result<(), Box<dyn std::error::Error>> {
             gradients::long_horizon(&o.out, o.quick)
         }),
         ("peers", |o| peers::chart(&o.out, &o.peers)),
-        ("mpm_stability", |o| continua::mpm_stability(&o.out, o.quick)),
+        ("mpm_stability", |o| {
+            continua::mpm_stability(&o.out, o.quick)
+        }),
     ];
     for (name, f) in charts {
         if let Some(only) = &o.only {

@@ -72,6 +72,39 @@ fn fresh<R: Real, D: Dim>(n: usize, ng: usize) -> (MpmState<R, D>, Grid<R, D>) {
     )
 }
 
+/// [`Dim::launch_step`] of a dimension: the same three launches in 2D and 3D but for the
+/// kernels, and the 3D kernels' `stencil` bound.
+macro_rules! launch_step {
+    ($d:ty, $p2g:ident, $grid:ident, $g2p:ident $(, $stencil:expr)?) => {
+        fn launch_step<R: Real>(
+            mpm: &Mpm<R, $d>,
+            tape: &mut Tape,
+            s: &MpmState<R, $d>,
+            actuation: &Array<R>,
+            dt: f64,
+        ) -> MpmState<R, $d> {
+            let (n, ng) = (mpm.particle_count(), mpm.n_grid);
+            let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
+            let (next, (mv, m, gv)) = fresh::<R, $d>(n, ng);
+            let p = (&mpm.mass, &mpm.volume, &mpm.mu, &mpm.lambda, &mpm.kind);
+            let a = (&mpm.actuator, &mpm.act_gain, &mpm.fiber);
+            tape.launch(
+                $p2g,
+                n,
+                (
+                    &s.x, &s.v, &s.c, &s.f, p.0, p.1, p.2, p.3, p.4, a.0, a.1, a.2, actuation,
+                    ng, $($stencil,)? dx, dtr, &next.f, &mv, &m,
+                ),
+            );
+            let (cells, friction) = (ng.pow(<$d as Dim>::D as u32), R::lit(mpm.friction));
+            let grid = (&mv, &m, &mpm.gravity, ng, mpm.bound, friction, dtr, &gv);
+            tape.launch($grid, cells, grid);
+            tape.launch($g2p, n, (&s.x, &gv, ng, $($stencil,)? dx, dtr, &next.x, &next.v, &next.c));
+            next
+        }
+    };
+}
+
 impl Dim for D2 {
     const D: usize = 2;
     type V<R: Real> = Vec2<R>;
@@ -85,54 +118,7 @@ impl Dim for D2 {
     fn identity<R: Real>() -> Mat22<R> {
         Mat22::identity()
     }
-    fn launch_step<R: Real>(
-        mpm: &Mpm<R, D2>,
-        tape: &mut Tape,
-        s: &MpmState<R, D2>,
-        actuation: &Array<R>,
-        dt: f64,
-    ) -> MpmState<R, D2> {
-        let (n, ng) = (mpm.particle_count(), mpm.n_grid);
-        let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
-        let (next, (mv, m, gv)) = fresh::<R, D2>(n, ng);
-        tape.launch(
-            mpm_p2g,
-            n,
-            (
-                &s.x,
-                &s.v,
-                &s.c,
-                &s.f,
-                &mpm.mass,
-                &mpm.volume,
-                &mpm.mu,
-                &mpm.lambda,
-                &mpm.kind,
-                &mpm.actuator,
-                &mpm.act_gain,
-                &mpm.fiber,
-                actuation,
-                ng,
-                dx,
-                dtr,
-                &next.f,
-                &mv,
-                &m,
-            ),
-        );
-        let friction = R::lit(mpm.friction);
-        tape.launch(
-            mpm_grid_update,
-            ng * ng,
-            (&mv, &m, &mpm.gravity, ng, mpm.bound, friction, dtr, &gv),
-        );
-        tape.launch(
-            mpm_g2p,
-            n,
-            (&s.x, &gv, ng, dx, dtr, &next.x, &next.v, &next.c),
-        );
-        next
-    }
+    launch_step!(D2, mpm_p2g, mpm_grid_update, mpm_g2p);
     fn launch_weighted_sum<R: Real>(
         tape: &mut Tape,
         x: &Array<Vec2<R>>,
@@ -156,55 +142,7 @@ impl Dim for D3 {
     fn identity<R: Real>() -> Mat33<R> {
         Mat33::identity()
     }
-    fn launch_step<R: Real>(
-        mpm: &Mpm<R, D3>,
-        tape: &mut Tape,
-        s: &MpmState<R, D3>,
-        actuation: &Array<R>,
-        dt: f64,
-    ) -> MpmState<R, D3> {
-        let (n, ng) = (mpm.particle_count(), mpm.n_grid);
-        let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
-        let (next, (mv, m, gv)) = fresh::<R, D3>(n, ng);
-        tape.launch(
-            mpm3_p2g,
-            n,
-            (
-                &s.x,
-                &s.v,
-                &s.c,
-                &s.f,
-                &mpm.mass,
-                &mpm.volume,
-                &mpm.mu,
-                &mpm.lambda,
-                &mpm.kind,
-                &mpm.actuator,
-                &mpm.act_gain,
-                &mpm.fiber,
-                actuation,
-                ng,
-                3usize,
-                dx,
-                dtr,
-                &next.f,
-                &mv,
-                &m,
-            ),
-        );
-        let friction = R::lit(mpm.friction);
-        tape.launch(
-            mpm3_grid_update,
-            ng * ng * ng,
-            (&mv, &m, &mpm.gravity, ng, mpm.bound, friction, dtr, &gv),
-        );
-        tape.launch(
-            mpm3_g2p,
-            n,
-            (&s.x, &gv, ng, 3usize, dx, dtr, &next.x, &next.v, &next.c),
-        );
-        next
-    }
+    launch_step!(D3, mpm3_p2g, mpm3_grid_update, mpm3_g2p, 3usize);
     fn launch_weighted_sum<R: Real>(
         tape: &mut Tape,
         x: &Array<Vec3<R>>,
