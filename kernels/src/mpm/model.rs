@@ -564,9 +564,10 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         self.stable_dt
     }
 
-    /// One MLS-MPM step of `dt`: particle to grid ([`mpm_p2g`]), grid update
-    /// ([`mpm_grid_update`]), grid to particle ([`mpm_g2p`]), all on `tape`; returns the new
-    /// state. `actuation` holds one value per actuator (`None`: all zero).
+    /// One MLS-MPM step of `dt`: particle to grid ([`mpm_p2g`](super::kernels::mpm_p2g)),
+    /// grid update ([`mpm_grid_update`](super::kernels::mpm_grid_update)), grid to particle
+    /// ([`mpm_g2p`](super::kernels::mpm_g2p); the `mpm3_*` kernels in 3D), all on `tape`;
+    /// returns the new state. `actuation` holds one value per actuator (`None`: all zero).
     ///
     /// Errors ([`Error::InvalidInput`]) instead of a panic or a NaN later: a `dt` that is not
     /// finite and positive, an actuation array of the wrong length, and a particle that is
