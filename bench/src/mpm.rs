@@ -48,12 +48,14 @@ pub fn main(rest: &[String]) {
         s.apply();
     }
     let task = WalkerTask::<f32>::new(n_grid, steps, 1e-3);
-    let forward = time(iters, || {
-        let mut s = task.mpm.state();
-        for t in 0..steps {
-            let mut tape = Tape::new();
-            s = task.step(&mut tape, &s, t).expect("the walker steps").0;
-        }
+    let forward = with_threads(2, || {
+        time(iters, || {
+            let mut s = task.mpm.state();
+            for t in 0..steps {
+                let mut tape = Tape::new();
+                s = task.step(&mut tape, &s, t).expect("the walker steps").0;
+            }
+        })
     });
     let mut ours = Vec::new();
     for threads in [1, 2] {

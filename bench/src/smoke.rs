@@ -3,8 +3,8 @@
 //! pass), with the pressure by CG and its implicit adjoint and by `--jacobi` unrolled Jacobi
 //! iterations, on 2 threads. With `--python` (a venv's python with `taichi==1.7.4` and
 //! `jax==0.10.2`), `bench/peers/taichi_smoke.py` (Jacobi) and `bench/peers/jax_smoke.py` (CG
-//! and Jacobi) on the same task in the same run, their first losses beside ours, and the
-//! ratios. One JSON line each.
+//! and Jacobi) on the same task in the same run, the largest relative difference between
+//! their losses and ours over the iterations, and the ratios. One JSON line each.
 
 use std::process::Command;
 use std::time::Instant;

@@ -604,18 +604,96 @@ fn three_d_kernels_match_central_differences_and_their_tangents() {
 fn three_d_polar_rotation_is_a_rotation_and_leaves_a_symmetric_stretch() {
     use adflex_kernels::mpm::kernels::polar_rotation3;
     let mut r = Rng(29);
-    for _ in 0..20 {
-        let f =
-            Mat33::<f64>::from_fn(|i, j| if i == j { 1.0 } else { 0.0 } + r.in_range(-0.4, 0.4));
+    // F = Q1 diag(s) Q2 with stretches from 1e-4 to 1e4 and random rotations.
+    let rotation = |r: &mut Rng| {
+        let axis = Vec3::new(
+            r.in_range(-1.0, 1.0),
+            r.in_range(-1.0, 1.0),
+            r.in_range(-1.0, 1.0),
+        );
+        nalgebra::Rotation3::from_scaled_axis(axis * 3.0).into_inner()
+    };
+    for k in 0..40 {
+        let spread = [0.4, 2.0, 4.0, 8.0][k % 4];
+        let s = Vec3::from_fn(|_, _| 10f64.powf(r.in_range(-spread, spread) / 2.0));
+        let (q1, q2) = (rotation(&mut r), rotation(&mut r));
+        let f = q1 * Mat33::from_diagonal(&s) * q2;
         let rot = polar_rotation3::call(f);
         assert!(
-            (rot.transpose() * rot - Mat33::identity()).norm() < 1e-12,
-            "{rot}"
+            (rot.transpose() * rot - Mat33::identity()).norm() < 1e-10,
+            "stretches {s:?}: {rot}"
         );
-        let s = rot.transpose() * f;
-        assert!((s - s.transpose()).norm() < 1e-12, "{s}");
-        assert!(rot.determinant() > 0.0);
+        assert!((rot - q1 * q2).norm() < 1e-9, "stretches {s:?}");
+        let st = rot.transpose() * f;
+        assert!((st - st.transpose()).norm() < 1e-9 * st.norm(), "{st}");
     }
+}
+
+/// A particle that inverts where its material cannot take it is an error naming it, never
+/// a reflection or a NaN handed on; the 2D corotated material takes inversion.
+#[test]
+fn inverted_particles_are_refused_where_the_material_needs_det_f_positive() {
+    let material = Material::Corotated {
+        mu: 10.0,
+        lambda: 10.0,
+    };
+    let mut b = MpmBuilder::new_3d(16, 1.0 / 16.0);
+    b.add_rect(
+        Vec3::new(0.4, 0.4, 0.4),
+        Vec3::new(0.125, 0.125, 0.125),
+        1.0,
+        1.0,
+        material,
+    );
+    let mpm = b.finalize::<f64>().unwrap();
+    let s = mpm.state();
+    s.f.set(5, Mat33::from_diagonal(&Vec3::new(-1.0, 1.0, 1.0)));
+    let e = mpm
+        .step(&mut Tape::new(), &s, None, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("particle 5") && e.contains("inverted"), "{e}");
+    let mut b = MpmBuilder::new(16, 1.0 / 16.0);
+    b.add_rect(
+        Vec2::new(0.4, 0.4),
+        Vec2::new(0.125, 0.125),
+        1.0,
+        1.0,
+        material,
+    );
+    let mpm = b.finalize::<f64>().unwrap();
+    let s = mpm.state();
+    s.f.set(5, Mat22::new(-1.0, 0.0, 0.0, 1.0));
+    mpm.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
+    let mut b = MpmBuilder::new(16, 1.0 / 16.0);
+    b.add_rect(
+        Vec2::new(0.4, 0.4),
+        Vec2::new(0.125, 0.125),
+        1.0,
+        1.0,
+        Material::NeoHookean {
+            mu: 10.0,
+            lambda: 10.0,
+        },
+    );
+    let mpm = b.finalize::<f64>().unwrap();
+    let s = mpm.state();
+    s.f.set(2, Mat22::new(-1.0, 0.0, 0.0, 1.0));
+    let e = mpm
+        .step(&mut Tape::new(), &s, None, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("particle 2") && e.contains("inverted"), "{e}");
+    // A state array of the wrong length.
+    let short = MpmState {
+        v: Array::zeros(3).named("v"),
+        ..mpm.state()
+    };
+    let e = mpm
+        .step(&mut Tape::new(), &short, None, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("3 values"), "{e}");
 }
 
 /// A jelly cube in 3D: free fall exactly as symplectic Euler, then a rollout's gradient

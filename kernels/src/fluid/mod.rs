@@ -31,7 +31,7 @@
 //! let (u, v) = (Array::from_vec(vec![0.3f64; 256]), Array::zeros(256));
 //! let mut tape = Tape::new();
 //! let (pu, pv) = grid.project(&mut tape, &u, &v, &Pressure::cg()).unwrap();
-//! let div = grid.divergence(&mut tape, &pu, &pv);
+//! let div = grid.divergence(&mut tape, &pu, &pv).unwrap();
 //! assert!(div.to_vec().iter().all(|d| d.abs() < 1e-7));
 //! ```
 
@@ -72,12 +72,9 @@ impl Pressure {
 /// index `i * n + j`, `(i, j, k)` at `(i * n + j) * n + k`, `i` along `x`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FluidGrid {
-    /// Cells per axis.
-    pub n: usize,
-    /// Cell size (m).
-    pub dx: f64,
-    /// 2 or 3.
-    pub dim: usize,
+    n: usize,
+    dx: f64,
+    dim: usize,
 }
 
 impl FluidGrid {
@@ -103,6 +100,21 @@ impl FluidGrid {
             return Err(invalid("dx", format!("{dx} must be finite and positive")));
         }
         Ok(FluidGrid { n, dx, dim })
+    }
+
+    /// Cells per axis.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// Cell size (m).
+    pub fn dx(&self) -> f64 {
+        self.dx
+    }
+
+    /// 2 or 3.
+    pub fn dim(&self) -> usize {
+        self.dim
     }
 
     /// Cells in the grid.
@@ -134,7 +146,9 @@ impl FluidGrid {
     }
 
     /// `q` advected by `(u, v)` over `dt` (semi-Lagrangian, bilinear), recorded on `tape`.
-    /// Stable for any `dt`; accurate while `|u| dt` is a few cells at most.
+    /// Stable for any `dt`; accurate while `|u| dt` is a few cells at most. 2D grids only
+    /// ([`FluidGrid::step_3d`] advects in 3D); errors for a 3D grid or a field of the wrong
+    /// length.
     pub fn advect<R: Real>(
         &self,
         tape: &mut Tape,
@@ -142,45 +156,53 @@ impl FluidGrid {
         u: &Array<R>,
         v: &Array<R>,
         dt: f64,
-    ) -> Array<R> {
+    ) -> Result<Array<R>, Error> {
+        self.want(2, "FluidGrid::advect")?;
+        check_dt(dt)?;
+        for a in [q, u, v] {
+            self.check(a)?;
+        }
         let out = Array::zeros(self.cells()).named(format!("advected {}", q.label()));
-        tape.launch(
-            advect,
-            self.cells(),
-            (q, u, v, self.n, R::lit(dt / self.dx), &out),
-        );
-        out
+        let scale = R::lit(dt / self.dx);
+        tape.launch(advect, self.cells(), (q, u, v, self.n, scale, &out));
+        Ok(out)
     }
 
-    /// The divergence of `(u, v)` (closed walls), recorded on `tape` (2D grids; panics
-    /// otherwise, see [`FluidGrid::divergence_3d`]).
-    pub fn divergence<R: Real>(&self, tape: &mut Tape, u: &Array<R>, v: &Array<R>) -> Array<R> {
-        assert_eq!(self.dim, 2, "FluidGrid::divergence is for 2D grids");
+    /// The divergence of `(u, v)` (closed walls) on a 2D grid, recorded on `tape`; errors for
+    /// a 3D grid ([`FluidGrid::divergence_3d`]) or a field of the wrong length.
+    pub fn divergence<R: Real>(
+        &self,
+        tape: &mut Tape,
+        u: &Array<R>,
+        v: &Array<R>,
+    ) -> Result<Array<R>, Error> {
+        self.want(2, "FluidGrid::divergence")?;
+        for a in [u, v] {
+            self.check(a)?;
+        }
         let div = Array::zeros(self.cells()).named("divergence");
-        tape.launch(
-            divergence,
-            self.cells(),
-            (u, v, self.n, R::lit(self.dx), &div),
-        );
-        div
+        let args = (u, v, self.n, R::lit(self.dx), &div);
+        tape.launch(divergence, self.cells(), args);
+        Ok(div)
     }
 
-    /// The divergence of `(u, v, w)` on a 3D grid, recorded on `tape` (panics on a 2D grid).
+    /// The divergence of `(u, v, w)` on a 3D grid, recorded on `tape`; errors for a 2D grid
+    /// or a field of the wrong length.
     pub fn divergence_3d<R: Real>(
         &self,
         tape: &mut Tape,
         u: &Array<R>,
         v: &Array<R>,
         w: &Array<R>,
-    ) -> Array<R> {
-        assert_eq!(self.dim, 3, "FluidGrid::divergence_3d is for 3D grids");
+    ) -> Result<Array<R>, Error> {
+        self.want(3, "FluidGrid::divergence_3d")?;
+        for a in [u, v, w] {
+            self.check(a)?;
+        }
         let div = Array::zeros(self.cells()).named("divergence");
-        tape.launch(
-            divergence3,
-            self.cells(),
-            (u, v, w, self.n, R::lit(self.dx), &div),
-        );
-        div
+        let args = (u, v, w, self.n, R::lit(self.dx), &div);
+        tape.launch(divergence3, self.cells(), args);
+        Ok(div)
     }
 
     /// The pressure for the divergence `div` (see the [module docs](self)).
@@ -296,7 +318,7 @@ impl FluidGrid {
         self.want(2, "FluidGrid::project")?;
         self.check(u)?;
         self.check(v)?;
-        let div = self.divergence(tape, u, v);
+        let div = self.divergence(tape, u, v)?;
         let p = self.pressure(tape, &div, method)?;
         let (pu, pv) = (
             Array::zeros(self.cells()).named("u"),
@@ -326,9 +348,9 @@ impl FluidGrid {
         for a in [u, v, density] {
             self.check(a)?;
         }
-        let au = self.advect(tape, u, u, v, dt);
-        let av = self.advect(tape, v, u, v, dt);
-        let d = self.advect(tape, density, u, v, dt);
+        let au = self.advect(tape, u, u, v, dt)?;
+        let av = self.advect(tape, v, u, v, dt)?;
+        let d = self.advect(tape, density, u, v, dt)?;
         let (pu, pv) = self.project(tape, &au, &av, method)?;
         Ok((pu, pv, d))
     }
@@ -347,7 +369,7 @@ impl FluidGrid {
         for a in [u, v, w] {
             self.check(a)?;
         }
-        let div = self.divergence_3d(tape, u, v, w);
+        let div = self.divergence_3d(tape, u, v, w)?;
         let p = self.pressure(tape, &div, method)?;
         let out = [(); 3].map(|_| Array::zeros(self.cells()).named("velocity"));
         tape.launch(

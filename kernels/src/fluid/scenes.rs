@@ -79,7 +79,7 @@ impl SmokeTask {
         for _ in 0..self.steps {
             (u, v, d) = self
                 .grid
-                .step(tape, &u, &v, &d, self.grid.dx, &self.pressure)?;
+                .step(tape, &u, &v, &d, self.grid.dx(), &self.pressure)?;
         }
         Ok((u, v, d))
     }

@@ -33,6 +33,8 @@ pub trait Dim: Copy + Debug + Default + Send + Sync + 'static {
     fn components<R: Real>(v: &Self::V<R>) -> Vec<f64>;
     /// The identity matrix.
     fn identity<R: Real>() -> Self::M<R>;
+    /// The determinant of `m`.
+    fn determinant<R: Real>(m: &Self::M<R>) -> f64;
     /// Records the three kernels of one step on `tape` and returns the new state (inputs
     /// already checked).
     fn launch_step<R: Real>(
@@ -118,6 +120,9 @@ impl Dim for D2 {
     fn identity<R: Real>() -> Mat22<R> {
         Mat22::identity()
     }
+    fn determinant<R: Real>(m: &Mat22<R>) -> f64 {
+        m.map(|v| v.to_f64()).determinant()
+    }
     launch_step!(D2, mpm_p2g, mpm_grid_update, mpm_g2p);
     fn launch_weighted_sum<R: Real>(
         tape: &mut Tape,
@@ -141,6 +146,9 @@ impl Dim for D3 {
     }
     fn identity<R: Real>() -> Mat33<R> {
         Mat33::identity()
+    }
+    fn determinant<R: Real>(m: &Mat33<R>) -> f64 {
+        m.map(|v| v.to_f64()).determinant()
     }
     launch_step!(D3, mpm3_p2g, mpm3_grid_update, mpm3_g2p, 3usize);
     fn launch_weighted_sum<R: Real>(

@@ -13,8 +13,9 @@ use crate::validation::{ModelError, Problem};
 /// The constitutive model of a particle, with its Lame parameters (Pa, in the model's units).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Material {
-    /// Fixed corotated elasticity (Stomakhin et al. 2012): robust to large rotations and
-    /// inversion; the model of DiffTaichi's `diffmpm`.
+    /// Fixed corotated elasticity (Stomakhin et al. 2012): robust to large rotations (and to
+    /// inversion in 2D; a 3D particle that inverts makes the step fail); the model of
+    /// DiffTaichi's `diffmpm`.
     Corotated {
         /// Shear modulus.
         mu: f64,
@@ -22,7 +23,7 @@ pub enum Material {
         lambda: f64,
     },
     /// Compressible neo-Hookean elasticity; a particle that inverts (`det F <= 0`) makes the
-    /// step fail.
+    /// step fail (an error naming it).
     NeoHookean {
         /// Shear modulus.
         mu: f64,
@@ -74,8 +75,10 @@ pub enum Floor {
 /// Describes an MLS-MPM scene in 2D: the grid, its walls, gravity and the particles with
 /// their materials and actuators. [`MpmBuilder::finalize`] checks it and returns an [`Mpm`].
 ///
-/// The domain is `[0, n_grid dx]^2`; a node within `bound` nodes of a wall is a wall node
-/// (see [`Floor`]); particles must start at least `bound` cells away from the walls.
+/// The domain is `[0, n_grid dx]^D`; the `bound` nodes next to each low wall and the
+/// `bound - 1` next to each high wall are wall nodes (DiffTaichi's convention; see
+/// [`Floor`] and [`mpm_grid_update`](super::kernels::mpm_grid_update)); particles must start
+/// at least `bound` cells away from the walls.
 ///
 /// ```
 /// use adflex_kernels::mpm::*;
@@ -346,7 +349,7 @@ impl<D: Dim> MpmBuilder<D> {
         }
         let (lo, hi) = (bound as f64 * dx, (n - bound.min(n)) as f64 * dx);
         for (i, x) in self.x.iter().enumerate() {
-            if !D::components(x).iter().all(|&c| c >= lo && c <= hi) {
+            if !D::components(x).iter().all(|&c| c >= lo && c < hi) {
                 problems.push(problem_at(
                     "particles",
                     i,
@@ -473,8 +476,8 @@ fn problem_at(kind: &str, i: usize, param: Option<&'static str>, message: String
     problem(&format!("{kind}[{i}]"), param, message)
 }
 
-/// An MLS-MPM model in 2D (see the [module docs](super)): the grid and per-particle arrays,
-/// each a possible gradient target.
+/// An MLS-MPM model in `D` dimensions (see the [module docs](super)): the grid and
+/// per-particle arrays, each a possible gradient target.
 #[derive(Clone, Debug)]
 pub struct Mpm<R: Real, D: Dim = D2> {
     /// Nodes per axis.
@@ -557,9 +560,11 @@ impl<R: Real, D: Dim> Mpm<R, D> {
     }
 
     /// The largest time step the elastic waves allow: `dx / c` with `c = sqrt((lambda +
-    /// 2 mu) / rho)` the fastest wave speed over the particles (`rho = mass / volume`).
-    /// Steps fail beyond a fraction of it (see the guide's stability chart); the particles'
-    /// own speed must also stay below `dx / dt`.
+    /// 2 mu) / rho)` the fastest wave speed over the particles (`rho = mass / volume`), from
+    /// the builder's values (changing the `mu`, `lambda`, `mass` or `volume` arrays later
+    /// does not update it). Measured, steps stay stable up to 1.1 to 1.9 times it
+    /// (`docs/performance.md`, "MPM stability against stiffness") and fail beyond; the
+    /// particles' own speed must also stay below `dx / dt`.
     pub fn stable_dt(&self) -> f64 {
         self.stable_dt
     }
@@ -570,9 +575,10 @@ impl<R: Real, D: Dim> Mpm<R, D> {
     /// returns the new state. `actuation` holds one value per actuator (`None`: all zero).
     ///
     /// Errors ([`Error::InvalidInput`]) instead of a panic or a NaN later: a `dt` that is not
-    /// finite and positive, an actuation array of the wrong length, and a particle that is
-    /// not finite or has left the domain inside the walls (naming it; the step before was
-    /// unstable: reduce `dt` below [`Mpm::stable_dt`]).
+    /// finite and positive, an actuation array or a state array of the wrong length, and, in
+    /// the input state or the one the step produced, a particle that is not finite, has left
+    /// the domain inside the walls, or is inverted where its material needs `det F > 0`
+    /// (naming it; the step was unstable: reduce `dt` below [`Mpm::stable_dt`]).
     pub fn step(
         &self,
         tape: &mut Tape,
@@ -598,8 +604,12 @@ impl<R: Real, D: Dim> Mpm<R, D> {
                 ));
             }
         };
-        self.check_inside(state)?;
-        Ok(D::launch_step(self, tape, state, actuation, dt))
+        self.check_state(state, "the step's input")?;
+        let next = D::launch_step(self, tape, state, actuation, dt);
+        // The new state is checked too, so that the last step of a rollout cannot hand on a
+        // NaN or an inverted particle without an error.
+        self.check_state(&next, "the step's result")?;
+        Ok(next)
     }
 
     /// The mean position of the particles (one element), recorded on `tape` (DiffTaichi's
@@ -611,32 +621,57 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         out
     }
 
-    /// Every particle finite and inside the walls (so that its stencil is on the grid).
-    fn check_inside(&self, state: &MpmState<R, D>) -> Result<(), Error> {
+    /// Every array of the model's length; every particle finite and inside the walls (so
+    /// that its stencil is on the grid); `det F > 0` where the material needs it (all but the
+    /// 2D corotated one, whose closed-form rotation handles inversion).
+    fn check_state(&self, state: &MpmState<R, D>, which: &str) -> Result<(), Error> {
+        let n = self.particle_count();
+        let lens = [
+            (state.x.len(), state.x.label()),
+            (state.v.len(), state.v.label()),
+            (state.c.len(), state.c.label()),
+            (state.f.len(), state.f.label()),
+        ];
+        for (len, label) in lens {
+            if len != n {
+                return Err(invalid(
+                    &label,
+                    format!("{len} values for a model of {n} particles ({which})"),
+                ));
+            }
+        }
         // The stencil of x spans nodes floor(x / dx - 0.5) + 0..3.
         let lo = self.dx;
         let hi = (self.n_grid - 2) as f64 * self.dx;
-        let xs = state.x.to_vec();
-        if xs.len() != self.particle_count() {
-            return Err(invalid(
-                &state.x.label(),
-                format!(
-                    "{} positions for a model of {} particles",
-                    xs.len(),
-                    self.particle_count()
-                ),
-            ));
-        }
-        for (i, x) in xs.iter().enumerate() {
+        let unstable = format!(
+            "the simulation is unstable: reduce dt below the model's stable_dt ({:.3e}) or the \
+             speeds so that |v| dt < dx",
+            self.stable_dt
+        );
+        for (i, x) in state.x.to_vec().iter().enumerate() {
             let c = D::components(x);
             if !c.iter().all(|&c| c >= lo && c < hi) {
                 return Err(invalid(
                     &format!("{}[{i}]", state.x.label()),
                     format!(
-                    "particle {i} at {c:?} is not finite or has left the grid [{lo}, {hi})^{}: \
-                     the simulation is unstable; reduce dt below the model's stable_dt ({:.3e}) \
-                     or the speeds so that |v| dt < dx",
-                    D::D, self.stable_dt),
+                        "particle {i} at {c:?} is not finite or has left the grid [{lo}, {hi})^{} \
+                         ({which}): {unstable}",
+                        D::D
+                    ),
+                ));
+            }
+        }
+        let kinds = self.kind.to_vec();
+        for (i, f) in state.f.to_vec().iter().enumerate() {
+            let needs_positive = !(D::D == 2 && kinds[i] == COROTATED);
+            let det = D::determinant(f);
+            if needs_positive && !(det > 0.0) {
+                return Err(invalid(
+                    &format!("{}[{i}]", state.f.label()),
+                    format!(
+                        "particle {i} is inverted or degenerate (det F = {det:e}, {which}); its \
+                         material needs det F > 0: {unstable}"
+                    ),
                 ));
             }
         }
