@@ -1,6 +1,10 @@
 """The MPM walker of `examples/mpm_walker.rs` in Taichi (DiffTaichi's `diffmpm` model), for
 the loss curve and the time per iteration side by side (`adflex-bench mpm`).
 
+Two small differences from `diffmpm.py` itself, the same in adflex: a node without mass
+keeps a zero velocity (diffmpm divides by `mass + 1e-10` and gives empty nodes gravity; no
+particle reads them), and the loss is taken after `steps` steps (diffmpm runs `steps - 1`).
+
 Same scene (a body on four legs, 2 particles per cell and axis, fixed corotated, mu = lambda
 = 10, mass = volume = 1), same boundary (walls 3 nodes thick, sticky floor), same controller
 (4 sine waves per leg, tanh), same initial weights (the LCG of `initial_weights`), same
