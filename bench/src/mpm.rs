@@ -5,19 +5,13 @@
 //! `bench/peers/taichi_mpm.py` on the same scene in the same run (its median after two
 //! compiling iterations), then the ratios. One JSON line each.
 
-use std::process::Command;
 use std::time::Instant;
 
 use adflex_kernels::mpm::WalkerTask;
 use adflex_runtime::prelude::*;
-use serde_json::{json, Value};
+use serde_json::json;
 
-fn arg(rest: &[String], name: &str) -> Option<usize> {
-    rest.iter()
-        .position(|a| a == name)
-        .and_then(|k| rest.get(k + 1))
-        .and_then(|v| v.parse().ok())
-}
+use crate::arg;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -86,33 +80,18 @@ pub fn main(rest: &[String]) {
     else {
         return;
     };
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/peers/taichi_mpm.py");
     for threads in [1, 2] {
-        let out = Command::new(python)
-            .arg(script)
-            .args([
-                "--n-grid",
-                &n_grid.to_string(),
-                "--steps",
-                &steps.to_string(),
-            ])
-            .args([
-                "--iters",
-                &(iters + 2).to_string(),
-                "--threads",
-                &threads.to_string(),
-            ])
-            .output()
-            .expect("the Taichi peer's python runs");
-        let line = String::from_utf8_lossy(&out.stdout);
-        let Some(v) = line
-            .lines()
-            .find_map(|l| serde_json::from_str::<Value>(l).ok())
-        else {
-            eprintln!(
-                "taichi_mpm.py printed no result: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
+        let args = [
+            "--n-grid".to_string(),
+            n_grid.to_string(),
+            "--steps".into(),
+            steps.to_string(),
+            "--iters".into(),
+            (iters + 2).to_string(),
+            "--threads".into(),
+            threads.to_string(),
+        ];
+        let Some(v) = crate::peer_json(python, "taichi_mpm.py", &args) else {
             return;
         };
         let s = v["s_per_iter"].as_f64().unwrap_or(f64::NAN);

@@ -6,19 +6,13 @@
 //! and Jacobi) on the same task in the same run, the largest relative difference between
 //! their losses and ours over the iterations, and the ratios. One JSON line each.
 
-use std::process::Command;
 use std::time::Instant;
 
 use adflex_kernels::fluid::scenes::SmokeTask;
 use adflex_kernels::fluid::Pressure;
 use serde_json::{json, Value};
 
-fn arg(rest: &[String], name: &str) -> Option<usize> {
-    rest.iter()
-        .position(|a| a == name)
-        .and_then(|k| rest.get(k + 1))
-        .and_then(|v| v.parse().ok())
-}
+use crate::arg;
 
 /// Losses of `iters + 1` iterations of normalized gradient descent (step 1), and the median
 /// seconds per iteration after the first.
@@ -64,7 +58,6 @@ pub fn main(rest: &[String]) {
     else {
         return;
     };
-    let peers = concat!(env!("CARGO_MANIFEST_DIR"), "/peers");
     let common = [
         "--n".to_string(),
         n.to_string(),
@@ -81,21 +74,12 @@ pub fn main(rest: &[String]) {
         ("jax_smoke.py", &["--pressure", "jacobi"]),
     ];
     for (script, extra) in runs {
-        let out = Command::new(python)
-            .arg(format!("{peers}/{script}"))
-            .args(&common)
-            .args(extra)
-            .output()
-            .expect("the peer's python runs");
-        let text = String::from_utf8_lossy(&out.stdout);
-        let Some(v) = text
-            .lines()
-            .find_map(|l| serde_json::from_str::<Value>(l).ok())
-        else {
-            eprintln!(
-                "{script} printed no result: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
+        let args: Vec<String> = common
+            .iter()
+            .cloned()
+            .chain(extra.iter().map(|e| e.to_string()))
+            .collect();
+        let Some(v) = crate::peer_json(python, script, &args) else {
             continue;
         };
         println!("{v}");

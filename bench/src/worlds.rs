@@ -17,14 +17,9 @@ use adflex_kernels::articulation::{urdf, ArticulationBuilder, ArticulationContro
 use adflex_runtime::prelude::*;
 use serde_json::{json, Value};
 
-const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../kernels/robots");
+use crate::arg;
 
-fn arg(rest: &[String], name: &str) -> Option<usize> {
-    rest.iter()
-        .position(|a| a == name)
-        .and_then(|k| rest.get(k + 1))
-        .and_then(|v| v.parse().ok())
-}
+const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../kernels/robots");
 
 /// W cartpoles, world `w`'s pole tilted by `0.1 + 0.1 (w mod 8)`.
 fn cartpoles(worlds: usize) -> Articulations<f64> {
