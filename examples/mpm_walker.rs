@@ -87,7 +87,8 @@ pub struct Outcome {
     /// How far the mean position moved right, before and after training.
     pub distance_before: f64,
     pub distance_after: f64,
-    /// Frames of the trained walker, for the picture.
+    /// Frames of the walker before training (the first guess) and after, for the pictures.
+    pub frames_before: Vec<Frame2d>,
     pub frames: Vec<Frame2d>,
 }
 
@@ -127,6 +128,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     let task = WalkerTask::<f32>::new(cfg.n_grid, cfg.steps, cfg.dt);
     let x0 = task.mpm.state().x.to_vec();
     let mean_x0 = x0.iter().map(|p| p.x as f64).sum::<f64>() / x0.len() as f64;
+    let frames_before = film(&task, 6)?;
     let mut losses = Vec::new();
     let mut times = Vec::new();
     for _ in 0..cfg.iterations {
@@ -149,6 +151,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         distance_after: -losses.last().unwrap() - mean_x0,
         losses,
         seconds_per_iteration: times.get(times.len() / 2).copied().unwrap_or(f64::NAN),
+        frames_before,
         frames: film(&task, 6)?,
     })
 }
@@ -216,6 +219,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     opts.region = ([0.0, 0.0], [1.0, 0.4]);
     opts.floor = Some(3.0 / cfg.n_grid as f64);
     render_strip_png(dir.join("walker.png"), &out.frames, &opts)?;
+    render_strip_png(
+        dir.join("walker_first_guess.png"),
+        &out.frames_before,
+        &opts,
+    )?;
     println!("pictures in {}", dir.display());
     Ok(())
 }

@@ -378,6 +378,7 @@ fn mpm_walker_learns_to_walk_as_in_taichi() {
         out.distance_after
     );
     assert_eq!(out.frames.len(), 6);
+    assert_eq!(out.frames_before.len(), 6);
 }
 
 #[path = "../examples/smoke_control.rs"]
