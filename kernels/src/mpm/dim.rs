@@ -33,6 +33,9 @@ pub trait Dim: Copy + Debug + Default + Send + Sync + 'static {
     fn components<R: Real>(v: &Self::V<R>) -> Vec<f64>;
     /// The identity matrix.
     fn identity<R: Real>() -> Self::M<R>;
+    /// Whether every component of `v` is in `[lo, hi)` (false for NaN); no allocation, as
+    /// it runs on every particle of every step.
+    fn inside<R: Real>(v: &Self::V<R>, lo: f64, hi: f64) -> bool;
     /// The determinant of `m`.
     fn determinant<R: Real>(m: &Self::M<R>) -> f64;
     /// Records the three kernels of one step on `tape` and returns the new state (inputs
@@ -120,6 +123,9 @@ impl Dim for D2 {
     fn identity<R: Real>() -> Mat22<R> {
         Mat22::identity()
     }
+    fn inside<R: Real>(v: &Vec2<R>, lo: f64, hi: f64) -> bool {
+        v.iter().all(|c| (lo..hi).contains(&c.to_f64()))
+    }
     fn determinant<R: Real>(m: &Mat22<R>) -> f64 {
         m.map(|v| v.to_f64()).determinant()
     }
@@ -146,6 +152,9 @@ impl Dim for D3 {
     }
     fn identity<R: Real>() -> Mat33<R> {
         Mat33::identity()
+    }
+    fn inside<R: Real>(v: &Vec3<R>, lo: f64, hi: f64) -> bool {
+        v.iter().all(|c| (lo..hi).contains(&c.to_f64()))
     }
     fn determinant<R: Real>(m: &Mat33<R>) -> f64 {
         m.map(|v| v.to_f64()).determinant()

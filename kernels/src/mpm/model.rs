@@ -643,20 +643,23 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         // The stencil of x spans nodes floor(x / dx - 0.5) + 0..3.
         let lo = self.dx;
         let hi = (self.n_grid - 2) as f64 * self.dx;
-        let unstable = format!(
-            "the simulation is unstable: reduce dt below the model's stable_dt ({:.3e}) or the \
-             speeds so that |v| dt < dx",
-            self.stable_dt
-        );
+        let unstable = || {
+            format!(
+                "the simulation is unstable: reduce dt below the model's stable_dt ({:.3e}) or \
+                 the speeds so that |v| dt < dx",
+                self.stable_dt
+            )
+        };
         for (i, x) in state.x.to_vec().iter().enumerate() {
-            let c = D::components(x);
-            if !c.iter().all(|&c| c >= lo && c < hi) {
+            if !D::inside(x, lo, hi) {
+                let c = D::components(x);
                 return Err(invalid(
                     &format!("{}[{i}]", state.x.label()),
                     format!(
                         "particle {i} at {c:?} is not finite or has left the grid [{lo}, {hi})^{} \
-                         ({which}): {unstable}",
-                        D::D
+                         ({which}): {}",
+                        D::D,
+                        unstable()
                     ),
                 ));
             }
@@ -670,7 +673,8 @@ impl<R: Real, D: Dim> Mpm<R, D> {
                     &format!("{}[{i}]", state.f.label()),
                     format!(
                         "particle {i} is inverted or degenerate (det F = {det:e}, {which}); its \
-                         material needs det F > 0: {unstable}"
+                         material needs det F > 0: {}",
+                        unstable()
                     ),
                 ));
             }
