@@ -14,6 +14,9 @@ pub struct Attr {
     pub adjoint: Option<syn::Path>,
     /// `tangent = path`: a hand-written tangent (funcs only).
     pub tangent: Option<syn::Path>,
+    /// `dual_safe`: the custom adjoint and tangent compute in the arguments' own scalar, so
+    /// they may run in `Dual` (Hessian-vector products).
+    pub dual_safe: bool,
 }
 
 impl Attr {
@@ -38,6 +41,7 @@ impl Attr {
                         attr.tangent = Some(p);
                     }
                 }
+                "dual_safe" if kind == Kind::Func => attr.dual_safe = true,
                 "adjoint" | "tangent" => {
                     return Err(meta.error(
                         "custom derivatives belong on a #[diff_func]; call that function from the kernel",
@@ -48,7 +52,7 @@ impl Attr {
                         "unknown argument; #[diff_kernel] accepts `crate = \"path\"`"
                     } else {
                         "unknown argument; #[diff_func] accepts `adjoint = path`, `tangent = path`, \
-                         `crate = \"path\"`"
+                         `dual_safe`, `crate = \"path\"`"
                     }))
                 }
             }
@@ -62,6 +66,13 @@ impl Attr {
                 args.span(),
                 "a custom adjoint needs a custom tangent too (and the other way round), so that \
                  forward and reverse mode agree: `#[diff_func(adjoint = my_adj, tangent = my_tan)]`",
+            );
+        }
+        if attr.dual_safe && attr.adjoint.is_none() {
+            errors.push(
+                args.span(),
+                "`dual_safe` declares a custom adjoint safe in `Dual`; without `adjoint = ..` the \
+                 generated rules are, and it is not needed",
             );
         }
         attr

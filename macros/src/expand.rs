@@ -47,6 +47,7 @@ pub fn expand(args: TokenStream, item: TokenStream, kind: Kind) -> TokenStream {
                 (
                     attr.adjoint.as_ref().unwrap(),
                     attr.tangent.as_ref().unwrap(),
+                    attr.dual_safe,
                 )
             });
             func_items(&sig, &rt, &body, custom, &passthrough)
@@ -519,7 +520,7 @@ fn func_items(
     sig: &Signature,
     rt: &TokenStream,
     body: &Body,
-    custom: Option<(&syn::Path, &syn::Path)>,
+    custom: Option<(&syn::Path, &syn::Path, bool)>,
     attrs: &[syn::Attribute],
 ) -> TokenStream {
     let name = &sig.name;
@@ -540,8 +541,11 @@ fn func_items(
     let dxs: Vec<_> = vals.iter().map(|n| n.2.clone()).collect();
     let r = body.ret.unwrap();
     let (rv, _, rd) = em.names(r);
+    // A custom adjoint may compute in `f64` and drop a `Dual`'s derivative part: refused in
+    // `Dual` unless declared safe.
+    let dual_safe = !matches!(custom, Some((_, _, false)));
     let (adjoint, tangent) = match custom {
-        Some((adj, tan)) => (
+        Some((adj, tan, _)) => (
             quote! {
                 let (#(#xs,)*) = __args;
                 #adj(#(#xs,)* __adj_out)
@@ -588,6 +592,7 @@ fn func_items(
         }
 
         impl #impl_generics #rt::DiffFunc<#args_ty, #ret> for #name #where_clause {
+            const DUAL_SAFE: bool = #dual_safe;
             #lints
             #[inline]
             fn forward(&self, __args: #args_ty) -> #ret {

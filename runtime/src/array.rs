@@ -453,6 +453,13 @@ pub trait AnyArray: Send + Sync {
     fn scalar(&self, k: usize) -> f64;
     /// Sets scalar component `k` (bumps the version).
     fn set_scalar(&self, k: usize, x: f64);
+    /// Whether the elements are made of [`Dual`](crate::Dual) numbers.
+    fn is_dual(&self) -> bool;
+    /// The derivative part of scalar component `k` (0 unless [`AnyArray::is_dual`]).
+    fn eps_scalar(&self, k: usize) -> f64;
+    /// Sets the derivative part of scalar component `k` (bumps the version; nothing changes
+    /// unless [`AnyArray::is_dual`]).
+    fn set_eps_scalar(&self, k: usize, x: f64);
     /// First index whose element has a NaN or infinite component.
     fn first_non_finite(&self) -> Option<usize>;
     /// Holds the access lock while a launch runs: for writing if the launch writes the array.
@@ -520,6 +527,15 @@ impl<T: Element> AnyArray for Array<T> {
     }
     fn set_scalar(&self, k: usize, x: f64) {
         self.modify(|d| d[k / T::DIM].set_component(k % T::DIM, x))
+    }
+    fn is_dual(&self) -> bool {
+        T::DUAL
+    }
+    fn eps_scalar(&self, k: usize) -> f64 {
+        self.get(k / T::DIM).eps_component(k % T::DIM)
+    }
+    fn set_eps_scalar(&self, k: usize, x: f64) {
+        self.modify(|d| d[k / T::DIM].set_eps_component(k % T::DIM, x))
     }
     fn first_non_finite(&self) -> Option<usize> {
         if T::DIM == 0 {

@@ -13,6 +13,11 @@
             no_grad(..) to have zero derivative"
 )]
 pub trait DiffFunc<Args, Out> {
+    /// Whether the adjoint and tangent compute in the arguments' own scalar type, so that
+    /// run in [`Dual`](crate::Dual) they carry derivative parts (Hessian-vector products,
+    /// [`crate::second_order`]). `true` for the builtins and the generated rules; a
+    /// `#[diff_func]` with a custom adjoint is `false` unless declared `dual_safe`.
+    const DUAL_SAFE: bool = true;
     /// The function itself.
     fn forward(&self, args: Args) -> Out;
     /// Reverse mode: the adjoint of every argument, given the adjoint of the result.
@@ -29,8 +34,25 @@ pub fn call<A, O, F: DiffFunc<A, O>>(args: A, f: &F) -> O {
 
 /// The adjoint rule of a `#[diff_func]` call.
 #[inline(always)]
-pub fn call_adjoint<A, O, F: DiffFunc<A, O>>(args: A, adj_out: O, f: &F) -> A {
+pub fn call_adjoint<A, O: crate::Value, F: DiffFunc<A, O>>(args: A, adj_out: O, f: &F) -> A {
+    if O::DUAL && !F::DUAL_SAFE {
+        refuse_dual::<F>();
+    }
     f.adjoint(args, adj_out)
+}
+
+/// The panic of a custom adjoint not declared `dual_safe`, run in `Dual`.
+#[cold]
+#[inline(never)]
+fn refuse_dual<F>() -> ! {
+    let name = std::any::type_name::<F>();
+    panic!(
+        "the #[diff_func] `{name}` has a custom adjoint that was not declared `dual_safe`, and \
+         a second-order pass (Hessian-vector product) ran it in `Dual`: if the adjoint and the \
+         tangent compute in the arguments' own scalar type (no detour through f64), declare \
+         it with `#[diff_func(adjoint = .., tangent = .., dual_safe)]`; otherwise it has no \
+         second-order rule and the product cannot go through it"
+    )
 }
 
 /// The tangent rule of a `#[diff_func]` call.

@@ -9,6 +9,7 @@ extern crate self as adflex_runtime;
 
 pub mod array;
 pub mod checkpoint;
+mod dual;
 mod chunk_order;
 mod error;
 pub mod func;
@@ -37,6 +38,7 @@ pub mod __codegen {
     pub use crate::math::vector_space::*;
 }
 pub mod products;
+pub mod second_order;
 mod real;
 mod region;
 mod scatter_log;
@@ -69,6 +71,7 @@ pub mod __test {
 }
 
 pub use array::{AnyArray, Array, Element};
+pub use dual::Dual;
 pub use error::Error;
 pub use func::DiffFunc;
 pub use kernel::{Kernel, KernelBody, Mode};
@@ -85,6 +88,6 @@ pub mod prelude {
     pub use crate::gradcheck::{gradcheck, gradcheck_kernel, GradCheck};
     pub use crate::math::items::builtins_prelude::*;
     pub use crate::{launch, launch_adjoint, launch_mode, launch_tangent, with_threads, Mode};
-    pub use crate::{AnyArray, Tape};
+    pub use crate::{AnyArray, Dual, Tape};
     pub use crate::{Array, DiffFunc, Error, Mat22, Mat33, Quat, Real, Value, Vec2, Vec3, Vec4};
 }

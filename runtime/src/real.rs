@@ -11,6 +11,16 @@ pub trait Real:
     fn to_f64(self) -> f64;
     /// The smallest positive value whose square is still normal; guards singular rules.
     fn tiny() -> Self;
+    /// The derivative part of a [`Dual`](crate::Dual) (0 for `f32` and `f64`).
+    #[inline(always)]
+    fn eps(self) -> f64 {
+        0.0
+    }
+    /// This value with derivative part `eps` (unchanged for `f32` and `f64`, which have none).
+    #[inline(always)]
+    fn with_eps(self, _eps: f64) -> Self {
+        self
+    }
 }
 
 impl Real for f32 {

@@ -46,6 +46,9 @@ enum Step {
         name: String,
         backward: StepFn,
         tangent: Option<StepFn>,
+        /// It reads or writes [`Dual`](crate::Dual) arrays and was not declared
+        /// [`CustomStep::dual_safe`]: its backward and tangent refuse to run.
+        dual_unsafe: bool,
     },
 }
 
@@ -332,6 +335,25 @@ impl Tape {
     }
 
     /// `Err` with [`Tape::anomaly`], if there is one.
+    /// Refuses custom step `i` if it works on [`Dual`](crate::Dual) arrays without having been
+    /// declared [`CustomStep::dual_safe`]: its backward might compute in `f64` and drop their
+    /// derivative parts, a silently wrong Hessian-vector product.
+    fn dual_safe(&self, i: usize) -> Result<(), Error> {
+        match &self.records[i].step {
+            Step::Custom {
+                dual_unsafe: true, ..
+            } => Err(Error::InvalidInput {
+                what: format!("custom step `{}` (#{i} on the tape)", self.records[i].qualified()),
+                message: "it works on `Dual` arrays (a second-order pass) but was not declared \
+                          dual-safe, so its backward may compute in `f64` and drop the \
+                          derivative parts. If its forward, backward and tangent compute in \
+                          the arrays' own scalar, declare it with `record_fn(..).dual_safe()`"
+                    .into(),
+            }),
+            _ => Ok(()),
+        }
+    }
+
     fn no_anomaly(&self) -> Result<(), Error> {
         self.anomaly.clone().map_or(Ok(()), Err)
     }
@@ -415,12 +437,14 @@ impl Tape {
                 .collect::<Vec<_>>()
         };
         let (reads, writes) = (side(inputs, "input"), side(outputs, "output"));
+        let dual = inputs.iter().chain(outputs).any(|a| a.is_dual());
         forward();
         let index = self.push(Record {
             step: Step::Custom {
                 name: name.into(),
                 backward: Box::new(backward),
                 tangent: None,
+                dual_unsafe: dual,
             },
             scope: self.scope_path(),
             reads,
@@ -719,6 +743,9 @@ impl Tape {
 
     /// Allocates the gradient buffers of the plan and runs its adjoints in reverse order.
     fn execute(&mut self, plan: &Plan) -> Result<(), Error> {
+        for (i, _) in plan.run.iter().enumerate().filter(|(_, &run)| run) {
+            self.dual_safe(i)?;
+        }
         // Each buffer once: zeroing one again would be a second pass over its memory.
         let mut seen = HashSet::new();
         let mut reset: Vec<&dyn AnyArray> = Vec::new();
@@ -888,6 +915,7 @@ impl Tape {
         self.no_anomaly()?;
         for i in 0..self.records.len() {
             self.check_versions(i)?;
+            self.dual_safe(i)?;
             if let Step::Custom {
                 name,
                 tangent: None,
@@ -1048,6 +1076,18 @@ pub struct CustomStep<'t> {
 }
 
 impl CustomStep<'_> {
+    /// Declares that the step's forward, backward and tangent compute in the arrays' own
+    /// scalar type (generic code, no detour through `f64`), so that run on
+    /// [`Dual`](crate::Dual) arrays they carry derivative parts and a Hessian-vector product
+    /// ([`crate::second_order`]) may go through the step. Without it, a step on `Dual` arrays
+    /// refuses to run backward or forward-mode.
+    pub fn dual_safe(self) -> Self {
+        if let Step::Custom { dual_unsafe, .. } = &mut self.tape.records[self.index].step {
+            *dual_unsafe = false;
+        }
+        self
+    }
+
     /// The forward-mode rule of the step for [`Tape::tangent`]: it must read the tangents of
     /// the inputs (`tangent_buffer()`, `None` = zero) and write those of the outputs (whose
     /// buffers exist and are zero when it runs).

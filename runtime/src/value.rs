@@ -29,6 +29,16 @@ pub trait Value: Copy + Send + Sync + 'static {
     fn component(&self, k: usize) -> f64;
     /// Sets differentiable component `k < DIM` from an `f64`.
     fn set_component(&mut self, k: usize, x: f64);
+    /// Whether the components are [`Dual`](crate::Dual) numbers (see [`crate::second_order`]):
+    /// host code that computes in `f64`, which would drop their derivative parts, refuses
+    /// them with an error instead of a silently wrong second derivative.
+    const DUAL: bool = false;
+    /// The derivative part of component `k` of a dual value (0 otherwise).
+    fn eps_component(&self, _k: usize) -> f64 {
+        0.0
+    }
+    /// Sets the derivative part of component `k` of a dual value (nothing otherwise).
+    fn set_eps_component(&mut self, _k: usize, _x: f64) {}
     /// `len` copies of [`Value::zeroed`]. Types whose zero is all-zero bytes take their memory
     /// zeroed from the allocator (for a large array, fresh pages nobody has written yet).
     #[doc(hidden)]
@@ -114,6 +124,13 @@ impl<T: Value + Default, const N: usize> Value for [T; N] {
     fn set_component(&mut self, k: usize, x: f64) {
         self[k / T::DIM].set_component(k % T::DIM, x)
     }
+    const DUAL: bool = T::DUAL;
+    fn eps_component(&self, k: usize) -> f64 {
+        self[k / T::DIM].eps_component(k % T::DIM)
+    }
+    fn set_eps_component(&mut self, k: usize, x: f64) {
+        self[k / T::DIM].set_eps_component(k % T::DIM, x)
+    }
 }
 
 macro_rules! real_value {
@@ -140,7 +157,10 @@ macro_rules! matrix_value {
             #[inline(always)] fn acc(&mut self, other: Self) { *self += other }
             #[inline(always)] fn acc_neg(&mut self, other: Self) { *self -= other }
             fn component(&self, k: usize) -> f64 { self[k].to_f64() }
-            fn set_component(&mut self, k: usize, x: f64) { self[k] = R::lit(x) }
+            fn set_component(&mut self, k: usize, x: f64) { self[k] = R::lit(x).with_eps(self[k].eps()) }
+            const DUAL: bool = R::DUAL;
+            fn eps_component(&self, k: usize) -> f64 { self[k].eps() }
+            fn set_eps_component(&mut self, k: usize, x: f64) { self[k] = self[k].with_eps(x) }
             fn zeroed_vec(len: usize) -> Vec<Self> { bytemuck::zeroed_vec(len) }
         }
     )*};
@@ -169,7 +189,14 @@ impl<R: Real> Value for Quaternion<R> {
         self.coords[k].to_f64()
     }
     fn set_component(&mut self, k: usize, x: f64) {
-        self.coords[k] = R::lit(x)
+        self.coords[k] = R::lit(x).with_eps(self.coords[k].eps())
+    }
+    const DUAL: bool = R::DUAL;
+    fn eps_component(&self, k: usize) -> f64 {
+        self.coords[k].eps()
+    }
+    fn set_eps_component(&mut self, k: usize, x: f64) {
+        self.coords[k] = self.coords[k].with_eps(x)
     }
     fn zeroed_vec(len: usize) -> Vec<Self> {
         bytemuck::zeroed_vec(len)
