@@ -18,7 +18,7 @@ use std::mem::ManuallyDrop;
 
 /// Defines `pub(crate) fn $name<R: Real>(args) -> out` running `body` with `R = f32` or
 /// `R = f64`, each compiled once in this crate (in the modules `$name::{f32, f64}`), in the
-/// module that invokes it.
+/// module that invokes it; any other `R` runs the generic body (`$name::generic`).
 macro_rules! precompiled {
     ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) -> $out:ty $body:block) => {
         mod $name {
@@ -34,6 +34,12 @@ macro_rules! precompiled {
                 type R = f64;
                 pub(crate) fn call($($arg: $ty),*) -> $out $body
             }
+            // Any other scalar (`Dual`, for second-order passes): compiled where it is used.
+            pub(crate) mod generic {
+                #[allow(unused_imports)]
+                use super::super::*;
+                pub(crate) fn call<R: Real>($($arg: $ty),*) -> $out $body
+            }
         }
 
         $(#[$m])*
@@ -42,7 +48,7 @@ macro_rules! precompiled {
             fn owned<T: 'static>() {}
             owned::<$out>();
             use ::std::any::TypeId;
-            use $crate::precompiled::{same, unsupported};
+            use $crate::precompiled::same;
             if TypeId::of::<R>() == TypeId::of::<f64>() {
                 // SAFETY: `R` is `f64`, so every argument's type and the result's are those of
                 // `$name::f64::call`.
@@ -51,7 +57,7 @@ macro_rules! precompiled {
                 // SAFETY: as above, with `f32`.
                 unsafe { same($name::f32::call($(same($arg)),*)) }
             } else {
-                unsupported::<R>()
+                $name::generic::call::<R>($($arg),*)
             }
         }
     };
@@ -67,14 +73,6 @@ pub(crate) unsafe fn same<A, B>(a: A) -> B {
     let a = ManuallyDrop::new(a);
     // SAFETY: the caller's contract; `a` is not dropped, its bits move into the result.
     unsafe { std::mem::transmute_copy(&*a) }
-}
-
-/// Panics for a scalar type other than `f32` and `f64`, which the library is compiled for.
-pub(crate) fn unsupported<R>() -> ! {
-    panic!(
-        "adflex's library (models, forces, integrators) is compiled for f32 and f64, not for {}",
-        std::any::type_name::<R>()
-    )
 }
 
 pub(crate) use precompiled;

@@ -362,6 +362,10 @@ impl Equilibrium {
         tape: &mut Tape,
         guess: &State<R>,
     ) -> Result<(State<R>, EquilibriumStats), Error> {
+        adflex_runtime::second_order::refuse_dual::<R>(
+            "Equilibrium::solve",
+            "use Gauss-Newton products (`Tape::gauss_newton`), which need first order only",
+        )?;
         let n = model.particle_count;
         if model.bodies.is_some() {
             return Err(Error::InvalidInput {

@@ -11,7 +11,9 @@
 //! `f64` takes. Rounding functions (`floor`, ...) have derivative zero.
 
 use std::fmt;
-use std::ops::{Add, AddAssign, Div, DivAssign, Mul, MulAssign, Neg, Rem, RemAssign, Sub, SubAssign};
+use std::ops::{
+    Add, AddAssign, Div, DivAssign, Mul, MulAssign, Neg, Rem, RemAssign, Sub, SubAssign,
+};
 
 use approx::{AbsDiffEq, RelativeEq, UlpsEq};
 use num_traits::{FromPrimitive, Num, One, Signed, Zero};
@@ -518,7 +520,10 @@ impl RealField for Dual {
     fn atan2(self, x: Self) -> Self {
         // d atan2(y, x) = (x dy - y dx) / (x^2 + y^2)
         let r2 = self.re * self.re + x.re * x.re;
-        Dual::new(self.re.atan2(x.re), (x.re * self.eps - self.re * x.eps) / r2)
+        Dual::new(
+            self.re.atan2(x.re),
+            (x.re * self.eps - self.re * x.eps) / r2,
+        )
     }
     fn min_value() -> Option<Self> {
         Some(Dual::constant(f64::MIN))

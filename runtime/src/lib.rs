@@ -9,8 +9,8 @@ extern crate self as adflex_runtime;
 
 pub mod array;
 pub mod checkpoint;
-mod dual;
 mod chunk_order;
+mod dual;
 mod error;
 pub mod func;
 pub mod gradcheck;
@@ -38,10 +38,10 @@ pub mod __codegen {
     pub use crate::math::vector_space::*;
 }
 pub mod products;
-pub mod second_order;
 mod real;
 mod region;
 mod scatter_log;
+pub mod second_order;
 pub mod settings;
 mod split;
 mod subnormals;

@@ -187,3 +187,19 @@ fn set_direction(params: &[&dyn AnyArray], v: Option<&[f64]>) {
         }
     }
 }
+
+/// `Err` naming `step` when `R` is [`Dual`]: for host code that computes in `f64` and would
+/// drop the derivative parts (a solver, a factorization), so that a second-order pass through
+/// it is an error, not a silently wrong product. `instead` says what to use.
+pub fn refuse_dual<R: crate::Real>(step: &str, instead: &str) -> Result<(), Error> {
+    if R::DUAL {
+        return Err(Error::InvalidInput {
+            what: step.into(),
+            message: format!(
+                "it computes in f64 and has no second-order rule, so a Hessian-vector product \
+                 (`Dual` scalar) cannot go through it; {instead}"
+            ),
+        });
+    }
+    Ok(())
+}

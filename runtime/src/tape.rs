@@ -343,7 +343,10 @@ impl Tape {
             Step::Custom {
                 dual_unsafe: true, ..
             } => Err(Error::InvalidInput {
-                what: format!("custom step `{}` (#{i} on the tape)", self.records[i].qualified()),
+                what: format!(
+                    "custom step `{}` (#{i} on the tape)",
+                    self.records[i].qualified()
+                ),
                 message: "it works on `Dual` arrays (a second-order pass) but was not declared \
                           dual-safe, so its backward may compute in `f64` and drop the \
                           derivative parts. If its forward, backward and tangent compute in \

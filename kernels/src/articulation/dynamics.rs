@@ -525,6 +525,10 @@ impl<R: Real> Articulations<R> {
     /// (`rhs_bar += M^-1 qdd_bar`, `M_bar -= (M^-1 qdd_bar) qdd^T`) and tangent
     /// (`dqdd = M^-1 (drhs - dM qdd)`).
     fn solve(&self, tape: &mut Tape, m: &Array<R>, rhs: &Array<R>) -> Result<Array<R>, Error> {
+        adflex_runtime::second_order::refuse_dual::<R>(
+            "the articulations' mass-matrix solve",
+            "use Gauss-Newton products (`Tape::gauss_newton`), which need first order only",
+        )?;
         let (factors, blocks) = self.factor(m)?;
         let (factors, blocks) = (Arc::new(factors), Arc::new(blocks));
         let b: Vec<f64> = rhs.to_vec().iter().map(|x| x.to_f64()).collect();

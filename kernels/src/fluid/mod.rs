@@ -266,6 +266,10 @@ impl FluidGrid {
         scale: f64,
         s: &SolveSettings,
     ) -> Result<Array<R>, Error> {
+        adflex_runtime::second_order::refuse_dual::<R>(
+            "the fluid's CG pressure solve",
+            "use `Pressure::Jacobi(k)`, which is unrolled in the scalar type",
+        )?;
         let grid = *self;
         let b: Vec<f64> = div.to_vec().iter().map(|d| scale * d.to_f64()).collect();
         let x = grid.solve(&b, s, "forward")?;

@@ -622,6 +622,11 @@ impl ImplicitEuler {
         control: Option<&Control<R>>,
         dt: R,
     ) -> Result<(State<R>, NewtonStats), Error> {
+        adflex_runtime::second_order::refuse_dual::<R>(
+            "implicit Euler's step",
+            "use an explicit or semi-implicit integrator, or Gauss-Newton products \
+             (`Tape::gauss_newton`), which need first order only",
+        )?;
         let n = model.particle_count;
         let mut stats = NewtonStats::default();
         let dtf = check_dt("ImplicitEuler", dt)?;

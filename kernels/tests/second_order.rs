@@ -1,0 +1,484 @@
+//! Hessian-vector products by forward over reverse (`second_order::hvp`): against central
+//! differences of f64 gradients, symmetric, through kernels with every kind of construct,
+//! through rollouts of library forces and integrators (taped and checkpointed), and refused
+//! where they would be silently wrong.
+
+mod common;
+
+use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
+use adflex_kernels::{Model, ModelBuilder, State};
+use adflex_macros::{diff_func, diff_kernel};
+use adflex_runtime::prelude::*;
+use adflex_runtime::second_order::{hessian, hvp, hvp_with};
+use adflex_runtime::Element;
+
+/// A kernel with a dynamic loop, stores to an intermediate, atomics, branches and many
+/// builtins (vectors, matrices, transcendental functions).
+#[diff_kernel]
+fn busy<R: Real>(p: &Array<R>, v: &Array<Vec3<R>>, tmp: &Array<R>, loss: &Array<R>) {
+    let i = tid();
+    let a = v[i];
+    let b = v[(i + 1) % 3];
+    let k = p[i];
+    let mut s = 0.0;
+    let mut j = 0;
+    while j < 3 {
+        s = s + sin(k * p[j]) * exp(0.3 * p[j]);
+        j += 1;
+    }
+    let c = cross(a, b);
+    let m = outer(a, b) + mat33_identity() * (2.0 + k * k);
+    let mi = inverse(m);
+    let n = normalize(c + vec3(0.1, 0.2, 0.3));
+    let q = dot(mi * a, n) + sqrt(1.0 + length_sq(c)) + atan2(k, 1.5 + p[0]);
+    let r = if q > 0.0 {
+        q * q * k
+    } else {
+        pow(1.0 + k * k, 1.5) - q
+    };
+    let t = r + s * tanh(k) + determinant(m) * 0.01;
+    tmp[i] = t;
+    loss.atomic_add(0, t * t + ln(1.0 + k * k) * dot(a, b));
+}
+
+fn busy_loss<R: Real + Element>(
+    tape: &mut Tape,
+    p: &Array<R>,
+    v: &Array<Vec3<R>>,
+) -> Result<Array<R>, Error> {
+    let tmp = Array::<R>::zeros(3);
+    let loss = Array::<R>::zeros(1);
+    tape.launch(busy, 3, (p, v, &tmp, &loss));
+    Ok(loss)
+}
+
+/// The f64 gradient of `f` at the parameters' values `x`, over all their components.
+fn grad_f64(
+    params: &[&dyn AnyArray],
+    x: &[f64],
+    f: &mut dyn FnMut(&mut Tape) -> Result<Array<f64>, Error>,
+) -> Vec<f64> {
+    set(params, x);
+    for p in params {
+        p.reset_grad();
+    }
+    let mut tape = Tape::new();
+    let l = f(&mut tape).unwrap();
+    tape.backward(&l).unwrap();
+    params
+        .iter()
+        .flat_map(|p| {
+            let g = p.grad_any().unwrap();
+            (0..g.len() * g.element_dim())
+                .map(|k| g.scalar(k))
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+fn get(params: &[&dyn AnyArray]) -> Vec<f64> {
+    params
+        .iter()
+        .flat_map(|p| (0..p.len() * p.element_dim()).map(|k| p.scalar(k)))
+        .collect()
+}
+
+fn set(params: &[&dyn AnyArray], x: &[f64]) {
+    let mut k = 0;
+    for p in params {
+        for j in 0..p.len() * p.element_dim() {
+            p.set_scalar(j, x[k]);
+            k += 1;
+        }
+    }
+}
+
+/// `(grad(x + h v) - grad(x - h v)) / 2h` in f64.
+fn hv_by_differences(
+    params: &[&dyn AnyArray],
+    v: &[f64],
+    h: f64,
+    f: &mut dyn FnMut(&mut Tape) -> Result<Array<f64>, Error>,
+) -> Vec<f64> {
+    let x = get(params);
+    let at = |s: f64| {
+        x.iter()
+            .zip(v)
+            .map(|(a, b)| a + s * h * b)
+            .collect::<Vec<_>>()
+    };
+    let gp = grad_f64(params, &at(1.0), f);
+    let gm = grad_f64(params, &at(-1.0), f);
+    set(params, &x);
+    gp.iter()
+        .zip(&gm)
+        .map(|(a, b)| (a - b) / (2.0 * h))
+        .collect()
+}
+
+fn assert_close(what: &str, got: &[f64], want: &[f64], rel: f64) {
+    let scale = want.iter().fold(1e-8f64, |m, x| m.max(x.abs()));
+    for (k, (g, w)) in got.iter().zip(want).enumerate() {
+        assert!(
+            (g - w).abs() <= rel * scale,
+            "{what}[{k}]: {g:e}, central differences of gradients {w:e} (scale {scale:e})"
+        );
+    }
+    assert!(
+        got.iter().any(|x| *x != 0.0),
+        "{what}: identically zero, the check cannot fail"
+    );
+}
+
+fn dual_of(x: &[f64]) -> Vec<Dual> {
+    x.iter().map(|&v| Dual::constant(v)).collect()
+}
+
+fn vec3_dual(v: Vec3<f64>) -> Vec3<Dual> {
+    v.map(Dual::constant)
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+const P0: [f64; 3] = [0.4, -0.7, 1.1];
+
+fn v0() -> Vec<Vec3<f64>> {
+    vec![
+        Vec3::new(0.3, -0.2, 0.5),
+        Vec3::new(-0.4, 0.6, 0.1),
+        Vec3::new(0.2, 0.9, -0.3),
+    ]
+}
+
+/// `H v` of a kernel with loops, stores, atomics, branches and matrix, vector and
+/// transcendental builtins against central differences of its f64 gradient, and symmetric
+/// (`u^T H v = v^T H u`).
+#[test]
+fn hvp_of_a_busy_kernel_matches_differences_and_is_symmetric() {
+    let p = Array::from_vec(dual_of(&P0)).requires_grad();
+    let vv = Array::from_vec(v0().into_iter().map(vec3_dual).collect()).requires_grad();
+    let params: [&dyn AnyArray; 2] = [&p, &vv];
+    let mut rng = common::Rng(0x2e55);
+    let n = 3 + 9;
+    let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let hu = hvp(&params, &u, |t| busy_loss(t, &p, &vv)).unwrap();
+    let hw = hvp(&params, &w, |t| busy_loss(t, &p, &vv)).unwrap();
+    // The derivative parts are cleared after each product.
+    assert!(p.to_vec().iter().all(|x| x.eps == 0.0));
+
+    let pf = Array::from_vec(P0.to_vec()).requires_grad();
+    let vf = Array::from_vec(v0()).requires_grad();
+    let fparams: [&dyn AnyArray; 2] = [&pf, &vf];
+    let fd = hv_by_differences(&fparams, &u, 1e-5, &mut |t| busy_loss(t, &pf, &vf));
+    assert_close("H u", &hu.hv, &fd, 1e-6);
+    // The values are the f64 gradient's, and the loss's derivative part is its slope.
+    let g = grad_f64(&fparams, &get(&fparams), &mut |t| busy_loss(t, &pf, &vf));
+    assert_close("gradient", &hu.grad, &g, 1e-14);
+    assert!((hu.slope - dot(&g, &u)).abs() <= 1e-12 * hu.slope.abs().max(1.0));
+
+    let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+    assert!(
+        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+        "w^T H u = {a:e}, u^T H w = {b:e}"
+    );
+
+    // The dense Hessian is symmetric and its columns are the products.
+    let h = hessian(&params, |t| busy_loss(t, &p, &vv)).unwrap();
+    for i in 0..n {
+        for j in 0..n {
+            let (x, y) = (h[i][j], h[j][i]);
+            assert!(
+                (x - y).abs() <= 1e-10 * x.abs().max(y.abs()).max(1.0),
+                "H[{i}][{j}]"
+            );
+        }
+    }
+    let hu_dense: Vec<f64> = (0..n)
+        .map(|i| (0..n).map(|j| h[j][i] * u[j]).sum())
+        .collect();
+    assert_close("H u from the columns", &hu.hv, &hu_dense, 1e-12);
+}
+
+/// Four particles with springs, a membrane triangle, a tetrahedron and a bending hinge,
+/// built in any scalar.
+fn scene<R: Real>() -> Model<R> {
+    let l = |x: f64| R::lit(x);
+    let v3 = |x: f64, y: f64, z: f64| Vec3::new(l(x), l(y), l(z));
+    let mut b = ModelBuilder::<R>::new();
+    let p0 = b.add_particle(v3(0.0, 1.0, 0.0), v3(0.1, 0.0, 0.0), l(1.5));
+    let p1 = b.add_particle(v3(0.6, 1.1, 0.1), v3(0.0, 0.3, -0.2), l(1.0));
+    let p2 = b.add_particle(v3(1.1, 0.8, -0.2), v3(-0.4, 0.0, 0.1), l(0.5));
+    let p3 = b.add_particle(v3(0.5, 0.5, 0.3), v3(0.2, -0.1, 0.3), l(2.0));
+    for (k, (i, j)) in [(p0, p1), (p1, p2), (p2, p3), (p1, p3), (p0, p3)]
+        .into_iter()
+        .enumerate()
+    {
+        let d = (b.particle_position(i) - b.particle_position(j)).norm();
+        b.add_spring_with_rest(
+            i,
+            j,
+            d * l(0.85 + 0.07 * k as f64),
+            l(40.0 * (1.0 + 0.3 * k as f64)),
+            l(0.2),
+        );
+    }
+    b.add_triangle_fem(p0, p1, p2, l(20.0), l(30.0), l(0.1));
+    b.add_tet(p0, p1, p2, p3, l(15.0), l(25.0), l(0.1));
+    b.add_bending([p0, p2, p1, p3], l(0.3), l(2.0), l(0.05));
+    b.finalize()
+}
+
+/// The rollout's loss: squared final positions and velocities, weighted.
+#[diff_kernel]
+fn state_loss<R: Real>(x: &Array<Vec3<R>>, v: &Array<Vec3<R>>, loss: &Array<R>) {
+    let i = tid();
+    loss.atomic_add(0, length_sq(x[i]) + 0.3 * length_sq(v[i]) + x[i].x * v[i].y);
+}
+
+fn rollout_loss<R: Real + Element>(
+    model: &Model<R>,
+    integrator: &dyn Integrator<R>,
+    v0: &Array<Vec3<R>>,
+    tape: &mut Tape,
+) -> Result<Array<R>, Error> {
+    let mut s: State<R> = model.state();
+    s.v = v0.clone();
+    let end = integrator.rollout(model, tape, &s, None, R::lit(0.01), 12)?;
+    let loss = Array::<R>::zeros(1);
+    tape.launch(state_loss, end.x.len(), (&end.x, &end.v, &loss));
+    Ok(loss)
+}
+
+/// `H v` of whole rollouts of library forces (springs, membrane, tetrahedron, bending) by
+/// semi-implicit Euler and RK4, with respect to every force's stiffness and the initial
+/// velocities, against central differences of f64 gradients; and symmetric.
+#[test]
+fn hvp_of_rollouts_matches_differences() {
+    let integrators: [(&str, Box<dyn Integrator<Dual>>, Box<dyn Integrator<f64>>); 2] = [
+        (
+            "semi-implicit Euler",
+            Box::new(SemiImplicitEuler),
+            Box::new(SemiImplicitEuler),
+        ),
+        ("RK4", Box::new(Rk4), Box::new(Rk4)),
+    ];
+    let names = [
+        ("springs", "ke"),
+        ("triangle_fem", "mu"),
+        ("tets", "lambda"),
+        ("bending", "ke"),
+    ];
+    for (name, id, if64) in &integrators {
+        let md = scene::<Dual>();
+        let mf = scene::<f64>();
+        let dparams: Vec<Array<Dual>> = names
+            .iter()
+            .map(|(f, p)| md.param::<Dual>(f, p).unwrap().requires_grad())
+            .collect();
+        let fparams: Vec<Array<f64>> = names
+            .iter()
+            .map(|(f, p)| mf.param::<f64>(f, p).unwrap().requires_grad())
+            .collect();
+        let vd = md.state().v.requires_grad();
+        let vf = mf.state().v.requires_grad();
+        let mut dp: Vec<&dyn AnyArray> = dparams.iter().map(|a| a as &dyn AnyArray).collect();
+        dp.push(&vd);
+        let mut fp: Vec<&dyn AnyArray> = fparams.iter().map(|a| a as &dyn AnyArray).collect();
+        fp.push(&vf);
+        let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
+        let mut rng = common::Rng(0x0dd5);
+        let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let hu = hvp(&dp, &u, |t| rollout_loss(&md, &**id, &vd, t)).unwrap();
+        let hw = hvp(&dp, &w, |t| rollout_loss(&md, &**id, &vd, t)).unwrap();
+        let fd = hv_by_differences(&fp, &u, 1e-4, &mut |t| rollout_loss(&mf, &**if64, &vf, t));
+        assert_close(&format!("{name}: H u"), &hu.hv, &fd, 1e-6);
+        let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+        assert!(
+            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+            "{name}: w^T H u = {a:e}, u^T H w = {b:e}"
+        );
+        println!(
+            "{name}: {n} parameters, |H u| = {:.3e}",
+            hu.hv.iter().map(|x| x * x).sum::<f64>().sqrt()
+        );
+    }
+}
+
+/// A checkpointed rollout in `Dual` gives the taped rollout's product (the recomputed
+/// segments carry their derivative parts too).
+#[test]
+fn hvp_through_a_checkpointed_rollout_is_the_taped_one() {
+    let md = scene::<Dual>();
+    let ke = md.param::<Dual>("springs", "ke").unwrap().requires_grad();
+    let vd = md.state().v.requires_grad();
+    let params: [&dyn AnyArray; 2] = [&ke, &vd];
+    let n = ke.len() + 3 * vd.len();
+    let mut rng = common::Rng(0xc4ec);
+    let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let taped = hvp(&params, &u, |t| {
+        rollout_loss(&md, &SemiImplicitEuler, &vd, t)
+    })
+    .unwrap();
+    let ck = hvp_with(&params, &u, || {
+        let mut s: State<Dual> = md.state();
+        s.v = vd.clone();
+        let dt = Dual::constant(0.01);
+        let out = checkpointed(
+            &s,
+            12,
+            5,
+            |tape, s| SemiImplicitEuler.step(&md, tape, s, None, dt),
+            |tape, s| {
+                let loss = Array::<Dual>::zeros(1);
+                tape.launch(state_loss, s.x.len(), (&s.x, &s.v, &loss));
+                Ok(loss)
+            },
+        )?;
+        Ok(out.loss.get(0))
+    })
+    .unwrap();
+    assert_close("checkpointed H u", &ck.hv, &taped.hv, 1e-12);
+    assert!((ck.loss - taped.loss).abs() <= 1e-14 * taped.loss.abs());
+    assert!((ck.slope - taped.slope).abs() <= 1e-12 * taped.slope.abs());
+}
+
+/// What would be silently wrong is refused: a solver that computes in f64 (implicit Euler),
+/// a custom step not declared dual-safe, a wrong direction, a parameter that is not `Dual`.
+#[test]
+fn second_order_refuses_what_it_cannot_differentiate() {
+    let md = scene::<Dual>();
+    let ke = md.param::<Dual>("springs", "ke").unwrap().requires_grad();
+    let u = vec![1.0; ke.len()];
+    let err = hvp(&[&ke], &u, |t| {
+        rollout_loss(&md, &ImplicitEuler::default(), &md.state().v, t)
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("implicit Euler") && err.contains("second-order"),
+        "{err}"
+    );
+
+    // A custom step on Dual arrays, not declared dual-safe, then declared.
+    let x = Array::from_vec(vec![Dual::constant(3.0)]).requires_grad();
+    let run = |safe: bool| {
+        hvp(&[&x], &[1.0], |tape| {
+            let y = Array::<Dual>::zeros(1);
+            let (xb, yb) = (x.clone(), y.clone());
+            let (xf, yf) = (x.clone(), y.clone());
+            let step = tape.record_fn(
+                "cube",
+                &[&x],
+                &[&y],
+                move || yf.set(0, xf.get(0) * xf.get(0) * xf.get(0)),
+                move || {
+                    let g = yb.grad_buffer().map_or(Dual::constant(0.0), |g| g.get(0));
+                    if let Some(gx) = xb.grad_buffer() {
+                        let x = xb.get(0);
+                        gx.set(0, gx.get(0) + Dual::constant(3.0) * x * x * g);
+                    }
+                    Ok(())
+                },
+            );
+            if safe {
+                step.dual_safe();
+            }
+            Ok(y)
+        })
+    };
+    let err = run(false).unwrap_err().to_string();
+    assert!(err.contains("cube") && err.contains("dual_safe"), "{err}");
+    let ok = run(true).unwrap();
+    assert_eq!(ok.hv, vec![18.0], "d2(x^3) = 6x = 18");
+
+    let e = hvp(&[&x], &[1.0, 2.0], |t| busy_loss(t, &x, &Array::zeros(3)))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("2 entries") && e.contains("1 scalar"), "{e}");
+    let e = hvp(&[&x], &[f64::NAN], |t| busy_loss(t, &x, &Array::zeros(3)))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("v[0]"), "{e}");
+    let f = Array::from_vec(vec![1.0f64]).named("plain").requires_grad();
+    let e = hvp(&[&f], &[1.0], |t| busy_loss(t, &x, &Array::zeros(3)))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("plain") && e.contains("Dual"), "{e}");
+    let nog = Array::from_vec(vec![Dual::constant(1.0)]).named("frozen");
+    let e = hvp(&[&nog], &[1.0], |t| busy_loss(t, &x, &Array::zeros(3)))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("frozen") && e.contains("requires_grad"), "{e}");
+}
+
+fn softplus_adj<R: Real>(x: R, g: R) -> (R,) {
+    (g / (R::lit(1.0) + (-x).exp()),)
+}
+fn softplus_tan<R: Real>(x: R, dx: R) -> R {
+    dx / (R::lit(1.0) + (-x).exp())
+}
+fn softplus_adj_f64<R: Real>(x: R, g: R) -> (R,) {
+    // Through f64: drops a Dual's derivative part.
+    (R::lit(g.to_f64() / (1.0 + (-x.to_f64()).exp())),)
+}
+
+#[diff_func(adjoint = softplus_adj, tangent = softplus_tan, dual_safe)]
+fn softplus<R: Real>(x: R) -> R {
+    ln(1.0 + exp(x))
+}
+
+#[diff_func(adjoint = softplus_adj_f64, tangent = softplus_tan)]
+fn softplus_undeclared<R: Real>(x: R) -> R {
+    ln(1.0 + exp(x))
+}
+
+#[diff_kernel]
+fn soft<R: Real>(x: &Array<R>, loss: &Array<R>) {
+    let i = tid();
+    loss.atomic_add(0, softplus(x[i] * x[i]));
+}
+
+#[diff_kernel]
+fn soft_undeclared<R: Real>(x: &Array<R>, loss: &Array<R>) {
+    let i = tid();
+    loss.atomic_add(0, softplus_undeclared(x[i] * x[i]));
+}
+
+/// A custom adjoint declared `dual_safe` is differentiated as written (checked against the
+/// closed form); one not declared stops the product with a message saying how to fix it.
+#[test]
+fn custom_adjoints_must_be_declared_dual_safe() {
+    let x = Array::from_vec(vec![Dual::constant(0.7)]).requires_grad();
+    let out = hvp(&[&x], &[1.0], |tape| {
+        let l = Array::<Dual>::zeros(1);
+        tape.launch(soft, 1, (&x, &l));
+        Ok(l)
+    })
+    .unwrap();
+    // f = softplus(x^2): f'' = 2 s(x^2) + 4 x^2 s(x^2)(1 - s(x^2)), s the logistic function.
+    let s = 1.0 / (1.0 + (-0.49f64).exp());
+    let want = 2.0 * s + 4.0 * 0.49 * s * (1.0 - s);
+    assert!((out.hv[0] - want).abs() < 1e-14, "{} vs {want}", out.hv[0]);
+
+    let panic = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        hvp(&[&x], &[1.0], |tape| {
+            let l = Array::<Dual>::zeros(1);
+            tape.launch(soft_undeclared, 1, (&x, &l));
+            Ok(l)
+        })
+    }))
+    .expect_err("an undeclared custom adjoint must not run in Dual");
+    let msg = panic
+        .downcast_ref::<String>()
+        .cloned()
+        .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+        .unwrap_or_default();
+    assert!(
+        msg.contains("softplus_undeclared") && msg.contains("dual_safe"),
+        "{msg}"
+    );
+}
