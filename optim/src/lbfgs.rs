@@ -146,6 +146,7 @@ impl Gradient for Objective<'_, '_> {
 /// When the line search of L-BFGS fails: a restart (fresh memory, from the best point) is
 /// tried if the point is not stationary by these tolerances (see `Optimizer::stationary_tol`
 /// and `Optimizer::grad_tol`) and the loss fell since the last (re)start.
+#[derive(Clone, Copy)]
 pub(crate) struct Restart {
     pub stationary_tol: f64,
     pub grad_tol: f64,
@@ -193,6 +194,7 @@ pub(crate) fn run(
             loss: s.get_cost(),
             grad_norm,
             evaluations: *record.evaluations.borrow(),
+            passes: 2 * *record.evaluations.borrow(),
             elapsed: start.elapsed(),
         };
         (it, stationarity)

@@ -40,7 +40,7 @@
 //! assert!((p.get(0) - 1.0).abs() < 1e-4 && (p.get(1) - 1.0).abs() < 1e-4);
 //! ```
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::fmt;
 use std::ops::ControlFlow;
 use std::time::{Duration, Instant};
@@ -48,6 +48,7 @@ use std::time::{Duration, Instant};
 use adflex_runtime::{Array, Element, Error, Tape};
 
 mod lbfgs;
+mod newton;
 mod params;
 
 pub use params::{Bounds, Params};
@@ -76,6 +77,32 @@ pub enum Method {
         /// Correction pairs kept (7).
         memory: usize,
     },
+    /// Gauss-Newton for a least-squares loss `½|r|²` ([`Optimizer::least_squares`]): each
+    /// step solves `JᵀJ d = -Jᵀr` by conjugate gradients on Gauss-Newton products (matrix
+    /// free: a tangent and an adjoint pass each), then backtracks along `d` until the loss
+    /// falls enough (Armijo).
+    GaussNewton {
+        /// Conjugate-gradient iterations per step at most (20).
+        cg_iters: usize,
+    },
+    /// Levenberg-Marquardt for a least-squares loss ([`Optimizer::least_squares`]): each step
+    /// solves `(JᵀJ + λ I) d = -Jᵀr` by conjugate gradients on Gauss-Newton products; a step
+    /// that lowers the loss is taken and `λ` shrinks (Nielsen's rule), one that does not is
+    /// retried with a larger `λ` (no new simulation).
+    LevenbergMarquardt {
+        /// The initial `λ` relative to the curvature `gᵀJᵀJg / gᵀg` at the start (1e-3).
+        lambda: f64,
+        /// Conjugate-gradient iterations per step at most (20).
+        cg_iters: usize,
+    },
+    /// Newton-CG with a trust region (Steihaug's truncated conjugate gradients) on
+    /// Hessian-vector products by forward over reverse ([`Optimizer::minimize_newton`],
+    /// simulation in [`Dual`](adflex_runtime::Dual)): negative curvature and steps leaving
+    /// the region stop on its boundary.
+    NewtonCg {
+        /// Conjugate-gradient iterations per step at most (20).
+        cg_iters: usize,
+    },
 }
 
 /// One iteration, as the callback and [`Report::history`] see it (iteration 0 is the
@@ -90,6 +117,10 @@ pub struct Iteration {
     pub grad_norm: f64,
     /// Loss evaluations so far (line searches take several per iteration).
     pub evaluations: usize,
+    /// Passes over the simulation so far: forward, backward (adjoint) and tangent sweeps,
+    /// each counted once (a gradient evaluation is 2; a Gauss-Newton product 2; a
+    /// Hessian-vector product 2 sweeps in `Dual`). The cost axis for comparing methods.
+    pub passes: usize,
     /// Time since the start.
     pub elapsed: Duration,
 }
@@ -204,6 +235,8 @@ pub struct Report {
     pub iterations: usize,
     /// Loss and gradient evaluations.
     pub evaluations: usize,
+    /// Passes over the simulation (see [`Iteration::passes`]).
+    pub passes: usize,
     /// Every iteration, the starting point first.
     pub history: Vec<Iteration>,
     /// Why it stopped.
@@ -230,7 +263,7 @@ impl fmt::Display for Report {
         write!(
             f,
             "{}; loss {:.6e} -> {:.6e}, gradient norm {:.3e} -> {:.3e}, in {} iterations ({} \
-             evaluations, {:.2} s)",
+             evaluations, {} passes, {:.2} s)",
             self.stop,
             self.initial_loss,
             self.loss,
@@ -238,6 +271,7 @@ impl fmt::Display for Report {
             self.grad_norm,
             self.iterations,
             self.evaluations,
+            self.passes,
             self.elapsed.as_secs_f64(),
         )
     }
@@ -418,15 +452,14 @@ impl<'a> Optimizer<'a> {
     /// cannot be told from one whose gradient is zero (there is no tape to look at): it just
     /// keeps its value.
     pub fn minimize_with(
-        mut self,
+        self,
         params: &Params,
         mut eval: impl FnMut() -> Result<f64, Error>,
     ) -> Result<Report, Error> {
         let start = Instant::now();
-        let mut evaluations = 0;
-        // The lowest finite loss evaluated and its values: what the arrays hold after an error.
-        let lowest: RefCell<Option<(f64, Vec<f64>)>> = RefCell::new(None);
+        let counts = Counts::default();
         let mut evaluate = |values: &[f64]| -> Result<Evaluation, Error> {
+            let evaluations = counts.evaluations.get();
             params.set_values(values);
             params.zero_grads();
             let loss = match eval() {
@@ -441,20 +474,20 @@ impl<'a> Optimizer<'a> {
                     | Error::InvalidInput { .. }
                     | Error::NotConverged { .. }),
                 ) if evaluations > 0 => {
-                    evaluations += 1;
+                    counts.evaluated(2);
                     return Ok(Evaluation {
                         loss: f64::NAN,
                         grad: vec![0.0; values.len()],
-                        non_finite: Some(e.in_context(format!("evaluation {evaluations}"))),
+                        non_finite: Some(e.in_context(format!("evaluation {}", evaluations + 1))),
                     });
                 }
                 Err(e) => return Err(e),
             };
-            evaluations += 1;
+            counts.evaluated(2);
             let grad = params.grads()?;
-            let non_finite = check_finite(params, evaluations, loss, &grad).err();
-            if non_finite.is_none() && !matches!(&*lowest.borrow(), Some((l, _)) if loss >= *l) {
-                *lowest.borrow_mut() = Some((loss, values.to_vec()));
+            let non_finite = check_finite(params, evaluations + 1, loss, &grad).err();
+            if non_finite.is_none() {
+                counts.offer(loss, values);
             }
             Ok(Evaluation {
                 loss,
@@ -462,6 +495,56 @@ impl<'a> Optimizer<'a> {
                 non_finite,
             })
         };
+        let x0 = params.values();
+        let (method, max_iters, max_evals) = (self.method, self.max_iters, self.max_evals);
+        let restart = lbfgs::Restart {
+            stationary_tol: self.stationary_tol,
+            grad_tol: self.grad_tol,
+        };
+        self.drive(params, start, &counts, &mut |observe| match method {
+            Method::Lbfgs { memory } => lbfgs::run(
+                params,
+                &x0,
+                memory,
+                max_iters,
+                max_evals,
+                restart,
+                start,
+                &mut evaluate,
+                observe,
+            ),
+            Method::GradientDescent { .. } | Method::Adam { .. } => first_order_run(
+                method,
+                params,
+                x0.clone(),
+                max_iters,
+                start,
+                &mut evaluate,
+                observe,
+            ),
+            Method::GaussNewton { .. }
+            | Method::LevenbergMarquardt { .. }
+            | Method::NewtonCg { .. } => Err(Error::InvalidInput {
+                what: format!("{method:?}"),
+                message: "this method needs more than a gradient: run it with \
+                          `Optimizer::least_squares` (Gauss-Newton, Levenberg-Marquardt) or \
+                          `Optimizer::minimize_newton` (Newton-CG)"
+                    .into(),
+            }),
+        })
+    }
+
+    /// Runs a method (`run`, given the per-iteration observer) and writes its report: the
+    /// stopping tests, the progress bar, the callback, and the classification of how it ended.
+    /// After an error the arrays get the lowest finite loss's values from `counts` (the
+    /// starting ones if none).
+    pub(crate) fn drive(
+        mut self,
+        params: &Params,
+        start: Instant,
+        counts: &Counts,
+        run: &mut dyn FnMut(&mut Observe<'_>) -> Result<(Best, End), Error>,
+    ) -> Result<Report, Error> {
         let bar = self.progress.then(|| progress_bar(self.max_iters));
         let mut history: Vec<Iteration> = Vec::new();
         // The initial loss and stationarity measure (see `Observe`).
@@ -474,7 +557,10 @@ impl<'a> Optimizer<'a> {
             self.target_loss,
             self.max_evals,
         );
-        let first_order = !matches!(self.method, Method::Lbfgs { .. });
+        let first_order = matches!(
+            self.method,
+            Method::GradientDescent { .. } | Method::Adam { .. }
+        );
         let mut observe = |it: Iteration, stationarity: f64| {
             if let Some(b) = &bar {
                 b.set_position(it.iter as u64);
@@ -531,38 +617,14 @@ impl<'a> Optimizer<'a> {
             None
         };
         let x0 = params.values();
-        let result = match self.method {
-            Method::Lbfgs { memory } => lbfgs::run(
-                params,
-                &x0,
-                memory,
-                self.max_iters,
-                max_evals,
-                lbfgs::Restart {
-                    stationary_tol,
-                    grad_tol,
-                },
-                start,
-                &mut evaluate,
-                &mut observe,
-            ),
-            Method::GradientDescent { .. } | Method::Adam { .. } => first_order_run(
-                self.method,
-                params,
-                x0.clone(),
-                self.max_iters,
-                start,
-                &mut evaluate,
-                &mut observe,
-            ),
-        };
+        let result = run(&mut observe);
         let (best, end) = match result {
             Ok(r) => r,
             Err(e) => {
                 if let Some(b) = &bar {
                     b.finish_and_clear();
                 }
-                params.set_values(lowest.borrow().as_ref().map_or(&x0, |(_, x)| x));
+                params.set_values(counts.lowest.borrow().as_ref().map_or(&x0, |(_, x)| x));
                 return Err(e);
             }
         };
@@ -614,11 +676,41 @@ impl<'a> Optimizer<'a> {
             grad_norm: best.grad_norm,
             initial_grad_norm,
             iterations: history.len().saturating_sub(1),
-            evaluations,
+            evaluations: counts.evaluations.get(),
+            passes: counts.passes.get(),
             history,
             stop,
             elapsed: start.elapsed(),
         })
+    }
+}
+
+/// What the evaluations of a run left: their number, the passes over the simulation, and
+/// the lowest finite loss with its values (what the arrays hold after an error).
+#[derive(Default)]
+pub(crate) struct Counts {
+    pub evaluations: Cell<usize>,
+    pub passes: Cell<usize>,
+    pub lowest: RefCell<Option<(f64, Vec<f64>)>>,
+}
+
+impl Counts {
+    /// One more evaluation, of `passes` passes.
+    pub fn evaluated(&self, passes: usize) {
+        self.evaluations.set(self.evaluations.get() + 1);
+        self.passes.set(self.passes.get() + passes);
+    }
+
+    /// Passes that are not an evaluation (products).
+    pub fn passed(&self, passes: usize) {
+        self.passes.set(self.passes.get() + passes);
+    }
+
+    /// Keeps `values` if `loss` is the lowest finite one so far.
+    pub fn offer(&self, loss: f64, values: &[f64]) {
+        if loss.is_finite() && !matches!(&*self.lowest.borrow(), Some((l, _)) if loss >= *l) {
+            *self.lowest.borrow_mut() = Some((loss, values.to_vec()));
+        }
     }
 }
 
@@ -725,6 +817,7 @@ fn first_order_run(
             loss: l,
             grad_norm: norm(&g),
             evaluations,
+            passes: 2 * evaluations,
             elapsed: start.elapsed(),
         };
         if let Some(stop) = observe(it, params.projected_grad_norm(&x, &g)) {
@@ -753,7 +846,7 @@ fn first_order_run(
                     x[k] -= lr * (m[k] / c1) / ((v[k] / c2).sqrt() + eps);
                 }
             }
-            Method::Lbfgs { .. } => unreachable!("L-BFGS runs through argmin"),
+            _ => unreachable!("only gradient descent and Adam run here"),
         }
         params.project(&mut x);
         let e = evaluate(&x)?;

@@ -220,6 +220,27 @@ impl Params {
         }
     }
 
+    /// The arrays, in order.
+    pub(crate) fn arrays(&self) -> Vec<&dyn AnyArray> {
+        self.entries.iter().map(|e| &*e.array).collect()
+    }
+
+    /// [`Error::InvalidInput`] naming the first bounded parameter: `method` takes unbounded
+    /// ones.
+    pub(crate) fn check_unbounded(&self, method: &str) -> Result<(), Error> {
+        match self.entries.iter().find(|e| e.bounds != Bounds::NONE) {
+            Some(e) => Err(Error::InvalidInput {
+                what: format!("optimization parameter {}", e.array.label()),
+                message: format!(
+                    "it has bounds {:?}; {method} takes unbounded parameters: bound it by a \
+                     change of variables in the simulation, or use L-BFGS",
+                    e.bounds
+                ),
+            }),
+            None => Ok(()),
+        }
+    }
+
     /// Zeroes the gradients of the arrays (before each evaluation of the loss).
     pub fn zero_grads(&self) {
         for e in &self.entries {

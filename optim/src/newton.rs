@@ -1,0 +1,594 @@
+//! Second-order methods: Gauss-Newton and Levenberg-Marquardt on a least-squares loss, with
+//! matrix-free Gauss-Newton products (`Tape::gauss_newton`: a tangent and an adjoint pass),
+//! and Newton-CG with a trust region on Hessian-vector products by forward over reverse
+//! (`adflex_runtime::second_order`). Each step solves its linear system by conjugate
+//! gradients, so nothing of size `n²` is formed.
+
+use std::time::Instant;
+
+use adflex_runtime::second_order::{hvp, Hvp};
+use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
+
+use crate::{norm, Best, Counts, End, Iteration, Method, Observe, Optimizer, Params, Stop};
+
+impl Optimizer<'_> {
+    /// Gauss-Newton ([`Method::GaussNewton`]) with 20 conjugate-gradient iterations per step;
+    /// run it with [`Optimizer::least_squares`].
+    pub fn gauss_newton() -> Self {
+        Self::new(Method::GaussNewton { cg_iters: 20 })
+    }
+
+    /// Levenberg-Marquardt ([`Method::LevenbergMarquardt`]) with `λ` starting at 1e-3 times
+    /// the curvature along the gradient and 20 conjugate-gradient iterations per step; run it
+    /// with [`Optimizer::least_squares`].
+    pub fn levenberg_marquardt() -> Self {
+        Self::new(Method::LevenbergMarquardt {
+            lambda: 1e-3,
+            cg_iters: 20,
+        })
+    }
+
+    /// Newton-CG with a trust region ([`Method::NewtonCg`]) and 20 conjugate-gradient
+    /// iterations per step; run it with [`Optimizer::minimize_newton`].
+    pub fn newton_cg() -> Self {
+        Self::new(Method::NewtonCg { cg_iters: 20 })
+    }
+
+    /// Minimizes `½ |r(p)|²` over `params` with [`Method::GaussNewton`] or
+    /// [`Method::LevenbergMarquardt`], where `residuals(tape)` records the simulation on a
+    /// fresh tape and returns the residual array (every differentiable component is one
+    /// residual). The reported loss is `½ |r|²`.
+    ///
+    /// One iteration records the residuals once (a forward pass), takes the gradient `Jᵀr`
+    /// (an adjoint pass), and runs conjugate gradients on `JᵀJ (+ λ I)` with one
+    /// Gauss-Newton product (a tangent and an adjoint pass) per CG iteration, to a relative
+    /// residual of `min(0.5, sqrt(|g| / |g₀|))`; then one forward pass per trial point.
+    ///
+    /// Errors: as [`Optimizer::minimize`]; [`Error::InvalidInput`] for another method, or
+    /// for a bounded parameter (these methods take unbounded parameters: bound by a change
+    /// of variables, or use L-BFGS).
+    ///
+    /// ```
+    /// use adflex_optim::{Optimizer, Params};
+    /// use adflex_runtime::prelude::*;
+    ///
+    /// // Fit y = a exp(b t) to samples of 2 exp(-1.5 t).
+    /// #[adflex_macros::diff_kernel]
+    /// fn residual<R: Real>(p: &Array<R>, r: &Array<R>) {
+    ///     let i = tid();
+    ///     let t = 0.1 * (i as R);
+    ///     r[i] = p[0] * exp(p[1] * t) - 2.0 * exp(-1.5 * t);
+    /// }
+    ///
+    /// let p = Array::from_vec(vec![1.0f64, 0.0]);
+    /// let report = Optimizer::levenberg_marquardt()
+    ///     .grad_tol(1e-12)
+    ///     .progress(false)
+    ///     .least_squares(&Params::new().with(&p), |tape| {
+    ///         let r = Array::zeros(20);
+    ///         tape.launch(residual, 20, (&p, &r));
+    ///         Ok(r)
+    ///     })
+    ///     .unwrap();
+    /// assert!(report.converged(), "{report}");
+    /// assert!((p.get(0) - 2.0).abs() < 1e-8 && (p.get(1) + 1.5).abs() < 1e-8);
+    /// ```
+    pub fn least_squares<T: Element>(
+        self,
+        params: &Params,
+        mut residuals: impl FnMut(&mut Tape) -> Result<Array<T>, Error>,
+    ) -> Result<Report, Error> {
+        let (cg_iters, lambda) = match self.method {
+            Method::GaussNewton { cg_iters } => (cg_iters, None),
+            Method::LevenbergMarquardt { lambda, cg_iters } => (cg_iters, Some(lambda)),
+            m => {
+                return Err(Error::InvalidInput {
+                    what: format!("{m:?}"),
+                    message: "`least_squares` runs Gauss-Newton or Levenberg-Marquardt \
+                              (`Optimizer::gauss_newton`, `Optimizer::levenberg_marquardt`); \
+                              minimize a loss with `Optimizer::minimize`"
+                        .into(),
+                })
+            }
+        };
+        params.check_unbounded("Gauss-Newton and Levenberg-Marquardt")?;
+        let start = Instant::now();
+        let counts = Counts::default();
+        let mut first = true;
+        let mut record = |x: &[f64]| -> Result<Recorded<T>, Error> {
+            params.set_values(x);
+            params.zero_grads();
+            let mut tape = Tape::new();
+            let r = residuals(&mut tape)?;
+            counts.evaluated(1);
+            if std::mem::take(&mut first) {
+                params.check_used(&tape, &r)?;
+            }
+            let rv: Vec<f64> = (0..r.len() * T::DIM).map(|k| r.scalar(k)).collect();
+            let loss = 0.5 * rv.iter().map(|x| x * x).sum::<f64>();
+            if let Some(k) = rv.iter().position(|x| !x.is_finite()) {
+                return Err(Error::InvalidInput {
+                    what: format!(
+                        "residual `{}` component {k} (evaluation {})",
+                        r.label(),
+                        counts.evaluations.get()
+                    ),
+                    message: format!(
+                        "is {}: the simulation diverged at these parameter values",
+                        rv[k]
+                    ),
+                });
+            }
+            counts.offer(loss, x);
+            Ok(Recorded { tape, r, rv, loss })
+        };
+        let max_iters = self.max_iters;
+        let config = LeastSquares {
+            cg_iters,
+            lambda,
+            max_iters,
+        };
+        self.drive(params, start, &counts, &mut |observe| {
+            least_squares_run(params, &config, start, &counts, &mut record, observe)
+        })
+    }
+
+    /// Minimizes the loss `loss(tape)` records (the sum of the returned array's components)
+    /// over `params` with [`Method::NewtonCg`]: the simulation and the parameters must be in
+    /// [`Dual`](adflex_runtime::Dual) (see [`adflex_runtime::second_order`]), each
+    /// Hessian-vector product being one forward and one backward pass in `Dual`.
+    ///
+    /// An iteration runs Steihaug's truncated conjugate gradients inside the trust region
+    /// (to a relative residual of `min(0.5, sqrt(|g| / |g₀|))`, at a negative curvature or the
+    /// region's boundary), then evaluates the trial point; the ratio of actual to predicted
+    /// decrease accepts it and resizes the region.
+    ///
+    /// Errors: as [`Optimizer::minimize`]; those of [`hvp`] (a parameter not `Dual`, a step
+    /// that cannot run in `Dual`); [`Error::InvalidInput`] for another method or a bounded
+    /// parameter.
+    ///
+    /// ```
+    /// use adflex_optim::{Optimizer, Params};
+    /// use adflex_runtime::prelude::*;
+    ///
+    /// #[adflex_macros::diff_kernel]
+    /// fn rosenbrock<R: Real>(p: &Array<R>, loss: &Array<R>) {
+    ///     let x = p[0];
+    ///     let y = p[1];
+    ///     loss.atomic_add(0, (1.0 - x) * (1.0 - x) + 100.0 * (y - x * x) * (y - x * x));
+    /// }
+    ///
+    /// let p = Array::from_vec(vec![Dual::constant(-1.2), Dual::constant(1.0)]);
+    /// let report = Optimizer::newton_cg()
+    ///     .grad_tol(1e-9)
+    ///     .progress(false)
+    ///     .minimize_newton(&Params::new().with(&p), |tape| {
+    ///         let loss = Array::<Dual>::zeros(1);
+    ///         tape.launch(rosenbrock, 1, (&p, &loss));
+    ///         Ok(loss)
+    ///     })
+    ///     .unwrap();
+    /// assert!(report.converged(), "{report}");
+    /// assert!((p.get(0).re - 1.0).abs() < 1e-8 && (p.get(1).re - 1.0).abs() < 1e-8);
+    /// ```
+    pub fn minimize_newton<L: Element>(
+        self,
+        params: &Params,
+        mut loss: impl FnMut(&mut Tape) -> Result<Array<L>, Error>,
+    ) -> Result<Report, Error> {
+        let Method::NewtonCg { cg_iters } = self.method else {
+            return Err(Error::InvalidInput {
+                what: format!("{:?}", self.method),
+                message: "`minimize_newton` runs Newton-CG (`Optimizer::newton_cg`); minimize \
+                          with `Optimizer::minimize` or `Optimizer::least_squares`"
+                    .into(),
+            });
+        };
+        params.check_unbounded("Newton-CG")?;
+        let start = Instant::now();
+        let counts = Counts::default();
+        let arrays = params.arrays();
+        let mut product = |x: &[f64], v: &[f64], evaluation: bool| -> Result<Hvp, Error> {
+            params.set_values(x);
+            let out = hvp(&arrays, v, &mut loss)?;
+            if evaluation {
+                counts.evaluated(2);
+                counts.offer(out.loss, x);
+            } else {
+                counts.passed(2);
+            }
+            Ok(out)
+        };
+        let max_iters = self.max_iters;
+        self.drive(params, start, &counts, &mut |observe| {
+            newton_cg_run(
+                params,
+                cg_iters,
+                max_iters,
+                start,
+                &counts,
+                &mut product,
+                observe,
+            )
+        })
+    }
+}
+
+use crate::Report;
+
+/// A recorded residual: the tape, the residual array, its values and `½ |r|²`.
+struct Recorded<T> {
+    tape: Tape,
+    r: Array<T>,
+    rv: Vec<f64>,
+    loss: f64,
+}
+
+struct LeastSquares {
+    cg_iters: usize,
+    lambda: Option<f64>,
+    max_iters: usize,
+}
+
+/// Whether a failed evaluation at a trial point is one the methods step back from (the
+/// simulation refused the values) rather than an error to return.
+fn trial_failure(e: &Error) -> bool {
+    matches!(
+        e,
+        Error::NonFinite { .. } | Error::InvalidInput { .. } | Error::NotConverged { .. }
+    )
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// The relative tolerance of the inner conjugate gradients (a forcing term: loose far from
+/// the minimum, tight near it, for superlinear convergence).
+fn forcing(g: f64, g0: f64) -> f64 {
+    (g / g0.max(f64::MIN_POSITIVE)).sqrt().min(0.5)
+}
+
+/// Conjugate gradients on `A d = -g` from `d = 0`, `A` given by `apply`: at most `iters`
+/// iterations, to `|A d + g| <= tol |g|`; stops early at a direction of non-positive
+/// curvature (keeping the iterate). Returns `d` (`-g` if no iteration could run).
+fn cg(
+    g: &[f64],
+    iters: usize,
+    tol: f64,
+    apply: &mut dyn FnMut(&[f64]) -> Result<Vec<f64>, Error>,
+) -> Result<Vec<f64>, Error> {
+    let n = g.len();
+    let mut d = vec![0.0; n];
+    let mut r: Vec<f64> = g.iter().map(|x| -x).collect();
+    let mut p = r.clone();
+    let mut rr = dot(&r, &r);
+    let stop = tol * tol * rr;
+    for _ in 0..iters.max(1) {
+        let ap = apply(&p)?;
+        let pap = dot(&p, &ap);
+        if !(pap > 0.0) {
+            break;
+        }
+        let alpha = rr / pap;
+        for k in 0..n {
+            d[k] += alpha * p[k];
+            r[k] -= alpha * ap[k];
+        }
+        let rr1 = dot(&r, &r);
+        if rr1 <= stop {
+            break;
+        }
+        let beta = rr1 / rr;
+        rr = rr1;
+        for k in 0..n {
+            p[k] = r[k] + beta * p[k];
+        }
+    }
+    if d.iter().all(|x| *x == 0.0) {
+        d = g.iter().map(|x| -x).collect();
+    }
+    Ok(d)
+}
+
+fn least_squares_run<T: Element>(
+    params: &Params,
+    config: &LeastSquares,
+    start: Instant,
+    counts: &Counts,
+    record: &mut dyn FnMut(&[f64]) -> Result<Recorded<T>, Error>,
+    observe: &mut Observe<'_>,
+) -> Result<(Best, End), Error> {
+    let arrays = params.arrays();
+    let mut x = params.values();
+    let mut cur = record(&x)?;
+    let gradient = |cur: &mut Recorded<T>| -> Result<Vec<f64>, Error> {
+        let out: [&dyn AnyArray; 1] = [&cur.r];
+        let g = cur.tape.vjp(&out, &cur.rv, &arrays)?;
+        counts.passed(1);
+        Ok(g)
+    };
+    let mut g = gradient(&mut cur)?;
+    crate::check_finite(params, counts.evaluations.get(), cur.loss, &g)?;
+    let point = |loss: f64, x: &[f64], g: &[f64]| Best {
+        loss,
+        values: x.to_vec(),
+        grad_norm: norm(g),
+        stationarity: norm(g),
+    };
+    let mut best = point(cur.loss, &x, &g);
+    let g0 = norm(&g);
+    // Levenberg-Marquardt's damping (set from the curvature at the first step) and Nielsen's
+    // growth factor.
+    let mut lambda: Option<f64> = None;
+    let mut nu = 2.0;
+    for iter in 0.. {
+        let it = Iteration {
+            iter,
+            loss: cur.loss,
+            grad_norm: norm(&g),
+            evaluations: counts.evaluations.get(),
+            passes: counts.passes.get(),
+            elapsed: start.elapsed(),
+        };
+        if let Some(stop) = observe(it, norm(&g)) {
+            return Ok((best, End::Stop(stop)));
+        }
+        if iter == config.max_iters {
+            return Ok((best, End::Stop(Stop::MaxIterations)));
+        }
+        let tol = forcing(norm(&g), g0);
+        let gn = |rec: &mut Recorded<T>, v: &[f64]| -> Result<Vec<f64>, Error> {
+            let Recorded { tape, r, .. } = rec;
+            let p = tape.gauss_newton(&arrays, &[r as &dyn AnyArray], v)?;
+            counts.passed(2);
+            Ok(p)
+        };
+        match config.lambda {
+            None => {
+                let d = cg(&g, config.cg_iters, tol, &mut |v| gn(&mut cur, v))?;
+                let slope = dot(&g, &d);
+                // Backtracking (Armijo) along d.
+                let mut t = 1.0;
+                let mut failure = None;
+                let accepted = loop {
+                    let trial: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
+                    match record(&trial) {
+                        Ok(rec) if rec.loss <= cur.loss + 1e-4 * t * slope => {
+                            break Some((trial, rec))
+                        }
+                        Ok(_) => {}
+                        Err(e) if trial_failure(&e) => failure = Some(e.to_string()),
+                        Err(e) => return Err(e),
+                    }
+                    t *= 0.5;
+                    if t < 1e-10 {
+                        break None;
+                    }
+                };
+                let Some((trial, rec)) = accepted else {
+                    params.set_values(&best.values);
+                    return Ok((
+                        best,
+                        End::NoProgress {
+                            message: format!(
+                                "no step along the Gauss-Newton direction lowered the loss \
+                                 (slope {slope:.3e})"
+                            ),
+                            non_finite: failure,
+                        },
+                    ));
+                };
+                x = trial;
+                cur = rec;
+            }
+            Some(rel) => loop {
+                let lam = match lambda {
+                    Some(l) => l,
+                    None => {
+                        // The curvature along the gradient sets the damping's scale.
+                        let jg = gn(&mut cur, &g)?;
+                        let q = dot(&g, &jg) / dot(&g, &g).max(f64::MIN_POSITIVE);
+                        (rel * q).max(f64::MIN_POSITIVE)
+                    }
+                };
+                let d = cg(&g, config.cg_iters, tol, &mut |v| {
+                    let mut p = gn(&mut cur, v)?;
+                    for (p, v) in p.iter_mut().zip(v) {
+                        *p += lam * v;
+                    }
+                    Ok(p)
+                })?;
+                // The Gauss-Newton model's decrease: CG's iterate is A-conjugate to its
+                // residual, so dᵀ(JᵀJ + λI)d = -gᵀd.
+                let predicted = -0.5 * dot(&g, &d) + 0.5 * lam * dot(&d, &d);
+                let trial: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + b).collect();
+                let (rho, rec) = match record(&trial) {
+                    Ok(rec) => ((cur.loss - rec.loss) / predicted, Some(rec)),
+                    Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
+                    Err(e) => return Err(e),
+                };
+                match rec {
+                    Some(rec) if rho > 1e-4 => {
+                        lambda = Some(lam * (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0));
+                        nu = 2.0;
+                        x = trial;
+                        cur = rec;
+                        break;
+                    }
+                    _ => {
+                        let l = lam * nu;
+                        nu *= 2.0;
+                        if l > 1e16 * lam.max(f64::MIN_POSITIVE) || !l.is_finite() || nu > 1e30 {
+                            params.set_values(&best.values);
+                            return Ok((
+                                best,
+                                End::NoProgress {
+                                    message: "Levenberg-Marquardt's damping grew without a \
+                                              step lowering the loss"
+                                        .into(),
+                                    non_finite: None,
+                                },
+                            ));
+                        }
+                        lambda = Some(l);
+                        // The trial moved the parameters: record the tape at x again.
+                        cur = record(&x)?;
+                    }
+                }
+            },
+        }
+        g = gradient(&mut cur)?;
+        if let Err(e) = crate::check_finite(params, counts.evaluations.get(), cur.loss, &g) {
+            return Ok((best, End::Stop(Stop::Diverged(e.to_string()))));
+        }
+        if cur.loss < best.loss {
+            best = point(cur.loss, &x, &g);
+        }
+    }
+    unreachable!("the loop returns")
+}
+
+fn newton_cg_run(
+    params: &Params,
+    cg_iters: usize,
+    max_iters: usize,
+    start: Instant,
+    counts: &Counts,
+    product: &mut dyn FnMut(&[f64], &[f64], bool) -> Result<Hvp, Error>,
+    observe: &mut Observe<'_>,
+) -> Result<(Best, End), Error> {
+    let mut x = params.values();
+    let n = x.len();
+    let zero = vec![0.0; n];
+    let mut cur = product(&x, &zero, true)?;
+    crate::check_finite(params, 1, cur.loss, &cur.grad)?;
+    let point = |h: &Hvp, x: &[f64]| Best {
+        loss: h.loss,
+        values: x.to_vec(),
+        grad_norm: norm(&h.grad),
+        stationarity: norm(&h.grad),
+    };
+    let mut best = point(&cur, &x);
+    let g0 = norm(&cur.grad);
+    let mut radius: Option<f64> = None;
+    for iter in 0.. {
+        let g = cur.grad.clone();
+        let it = Iteration {
+            iter,
+            loss: cur.loss,
+            grad_norm: norm(&g),
+            evaluations: counts.evaluations.get(),
+            passes: counts.passes.get(),
+            elapsed: start.elapsed(),
+        };
+        if let Some(stop) = observe(it, norm(&g)) {
+            params.set_values(&best.values);
+            return Ok((best, End::Stop(stop)));
+        }
+        if iter == max_iters {
+            params.set_values(&best.values);
+            return Ok((best, End::Stop(Stop::MaxIterations)));
+        }
+        let tol = forcing(norm(&g), g0);
+        let mut rejected = 0;
+        loop {
+            // Steihaug's truncated CG on H s = -g inside |s| <= radius.
+            let (mut s, mut hs) = (vec![0.0; n], vec![0.0; n]);
+            let mut r = g.clone();
+            let mut d: Vec<f64> = g.iter().map(|x| -x).collect();
+            let stop = tol * tol * dot(&r, &r);
+            for _ in 0..cg_iters.max(1) {
+                let hd = product(&x, &d, false)?.hv;
+                let dhd = dot(&d, &hd);
+                let rr = dot(&r, &r);
+                let delta = *radius.get_or_insert_with(|| {
+                    // The first region: ten Cauchy steps (the minimum along -g), or |g|.
+                    if dhd > 0.0 {
+                        10.0 * rr / dhd * rr.sqrt()
+                    } else {
+                        rr.sqrt()
+                    }
+                });
+                let to_boundary = |s: &[f64], d: &[f64]| {
+                    let (a, b, c) = (dot(d, d), 2.0 * dot(s, d), dot(s, s) - delta * delta);
+                    (-b + (b * b - 4.0 * a * c).max(0.0).sqrt()) / (2.0 * a)
+                };
+                let alpha = rr / dhd;
+                let inside = dhd > 0.0 && {
+                    let s1: Vec<f64> = s.iter().zip(&d).map(|(a, b)| a + alpha * b).collect();
+                    norm(&s1) < delta
+                };
+                if !inside {
+                    let tau = to_boundary(&s, &d);
+                    for k in 0..n {
+                        s[k] += tau * d[k];
+                        hs[k] += tau * hd[k];
+                    }
+                    break;
+                }
+                for k in 0..n {
+                    s[k] += alpha * d[k];
+                    hs[k] += alpha * hd[k];
+                    r[k] += alpha * hd[k];
+                }
+                let rr1 = dot(&r, &r);
+                if rr1 <= stop {
+                    break;
+                }
+                let beta = rr1 / rr;
+                for k in 0..n {
+                    d[k] = -r[k] + beta * d[k];
+                }
+            }
+            let delta = radius.expect("set by the first product");
+            let predicted = -(dot(&g, &s) + 0.5 * dot(&s, &hs));
+            let trial: Vec<f64> = x.iter().zip(&s).map(|(a, b)| a + b).collect();
+            let (rho, next) = match product(&trial, &zero, true) {
+                Ok(h) if h.loss.is_finite() && h.grad.iter().all(|v| v.is_finite()) => {
+                    ((cur.loss - h.loss) / predicted, Some(h))
+                }
+                Ok(_) => (f64::NEG_INFINITY, None),
+                Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
+                Err(e) => return Err(e),
+            };
+            let step = norm(&s);
+            radius = Some(if rho < 0.25 {
+                0.25 * step
+            } else if rho > 0.75 && step >= 0.99 * delta {
+                2.0 * delta
+            } else {
+                delta
+            });
+            match next {
+                Some(h) if rho > 1e-4 => {
+                    x = trial;
+                    cur = h;
+                    if cur.loss < best.loss {
+                        best = point(&cur, &x);
+                    }
+                    break;
+                }
+                _ => {
+                    rejected += 1;
+                    if rejected > 60 || !(predicted > 0.0) && rejected > 1 {
+                        params.set_values(&best.values);
+                        return Ok((
+                            best,
+                            End::NoProgress {
+                                message: format!(
+                                    "the trust region shrank to {:.3e} without a step lowering \
+                                 the loss",
+                                    radius.unwrap_or(0.0)
+                                ),
+                                non_finite: None,
+                            },
+                        ));
+                    }
+                    // Again from x, in the smaller region.
+                }
+            }
+        }
+    }
+    unreachable!("the loop returns")
+}
