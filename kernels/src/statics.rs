@@ -450,8 +450,12 @@ impl Equilibrium {
             &inputs,
             &[&x],
             || x.assign(&unflat::<R>(&x1)),
-            move || shared.backward(),
-        );
+            {
+                let shared = shared.clone();
+                move || shared.backward()
+            },
+        )
+        .with_tangent(move || shared.tangent());
         Ok((
             State {
                 x,
@@ -518,13 +522,70 @@ impl<R: Real> Shared<R> {
         Ok(())
     }
 
+    /// Forward mode by the implicit function theorem: `K dx* = M da` on the free DOFs, `da`
+    /// the tangent of the accelerations at `x*` for the input tangents (the parameters', and
+    /// the guess's at the pinned DOFs, which `x*` follows). Fails per the policy if the
+    /// solve misses its tolerance.
+    fn tangent(&self) -> Result<(), Error> {
+        let Some(out) = self.x.tangent_buffer() else {
+            return Ok(());
+        };
+        let m = self.x_val.len();
+        let sys = System::new(
+            copies(&self.model, None, false),
+            self.x_val.clone(),
+            &self.inv_mass,
+            self.model.gravity,
+        );
+        let mut p = sys.eval_with(&self.x_val, false);
+        check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Tangent)?;
+        let dguess = self
+            .guess
+            .tangent_buffer()
+            .map_or_else(|| vec![0.0; m], |t| flat(&t));
+        let dpin: Vec<f64> = (0..m)
+            .map(|k| if sys.dofs.free[k] { 0.0 } else { dguess[k] })
+            .collect();
+        for l in &sys.c.links {
+            l.share_tangent(true);
+        }
+        p.x.ensure_tangent().assign(&unflat::<R>(&dpin));
+        p.v.ensure_tangent();
+        let ran = p.tape.tangent();
+        let ad =
+            p.a.tangent_buffer()
+                .map_or_else(|| vec![0.0; m], |t| flat(&t));
+        for l in &sys.c.links {
+            l.share_tangent(false);
+        }
+        ran.map_err(|e| sys.failure.in_pass("tangent (forward-mode)", e))?;
+        let mut rhs: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * ad[k]).collect();
+        sys.mask(&mut rhs);
+        let settings = self.solver.gradient_settings();
+        let (mut dx, info, _) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
+        self.check_gradient_solve("tangent", &info)?;
+        for k in 0..m {
+            if !sys.dofs.free[k] {
+                dx[k] = dpin[k];
+            }
+        }
+        out.assign(&unflat::<R>(&dx));
+        Ok(())
+    }
+
     fn check_adjoint(&self, info: &SolveInfo) -> Result<(), Error> {
+        self.check_gradient_solve("adjoint", info)
+    }
+
+    /// The policy's answer to a gradient solve (`which`: adjoint or tangent) that missed its
+    /// tolerance.
+    fn check_gradient_solve(&self, which: &str, info: &SolveInfo) -> Result<(), Error> {
         if info.converged {
             return Ok(());
         }
         let s = self.solver.gradient_settings();
         self.solver.on_failure.handle(Error::NotConverged {
-            solver: "Equilibrium adjoint linear solve (CG, then BiCGSTAB)".into(),
+            solver: format!("Equilibrium {which} linear solve (CG, then BiCGSTAB)"),
             context: String::new(),
             iterations: info.iterations,
             residual: info.residual,

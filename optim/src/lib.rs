@@ -51,6 +51,7 @@ mod lbfgs;
 mod newton;
 mod params;
 
+pub use newton::Residuals;
 pub use params::{Bounds, Params};
 
 /// The update rule.
@@ -434,7 +435,7 @@ impl<'a> Optimizer<'a> {
             let mut tape = Tape::new();
             let l = loss(&mut tape)?;
             if std::mem::take(&mut first) {
-                params.check_used(&tape, &l)?;
+                params.check_used(&tape, &[&l])?;
             }
             tape.backward(&l)?;
             let dim = l.len() * L::DIM;

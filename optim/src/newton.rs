@@ -73,10 +73,10 @@ impl Optimizer<'_> {
     /// assert!(report.converged(), "{report}");
     /// assert!((p.get(0) - 2.0).abs() < 1e-8 && (p.get(1) + 1.5).abs() < 1e-8);
     /// ```
-    pub fn least_squares<T: Element>(
+    pub fn least_squares<Rs: Residuals>(
         self,
         params: &Params,
-        mut residuals: impl FnMut(&mut Tape) -> Result<Array<T>, Error>,
+        mut residuals: impl FnMut(&mut Tape) -> Result<Rs, Error>,
     ) -> Result<Report, Error> {
         let (cg_iters, lambda) = match self.method {
             Method::GaussNewton { cg_iters } => (cg_iters, None),
@@ -95,30 +95,36 @@ impl Optimizer<'_> {
         let start = Instant::now();
         let counts = Counts::default();
         let mut first = true;
-        let mut record = |x: &[f64]| -> Result<Recorded<T>, Error> {
+        let mut record = |x: &[f64]| -> Result<Recorded, Error> {
             params.set_values(x);
             params.zero_grads();
             let mut tape = Tape::new();
-            let r = residuals(&mut tape)?;
+            let r = residuals(&mut tape)?.into_arrays();
             counts.evaluated(1);
+            let outputs: Vec<&dyn AnyArray> = r.iter().map(|a| &**a).collect();
             if std::mem::take(&mut first) {
-                params.check_used(&tape, &r)?;
+                params.check_used(&tape, &outputs)?;
             }
-            let rv: Vec<f64> = (0..r.len() * T::DIM).map(|k| r.scalar(k)).collect();
+            let mut rv = Vec::new();
+            for a in &r {
+                for k in 0..a.len() * a.element_dim() {
+                    let v = a.scalar(k);
+                    if !v.is_finite() {
+                        return Err(Error::InvalidInput {
+                            what: format!(
+                                "residual `{}` component {k} (evaluation {})",
+                                a.label(),
+                                counts.evaluations.get()
+                            ),
+                            message: format!(
+                                "is {v}: the simulation diverged at these parameter values"
+                            ),
+                        });
+                    }
+                    rv.push(v);
+                }
+            }
             let loss = 0.5 * rv.iter().map(|x| x * x).sum::<f64>();
-            if let Some(k) = rv.iter().position(|x| !x.is_finite()) {
-                return Err(Error::InvalidInput {
-                    what: format!(
-                        "residual `{}` component {k} (evaluation {})",
-                        r.label(),
-                        counts.evaluations.get()
-                    ),
-                    message: format!(
-                        "is {}: the simulation diverged at these parameter values",
-                        rv[k]
-                    ),
-                });
-            }
             counts.offer(loss, x);
             Ok(Recorded { tape, r, rv, loss })
         };
@@ -216,13 +222,35 @@ impl Optimizer<'_> {
 
 use crate::Report;
 
-/// A recorded residual: the tape, the residual array, its values and `½ |r|²`.
-struct Recorded<T> {
+/// What [`Optimizer::least_squares`]'s closure returns: one residual array, or several
+/// (every differentiable component of each is one residual).
+pub trait Residuals {
+    /// The arrays, in order.
+    fn into_arrays(self) -> Vec<Box<dyn AnyArray>>;
+}
+
+impl<T: Element> Residuals for Array<T> {
+    fn into_arrays(self) -> Vec<Box<dyn AnyArray>> {
+        vec![Box::new(self)]
+    }
+}
+
+impl<T: Element> Residuals for Vec<Array<T>> {
+    fn into_arrays(self) -> Vec<Box<dyn AnyArray>> {
+        self.into_iter()
+            .map(|a| Box::new(a) as Box<dyn AnyArray>)
+            .collect()
+    }
+}
+
+/// A recorded residual: the tape, the residual arrays, their values and `½ |r|²`.
+struct Recorded {
     tape: Tape,
-    r: Array<T>,
+    r: Vec<Box<dyn AnyArray>>,
     rv: Vec<f64>,
     loss: f64,
 }
+
 
 struct LeastSquares {
     cg_iters: usize,
@@ -291,20 +319,21 @@ fn cg(
     Ok(d)
 }
 
-fn least_squares_run<T: Element>(
+fn least_squares_run(
     params: &Params,
     config: &LeastSquares,
     start: Instant,
     counts: &Counts,
-    record: &mut dyn FnMut(&[f64]) -> Result<Recorded<T>, Error>,
+    record: &mut dyn FnMut(&[f64]) -> Result<Recorded, Error>,
     observe: &mut Observe<'_>,
 ) -> Result<(Best, End), Error> {
     let arrays = params.arrays();
     let mut x = params.values();
     let mut cur = record(&x)?;
-    let gradient = |cur: &mut Recorded<T>| -> Result<Vec<f64>, Error> {
-        let out: [&dyn AnyArray; 1] = [&cur.r];
-        let g = cur.tape.vjp(&out, &cur.rv, &arrays)?;
+    let gradient = |cur: &mut Recorded| -> Result<Vec<f64>, Error> {
+        let Recorded { tape, r, rv, .. } = cur;
+        let out: Vec<&dyn AnyArray> = r.iter().map(|a| &**a).collect();
+        let g = tape.vjp(&out, rv, &arrays)?;
         counts.passed(1);
         Ok(g)
     };
@@ -338,9 +367,10 @@ fn least_squares_run<T: Element>(
             return Ok((best, End::Stop(Stop::MaxIterations)));
         }
         let tol = forcing(norm(&g), g0);
-        let gn = |rec: &mut Recorded<T>, v: &[f64]| -> Result<Vec<f64>, Error> {
+        let gn = |rec: &mut Recorded, v: &[f64]| -> Result<Vec<f64>, Error> {
             let Recorded { tape, r, .. } = rec;
-            let p = tape.gauss_newton(&arrays, &[r as &dyn AnyArray], v)?;
+            let out: Vec<&dyn AnyArray> = r.iter().map(|a| &**a).collect();
+            let p = tape.gauss_newton(&arrays, &out, v)?;
             counts.passed(2);
             Ok(p)
         };

@@ -204,16 +204,18 @@ impl Params {
         Ok(out)
     }
 
-    /// [`Error::InvalidInput`] naming the first parameter `loss` does not depend on in `tape`.
-    pub(crate) fn check_used(&self, tape: &Tape, loss: &dyn AnyArray) -> Result<(), Error> {
-        match self.entries.iter().find(|e| !tape.depends(loss, &*e.array)) {
+    /// [`Error::InvalidInput`] naming the first parameter none of `losses` depends on in
+    /// `tape`.
+    pub(crate) fn check_used(&self, tape: &Tape, losses: &[&dyn AnyArray]) -> Result<(), Error> {
+        let unused = |e: &&Entry| !losses.iter().any(|l| tape.depends(*l, &*e.array));
+        match self.entries.iter().find(unused) {
             Some(e) => Err(Error::InvalidInput {
                 what: format!("optimization parameter {}", e.array.label()),
                 message: format!(
                     "the recorded loss `{}` does not depend on it: pass the array the \
                      simulation reads (e.g. from `model.param(..)`), or remove it from the \
                      parameters",
-                    loss.label()
+                    losses.iter().map(|l| l.label()).collect::<Vec<_>>().join("`, `")
                 ),
             }),
             None => Ok(()),
