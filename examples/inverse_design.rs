@@ -91,7 +91,17 @@ fn errors(x: &[Vec3<f64>], target: &[Vec3<f64>]) -> (f64, f64) {
     (rms, d.iter().fold(0.0, |m: f64, d| m.max(*d)))
 }
 
-pub fn run(cfg: &Config) -> Result<Outcome, Error> {
+/// The cable with its initial rest lengths, the target, and the equilibrium it starts from.
+pub struct Scene {
+    pub model: Model<f64>,
+    /// The springs' rest lengths: the design variables.
+    pub rest: Array<f64>,
+    pub target: Vec<Vec3<f64>>,
+    pub recorded: Array<Vec3<f64>>,
+    pub first: State<f64>,
+}
+
+pub fn scene(cfg: &Config) -> Result<Scene, Error> {
     let n = cfg.segments;
     let h = cfg.span / n as f64;
     // The cable starts as a shallow curve (the side it hangs to), with every rest length the
@@ -113,9 +123,25 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     let rest = model.param::<f64>("springs", "rest")?;
     let target = parabola(cfg);
     let recorded = Array::from_vec(target.clone());
-    let solver = Equilibrium::default();
+    let first = Equilibrium::default().solve(&model, &mut Tape::new(), &model.state())?;
+    Ok(Scene {
+        model,
+        rest,
+        target,
+        recorded,
+        first,
+    })
+}
 
-    let first = solver.solve(&model, &mut Tape::new(), &model.state())?;
+pub fn run(cfg: &Config) -> Result<Outcome, Error> {
+    let Scene {
+        model,
+        rest,
+        target,
+        recorded,
+        first,
+    } = scene(cfg)?;
+    let solver = Equilibrium::default();
     let (initial_error, _) = errors(&first.x.to_vec(), &target);
 
     // Warm start every solve from the last equilibrium.

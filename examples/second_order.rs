@@ -11,13 +11,26 @@
 //! - Newton-CG with a trust region on Hessian-vector products by forward over reverse, the
 //!   simulation run in `Dual` (`adflex::runtime::second_order`), `Optimizer::minimize_newton`.
 //!
-//! The chart is the loss against passes over the simulation (forward, backward or tangent
-//! sweeps), the cost measure the methods share.
+//! Then the inverse-design demo's cable (`examples/inverse_design.rs`: rest lengths for which
+//! the equilibrium is a target parabola) by L-BFGS, Gauss-Newton and Levenberg-Marquardt; its
+//! products go through the equilibrium solve by the implicit function theorem (a tangent and
+//! an adjoint linear solve each). Newton-CG is not run there: the equilibrium solve computes
+//! in `f64` and refuses `Dual` (no second-order term of the implicit function theorem yet).
+//!
+//! The charts are the loss against passes over the simulation (forward, backward or tangent
+//! sweeps; for the cable, equilibrium solves and linear solves), the cost measure the methods
+//! share.
 //!
 //! Run: `cargo run --release --example second_order`
 
-use adflex::optim::{Optimizer, Params, Report};
+use adflex::kernels::losses;
+use adflex::kernels::statics::Equilibrium;
+use adflex::optim::{Bounds, Optimizer, Params, Report};
 use adflex::prelude::*;
+
+#[path = "inverse_design.rs"]
+#[allow(dead_code)]
+pub mod inverse_design;
 
 /// What the demo runs.
 pub struct Config {
@@ -100,7 +113,11 @@ fn net<R: Real>(ke: &[f64], kd: &[f64]) -> Model<R> {
                 l(1.2 * r as f64 - 0.4 * c as f64),
             );
             // The top corners pinned.
-            let m = if r == 0 && c != 1 { 0.0 } else { 0.05 + 0.02 * c as f64 };
+            let m = if r == 0 && c != 1 {
+                0.0
+            } else {
+                0.05 + 0.02 * c as f64
+            };
             b.add_particle(x, v, l(m));
         }
     }
@@ -150,7 +167,11 @@ fn residuals<R: Real>(
         s = SemiImplicitEuler.step(model, tape, &s, None, R::lit(cfg.dt))?;
         if t % cfg.every == 0 {
             let r = Array::<Vec3<R>>::zeros(s.x.len());
-            tape.launch(difference, s.x.len(), (&s.x, &recorded[t / cfg.every - 1], &r));
+            tape.launch(
+                difference,
+                s.x.len(),
+                (&s.x, &recorded[t / cfg.every - 1], &r),
+            );
             out.push(r);
         }
     }
@@ -263,6 +284,63 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     })
 }
 
+/// The inverse-design cable of `cfg` fitted by L-BFGS, Gauss-Newton and Levenberg-Marquardt
+/// on the loss `½ |x* - target|²`, every method from the same rest lengths. Each run's
+/// `worst_relative_error` is the largest distance from the target after it, relative to the
+/// sag.
+pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Error> {
+    let sc = inverse_design::scene(cfg)?;
+    let rest0 = sc.rest.to_vec();
+    let solver = Equilibrium::default();
+    let n = sc.model.particle_count;
+    let miss = |guess: &State<f64>| -> Result<f64, Error> {
+        let x = solver.solve(&sc.model, &mut Tape::new(), guess)?.x.to_vec();
+        Ok(x.iter()
+            .zip(&sc.target)
+            .map(|(a, b)| (*a - *b).norm())
+            .fold(0.0, f64::max)
+            / cfg.sag)
+    };
+    let mut runs = Vec::new();
+    // Every solve warm starts from the last equilibrium.
+    let mut guess = sc.first.deep_clone();
+    // L-BFGS as the inverse-design demo runs it, with the rest lengths kept positive (its
+    // line search's long trial steps otherwise reach equilibria the warm start cannot leave).
+    let bounded = Params::new().bounded(&sc.rest, Bounds::positive());
+    let report = optimizer(opt, Optimizer::lbfgs()).minimize(&bounded, |tape| {
+        let eq = solver.solve(&sc.model, tape, &guess)?;
+        guess = eq.deep_clone();
+        let loss = Array::zeros(1);
+        losses::frame_mismatch(tape, &eq.x, &sc.recorded, 0.5, &loss);
+        Ok(loss)
+    })?;
+    runs.push(Run {
+        name: "L-BFGS",
+        worst_relative_error: miss(&guess)?,
+        report,
+    });
+    for (name, o) in [
+        ("Gauss-Newton", Optimizer::gauss_newton()),
+        ("Levenberg-Marquardt", Optimizer::levenberg_marquardt()),
+    ] {
+        sc.rest.assign(&rest0);
+        let mut guess = sc.first.deep_clone();
+        let report = optimizer(opt, o).least_squares(&Params::new().with(&sc.rest), |tape| {
+            let eq = solver.solve(&sc.model, tape, &guess)?;
+            guess = eq.deep_clone();
+            let r = Array::<Vec3<f64>>::zeros(n);
+            tape.launch(difference, n, (&eq.x, &sc.recorded, &r));
+            Ok(r)
+        })?;
+        runs.push(Run {
+            name,
+            worst_relative_error: miss(&guess)?,
+            report,
+        });
+    }
+    Ok(runs)
+}
+
 /// Passes of `report` until its loss first falls to `level` (`None`: never).
 pub fn passes_to(report: &Report, level: f64) -> Option<usize> {
     report
@@ -272,20 +350,18 @@ pub fn passes_to(report: &Report, level: f64) -> Option<usize> {
         .map(|i| i.passes)
 }
 
-#[allow(dead_code)]
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let cfg = Config::full();
-    let out = run(&cfg)?;
-    let l0 = out.runs[0].report.initial_loss;
-    let level = 1e-10 * l0;
-    println!(
-        "{} springs (stiffness and damping), {} residuals; loss {:.3e} at the guess; passes to reach {:.1e} (1e-10 of it):",
-        SPRINGS, out.residuals, l0, level
-    );
-    for r in &out.runs {
+/// Prints the runs' passes to `level` and writes their chart as `dir/name.{svg,png}`.
+fn report(
+    runs: &[Run],
+    level: f64,
+    dir: &std::path::Path,
+    name: &str,
+    title: &str,
+) -> Result<(), Box<dyn std::error::Error>> {
+    for r in runs {
         println!(
             "  {:<20} {:>6} passes, {:>4} iterations, {:>7.2} s; final loss {:.2e}, worst \
-             stiffness error {:.1e}; {}",
+             error {:.1e}; {}",
             r.name,
             passes_to(&r.report, level).map_or("never".into(), |p| p.to_string()),
             r.report.iterations,
@@ -295,10 +371,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             r.report.stop
         );
     }
-    let dir = std::path::Path::new("target/demos/second_order");
-    std::fs::create_dir_all(dir)?;
-    let series: Vec<(&str, Vec<(f64, f64)>)> = out
-        .runs
+    let series: Vec<(&str, Vec<(f64, f64)>)> = runs
         .iter()
         .map(|r| {
             let pts = r
@@ -313,13 +386,57 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let refs: Vec<(&str, &[(f64, f64)])> = series.iter().map(|(n, p)| (*n, &p[..])).collect();
     for ext in ["svg", "png"] {
         adflex::viz::plot::curves(
-            dir.join(format!("passes.{ext}")),
-            "system identification: loss against passes over the simulation",
-            "passes (forward, backward or tangent sweeps)",
-            "loss ½|r|²",
+            dir.join(format!("{name}.{ext}")),
+            title,
+            "passes over the simulation",
+            "loss",
             &refs,
         )?;
     }
-    println!("chart: {}/passes.{{svg,png}}", dir.display());
+    Ok(())
+}
+
+#[allow(dead_code)]
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let cfg = Config::full();
+    let dir = std::path::Path::new("target/demos/second_order");
+    std::fs::create_dir_all(dir)?;
+    let out = run(&cfg)?;
+    let l0 = out.runs[0].report.initial_loss;
+    let level = 1e-10 * l0;
+    println!(
+        "identification: {} spring stiffnesses, {} residuals; loss {:.3e} at the guess; passes \
+         to reach {:.1e} (1e-10 of it); worst error = largest relative stiffness error:",
+        SPRINGS, out.residuals, l0, level
+    );
+    report(
+        &out.runs,
+        level,
+        dir,
+        "identification",
+        "identification: loss against passes",
+    )?;
+    let runs = design(&inverse_design::Config::full(), &cfg)?;
+    let l0 = runs[0].report.initial_loss;
+    let level = 1e-10 * l0;
+    println!(
+        "inverse design: {} rest lengths; loss {:.3e} at the start; passes (equilibrium solves \
+         and linear solves) to reach {:.1e}; worst error = largest distance from the target / \
+         sag:",
+        inverse_design::Config::full().segments,
+        l0,
+        level
+    );
+    report(
+        &runs,
+        level,
+        dir,
+        "design",
+        "inverse design: loss against passes",
+    )?;
+    println!(
+        "charts: {}/{{identification,design}}.{{svg,png}}",
+        dir.display()
+    );
     Ok(())
 }

@@ -158,6 +158,63 @@ fn parameter_estimation_recovers_stiffness_damping_and_friction() {
     assert_eq!(out.frames.len(), out.recorded.len() * 5 - 4);
 }
 
+#[path = "../examples/second_order.rs"]
+#[allow(dead_code)]
+mod second_order;
+
+/// Gauss-Newton, Levenberg-Marquardt and Newton-CG identify the net's stiffnesses and design
+/// the cable in a handful of iterations, where L-BFGS takes many, and in fewer passes over
+/// the simulation.
+#[test]
+fn second_order_methods_take_fewer_iterations_and_passes_than_lbfgs() {
+    let cfg = second_order::Config::small();
+    let out = second_order::run(&cfg).unwrap();
+    let design =
+        second_order::design(&second_order::inverse_design::Config::small(), &cfg).unwrap();
+    for (problem, runs) in [("identification", &out.runs), ("design", &design)] {
+        let lbfgs = &runs[0];
+        let level = 1e-10 * lbfgs.report.initial_loss;
+        let base = second_order::passes_to(&lbfgs.report, level).unwrap_or_else(|| {
+            panic!(
+                "{problem}: L-BFGS does not reach {level:e}: {}",
+                lbfgs.report
+            )
+        });
+        for r in runs {
+            println!(
+                "{problem}: {:<20} {} iterations, {:?} passes to {level:.1e}, worst error {:.1e}",
+                r.name,
+                r.report.iterations,
+                second_order::passes_to(&r.report, level),
+                r.worst_relative_error
+            );
+            assert!(r.report.converged(), "{problem}, {}: {}", r.name, r.report);
+            assert!(
+                r.worst_relative_error < 1e-6,
+                "{problem}, {}: worst error {:e}",
+                r.name,
+                r.worst_relative_error
+            );
+            if r.name == "L-BFGS" {
+                continue;
+            }
+            assert!(
+                5 * r.report.iterations <= lbfgs.report.iterations,
+                "{problem}, {}: {} iterations against L-BFGS's {}",
+                r.name,
+                r.report.iterations,
+                lbfgs.report.iterations
+            );
+            let passes = second_order::passes_to(&r.report, level).unwrap();
+            assert!(
+                passes < base,
+                "{problem}, {}: {passes} passes against L-BFGS's {base}",
+                r.name
+            );
+        }
+    }
+}
+
 #[path = "../examples/soft_body.rs"]
 #[allow(dead_code)]
 mod soft_body;

@@ -351,11 +351,17 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
     let guess = model.state();
     let inputs: [&dyn AnyArray; 4] = [&rest, &ke, &w, &guess.x];
     let n_in: usize = inputs.iter().map(|a| a.len() * a.element_dim()).sum();
-    let mut v: Vec<f64> = (0..n_in).map(|k| ((k * 37 % 11) as f64 - 5.0) / 5.0).collect();
+    let mut v: Vec<f64> = (0..n_in)
+        .map(|k| ((k * 37 % 11) as f64 - 5.0) / 5.0)
+        .collect();
     // Inverse masses: only the free particles' (a pinned particle's 0 stays 0); small steps.
     let off = rest.len() + ke.len();
     for i in 0..w.len() {
-        v[off + i] = if w.get(i) > 0.0 { v[off + i] * 0.5 } else { 0.0 };
+        v[off + i] = if w.get(i) > 0.0 {
+            v[off + i] * 0.5
+        } else {
+            0.0
+        };
     }
     let solver = Equilibrium {
         tolerance: Some(1e-14),
@@ -370,7 +376,9 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
     let outputs: [&dyn AnyArray; 1] = [&eq.x];
     let jv = tape.jvp(&inputs, &v, &outputs).unwrap();
     let n_out = 3 * model.particle_count;
-    let wv: Vec<f64> = (0..n_out).map(|k| ((k * 13 % 7) as f64 - 3.0) / 3.0).collect();
+    let wv: Vec<f64> = (0..n_out)
+        .map(|k| ((k * 13 % 7) as f64 - 3.0) / 3.0)
+        .collect();
     let jtw = tape.vjp(&outputs, &wv, &inputs).unwrap();
     let lhs: f64 = jv.iter().zip(&wv).map(|(a, b)| a * b).sum();
     let rhs: f64 = v.iter().zip(&jtw).map(|(a, b)| a * b).sum();
@@ -381,7 +389,11 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
     // J v against central differences of the re-solved equilibrium along v.
     let base: Vec<Vec<f64>> = inputs
         .iter()
-        .map(|a| (0..a.len() * a.element_dim()).map(|k| a.scalar(k)).collect())
+        .map(|a| {
+            (0..a.len() * a.element_dim())
+                .map(|k| a.scalar(k))
+                .collect()
+        })
         .collect();
     let solve_at = |s: f64| -> Vec<f64> {
         let mut k = 0;
@@ -399,7 +411,12 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
         x.iter().flat_map(|p| [p.x, p.y, p.z]).collect()
     };
     let h = 1e-4;
-    let (p1, m1, p2, m2) = (solve_at(h), solve_at(-h), solve_at(2.0 * h), solve_at(-2.0 * h));
+    let (p1, m1, p2, m2) = (
+        solve_at(h),
+        solve_at(-h),
+        solve_at(2.0 * h),
+        solve_at(-2.0 * h),
+    );
     solve_at(0.0);
     let scale = jv.iter().fold(1e-6f64, |m, x| m.max(x.abs()));
     for k in 0..n_out {

@@ -88,10 +88,11 @@ pub enum Method {
     },
     /// Levenberg-Marquardt for a least-squares loss ([`Optimizer::least_squares`]): each step
     /// solves `(JᵀJ + λ I) d = -Jᵀr` by conjugate gradients on Gauss-Newton products; a step
-    /// that lowers the loss is taken and `λ` shrinks (Nielsen's rule), one that does not is
-    /// retried with a larger `λ` (no new simulation).
+    /// whose decrease matches the model's is taken and `λ` shrinks (Nielsen's rule); one that
+    /// overshoots is backtracked along `d` (Armijo, a forward pass per halving) and `λ` grows;
+    /// if that fails too, the step is solved again with a larger `λ`.
     LevenbergMarquardt {
-        /// The initial `λ` relative to the curvature `gᵀJᵀJg / gᵀg` at the start (1e-3).
+        /// The initial `λ` relative to the curvature `gᵀJᵀJg / gᵀg` at the start (1e-6).
         lambda: f64,
         /// Conjugate-gradient iterations per step at most (20).
         cg_iters: usize,

@@ -18,12 +18,12 @@ impl Optimizer<'_> {
         Self::new(Method::GaussNewton { cg_iters: 20 })
     }
 
-    /// Levenberg-Marquardt ([`Method::LevenbergMarquardt`]) with `λ` starting at 1e-3 times
+    /// Levenberg-Marquardt ([`Method::LevenbergMarquardt`]) with `λ` starting at 1e-6 times
     /// the curvature along the gradient and 20 conjugate-gradient iterations per step; run it
     /// with [`Optimizer::least_squares`].
     pub fn levenberg_marquardt() -> Self {
         Self::new(Method::LevenbergMarquardt {
-            lambda: 1e-3,
+            lambda: 1e-6,
             cg_iters: 20,
         })
     }
@@ -251,7 +251,6 @@ struct Recorded {
     loss: f64,
 }
 
-
 struct LeastSquares {
     cg_iters: usize,
     lambda: Option<f64>,
@@ -447,6 +446,32 @@ fn least_squares_run(
                         break;
                     }
                     _ => {
+                        // The model overshot: first backtrack along d (a forward pass per
+                        // halving, no new solve), then damp the next step more.
+                        let slope = dot(&g, &d);
+                        let mut t = 0.5;
+                        let mut taken = None;
+                        while slope < 0.0 && t >= 1.0 / 64.0 {
+                            let trial: Vec<f64> =
+                                x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
+                            match record(&trial) {
+                                Ok(rec) if rec.loss <= cur.loss + 1e-4 * t * slope => {
+                                    taken = Some((trial, rec));
+                                    break;
+                                }
+                                Ok(_) => {}
+                                Err(e) if trial_failure(&e) => {}
+                                Err(e) => return Err(e),
+                            }
+                            t *= 0.5;
+                        }
+                        if let Some((trial, rec)) = taken {
+                            lambda = Some(lam * nu);
+                            nu *= 2.0;
+                            x = trial;
+                            cur = rec;
+                            break;
+                        }
                         let l = lam * nu;
                         nu *= 2.0;
                         if l > 1e16 * lam.max(f64::MIN_POSITIVE) || !l.is_finite() || nu > 1e30 {

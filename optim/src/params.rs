@@ -215,7 +215,11 @@ impl Params {
                     "the recorded loss `{}` does not depend on it: pass the array the \
                      simulation reads (e.g. from `model.param(..)`), or remove it from the \
                      parameters",
-                    losses.iter().map(|l| l.label()).collect::<Vec<_>>().join("`, `")
+                    losses
+                        .iter()
+                        .map(|l| l.label())
+                        .collect::<Vec<_>>()
+                        .join("`, `")
                 ),
             }),
             None => Ok(()),
