@@ -42,7 +42,7 @@ impl Optimizer<'_> {
     /// One iteration records the residuals once (a forward pass), takes the gradient `Jᵀr`
     /// (an adjoint pass), and runs conjugate gradients on `JᵀJ (+ λ I)` with one
     /// Gauss-Newton product (a tangent and an adjoint pass) per CG iteration, to a relative
-    /// residual of `min(0.5, sqrt(|g| / |g₀|))`; then one forward pass per trial point.
+    /// residual of `min(0.1, sqrt(|g| / |g₀|))`; then one forward pass per trial point.
     ///
     /// Errors: as [`Optimizer::minimize`]; [`Error::InvalidInput`] for another method, or
     /// for a bounded parameter (these methods take unbounded parameters: bound by a change
@@ -145,7 +145,7 @@ impl Optimizer<'_> {
     /// Hessian-vector product being one forward and one backward pass in `Dual`.
     ///
     /// An iteration runs Steihaug's truncated conjugate gradients inside the trust region
-    /// (to a relative residual of `min(0.5, sqrt(|g| / |g₀|))`, at a negative curvature or the
+    /// (to a relative residual of `min(0.1, sqrt(|g| / |g₀|))`, at a negative curvature or the
     /// region's boundary), then evaluates the trial point; the ratio of actual to predicted
     /// decrease accepts it and resizes the region.
     ///
@@ -273,7 +273,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 /// The relative tolerance of the inner conjugate gradients (a forcing term: loose far from
 /// the minimum, tight near it, for superlinear convergence).
 fn forcing(g: f64, g0: f64) -> f64 {
-    (g / g0.max(f64::MIN_POSITIVE)).sqrt().min(0.5)
+    (g / g0.max(f64::MIN_POSITIVE)).sqrt().min(0.1)
 }
 
 /// Conjugate gradients on `A d = -g` from `d = 0`, `A` given by `apply`: at most `iters`

@@ -388,3 +388,195 @@ fn minimize_with_takes_a_checkpointed_rollout() {
         k.get(0)
     );
 }
+
+/// `r_i = p_0 exp(p_1 t_i) + p_2 - y_i` with `t_i = i / 10`: a nonlinear least-squares fit.
+#[diff_kernel]
+fn exp_residual<R: Real>(p: &Array<R>, y: &Array<R>, r: &Array<R>) {
+    let i = tid();
+    let t = 0.1 * (i as R);
+    r[i] = p[0] * exp(p[1] * t) + p[2] - y[i];
+}
+
+/// `loss = 100 (y - x^2)^2 + (1 - x)^2` (Rosenbrock) plus a quartic coupling of a third
+/// variable with a saddle at the start.
+#[diff_kernel]
+fn rosenbrock3<R: Real>(p: &Array<R>, loss: &Array<R>) {
+    let x = p[0];
+    let y = p[1];
+    let z = p[2];
+    loss.atomic_add(
+        0,
+        100.0 * (y - x * x) * (y - x * x) + (1.0 - x) * (1.0 - x) + z * z * z * z - z * z,
+    );
+}
+
+fn samples() -> Array<f64> {
+    Array::from_vec(
+        (0..30)
+            .map(|i| 2.0 * (-1.5 * 0.1 * i as f64).exp() + 0.3)
+            .collect(),
+    )
+}
+
+/// Gauss-Newton and Levenberg-Marquardt fit a nonlinear model in a few iterations (quadratic
+/// convergence at a zero-residual solution), counting their passes over the simulation.
+#[test]
+fn gauss_newton_and_levenberg_marquardt_fit_in_a_few_iterations() {
+    let y = samples();
+    for opt in [Optimizer::gauss_newton(), Optimizer::levenberg_marquardt()] {
+        let p = Array::from_vec(vec![1.0f64, 0.0, 0.0]).named("p");
+        let report = opt
+            .grad_tol(1e-13)
+            .progress(false)
+            .least_squares(&Params::new().with(&p), |tape| {
+                let r = Array::zeros(30);
+                tape.launch(exp_residual, 30, (&p, &y, &r));
+                Ok(r)
+            })
+            .unwrap();
+        assert!(report.converged(), "{report}");
+        assert!(report.iterations <= 15, "{report}");
+        let v = p.to_vec();
+        assert!(
+            (v[0] - 2.0).abs() < 1e-9 && (v[1] + 1.5).abs() < 1e-9 && (v[2] - 0.3).abs() < 1e-9,
+            "{v:?}: {report}"
+        );
+        // Every iteration at least records, differentiates and multiplies once.
+        assert!(report.passes >= 4 * report.iterations, "{report}");
+        assert_eq!(report.history.last().unwrap().passes <= report.passes, true);
+    }
+}
+
+/// Newton-CG leaves a region of negative curvature (along z, near the maximum z = 0) for the
+/// minimum, and takes fewer iterations than L-BFGS through Rosenbrock's valley.
+#[test]
+fn newton_cg_handles_negative_curvature_and_beats_lbfgs_on_iterations() {
+    let p = Array::from_vec(vec![
+        Dual::constant(-1.2),
+        Dual::constant(1.0),
+        Dual::constant(0.1),
+    ]);
+    let newton = Optimizer::newton_cg()
+        .grad_tol(1e-10)
+        .progress(false)
+        .minimize_newton(&Params::new().with(&p), |tape| {
+            let l = Array::<Dual>::zeros(1);
+            tape.launch(rosenbrock3, 1, (&p, &l));
+            Ok(l)
+        })
+        .unwrap();
+    assert!(newton.converged(), "{newton}");
+    let v: Vec<f64> = p.to_vec().iter().map(|d| d.re).collect();
+    assert!(
+        (v[0] - 1.0).abs() < 1e-8 && (v[1] - 1.0).abs() < 1e-8,
+        "{v:?}"
+    );
+    // d2/dz2 = 12 z^2 - 2 < 0 at the start: the step follows the negative curvature to z^2 = 1/2.
+    assert!((v[2] - 0.5f64.sqrt()).abs() < 1e-8, "{v:?}: {newton}");
+    assert!(newton.loss < -0.25 + 1e-12, "{newton}");
+
+    let q = Array::from_vec(vec![-1.2f64, 1.0, 0.1]);
+    let lbfgs = Optimizer::lbfgs()
+        .grad_tol(1e-10)
+        .max_iters(500)
+        .progress(false)
+        .minimize(&Params::new().with(&q), |tape| {
+            let l = Array::<f64>::zeros(1);
+            tape.launch(rosenbrock3, 1, (&q, &l));
+            Ok(l)
+        })
+        .unwrap();
+    assert!(lbfgs.converged(), "{lbfgs}");
+    assert!(
+        newton.iterations < lbfgs.iterations,
+        "Newton-CG {} iterations, L-BFGS {}",
+        newton.iterations,
+        lbfgs.iterations
+    );
+}
+
+/// The second-order methods say what they cannot do: another method's entry point, bounded
+/// parameters, parameters that are not `Dual` for Newton-CG, a residual that is not finite.
+#[test]
+fn second_order_methods_refuse_what_they_cannot_run() {
+    let y = samples();
+    let p = Array::from_vec(vec![1.0f64, 0.0, 0.0]).named("p");
+    let residual = |tape: &mut Tape| {
+        let r = Array::zeros(30);
+        tape.launch(exp_residual, 30, (&p, &y, &r));
+        Ok(r)
+    };
+    let e = Optimizer::lbfgs()
+        .progress(false)
+        .least_squares(&Params::new().with(&p), residual)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("least_squares") && e.contains("Gauss-Newton"),
+        "{e}"
+    );
+    let e = Optimizer::gauss_newton()
+        .progress(false)
+        .minimize(&Params::new().with(&p), |tape| {
+            let l = Array::<f64>::zeros(1);
+            tape.launch(rosenbrock3, 1, (&p, &l));
+            Ok(l)
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("least_squares"), "{e}");
+    let e = Optimizer::levenberg_marquardt()
+        .progress(false)
+        .least_squares(&Params::new().bounded(&p, Bounds::positive()), residual)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("`p`") || e.contains(" p"), "{e}");
+    assert!(e.contains("unbounded"), "{e}");
+    let e = Optimizer::newton_cg()
+        .progress(false)
+        .minimize_newton(&Params::new().with(&p), |tape| {
+            let l = Array::<f64>::zeros(1);
+            tape.launch(rosenbrock3, 1, (&p, &l));
+            Ok(l)
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("Dual"), "{e}");
+    let nan = Array::from_vec(vec![f64::NAN; 30]);
+    let e = Optimizer::gauss_newton()
+        .progress(false)
+        .least_squares(&Params::new().with(&p), |tape| {
+            let r = Array::zeros(30);
+            tape.launch(exp_residual, 30, (&p, &nan, &r));
+            Ok(r)
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("residual") && e.contains("NaN"), "{e}");
+}
+
+/// A Levenberg-Marquardt trial point where the simulation fails (a non-finite residual) is a
+/// rejected step, not the end of the run.
+#[test]
+fn a_failing_trial_point_is_a_rejected_step() {
+    // r = [10 (x - 3), sqrt(4 - x) - 1]: undefined (NaN) past x = 4, where a full step from
+    // x = -20 lands; the minimum is at x = 3.
+    #[diff_kernel]
+    fn guarded<R: Real>(p: &Array<R>, r: &Array<R>) {
+        let x = p[0];
+        r[0] = 10.0 * (x - 3.0);
+        r[1] = sqrt(4.0 - x) - 1.0;
+    }
+    let p = Array::from_vec(vec![-20.0f64]);
+    let report = Optimizer::levenberg_marquardt()
+        .grad_tol(1e-12)
+        .progress(false)
+        .least_squares(&Params::new().with(&p), |tape| {
+            let r = Array::zeros(2);
+            tape.launch(guarded, 1, (&p, &r));
+            Ok(r)
+        })
+        .unwrap();
+    assert!(report.converged(), "{report}");
+    assert!((p.get(0) - 3.0).abs() < 1e-9, "{}: {report}", p.get(0));
+}
