@@ -13,6 +13,7 @@ pub mod peers;
 pub mod robots;
 pub mod scatter;
 pub mod scene_file;
+pub mod second_order;
 pub mod small;
 pub mod smoke;
 pub mod timing;

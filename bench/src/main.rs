@@ -26,6 +26,9 @@
 //! - `smoke [--n 110] [--steps 100] [--iters 3] [--jacobi 30] [--python PATH]`: the
 //!   smoke-control task per optimization iteration, CG and Jacobi pressure; with `--python`,
 //!   Taichi (Jacobi) and JAX (CG and Jacobi) in the same run, their losses and the ratios
+//! - `second-order [--n 32] [--steps 100] [--rounds 5]`: a Hessian-vector product (forward
+//!   over reverse, in `Dual`) and a Gauss-Newton product on the cloth scene, against a
+//!   gradient in the same run, and the ratios
 //! - `scene-file [--mb 50] [--file PATH]`: reading a large JSON scene against plain
 //!   serde_json, time and peak RSS of each in its own process, as JSON lines
 //! - `charts --out docs/charts [--peers FILE] [--quick] [--only NAME,..]`: every chart as SVG
@@ -116,6 +119,7 @@ fn main() {
         "worlds" => worlds::main(rest),
         "mpm" => mpm::main(rest),
         "smoke" => smoke::main(rest),
+        "second-order" => second_order::main(rest),
         "worlds-case" => println!("{}", worlds::case(rest)),
         "cloth" => match cloth::parse(rest) {
             Ok(o) => println!("{}", cloth::run(&o)),
@@ -125,7 +129,7 @@ fn main() {
             }
         },
         _ => {
-            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots|worlds|mpm|smoke> [options] (see src/main.rs)");
+            eprintln!("usage: adflex-bench <scatter|kernels|overhead|cloth|peers|charts|scene-file|robots|worlds|mpm|smoke|second-order> [options] (see src/main.rs)");
             std::process::exit(2);
         }
     }

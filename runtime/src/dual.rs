@@ -69,12 +69,14 @@ impl Dual {
 }
 
 impl fmt::Debug for Dual {
+    #[inline]
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "{:?}+{:?}ε", self.re, self.eps)
     }
 }
 
 impl fmt::Display for Dual {
+    #[inline]
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "{}+{}ε", self.re, self.eps)
     }
@@ -96,6 +98,7 @@ impl PartialOrd for Dual {
 }
 
 impl From<f64> for Dual {
+    #[inline]
     fn from(x: f64) -> Self {
         Dual::constant(x)
     }
@@ -166,15 +169,18 @@ assign_ops!(AddAssign add_assign +, SubAssign sub_assign -, MulAssign mul_assign
     DivAssign div_assign /, RemAssign rem_assign %);
 
 impl Zero for Dual {
+    #[inline]
     fn zero() -> Self {
         Dual::constant(0.0)
     }
+    #[inline]
     fn is_zero(&self) -> bool {
         self.re == 0.0
     }
 }
 
 impl One for Dual {
+    #[inline]
     fn one() -> Self {
         Dual::constant(1.0)
     }
@@ -182,30 +188,37 @@ impl One for Dual {
 
 impl Num for Dual {
     type FromStrRadixErr = <f64 as Num>::FromStrRadixErr;
+    #[inline]
     fn from_str_radix(s: &str, radix: u32) -> Result<Self, Self::FromStrRadixErr> {
         f64::from_str_radix(s, radix).map(Dual::constant)
     }
 }
 
 impl FromPrimitive for Dual {
+    #[inline]
     fn from_i64(n: i64) -> Option<Self> {
         Some(Dual::constant(n as f64))
     }
+    #[inline]
     fn from_u64(n: u64) -> Option<Self> {
         Some(Dual::constant(n as f64))
     }
+    #[inline]
     fn from_f64(n: f64) -> Option<Self> {
         Some(Dual::constant(n))
     }
+    #[inline]
     fn from_f32(n: f32) -> Option<Self> {
         Some(Dual::constant(n as f64))
     }
 }
 
 impl Signed for Dual {
+    #[inline]
     fn abs(&self) -> Self {
         ComplexField::abs(*self)
     }
+    #[inline]
     fn abs_sub(&self, o: &Self) -> Self {
         if self.re <= o.re {
             Dual::zero()
@@ -213,12 +226,15 @@ impl Signed for Dual {
             *self - *o
         }
     }
+    #[inline]
     fn signum(&self) -> Self {
         Dual::constant(self.re.signum())
     }
+    #[inline]
     fn is_positive(&self) -> bool {
         self.re > 0.0
     }
+    #[inline]
     fn is_negative(&self) -> bool {
         self.re < 0.0
     }
@@ -226,27 +242,33 @@ impl Signed for Dual {
 
 impl AbsDiffEq for Dual {
     type Epsilon = Dual;
+    #[inline]
     fn default_epsilon() -> Dual {
         Dual::constant(f64::default_epsilon())
     }
+    #[inline]
     fn abs_diff_eq(&self, o: &Self, e: Dual) -> bool {
         self.re.abs_diff_eq(&o.re, e.re)
     }
 }
 
 impl RelativeEq for Dual {
+    #[inline]
     fn default_max_relative() -> Dual {
         Dual::constant(f64::default_max_relative())
     }
+    #[inline]
     fn relative_eq(&self, o: &Self, e: Dual, r: Dual) -> bool {
         self.re.relative_eq(&o.re, e.re, r.re)
     }
 }
 
 impl UlpsEq for Dual {
+    #[inline]
     fn default_max_ulps() -> u32 {
         f64::default_max_ulps()
     }
+    #[inline]
     fn ulps_eq(&self, o: &Self, e: Dual, m: u32) -> bool {
         self.re.ulps_eq(&o.re, e.re, m)
     }
@@ -256,21 +278,27 @@ impl SimdValue for Dual {
     const LANES: usize = 1;
     type Element = Dual;
     type SimdBool = bool;
+    #[inline]
     fn splat(v: Dual) -> Self {
         v
     }
+    #[inline]
     fn extract(&self, _: usize) -> Dual {
         *self
     }
+    #[inline]
     unsafe fn extract_unchecked(&self, _: usize) -> Dual {
         *self
     }
+    #[inline]
     fn replace(&mut self, _: usize, v: Dual) {
         *self = v
     }
+    #[inline]
     unsafe fn replace_unchecked(&mut self, _: usize, v: Dual) {
         *self = v
     }
+    #[inline]
     fn select(self, cond: bool, other: Self) -> Self {
         if cond {
             self
@@ -283,12 +311,15 @@ impl SimdValue for Dual {
 impl Field for Dual {}
 
 impl SubsetOf<Dual> for Dual {
+    #[inline]
     fn to_superset(&self) -> Dual {
         *self
     }
+    #[inline]
     fn from_superset_unchecked(e: &Dual) -> Self {
         *e
     }
+    #[inline]
     fn is_in_subset(_: &Dual) -> bool {
         true
     }
@@ -297,12 +328,15 @@ impl SubsetOf<Dual> for Dual {
 macro_rules! float_subset {
     ($($t:ty),*) => {$(
         impl SubsetOf<Dual> for $t {
+            #[inline]
             fn to_superset(&self) -> Dual {
                 Dual::constant(*self as f64)
             }
+            #[inline]
             fn from_superset_unchecked(e: &Dual) -> Self {
                 e.re as $t
             }
+            #[inline]
             fn is_in_subset(e: &Dual) -> bool {
                 e.eps == 0.0
             }
@@ -314,21 +348,27 @@ float_subset!(f32, f64);
 impl ComplexField for Dual {
     type RealField = Dual;
 
+    #[inline]
     fn from_real(re: Dual) -> Self {
         re
     }
+    #[inline]
     fn real(self) -> Dual {
         self
     }
+    #[inline]
     fn imaginary(self) -> Dual {
         Dual::zero()
     }
+    #[inline]
     fn modulus(self) -> Dual {
         self.abs()
     }
+    #[inline]
     fn modulus_squared(self) -> Dual {
         self * self
     }
+    #[inline]
     fn argument(self) -> Dual {
         if self.re >= 0.0 {
             Dual::zero()
@@ -336,33 +376,43 @@ impl ComplexField for Dual {
             Dual::pi()
         }
     }
+    #[inline]
     fn norm1(self) -> Dual {
         self.abs()
     }
+    #[inline]
     fn scale(self, factor: Dual) -> Self {
         self * factor
     }
+    #[inline]
     fn unscale(self, factor: Dual) -> Self {
         self / factor
     }
+    #[inline]
     fn floor(self) -> Self {
         Dual::constant(self.re.floor())
     }
+    #[inline]
     fn ceil(self) -> Self {
         Dual::constant(self.re.ceil())
     }
+    #[inline]
     fn round(self) -> Self {
         Dual::constant(self.re.round())
     }
+    #[inline]
     fn trunc(self) -> Self {
         Dual::constant(self.re.trunc())
     }
+    #[inline]
     fn fract(self) -> Self {
         Dual::new(self.re.fract(), self.eps)
     }
+    #[inline]
     fn mul_add(self, a: Self, b: Self) -> Self {
         self * a + b
     }
+    #[inline]
     fn abs(self) -> Dual {
         if self.re < 0.0 {
             -self
@@ -370,92 +420,119 @@ impl ComplexField for Dual {
             self
         }
     }
+    #[inline]
     fn hypot(self, o: Self) -> Dual {
         (self * self + o * o).sqrt()
     }
+    #[inline]
     fn recip(self) -> Self {
         Dual::one() / self
     }
+    #[inline]
     fn conjugate(self) -> Self {
         self
     }
+    #[inline]
     fn sin(self) -> Self {
         self.chain(self.re.sin(), self.re.cos())
     }
+    #[inline]
     fn cos(self) -> Self {
         self.chain(self.re.cos(), -self.re.sin())
     }
+    #[inline]
     fn sin_cos(self) -> (Self, Self) {
         (self.sin(), self.cos())
     }
+    #[inline]
     fn tan(self) -> Self {
         let t = self.re.tan();
         self.chain(t, 1.0 + t * t)
     }
+    #[inline]
     fn asin(self) -> Self {
         self.chain(self.re.asin(), 1.0 / (1.0 - self.re * self.re).sqrt())
     }
+    #[inline]
     fn acos(self) -> Self {
         self.chain(self.re.acos(), -1.0 / (1.0 - self.re * self.re).sqrt())
     }
+    #[inline]
     fn atan(self) -> Self {
         self.chain(self.re.atan(), 1.0 / (1.0 + self.re * self.re))
     }
+    #[inline]
     fn sinh(self) -> Self {
         self.chain(self.re.sinh(), self.re.cosh())
     }
+    #[inline]
     fn cosh(self) -> Self {
         self.chain(self.re.cosh(), self.re.sinh())
     }
+    #[inline]
     fn tanh(self) -> Self {
         let t = self.re.tanh();
         self.chain(t, 1.0 - t * t)
     }
+    #[inline]
     fn asinh(self) -> Self {
         self.chain(self.re.asinh(), 1.0 / (self.re * self.re + 1.0).sqrt())
     }
+    #[inline]
     fn acosh(self) -> Self {
         self.chain(self.re.acosh(), 1.0 / (self.re * self.re - 1.0).sqrt())
     }
+    #[inline]
     fn atanh(self) -> Self {
         self.chain(self.re.atanh(), 1.0 / (1.0 - self.re * self.re))
     }
+    #[inline]
     fn log(self, base: Dual) -> Self {
         self.ln() / base.ln()
     }
+    #[inline]
     fn log2(self) -> Self {
         self.chain(self.re.log2(), 1.0 / (self.re * std::f64::consts::LN_2))
     }
+    #[inline]
     fn log10(self) -> Self {
         self.chain(self.re.log10(), 1.0 / (self.re * std::f64::consts::LN_10))
     }
+    #[inline]
     fn ln(self) -> Self {
         self.chain(self.re.ln(), 1.0 / self.re)
     }
+    #[inline]
     fn ln_1p(self) -> Self {
         self.chain(self.re.ln_1p(), 1.0 / (1.0 + self.re))
     }
+    #[inline]
     fn sqrt(self) -> Self {
         let s = self.re.sqrt();
         self.chain(s, 0.5 / s)
     }
+    #[inline]
     fn exp(self) -> Self {
         let e = self.re.exp();
         self.chain(e, e)
     }
+    #[inline]
     fn exp2(self) -> Self {
         let e = self.re.exp2();
         self.chain(e, e * std::f64::consts::LN_2)
     }
+    #[inline]
     fn exp_m1(self) -> Self {
         self.chain(self.re.exp_m1(), self.re.exp())
     }
+    #[inline]
     fn powi(self, n: i32) -> Self {
         if n == 0 {
             return Dual::one();
         }
         self.chain(self.re.powi(n), n as f64 * self.re.powi(n - 1))
     }
+    #[inline]
     fn powf(self, n: Dual) -> Self {
         let p = self.re.powf(n.re);
         // d(x^n) = n x^(n-1) dx + x^n ln(x) dn; the second term only where it is defined.
@@ -471,28 +548,35 @@ impl ComplexField for Dual {
         };
         Dual::new(p, dx + dn)
     }
+    #[inline]
     fn powc(self, n: Self) -> Self {
         self.powf(n)
     }
+    #[inline]
     fn cbrt(self) -> Self {
         let c = self.re.cbrt();
         self.chain(c, 1.0 / (3.0 * c * c))
     }
+    #[inline]
     fn is_finite(&self) -> bool {
         self.re.is_finite() && self.eps.is_finite()
     }
+    #[inline]
     fn try_sqrt(self) -> Option<Self> {
         (self.re >= 0.0).then(|| self.sqrt())
     }
 }
 
 impl RealField for Dual {
+    #[inline]
     fn is_sign_positive(&self) -> bool {
         self.re.is_sign_positive()
     }
+    #[inline]
     fn is_sign_negative(&self) -> bool {
         self.re.is_sign_negative()
     }
+    #[inline]
     fn copysign(self, sign: Self) -> Self {
         if self.re.is_sign_negative() == sign.re.is_sign_negative() {
             self
@@ -500,6 +584,7 @@ impl RealField for Dual {
             -self
         }
     }
+    #[inline]
     fn max(self, o: Self) -> Self {
         if o.re > self.re {
             o
@@ -507,6 +592,7 @@ impl RealField for Dual {
             self
         }
     }
+    #[inline]
     fn min(self, o: Self) -> Self {
         if o.re < self.re {
             o
@@ -514,9 +600,11 @@ impl RealField for Dual {
             self
         }
     }
+    #[inline]
     fn clamp(self, lo: Self, hi: Self) -> Self {
         RealField::min(RealField::max(self, lo), hi)
     }
+    #[inline]
     fn atan2(self, x: Self) -> Self {
         // d atan2(y, x) = (x dy - y dx) / (x^2 + y^2)
         let r2 = self.re * self.re + x.re * x.re;
@@ -525,54 +613,71 @@ impl RealField for Dual {
             (x.re * self.eps - self.re * x.eps) / r2,
         )
     }
+    #[inline]
     fn min_value() -> Option<Self> {
         Some(Dual::constant(f64::MIN))
     }
+    #[inline]
     fn max_value() -> Option<Self> {
         Some(Dual::constant(f64::MAX))
     }
+    #[inline]
     fn pi() -> Self {
         Dual::constant(std::f64::consts::PI)
     }
+    #[inline]
     fn two_pi() -> Self {
         Dual::constant(std::f64::consts::TAU)
     }
+    #[inline]
     fn frac_pi_2() -> Self {
         Dual::constant(std::f64::consts::FRAC_PI_2)
     }
+    #[inline]
     fn frac_pi_3() -> Self {
         Dual::constant(std::f64::consts::FRAC_PI_3)
     }
+    #[inline]
     fn frac_pi_4() -> Self {
         Dual::constant(std::f64::consts::FRAC_PI_4)
     }
+    #[inline]
     fn frac_pi_6() -> Self {
         Dual::constant(std::f64::consts::FRAC_PI_6)
     }
+    #[inline]
     fn frac_pi_8() -> Self {
         Dual::constant(std::f64::consts::FRAC_PI_8)
     }
+    #[inline]
     fn frac_1_pi() -> Self {
         Dual::constant(std::f64::consts::FRAC_1_PI)
     }
+    #[inline]
     fn frac_2_pi() -> Self {
         Dual::constant(std::f64::consts::FRAC_2_PI)
     }
+    #[inline]
     fn frac_2_sqrt_pi() -> Self {
         Dual::constant(std::f64::consts::FRAC_2_SQRT_PI)
     }
+    #[inline]
     fn e() -> Self {
         Dual::constant(std::f64::consts::E)
     }
+    #[inline]
     fn log2_e() -> Self {
         Dual::constant(std::f64::consts::LOG2_E)
     }
+    #[inline]
     fn log10_e() -> Self {
         Dual::constant(std::f64::consts::LOG10_E)
     }
+    #[inline]
     fn ln_2() -> Self {
         Dual::constant(std::f64::consts::LN_2)
     }
+    #[inline]
     fn ln_10() -> Self {
         Dual::constant(std::f64::consts::LN_10)
     }
@@ -597,16 +702,20 @@ impl crate::Value for Dual {
     fn acc_neg(&mut self, o: Self) {
         *self = *self - o;
     }
+    #[inline]
     fn component(&self, _: usize) -> f64 {
         self.re
     }
+    #[inline]
     fn set_component(&mut self, _: usize, x: f64) {
         self.re = x;
     }
     const DUAL: bool = true;
+    #[inline]
     fn eps_component(&self, _: usize) -> f64 {
         self.eps
     }
+    #[inline]
     fn set_eps_component(&mut self, _: usize, x: f64) {
         self.eps = x;
     }

@@ -15,7 +15,8 @@ use adflex_runtime::prelude::*;
 /// gives a nonzero gradient for a particle above the ground, the standard remedy for the
 /// vanishing gradients of penalty contact (cf. "leaky" contact in DiffTaichi/gradSim). The
 /// gradient is then not the derivative of the simulation: gradient checks must use `leak = 0`.
-#[diff_func(adjoint = contact_depth_adjoint, tangent = contact_depth_tangent)]
+/// The rules compute in `R`, so they run in `Dual` (`dual_safe`): second-order passes go through.
+#[diff_func(adjoint = contact_depth_adjoint, tangent = contact_depth_tangent, dual_safe)]
 pub fn contact_depth<R: Real>(d: R, leak: R) -> R {
     min(d, 0.0)
 }
