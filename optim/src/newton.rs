@@ -42,7 +42,8 @@ impl Optimizer<'_> {
     /// One iteration records the residuals once (a forward pass), takes the gradient `Jᵀr`
     /// (an adjoint pass), and runs conjugate gradients on `JᵀJ (+ λ I)` with one
     /// Gauss-Newton product (a tangent and an adjoint pass) per CG iteration, to a relative
-    /// residual of `min(0.1, sqrt(|g| / |g₀|))`; then one forward pass per trial point.
+    /// residual set by Eisenstat and Walker's forcing term; then one forward pass per trial
+    /// point.
     ///
     /// Errors: as [`Optimizer::minimize`]; [`Error::InvalidInput`] for another method, or
     /// for a bounded parameter (these methods take unbounded parameters: bound by a change
@@ -145,9 +146,10 @@ impl Optimizer<'_> {
     /// Hessian-vector product being one forward and one backward pass in `Dual`.
     ///
     /// An iteration runs Steihaug's truncated conjugate gradients inside the trust region
-    /// (to a relative residual of `min(0.1, sqrt(|g| / |g₀|))`, at a negative curvature or the
-    /// region's boundary), then evaluates the trial point; the ratio of actual to predicted
-    /// decrease accepts it and resizes the region.
+    /// until a relative residual set by Eisenstat and Walker's forcing term (loose while the
+    /// outer iteration converges slowly, tight once it converges fast), a negative curvature
+    /// or the region's boundary; then it evaluates the trial point, and the ratio of actual to
+    /// predicted decrease accepts it and resizes the region.
     ///
     /// Errors: as [`Optimizer::minimize`]; those of [`hvp`] (a parameter not `Dual`, a step
     /// that cannot run in `Dual`); [`Error::InvalidInput`] for another method or a bounded
@@ -270,10 +272,36 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-/// The relative tolerance of the inner conjugate gradients (a forcing term: loose far from
-/// the minimum, tight near it, for superlinear convergence).
-fn forcing(g: f64, g0: f64) -> f64 {
-    (g / g0.max(f64::MIN_POSITIVE)).sqrt().min(0.1)
+/// The relative tolerance of the inner conjugate gradients (Eisenstat and Walker's second
+/// forcing term): 0.5 at the first step, then `0.9 (|g_k| / |g_{k-1}|)²`, so loose while the
+/// outer iteration converges slowly and tight once it converges fast; safeguarded against
+/// falling too quickly, and at most 0.5.
+struct Forcing {
+    eta: f64,
+    last: Option<f64>,
+}
+
+impl Forcing {
+    fn new() -> Self {
+        Forcing {
+            eta: 0.5,
+            last: None,
+        }
+    }
+
+    /// The tolerance for the step at gradient norm `g`.
+    fn next(&mut self, g: f64) -> f64 {
+        if let Some(prev) = self.last.filter(|p| *p > 0.0) {
+            let mut eta = 0.9 * (g / prev).powi(2);
+            let floor = 0.9 * self.eta * self.eta;
+            if floor > 0.1 {
+                eta = eta.max(floor);
+            }
+            self.eta = eta.min(0.5);
+        }
+        self.last = Some(g);
+        self.eta
+    }
 }
 
 /// Conjugate gradients on `A d = -g` from `d = 0`, `A` given by `apply`: at most `iters`
@@ -345,7 +373,7 @@ fn least_squares_run(
         stationarity: norm(g),
     };
     let mut best = point(cur.loss, &x, &g);
-    let g0 = norm(&g);
+    let mut forcing = Forcing::new();
     // Levenberg-Marquardt's damping (set from the curvature at the first step) and Nielsen's
     // growth factor.
     let mut lambda: Option<f64> = None;
@@ -365,7 +393,7 @@ fn least_squares_run(
         if iter == config.max_iters {
             return Ok((best, End::Stop(Stop::MaxIterations)));
         }
-        let tol = forcing(norm(&g), g0);
+        let tol = forcing.next(norm(&g));
         let gn = |rec: &mut Recorded, v: &[f64]| -> Result<Vec<f64>, Error> {
             let Recorded { tape, r, .. } = rec;
             let out: Vec<&dyn AnyArray> = r.iter().map(|a| &**a).collect();
@@ -525,7 +553,7 @@ fn newton_cg_run(
         stationarity: norm(&h.grad),
     };
     let mut best = point(&cur, &x);
-    let g0 = norm(&cur.grad);
+    let mut forcing = Forcing::new();
     let mut radius: Option<f64> = None;
     for iter in 0.. {
         let g = cur.grad.clone();
@@ -545,7 +573,7 @@ fn newton_cg_run(
             params.set_values(&best.values);
             return Ok((best, End::Stop(Stop::MaxIterations)));
         }
-        let tol = forcing(norm(&g), g0);
+        let tol = forcing.next(norm(&g));
         let mut rejected = 0;
         loop {
             // Steihaug's truncated CG on H s = -g inside |s| <= radius.
