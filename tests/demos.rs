@@ -13,9 +13,8 @@ mod cartpole_policy;
 #[path = "../examples/cartpole_swingup.rs"]
 #[allow(dead_code)]
 mod cartpole_swingup;
-#[path = "../examples/inverse_design.rs"]
-#[allow(dead_code)]
-mod inverse_design;
+// The inverse-design demo is loaded once, inside the second-order demo that uses it.
+use second_order::inverse_design;
 #[path = "../examples/parameter_estimation.rs"]
 #[allow(dead_code)]
 mod parameter_estimation;
@@ -169,8 +168,7 @@ mod second_order;
 fn second_order_methods_take_fewer_iterations_and_passes_than_lbfgs() {
     let cfg = second_order::Config::small();
     let out = second_order::run(&cfg).unwrap();
-    let design =
-        second_order::design(&second_order::inverse_design::Config::small(), &cfg).unwrap();
+    let design = second_order::design(&inverse_design::Config::small(), &cfg).unwrap();
     for (problem, runs) in [("identification", &out.runs), ("design", &design)] {
         let lbfgs = &runs[0];
         let level = 1e-10 * lbfgs.report.initial_loss;

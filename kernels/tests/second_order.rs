@@ -187,9 +187,9 @@ fn hvp_of_a_busy_kernel_matches_differences_and_is_symmetric() {
 
     // The dense Hessian is symmetric and its columns are the products.
     let h = hessian(&params, |t| busy_loss(t, &p, &vv)).unwrap();
-    for i in 0..n {
-        for j in 0..n {
-            let (x, y) = (h[i][j], h[j][i]);
+    for (i, row) in h.iter().enumerate() {
+        for (j, &x) in row.iter().enumerate() {
+            let y = h[j][i];
             assert!(
                 (x - y).abs() <= 1e-10 * x.abs().max(y.abs()).max(1.0),
                 "H[{i}][{j}]"
@@ -257,7 +257,12 @@ fn rollout_loss<R: Real + Element>(
 /// velocities, against central differences of f64 gradients; and symmetric.
 #[test]
 fn hvp_of_rollouts_matches_differences() {
-    let integrators: [(&str, Box<dyn Integrator<Dual>>, Box<dyn Integrator<f64>>); 2] = [
+    type Pair = (
+        &'static str,
+        Box<dyn Integrator<Dual>>,
+        Box<dyn Integrator<f64>>,
+    );
+    let integrators: [Pair; 2] = [
         (
             "semi-implicit Euler",
             Box::new(SemiImplicitEuler),

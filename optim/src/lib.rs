@@ -545,7 +545,7 @@ impl<'a> Optimizer<'a> {
         params: &Params,
         start: Instant,
         counts: &Counts,
-        run: &mut dyn FnMut(&mut Observe<'_>) -> Result<(Best, End), Error>,
+        run: &mut Run<'_>,
     ) -> Result<Report, Error> {
         let bar = self.progress.then(|| progress_bar(self.max_iters));
         let mut history: Vec<Iteration> = Vec::new();
@@ -731,6 +731,9 @@ pub(crate) type Evaluate<'e> = dyn FnMut(&[f64]) -> Result<Evaluation, Error> + 
 /// (the norm of the projected gradient, or of the gradient in L-BFGS's free variables):
 /// `Some(stop)` ends the run.
 pub(crate) type Observe<'e> = dyn FnMut(Iteration, f64) -> Option<Stop> + 'e;
+
+/// A method's run, given the observer: its best point and how it ended.
+pub(crate) type Run<'r> = dyn FnMut(&mut Observe<'_>) -> Result<(Best, End), Error> + 'r;
 
 /// The best point a method found.
 pub(crate) struct Best {

@@ -245,6 +245,12 @@ impl<T: Element> Residuals for Vec<Array<T>> {
     }
 }
 
+/// A linear operator on flat vectors (a product that can fail).
+type Apply<'a> = dyn FnMut(&[f64]) -> Result<Vec<f64>, Error> + 'a;
+
+/// `(x, v, is an evaluation)` -> the loss, gradient and `H v` at `x`.
+type Product<'a> = dyn FnMut(&[f64], &[f64], bool) -> Result<Hvp, Error> + 'a;
+
 /// A recorded residual: the tape, the residual arrays, their values and `½ |r|²`.
 struct Recorded {
     tape: Tape,
@@ -307,12 +313,7 @@ impl Forcing {
 /// Conjugate gradients on `A d = -g` from `d = 0`, `A` given by `apply`: at most `iters`
 /// iterations, to `|A d + g| <= tol |g|`; stops early at a direction of non-positive
 /// curvature (keeping the iterate). Returns `d` (`-g` if no iteration could run).
-fn cg(
-    g: &[f64],
-    iters: usize,
-    tol: f64,
-    apply: &mut dyn FnMut(&[f64]) -> Result<Vec<f64>, Error>,
-) -> Result<Vec<f64>, Error> {
+fn cg(g: &[f64], iters: usize, tol: f64, apply: &mut Apply<'_>) -> Result<Vec<f64>, Error> {
     let n = g.len();
     let mut d = vec![0.0; n];
     let mut r: Vec<f64> = g.iter().map(|x| -x).collect();
@@ -322,7 +323,7 @@ fn cg(
     for _ in 0..iters.max(1) {
         let ap = apply(&p)?;
         let pap = dot(&p, &ap);
-        if !(pap > 0.0) {
+        if pap.is_nan() || pap <= 0.0 {
             break;
         }
         let alpha = rr / pap;
@@ -538,7 +539,7 @@ fn newton_cg_run(
     max_iters: usize,
     start: Instant,
     counts: &Counts,
-    product: &mut dyn FnMut(&[f64], &[f64], bool) -> Result<Hvp, Error>,
+    product: &mut Product<'_>,
     observe: &mut Observe<'_>,
 ) -> Result<(Best, End), Error> {
     let mut x = params.values();
@@ -654,7 +655,8 @@ fn newton_cg_run(
                 }
                 _ => {
                     rejected += 1;
-                    if rejected > 60 || !(predicted > 0.0) && rejected > 1 {
+                    let no_model = predicted.is_nan() || predicted <= 0.0;
+                    if rejected > 60 || no_model && rejected > 1 {
                         params.set_values(&best.values);
                         return Ok((
                             best,

@@ -696,11 +696,11 @@ impl crate::Value for Dual {
     }
     #[inline(always)]
     fn acc(&mut self, o: Self) {
-        *self = *self + o;
+        *self += o;
     }
     #[inline(always)]
     fn acc_neg(&mut self, o: Self) {
-        *self = *self - o;
+        *self -= o;
     }
     #[inline]
     fn component(&self, _: usize) -> f64 {
