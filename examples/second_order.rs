@@ -1,9 +1,9 @@
-//! System identification by second-order methods, beside L-BFGS: the 20 spring stiffnesses and 20
-//! dampings of a hanging net recovered from a recorded trajectory.
+//! System identification by second-order methods, beside L-BFGS: the 20 spring stiffnesses
+//! of a hanging net recovered from a recorded trajectory.
 //!
 //! A 3 x 3 net of point masses (two top corners pinned), joined by 12 structural and 8 shear springs,
 //! is pushed and swings under gravity. A "real" run with hidden stiffnesses records the
-//! positions every 5 steps; from a uniform guess, four methods fit the 40 values by matching
+//! positions every 5 steps; from a uniform guess, four methods fit the 20 values by matching
 //! the recorded frames (the residuals `x_sim - x_recorded`, the loss `½ |r|²`):
 //! - L-BFGS on the loss's gradient (one forward and one backward pass per evaluation);
 //! - Gauss-Newton and Levenberg-Marquardt on matrix-free Gauss-Newton products
@@ -94,7 +94,7 @@ pub struct Run {
 /// What the demo found.
 pub struct Outcome {
     pub runs: Vec<Run>,
-    /// Residuals (recorded frames x free particles x 3).
+    /// Residuals (recorded frames x particles x 3; the two pinned ones' are zero).
     pub residuals: usize,
 }
 

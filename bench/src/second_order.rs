@@ -36,6 +36,15 @@ pub fn main(rest: &[String]) {
         .map(|k| ((k * 37 % 23) as f64 - 11.0) / 11.0)
         .collect();
 
+    // The product must be a number (a NaN would time a wrong answer).
+    let check = hvp(&inputs_d, &v, |tape| {
+        cloth::forward(&d, tape, steps).map(|(_, loss)| loss)
+    })
+    .expect("Hessian-vector product");
+    assert!(
+        check.hv.iter().chain(&check.grad).all(|x| x.is_finite()),
+        "the cloth's Hessian-vector product is not finite"
+    );
     let mut recorded = Tape::new();
     let (end, _) = cloth::forward(&f, &mut recorded, steps).expect("the cloth's rollout");
     let mut cases = vec![

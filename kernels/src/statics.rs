@@ -30,6 +30,10 @@
 //! added into the guess's `x` at the pinned particles. The free particles' entries of the
 //! guess are only a starting point and get nothing.
 //!
+//! Forward mode (for [`Tape::tangent`], `Tape::jvp` and Gauss-Newton products) is the same
+//! theorem the other way: `K dx* = M da`, `da` the tangent of the accelerations at `x*` for
+//! the parameters' and the pins' tangents, one linear solve with the tangent kernels.
+//!
 //! The equilibrium found is the one Newton reaches from the guess: a structure can have
 //! several (a cable hanging or standing as an arch). Start near the one you mean (and warm
 //! start from the previous solution in an optimization loop).
@@ -38,7 +42,8 @@
 //!
 //! A Newton iteration that stops above its tolerance is [`Error::NotConverged`] naming
 //! `"Equilibrium Newton"` (nothing is recorded), and an adjoint solve that does is
-//! `tape.backward`'s error naming `"Equilibrium adjoint linear solve"`, unless
+//! `tape.backward`'s error naming `"Equilibrium adjoint linear solve"` (a tangent solve's,
+//! `tape.tangent`'s naming `"Equilibrium tangent linear solve"`), unless
 //! [`Equilibrium::on_failure`] says otherwise. A NaN or infinite position or parameter, or a
 //! model with rigid bodies (which this solve does not handle), is [`Error::InvalidInput`]. A
 //! force whose tangent or adjoint pass fails (a custom step without a tangent) is that pass's
@@ -364,7 +369,8 @@ impl Equilibrium {
     ) -> Result<(State<R>, EquilibriumStats), Error> {
         adflex_runtime::second_order::refuse_dual::<R>(
             "Equilibrium::solve",
-            "use Gauss-Newton products (`Tape::gauss_newton`), which need first order only",
+            "use Gauss-Newton products (`Tape::gauss_newton`) on the simulation in f64, which \
+             need first order only",
         )?;
         let n = model.particle_count;
         if model.bodies.is_some() {

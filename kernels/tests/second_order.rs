@@ -93,7 +93,8 @@ fn set(params: &[&dyn AnyArray], x: &[f64]) {
     }
 }
 
-/// `(grad(x + h v) - grad(x - h v)) / 2h` in f64.
+/// The derivative of the f64 gradient along `v` by fourth-order central differences:
+/// `(8 (g(x + h v) - g(x - h v)) - (g(x + 2h v) - g(x - 2h v))) / 12h`.
 fn hv_by_differences(
     params: &[&dyn AnyArray],
     v: &[f64],
@@ -107,12 +108,17 @@ fn hv_by_differences(
             .map(|(a, b)| a + s * h * b)
             .collect::<Vec<_>>()
     };
-    let gp = grad_f64(params, &at(1.0), f);
-    let gm = grad_f64(params, &at(-1.0), f);
+    let (p1, m1) = (
+        grad_f64(params, &at(1.0), f),
+        grad_f64(params, &at(-1.0), f),
+    );
+    let (p2, m2) = (
+        grad_f64(params, &at(2.0), f),
+        grad_f64(params, &at(-2.0), f),
+    );
     set(params, &x);
-    gp.iter()
-        .zip(&gm)
-        .map(|(a, b)| (a - b) / (2.0 * h))
+    (0..x.len())
+        .map(|k| (8.0 * (p1[k] - m1[k]) - (p2[k] - m2[k])) / (12.0 * h))
         .collect()
 }
 
@@ -310,6 +316,64 @@ fn hvp_of_rollouts_matches_differences() {
             "{name}: {n} parameters, |H u| = {:.3e}",
             hu.hv.iter().map(|x| x * x).sum::<f64>().sqrt()
         );
+    }
+}
+
+/// Three particles pressed into the ground, joined by springs; particle 0 at rest (`at_rest`)
+/// or sliding.
+fn on_ground<R: Real>(at_rest: bool) -> Model<R> {
+    let l = |x: f64| R::lit(x);
+    let v3 = |x: f64, y: f64, z: f64| Vec3::new(l(x), l(y), l(z));
+    let mut b = ModelBuilder::<R>::new();
+    // At about the depth where the ground carries the weight (so that contact holds
+    // throughout). Sliding: fast enough that friction does not stop them, and approaching
+    // the ground (the contact damping has a kink at a normal speed of exactly 0).
+    let (v0, vn) = if at_rest { (0.0, 0.0) } else { (0.5, -0.03) };
+    let p0 = b.add_particle(v3(0.0, -0.005, 0.0), v3(v0, vn, -v0), l(1.0));
+    let p1 = b.add_particle(v3(0.3, -0.004, 0.0), v3(0.6, vn, 0.2), l(0.8));
+    let p2 = b.add_particle(v3(0.1, -0.006, 0.3), v3(-0.3, vn, 0.6), l(1.2));
+    for (i, j) in [(p0, p1), (p1, p2), (p2, p0)] {
+        b.add_spring(i, j, l(50.0), l(0.1));
+    }
+    b.set_ground(adflex_kernels::prelude::Ground {
+        ke: l(2e3),
+        kd: l(10.0),
+        mu: l(0.1),
+        ..adflex_kernels::prelude::Ground::default()
+    });
+    b.finalize()
+}
+
+/// Through ground contact and friction: from rest (a tangential speed of exactly 0, where
+/// `length`'s derivative is singular and friction has a kink) `H v` is finite and symmetric;
+/// sliding (smooth there) it matches central differences of f64 gradients.
+#[test]
+fn hvp_through_ground_contact_is_finite_from_rest_and_matches_differences_sliding() {
+    for at_rest in [true, false] {
+        let md = on_ground::<Dual>(at_rest);
+        let mf = on_ground::<f64>(at_rest);
+        let ke_d = md.param::<Dual>("springs", "ke").unwrap().requires_grad();
+        let ke_f = mf.param::<f64>("springs", "ke").unwrap().requires_grad();
+        let (vd, vf) = (md.state().v.requires_grad(), mf.state().v.requires_grad());
+        let dp: [&dyn AnyArray; 2] = [&ke_d, &vd];
+        let fp: [&dyn AnyArray; 2] = [&ke_f, &vf];
+        let mut rng = common::Rng(0x96d);
+        let u: Vec<f64> = (0..12).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let w: Vec<f64> = (0..12).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let hu = hvp(&dp, &u, |t| rollout_loss(&md, &SemiImplicitEuler, &vd, t)).unwrap();
+        let hw = hvp(&dp, &w, |t| rollout_loss(&md, &SemiImplicitEuler, &vd, t)).unwrap();
+        assert!(hu.hv.iter().all(|x| x.is_finite()), "{:?}", hu.hv);
+        let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+        assert!(
+            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+            "at rest {at_rest}: w^T H u = {a:e}, u^T H w = {b:e}"
+        );
+        if !at_rest {
+            let fd = hv_by_differences(&fp, &u, 1e-5, &mut |t| {
+                rollout_loss(&mf, &SemiImplicitEuler, &vf, t)
+            });
+            assert_close("H u through contact", &hu.hv, &fd, 1e-6);
+        }
     }
 }
 

@@ -151,9 +151,10 @@ impl Optimizer<'_> {
     /// or the region's boundary; then it evaluates the trial point, and the ratio of actual to
     /// predicted decrease accepts it and resizes the region.
     ///
-    /// Errors: as [`Optimizer::minimize`]; those of [`hvp`] (a parameter not `Dual`, a step
-    /// that cannot run in `Dual`); [`Error::InvalidInput`] for another method or a bounded
-    /// parameter.
+    /// Errors: as [`Optimizer::minimize_with`] (a parameter the loss does not read is not
+    /// detected: it keeps its value); those of [`hvp`] (a parameter not `Dual`, a step that
+    /// cannot run in `Dual`, a non-finite product at an accepted point);
+    /// [`Error::InvalidInput`] for another method or a bounded parameter.
     ///
     /// ```
     /// use adflex_optim::{Optimizer, Params};
@@ -645,7 +646,7 @@ fn newton_cg_run(
                 delta
             });
             match next {
-                Some(h) if rho > 1e-4 => {
+                Some(h) if rho > 1e-4 && predicted > 0.0 => {
                     x = trial;
                     cur = h;
                     if cur.loss < best.loss {

@@ -544,6 +544,11 @@ impl<T: Element> AnyArray for Array<T> {
         let _g = self.host_lock(false);
         // SAFETY: under the read lock nobody writes (writers hold the write lock).
         let data = unsafe { std::slice::from_raw_parts(self.data_ptr(), self.len()) };
+        if T::DUAL {
+            // The derivative parts too: a NaN there is a wrong second-order product.
+            let bad = |v: &T, k| !v.component(k).is_finite() || !v.eps_component(k).is_finite();
+            return data.iter().position(|v| (0..T::DIM).any(|k| bad(v, k)));
+        }
         // One pass without branches first, in the element's own arithmetic (integrators check
         // every new state): a sum is finite only if every term is (a finite sum that
         // overflows just takes the slow pass).

@@ -59,11 +59,13 @@ impl Dual {
     }
 
     /// `f(re) + f'(re)·eps·ε` from the value `fx = f(re)` and the derivative `dfx = f'(re)`.
+    /// A constant stays constant even where `f'` is infinite (`sqrt` at 0), not `inf · 0 =
+    /// NaN`.
     #[inline(always)]
     fn chain(self, fx: f64, dfx: f64) -> Self {
         Dual {
             re: fx,
-            eps: dfx * self.eps,
+            eps: if self.eps == 0.0 { 0.0 } else { dfx * self.eps },
         }
     }
 }
@@ -139,11 +141,13 @@ impl Div for Dual {
 
 impl Rem for Dual {
     type Output = Dual;
-    /// `a - b·trunc(a / b)`: derivative `da - db·trunc(a / b)`.
+    /// `a - b·q` with `q` the integer quotient of `fmod`: derivative `da - db·q`.
     #[inline(always)]
     fn rem(self, o: Dual) -> Dual {
-        let t = (self.re / o.re).trunc();
-        Dual::new(self.re % o.re, self.eps - o.eps * t)
+        let r = self.re % o.re;
+        // The exact quotient (`a / b` may round across an integer: 1.0 % 0.1 has q = 9).
+        let q = ((self.re - r) / o.re).round();
+        Dual::new(r, self.eps - o.eps * q)
     }
 }
 
@@ -450,12 +454,23 @@ impl ComplexField for Dual {
         self.chain(t, 1.0 + t * t)
     }
     #[inline]
+    // At |x| >= 1, like the library's rules: derivative 0 (not infinite).
     fn asin(self) -> Self {
-        self.chain(self.re.asin(), 1.0 / (1.0 - self.re * self.re).sqrt())
+        let d = if self.re.abs() < 1.0 {
+            1.0 / (1.0 - self.re * self.re).sqrt()
+        } else {
+            0.0
+        };
+        self.chain(self.re.asin(), d)
     }
     #[inline]
     fn acos(self) -> Self {
-        self.chain(self.re.acos(), -1.0 / (1.0 - self.re * self.re).sqrt())
+        let d = if self.re.abs() < 1.0 {
+            -1.0 / (1.0 - self.re * self.re).sqrt()
+        } else {
+            0.0
+        };
+        self.chain(self.re.acos(), d)
     }
     #[inline]
     fn atan(self) -> Self {
@@ -507,9 +522,10 @@ impl ComplexField for Dual {
         self.chain(self.re.ln_1p(), 1.0 / (1.0 + self.re))
     }
     #[inline]
+    // At 0, like the library's rule: derivative 0 (not infinite).
     fn sqrt(self) -> Self {
         let s = self.re.sqrt();
-        self.chain(s, 0.5 / s)
+        self.chain(s, if self.re == 0.0 { 0.0 } else { 0.5 / s })
     }
     #[inline]
     fn exp(self) -> Self {
@@ -541,7 +557,8 @@ impl ComplexField for Dual {
         } else {
             n.re * self.re.powf(n.re - 1.0) * self.eps
         };
-        let dn = if n.eps == 0.0 {
+        // x^n ln x -> 0 as x -> 0 (for n > 0).
+        let dn = if n.eps == 0.0 || p == 0.0 {
             0.0
         } else {
             p * self.re.ln() * n.eps
@@ -606,12 +623,14 @@ impl RealField for Dual {
     }
     #[inline]
     fn atan2(self, x: Self) -> Self {
-        // d atan2(y, x) = (x dy - y dx) / (x^2 + y^2)
+        // d atan2(y, x) = (x dy - y dx) / (x^2 + y^2); 0 at the origin, like the library's rule.
         let r2 = self.re * self.re + x.re * x.re;
-        Dual::new(
-            self.re.atan2(x.re),
-            (x.re * self.eps - self.re * x.eps) / r2,
-        )
+        let d = if r2 > 0.0 {
+            (x.re * self.eps - self.re * x.eps) / r2
+        } else {
+            0.0
+        };
+        Dual::new(self.re.atan2(x.re), d)
     }
     #[inline]
     fn min_value() -> Option<Self> {

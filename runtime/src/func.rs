@@ -57,6 +57,9 @@ fn refuse_dual<F>() -> ! {
 
 /// The tangent rule of a `#[diff_func]` call.
 #[inline(always)]
-pub fn call_tangent<A, O, F: DiffFunc<A, O>>(args: A, dots: A, f: &F) -> (O, O) {
+pub fn call_tangent<A, O: crate::Value, F: DiffFunc<A, O>>(args: A, dots: A, f: &F) -> (O, O) {
+    if O::DUAL && !F::DUAL_SAFE {
+        refuse_dual::<F>();
+    }
     f.tangent(args, dots)
 }

@@ -5,8 +5,8 @@
 //! derivative parts to `v`, records the loss on a fresh tape, runs the backward pass, and
 //! reads the gradients: their values are `∇L`, their derivative parts `H v`, the derivative of
 //! the whole backward pass along `v` (the adjoint code differentiated forward, rule by rule).
-//! One product costs one forward and one backward pass in `Dual` arithmetic, about 2-3
-//! gradients (`adflex-bench second-order`).
+//! One product costs one forward and one backward pass in `Dual` arithmetic: 3.8 to 4.2
+//! gradients on the cloth benchmark (`adflex-bench second-order`, `docs/performance.md`).
 //!
 //! It goes through whatever runs in the scalar type: loops, `atomic_add`, stores, every
 //! builtin, `#[diff_func]`s with generated rules, checkpointed rollouts ([`hvp_with`]).
@@ -115,18 +115,37 @@ pub fn hvp_with(
         });
     }
     set_direction(params, Some(v));
+    // The direction is cleared on every exit, a panic in `eval` included.
+    struct Clear<'a, 'b>(&'a [&'b dyn AnyArray]);
+    impl Drop for Clear<'_, '_> {
+        fn drop(&mut self) {
+            set_direction(self.0, None);
+        }
+    }
+    let clear = Clear(params);
     for p in params {
         p.reset_grad();
     }
     let out = eval();
-    set_direction(params, None);
+    drop(clear);
     let l = out?;
     let (mut grad, mut hv) = (Vec::with_capacity(n), Vec::with_capacity(n));
     for p in params {
         let g = p.grad_any().expect("reset_grad allocated it");
         for k in 0..g.len() * g.element_dim() {
-            grad.push(g.scalar(k));
-            hv.push(g.eps_scalar(k));
+            let (x, h) = (g.scalar(k), g.eps_scalar(k));
+            if !x.is_finite() || !h.is_finite() {
+                return Err(Error::NonFinite {
+                    kernel: "Hessian-vector product".into(),
+                    launch: 0,
+                    param: if x.is_finite() { "H v" } else { "gradient" }.into(),
+                    array: p.label(),
+                    index: k / g.element_dim().max(1),
+                    pass: "second-order",
+                });
+            }
+            grad.push(x);
+            hv.push(h);
         }
     }
     Ok(Hvp {

@@ -334,7 +334,6 @@ impl Tape {
         self.anomaly.as_ref()
     }
 
-    /// `Err` with [`Tape::anomaly`], if there is one.
     /// Refuses custom step `i` if it works on [`Dual`](crate::Dual) arrays without having been
     /// declared [`CustomStep::dual_safe`]: its backward might compute in `f64` and drop their
     /// derivative parts, a silently wrong Hessian-vector product.
@@ -357,6 +356,7 @@ impl Tape {
         }
     }
 
+    /// `Err` with [`Tape::anomaly`], if there is one.
     fn no_anomaly(&self) -> Result<(), Error> {
         self.anomaly.clone().map_or(Ok(()), Err)
     }

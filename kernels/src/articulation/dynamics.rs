@@ -527,7 +527,8 @@ impl<R: Real> Articulations<R> {
     fn solve(&self, tape: &mut Tape, m: &Array<R>, rhs: &Array<R>) -> Result<Array<R>, Error> {
         adflex_runtime::second_order::refuse_dual::<R>(
             "the articulations' mass-matrix solve",
-            "use Gauss-Newton products (`Tape::gauss_newton`), which need first order only",
+            "use Gauss-Newton products (`Tape::gauss_newton`) on the simulation in f64, which \
+             need first order only",
         )?;
         let (factors, blocks) = self.factor(m)?;
         let (factors, blocks) = (Arc::new(factors), Arc::new(blocks));

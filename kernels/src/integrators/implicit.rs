@@ -625,7 +625,7 @@ impl ImplicitEuler {
         adflex_runtime::second_order::refuse_dual::<R>(
             "implicit Euler's step",
             "use an explicit or semi-implicit integrator, or Gauss-Newton products \
-             (`Tape::gauss_newton`), which need first order only",
+             (`Tape::gauss_newton`) on the simulation in f64, which need first order only",
         )?;
         let n = model.particle_count;
         let mut stats = NewtonStats::default();

@@ -34,19 +34,19 @@ pub fn tan_cast<A: CastRule<B>, B>(a: A, da: A) -> B {
 use crate::Real;
 
 /// Between floats (generic both ways, so `x as R` and `x as f64` work in generic kernels):
-/// derivative 1.
+/// derivative 1. A `Dual`'s derivative part goes along (to another `Dual`).
 impl<A: Real, B: Real> CastRule<B> for A {
     #[inline(always)]
     fn cast_fwd(self) -> B {
-        B::lit(self.to_f64())
+        B::lit(self.to_f64()).with_eps(self.eps())
     }
     #[inline(always)]
     fn cast_adj(self, adj: B) -> A {
-        A::lit(adj.to_f64())
+        A::lit(adj.to_f64()).with_eps(adj.eps())
     }
     #[inline(always)]
     fn cast_tan(self, da: A) -> B {
-        B::lit(da.to_f64())
+        B::lit(da.to_f64()).with_eps(da.eps())
     }
 }
 
