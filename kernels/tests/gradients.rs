@@ -2,7 +2,7 @@
 //! against central finite differences (every scalar of every array the kernel reads) and the
 //! tangent against the adjoint (dot-product test).
 
-mod common;
+use crate::common;
 
 use adflex_kernels::constraints::{
     apply_corrections, distance_constraint_energy, solve_distance_constraints,

@@ -4,7 +4,7 @@
 //!
 //! Run with `--nocapture` to see the measured errors and orders.
 
-mod common;
+use crate::common;
 
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,

@@ -2,7 +2,7 @@
 //! forces that sum to zero, forces that vanish at rest and derive from their energies, energy
 //! behaviour of the integrator, rigid body dynamics (the tennis racket theorem), contact, XPBD.
 
-mod common;
+use crate::common;
 
 use adflex_kernels::contact::ground::{eval_ground, Ground};
 use adflex_kernels::contact::particle::{eval_particle_contact, find_pairs, ParticleContact};

@@ -3,7 +3,7 @@
 //! through rollouts of library forces and integrators (taped and checkpointed), and refused
 //! where they would be silently wrong.
 
-mod common;
+use crate::common;
 
 use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
 use adflex_kernels::{Model, ModelBuilder, State};

@@ -6,7 +6,7 @@
 //!
 //! Run with `--nocapture` to see the figures.
 
-mod common;
+use crate::common;
 
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Rk4, SemiImplicitEuler, SolverPolicy, Xpbd,

@@ -1,7 +1,7 @@
 //! Where each integrator is stable and where it fails, on an undamped spring
 //! (`omega = sqrt(k / m)`) and a stiff pendulum. Run with `--nocapture` for the figures.
 
-mod common;
+use crate::common;
 
 use adflex_kernels::integrators::{
     ExplicitEuler, ImplicitEuler, Integrator, Midpoint, Rk4, SemiImplicitEuler, Xpbd,
