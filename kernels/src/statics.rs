@@ -85,8 +85,8 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
-    add_into, check_inputs, check_visited, copies, epsilon, flat, forces_only, is_f32, record,
-    unflat, Copies, Dofs, Needs, Point,
+    acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, flat,
+    forces_only, is_f32, record, unflat, Copies, Dofs, Needs, Point,
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
@@ -552,19 +552,8 @@ impl<R: Real> Shared<R> {
         let dpin: Vec<f64> = (0..m)
             .map(|k| if sys.dofs.free[k] { 0.0 } else { dguess[k] })
             .collect();
-        for l in &sys.c.links {
-            l.share_tangent(true);
-        }
-        p.x.ensure_tangent().assign(&unflat::<R>(&dpin));
-        p.v.ensure_tangent();
-        let ran = p.tape.tangent();
-        let ad =
-            p.a.tangent_buffer()
-                .map_or_else(|| vec![0.0; m], |t| flat(&t));
-        for l in &sys.c.links {
-            l.share_tangent(false);
-        }
-        ran.map_err(|e| sys.failure.in_pass("tangent (forward-mode)", e))?;
+        // The velocities stay 0.
+        let ad = acceleration_tangent(&sys.c, &mut p, &dpin, &vec![0.0; m], &sys.failure)?;
         let mut rhs: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * ad[k]).collect();
         sys.mask(&mut rhs);
         let settings = self.solver.gradient_settings();

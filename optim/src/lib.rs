@@ -708,6 +708,18 @@ impl Counts {
         self.passes.set(self.passes.get() + passes);
     }
 
+    /// Iteration `iter` at `loss` and gradient norm `grad_norm`, with the counts so far.
+    pub fn iteration(&self, iter: usize, loss: f64, grad_norm: f64, start: Instant) -> Iteration {
+        Iteration {
+            iter,
+            loss,
+            grad_norm,
+            evaluations: self.evaluations.get(),
+            passes: self.passes.get(),
+            elapsed: start.elapsed(),
+        }
+    }
+
     /// Keeps `values` if `loss` is the lowest finite one so far.
     pub fn offer(&self, loss: f64, values: &[f64]) {
         if loss.is_finite() && !matches!(&*self.lowest.borrow(), Some((l, _)) if loss >= *l) {

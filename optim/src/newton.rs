@@ -9,7 +9,7 @@ use std::time::Instant;
 use adflex_runtime::second_order::{hvp, Hvp};
 use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
-use crate::{norm, Best, Counts, End, Iteration, Method, Observe, Optimizer, Params, Stop};
+use crate::{norm, Best, Counts, End, Method, Observe, Optimizer, Params, Stop};
 
 impl Optimizer<'_> {
     /// Gauss-Newton ([`Method::GaussNewton`]) with 20 conjugate-gradient iterations per step;
@@ -381,14 +381,7 @@ fn least_squares_run(
     let mut lambda: Option<f64> = None;
     let mut nu = 2.0;
     for iter in 0.. {
-        let it = Iteration {
-            iter,
-            loss: cur.loss,
-            grad_norm: norm(&g),
-            evaluations: counts.evaluations.get(),
-            passes: counts.passes.get(),
-            elapsed: start.elapsed(),
-        };
+        let it = counts.iteration(iter, cur.loss, norm(&g), start);
         if let Some(stop) = observe(it, norm(&g)) {
             return Ok((best, End::Stop(stop)));
         }
@@ -559,14 +552,7 @@ fn newton_cg_run(
     let mut radius: Option<f64> = None;
     for iter in 0.. {
         let g = cur.grad.clone();
-        let it = Iteration {
-            iter,
-            loss: cur.loss,
-            grad_norm: norm(&g),
-            evaluations: counts.evaluations.get(),
-            passes: counts.passes.get(),
-            elapsed: start.elapsed(),
-        };
+        let it = counts.iteration(iter, cur.loss, norm(&g), start);
         if let Some(stop) = observe(it, norm(&g)) {
             params.set_values(&best.values);
             return Ok((best, End::Stop(stop)));

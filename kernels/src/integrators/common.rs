@@ -252,6 +252,33 @@ pub(crate) struct Point<R: Real> {
     pub(crate) a_val: Vec<f64>,
 }
 
+/// The tangent of the accelerations at `p` for the state tangents `dx`, `dv` and the
+/// parameters' own tangents (the copies share them for the pass): the right-hand side of an
+/// implicit-function-theorem tangent solve. Fails as the tangent pass fails (`failure`
+/// names the solver).
+pub(crate) fn acceleration_tangent<R: Real>(
+    c: &Copies<R>,
+    p: &mut Point<R>,
+    dx: &[f64],
+    dv: &[f64],
+    failure: &crate::solver::newton::PassFailure,
+) -> Result<Vec<f64>, Error> {
+    for l in &c.links {
+        l.share_tangent(true);
+    }
+    p.x.ensure_tangent().assign(&unflat::<R>(dx));
+    p.v.ensure_tangent().assign(&unflat::<R>(dv));
+    let ran = p.tape.tangent();
+    let ad =
+        p.a.tangent_buffer()
+            .map_or_else(|| vec![0.0; dx.len()], |t| flat(&t));
+    for l in &c.links {
+        l.share_tangent(false);
+    }
+    ran.map_err(|e| failure.in_pass("tangent (forward-mode)", e))?;
+    Ok(ad)
+}
+
 /// Records the accelerations of the copies' model at `x`, `v` on a new tape.
 pub(crate) fn record<R: Real>(
     c: &Copies<R>,

@@ -97,8 +97,8 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use super::common::{
-    add_into, check_inputs, check_visited, copies, epsilon, finish_step, flat, forces_only, is_f32,
-    particles, record, step_bodies, unflat, Copies, Dofs, Needs, Point,
+    acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, finish_step,
+    flat, forces_only, is_f32, particles, record, step_bodies, unflat, Copies, Dofs, Needs, Point,
 };
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
@@ -1099,23 +1099,11 @@ impl<R: Real> Shared<R> {
         let sys = self.system(false);
         let mut p = sys.eval(&self.v1_val);
         sys.check_visited(&p, Needs::Tangent)?;
-        for l in &sys.c.links {
-            l.share_tangent(true);
-        }
         let dvp: Vec<f64> = (0..m)
             .map(|k| if sys.dofs.free[k] { 0.0 } else { dv0[k] })
             .collect();
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
-        p.x.ensure_tangent().assign(&unflat::<R>(&dxp));
-        p.v.ensure_tangent().assign(&unflat::<R>(&dvp));
-        let ran = p.tape.tangent();
-        let ad =
-            p.a.tangent_buffer()
-                .map_or_else(|| vec![0.0; m], |t| flat(&t));
-        for l in &sys.c.links {
-            l.share_tangent(false);
-        }
-        ran.map_err(|e| sys.failure.in_pass("tangent (forward-mode)", e))?;
+        let ad = acceleration_tangent(&sys.c, &mut p, &dxp, &dvp, &sys.failure)?;
         let mut rhs: Vec<f64> = (0..m)
             .map(|k| sys.dofs.mass[k] * (dv0[k] + dt * (ad[k] + dae[k])))
             .collect();
