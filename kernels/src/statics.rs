@@ -85,14 +85,16 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
-    acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, flat,
-    forces_only, is_f32, record, unflat, Copies, Dofs, Needs, Point,
+    acceleration_tangent, add_into, check_constant_masses, check_inputs, check_visited, copies,
+    epsilon, flat, flat_parts, forces_only, is_f32, record, unflat, unflat_parts, Copies, Dofs,
+    Needs, Point, Through,
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
 use crate::solver::krylov::{SolveInfo, SolveSettings};
 use crate::solver::newton::{
-    dot, max_abs, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
+    dot, max_abs, newton, solve_linear, solve_transposed, NewtonSettings, NewtonSystem, Parts,
+    PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::State;
@@ -163,26 +165,28 @@ impl<R: Real> System<R> {
         }
     }
 
-    /// Records the accelerations at `x` (zero velocities) on a new tape.
-    fn eval_with(&self, x: &[f64], grads: bool) -> Point<R> {
-        let n = x.len() / 3;
-        let mut xs = Array::from_vec(unflat::<R>(x)).named("x_equilibrium");
+    /// Records the accelerations at `x` (zero velocities) on a new tape; with derivative
+    /// parts, at the point of a Hessian-vector product's second sweep.
+    fn eval_at(&self, x: &Parts, grads: bool) -> Point<R> {
+        let n = x.re.len() / 3;
+        let mut xs = Array::from_vec(unflat_parts::<R>(x)).named("x_equilibrium");
         let vs = Array::zeros(n).named("v_equilibrium");
         if grads {
             xs = xs.requires_grad();
         }
-        record(&self.c, xs, vs, x)
+        record(&self.c, xs, vs, &x.re)
     }
 
     /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
     /// scratch tape; returns the gradient of the positions.
-    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Result<Vec<f64>, Error> {
+    fn pull(&self, p: &mut Point<R>, seed: &Parts) -> Result<Parts, Error> {
         p.x.zero_grad();
-        p.a.ensure_grad().assign(&unflat::<R>(seed));
+        p.a.ensure_grad().assign(&unflat_parts::<R>(seed));
         p.tape.backward_with(&[&p.a])?;
-        Ok(p.x
-            .grad()
-            .map_or_else(|_| vec![0.0; seed.len()], |g| flat(&g)))
+        Ok(match p.x.grad() {
+            Ok(g) => flat_parts(&g),
+            Err(_) => seed.map(|s| vec![0.0; s.len()]),
+        })
     }
 
     /// `M u` on free DOFs, 0 on pinned ones.
@@ -203,7 +207,7 @@ impl<R: Real> NewtonSystem for System<R> {
     type Point = Point<R>;
 
     fn eval(&self, x: &[f64]) -> Point<R> {
-        self.eval_with(x, false)
+        self.eval_at(&Parts::real(x.to_vec()), false)
     }
 
     fn unknowns<'a>(&self, p: &'a Point<R>) -> &'a [f64] {
@@ -288,20 +292,24 @@ impl<R: Real> NewtonSystem for System<R> {
         }
     }
 
-    /// `out = K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
-    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
-        let seed = self.seed(u);
-        let gx = match self.pull(p, &seed) {
-            Ok(g) => g,
-            Err(e) => return self.failure.fail("adjoint (reverse-mode)", e, out),
-        };
-        for k in 0..out.len() {
-            out[k] = if self.dofs.free[k] { -gx[k] } else { u[k] };
+    /// `K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
+    fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
+        let gx = self.pull(p, &Parts::real(self.seed(u)))?;
+        let mut out = gx.map(|g| {
+            (0..g.len())
+                .map(|k| if self.dofs.free[k] { -g[k] } else { 0.0 })
+                .collect()
+        });
+        for k in 0..u.len() {
+            if !self.dofs.free[k] {
+                out.re[k] = u[k];
+            }
         }
+        Ok(out)
     }
 
-    fn checked(&self) -> Result<(), Error> {
-        self.failure.take()
+    fn failure(&self) -> &PassFailure {
+        &self.failure
     }
 
     /// The net force `r = -G`.
@@ -367,11 +375,6 @@ impl Equilibrium {
         tape: &mut Tape,
         guess: &State<R>,
     ) -> Result<(State<R>, EquilibriumStats), Error> {
-        adflex_runtime::second_order::refuse_dual::<R>(
-            "Equilibrium::solve",
-            "use Gauss-Newton products (`Tape::gauss_newton`) on the simulation in f64, which \
-             need first order only",
-        )?;
         let n = model.particle_count;
         if model.bodies.is_some() {
             return Err(Error::InvalidInput {
@@ -391,6 +394,7 @@ impl Equilibrium {
             });
         }
         let inv_mass = model.particle_inv_mass.to_vec();
+        check_constant_masses("Equilibrium", &inv_mass)?;
         let x0 = flat(&guess.x);
         let sys = System::new(copies(model, None, false), x0, &inv_mass, model.gravity);
         check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
@@ -440,14 +444,22 @@ impl Equilibrium {
         }
 
         let x = Array::zeros(n).named("x");
-        let shared = Arc::new(Shared {
+        let mut shared = Shared {
             solver: self.clone(),
             model: forces_only(model),
             guess: guess.x.clone(),
             x: x.clone(),
-            x_val: x1.clone(),
+            x_val: Parts::real(x1),
             inv_mass,
-        });
+        };
+        if R::DUAL {
+            // A Hessian-vector product's first sweep: the solution's derivative part along
+            // the parameters' and the pins' (the theorem's tangent).
+            let dguess = flat_parts(&guess.x).eps.unwrap_or_default();
+            shared.x_val.eps = Some(shared.solution_tangent(&dguess, Through::DerivativeParts)?);
+        }
+        let shared = Arc::new(shared);
+        let value = unflat_parts::<R>(&shared.x_val);
         let originals = sys.c.links;
         let mut inputs: Vec<&dyn AnyArray> = vec![&guess.x];
         inputs.extend(originals.iter().map(|l| l.original()));
@@ -455,12 +467,13 @@ impl Equilibrium {
             "equilibrium",
             &inputs,
             &[&x],
-            || x.assign(&unflat::<R>(&x1)),
+            || x.assign(&value),
             {
                 let shared = shared.clone();
                 move || shared.backward()
             },
         )
+        .dual_safe()
         .with_tangent(move || shared.tangent());
         Ok((
             State {
@@ -479,48 +492,61 @@ struct Shared<R: Real> {
     model: Model<R>,
     guess: Array<Vec3<R>>,
     x: Array<Vec3<R>>,
-    x_val: Vec<f64>,
+    /// The solution, with its derivative part in `Dual`.
+    x_val: Parts,
     inv_mass: Vec<R>,
 }
 
 impl<R: Real> Shared<R> {
+    fn system(&self, grads: bool) -> System<R> {
+        System::new(
+            copies(&self.model, None, grads),
+            self.x_val.re.clone(),
+            &self.inv_mass,
+            self.model.gravity,
+        )
+    }
+
     /// Reverse mode by the implicit function theorem. Fails per the policy if the adjoint
-    /// solve misses its tolerance (nothing is accumulated then).
+    /// solve misses its tolerance (nothing is accumulated then). In `Dual`, every product is
+    /// taken at the solution with its derivative part, and the transposed solve has its
+    /// second-order term ([`solve_transposed`]).
     fn backward(&self) -> Result<(), Error> {
         let Some(gx) = self.x.grad_buffer() else {
             return Ok(());
         };
-        let xbar = flat(&gx);
-        let m = xbar.len();
-        let sys = System::new(
-            copies(&self.model, None, true),
-            self.x_val.clone(),
-            &self.inv_mass,
-            self.model.gravity,
-        );
-        let mut p = sys.eval_with(&self.x_val, true);
+        let xbar = flat_parts(&gx);
+        let m = xbar.re.len();
+        let sys = self.system(true);
+        let mut p = sys.eval_at(&self.x_val, true);
         check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Gradient)?;
-        let mut rhs = xbar.clone();
-        sys.mask(&mut rhs);
+        let rhs = xbar.map(|b| {
+            let mut r = b.to_vec();
+            sys.mask(&mut r);
+            r
+        });
         let settings = self.solver.gradient_settings();
-        let (lambda, info, _) = solve_linear(&sys, &mut p, &rhs, settings, true)?;
-        self.check_adjoint(&info)?;
+        let lambda = solve_transposed(&sys, &mut p, &rhs, settings, |info| {
+            self.check_gradient_solve("adjoint", info)
+        })?;
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
         let gx = sys
-            .pull(&mut p, &sys.seed(&lambda))
+            .pull(&mut p, &lambda.map(|l| sys.seed(l)))
             .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         // Pinned DOFs: x* = pin, which also moves the free particles' equilibrium.
-        let gpin: Vec<f64> = (0..m)
-            .map(|k| {
-                if sys.dofs.free[k] {
-                    0.0
-                } else {
-                    xbar[k] + gx[k]
-                }
-            })
-            .collect();
+        let gpin = xbar.zip(&gx, |xbar, gx| {
+            (0..m)
+                .map(|k| {
+                    if sys.dofs.free[k] {
+                        0.0
+                    } else {
+                        xbar[k] + gx[k]
+                    }
+                })
+                .collect()
+        });
         add_into(&self.guess, &gpin);
         for l in &sys.c.links {
             l.add_grad();
@@ -528,32 +554,51 @@ impl<R: Real> Shared<R> {
         Ok(())
     }
 
-    /// Forward mode by the implicit function theorem: `K dx* = M da` on the free DOFs, `da`
-    /// the tangent of the accelerations at `x*` for the input tangents (the parameters', and
-    /// the guess's at the pinned DOFs, which `x*` follows). Fails per the policy if the
-    /// solve misses its tolerance.
+    /// Forward mode by the implicit function theorem (see [`Shared::solution_tangent`]).
     fn tangent(&self) -> Result<(), Error> {
         let Some(out) = self.x.tangent_buffer() else {
             return Ok(());
         };
-        let m = self.x_val.len();
-        let sys = System::new(
-            copies(&self.model, None, false),
-            self.x_val.clone(),
-            &self.inv_mass,
-            self.model.gravity,
-        );
-        let mut p = sys.eval_with(&self.x_val, false);
-        check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Tangent)?;
+        adflex_runtime::second_order::refuse_dual::<R>(
+            "Equilibrium's forward mode",
+            "take Jacobian and Gauss-Newton products in f64; Hessian-vector products need \
+             `backward` only",
+        )?;
+        let m = self.x_val.re.len();
         let dguess = self
             .guess
             .tangent_buffer()
             .map_or_else(|| vec![0.0; m], |t| flat(&t));
+        let dx = self.solution_tangent(&dguess, Through::Tangents)?;
+        out.assign(&unflat::<R>(&dx));
+        Ok(())
+    }
+
+    /// The solution's derivative `dx*`: `K dx* = M da` on the free DOFs, `da` the derivative
+    /// of the accelerations at `x*` for the inputs' (the parameters', and the guess's
+    /// `dguess` at the pinned DOFs, which `x*` follows), taken `through` their tangents or
+    /// their derivative parts. Fails per the policy if the solve misses its tolerance.
+    fn solution_tangent(&self, dguess: &[f64], through: Through) -> Result<Vec<f64>, Error> {
+        let m = self.x_val.re.len();
+        let sys = self.system(false);
         let dpin: Vec<f64> = (0..m)
             .map(|k| if sys.dofs.free[k] { 0.0 } else { dguess[k] })
             .collect();
-        // The velocities stay 0.
-        let ad = acceleration_tangent(&sys.c, &mut p, &dpin, &vec![0.0; m], &sys.failure)?;
+        let x = Parts::real(self.x_val.re.clone());
+        let (mut p, ad) = match through {
+            Through::Tangents => {
+                let mut p = sys.eval_at(&x, false);
+                check_visited("Equilibrium", &sys.c, &p.tape, &p.x, &p.v, Needs::Tangent)?;
+                // The velocities stay 0.
+                let ad = acceleration_tangent(&sys.c, &mut p, &dpin, &vec![0.0; m], &sys.failure)?;
+                (p, ad)
+            }
+            Through::DerivativeParts => {
+                let p = sys.eval_at(&Parts { eps: Some(dpin.clone()), ..x }, false);
+                let ad = flat_parts(&p.a).eps.unwrap_or_else(|| vec![0.0; m]);
+                (p, ad)
+            }
+        };
         let mut rhs: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * ad[k]).collect();
         sys.mask(&mut rhs);
         let settings = self.solver.gradient_settings();
@@ -564,12 +609,7 @@ impl<R: Real> Shared<R> {
                 dx[k] = dpin[k];
             }
         }
-        out.assign(&unflat::<R>(&dx));
-        Ok(())
-    }
-
-    fn check_adjoint(&self, info: &SolveInfo) -> Result<(), Error> {
-        self.check_gradient_solve("adjoint", info)
+        Ok(dx)
     }
 
     /// The policy's answer to a gradient solve (`which`: adjoint or tangent) that missed its

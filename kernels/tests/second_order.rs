@@ -6,6 +6,7 @@
 use crate::common;
 
 use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
+use adflex_kernels::statics::Equilibrium;
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
@@ -211,12 +212,18 @@ fn hvp_of_a_busy_kernel_matches_differences_and_is_symmetric() {
 /// Four particles with springs, a membrane triangle, a tetrahedron and a bending hinge,
 /// built in any scalar.
 fn scene<R: Real>() -> Model<R> {
+    scene_with(false)
+}
+
+/// [`scene`], with particles 0 and 2 pinned if `pin` (so that it has one equilibrium).
+fn scene_with<R: Real>(pin: bool) -> Model<R> {
     let l = |x: f64| R::lit(x);
     let v3 = |x: f64, y: f64, z: f64| Vec3::new(l(x), l(y), l(z));
     let mut b = ModelBuilder::<R>::new();
-    let p0 = b.add_particle(v3(0.0, 1.0, 0.0), v3(0.1, 0.0, 0.0), l(1.5));
+    let (m0, m2) = if pin { (0.0, 0.0) } else { (1.5, 0.5) };
+    let p0 = b.add_particle(v3(0.0, 1.0, 0.0), v3(0.1, 0.0, 0.0), l(m0));
     let p1 = b.add_particle(v3(0.6, 1.1, 0.1), v3(0.0, 0.3, -0.2), l(1.0));
-    let p2 = b.add_particle(v3(1.1, 0.8, -0.2), v3(-0.4, 0.0, 0.1), l(0.5));
+    let p2 = b.add_particle(v3(1.1, 0.8, -0.2), v3(-0.4, 0.0, 0.1), l(m2));
     let p3 = b.add_particle(v3(0.5, 0.5, 0.3), v3(0.2, -0.1, 0.3), l(2.0));
     for (k, (i, j)) in [(p0, p1), (p1, p2), (p2, p3), (p1, p3), (p0, p3)]
         .into_iter()
@@ -415,7 +422,133 @@ fn hvp_through_a_checkpointed_rollout_is_the_taped_one() {
     assert!((ck.slope - taped.slope).abs() <= 1e-12 * taped.slope.abs());
 }
 
-/// What would be silently wrong is refused: a solver that computes in f64 (implicit Euler),
+/// Implicit Euler held to tight tolerances, so that central differences of its gradient
+/// resolve the product (its solves' error over `h`).
+fn tight_implicit() -> ImplicitEuler {
+    let tight = adflex_kernels::solver::krylov::SolveSettings {
+        rel_tol: 1e-14,
+        abs_tol: 1e-20,
+        max_iter: 1000,
+    };
+    ImplicitEuler {
+        tolerance: Some(1e-14),
+        linear: tight.clone(),
+        on_failure: adflex_kernels::integrators::SolverPolicy::Continue,
+        ..ImplicitEuler::default()
+    }
+}
+
+/// The parameters of the implicit paths' checks: every force's stiffness, the spring rest
+/// lengths and the initial velocities.
+const STIFFNESSES: [(&str, &str); 5] = [
+    ("springs", "ke"),
+    ("springs", "rest"),
+    ("triangle_fem", "mu"),
+    ("tets", "lambda"),
+    ("bending", "ke"),
+];
+
+/// `H u` against central differences of the f64 gradient, and `w^T H u = u^T H w`, for the
+/// loss `f` of the scene's parameters (`STIFFNESSES`) and `extra` arrays of each model.
+fn check_hvp<F, D>(what: &str, pin: bool, h: f64, rel: f64, mut loss_f: F, mut loss_d: D)
+where
+    F: FnMut(&Model<f64>, &Array<Vec3<f64>>, &mut Tape) -> Result<Array<f64>, Error>,
+    D: FnMut(&Model<Dual>, &Array<Vec3<Dual>>, &mut Tape) -> Result<Array<Dual>, Error>,
+{
+    let md = scene_with::<Dual>(pin);
+    let mf = scene_with::<f64>(pin);
+    let dparams: Vec<Array<Dual>> = STIFFNESSES
+        .iter()
+        .map(|(f, p)| md.param::<Dual>(f, p).unwrap().requires_grad())
+        .collect();
+    let fparams: Vec<Array<f64>> = STIFFNESSES
+        .iter()
+        .map(|(f, p)| mf.param::<f64>(f, p).unwrap().requires_grad())
+        .collect();
+    let (vd, vf) = (md.state().v.requires_grad(), mf.state().v.requires_grad());
+    let mut dp: Vec<&dyn AnyArray> = dparams.iter().map(|a| a as &dyn AnyArray).collect();
+    dp.push(&vd);
+    let mut fp: Vec<&dyn AnyArray> = fparams.iter().map(|a| a as &dyn AnyArray).collect();
+    fp.push(&vf);
+    let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
+    let mut rng = common::Rng(0x1f7);
+    let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let hu = hvp(&dp, &u, |t| loss_d(&md, &vd, t)).unwrap();
+    let hw = hvp(&dp, &w, |t| loss_d(&md, &vd, t)).unwrap();
+    let fd = hv_by_differences(&fp, &u, h, &mut |t| loss_f(&mf, &vf, t));
+    assert_close(&format!("{what}: H u"), &hu.hv, &fd, rel);
+    let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+    assert!(
+        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+        "{what}: w^T H u = {a:e}, u^T H w = {b:e}"
+    );
+    // The gradient is the f64 one.
+    let g = grad_f64(&fp, &get(&fp), &mut |t| loss_f(&mf, &vf, t));
+    assert_close(&format!("{what}: gradient"), &hu.grad, &g, 1e-9);
+}
+
+/// Through implicit Euler's implicit-function-theorem adjoint, with its second-order term:
+/// 12 steps of the scene (free, and with pinned particles; all forces implicit, and bending
+/// explicit), `H u` against central differences of f64 gradients and symmetric.
+#[test]
+fn hvp_through_implicit_euler_matches_differences() {
+    for (pin, explicit) in [(false, false), (true, false), (true, true)] {
+        let ie = match explicit {
+            true => tight_implicit().with_explicit(["bending"]),
+            false => tight_implicit(),
+        };
+        check_hvp(
+            &format!("implicit Euler (pinned {pin}, bending explicit {explicit})"),
+            pin,
+            1e-4,
+            1e-6,
+            |m, v, t| rollout_loss(m, &ie, v, t),
+            |m, v, t| rollout_loss(m, &ie, v, t),
+        );
+    }
+}
+
+/// The equilibrium's loss: squared positions, weighted, then a short rollout from it.
+fn equilibrium_loss<R: Real + Element>(
+    model: &Model<R>,
+    v0: &Array<Vec3<R>>,
+    tape: &mut Tape,
+) -> Result<Array<R>, Error> {
+    let eq = Equilibrium {
+        tolerance: Some(1e-14),
+        on_failure: adflex_kernels::integrators::SolverPolicy::Continue,
+        linear: adflex_kernels::solver::krylov::SolveSettings {
+            rel_tol: 1e-14,
+            abs_tol: 1e-20,
+            max_iter: 1000,
+        },
+        ..Equilibrium::default()
+    };
+    let mut s = eq.solve(model, tape, &model.state())?;
+    s.v = v0.clone();
+    let end = SemiImplicitEuler.rollout(model, tape, &s, None, R::lit(0.01), 4)?;
+    let loss = Array::<R>::zeros(1);
+    tape.launch(state_loss, end.x.len(), (&end.x, &end.v, &loss));
+    Ok(loss)
+}
+
+/// Through `Equilibrium`'s implicit-function-theorem adjoint, with its second-order term:
+/// the scene hanging from its two pinned particles, then released with initial velocities.
+#[test]
+fn hvp_through_equilibrium_matches_differences() {
+    check_hvp(
+        "equilibrium",
+        true,
+        1e-4,
+        1e-6,
+        equilibrium_loss,
+        equilibrium_loss,
+    );
+}
+
+/// What would be silently wrong is refused: a solver step without a second-order rule
+/// (linearized implicit Euler), a direction on what a solve takes as constant (the masses),
 /// a custom step not declared dual-safe, a wrong direction, a parameter that is not `Dual`.
 #[test]
 fn second_order_refuses_what_it_cannot_differentiate() {
@@ -423,12 +556,22 @@ fn second_order_refuses_what_it_cannot_differentiate() {
     let ke = md.param::<Dual>("springs", "ke").unwrap().requires_grad();
     let u = vec![1.0; ke.len()];
     let err = hvp(&[&ke], &u, |t| {
+        rollout_loss(&md, &ImplicitEuler::linearized(), &md.state().v, t)
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("linearized implicit Euler") && err.contains("second-order"),
+        "{err}"
+    );
+    let w = md.particle_inv_mass.clone().requires_grad();
+    let err = hvp(&[&w], &[1.0; 4], |t| {
         rollout_loss(&md, &ImplicitEuler::default(), &md.state().v, t)
     })
     .unwrap_err()
     .to_string();
     assert!(
-        err.contains("implicit Euler") && err.contains("second-order"),
+        err.contains("inv_mass[0]") && err.contains("masses"),
         "{err}"
     );
 

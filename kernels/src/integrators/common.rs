@@ -9,6 +9,7 @@ use adflex_runtime::{AnyArray, Array, Error, Real, Tape, Vec3};
 use crate::forces::{Param, ParamCopy};
 use crate::model::Model;
 use crate::precompiled::precompiled;
+use crate::solver::newton::Parts;
 use crate::state::BodyState;
 use crate::state::{Control, State};
 
@@ -252,6 +253,17 @@ pub(crate) struct Point<R: Real> {
     pub(crate) a_val: Vec<f64>,
 }
 
+/// Where an implicit solve's forward derivative (the implicit function theorem's tangent)
+/// takes the inputs' derivatives from.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Through {
+    /// Their tangent buffers, by a tangent pass (forward mode).
+    Tangents,
+    /// Their [`Dual`](adflex_runtime::Dual) derivative parts, read off the accelerations'
+    /// (a Hessian-vector product's first sweep).
+    DerivativeParts,
+}
+
 /// The tangent of the accelerations at `p` for the state tangents `dx`, `dv` and the
 /// parameters' own tangents (the copies share them for the pass): the right-hand side of an
 /// implicit-function-theorem tangent solve. Fails as the tangent pass fails (`failure`
@@ -314,6 +326,50 @@ pub(crate) fn unflat<R: Real>(v: &[f64]) -> Vec<Vec3<R>> {
         .collect()
 }
 
+/// The components of `a` flat, with their derivative parts if `R` is
+/// [`Dual`](adflex_runtime::Dual).
+pub(crate) fn flat_parts<R: Real>(a: &Array<Vec3<R>>) -> Parts {
+    let v = a.to_vec();
+    let re = v
+        .iter()
+        .flat_map(|p| [p.x.to_f64(), p.y.to_f64(), p.z.to_f64()])
+        .collect();
+    let eps = R::DUAL.then(|| {
+        v.iter()
+            .flat_map(|p| [p.x.eps(), p.y.eps(), p.z.eps()])
+            .collect()
+    });
+    Parts { re, eps }
+}
+
+/// Values from flat parts (a derivative part is dropped unless `R` is `Dual`).
+pub(crate) fn unflat_parts<R: Real>(v: &Parts) -> Vec<Vec3<R>> {
+    let Some(eps) = &v.eps else {
+        return unflat(&v.re);
+    };
+    let c = |k: usize| R::lit(v.re[k]).with_eps(eps[k]);
+    (0..v.re.len() / 3)
+        .map(|i| Vec3::new(c(3 * i), c(3 * i + 1), c(3 * i + 2)))
+        .collect()
+}
+
+/// An [`Error::InvalidInput`] if the derivative parts of `inv_mass` (a Hessian-vector
+/// product's direction) are not all zero: the Newton solves' host arithmetic takes the masses
+/// as constants. `who` names the solver.
+pub(crate) fn check_constant_masses<R: Real>(who: &str, inv_mass: &[R]) -> Result<(), Error> {
+    match inv_mass.iter().position(|w| w.eps() != 0.0) {
+        None => Ok(()),
+        Some(k) => Err(Error::InvalidInput {
+            what: format!("particle_inv_mass[{k}]"),
+            message: format!(
+                "{who}: a Hessian-vector product whose direction moves the inverse masses is \
+                 not supported through this solve (its second-order term takes the masses as \
+                 constants); give the masses a zero direction"
+            ),
+        }),
+    }
+}
+
 /// Whether `R` is single precision (it cannot tell 1 from 1 + 1e-10).
 pub(crate) fn is_f32<R: Real>() -> bool {
     R::lit(1.0 + 1e-10).to_f64() == 1.0
@@ -329,9 +385,9 @@ pub(crate) fn epsilon<R: Real>() -> f64 {
 }
 
 /// `a.grad += g` if `a` has a gradient buffer.
-pub(crate) fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &[f64]) {
+pub(crate) fn add_into<R: Real>(a: &Array<Vec3<R>>, g: &Parts) {
     if let Some(buf) = a.grad_buffer() {
-        let add = unflat::<R>(g);
+        let add = unflat_parts::<R>(g);
         buf.modify(|d| d.iter_mut().zip(add).for_each(|(d, a)| *d += a));
     }
 }

@@ -97,8 +97,9 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use super::common::{
-    acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, finish_step,
-    flat, forces_only, is_f32, particles, record, step_bodies, unflat, Copies, Dofs, Needs, Point,
+    acceleration_tangent, add_into, check_constant_masses, check_inputs, check_visited, copies,
+    epsilon, finish_step, flat, flat_parts, forces_only, is_f32, particles, record, step_bodies,
+    unflat, unflat_parts, Copies, Dofs, Needs, Point, Through,
 };
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
@@ -107,7 +108,8 @@ use crate::model::Model;
 use crate::precompiled::precompiled;
 use crate::solver::krylov::{SolveInfo, SolveSettings};
 use crate::solver::newton::{
-    direction, max_abs, newton, solve_linear, NewtonSettings, NewtonSystem, PassFailure,
+    direction, max_abs, newton, solve_linear, solve_transposed, NewtonSettings, NewtonSystem,
+    Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::{Control, State};
@@ -309,7 +311,8 @@ fn explicit_accelerations<R: Real>(
 /// One step's system: `G(v') = M (v' - v0 - dt a(x0 + dt v', v'))` over the free DOFs.
 struct System<R: Real> {
     c: Copies<R>,
-    x0: Vec<f64>,
+    /// The positions at the start of the step, with their derivative parts in `Dual`.
+    x0: Parts,
     v0: Vec<f64>,
     dofs: Dofs,
     /// Per DOF: the inverse mass on free DOFs, 1 on pinned ones (the CG preconditioner).
@@ -324,7 +327,7 @@ struct System<R: Real> {
 impl<R: Real> System<R> {
     fn new(
         c: Copies<R>,
-        x0: Vec<f64>,
+        x0: Parts,
         v0: Vec<f64>,
         inv_mass: &[R],
         dt: f64,
@@ -343,34 +346,32 @@ impl<R: Real> System<R> {
         }
     }
 
-    /// Records the accelerations at `v'` (`x' = x0 + dt v'`) on a new tape.
-    fn eval_with(&self, v: &[f64], grads: bool) -> Point<R> {
-        let x: Vec<f64> = self
+    /// Records the accelerations at `v'` (`x' = x0 + dt v'`) on a new tape; with derivative
+    /// parts, at the point of a Hessian-vector product's sweeps.
+    fn eval_at(&self, v: &Parts, grads: bool) -> Point<R> {
+        let x = self
             .x0
-            .iter()
-            .zip(v)
-            .map(|(x, v)| x + self.dt * v)
-            .collect();
-        let mut xs = Array::from_vec(unflat::<R>(&x)).named("x_implicit");
-        let mut vs = Array::from_vec(unflat::<R>(v)).named("v_implicit");
+            .zip(v, |x, v| x.iter().zip(v).map(|(x, v)| x + self.dt * v).collect());
+        let mut xs = Array::from_vec(unflat_parts::<R>(&x)).named("x_implicit");
+        let mut vs = Array::from_vec(unflat_parts::<R>(v)).named("v_implicit");
         if grads {
             xs = xs.requires_grad();
             vs = vs.requires_grad();
         }
-        record(&self.c, xs, vs, v)
+        record(&self.c, xs, vs, &v.re)
     }
 
     /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
     /// scratch tape; returns the gradients of `x'` and `v'` (an error without context: see
     /// [`PassFailure::in_pass`]).
-    fn pull(&self, p: &mut Point<R>, seed: &[f64]) -> Result<(Vec<f64>, Vec<f64>), Error> {
+    fn pull(&self, p: &mut Point<R>, seed: &Parts) -> Result<(Parts, Parts), Error> {
         p.x.zero_grad();
         p.v.zero_grad();
-        p.a.ensure_grad().assign(&unflat::<R>(seed));
+        p.a.ensure_grad().assign(&unflat_parts::<R>(seed));
         p.tape.backward_with(&[&p.a])?;
-        let grad = |a: &Array<Vec3<R>>| {
-            a.grad()
-                .map_or_else(|_| vec![0.0; seed.len()], |g| flat(&g))
+        let grad = |a: &Array<Vec3<R>>| match a.grad() {
+            Ok(g) => flat_parts(&g),
+            Err(_) => seed.map(|s| vec![0.0; s.len()]),
         };
         Ok((grad(&p.x), grad(&p.v)))
     }
@@ -386,7 +387,7 @@ impl<R: Real> NewtonSystem for System<R> {
     type Point = Point<R>;
 
     fn eval(&self, v: &[f64]) -> Point<R> {
-        self.eval_with(v, false)
+        self.eval_at(&Parts::real(v.to_vec()), false)
     }
 
     fn unknowns<'a>(&self, p: &'a Point<R>) -> &'a [f64] {
@@ -444,7 +445,7 @@ impl<R: Real> NewtonSystem for System<R> {
         } else {
             1.0
         };
-        100.0 * epsilon::<R>() * s * max_abs(&self.x0).max(1.0) / self.dt
+        100.0 * epsilon::<R>() * s * max_abs(&self.x0.re).max(1.0) / self.dt
     }
 
     fn epsilon(&self) -> f64 {
@@ -484,23 +485,26 @@ impl<R: Real> NewtonSystem for System<R> {
         }
     }
 
-    fn apply_t(&self, p: &mut Point<R>, u: &[f64], out: &mut [f64]) {
-        let seed: Vec<f64> = (0..u.len()).map(|k| self.dofs.mass[k] * u[k]).collect();
-        let (gx, gv) = match self.pull(p, &seed) {
-            Ok(g) => g,
-            Err(e) => return self.failure.fail("adjoint (reverse-mode)", e, out),
-        };
-        for k in 0..out.len() {
-            out[k] = if self.dofs.free[k] {
-                self.dofs.mass[k] * u[k] - self.dt * (self.dt * gx[k] + gv[k])
-            } else {
-                u[k]
-            };
+    /// `A^T u = M u - dt (dt J_x + J_v)^T M u` (identity on pinned DOFs).
+    fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
+        let mu: Vec<f64> = (0..u.len()).map(|k| self.dofs.mass[k] * u[k]).collect();
+        let (gx, gv) = self.pull(p, &Parts::real(mu.clone()))?;
+        let mut out = gx.zip(&gv, |gx, gv| {
+            (0..gx.len())
+                .map(|k| match self.dofs.free[k] {
+                    true => -self.dt * (self.dt * gx[k] + gv[k]),
+                    false => 0.0,
+                })
+                .collect()
+        });
+        for k in 0..u.len() {
+            out.re[k] += if self.dofs.free[k] { mu[k] } else { u[k] };
         }
+        Ok(out)
     }
 
-    fn checked(&self) -> Result<(), Error> {
-        self.failure.take()
+    fn failure(&self) -> &PassFailure {
+        &self.failure
     }
 
     /// `-e = -M^-1 G`; its first step (length 1) is the explicit update `v0 + dt a`.
@@ -545,7 +549,7 @@ impl<R: Real> NewtonSystem for System<R> {
     fn work(&self, p: &Point<R>) -> f64 {
         (0..p.u.len())
             .filter(|&k| self.dofs.free[k])
-            .map(|k| self.dofs.mass[k] * (p.a_val[k] * (self.x0[k] + self.dt * p.u[k])).abs())
+            .map(|k| self.dofs.mass[k] * (p.a_val[k] * (self.x0.re[k] + self.dt * p.u[k])).abs())
             .sum()
     }
 }
@@ -622,24 +626,27 @@ impl ImplicitEuler {
         control: Option<&Control<R>>,
         dt: R,
     ) -> Result<(State<R>, NewtonStats), Error> {
-        adflex_runtime::second_order::refuse_dual::<R>(
-            "implicit Euler's step",
-            "use an explicit or semi-implicit integrator, or Gauss-Newton products \
-             (`Tape::gauss_newton`) on the simulation in f64, which need first order only",
-        )?;
+        if self.linearized {
+            adflex_runtime::second_order::refuse_dual::<R>(
+                "linearized implicit Euler's step",
+                "use the full implicit Euler (`ImplicitEuler::default()`), whose \
+                 implicit-function-theorem adjoint has its second-order term",
+            )?;
+        }
         let n = model.particle_count;
         let mut stats = NewtonStats::default();
         let dtf = check_dt("ImplicitEuler", dt)?;
         let first = tape.len();
         let (implicit, explicit) = self.split(model)?;
         let inv_mass = model.particle_inv_mass.to_vec();
-        let (x0, v0) = (flat(&state.x), flat(&state.v));
+        check_constant_masses("ImplicitEuler", &inv_mass)?;
+        let (x0, v0) = (flat_parts(&state.x), flat_parts(&state.v));
         // The explicit forces' accelerations, for the solve (recorded on `tape` only once the
         // step succeeds: a failed step records nothing).
         let a_e = if explicit.is_empty() {
-            vec![0.0; 3 * n]
+            Parts::real(vec![0.0; 3 * n])
         } else {
-            flat(&explicit_accelerations(
+            flat_parts(&explicit_accelerations(
                 model,
                 &explicit,
                 &mut Tape::new(),
@@ -650,10 +657,10 @@ impl ImplicitEuler {
         let sys = System::new(
             copies(&implicit, control, false),
             x0.clone(),
-            v0.clone(),
+            v0.re.clone(),
             &inv_mass,
             dtf,
-            a_e,
+            a_e.re.clone(),
         );
         let explicit_params: Vec<Box<dyn AnyArray>> = explicit
             .iter()
@@ -673,13 +680,12 @@ impl ImplicitEuler {
         if !stats.converged {
             self.on_failure.handle(self.step_failure(dtf, &stats))?;
         }
-        let x1v: Vec<f64> = x0.iter().zip(&v1).map(|(x, v)| x + dtf * v).collect();
 
-        let a_e = (!explicit.is_empty())
+        let a_e_arr = (!explicit.is_empty())
             .then(|| explicit_accelerations(model, &explicit, tape, state, control));
         let x1 = Array::zeros(n).named("x");
         let v1a = Array::zeros(n).named("v");
-        let shared = Arc::new(Shared {
+        let mut shared = Shared {
             integrator: self.clone(),
             model: implicit,
             control: control.cloned(),
@@ -687,18 +693,30 @@ impl ImplicitEuler {
             v0: state.v.clone(),
             x1: x1.clone(),
             v1: v1a.clone(),
-            a_e: a_e.clone(),
+            a_e: a_e_arr.clone(),
             a_e_val: sys.a_e.clone(),
             x0_val: x0,
-            v0_val: v0,
-            v1_val: v1.clone(),
+            v0_val: v0.re,
+            v1_val: Parts::real(v1),
             inv_mass,
             dt: dtf,
-        });
+        };
+        if let (Some(dx0), Some(dv0)) = (&shared.x0_val.eps, &v0.eps) {
+            // A Hessian-vector product's first sweep: the new velocities' derivative part
+            // along the inputs' (the theorem's tangent).
+            let dae = a_e.eps.unwrap_or_else(|| vec![0.0; 3 * n]);
+            let dv1 = shared.velocity_tangent(dx0, dv0, &dae, Through::DerivativeParts)?;
+            shared.v1_val.eps = Some(dv1);
+        }
+        let shared = Arc::new(shared);
+        let v1_value = unflat_parts::<R>(&shared.v1_val);
+        let x1_value = unflat_parts::<R>(&shared.x0_val.zip(&shared.v1_val, |x, v| {
+            x.iter().zip(v).map(|(x, v)| x + dtf * v).collect()
+        }));
         let originals = sys.c.links;
         let mut inputs: Vec<&dyn AnyArray> = vec![&state.x, &state.v];
         inputs.extend(originals.iter().map(|l| l.original()));
-        if let Some(a) = &a_e {
+        if let Some(a) = &a_e_arr {
             inputs.push(a);
         }
         let (sb, st) = (shared.clone(), shared);
@@ -711,11 +729,12 @@ impl ImplicitEuler {
             &inputs,
             &[&x1, &v1a],
             || {
-                x1.assign(&unflat::<R>(&x1v));
-                v1a.assign(&unflat::<R>(&v1));
+                x1.assign(&x1_value);
+                v1a.assign(&v1_value);
             },
             move || sb.backward(),
         )
+        .dual_safe()
         .with_tangent(move || st.tangent());
         let bodies = step_bodies(model, tape, state, control, dt);
         let new = State {
@@ -845,7 +864,7 @@ impl ImplicitEuler {
 }
 
 /// The system, the point and `lambda` of an adjoint solve.
-type AdjointSolve<R> = (System<R>, Point<R>, Vec<f64>);
+type AdjointSolve<R> = (System<R>, Point<R>, Parts);
 
 /// What the backward and tangent of a step need.
 struct Shared<R: Real> {
@@ -859,9 +878,11 @@ struct Shared<R: Real> {
     /// The explicit forces' accelerations on the caller's tape (an implicit-explicit split).
     a_e: Option<Array<Vec3<R>>>,
     a_e_val: Vec<f64>,
-    x0_val: Vec<f64>,
+    /// The positions at the start, with their derivative parts in `Dual`.
+    x0_val: Parts,
     v0_val: Vec<f64>,
-    v1_val: Vec<f64>,
+    /// The new velocities, with their derivative parts in `Dual`.
+    v1_val: Parts,
     inv_mass: Vec<R>,
     dt: f64,
 }
@@ -879,21 +900,21 @@ impl<R: Real> Shared<R> {
     }
 
     /// The incoming adjoints of the step: `(x'_bar, v'_bar)`, or `None` if neither has one.
-    fn incoming(&self) -> Option<(Vec<f64>, Vec<f64>)> {
+    fn incoming(&self) -> Option<(Parts, Parts)> {
         let (gx1, gv1) = (self.x1.grad_buffer(), self.v1.grad_buffer());
         if gx1.is_none() && gv1.is_none() {
             return None;
         }
-        let m = self.x0_val.len();
+        let zeros = self.x0_val.map(|x| vec![0.0; x.len()]);
         Some((
-            gx1.map_or_else(|| vec![0.0; m], |g| flat(&g)),
-            gv1.map_or_else(|| vec![0.0; m], |g| flat(&g)),
+            gx1.map_or_else(|| zeros.clone(), |g| flat_parts(&g)),
+            gv1.map_or_else(|| zeros.clone(), |g| flat_parts(&g)),
         ))
     }
 
     /// The input tangents: `(dx, dv, da_e)` (zeros where an input has none).
     fn input_tangents(&self) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-        let m = self.x0_val.len();
+        let m = self.v0_val.len();
         let t = |a: Option<&Array<Vec3<R>>>| {
             a.and_then(|a| a.tangent_buffer())
                 .map_or_else(|| vec![0.0; m], |t| flat(&t))
@@ -922,6 +943,7 @@ impl<R: Real> Shared<R> {
     fn linear_direction(&self) -> Option<(Vec<f64>, f64)> {
         let d: Vec<f64> = self
             .v1_val
+            .re
             .iter()
             .zip(&self.v0_val)
             .map(|(a, b)| a - b)
@@ -930,7 +952,7 @@ impl<R: Real> Shared<R> {
         if !(dn > 0.0) {
             return None;
         }
-        let on_x = max_abs(&self.x0_val).max(1.0) / (self.dt * dn);
+        let on_x = max_abs(&self.x0_val.re).max(1.0) / (self.dt * dn);
         let on_v = max_abs(&self.v0_val).max(dn) / dn;
         Some((d, epsilon::<R>().cbrt() * on_x.min(on_v)))
     }
@@ -941,17 +963,22 @@ impl<R: Real> Shared<R> {
     }
 
     /// The adjoint solve of both methods: the system with gradient-carrying copies, the forces
-    /// recorded at `v` (`x = x0 + dt v`), and `lambda` with `A^T lambda = b` there (masked);
-    /// the copies' gradients zeroed (the solve's products accumulated into them).
-    fn adjoint_solve(&self, v: &[f64], b: &[f64]) -> Result<AdjointSolve<R>, Error> {
+    /// recorded at `v` (`x = x0 + dt v`), and `lambda` with `A^T lambda = b` there (masked;
+    /// in `Dual`, with the theorem's second-order term, see [`solve_transposed`]); the
+    /// copies' gradients zeroed (the solve's products accumulated into them).
+    fn adjoint_solve(&self, v: &Parts, b: &Parts) -> Result<AdjointSolve<R>, Error> {
         let sys = self.system(true);
-        let mut p = sys.eval_with(v, true);
+        let mut p = sys.eval_at(v, true);
         sys.check_visited(&p, Needs::Gradient)?;
-        let mut rhs = b.to_vec();
-        sys.mask(&mut rhs);
+        let rhs = b.map(|b| {
+            let mut r = b.to_vec();
+            sys.mask(&mut r);
+            r
+        });
         let settings = self.integrator.gradient_settings();
-        let (lambda, info, _) = solve_linear(&sys, &mut p, &rhs, settings, true)?;
-        self.integrator.check_gradient_solve("adjoint", &info)?;
+        let lambda = solve_transposed(&sys, &mut p, &rhs, settings, |info| {
+            self.integrator.check_gradient_solve("adjoint", info)
+        })?;
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
@@ -960,7 +987,7 @@ impl<R: Real> Shared<R> {
 
     /// Adds a backward's results into the inputs' gradients: `x0`, `v0`, the explicit
     /// accelerations (`dt M lambda`, `a_e_bar`) and the parameters (from their copies).
-    fn accumulate(&self, sys: &System<R>, gx0: &[f64], gv0: &[f64], a_e_bar: &[f64]) {
+    fn accumulate(&self, sys: &System<R>, gx0: &Parts, gv0: &Parts, a_e_bar: &Parts) {
         add_into(&self.x0, gx0);
         add_into(&self.v0, gv0);
         if let Some(a) = &self.a_e {
@@ -979,6 +1006,11 @@ impl<R: Real> Shared<R> {
     }
 
     fn tangent(&self) -> Result<(), Error> {
+        adflex_runtime::second_order::refuse_dual::<R>(
+            "implicit Euler's forward mode",
+            "take Jacobian and Gauss-Newton products in f64; Hessian-vector products need \
+             `backward` only",
+        )?;
         match self.integrator.linearized {
             true => self.tangent_linearized(),
             false => self.tangent_newton(),
@@ -991,37 +1023,41 @@ impl<R: Real> Shared<R> {
     /// get `dt mu^T da` (one adjoint pass at `p`) plus the second-order term
     /// `dt mu^T d(J w)`, `w = (dt d, d)`, by a central difference of two adjoint passes at
     /// `p +- eps w`.
+    /// Real parts only: the linearized step refuses `Dual`.
     fn backward_linearized(&self) -> Result<(), Error> {
         let Some((gx1, gv1)) = self.incoming() else {
             return Ok(());
         };
-        let (m, dt) = (self.x0_val.len(), self.dt);
+        let (gx1, gv1) = (gx1.re, gv1.re);
+        let (m, dt) = (self.v0_val.len(), self.dt);
         let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
-        let (sys, mut p, lambda) = self.adjoint_solve(&self.v0_val, &b)?;
-        let mu: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * lambda[k]).collect();
-        let seed: Vec<f64> = mu.iter().map(|u| dt * u).collect();
+        let v0 = Parts::real(self.v0_val.clone());
+        let (sys, mut p, lambda) = self.adjoint_solve(&v0, &Parts::real(b.clone()))?;
+        let mu: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * lambda.re[k]).collect();
+        let seed = Parts::real(mu.iter().map(|u| dt * u).collect());
         let adjoint = |e| sys.failure.in_pass("adjoint (reverse-mode)", e);
-        let (mut gx, mut gv) = sys.pull(&mut p, &seed).map_err(adjoint)?;
+        let (gx, gv) = sys.pull(&mut p, &seed).map_err(adjoint)?;
+        let (mut gx, mut gv) = (gx.re, gv.re);
         if let Some((d, eps)) = self.linear_direction() {
             let c = dt / (2.0 * eps);
             for s in [1.0, -1.0] {
-                let mut q = sys.eval_with(&self.shifted(&d, s * eps), true);
-                let seed: Vec<f64> = mu.iter().map(|u| s * c * u).collect();
+                let mut q = sys.eval_at(&Parts::real(self.shifted(&d, s * eps)), true);
+                let seed = Parts::real(mu.iter().map(|u| s * c * u).collect());
                 let (qx, qv) = sys.pull(&mut q, &seed).map_err(adjoint)?;
-                gx.iter_mut().zip(qx).for_each(|(g, q)| *g += q);
-                gv.iter_mut().zip(qv).for_each(|(g, q)| *g += q);
+                gx.iter_mut().zip(qx.re).for_each(|(g, q)| *g += q);
+                gv.iter_mut().zip(qv.re).for_each(|(g, q)| *g += q);
             }
         }
         let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
         let gv0: Vec<f64> = (0..m).map(|k| b[k] + dt * gx[k] + gv[k]).collect();
-        self.accumulate(&sys, &gx0, &gv0, &seed);
+        self.accumulate(&sys, &Parts::real(gx0), &Parts::real(gv0), &seed);
         Ok(())
     }
 
     /// Forward mode of the linearized step: `A dd = M dt (a_dot + da_e + (J w)_dot)`, the
     /// last term by a central difference of two tangent passes at `p +- eps w`.
     fn tangent_linearized(&self) -> Result<(), Error> {
-        let (m, dt) = (self.x0_val.len(), self.dt);
+        let (m, dt) = (self.v0_val.len(), self.dt);
         let (dx0, dv0, dae) = self.input_tangents();
         let sys = self.system(false);
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dv0[k]).collect();
@@ -1063,47 +1099,73 @@ impl<R: Real> Shared<R> {
     }
 
     /// Reverse mode by the implicit function theorem (see the module docs). Fails per the
-    /// policy if the adjoint solve misses its tolerance (nothing is accumulated then).
+    /// policy if the adjoint solve misses its tolerance (nothing is accumulated then). In
+    /// `Dual`, at the new state with its derivative part, every map below acts on both parts.
     fn backward_newton(&self) -> Result<(), Error> {
         let Some((gx1, gv1)) = self.incoming() else {
             return Ok(());
         };
-        let (m, dt) = (self.x0_val.len(), self.dt);
-        let b: Vec<f64> = (0..m).map(|k| gv1[k] + dt * gx1[k]).collect();
+        let dt = self.dt;
+        let b = gv1.zip(&gx1, |gv, gx| gv.iter().zip(gx).map(|(v, x)| v + dt * x).collect());
         let (sys, mut p, lambda) = self.adjoint_solve(&self.v1_val, &b)?;
-        let seed: Vec<f64> = (0..m).map(|k| dt * sys.dofs.mass[k] * lambda[k]).collect();
+        let (free, mass) = (&sys.dofs.free, &sys.dofs.mass);
+        let seed = lambda.map(|l| l.iter().zip(mass).map(|(l, m)| dt * m * l).collect());
         let (gx, gv) = sys
             .pull(&mut p, &seed)
             .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
-        let gx0: Vec<f64> = (0..m).map(|k| gx1[k] + gx[k]).collect();
-        let gv0: Vec<f64> = (0..m)
-            .map(|k| {
-                if sys.dofs.free[k] {
-                    sys.dofs.mass[k] * lambda[k]
-                } else {
-                    // v' = v on pinned DOFs, which also moves x' = x + dt v.
-                    b[k] + dt * gx[k] + gv[k]
-                }
-            })
-            .collect();
+        let gx0 = gx1.zip(&gx, |a, b| a.iter().zip(b).map(|(a, b)| a + b).collect());
+        // On pinned DOFs v' = v, which also moves x' = x + dt v.
+        let pinned = b.zip(&gx, |b, gx| (0..b.len()).map(|k| b[k] + dt * gx[k]).collect());
+        let pinned = pinned.zip(&gv, |p, gv| p.iter().zip(gv).map(|(p, g)| p + g).collect());
+        let gv0 = lambda.zip(&pinned, |l, p| {
+            (0..l.len())
+                .map(|k| if free[k] { mass[k] * l[k] } else { p[k] })
+                .collect()
+        });
         self.accumulate(&sys, &gx0, &gv0, &seed);
         Ok(())
     }
 
-    /// Forward mode: `A dv' = M (dv + dt a_dot)`, `a_dot` the tangent of the accelerations
-    /// for the input tangents at fixed `v'`. Fails per the policy if the solve misses its
-    /// tolerance.
+    /// Forward mode (see [`Shared::velocity_tangent`]).
     fn tangent_newton(&self) -> Result<(), Error> {
-        let (m, dt) = (self.x0_val.len(), self.dt);
         let (dx0, dv0, dae) = self.input_tangents();
+        let dv1 = self.velocity_tangent(&dx0, &dv0, &dae, Through::Tangents)?;
+        self.set_output_tangents(&dx0, &dv1);
+        Ok(())
+    }
+
+    /// The new velocities' derivative: `A dv' = M (dv + dt (a_dot + da_e))`, `a_dot` the
+    /// derivative of the accelerations at fixed `v'` for the inputs' (`dx`, `dv`, the
+    /// parameters'), taken `through` their tangents or their derivative parts. Fails per the
+    /// policy if the solve misses its tolerance.
+    fn velocity_tangent(
+        &self,
+        dx0: &[f64],
+        dv0: &[f64],
+        dae: &[f64],
+        through: Through,
+    ) -> Result<Vec<f64>, Error> {
+        let (m, dt) = (self.v0_val.len(), self.dt);
         let sys = self.system(false);
-        let mut p = sys.eval(&self.v1_val);
-        sys.check_visited(&p, Needs::Tangent)?;
         let dvp: Vec<f64> = (0..m)
             .map(|k| if sys.dofs.free[k] { 0.0 } else { dv0[k] })
             .collect();
-        let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
-        let ad = acceleration_tangent(&sys.c, &mut p, &dxp, &dvp, &sys.failure)?;
+        let v1 = Parts::real(self.v1_val.re.clone());
+        let (mut p, ad) = match through {
+            Through::Tangents => {
+                let mut p = sys.eval_at(&v1, false);
+                sys.check_visited(&p, Needs::Tangent)?;
+                let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dvp[k]).collect();
+                let ad = acceleration_tangent(&sys.c, &mut p, &dxp, &dvp, &sys.failure)?;
+                (p, ad)
+            }
+            Through::DerivativeParts => {
+                // The positions' derivative part is `dx0 + dt dvp` (the system's `x0`'s).
+                let p = sys.eval_at(&Parts { eps: Some(dvp), ..v1 }, false);
+                let ad = flat_parts(&p.a).eps.unwrap_or_else(|| vec![0.0; m]);
+                (p, ad)
+            }
+        };
         let mut rhs: Vec<f64> = (0..m)
             .map(|k| sys.dofs.mass[k] * (dv0[k] + dt * (ad[k] + dae[k])))
             .collect();
@@ -1116,8 +1178,7 @@ impl<R: Real> Shared<R> {
                 dv1[k] = dv0[k];
             }
         }
-        self.set_output_tangents(&dx0, &dv1);
-        Ok(())
+        Ok(dv1)
     }
 }
 

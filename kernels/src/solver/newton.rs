@@ -94,9 +94,22 @@ pub(crate) trait NewtonSystem {
     /// (see [`PassFailure`]) and makes `out` NaN, which stops the solve.
     fn apply(&self, p: &mut Self::Point, u: &[f64], out: &mut [f64]);
     /// `out = A^T u` (identity on fixed DOFs): one adjoint pass at `p`, failing as `apply`.
-    fn apply_t(&self, p: &mut Self::Point, u: &[f64], out: &mut [f64]);
+    fn apply_t(&self, p: &mut Self::Point, u: &[f64], out: &mut [f64]) {
+        match self.apply_t_parts(p, u) {
+            Ok(o) => out.copy_from_slice(&o.re),
+            Err(e) => self.failure().fail("adjoint (reverse-mode)", e, out),
+        }
+    }
+    /// `A^T u` for a real `u` and, at a point recorded in [`Dual`](adflex_runtime::Dual)
+    /// (where `A = A0 + eps A1`), its derivative part `A1^T u`: one adjoint pass. An error is
+    /// the pass's, without context.
+    fn apply_t_parts(&self, p: &mut Self::Point, u: &[f64]) -> Result<Parts, Error>;
+    /// Where the products keep a failing pass.
+    fn failure(&self) -> &PassFailure;
     /// The failure of a pass inside the last products, if any (taken).
-    fn checked(&self) -> Result<(), Error>;
+    fn checked(&self) -> Result<(), Error> {
+        self.failure().take()
+    }
     /// The steepest-descent direction of the potential from residual `e` (in the metric of
     /// the preconditioner).
     fn steepest(&self, e: &[f64]) -> Vec<f64>;
@@ -181,6 +194,81 @@ pub(crate) fn max_abs(v: &[f64]) -> f64 {
 
 pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(a, b)| a * b).sum()
+}
+
+/// A host vector of a gradient solve: its values and, when the model's scalar is
+/// [`Dual`](adflex_runtime::Dual), their derivative parts (the second sweep of a
+/// Hessian-vector product; `None` in `f32`/`f64`). A linear map with real coefficients acts
+/// on both parts alike ([`Parts::map`], [`Parts::zip`]).
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Parts {
+    pub re: Vec<f64>,
+    pub eps: Option<Vec<f64>>,
+}
+
+impl Parts {
+    /// Values without derivative parts.
+    pub fn real(re: Vec<f64>) -> Self {
+        Parts { re, eps: None }
+    }
+
+    /// The linear map `f` applied to each part.
+    pub fn map(&self, f: impl Fn(&[f64]) -> Vec<f64>) -> Parts {
+        Parts {
+            re: f(&self.re),
+            eps: self.eps.as_deref().map(f),
+        }
+    }
+
+    /// The linear map `f` of `self` and `other` applied part by part (a missing derivative
+    /// part is zero).
+    pub fn zip(&self, other: &Parts, f: impl Fn(&[f64], &[f64]) -> Vec<f64>) -> Parts {
+        let zeros = vec![0.0; self.re.len().max(other.re.len())];
+        let eps = match (&self.eps, &other.eps) {
+            (None, None) => None,
+            (a, b) => Some(f(
+                a.as_deref().unwrap_or(&zeros),
+                b.as_deref().unwrap_or(&zeros),
+            )),
+        };
+        Parts {
+            re: f(&self.re, &other.re),
+            eps,
+        }
+    }
+}
+
+/// Solves `A^T x = rhs` at `p` part by part (the adjoint solve of the implicit function
+/// theorem): `A0^T x0 = rhs0`, then, at a point recorded in `Dual`, `A0^T x1 = rhs1 - A1^T x0`
+/// (the theorem's second-order term: the derivative of `A^T x = rhs` along the direction).
+/// `check` judges each solve's figures (an error if it missed its tolerance and the policy
+/// says so).
+pub(crate) fn solve_transposed<S: NewtonSystem>(
+    sys: &S,
+    p: &mut S::Point,
+    rhs: &Parts,
+    settings: &SolveSettings,
+    check: impl Fn(&SolveInfo) -> Result<(), Error>,
+) -> Result<Parts, Error> {
+    let (re, info, _) = solve_linear(sys, p, &rhs.re, settings, true)?;
+    check(&info)?;
+    let eps = match &rhs.eps {
+        None => None,
+        Some(rhs_eps) => {
+            let coupling = sys
+                .apply_t_parts(p, &re)
+                .map_err(|e| sys.failure().in_pass("adjoint (reverse-mode)", e))?;
+            let mut r: Vec<f64> = match coupling.eps {
+                Some(c) => rhs_eps.iter().zip(c).map(|(r, c)| r - c).collect(),
+                None => rhs_eps.clone(),
+            };
+            sys.mask(&mut r);
+            let (x, info, _) = solve_linear(sys, p, &r, settings, true)?;
+            check(&info)?;
+            Some(x)
+        }
+    };
+    Ok(Parts { re, eps })
 }
 
 /// Solves `A x = rhs` (or `A^T x = rhs`) at `p` by [`krylov::solve`] with the system's
