@@ -34,6 +34,12 @@
 //! theorem the other way: `K dx* = M da`, `da` the tangent of the accelerations at `x*` for
 //! the parameters' and the pins' tangents, one linear solve with the tangent kernels.
 //!
+//! In [`Dual`] (Hessian-vector products, [`adflex_runtime::second_order`]) the solve gives
+//! `x*` its derivative part by that forward rule, and the backward runs at `x*` with its
+//! derivative part, solving `K^T lambda = x*_bar` part by part (`K0^T lambda1 = x*_bar1 -
+//! K1^T lambda0`: the theorem's second-order term). The inverse masses must have a zero
+//! direction.
+//!
 //! The equilibrium found is the one Newton reaches from the guess: a structure can have
 //! several (a cable hanging or standing as an arch). Start near the one you mean (and warm
 //! start from the previous solution in an optimization loop).

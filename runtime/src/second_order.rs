@@ -9,11 +9,13 @@
 //! gradients on the cloth benchmark (`adflex-bench second-order`, `docs/performance.md`).
 //!
 //! It goes through whatever runs in the scalar type: loops, `atomic_add`, stores, every
-//! builtin, `#[diff_func]`s with generated rules, checkpointed rollouts ([`hvp_with`]).
+//! builtin, `#[diff_func]`s with generated rules, checkpointed rollouts ([`hvp_with`]), and
+//! the library's solvers, whose custom steps carry the derivative parts through their `f64`
+//! solves (implicit Euler's and `Equilibrium`'s implicit-function-theorem adjoints with the
+//! theorem's second-order term, the fluids' CG pressure, the articulations' factorization).
 //! It refuses what would silently drop the derivative parts: a custom step
-//! ([`Tape::record_fn`]) or a `#[diff_func]` custom adjoint not declared dual-safe, and the
-//! library's solvers that compute in `f64` (implicit Euler, `Equilibrium`, the fluids' CG
-//! pressure, the articulations' factorization) say so with an error.
+//! ([`Tape::record_fn`]) or a `#[diff_func]` custom adjoint not declared dual-safe, and a
+//! solver step without a second-order rule ([`refuse_dual`]) says so with an error.
 //!
 //! ```
 //! use adflex_runtime::prelude::*;

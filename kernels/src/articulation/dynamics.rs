@@ -9,6 +9,7 @@ use adflex_runtime::{AnyArray, Element};
 
 use super::kernels::*;
 use super::model::{Articulations, JointType};
+use crate::solver::newton::Parts;
 
 /// Coordinates and velocities of every articulation of a model.
 #[derive(Clone, Debug)]
@@ -523,52 +524,49 @@ impl<R: Real> Articulations<R> {
 
     /// `qdd = M^-1 rhs`, one block per articulation, recorded on the tape with its adjoint
     /// (`rhs_bar += M^-1 qdd_bar`, `M_bar -= (M^-1 qdd_bar) qdd^T`) and tangent
-    /// (`dqdd = M^-1 (drhs - dM qdd)`).
+    /// (`dqdd = M^-1 (drhs - dM qdd)`). In `Dual` the solves and the outer product carry the
+    /// derivative parts ([`solve_parts`]), so a Hessian-vector product goes through it.
     fn solve(&self, tape: &mut Tape, m: &Array<R>, rhs: &Array<R>) -> Result<Array<R>, Error> {
-        adflex_runtime::second_order::refuse_dual::<R>(
-            "the articulations' mass-matrix solve",
-            "use Gauss-Newton products (`Tape::gauss_newton`) on the simulation in f64, which \
-             need first order only",
-        )?;
         let (factors, blocks) = self.factor(m)?;
         let (factors, blocks) = (Arc::new(factors), Arc::new(blocks));
-        let b: Vec<f64> = rhs.to_vec().iter().map(|x| x.to_f64()).collect();
-        let x = solve_all(&factors, &blocks, &b);
+        let mv = Arc::new(m.to_vec());
+        let x = dual_values::<R>(&solve_parts(&factors, &blocks, &mv, &rhs.to_vec()));
         let qdd = Array::<R>::zeros(self.n_dof);
         let out = qdd.clone();
-        let (fb, bb, qb, mb, rb) = (
+        let (fb, bb, qb, mb, rb, mvb) = (
             factors.clone(),
             blocks.clone(),
             qdd.clone(),
             m.clone(),
             rhs.clone(),
+            mv,
         );
         let (ft, bt, qt, mt, rt) = (factors, blocks, qdd.clone(), m.clone(), rhs.clone());
         tape.record_fn(
             "articulation_solve",
             &[m, rhs],
             &[&qdd],
-            || out.assign(&x.iter().map(|&v| R::lit(v)).collect::<Vec<_>>()),
+            || out.assign(&x),
             move || {
                 let Some(g) = qb.grad_buffer() else {
                     return Ok(());
                 };
-                let g: Vec<f64> = g.to_vec().iter().map(|v| v.to_f64()).collect();
-                let lam = solve_all(&fb, &bb, &g);
+                let lam = solve_parts(&fb, &bb, &mvb, &g.to_vec());
                 if let Some(rg) = rb.grad_buffer() {
-                    rg.modify(|s| {
-                        for (d, l) in s.iter_mut().zip(&lam) {
-                            *d += R::lit(*l);
-                        }
-                    });
+                    let lam = dual_values::<R>(&lam);
+                    rg.modify(|s| s.iter_mut().zip(lam).for_each(|(d, l)| *d += l));
                 }
                 if let Some(mg) = mb.grad_buffer() {
-                    let x: Vec<f64> = qb.to_vec().iter().map(|v| v.to_f64()).collect();
+                    let x = qb.to_vec();
+                    let eps = |v: &Option<Vec<f64>>, k: usize| v.as_ref().map_or(0.0, |e| e[k]);
                     mg.modify(|s| {
                         for &(start, n, off) in bb.iter() {
                             for a in 0..n {
                                 for c in 0..n {
-                                    s[off + a * n + c] -= R::lit(lam[start + a] * x[start + c]);
+                                    let (i, j) = (start + a, start + c);
+                                    let xj = x[j].to_f64();
+                                    let d = eps(&lam.eps, i) * xj + lam.re[i] * x[j].eps();
+                                    s[off + a * n + c] -= R::lit(lam.re[i] * xj).with_eps(d);
                                 }
                             }
                         }
@@ -577,7 +575,13 @@ impl<R: Real> Articulations<R> {
                 Ok(())
             },
         )
+        .dual_safe()
         .with_tangent(move || {
+            adflex_runtime::second_order::refuse_dual::<R>(
+                "the articulations' mass-matrix solve in forward mode",
+                "take Jacobian and Gauss-Newton products in f64; Hessian-vector products need \
+                 `backward` only",
+            )?;
             let x: Vec<f64> = qt.to_vec().iter().map(|v| v.to_f64()).collect();
             let mut b = match rt.tangent_buffer() {
                 Some(t) => t.to_vec().iter().map(|v| v.to_f64()).collect(),
@@ -596,6 +600,7 @@ impl<R: Real> Articulations<R> {
             let dx = solve_all(&ft, &bt, &b);
             qt.ensure_tangent()
                 .assign(&dx.iter().map(|&v| R::lit(v)).collect::<Vec<_>>());
+            Ok::<(), Error>(())
         });
         Ok(qdd)
     }
@@ -866,6 +871,41 @@ pub(crate) fn factor_all<R: Real>(
 }
 
 /// `M^-1 b` per block from the factors.
+/// `M^-1 b` for the values of `m` and `b` (`factors`: `M0`'s) and, in `Dual`, for their
+/// derivative parts: `x1 = M0^-1 (b1 - M1 x0)`, the derivative of a linear solve.
+fn solve_parts<R: Real>(
+    factors: &[Vec<f64>],
+    blocks: &[(usize, usize, usize)],
+    m: &[R],
+    b: &[R],
+) -> Parts {
+    let re: Vec<f64> = b.iter().map(|v| v.to_f64()).collect();
+    let x0 = solve_all(factors, blocks, &re);
+    if !R::DUAL {
+        return Parts::real(x0);
+    }
+    let mut r: Vec<f64> = b.iter().map(|v| v.eps()).collect();
+    for &(start, n, off) in blocks {
+        for a in 0..n {
+            for c in 0..n {
+                r[start + a] -= m[off + a * n + c].eps() * x0[start + c];
+            }
+        }
+    }
+    let x1 = solve_all(factors, blocks, &r);
+    Parts {
+        re: x0,
+        eps: Some(x1),
+    }
+}
+
+/// The scalars `re + eps ε` of `p` (the values alone outside `Dual`).
+fn dual_values<R: Real>(p: &Parts) -> Vec<R> {
+    (0..p.re.len())
+        .map(|k| R::lit(p.re[k]).with_eps(p.eps.as_ref().map_or(0.0, |e| e[k])))
+        .collect()
+}
+
 fn solve_all(factors: &[Vec<f64>], blocks: &[(usize, usize, usize)], b: &[f64]) -> Vec<f64> {
     use rayon::prelude::*;
     let mut x = b.to_vec();

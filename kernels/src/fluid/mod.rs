@@ -259,6 +259,29 @@ impl FluidGrid {
         }
     }
 
+    /// `A x = scale b` for the values of `b` and, in `Dual`, for its derivative parts: the
+    /// operator is constant, so each part is its own solve (the second-order rule of a
+    /// linear solve).
+    fn solve_parts<R: Real>(
+        &self,
+        b: &[R],
+        scale: f64,
+        s: &SolveSettings,
+        what: &str,
+    ) -> Result<Vec<R>, Error> {
+        let re: Vec<f64> = b.iter().map(|d| scale * d.to_f64()).collect();
+        let x = self.solve(&re, s, what)?;
+        if !R::DUAL {
+            return Ok(x.into_iter().map(R::lit).collect());
+        }
+        let eps: Vec<f64> = b.iter().map(|d| scale * d.eps()).collect();
+        let xe = self.solve(&eps, s, what)?;
+        Ok(x.into_iter()
+            .zip(xe)
+            .map(|(x, e)| R::lit(x).with_eps(e))
+            .collect())
+    }
+
     fn pressure_cg<R: Real>(
         &self,
         tape: &mut Tape,
@@ -266,14 +289,9 @@ impl FluidGrid {
         scale: f64,
         s: &SolveSettings,
     ) -> Result<Array<R>, Error> {
-        adflex_runtime::second_order::refuse_dual::<R>(
-            "the fluid's CG pressure solve",
-            "use `Pressure::Jacobi(k)`, which is unrolled in the scalar type",
-        )?;
         let grid = *self;
-        let b: Vec<f64> = div.to_vec().iter().map(|d| scale * d.to_f64()).collect();
-        let x = grid.solve(&b, s, "forward")?;
-        let p = Array::from_vec(x.iter().map(|&v| R::lit(v)).collect()).named("pressure");
+        let x = grid.solve_parts(&div.to_vec(), scale, s, "forward")?;
+        let p = Array::from_vec(x).named("pressure");
         let (pb, db, settings) = (p.clone(), div.clone(), *s);
         let (pt, dt) = (p.clone(), div.clone());
         tape.record_fn(
@@ -286,25 +304,20 @@ impl FluidGrid {
                 let (Some(gp), Some(gd)) = (pb.grad_buffer(), db.grad_buffer()) else {
                     return Ok(());
                 };
-                let g: Vec<f64> = gp.to_vec().iter().map(|v| v.to_f64()).collect();
-                let lambda = grid.solve(&g, &settings, "adjoint")?;
-                gd.modify(|gd| {
-                    gd.iter_mut()
-                        .zip(&lambda)
-                        .for_each(|(gd, l)| *gd += R::lit(scale * l))
-                });
+                let lambda = grid.solve_parts(&gp.to_vec(), scale, &settings, "adjoint")?;
+                gd.modify(|gd| gd.iter_mut().zip(lambda).for_each(|(gd, l)| *gd += l));
                 Ok(())
             },
         )
+        .dual_safe()
         .with_tangent(move || -> Result<(), Error> {
             let out = pt.ensure_tangent();
             let Some(td) = dt.tangent_buffer() else {
                 out.modify(|o| o.iter_mut().for_each(|o| *o = R::zero()));
                 return Ok(());
             };
-            let b: Vec<f64> = td.to_vec().iter().map(|d| scale * d.to_f64()).collect();
-            let x = grid.solve(&b, &settings, "tangent")?;
-            out.modify(|o| o.iter_mut().zip(&x).for_each(|(o, x)| *o = R::lit(*x)));
+            let x = grid.solve_parts(&td.to_vec(), scale, &settings, "tangent")?;
+            out.assign(&x);
             Ok(())
         });
         Ok(p)

@@ -46,6 +46,14 @@
 //! The scratch evaluations run on private copies of the model's parameter arrays, so the
 //! matrix-vector products never touch the gradients or tangents of the real ones.
 //!
+//! In [`Dual`] (Hessian-vector products, [`adflex_runtime::second_order`]) the step gives the
+//! new velocities their derivative part by the forward rule (one more solve with `A`), and
+//! the backward runs at the new state with its derivative part: `A^T lambda = b` is solved
+//! part by part, `A0^T lambda0 = b0`, then `A0^T lambda1 = b1 - A1^T lambda0` (the theorem's
+//! second-order term, `A` moving along the direction), and every map after it acts on both
+//! parts. The inverse masses must have a zero direction (the solve takes them as constants),
+//! and the [linearized](ImplicitEuler::linearized) step refuses `Dual`.
+//!
 //! # Failures
 //!
 //! A step whose Newton iteration stops short of its tolerance, or whose adjoint (or tangent)
