@@ -20,7 +20,7 @@ use crate::forces::{Force, ForceContext, ForceParts};
 use crate::particles::{Elements, Particles};
 use crate::precompiled::precompiled;
 use crate::rigid::{BodyParts, BodyRecord, RigidBodies};
-pub use crate::state::{BodyForces, Control, State};
+pub use crate::state::{BodyForces, BodyState, Control, State};
 use crate::validation::{Check, ModelError, Problem};
 
 /// Describes a scene element by element; [`ModelBuilder::finalize`] makes the [`Model`].
@@ -635,6 +635,23 @@ pub fn select_worlds_vec3<R: Real>(
     }
 }
 
+/// [`select_worlds_vec3`] for orientations.
+#[adflex_macros::diff_kernel]
+pub fn select_worlds_quat<R: Real>(
+    world: &Array<u32>,
+    take: &Array<u32>,
+    keep: &Array<Quat<R>>,
+    from: &Array<Quat<R>>,
+    out: &Array<Quat<R>>,
+) {
+    let t = tid();
+    if take[world[t] as usize] != 0 {
+        out[t] = from[t];
+    } else {
+        out[t] = keep[t];
+    }
+}
+
 impl<R: Real> Model<R> {
     /// The initial state: fresh copies of the initial arrays (gradients of a rollout from it
     /// land in its arrays; mark them with `requires_grad` first).
@@ -646,11 +663,11 @@ impl<R: Real> Model<R> {
         }
     }
 
-    /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s (positions
-    /// and velocities), recorded on the tape; with `from = &model.state()` it resets them.
+    /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s (the
+    /// particles' positions and velocities, the rigid bodies' positions, orientations and
+    /// velocities), recorded on the tape; with `from = &model.state()` it resets them.
     ///
-    /// Errors ([`Error::InvalidInput`]): a world out of range, states of the wrong size, or a
-    /// model with rigid bodies (not yet supported here).
+    /// Errors ([`Error::InvalidInput`]): a world out of range, or states of the wrong size.
     pub fn select_worlds(
         &self,
         tape: &mut Tape,
@@ -659,12 +676,6 @@ impl<R: Real> Model<R> {
         from: &State<R>,
     ) -> Result<State<R>, Error> {
         let invalid = |what: String, message: String| Error::InvalidInput { what, message };
-        if self.bodies.is_some() {
-            return Err(invalid(
-                "Model::select_worlds".into(),
-                "models with rigid bodies are not supported yet".into(),
-            ));
-        }
         let take = world_mask(worlds, self.worlds.len())?;
         for (s, what) in [(state, "state"), (from, "from")] {
             if s.x.len() != self.particle_count || s.v.len() != self.particle_count {
@@ -678,11 +689,27 @@ impl<R: Real> Model<R> {
                     ),
                 ));
             }
+            let bodies = self.bodies.as_ref().map_or(0, |b| b.len());
+            if s.bodies.as_ref().map_or(0, |b| b.x.len()) != bodies {
+                return Err(invalid(
+                    format!("select_worlds: `{what}.bodies`"),
+                    format!("does not have the model's {bodies} rigid bodies"),
+                ));
+            }
         }
+        let bodies = match (&state.bodies, &from.bodies) {
+            (Some(keep), Some(take_from)) => Some(self.select_body_worlds(
+                tape,
+                &take,
+                keep,
+                take_from,
+            )),
+            _ => None,
+        };
         let next = State {
             x: Array::zeros(self.particle_count).named("x"),
             v: Array::zeros(self.particle_count).named("v"),
-            bodies: None,
+            bodies,
         };
         let n = self.particle_count;
         tape.launch(
@@ -696,6 +723,41 @@ impl<R: Real> Model<R> {
             (&self.particle_world, &take, &state.v, &from.v, &next.v),
         );
         Ok(next)
+    }
+
+    /// The bodies' part of [`Model::select_worlds`].
+    fn select_body_worlds(
+        &self,
+        tape: &mut Tape,
+        take: &Array<u32>,
+        keep: &BodyState<R>,
+        from: &BodyState<R>,
+    ) -> BodyState<R> {
+        let n = keep.x.len();
+        let mut body_world = vec![0u32; n];
+        for (k, w) in self.worlds.iter().enumerate() {
+            body_world[w.bodies.clone()].fill(k as u32);
+        }
+        let world = Array::from_vec(body_world);
+        let next = BodyState {
+            x: Array::zeros(n).named("body_x"),
+            q: Array::zeros(n).named("body_q"),
+            v: Array::zeros(n).named("body_v"),
+            w: Array::zeros(n).named("body_w"),
+        };
+        for (a, b, out) in [
+            (&keep.x, &from.x, &next.x),
+            (&keep.v, &from.v, &next.v),
+            (&keep.w, &from.w, &next.w),
+        ] {
+            tape.launch(select_worlds_vec3, n, (&world, take, a, b, out));
+        }
+        tape.launch(
+            select_worlds_quat,
+            n,
+            (&world, take, &keep.q, &from.q, &next.q),
+        );
+        next
     }
 
     /// `state` with the worlds listed in `worlds` back at [`Model::state`] (see

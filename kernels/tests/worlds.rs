@@ -423,6 +423,8 @@ fn a_share_of_the_worlds_gives_the_same_bits() {
 // ---- particle worlds ----------------------------------------------------------------------
 
 use adflex_kernels::prelude::{ClothGrid, Ground, Integrator, ModelBuilder, SemiImplicitEuler};
+use adflex_kernels::State;
+use adflex_macros::diff_kernel;
 
 /// Cloth `j`: its own size, stiffness and throw, dropped on the ground.
 fn cloth_scene(j: usize) -> ModelBuilder<f64> {
@@ -586,4 +588,80 @@ fn a_gravity_array_of_the_wrong_length_is_refused_by_name() {
     let mut model: Articulations<f64> = cartpole().replicate(2).finalize().unwrap();
     model.gravity = Array::from_vec(vec![Vec3::new(0.0, 0.0, -9.81)]);
     let _ = model.step(&mut Tape::new(), &model.state(), None, 1e-2);
+}
+
+/// A tumbling body and a particle on a spring, as one world.
+fn body_scene() -> ModelBuilder<f64> {
+    let mut b = ModelBuilder::<f64>::new();
+    let q = Quat::from_polar_decomposition(
+        1.0,
+        0.4,
+        nalgebra::Unit::new_normalize(Vec3::new(1.0, 0.0, 1.0)),
+    );
+    let inertia = Mat33::from_diagonal(&Vec3::new(0.2, 0.3, 0.4));
+    let body = b.add_body(
+        Vec3::new(0.0, 0.6, 0.0),
+        q,
+        Vec3::new(0.3, 0.0, 0.0),
+        Vec3::new(0.0, 2.0, 1.0),
+        1.5,
+        inertia,
+    );
+    for p in [Vec3::new(0.1, -0.1, 0.1), Vec3::new(-0.1, -0.1, -0.1)] {
+        b.add_body_contact_point(body, p);
+    }
+    let pin = b.add_particle(Vec3::new(0.0, 1.0, 0.0), Vec3::zeros(), 0.0);
+    let bob = b.add_particle(Vec3::new(0.5, 1.0, 0.0), Vec3::zeros(), 1.0);
+    b.add_spring(pin, bob, 100.0, 0.1);
+    b.set_ground(Ground::default());
+    b
+}
+
+#[test]
+fn resetting_selected_worlds_with_rigid_bodies() {
+    let model = body_scene().replicate(3).finalize();
+    let s0 = model.state();
+    let v0 = s0.bodies.as_ref().unwrap().v.clone().requires_grad();
+    let mut tape = Tape::new();
+    let s = SemiImplicitEuler
+        .rollout(&model, &mut tape, &s0, None, 1e-3, 100)
+        .unwrap();
+    let r = model.reset_worlds(&mut tape, &s, &[1]).unwrap();
+    let (rb, sb, b0) = (
+        r.bodies.as_ref().unwrap(),
+        s.bodies.as_ref().unwrap(),
+        &model.bodies.as_ref().unwrap().initial,
+    );
+    assert_eq!(model.worlds[1].bodies, 1..2);
+    assert_eq!(rb.x.get(1), b0.x.get(1));
+    assert_eq!(rb.q.get(1), b0.q.get(1));
+    assert_eq!(rb.w.get(1), b0.w.get(1));
+    for k in [0, 2] {
+        assert_eq!(rb.x.get(k), sb.x.get(k));
+        assert_eq!(rb.q.get(k), sb.q.get(k));
+        assert_eq!(rb.v.get(k), sb.v.get(k));
+        assert_ne!(rb.x.get(k), b0.x.get(k), "body {k} moved");
+    }
+    let p1 = model.worlds[1].particles.clone();
+    assert_eq!(r.x.to_vec()[p1.clone()], model.particle_x.to_vec()[p1]);
+    // The gradient flows through the kept worlds only.
+    let loss = Array::<f64>::zeros(1);
+    tape.launch(body_height, 3, (&rb.x, &loss));
+    tape.backward(&loss).unwrap();
+    let g = v0.grad().unwrap().to_vec();
+    assert_eq!(g[1].norm(), 0.0);
+    assert!(g[0].norm() > 0.0 && g[2].norm() > 0.0, "{g:?}");
+    // A state without the bodies is refused by name.
+    let bare = State {
+        bodies: None,
+        ..s.clone()
+    };
+    let e = model.reset_worlds(&mut tape, &bare, &[0]).unwrap_err();
+    assert!(e.to_string().contains("state.bodies"), "{e}");
+}
+
+#[diff_kernel]
+fn body_height(x: &Array<Vec3<f64>>, loss: &Array<f64>) {
+    let i = tid();
+    loss.atomic_add(0, x[i].y + 0.5 * x[i].x);
 }
