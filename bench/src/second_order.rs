@@ -8,10 +8,15 @@
 //! - a Gauss-Newton product `JᵀJ v` of the final positions, on a recorded tape (a tangent and
 //!   an adjoint pass), and with the recording forward pass.
 //!
+//!
+//! With `--implicit`, the rollout is by implicit Euler (its implicit-function-theorem adjoint,
+//! and in `Dual` the theorem's second-order term), `steps` defaulting to 20.
+//!
 //! One JSON line: seconds per call of each, and the ratios to the gradient.
 
 use std::time::Duration;
 
+use adflex_kernels::integrators::{ImplicitEuler, Integrator, SemiImplicitEuler};
 use adflex_kernels::scenes::cloth;
 use adflex_runtime::second_order::hvp;
 use adflex_runtime::{AnyArray, Dual, Tape};
@@ -22,7 +27,17 @@ use crate::timing::{fmt_s, interleaved, Case};
 
 pub fn main(rest: &[String]) {
     let n = arg(rest, "--n").unwrap_or(32);
-    let steps = arg(rest, "--steps").unwrap_or(100);
+    let implicit = rest.iter().any(|a| a == "--implicit");
+    let steps = arg(rest, "--steps").unwrap_or(if implicit { 20 } else { 100 });
+    let by_f: Box<dyn Integrator<f64>> = match implicit {
+        true => Box::new(ImplicitEuler::default()),
+        false => Box::new(SemiImplicitEuler),
+    };
+    let by_d: Box<dyn Integrator<Dual>> = match implicit {
+        true => Box::new(ImplicitEuler::default()),
+        false => Box::new(SemiImplicitEuler),
+    };
+    let (by_f, by_d) = (&*by_f, &*by_d);
     let rounds = arg(rest, "--rounds").unwrap_or(5);
     let f = cloth::build::<f64>(n);
     let d = cloth::build::<Dual>(n);
@@ -38,7 +53,7 @@ pub fn main(rest: &[String]) {
 
     // The product must be a number (a NaN would time a wrong answer).
     let check = hvp(&inputs_d, &v, |tape| {
-        cloth::forward(&d, tape, steps).map(|(_, loss)| loss)
+        cloth::forward_by(&d, tape, steps, by_d).map(|(_, loss)| loss)
     })
     .expect("Hessian-vector product");
     assert!(
@@ -46,14 +61,16 @@ pub fn main(rest: &[String]) {
         "the cloth's Hessian-vector product is not finite"
     );
     let mut recorded = Tape::new();
-    let (end, _) = cloth::forward(&f, &mut recorded, steps).expect("the cloth's rollout");
+    let (end, _) = cloth::forward_by(&f, &mut recorded, steps, by_f).expect("the cloth's rollout");
     let mut cases = vec![
         Case::new("gradient", || {
-            cloth::rollout(&f, steps, true).expect("gradient");
+            let mut tape = Tape::new();
+            let (_, loss) = cloth::forward_by(&f, &mut tape, steps, by_f).expect("rollout");
+            tape.backward(&loss).expect("gradient");
         }),
         Case::new("hvp", || {
             hvp(&inputs_d, &v, |tape| {
-                cloth::forward(&d, tape, steps).map(|(_, loss)| loss)
+                cloth::forward_by(&d, tape, steps, by_d).map(|(_, loss)| loss)
             })
             .expect("Hessian-vector product");
         }),
@@ -64,7 +81,7 @@ pub fn main(rest: &[String]) {
         }),
         Case::new("gauss-newton with its forward", || {
             let mut tape = Tape::new();
-            let (s, _) = cloth::forward(&f, &mut tape, steps).expect("rollout");
+            let (s, _) = cloth::forward_by(&f, &mut tape, steps, by_f).expect("rollout");
             tape.gauss_newton(&inputs_f, &[&s.x], &v)
                 .expect("Gauss-Newton product");
         }),
@@ -82,6 +99,7 @@ pub fn main(rest: &[String]) {
         "{}",
         json!({
             "scene": "cloth", "n": n, "steps": steps, "parameters": dim,
+            "integrator": if implicit { "implicit Euler" } else { "semi-implicit Euler" },
             "threads": rayon::current_num_threads(),
             "s_gradient": t[0], "s_hvp": t[1], "s_gauss_newton_on_tape": t[2],
             "s_gauss_newton_with_forward": t[3],

@@ -305,8 +305,18 @@ pub fn forward<R: Real>(
     tape: &mut Tape,
     steps: usize,
 ) -> Result<(State<R>, Array<R>), Error> {
+    forward_by(scene, tape, steps, &SemiImplicitEuler)
+}
+
+/// [`forward`] by another integrator (the same `dt`).
+pub fn forward_by<R: Real>(
+    scene: &Cloth<R>,
+    tape: &mut Tape,
+    steps: usize,
+    integrator: &dyn Integrator<R>,
+) -> Result<(State<R>, Array<R>), Error> {
     let dt = R::lit(DT);
-    let s = SemiImplicitEuler.rollout(&scene.model, tape, &scene.initial, None, dt, steps)?;
+    let s = integrator.rollout(&scene.model, tape, &scene.initial, None, dt, steps)?;
     let loss = Array::zeros(1).named("loss");
     let n2 = (scene.n * scene.n) as f64;
     let target = Vec3::new(R::lit(0.0), R::lit(-0.1), R::lit(0.0));
