@@ -166,6 +166,11 @@ pub enum Stop {
     /// too noisy at the step sizes tried, or the edge of a region where the simulation
     /// diverges).
     LineSearchFailed(String),
+    /// A second-order method ([`Optimizer::gauss_newton`], [`Optimizer::levenberg_marquardt`],
+    /// [`Optimizer::newton_cg`]) found no step lowering the loss (its backtracking, its
+    /// damping or its trust region gave out; the message says which) at a point that is not
+    /// stationary: the same causes as [`Stop::LineSearchFailed`].
+    StepFailed(String),
     /// The run diverged (the message names the evaluation): gradient descent or Adam reached a
     /// non-finite loss or gradient, or a gradient `1e8` times the initial one at a loss above
     /// the initial one (lower the learning rate); or L-BFGS ran away, its line search meeting
@@ -205,6 +210,10 @@ impl fmt::Display for Stop {
             Stop::LineSearchFailed(m) => write!(
                 f,
                 "NOT converged, the line search failed where the gradient is not small: {m}"
+            ),
+            Stop::StepFailed(m) => write!(
+                f,
+                "NOT converged, no step lowered the loss where the gradient is not small: {m}"
             ),
             Stop::Diverged(m) => write!(f, "NOT converged, diverged: {m}"),
             Stop::MaxIterations => {
@@ -668,7 +677,12 @@ impl<'a> Optimizer<'a> {
                     if let Some(nf) = non_finite {
                         m.push_str(&format!("; a trial point was not finite: {nf}"));
                     }
-                    Stop::LineSearchFailed(m)
+                    match self.method {
+                        Method::GaussNewton { .. }
+                        | Method::LevenbergMarquardt { .. }
+                        | Method::NewtonCg { .. } => Stop::StepFailed(m),
+                        _ => Stop::LineSearchFailed(m),
+                    }
                 }
             }
         };

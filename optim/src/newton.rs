@@ -134,6 +134,7 @@ impl Optimizer<'_> {
             cg_iters,
             lambda,
             max_iters,
+            max_evals: self.max_evals,
         };
         self.drive(params, start, &counts, &mut |observe| {
             least_squares_run(params, &config, start, &counts, &mut record, observe)
@@ -208,12 +209,13 @@ impl Optimizer<'_> {
             }
             Ok(out)
         };
-        let max_iters = self.max_iters;
+        let (max_iters, max_evals) = (self.max_iters, self.max_evals);
         self.drive(params, start, &counts, &mut |observe| {
             newton_cg_run(
                 params,
                 cg_iters,
                 max_iters,
+                max_evals,
                 start,
                 &counts,
                 &mut product,
@@ -264,6 +266,13 @@ struct LeastSquares {
     cg_iters: usize,
     lambda: Option<f64>,
     max_iters: usize,
+    max_evals: usize,
+}
+
+/// Whether the evaluation budget is spent: the inner loops (backtracking, damping, a trust
+/// region's retries) stop there too, not only between iterations.
+fn spent(counts: &Counts, max_evals: usize) -> bool {
+    counts.evaluations.get() >= max_evals
 }
 
 /// Whether a failed evaluation at a trial point is one the methods step back from (the
@@ -417,6 +426,9 @@ fn least_squares_run(
                     if t < 1e-10 {
                         break None;
                     }
+                    if spent(counts, config.max_evals) {
+                        return Ok((best, End::Stop(Stop::MaxEvaluations)));
+                    }
                 };
                 let Some((trial, rec)) = accepted else {
                     params.set_values(&best.values);
@@ -510,6 +522,9 @@ fn least_squares_run(
                             ));
                         }
                         lambda = Some(l);
+                        if spent(counts, config.max_evals) {
+                            return Ok((best, End::Stop(Stop::MaxEvaluations)));
+                        }
                         // The trial moved the parameters: record the tape at x again.
                         cur = record(&x)?;
                     }
@@ -527,10 +542,12 @@ fn least_squares_run(
     unreachable!("the loop returns")
 }
 
+#[allow(clippy::too_many_arguments)]
 fn newton_cg_run(
     params: &Params,
     cg_iters: usize,
     max_iters: usize,
+    max_evals: usize,
     start: Instant,
     counts: &Counts,
     product: &mut Product<'_>,
@@ -643,7 +660,9 @@ fn newton_cg_run(
                 _ => {
                     rejected += 1;
                     let no_model = predicted.is_nan() || predicted <= 0.0;
-                    if rejected > 60 || no_model && rejected > 1 {
+                    // A region too small to move x in floating point ends the retries too.
+                    let tiny = radius.is_some_and(|r| r <= f64::EPSILON * norm(&x));
+                    if rejected > 60 || tiny || no_model && rejected > 1 {
                         params.set_values(&best.values);
                         return Ok((
                             best,
@@ -656,6 +675,9 @@ fn newton_cg_run(
                                 non_finite: None,
                             },
                         ));
+                    }
+                    if spent(counts, max_evals) {
+                        return Ok((best, End::Stop(Stop::MaxEvaluations)));
                     }
                     // Again from x, in the smaller region.
                 }

@@ -580,3 +580,38 @@ fn a_failing_trial_point_is_a_rejected_step() {
     assert!(report.converged(), "{report}");
     assert!((p.get(0) - 3.0).abs() < 1e-9, "{}: {report}", p.get(0));
 }
+
+/// A loss that keeps falling up to a wall where it stops being defined: Newton-CG's trust
+/// region shrinks against the wall and the run says so (`Stop::StepFailed`, not converged:
+/// the gradient is 1 there); with an evaluation budget it stops within the budget, even
+/// inside its retries.
+#[test]
+fn newton_cg_at_a_wall_fails_by_name_and_keeps_its_budget() {
+    #[diff_kernel]
+    fn walled<R: Real>(p: &Array<R>, loss: &Array<R>) {
+        let x = p[0];
+        loss.atomic_add(0, x + 0.0 * sqrt(x - 0.999));
+    }
+    let run = |opt: Optimizer| {
+        let p = Array::from_vec(vec![Dual::constant(1.5)]);
+        opt.progress(false)
+            .max_iters(1000)
+            .minimize_newton(&Params::new().with(&p), |tape| {
+                let l = Array::<Dual>::zeros(1);
+                tape.launch(walled, 1, (&p, &l));
+                Ok(l)
+            })
+            .unwrap()
+    };
+    let r = run(Optimizer::newton_cg());
+    assert!(
+        matches!(&r.stop, Stop::StepFailed(m) if m.contains("trust region")),
+        "{r}"
+    );
+    assert!(!r.converged() && r.loss < 1.0 && r.loss >= 0.999, "{r}");
+    assert!(r.evaluations < 60, "the retries stop once the region cannot move x: {r}");
+    assert!(r.to_string().contains("no step lowered the loss"), "{r}");
+    let r = run(Optimizer::newton_cg().max_evals(8));
+    assert_eq!(r.stop, Stop::MaxEvaluations, "{r}");
+    assert!(r.evaluations <= 8, "{r}");
+}
