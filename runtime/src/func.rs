@@ -41,13 +41,18 @@ pub fn call_adjoint<A, O: crate::Value, F: DiffFunc<A, O>>(args: A, adj_out: O, 
     f.adjoint(args, adj_out)
 }
 
+/// How the message of [`refuse_dual`]'s panic starts: the tape's passes catch that panic
+/// (it happens inside a launch, which cannot return an error) and return it as
+/// [`Error::InvalidInput`](crate::Error::InvalidInput) naming the kernel.
+pub(crate) const DUAL_REFUSAL: &str = "second-order refusal: ";
+
 /// The panic of a custom adjoint not declared `dual_safe`, run in `Dual`.
 #[cold]
 #[inline(never)]
 fn refuse_dual<F>() -> ! {
     let name = std::any::type_name::<F>();
     panic!(
-        "the #[diff_func] `{name}` has a custom adjoint that was not declared `dual_safe`, and \
+        "{DUAL_REFUSAL}the #[diff_func] `{name}` has a custom adjoint that was not declared `dual_safe`, and \
          a second-order pass (Hessian-vector product) ran it in `Dual`: if the adjoint and the \
          tangent compute in the arguments' own scalar type (no detour through f64), declare \
          it with `#[diff_func(adjoint = .., tangent = .., dual_safe)]`; otherwise it has no \

@@ -69,6 +69,31 @@ impl Record {
 
     /// `e`, returned by this custom step's backward or tangent (step `i` on the tape), with
     /// the step named in its context.
+    /// Runs the launch of this record (#`i`) in `mode`. A custom rule that refuses `Dual`
+    /// panics inside the launch (see `func::DUAL_REFUSAL`); that panic is returned as an
+    /// error naming the kernel, any other goes on unwinding.
+    fn run_launch(&self, i: usize, mode: Mode) -> Result<(), Error> {
+        let Step::Launch { launch, dim } = &self.step else {
+            unreachable!("run_launch on a custom step")
+        };
+        let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            launch.run(mode, *dim)
+        }));
+        let Err(payload) = ran else {
+            return Ok(());
+        };
+        let message = payload
+            .downcast_ref::<String>()
+            .and_then(|m| m.strip_prefix(crate::func::DUAL_REFUSAL));
+        match message {
+            Some(m) => Err(Error::InvalidInput {
+                what: format!("kernel `{}` (#{i} on the tape)", self.qualified()),
+                message: m.to_string(),
+            }),
+            None => std::panic::resume_unwind(payload),
+        }
+    }
+
     fn custom_error(&self, i: usize, e: Error) -> Error {
         let step = self.qualified();
         e.in_context(format!("custom step `{step}` (#{i} on the tape)"))
@@ -775,7 +800,7 @@ impl Tape {
                 self.last.run += 1;
                 let r = &self.records[i];
                 match &r.step {
-                    Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
+                    Step::Launch { .. } => r.run_launch(i, Mode::Adjoint)?,
                     Step::Custom { .. } => {
                         r.clear_replaced_grads();
                     }
@@ -796,7 +821,7 @@ impl Tape {
                 }
             }
             match &mut self.records[i].step {
-                Step::Launch { launch, dim } => launch.run(Mode::Adjoint, *dim),
+                Step::Launch { .. } => self.records[i].run_launch(i, Mode::Adjoint)?,
                 Step::Custom { backward, .. } => {
                     if let Err(e) = backward() {
                         return Err(self.records[i].custom_error(i, e));
@@ -941,7 +966,7 @@ impl Tape {
         }
         for i in 0..self.records.len() {
             match &mut self.records[i].step {
-                Step::Launch { launch, dim } => launch.run(Mode::Tangent, *dim),
+                Step::Launch { .. } => self.records[i].run_launch(i, Mode::Tangent)?,
                 Step::Custom { tangent, .. } => {
                     if let Err(e) = (tangent.as_mut().expect("checked above"))() {
                         return Err(self.records[i].custom_error(i, e));
