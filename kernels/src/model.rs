@@ -698,12 +698,9 @@ impl<R: Real> Model<R> {
             }
         }
         let bodies = match (&state.bodies, &from.bodies) {
-            (Some(keep), Some(take_from)) => Some(self.select_body_worlds(
-                tape,
-                &take,
-                keep,
-                take_from,
-            )),
+            (Some(keep), Some(take_from)) => {
+                Some(self.select_body_worlds(tape, &take, keep, take_from))
+            }
             _ => None,
         };
         let next = State {

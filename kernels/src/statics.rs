@@ -306,9 +306,9 @@ impl<R: Real> NewtonSystem for System<R> {
                 .map(|k| if self.dofs.free[k] { -g[k] } else { 0.0 })
                 .collect()
         });
-        for k in 0..u.len() {
-            if !self.dofs.free[k] {
-                out.re[k] = u[k];
+        for ((o, &u), &free) in out.re.iter_mut().zip(u).zip(&self.dofs.free) {
+            if !free {
+                *o = u;
             }
         }
         Ok(out)
@@ -469,16 +469,10 @@ impl Equilibrium {
         let originals = sys.c.links;
         let mut inputs: Vec<&dyn AnyArray> = vec![&guess.x];
         inputs.extend(originals.iter().map(|l| l.original()));
-        tape.record_fn(
-            "equilibrium",
-            &inputs,
-            &[&x],
-            || x.assign(&value),
-            {
-                let shared = shared.clone();
-                move || shared.backward()
-            },
-        )
+        tape.record_fn("equilibrium", &inputs, &[&x], || x.assign(&value), {
+            let shared = shared.clone();
+            move || shared.backward()
+        })
         .dual_safe()
         .with_tangent(move || shared.tangent());
         Ok((
@@ -600,7 +594,13 @@ impl<R: Real> Shared<R> {
                 (p, ad)
             }
             Through::DerivativeParts => {
-                let p = sys.eval_at(&Parts { eps: Some(dpin.clone()), ..x }, false);
+                let p = sys.eval_at(
+                    &Parts {
+                        eps: Some(dpin.clone()),
+                        ..x
+                    },
+                    false,
+                );
                 let ad = flat_parts(&p.a).eps.unwrap_or_else(|| vec![0.0; m]);
                 (p, ad)
             }

@@ -5,9 +5,9 @@
 
 use crate::common;
 
-use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
 use adflex_kernels::articulation::{urdf, ArticulationState, Articulations};
 use adflex_kernels::fluid::{FluidGrid, Pressure};
+use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
 use adflex_kernels::statics::Equilibrium;
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::{diff_func, diff_kernel};
@@ -434,7 +434,7 @@ fn tight_implicit() -> ImplicitEuler {
     };
     ImplicitEuler {
         tolerance: Some(1e-14),
-        linear: tight.clone(),
+        linear: tight,
         on_failure: adflex_kernels::integrators::SolverPolicy::Continue,
         ..ImplicitEuler::default()
     }
@@ -660,7 +660,10 @@ fn hvp_through_articulated_robots_matches_differences() {
             Array::from_vec(q0).requires_grad(),
             Array::from_vec(qd0).requires_grad(),
         );
-        let (massd, massf) = (md.mass.clone().requires_grad(), mf.mass.clone().requires_grad());
+        let (massd, massf) = (
+            md.mass.clone().requires_grad(),
+            mf.mass.clone().requires_grad(),
+        );
         let dp: [&dyn AnyArray; 3] = [&qd_, &qdd_, &massd];
         let fp: [&dyn AnyArray; 3] = [&qf, &qdf, &massf];
         let m: usize = fp.iter().map(|p| p.len()).sum();

@@ -609,7 +609,10 @@ fn newton_cg_at_a_wall_fails_by_name_and_keeps_its_budget() {
         "{r}"
     );
     assert!(!r.converged() && r.loss < 1.0 && r.loss >= 0.999, "{r}");
-    assert!(r.evaluations < 60, "the retries stop once the region cannot move x: {r}");
+    assert!(
+        r.evaluations < 60,
+        "the retries stop once the region cannot move x: {r}"
+    );
     assert!(r.to_string().contains("no step lowered the loss"), "{r}");
     let r = run(Optimizer::newton_cg().max_evals(8));
     assert_eq!(r.stop, Stop::MaxEvaluations, "{r}");

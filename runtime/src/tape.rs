@@ -76,9 +76,7 @@ impl Record {
         let Step::Launch { launch, dim } = &self.step else {
             unreachable!("run_launch on a custom step")
         };
-        let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            launch.run(mode, *dim)
-        }));
+        let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| launch.run(mode, *dim)));
         let Err(payload) = ran else {
             return Ok(());
         };

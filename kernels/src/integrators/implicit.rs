@@ -333,14 +333,7 @@ struct System<R: Real> {
 }
 
 impl<R: Real> System<R> {
-    fn new(
-        c: Copies<R>,
-        x0: Parts,
-        v0: Vec<f64>,
-        inv_mass: &[R],
-        dt: f64,
-        a_e: Vec<f64>,
-    ) -> Self {
+    fn new(c: Copies<R>, x0: Parts, v0: Vec<f64>, inv_mass: &[R], dt: f64, a_e: Vec<f64>) -> Self {
         let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
         System {
             a_e,
@@ -357,9 +350,9 @@ impl<R: Real> System<R> {
     /// Records the accelerations at `v'` (`x' = x0 + dt v'`) on a new tape; with derivative
     /// parts, at the point of a Hessian-vector product's sweeps.
     fn eval_at(&self, v: &Parts, grads: bool) -> Point<R> {
-        let x = self
-            .x0
-            .zip(v, |x, v| x.iter().zip(v).map(|(x, v)| x + self.dt * v).collect());
+        let x = self.x0.zip(v, |x, v| {
+            x.iter().zip(v).map(|(x, v)| x + self.dt * v).collect()
+        });
         let mut xs = Array::from_vec(unflat_parts::<R>(&x)).named("x_implicit");
         let mut vs = Array::from_vec(unflat_parts::<R>(v)).named("v_implicit");
         if grads {
@@ -1114,7 +1107,9 @@ impl<R: Real> Shared<R> {
             return Ok(());
         };
         let dt = self.dt;
-        let b = gv1.zip(&gx1, |gv, gx| gv.iter().zip(gx).map(|(v, x)| v + dt * x).collect());
+        let b = gv1.zip(&gx1, |gv, gx| {
+            gv.iter().zip(gx).map(|(v, x)| v + dt * x).collect()
+        });
         let (sys, mut p, lambda) = self.adjoint_solve(&self.v1_val, &b)?;
         let (free, mass) = (&sys.dofs.free, &sys.dofs.mass);
         let seed = lambda.map(|l| l.iter().zip(mass).map(|(l, m)| dt * m * l).collect());
@@ -1123,7 +1118,9 @@ impl<R: Real> Shared<R> {
             .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         let gx0 = gx1.zip(&gx, |a, b| a.iter().zip(b).map(|(a, b)| a + b).collect());
         // On pinned DOFs v' = v, which also moves x' = x + dt v.
-        let pinned = b.zip(&gx, |b, gx| (0..b.len()).map(|k| b[k] + dt * gx[k]).collect());
+        let pinned = b.zip(&gx, |b, gx| {
+            (0..b.len()).map(|k| b[k] + dt * gx[k]).collect()
+        });
         let pinned = pinned.zip(&gv, |p, gv| p.iter().zip(gv).map(|(p, g)| p + g).collect());
         let gv0 = lambda.zip(&pinned, |l, p| {
             (0..l.len())
@@ -1169,7 +1166,13 @@ impl<R: Real> Shared<R> {
             }
             Through::DerivativeParts => {
                 // The positions' derivative part is `dx0 + dt dvp` (the system's `x0`'s).
-                let p = sys.eval_at(&Parts { eps: Some(dvp), ..v1 }, false);
+                let p = sys.eval_at(
+                    &Parts {
+                        eps: Some(dvp),
+                        ..v1
+                    },
+                    false,
+                );
                 let ad = flat_parts(&p.a).eps.unwrap_or_else(|| vec![0.0; m]);
                 (p, ad)
             }
