@@ -8,6 +8,7 @@ use crate::common;
 use adflex_kernels::articulation::{urdf, ArticulationState, Articulations};
 use adflex_kernels::fluid::{FluidGrid, Pressure};
 use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
+use adflex_kernels::mpm::{Material, Mpm, MpmBuilder};
 use adflex_kernels::statics::Equilibrium;
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::{diff_func, diff_kernel};
@@ -679,6 +680,176 @@ fn hvp_through_articulated_robots_matches_differences() {
             "{file}: w^T H u = {a:e}, u^T H w = {b:e}"
         );
     }
+}
+
+/// `sum_p |x_p|^2 + 0.3 |v_p|^2` over 2D material points.
+#[diff_kernel]
+fn points_loss<R: Real>(x: &Array<Vec2<R>>, v: &Array<Vec2<R>>, loss: &Array<R>) {
+    let i = tid();
+    loss.atomic_add(0, dot(x[i], x[i]) + 0.3 * dot(v[i], v[i]));
+}
+
+/// Eight MLS-MPM steps of a falling, spinning block (`material`), from the state `v0`.
+fn mpm_loss<R: Real + Element>(
+    mpm: &Mpm<R>,
+    v0: &Array<Vec2<R>>,
+    tape: &mut Tape,
+) -> Result<Array<R>, Error> {
+    let mut s = mpm.state();
+    s.v = v0.clone();
+    for _ in 0..8 {
+        s = mpm.step(tape, &s, None, 1e-3)?;
+    }
+    let loss = Array::<R>::zeros(1);
+    tape.launch(points_loss, s.x.len(), (&s.x, &s.v, &loss));
+    Ok(loss)
+}
+
+/// Through MLS-MPM (the transfers' B-splines, APIC, the constitutive models): `H u` with
+/// respect to the initial velocities and the Lamé parameters against central differences.
+#[test]
+fn hvp_through_mpm_matches_differences() {
+    for material in [
+        Material::Corotated {
+            mu: 30.0,
+            lambda: 20.0,
+        },
+        Material::NeoHookean {
+            mu: 30.0,
+            lambda: 20.0,
+        },
+    ] {
+        let mut b = MpmBuilder::new(16, 1.0 / 16.0);
+        let r = b.add_rect(
+            Vec2::new(0.4, 0.4),
+            Vec2::new(0.125, 0.125),
+            1.0,
+            1.0,
+            material,
+        );
+        for (k, p) in r.enumerate() {
+            let a = 0.37 * k as f64;
+            b.set_velocity(p, Vec2::new(0.3 * a.sin(), 0.2 * a.cos()));
+        }
+        let md = b.finalize::<Dual>().unwrap();
+        let mf = b.finalize::<f64>().unwrap();
+        let (vd, vf) = (md.state().v.requires_grad(), mf.state().v.requires_grad());
+        let (mud, muf) = (md.mu.clone().requires_grad(), mf.mu.clone().requires_grad());
+        let (ld, lf) = (
+            md.lambda.clone().requires_grad(),
+            mf.lambda.clone().requires_grad(),
+        );
+        let dp: [&dyn AnyArray; 3] = [&vd, &mud, &ld];
+        let fp: [&dyn AnyArray; 3] = [&vf, &muf, &lf];
+        let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
+        let mut rng = common::Rng(0x3b3);
+        let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let hu = hvp(&dp, &u, |t| mpm_loss(&md, &vd, t)).unwrap();
+        let hw = hvp(&dp, &w, |t| mpm_loss(&md, &vd, t)).unwrap();
+        let fd = hv_by_differences(&fp, &u, 1e-5, &mut |t| mpm_loss(&mf, &vf, t));
+        assert_close(&format!("{material:?}: H u"), &hu.hv, &fd, 1e-6);
+        let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+        assert!(
+            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+            "{material:?}: w^T H u = {a:e}, u^T H w = {b:e}"
+        );
+    }
+}
+
+/// A box tumbling onto the ground on four contact points, in any scalar.
+fn tumbling<R: Real>() -> Model<R> {
+    let l = |x: f64| R::lit(x);
+    let mut b = ModelBuilder::<R>::new();
+    // A unit quaternion: cos 0.2 + sin 0.2 (1, 0.2, 0.5)/|.|.
+    let (c, s) = (0.2f64.cos(), 0.2f64.sin() / 1.3f64.sqrt());
+    let q = Quat::new(l(c), l(s), l(0.2 * s), l(0.5 * s));
+    let inertia = Mat33::from_diagonal(&Vec3::new(l(0.2), l(0.3), l(0.4)));
+    let v3 = |x: f64, y: f64, z: f64| Vec3::new(l(x), l(y), l(z));
+    let body = b.add_body(
+        v3(0.0, 0.12, 0.0),
+        q,
+        v3(0.4, -0.3, 0.1),
+        v3(0.5, 2.0, -1.0),
+        l(1.5),
+        inertia,
+    );
+    for (x, z) in [(0.1, 0.1), (-0.1, 0.1), (0.1, -0.1), (-0.1, -0.1)] {
+        b.add_body_contact_point(body, v3(x, -0.1, z));
+    }
+    b.set_ground(adflex_kernels::prelude::Ground {
+        ke: l(2e3),
+        kd: l(10.0),
+        mu: l(0.3),
+        ..adflex_kernels::prelude::Ground::default()
+    });
+    b.finalize()
+}
+
+/// `|x|^2 + 0.3 |v|^2 + 0.1 |w|^2 + q.x` of the bodies.
+#[diff_kernel]
+fn body_loss<R: Real>(
+    x: &Array<Vec3<R>>,
+    q: &Array<Quat<R>>,
+    v: &Array<Vec3<R>>,
+    w: &Array<Vec3<R>>,
+    loss: &Array<R>,
+) {
+    let i = tid();
+    loss.atomic_add(
+        0,
+        dot(x[i], x[i]) + 0.3 * dot(v[i], v[i]) + 0.1 * dot(w[i], w[i]) + q[i].x,
+    );
+}
+
+fn body_rollout<R: Real + Element>(
+    model: &Model<R>,
+    v0: &Array<Vec3<R>>,
+    w0: &Array<Vec3<R>>,
+    tape: &mut Tape,
+) -> Result<Array<R>, Error> {
+    let mut s = model.state();
+    let b = s.bodies.as_mut().unwrap();
+    b.v = v0.clone();
+    b.w = w0.clone();
+    let end = SemiImplicitEuler.rollout(model, tape, &s, None, R::lit(2e-3), 40)?;
+    let b = end.bodies.unwrap();
+    let loss = Array::<R>::zeros(1);
+    tape.launch(body_loss, b.x.len(), (&b.x, &b.q, &b.v, &b.w, &loss));
+    Ok(loss)
+}
+
+/// Through rigid bodies (the quaternion update, the gyroscopic term) and their ground
+/// contact with friction: `H u` with respect to the initial linear and angular velocities.
+#[test]
+fn hvp_through_a_tumbling_rigid_body_matches_differences() {
+    let (md, mf) = (tumbling::<Dual>(), tumbling::<f64>());
+    let (bd, bf) = (
+        &md.bodies.as_ref().unwrap().initial,
+        &mf.bodies.as_ref().unwrap().initial,
+    );
+    let (vd, wd) = (
+        bd.v.deep_clone().requires_grad(),
+        bd.w.deep_clone().requires_grad(),
+    );
+    let (vf, wf) = (
+        bf.v.deep_clone().requires_grad(),
+        bf.w.deep_clone().requires_grad(),
+    );
+    let dp: [&dyn AnyArray; 2] = [&vd, &wd];
+    let fp: [&dyn AnyArray; 2] = [&vf, &wf];
+    let mut rng = common::Rng(0xb0d);
+    let u: Vec<f64> = (0..6).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let w: Vec<f64> = (0..6).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let hu = hvp(&dp, &u, |t| body_rollout(&md, &vd, &wd, t)).unwrap();
+    let hw = hvp(&dp, &w, |t| body_rollout(&md, &vd, &wd, t)).unwrap();
+    let fd = hv_by_differences(&fp, &u, 1e-5, &mut |t| body_rollout(&mf, &vf, &wf, t));
+    assert_close("tumbling body: H u", &hu.hv, &fd, 1e-6);
+    let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+    assert!(
+        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+        "w^T H u = {a:e}, u^T H w = {b:e}"
+    );
 }
 
 /// What would be silently wrong is refused: a solver step without a second-order rule
