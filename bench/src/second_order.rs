@@ -8,7 +8,6 @@
 //! - a Gauss-Newton product `JᵀJ v` of the final positions, on a recorded tape (a tangent and
 //!   an adjoint pass), and with the recording forward pass.
 //!
-//!
 //! With `--implicit`, the rollout is by implicit Euler (its implicit-function-theorem adjoint,
 //! and in `Dual` the theorem's second-order term), `steps` defaulting to 20.
 //!
@@ -64,9 +63,14 @@ pub fn main(rest: &[String]) {
     let (end, _) = cloth::forward_by(&f, &mut recorded, steps, by_f).expect("the cloth's rollout");
     let mut cases = vec![
         Case::new("gradient", || {
-            let mut tape = Tape::new();
-            let (_, loss) = cloth::forward_by(&f, &mut tape, steps, by_f).expect("rollout");
-            tape.backward(&loss).expect("gradient");
+            if implicit {
+                let mut tape = Tape::new();
+                let (_, loss) = cloth::forward_by(&f, &mut tape, steps, by_f).expect("rollout");
+                tape.backward(&loss).expect("gradient");
+            } else {
+                // The cloth benchmark's own gradient (`docs/performance.md`).
+                cloth::rollout(&f, steps, true).expect("gradient");
+            }
         }),
         Case::new("hvp", || {
             hvp(&inputs_d, &v, |tape| {

@@ -690,7 +690,11 @@ impl<R: Real> Model<R> {
                 ));
             }
             let bodies = self.bodies.as_ref().map_or(0, |b| b.len());
-            if s.bodies.as_ref().map_or(0, |b| b.x.len()) != bodies {
+            let sizes = s
+                .bodies
+                .as_ref()
+                .map_or([0; 4], |b| [b.x.len(), b.q.len(), b.v.len(), b.w.len()]);
+            if sizes != [bodies; 4] {
                 return Err(invalid(
                     format!("select_worlds: `{what}.bodies`"),
                     format!("does not have the model's {bodies} rigid bodies"),

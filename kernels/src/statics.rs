@@ -92,8 +92,8 @@ use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
     acceleration_tangent, add_into, check_constant_masses, check_inputs, check_visited, copies,
-    epsilon, flat, flat_parts, forces_only, is_f32, record, unflat, unflat_parts, Copies, Dofs,
-    Needs, Point, Through,
+    epsilon, flat, flat_parts, forces_only, is_f32, pull, record, unflat, unflat_parts, Copies,
+    Dofs, Needs, Point, Through,
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
@@ -181,18 +181,6 @@ impl<R: Real> System<R> {
             xs = xs.requires_grad();
         }
         record(&self.c, xs, vs, &x.re)
-    }
-
-    /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
-    /// scratch tape; returns the gradient of the positions.
-    fn pull(&self, p: &mut Point<R>, seed: &Parts) -> Result<Parts, Error> {
-        p.x.zero_grad();
-        p.a.ensure_grad().assign(&unflat_parts::<R>(seed));
-        p.tape.backward_with(&[&p.a])?;
-        Ok(match p.x.grad() {
-            Ok(g) => flat_parts(&g),
-            Err(_) => seed.map(|s| vec![0.0; s.len()]),
-        })
     }
 
     /// `M u` on free DOFs, 0 on pinned ones.
@@ -300,7 +288,7 @@ impl<R: Real> NewtonSystem for System<R> {
 
     /// `K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
     fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
-        let gx = self.pull(p, &Parts::real(self.seed(u)))?;
+        let (gx, _) = pull(p, &Parts::real(self.seed(u)))?;
         let mut out = gx.map(|g| {
             (0..g.len())
                 .map(|k| if self.dofs.free[k] { -g[k] } else { 0.0 })
@@ -532,8 +520,7 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
-        let gx = sys
-            .pull(&mut p, &lambda.map(|l| sys.seed(l)))
+        let (gx, _) = pull(&mut p, &lambda.map(|l| sys.seed(l)))
             .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         // Pinned DOFs: x* = pin, which also moves the free particles' equilibrium.
         let gpin = xbar.zip(&gx, |xbar, gx| {
@@ -561,8 +548,7 @@ impl<R: Real> Shared<R> {
         };
         adflex_runtime::second_order::refuse_dual::<R>(
             "Equilibrium's forward mode",
-            "take Jacobian and Gauss-Newton products in f64; Hessian-vector products need \
-             `backward` only",
+            crate::solver::parts::NO_DUAL_TANGENT,
         )?;
         let m = self.x_val.re.len();
         let dguess = self

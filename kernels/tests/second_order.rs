@@ -452,9 +452,16 @@ const STIFFNESSES: [(&str, &str); 5] = [
 ];
 
 /// `H u` against central differences of the f64 gradient, and `w^T H u = u^T H w`, for the
-/// loss `f` of the scene's parameters (`STIFFNESSES`) and `extra` arrays of each model.
-fn check_hvp<F, D>(what: &str, pin: bool, h: f64, rel: f64, mut loss_f: F, mut loss_d: D)
-where
+/// loss of the scene's parameters (`STIFFNESSES`) and a state array (the initial positions
+/// if `positions`, else the velocities), passed to the loss closures.
+fn check_hvp<F, D>(
+    what: &str,
+    (pin, positions): (bool, bool),
+    h: f64,
+    rel: f64,
+    mut loss_f: F,
+    mut loss_d: D,
+) where
     F: FnMut(&Model<f64>, &Array<Vec3<f64>>, &mut Tape) -> Result<Array<f64>, Error>,
     D: FnMut(&Model<Dual>, &Array<Vec3<Dual>>, &mut Tape) -> Result<Array<Dual>, Error>,
 {
@@ -468,7 +475,11 @@ where
         .iter()
         .map(|(f, p)| mf.param::<f64>(f, p).unwrap().requires_grad())
         .collect();
-    let (vd, vf) = (md.state().v.requires_grad(), mf.state().v.requires_grad());
+    let (vd, vf) = match positions {
+        true => (md.state().x, mf.state().x),
+        false => (md.state().v, mf.state().v),
+    };
+    let (vd, vf) = (vd.requires_grad(), vf.requires_grad());
     let mut dp: Vec<&dyn AnyArray> = dparams.iter().map(|a| a as &dyn AnyArray).collect();
     dp.push(&vd);
     let mut fp: Vec<&dyn AnyArray> = fparams.iter().map(|a| a as &dyn AnyArray).collect();
@@ -503,7 +514,7 @@ fn hvp_through_implicit_euler_matches_differences() {
         };
         check_hvp(
             &format!("implicit Euler (pinned {pin}, bending explicit {explicit})"),
-            pin,
+            (pin, false),
             1e-4,
             1e-6,
             |m, v, t| rollout_loss(m, &ie, v, t),
@@ -512,10 +523,11 @@ fn hvp_through_implicit_euler_matches_differences() {
     }
 }
 
-/// The equilibrium's loss: squared positions, weighted, then a short rollout from it.
+/// The equilibrium from the guess `x0` (whose pinned particles are the pins), then a short
+/// rollout from it with the model's initial velocities.
 fn equilibrium_loss<R: Real + Element>(
     model: &Model<R>,
-    v0: &Array<Vec3<R>>,
+    x0: &Array<Vec3<R>>,
     tape: &mut Tape,
 ) -> Result<Array<R>, Error> {
     let eq = Equilibrium {
@@ -528,8 +540,12 @@ fn equilibrium_loss<R: Real + Element>(
         },
         ..Equilibrium::default()
     };
-    let mut s = eq.solve(model, tape, &model.state())?;
-    s.v = v0.clone();
+    let guess = State {
+        x: x0.clone(),
+        ..model.state()
+    };
+    let mut s = eq.solve(model, tape, &guess)?;
+    s.v = model.state().v;
     let end = SemiImplicitEuler.rollout(model, tape, &s, None, R::lit(0.01), 4)?;
     let loss = Array::<R>::zeros(1);
     tape.launch(state_loss, end.x.len(), (&end.x, &end.v, &loss));
@@ -537,12 +553,13 @@ fn equilibrium_loss<R: Real + Element>(
 }
 
 /// Through `Equilibrium`'s implicit-function-theorem adjoint, with its second-order term:
-/// the scene hanging from its two pinned particles, then released with initial velocities.
+/// the scene hanging from its two pinned particles (whose positions are in the direction),
+/// then released.
 #[test]
 fn hvp_through_equilibrium_matches_differences() {
     check_hvp(
         "equilibrium",
-        true,
+        (true, true),
         1e-4,
         1e-6,
         equilibrium_loss,

@@ -413,6 +413,9 @@ fn least_squares_run(
                 let mut t = 1.0;
                 let mut failure = None;
                 let accepted = loop {
+                    if spent(counts, config.max_evals) {
+                        return Ok((best, End::Stop(Stop::MaxEvaluations)));
+                    }
                     let trial: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
                     match record(&trial) {
                         Ok(rec) if rec.loss <= cur.loss + 1e-4 * t * slope => {
@@ -425,9 +428,6 @@ fn least_squares_run(
                     t *= 0.5;
                     if t < 1e-10 {
                         break None;
-                    }
-                    if spent(counts, config.max_evals) {
-                        return Ok((best, End::Stop(Stop::MaxEvaluations)));
                     }
                 };
                 let Some((trial, rec)) = accepted else {
@@ -467,6 +467,9 @@ fn least_squares_run(
                 // residual, so dᵀ(JᵀJ + λI)d = -gᵀd.
                 let predicted = -0.5 * dot(&g, &d) + 0.5 * lam * dot(&d, &d);
                 let trial: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + b).collect();
+                if spent(counts, config.max_evals) {
+                    return Ok((best, End::Stop(Stop::MaxEvaluations)));
+                }
                 let (rho, rec) = match record(&trial) {
                     Ok(rec) => ((cur.loss - rec.loss) / predicted, Some(rec)),
                     Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
@@ -487,6 +490,9 @@ fn least_squares_run(
                         let mut t = 0.5;
                         let mut taken = None;
                         while slope < 0.0 && t >= 1.0 / 64.0 {
+                            if spent(counts, config.max_evals) {
+                                return Ok((best, End::Stop(Stop::MaxEvaluations)));
+                            }
                             let trial: Vec<f64> =
                                 x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
                             match record(&trial) {
@@ -660,8 +666,8 @@ fn newton_cg_run(
                 _ => {
                     rejected += 1;
                     let no_model = predicted.is_nan() || predicted <= 0.0;
-                    // A region too small to move x in floating point ends the retries too.
-                    let tiny = radius.is_some_and(|r| r <= f64::EPSILON * norm(&x));
+                    // A step too small to move x in floating point ends the retries too.
+                    let tiny = x.iter().zip(&s).all(|(x, s)| x + s == *x);
                     if rejected > 60 || tiny || no_model && rejected > 1 {
                         params.set_values(&best.values);
                         return Ok((

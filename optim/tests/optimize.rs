@@ -618,3 +618,28 @@ fn newton_cg_at_a_wall_fails_by_name_and_keeps_its_budget() {
     assert_eq!(r.stop, Stop::MaxEvaluations, "{r}");
     assert!(r.evaluations <= 8, "{r}");
 }
+
+/// Gauss-Newton and Levenberg-Marquardt keep an evaluation budget, inside their backtracking
+/// and damping too.
+#[test]
+fn gauss_newton_and_levenberg_marquardt_keep_their_budget() {
+    let y = samples();
+    for budget in [1, 2, 3, 5] {
+        for opt in [Optimizer::gauss_newton(), Optimizer::levenberg_marquardt()] {
+            // A far start: the first steps overshoot and backtrack.
+            let p = Array::from_vec(vec![8.0f64, 3.0, -4.0]).named("p");
+            let report = opt
+                .grad_tol(1e-13)
+                .max_evals(budget)
+                .progress(false)
+                .least_squares(&Params::new().with(&p), |tape| {
+                    let r = Array::zeros(30);
+                    tape.launch(exp_residual, 30, (&p, &y, &r));
+                    Ok(r)
+                })
+                .unwrap();
+            assert_eq!(report.stop, Stop::MaxEvaluations, "{report}");
+            assert!(report.evaluations <= budget, "budget {budget}: {report}");
+        }
+    }
+}

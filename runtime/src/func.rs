@@ -1,5 +1,8 @@
 //! `DiffFunc`: how generated code calls a `#[diff_func]`.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
+
 /// A differentiable function of `Args` (a tuple) returning `Out`, implemented by
 /// `#[diff_func]` on the unit struct that takes the function's name.
 ///
@@ -41,23 +44,38 @@ pub fn call_adjoint<A, O: crate::Value, F: DiffFunc<A, O>>(args: A, adj_out: O, 
     f.adjoint(args, adj_out)
 }
 
-/// How the message of [`refuse_dual`]'s panic starts: the tape's passes catch that panic
-/// (it happens inside a launch, which cannot return an error) and return it as
-/// [`Error::InvalidInput`](crate::Error::InvalidInput) naming the kernel.
-pub(crate) const DUAL_REFUSAL: &str = "second-order refusal: ";
+/// The first refusal of a custom rule run in `Dual` since the tape last looked
+/// ([`take_refusal`]). A launch cannot return an error, and a panic inside one would leave
+/// its parallel region waiting for a share that never comes: the rule records the refusal
+/// and runs on, and the tape's pass returns it as an error after the launch.
+static REFUSED: AtomicBool = AtomicBool::new(false);
+static REFUSAL: Mutex<Option<String>> = Mutex::new(None);
 
-/// The panic of a custom adjoint not declared `dual_safe`, run in `Dual`.
+/// Records that a custom adjoint or tangent not declared `dual_safe` ran in `Dual`.
 #[cold]
 #[inline(never)]
-fn refuse_dual<F>() -> ! {
+fn refuse_dual<F>() {
+    if REFUSED.swap(true, Ordering::AcqRel) {
+        return;
+    }
     let name = std::any::type_name::<F>();
-    panic!(
-        "{DUAL_REFUSAL}the #[diff_func] `{name}` has a custom adjoint that was not declared `dual_safe`, and \
+    *REFUSAL.lock().unwrap_or_else(|e| e.into_inner()) = Some(format!(
+        "the #[diff_func] `{name}` has a custom adjoint that was not declared `dual_safe`, and \
          a second-order pass (Hessian-vector product) ran it in `Dual`: if the adjoint and the \
          tangent compute in the arguments' own scalar type (no detour through f64), declare \
          it with `#[diff_func(adjoint = .., tangent = .., dual_safe)]`; otherwise it has no \
          second-order rule and the product cannot go through it"
-    )
+    ));
+}
+
+/// The refusal recorded by a custom rule since the last call, if any (taken).
+pub(crate) fn take_refusal() -> Option<String> {
+    if !REFUSED.load(Ordering::Acquire) {
+        return None;
+    }
+    let message = REFUSAL.lock().unwrap_or_else(|e| e.into_inner()).take();
+    REFUSED.store(false, Ordering::Release);
+    message
 }
 
 /// The tangent rule of a `#[diff_func]` call.

@@ -67,31 +67,24 @@ impl Record {
         }
     }
 
-    /// `e`, returned by this custom step's backward or tangent (step `i` on the tape), with
-    /// the step named in its context.
-    /// Runs the launch of this record (#`i`) in `mode`. A custom rule that refuses `Dual`
-    /// panics inside the launch (see `func::DUAL_REFUSAL`); that panic is returned as an
-    /// error naming the kernel, any other goes on unwinding.
+    /// Runs the launch of this record (#`i`) in `mode`; a custom rule that refused `Dual` in
+    /// it (see `func::take_refusal`) is an error naming the kernel.
     fn run_launch(&self, i: usize, mode: Mode) -> Result<(), Error> {
         let Step::Launch { launch, dim } = &self.step else {
             unreachable!("run_launch on a custom step")
         };
-        let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| launch.run(mode, *dim)));
-        let Err(payload) = ran else {
-            return Ok(());
-        };
-        let message = payload
-            .downcast_ref::<String>()
-            .and_then(|m| m.strip_prefix(crate::func::DUAL_REFUSAL));
-        match message {
-            Some(m) => Err(Error::InvalidInput {
+        launch.run(mode, *dim);
+        match crate::func::take_refusal() {
+            None => Ok(()),
+            Some(message) => Err(Error::InvalidInput {
                 what: format!("kernel `{}` (#{i} on the tape)", self.qualified()),
-                message: m.to_string(),
+                message,
             }),
-            None => std::panic::resume_unwind(payload),
         }
     }
 
+    /// `e`, returned by this custom step's backward or tangent (step `i` on the tape), with
+    /// the step named in its context.
     fn custom_error(&self, i: usize, e: Error) -> Error {
         let step = self.qualified();
         e.in_context(format!("custom step `{step}` (#{i} on the tape)"))

@@ -9,7 +9,7 @@ use adflex_runtime::{AnyArray, Element};
 
 use super::kernels::*;
 use super::model::{Articulations, JointType};
-use crate::solver::newton::Parts;
+use crate::solver::parts::Parts;
 
 /// Coordinates and velocities of every articulation of a model.
 #[derive(Clone, Debug)]
@@ -529,7 +529,8 @@ impl<R: Real> Articulations<R> {
     fn solve(&self, tape: &mut Tape, m: &Array<R>, rhs: &Array<R>) -> Result<Array<R>, Error> {
         let (factors, blocks) = self.factor(m)?;
         let (factors, blocks) = (Arc::new(factors), Arc::new(blocks));
-        let mv = Arc::new(m.to_vec());
+        // M's derivative parts, for the solves in `Dual` (nothing otherwise).
+        let mv: Arc<Vec<R>> = Arc::new(if R::DUAL { m.to_vec() } else { Vec::new() });
         let x = dual_values::<R>(&solve_parts(&factors, &blocks, &mv, &rhs.to_vec()));
         let qdd = Array::<R>::zeros(self.n_dof);
         let out = qdd.clone();
@@ -579,8 +580,7 @@ impl<R: Real> Articulations<R> {
         .with_tangent(move || {
             adflex_runtime::second_order::refuse_dual::<R>(
                 "the articulations' mass-matrix solve in forward mode",
-                "take Jacobian and Gauss-Newton products in f64; Hessian-vector products need \
-                 `backward` only",
+                crate::solver::parts::NO_DUAL_TANGENT,
             )?;
             let x: Vec<f64> = qt.to_vec().iter().map(|v| v.to_f64()).collect();
             let mut b = match rt.tangent_buffer() {
@@ -870,7 +870,6 @@ pub(crate) fn factor_all<R: Real>(
     all.into_iter().collect()
 }
 
-/// `M^-1 b` per block from the factors.
 /// `M^-1 b` for the values of `m` and `b` (`factors`: `M0`'s) and, in `Dual`, for their
 /// derivative parts: `x1 = M0^-1 (b1 - M1 x0)`, the derivative of a linear solve.
 fn solve_parts<R: Real>(
@@ -906,6 +905,7 @@ fn dual_values<R: Real>(p: &Parts) -> Vec<R> {
         .collect()
 }
 
+/// `M^-1 b` per block from the factors.
 fn solve_all(factors: &[Vec<f64>], blocks: &[(usize, usize, usize)], b: &[f64]) -> Vec<f64> {
     use rayon::prelude::*;
     let mut x = b.to_vec();

@@ -259,26 +259,28 @@ impl FluidGrid {
         }
     }
 
-    /// `A x = scale b` for the values of `b` and, in `Dual`, for its derivative parts: the
-    /// operator is constant, so each part is its own solve (the second-order rule of a
-    /// linear solve).
+    /// `A x = pre b` for the values of `b` and, in `Dual`, for its derivative parts (the
+    /// operator is constant, so each part is its own solve: the second-order rule of a linear
+    /// solve); returns `post x`.
     fn solve_parts<R: Real>(
         &self,
         b: &[R],
-        scale: f64,
+        (pre, post): (f64, f64),
         s: &SolveSettings,
         what: &str,
     ) -> Result<Vec<R>, Error> {
-        let re: Vec<f64> = b.iter().map(|d| scale * d.to_f64()).collect();
+        let re: Vec<f64> = b.iter().map(|d| pre * d.to_f64()).collect();
         let x = self.solve(&re, s, what)?;
-        if !R::DUAL {
-            return Ok(x.into_iter().map(R::lit).collect());
-        }
-        let eps: Vec<f64> = b.iter().map(|d| scale * d.eps()).collect();
-        let xe = self.solve(&eps, s, what)?;
+        let eps = match R::DUAL {
+            true => {
+                let eps: Vec<f64> = b.iter().map(|d| pre * d.eps()).collect();
+                self.solve(&eps, s, what)?
+            }
+            false => vec![0.0; x.len()],
+        };
         Ok(x.into_iter()
-            .zip(xe)
-            .map(|(x, e)| R::lit(x).with_eps(e))
+            .zip(eps)
+            .map(|(x, e)| R::lit(post * x).with_eps(post * e))
             .collect())
     }
 
@@ -290,7 +292,7 @@ impl FluidGrid {
         s: &SolveSettings,
     ) -> Result<Array<R>, Error> {
         let grid = *self;
-        let x = grid.solve_parts(&div.to_vec(), scale, s, "forward")?;
+        let x = grid.solve_parts(&div.to_vec(), (scale, 1.0), s, "forward")?;
         let p = Array::from_vec(x).named("pressure");
         let (pb, db, settings) = (p.clone(), div.clone(), *s);
         let (pt, dt) = (p.clone(), div.clone());
@@ -304,7 +306,7 @@ impl FluidGrid {
                 let (Some(gp), Some(gd)) = (pb.grad_buffer(), db.grad_buffer()) else {
                     return Ok(());
                 };
-                let lambda = grid.solve_parts(&gp.to_vec(), scale, &settings, "adjoint")?;
+                let lambda = grid.solve_parts(&gp.to_vec(), (1.0, scale), &settings, "adjoint")?;
                 gd.modify(|gd| gd.iter_mut().zip(lambda).for_each(|(gd, l)| *gd += l));
                 Ok(())
             },
@@ -316,7 +318,7 @@ impl FluidGrid {
                 out.modify(|o| o.iter_mut().for_each(|o| *o = R::zero()));
                 return Ok(());
             };
-            let x = grid.solve_parts(&td.to_vec(), scale, &settings, "tangent")?;
+            let x = grid.solve_parts(&td.to_vec(), (scale, 1.0), &settings, "tangent")?;
             out.assign(&x);
             Ok(())
         });

@@ -313,6 +313,22 @@ pub(crate) fn record<R: Real>(
     }
 }
 
+/// Seeds the accelerations' gradient at `p` with `seed` and runs the adjoint kernels of its
+/// scratch tape; returns the gradients of the positions and of the velocities (zeros where
+/// one has none), with their derivative parts in `Dual` (an error without context: see
+/// `PassFailure::in_pass`).
+pub(crate) fn pull<R: Real>(p: &mut Point<R>, seed: &Parts) -> Result<(Parts, Parts), Error> {
+    p.x.zero_grad();
+    p.v.zero_grad();
+    p.a.ensure_grad().assign(&unflat_parts::<R>(seed));
+    p.tape.backward_with(&[&p.a])?;
+    let grad = |a: &Array<Vec3<R>>| match a.grad() {
+        Ok(g) => flat_parts(&g),
+        Err(_) => seed.map(|s| vec![0.0; s.len()]),
+    };
+    Ok((grad(&p.x), grad(&p.v)))
+}
+
 pub(crate) fn flat<R: Real>(a: &Array<Vec3<R>>) -> Vec<f64> {
     a.to_vec()
         .iter()

@@ -106,8 +106,8 @@ use adflex_runtime::prelude::*;
 
 use super::common::{
     acceleration_tangent, add_into, check_constant_masses, check_inputs, check_visited, copies,
-    epsilon, finish_step, flat, flat_parts, forces_only, is_f32, particles, record, step_bodies,
-    unflat, unflat_parts, Copies, Dofs, Needs, Point, Through,
+    epsilon, finish_step, flat, flat_parts, forces_only, is_f32, particles, pull, record,
+    step_bodies, unflat, unflat_parts, Copies, Dofs, Needs, Point, Through,
 };
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
@@ -362,21 +362,6 @@ impl<R: Real> System<R> {
         record(&self.c, xs, vs, &v.re)
     }
 
-    /// Seeds the accelerations' gradient with `seed` and runs the adjoint kernels of the
-    /// scratch tape; returns the gradients of `x'` and `v'` (an error without context: see
-    /// [`PassFailure::in_pass`]).
-    fn pull(&self, p: &mut Point<R>, seed: &Parts) -> Result<(Parts, Parts), Error> {
-        p.x.zero_grad();
-        p.v.zero_grad();
-        p.a.ensure_grad().assign(&unflat_parts::<R>(seed));
-        p.tape.backward_with(&[&p.a])?;
-        let grad = |a: &Array<Vec3<R>>| match a.grad() {
-            Ok(g) => flat_parts(&g),
-            Err(_) => seed.map(|s| vec![0.0; s.len()]),
-        };
-        Ok((grad(&p.x), grad(&p.v)))
-    }
-
     /// See [`check_visited`]: every array the forces read at `p` that needs a derivative is
     /// the state or a private copy.
     fn check_visited(&self, p: &Point<R>, needs: Needs) -> Result<(), Error> {
@@ -489,7 +474,7 @@ impl<R: Real> NewtonSystem for System<R> {
     /// `A^T u = M u - dt (dt J_x + J_v)^T M u` (identity on pinned DOFs).
     fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
         let mu: Vec<f64> = (0..u.len()).map(|k| self.dofs.mass[k] * u[k]).collect();
-        let (gx, gv) = self.pull(p, &Parts::real(mu.clone()))?;
+        let (gx, gv) = pull(p, &Parts::real(mu.clone()))?;
         let mut out = gx.zip(&gv, |gx, gv| {
             (0..gx.len())
                 .map(|k| match self.dofs.free[k] {
@@ -499,7 +484,11 @@ impl<R: Real> NewtonSystem for System<R> {
                 .collect()
         });
         for k in 0..u.len() {
-            out.re[k] += if self.dofs.free[k] { mu[k] } else { u[k] };
+            out.re[k] = if self.dofs.free[k] {
+                mu[k] + out.re[k]
+            } else {
+                u[k]
+            };
         }
         Ok(out)
     }
@@ -1009,8 +998,7 @@ impl<R: Real> Shared<R> {
     fn tangent(&self) -> Result<(), Error> {
         adflex_runtime::second_order::refuse_dual::<R>(
             "implicit Euler's forward mode",
-            "take Jacobian and Gauss-Newton products in f64; Hessian-vector products need \
-             `backward` only",
+            crate::solver::parts::NO_DUAL_TANGENT,
         )?;
         match self.integrator.linearized {
             true => self.tangent_linearized(),
@@ -1037,14 +1025,14 @@ impl<R: Real> Shared<R> {
         let mu: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * lambda.re[k]).collect();
         let seed = Parts::real(mu.iter().map(|u| dt * u).collect());
         let adjoint = |e| sys.failure.in_pass("adjoint (reverse-mode)", e);
-        let (gx, gv) = sys.pull(&mut p, &seed).map_err(adjoint)?;
+        let (gx, gv) = pull(&mut p, &seed).map_err(adjoint)?;
         let (mut gx, mut gv) = (gx.re, gv.re);
         if let Some((d, eps)) = self.linear_direction() {
             let c = dt / (2.0 * eps);
             for s in [1.0, -1.0] {
                 let mut q = sys.eval_at(&Parts::real(self.shifted(&d, s * eps)), true);
                 let seed = Parts::real(mu.iter().map(|u| s * c * u).collect());
-                let (qx, qv) = sys.pull(&mut q, &seed).map_err(adjoint)?;
+                let (qx, qv) = pull(&mut q, &seed).map_err(adjoint)?;
                 gx.iter_mut().zip(qx.re).for_each(|(g, q)| *g += q);
                 gv.iter_mut().zip(qv.re).for_each(|(g, q)| *g += q);
             }
@@ -1113,9 +1101,8 @@ impl<R: Real> Shared<R> {
         let (sys, mut p, lambda) = self.adjoint_solve(&self.v1_val, &b)?;
         let (free, mass) = (&sys.dofs.free, &sys.dofs.mass);
         let seed = lambda.map(|l| l.iter().zip(mass).map(|(l, m)| dt * m * l).collect());
-        let (gx, gv) = sys
-            .pull(&mut p, &seed)
-            .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
+        let (gx, gv) =
+            pull(&mut p, &seed).map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         let gx0 = gx1.zip(&gx, |a, b| a.iter().zip(b).map(|(a, b)| a + b).collect());
         // On pinned DOFs v' = v, which also moves x' = x + dt v.
         let pinned = b.zip(&gx, |b, gx| {

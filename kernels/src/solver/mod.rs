@@ -8,5 +8,6 @@
 
 pub mod krylov;
 pub(crate) mod newton;
+pub(crate) mod parts;
 
 pub use newton::NewtonStats;

@@ -26,6 +26,7 @@ use std::cell::RefCell;
 use adflex_runtime::Error;
 
 use super::krylov::{self, SolveInfo, SolveSettings};
+pub(crate) use super::parts::Parts;
 
 /// What one Newton solve did ([`ImplicitEuler`](crate::integrators::ImplicitEuler)'s step,
 /// [`Equilibrium`](crate::statics::Equilibrium)'s solve): its cost, for the benchmarks, and
@@ -194,48 +195,6 @@ pub(crate) fn max_abs(v: &[f64]) -> f64 {
 
 pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(a, b)| a * b).sum()
-}
-
-/// A host vector of a gradient solve: its values and, when the model's scalar is
-/// [`Dual`](adflex_runtime::Dual), their derivative parts (the second sweep of a
-/// Hessian-vector product; `None` in `f32`/`f64`). A linear map with real coefficients acts
-/// on both parts alike ([`Parts::map`], [`Parts::zip`]).
-#[derive(Clone, Debug, PartialEq)]
-pub(crate) struct Parts {
-    pub re: Vec<f64>,
-    pub eps: Option<Vec<f64>>,
-}
-
-impl Parts {
-    /// Values without derivative parts.
-    pub fn real(re: Vec<f64>) -> Self {
-        Parts { re, eps: None }
-    }
-
-    /// The linear map `f` applied to each part.
-    pub fn map(&self, f: impl Fn(&[f64]) -> Vec<f64>) -> Parts {
-        Parts {
-            re: f(&self.re),
-            eps: self.eps.as_deref().map(f),
-        }
-    }
-
-    /// The linear map `f` of `self` and `other` applied part by part (a missing derivative
-    /// part is zero).
-    pub fn zip(&self, other: &Parts, f: impl Fn(&[f64], &[f64]) -> Vec<f64>) -> Parts {
-        let zeros = vec![0.0; self.re.len().max(other.re.len())];
-        let eps = match (&self.eps, &other.eps) {
-            (None, None) => None,
-            (a, b) => Some(f(
-                a.as_deref().unwrap_or(&zeros),
-                b.as_deref().unwrap_or(&zeros),
-            )),
-        };
-        Parts {
-            re: f(&self.re, &other.re),
-            eps,
-        }
-    }
 }
 
 /// Solves `A^T x = rhs` at `p` part by part (the adjoint solve of the implicit function
