@@ -91,38 +91,40 @@ fn errors(x: &[Vec3<f64>], target: &[Vec3<f64>]) -> (f64, f64) {
     (rms, d.iter().fold(0.0, |m: f64, d| m.max(*d)))
 }
 
-/// The cable with its initial rest lengths, the target, and the equilibrium it starts from.
-pub struct Scene {
-    pub model: Model<f64>,
+/// The cable with its initial rest lengths, the target, and the equilibrium it starts from,
+/// in any scalar (`Dual` for Newton-CG in `examples/second_order.rs`).
+pub struct Scene<R: Real> {
+    pub model: Model<R>,
     /// The springs' rest lengths: the design variables.
-    pub rest: Array<f64>,
+    pub rest: Array<R>,
     pub target: Vec<Vec3<f64>>,
-    pub recorded: Array<Vec3<f64>>,
-    pub first: State<f64>,
+    pub recorded: Array<Vec3<R>>,
+    pub first: State<R>,
 }
 
-pub fn scene(cfg: &Config) -> Result<Scene, Error> {
+pub fn scene<R: Real>(cfg: &Config) -> Result<Scene<R>, Error> {
     let n = cfg.segments;
+    let l = R::lit;
     let h = cfg.span / n as f64;
     // The cable starts as a shallow curve (the side it hangs to), with every rest length the
     // straight span's share: taut, it sags far less than the target.
-    let mut b = ModelBuilder::<f64>::new();
+    let mut b = ModelBuilder::<R>::new();
     for i in 0..=n {
         let s = i as f64 / n as f64;
         let m = if i == 0 || i == n { 0.0 } else { cfg.mass };
         b.add_particle(
-            Vec3::new(s * cfg.span, -0.1 * s * (1.0 - s), 0.0),
+            Vec3::new(l(s * cfg.span), l(-0.1 * s * (1.0 - s)), l(0.0)),
             Vec3::zeros(),
-            m,
+            l(m),
         );
     }
     for i in 0..n as u32 {
-        b.add_spring_with_rest(i, i + 1, h, cfg.ke, 0.0);
+        b.add_spring_with_rest(i, i + 1, l(h), l(cfg.ke), l(0.0));
     }
     let model = b.finalize();
-    let rest = model.param::<f64>("springs", "rest")?;
+    let rest = model.param::<R>("springs", "rest")?;
     let target = parabola(cfg);
-    let recorded = Array::from_vec(target.clone());
+    let recorded = Array::from_vec(target.iter().map(|p| p.map(l)).collect());
     let first = Equilibrium::default().solve(&model, &mut Tape::new(), &model.state())?;
     Ok(Scene {
         model,
@@ -140,7 +142,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         target,
         recorded,
         first,
-    } = scene(cfg)?;
+    } = scene::<f64>(cfg)?;
     let solver = Equilibrium::default();
     let (initial_error, _) = errors(&first.x.to_vec(), &target);
 

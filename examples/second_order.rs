@@ -12,10 +12,9 @@
 //!   simulation run in `Dual` (`adflex::runtime::second_order`), `Optimizer::minimize_newton`.
 //!
 //! Then the inverse-design demo's cable (`examples/inverse_design.rs`: rest lengths for which
-//! the equilibrium is a target parabola) by L-BFGS, Gauss-Newton and Levenberg-Marquardt; its
-//! products go through the equilibrium solve by the implicit function theorem (a tangent and
-//! an adjoint linear solve each). Newton-CG is not run there: the equilibrium solve computes
-//! in `f64` and refuses `Dual` (no second-order term of the implicit function theorem yet).
+//! the equilibrium is a target parabola) by the same four methods; its products go through the
+//! equilibrium solve by the implicit function theorem (a Gauss-Newton product is a tangent and
+//! an adjoint linear solve; a Hessian-vector product adds the theorem's second-order term).
 //!
 //! The charts are the loss against passes over the simulation (forward, backward or tangent
 //! sweeps; for the cable, equilibrium solves and linear solves), the cost measure the methods
@@ -284,12 +283,12 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     })
 }
 
-/// The inverse-design cable of `cfg` fitted by L-BFGS, Gauss-Newton and Levenberg-Marquardt
-/// on the loss `½ |x* - target|²`, every method from the same rest lengths. Each run's
+/// The inverse-design cable of `cfg` fitted by L-BFGS, Gauss-Newton, Levenberg-Marquardt and
+/// Newton-CG on the loss `½ |x* - target|²`, every method from the same rest lengths. Each run's
 /// `worst_relative_error` is the largest distance from the target after it, relative to the
 /// sag.
 pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Error> {
-    let sc = inverse_design::scene(cfg)?;
+    let sc = inverse_design::scene::<f64>(cfg)?;
     let rest0 = sc.rest.to_vec();
     let solver = Equilibrium::default();
     let n = sc.model.particle_count;
@@ -338,6 +337,31 @@ pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Er
             report,
         });
     }
+    // Newton-CG on the cable in `Dual`, warm started the same way.
+    let sd = inverse_design::scene::<Dual>(cfg)?;
+    let mut guess = sd.first.deep_clone();
+    let report = optimizer(opt, Optimizer::newton_cg()).minimize_newton(
+        &Params::new().with(&sd.rest),
+        |tape| {
+            let eq = solver.solve(&sd.model, tape, &guess)?;
+            guess = eq.deep_clone();
+            let loss = Array::<Dual>::zeros(1);
+            losses::frame_mismatch(tape, &eq.x, &sd.recorded, Dual::constant(0.5), &loss);
+            Ok(loss)
+        },
+    )?;
+    let re = |v: Vec<Dual>| v.iter().map(|r| r.re).collect::<Vec<_>>();
+    sc.rest.assign(&re(sd.rest.to_vec()));
+    let last = State {
+        x: Array::from_vec(guess.x.to_vec().iter().map(|p| p.map(|c| c.re)).collect()),
+        v: Array::zeros(n),
+        bodies: None,
+    };
+    runs.push(Run {
+        name: "Newton-CG",
+        worst_relative_error: miss(&last)?,
+        report,
+    });
     Ok(runs)
 }
 
