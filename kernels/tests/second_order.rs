@@ -13,7 +13,7 @@ use adflex_kernels::statics::Equilibrium;
 use adflex_kernels::{Model, ModelBuilder, State};
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
-use adflex_runtime::second_order::{hessian, hvp, hvp_with};
+use adflex_runtime::second_order::{hessian, hvp, hvp_with, Hvp};
 use adflex_runtime::Element;
 
 /// A kernel with a dynamic loop, stores to an intermediate, atomics, branches and many
@@ -138,6 +138,32 @@ fn assert_close(what: &str, got: &[f64], want: &[f64], rel: f64) {
         got.iter().any(|x| *x != 0.0),
         "{what}: identically zero, the check cannot fail"
     );
+}
+
+/// `H u` (random `u`, from `seed`) of the `Dual` loss at `dp` against fourth-order central
+/// differences (step `h`) of the f64 loss's gradient at `fp` to `rel` of the largest
+/// component, and symmetric (`w^T H u = u^T H w` to 1e-10). Returns the product.
+fn agrees(
+    what: &str,
+    (dp, fp): (&[&dyn AnyArray], &[&dyn AnyArray]),
+    (h, rel, seed): (f64, f64, u64),
+    loss_d: &mut dyn FnMut(&mut Tape) -> Result<Array<Dual>, Error>,
+    loss_f: &mut dyn FnMut(&mut Tape) -> Result<Array<f64>, Error>,
+) -> Hvp {
+    let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
+    let mut rng = common::Rng(seed);
+    let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let hu = hvp(dp, &u, &mut *loss_d).unwrap();
+    let hw = hvp(dp, &w, &mut *loss_d).unwrap();
+    let fd = hv_by_differences(fp, &u, h, loss_f);
+    assert_close(&format!("{what}: H u"), &hu.hv, &fd, rel);
+    let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
+    assert!(
+        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
+        "{what}: w^T H u = {a:e}, u^T H w = {b:e}"
+    );
+    hu
 }
 
 fn dual_of(x: &[f64]) -> Vec<Dual> {
@@ -309,19 +335,14 @@ fn hvp_of_rollouts_matches_differences() {
         dp.push(&vd);
         let mut fp: Vec<&dyn AnyArray> = fparams.iter().map(|a| a as &dyn AnyArray).collect();
         fp.push(&vf);
-        let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
-        let mut rng = common::Rng(0x0dd5);
-        let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let hu = hvp(&dp, &u, |t| rollout_loss(&md, &**id, &vd, t)).unwrap();
-        let hw = hvp(&dp, &w, |t| rollout_loss(&md, &**id, &vd, t)).unwrap();
-        let fd = hv_by_differences(&fp, &u, 1e-4, &mut |t| rollout_loss(&mf, &**if64, &vf, t));
-        assert_close(&format!("{name}: H u"), &hu.hv, &fd, 1e-6);
-        let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
-        assert!(
-            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
-            "{name}: w^T H u = {a:e}, u^T H w = {b:e}"
+        let hu = agrees(
+            name,
+            (&dp, &fp),
+            (1e-4, 1e-6, 0x0dd5),
+            &mut |t| rollout_loss(&md, &**id, &vd, t),
+            &mut |t| rollout_loss(&mf, &**if64, &vf, t),
         );
+        let n = hu.hv.len();
         println!(
             "{name}: {n} parameters, |H u| = {:.3e}",
             hu.hv.iter().map(|x| x * x).sum::<f64>().sqrt()
@@ -484,18 +505,12 @@ fn check_hvp<F, D>(
     dp.push(&vd);
     let mut fp: Vec<&dyn AnyArray> = fparams.iter().map(|a| a as &dyn AnyArray).collect();
     fp.push(&vf);
-    let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
-    let mut rng = common::Rng(0x1f7);
-    let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let hu = hvp(&dp, &u, |t| loss_d(&md, &vd, t)).unwrap();
-    let hw = hvp(&dp, &w, |t| loss_d(&md, &vd, t)).unwrap();
-    let fd = hv_by_differences(&fp, &u, h, &mut |t| loss_f(&mf, &vf, t));
-    assert_close(&format!("{what}: H u"), &hu.hv, &fd, rel);
-    let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
-    assert!(
-        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
-        "{what}: w^T H u = {a:e}, u^T H w = {b:e}"
+    let hu = agrees(
+        what,
+        (&dp, &fp),
+        (h, rel, 0x1f7),
+        &mut |t| loss_d(&md, &vd, t),
+        &mut |t| loss_f(&mf, &vf, t),
     );
     // The gradient is the f64 one.
     let g = grad_f64(&fp, &get(&fp), &mut |t| loss_f(&mf, &vf, t));
@@ -617,16 +632,12 @@ fn hvp_through_the_fluid_cg_pressure_matches_differences() {
         Array::from_vec(u).requires_grad(),
         Array::from_vec(v).requires_grad(),
     );
-    let dir: Vec<f64> = (0..128).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let other: Vec<f64> = (0..128).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let hu = hvp(&[&ud, &vd], &dir, |t| smoke_loss(&ud, &vd, t)).unwrap();
-    let hw = hvp(&[&ud, &vd], &other, |t| smoke_loss(&ud, &vd, t)).unwrap();
-    let fd = hv_by_differences(&[&uf, &vf], &dir, 1e-5, &mut |t| smoke_loss(&uf, &vf, t));
-    assert_close("smoke: H u", &hu.hv, &fd, 1e-6);
-    let (a, b) = (dot(&other, &hu.hv), dot(&dir, &hw.hv));
-    assert!(
-        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
-        "smoke: w^T H u = {a:e}, u^T H w = {b:e}"
+    agrees(
+        "smoke",
+        (&[&ud, &vd], &[&uf, &vf]),
+        (1e-5, 1e-6, 0x5e1),
+        &mut |t| smoke_loss(&ud, &vd, t),
+        &mut |t| smoke_loss(&uf, &vf, t),
     );
 }
 
@@ -684,17 +695,12 @@ fn hvp_through_articulated_robots_matches_differences() {
         );
         let dp: [&dyn AnyArray; 3] = [&qd_, &qdd_, &massd];
         let fp: [&dyn AnyArray; 3] = [&qf, &qdf, &massf];
-        let m: usize = fp.iter().map(|p| p.len()).sum();
-        let u: Vec<f64> = (0..m).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let w: Vec<f64> = (0..m).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let hu = hvp(&dp, &u, |t| robot_loss(&md, &qd_, &qdd_, t)).unwrap();
-        let hw = hvp(&dp, &w, |t| robot_loss(&md, &qd_, &qdd_, t)).unwrap();
-        let fd = hv_by_differences(&fp, &u, 1e-4, &mut |t| robot_loss(&mf, &qf, &qdf, t));
-        assert_close(&format!("{file}: H u"), &hu.hv, &fd, 1e-6);
-        let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
-        assert!(
-            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
-            "{file}: w^T H u = {a:e}, u^T H w = {b:e}"
+        agrees(
+            file,
+            (&dp, &fp),
+            (1e-4, 1e-6, 0xa8),
+            &mut |t| robot_loss(&md, &qd_, &qdd_, t),
+            &mut |t| robot_loss(&mf, &qf, &qdf, t),
         );
     }
 }
@@ -758,18 +764,12 @@ fn hvp_through_mpm_matches_differences() {
         );
         let dp: [&dyn AnyArray; 3] = [&vd, &mud, &ld];
         let fp: [&dyn AnyArray; 3] = [&vf, &muf, &lf];
-        let n: usize = fp.iter().map(|p| p.len() * p.element_dim()).sum();
-        let mut rng = common::Rng(0x3b3);
-        let u: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let w: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-        let hu = hvp(&dp, &u, |t| mpm_loss(&md, &vd, t)).unwrap();
-        let hw = hvp(&dp, &w, |t| mpm_loss(&md, &vd, t)).unwrap();
-        let fd = hv_by_differences(&fp, &u, 1e-5, &mut |t| mpm_loss(&mf, &vf, t));
-        assert_close(&format!("{material:?}: H u"), &hu.hv, &fd, 1e-6);
-        let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
-        assert!(
-            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
-            "{material:?}: w^T H u = {a:e}, u^T H w = {b:e}"
+        agrees(
+            &format!("{material:?}"),
+            (&dp, &fp),
+            (1e-5, 1e-6, 0x3b3),
+            &mut |t| mpm_loss(&md, &vd, t),
+            &mut |t| mpm_loss(&mf, &vf, t),
         );
     }
 }
@@ -855,17 +855,12 @@ fn hvp_through_a_tumbling_rigid_body_matches_differences() {
     );
     let dp: [&dyn AnyArray; 2] = [&vd, &wd];
     let fp: [&dyn AnyArray; 2] = [&vf, &wf];
-    let mut rng = common::Rng(0xb0d);
-    let u: Vec<f64> = (0..6).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let w: Vec<f64> = (0..6).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let hu = hvp(&dp, &u, |t| body_rollout(&md, &vd, &wd, t)).unwrap();
-    let hw = hvp(&dp, &w, |t| body_rollout(&md, &vd, &wd, t)).unwrap();
-    let fd = hv_by_differences(&fp, &u, 1e-5, &mut |t| body_rollout(&mf, &vf, &wf, t));
-    assert_close("tumbling body: H u", &hu.hv, &fd, 1e-6);
-    let (a, b) = (dot(&w, &hu.hv), dot(&u, &hw.hv));
-    assert!(
-        (a - b).abs() <= 1e-10 * a.abs().max(b.abs()),
-        "w^T H u = {a:e}, u^T H w = {b:e}"
+    agrees(
+        "tumbling body",
+        (&dp, &fp),
+        (1e-5, 1e-6, 0xb0d),
+        &mut |t| body_rollout(&md, &vd, &wd, t),
+        &mut |t| body_rollout(&mf, &vf, &wf, t),
     );
 }
 
