@@ -680,7 +680,7 @@ impl<R: Real> Model<R> {
         for (s, what) in [(state, "state"), (from, "from")] {
             if s.x.len() != self.particle_count || s.v.len() != self.particle_count {
                 return Err(invalid(
-                    format!("select_worlds: `{what}`"),
+                    format!("select_worlds: {what}"),
                     format!(
                         "has {} positions and {} velocities, the model {} particles",
                         s.x.len(),
@@ -696,7 +696,7 @@ impl<R: Real> Model<R> {
                 .map_or([0; 4], |b| [b.x.len(), b.q.len(), b.v.len(), b.w.len()]);
             if sizes != [bodies; 4] {
                 return Err(invalid(
-                    format!("select_worlds: `{what}.bodies`"),
+                    format!("select_worlds: {what}.bodies"),
                     format!("does not have the model's {bodies} rigid bodies"),
                 ));
             }

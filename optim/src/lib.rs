@@ -373,7 +373,10 @@ impl<'a> Optimizer<'a> {
     }
     /// At most `n` loss evaluations (default: no limit; [`Stop::MaxEvaluations`]). L-BFGS's
     /// line searches take several per iteration; a line search cut short by the limit ends
-    /// the run with the best point evaluated.
+    /// the run with the best point evaluated. The second-order methods count their trial
+    /// points; the products inside their conjugate gradients (Gauss-Newton products,
+    /// Newton-CG's Hessian-vector products, each also a run of the loss closure) count as
+    /// [`Report::passes`], which `max_iters` and their CG limits bound.
     pub fn max_evals(mut self, n: usize) -> Self {
         self.max_evals = n;
         self

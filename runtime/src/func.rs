@@ -61,7 +61,8 @@ fn refuse_dual<F>() {
     let name = std::any::type_name::<F>();
     *REFUSAL.lock().unwrap_or_else(|e| e.into_inner()) = Some(format!(
         "the #[diff_func] `{name}` has a custom adjoint that was not declared `dual_safe`, and \
-         a second-order pass (Hessian-vector product) ran it in `Dual`: if the adjoint and the \
+         a pass in `Dual` (a Hessian-vector product, or any backward or tangent pass of a \
+         `Dual` tape) ran it: if the adjoint and the \
          tangent compute in the arguments' own scalar type (no detour through f64), declare \
          it with `#[diff_func(adjoint = .., tangent = .., dual_safe)]`; otherwise it has no \
          second-order rule and the product cannot go through it"

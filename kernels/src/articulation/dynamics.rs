@@ -483,7 +483,7 @@ impl<R: Real> Articulations<R> {
         for (s, what) in [(state, "state"), (from, "from")] {
             if s.q.len() != self.n_q || s.qd.len() != self.n_dof {
                 return Err(Error::InvalidInput {
-                    what: format!("select_worlds: `{what}`"),
+                    what: format!("select_worlds: {what}"),
                     message: format!(
                         "has {} coordinates and {} velocities, the model {} and {}",
                         s.q.len(),
