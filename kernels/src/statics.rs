@@ -37,8 +37,8 @@
 //! In [`Dual`] (Hessian-vector products, [`adflex_runtime::second_order`]) the solve gives
 //! `x*` its derivative part by that forward rule, and the backward runs at `x*` with its
 //! derivative part, solving `K^T lambda = x*_bar` part by part (`K0^T lambda1 = x*_bar1 -
-//! K1^T lambda0`: the theorem's second-order term). The inverse masses must have a zero
-//! direction.
+//! K1^T lambda0`: the theorem's second-order term). A direction on the inverse masses needs no
+//! more (`M` cancels in the solve).
 //!
 //! The equilibrium found is the one Newton reaches from the guess: a structure can have
 //! several (a cable hanging or standing as an arch). Start near the one you mean (and warm
@@ -91,9 +91,8 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use crate::integrators::common::{
-    acceleration_tangent, add_into, check_constant_masses, check_inputs, check_visited, copies,
-    epsilon, flat, flat_parts, forces_only, is_f32, pull, record, unflat, unflat_parts, Copies,
-    Dofs, Needs, Point, Through,
+    acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, flat, flat_parts,
+    forces_only, is_f32, pull, record, unflat, unflat_parts, Copies, Dofs, Needs, Point, Through,
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
@@ -181,19 +180,6 @@ impl<R: Real> System<R> {
             xs = xs.requires_grad();
         }
         record(&self.c, xs, vs, &x.re)
-    }
-
-    /// `M u` on free DOFs, 0 on pinned ones.
-    fn seed(&self, u: &[f64]) -> Vec<f64> {
-        (0..u.len())
-            .map(|k| {
-                if self.dofs.free[k] {
-                    self.dofs.mass[k] * u[k]
-                } else {
-                    0.0
-                }
-            })
-            .collect()
     }
 }
 
@@ -288,7 +274,10 @@ impl<R: Real> NewtonSystem for System<R> {
 
     /// `K^T u = -(da/dx)^T M u` (identity on pinned DOFs) by one adjoint pass.
     fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
-        let (gx, _) = pull(p, &Parts::real(self.seed(u)))?;
+        let (gx, _) = pull(
+            p,
+            &self.dofs.mass_product(&Parts::real(u.to_vec()), 1.0, true),
+        )?;
         let mut out = gx.map(|g| {
             (0..g.len())
                 .map(|k| if self.dofs.free[k] { -g[k] } else { 0.0 })
@@ -388,7 +377,6 @@ impl Equilibrium {
             });
         }
         let inv_mass = model.particle_inv_mass.to_vec();
-        check_constant_masses("Equilibrium", &inv_mass)?;
         let x0 = flat(&guess.x);
         let sys = System::new(copies(model, None, false), x0, &inv_mass, model.gravity);
         check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
@@ -520,7 +508,7 @@ impl<R: Real> Shared<R> {
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
-        let (gx, _) = pull(&mut p, &lambda.map(|l| sys.seed(l)))
+        let (gx, _) = pull(&mut p, &sys.dofs.mass_product(&lambda, 1.0, true))
             .map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         // Pinned DOFs: x* = pin, which also moves the free particles' equilibrium.
         let gpin = xbar.zip(&gx, |xbar, gx| {

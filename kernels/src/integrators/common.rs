@@ -214,7 +214,11 @@ pub(crate) fn copies<R: Real>(
 
 /// The particles' degrees of freedom in a Newton solve, three per particle.
 pub(crate) struct Dofs {
-    /// Per DOF: the mass (kg) on free DOFs, 0 on pinned ones.
+    /// Per DOF: the mass (kg) on free DOFs, 0 on pinned ones. A constant of the host
+    /// arithmetic even when a Hessian-vector product's direction moves the inverse masses:
+    /// in the implicit-function-theorem solves `M` cancels (`lambda = M^-1 (..)`, then the
+    /// seeds `M lambda`), so its derivative part would drop out (the kernels carry the
+    /// masses' own, e.g. in `a = w f`).
     pub(crate) mass: Vec<f64>,
     /// Per DOF: whether it is free (inverse mass > 0).
     pub(crate) free: Vec<bool>,
@@ -230,6 +234,18 @@ impl Dofs {
                 .collect(),
             free: w.iter().map(|&w| w > 0.0).collect(),
         }
+    }
+
+    /// `c M u`, part by part (0 on pinned DOFs if `masked`).
+    pub(crate) fn mass_product(&self, u: &Parts, c: f64, masked: bool) -> Parts {
+        u.map(|u| {
+            (0..u.len())
+                .map(|k| match !masked || self.free[k] {
+                    true => c * self.mass[k] * u[k],
+                    false => 0.0,
+                })
+                .collect()
+        })
     }
 
     /// Zeroes the pinned DOFs of `v`.
@@ -367,23 +383,6 @@ pub(crate) fn unflat_parts<R: Real>(v: &Parts) -> Vec<Vec3<R>> {
     (0..v.re.len() / 3)
         .map(|i| Vec3::new(c(3 * i), c(3 * i + 1), c(3 * i + 2)))
         .collect()
-}
-
-/// An [`Error::InvalidInput`] if the derivative parts of `inv_mass` (a Hessian-vector
-/// product's direction) are not all zero: the Newton solves' host arithmetic takes the masses
-/// as constants. `who` names the solver.
-pub(crate) fn check_constant_masses<R: Real>(who: &str, inv_mass: &[R]) -> Result<(), Error> {
-    match inv_mass.iter().position(|w| w.eps() != 0.0) {
-        None => Ok(()),
-        Some(k) => Err(Error::InvalidInput {
-            what: format!("particle_inv_mass[{k}]"),
-            message: format!(
-                "{who}: a Hessian-vector product whose direction moves the inverse masses is \
-                 not supported through this solve (its second-order term takes the masses as \
-                 constants); give the masses a zero direction"
-            ),
-        }),
-    }
 }
 
 /// Whether `R` is single precision (it cannot tell 1 from 1 + 1e-10).

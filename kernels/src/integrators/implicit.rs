@@ -51,8 +51,8 @@
 //! the backward runs at the new state with its derivative part: `A^T lambda = b` is solved
 //! part by part, `A0^T lambda0 = b0`, then `A0^T lambda1 = b1 - A1^T lambda0` (the theorem's
 //! second-order term, `A` moving along the direction), and every map after it acts on both
-//! parts. The inverse masses must have a zero direction (the solve takes them as constants),
-//! and the [linearized](ImplicitEuler::linearized) step refuses `Dual`.
+//! parts. A direction on the inverse masses needs no more (`M` cancels in the solve). The
+//! [linearized](ImplicitEuler::linearized) step refuses `Dual`.
 //!
 //! # Failures
 //!
@@ -105,9 +105,9 @@ use std::sync::Arc;
 use adflex_runtime::prelude::*;
 
 use super::common::{
-    acceleration_tangent, add_into, check_constant_masses, check_inputs, check_visited, copies,
-    epsilon, finish_step, flat, flat_parts, forces_only, is_f32, particles, pull, record,
-    step_bodies, unflat, unflat_parts, Copies, Dofs, Needs, Point, Through,
+    acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, finish_step,
+    flat, flat_parts, forces_only, is_f32, particles, pull, record, step_bodies, unflat,
+    unflat_parts, Copies, Dofs, Needs, Point, Through,
 };
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
@@ -473,9 +473,9 @@ impl<R: Real> NewtonSystem for System<R> {
 
     /// `A^T u = M u - dt (dt J_x + J_v)^T M u` (identity on pinned DOFs).
     fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
-        let mu: Vec<f64> = (0..u.len()).map(|k| self.dofs.mass[k] * u[k]).collect();
-        let (gx, gv) = pull(p, &Parts::real(mu.clone()))?;
-        let mut out = gx.zip(&gv, |gx, gv| {
+        let mu = self.dofs.mass_product(&Parts::real(u.to_vec()), 1.0, false);
+        let (gx, gv) = pull(p, &mu)?;
+        let out = gx.zip(&gv, |gx, gv| {
             (0..gx.len())
                 .map(|k| match self.dofs.free[k] {
                     true => -self.dt * (self.dt * gx[k] + gv[k]),
@@ -483,12 +483,22 @@ impl<R: Real> NewtonSystem for System<R> {
                 })
                 .collect()
         });
+        // M u on free DOFs, the identity on pinned ones.
+        let mut out = mu.zip(&out, |mu, o| {
+            (0..o.len())
+                .map(|k| {
+                    if self.dofs.free[k] {
+                        mu[k] + o[k]
+                    } else {
+                        o[k]
+                    }
+                })
+                .collect()
+        });
         for k in 0..u.len() {
-            out.re[k] = if self.dofs.free[k] {
-                mu[k] + out.re[k]
-            } else {
-                u[k]
-            };
+            if !self.dofs.free[k] {
+                out.re[k] = u[k];
+            }
         }
         Ok(out)
     }
@@ -629,7 +639,6 @@ impl ImplicitEuler {
         let first = tape.len();
         let (implicit, explicit) = self.split(model)?;
         let inv_mass = model.particle_inv_mass.to_vec();
-        check_constant_masses("ImplicitEuler", &inv_mass)?;
         let (x0, v0) = (flat_parts(&state.x), flat_parts(&state.v));
         // The explicit forces' accelerations, for the solve (recorded on `tape` only once the
         // step succeeds: a failed step records nothing).
@@ -1099,8 +1108,8 @@ impl<R: Real> Shared<R> {
             gv.iter().zip(gx).map(|(v, x)| v + dt * x).collect()
         });
         let (sys, mut p, lambda) = self.adjoint_solve(&self.v1_val, &b)?;
-        let (free, mass) = (&sys.dofs.free, &sys.dofs.mass);
-        let seed = lambda.map(|l| l.iter().zip(mass).map(|(l, m)| dt * m * l).collect());
+        let free = &sys.dofs.free;
+        let seed = sys.dofs.mass_product(&lambda, dt, false);
         let (gx, gv) =
             pull(&mut p, &seed).map_err(|e| sys.failure.in_pass("adjoint (reverse-mode)", e))?;
         let gx0 = gx1.zip(&gx, |a, b| a.iter().zip(b).map(|(a, b)| a + b).collect());
@@ -1109,11 +1118,14 @@ impl<R: Real> Shared<R> {
             (0..b.len()).map(|k| b[k] + dt * gx[k]).collect()
         });
         let pinned = pinned.zip(&gv, |p, gv| p.iter().zip(gv).map(|(p, g)| p + g).collect());
-        let gv0 = lambda.zip(&pinned, |l, p| {
-            (0..l.len())
-                .map(|k| if free[k] { mass[k] * l[k] } else { p[k] })
-                .collect()
-        });
+        let gv0 = sys
+            .dofs
+            .mass_product(&lambda, 1.0, false)
+            .zip(&pinned, |ml, p| {
+                (0..ml.len())
+                    .map(|k| if free[k] { ml[k] } else { p[k] })
+                    .collect()
+            });
         self.accumulate(&sys, &gx0, &gv0, &seed);
         Ok(())
     }
