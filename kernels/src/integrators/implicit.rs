@@ -495,9 +495,9 @@ impl<R: Real> NewtonSystem for System<R> {
                 })
                 .collect()
         });
-        for k in 0..u.len() {
-            if !self.dofs.free[k] {
-                out.re[k] = u[k];
+        for ((o, &u), &free) in out.re.iter_mut().zip(u).zip(&self.dofs.free) {
+            if !free {
+                *o = u;
             }
         }
         Ok(out)
