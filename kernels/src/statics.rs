@@ -283,11 +283,7 @@ impl<R: Real> NewtonSystem for System<R> {
                 .map(|k| if self.dofs.free[k] { -g[k] } else { 0.0 })
                 .collect()
         });
-        for ((o, &u), &free) in out.re.iter_mut().zip(u).zip(&self.dofs.free) {
-            if !free {
-                *o = u;
-            }
-        }
+        self.dofs.pinned_identity(&mut out.re, u);
         Ok(out)
     }
 

@@ -236,6 +236,15 @@ impl Dofs {
         }
     }
 
+    /// Sets the pinned DOFs of `out` to `u`'s: the identity rows of a solve's operator.
+    pub(crate) fn pinned_identity(&self, out: &mut [f64], u: &[f64]) {
+        for ((o, &u), &free) in out.iter_mut().zip(u).zip(&self.free) {
+            if !free {
+                *o = u;
+            }
+        }
+    }
+
     /// `c M u`, part by part (0 on pinned DOFs if `masked`).
     pub(crate) fn mass_product(&self, u: &Parts, c: f64, masked: bool) -> Parts {
         u.map(|u| {

@@ -473,9 +473,10 @@ impl<R: Real> NewtonSystem for System<R> {
 
     /// `A^T u = M u - dt (dt J_x + J_v)^T M u` (identity on pinned DOFs).
     fn apply_t_parts(&self, p: &mut Point<R>, u: &[f64]) -> Result<Parts, Error> {
+        // M is a constant of the host arithmetic, so `M u` is real.
         let mu = self.dofs.mass_product(&Parts::real(u.to_vec()), 1.0, false);
         let (gx, gv) = pull(p, &mu)?;
-        let out = gx.zip(&gv, |gx, gv| {
+        let mut out = gx.zip(&gv, |gx, gv| {
             (0..gx.len())
                 .map(|k| match self.dofs.free[k] {
                     true => -self.dt * (self.dt * gx[k] + gv[k]),
@@ -484,22 +485,12 @@ impl<R: Real> NewtonSystem for System<R> {
                 .collect()
         });
         // M u on free DOFs, the identity on pinned ones.
-        let mut out = mu.zip(&out, |mu, o| {
-            (0..o.len())
-                .map(|k| {
-                    if self.dofs.free[k] {
-                        mu[k] + o[k]
-                    } else {
-                        o[k]
-                    }
-                })
-                .collect()
-        });
-        for ((o, &u), &free) in out.re.iter_mut().zip(u).zip(&self.dofs.free) {
-            if !free {
-                *o = u;
+        for ((o, m), &free) in out.re.iter_mut().zip(&mu.re).zip(&self.dofs.free) {
+            if free {
+                *o += m;
             }
         }
+        self.dofs.pinned_identity(&mut out.re, u);
         Ok(out)
     }
 
