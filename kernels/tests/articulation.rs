@@ -735,7 +735,7 @@ fn link_spheres_collide_conserving_momentum_with_right_gradients() {
     });
     b.link_contact = true;
     let model = b.finalize::<f64>().unwrap();
-    assert_eq!(model.pair_a.len(), 1);
+    assert_eq!(model.capsule_pairs.len(), 1);
     let steps = 300;
     let run = |v0: f64, tape: &mut Tape| {
         let q = Array::from_vec(model.q0.clone());

@@ -10,6 +10,7 @@ mod every_force;
 mod fluid;
 mod gradients;
 mod integrators;
+mod link_contact;
 mod losses;
 mod mpm;
 mod particle_radius;

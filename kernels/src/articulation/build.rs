@@ -2,9 +2,10 @@
 
 use adflex_runtime::prelude::*;
 
+use super::contact::{ContactShape, GeomShape};
 use super::model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, JointType,
-    LinkInfo, WorldInfo,
+    LinkInfo, Pose, WorldInfo,
 };
 
 fn err(element: String, message: impl Into<String>) -> ArticulationError {
@@ -174,17 +175,33 @@ pub(crate) fn finalize<R: Real>(
     if let Some(g) = &b.ground {
         g.check().map_err(|m| err("ground".into(), m))?;
     }
-    for (k, &(l, c, r)) in b.contacts().iter().enumerate() {
-        if l.0 >= n {
+    for (k, c) in b.contact_shapes().iter().enumerate() {
+        if c.link.0 >= n {
             return Err(err(
-                format!("contact {k}"),
-                format!("link {} does not exist", l.0),
+                format!("contact shape {k}"),
+                format!("link {} does not exist", c.link.0),
             ));
         }
-        if !(finite3(&c) && r.is_finite() && r >= 0.0) {
+        let sizes_ok = match c.shape {
+            GeomShape::Sphere(r) => r.is_finite() && r >= 0.0,
+            GeomShape::Capsule(r, h) => r.is_finite() && r >= 0.0 && h.is_finite() && h >= 0.0,
+            GeomShape::Box(half) => finite3(&half) && half.iter().all(|&x| x > 0.0),
+            GeomShape::Cylinder(..) | GeomShape::Plane => false,
+        };
+        let rot = c.pose.rot.norm();
+        if !(finite3(&c.pose.pos) && sizes_ok && (rot - 1.0).abs() < 1e-6) {
             return Err(err(
-                format!("contact {k} on {}", name(l.0)),
-                "centre must be finite and radius finite and non-negative",
+                format!("contact shape {k} ({:?}) on {}", c.shape, name(c.link.0)),
+                "its pose must be finite with a unit quaternion, a radius or half-length \
+                 finite and non-negative, a box's half extents finite and positive",
+            ));
+        }
+    }
+    for (k, &(x, y)) in b.excluded_contacts().iter().enumerate() {
+        if x.0 >= n || y.0 >= n {
+            return Err(err(
+                format!("excluded contact {k}"),
+                format!("link {} does not exist", x.0.max(y.0)),
             ));
         }
     }
@@ -364,36 +381,8 @@ pub(crate) fn finalize<R: Real>(
         }
     }
 
-    // Contact pairs: spheres of links that are neither the same nor joined directly.
-    let mut pairs: Vec<(u32, u32)> = Vec::new();
-    if b.link_contact {
-        if b.ground.is_none() {
-            return Err(err(
-                "link_contact".into(),
-                "needs a ground (its contact law is the pairs' too)",
-            ));
-        }
-        let c = b.contacts();
-        // Contacts of different worlds never touch: pairs are searched for world by world.
-        let mut by_world = vec![Vec::new(); gravity.len()];
-        for (k, ci) in c.iter().enumerate() {
-            by_world[world_of[ci.0 .0]].push(k);
-        }
-        let mut all = Vec::new();
-        for w in &by_world {
-            for (x, &i) in w.iter().enumerate() {
-                all.extend(w[x + 1..].iter().map(|&j| (i, j)));
-            }
-        }
-        all.sort_unstable();
-        for (i, j) in all {
-            let (la, lb) = (new_index[c[i].0 .0], new_index[c[j].0 .0]);
-            let joined = la == lb || parent[la] == Some(lb) || parent[lb] == Some(la);
-            if !joined && (c[i].2 > 0.0 || c[j].2 > 0.0) {
-                pairs.push((i as u32, j as u32));
-            }
-        }
-    }
+    let contact = link_contact_pairs(b, &new_index, &parent, &world_of)?;
+    let ground_spheres = b.contacts();
     let r = |x: f64| R::lit(x);
     let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
     let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
@@ -528,13 +517,13 @@ pub(crate) fn finalize<R: Real>(
         upper: rs(&dof.upper),
         m_len,
         contact_link: Array::from_vec(
-            b.contacts()
+            ground_spheres
                 .iter()
                 .map(|c| new_index[c.0 .0] as u32)
                 .collect(),
         ),
-        contact_pos: Array::from_vec(b.contacts().iter().map(|c| v3(&c.1)).collect()),
-        contact_radius: rs(&b.contacts().iter().map(|c| c.2).collect::<Vec<_>>()),
+        contact_pos: Array::from_vec(ground_spheres.iter().map(|c| v3(&c.1)).collect()),
+        contact_radius: rs(&ground_spheres.iter().map(|c| c.2).collect::<Vec<_>>()),
         ground: b.ground.map(|g| g.to()),
         muscle_origin_link: Array::from_vec(
             b.muscles()
@@ -561,8 +550,25 @@ pub(crate) fn finalize<R: Real>(
             .collect::<Vec<_>>()),
         muscle_v_max: rs(&b.muscles().iter().map(|m| m.v_max).collect::<Vec<_>>()),
         muscle_names: b.muscles().iter().map(|m| m.name.clone()).collect(),
-        pair_a: Array::from_vec(pairs.iter().map(|p| p.0).collect()),
-        pair_b: Array::from_vec(pairs.iter().map(|p| p.1).collect()),
+        seg_link: Array::from_vec(contact.segs.iter().map(|s| s.0).collect()),
+        seg_a: Array::from_vec(contact.segs.iter().map(|s| v3(&s.1)).collect()),
+        seg_b: Array::from_vec(contact.segs.iter().map(|s| v3(&s.2)).collect()),
+        seg_radius: rs(&contact.segs.iter().map(|s| s.3).collect::<Vec<_>>()),
+        box_link: Array::from_vec(contact.boxes.iter().map(|c| c.0).collect()),
+        box_pos: Array::from_vec(contact.boxes.iter().map(|c| v3(&c.1.pos)).collect()),
+        box_rot: Array::from_vec(
+            contact
+                .boxes
+                .iter()
+                .map(|c| {
+                    let q = c.1.rot;
+                    Quat::new(r(q.w), r(q.i), r(q.j), r(q.k))
+                })
+                .collect(),
+        ),
+        box_half: Array::from_vec(contact.boxes.iter().map(|c| v3(&c.2)).collect()),
+        capsule_pairs: Array::from_vec(contact.capsule_pairs),
+        box_pairs: Array::from_vec(contact.box_pairs),
     };
     check_mass_matrix(&model)?;
     Ok(model)
@@ -613,4 +619,139 @@ fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<(), Articulati
         )
     })?;
     Ok(())
+}
+
+/// The links' contact geometry: segments (link, ends, radius), boxes (link, pose, half
+/// extents) and the pairs that touch, in the model's link order.
+#[derive(Default)]
+struct LinkContacts {
+    segs: Vec<(u32, Vec3<f64>, Vec3<f64>, f64)>,
+    boxes: Vec<(u32, Pose, Vec3<f64>)>,
+    capsule_pairs: Vec<[u32; 2]>,
+    box_pairs: Vec<[u32; 2]>,
+}
+
+/// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
+/// links not welded together nor joined directly (after welding) nor excluded, with filters
+/// that touch. A box's corners become segments for its pairs with other boxes.
+fn link_contact_pairs(
+    b: &ArticulationBuilder,
+    new_index: &[usize],
+    parent: &[Option<usize>],
+    world_of: &[usize],
+) -> Result<LinkContacts, ArticulationError> {
+    let mut out = LinkContacts::default();
+    if !b.link_contact {
+        return Ok(out);
+    }
+    if b.ground.is_none() {
+        return Err(err(
+            "link_contact".into(),
+            "needs a ground (its contact law is the links' too; ground_filter \
+             ContactFilter::NONE keeps the ground itself from touching anything)",
+        ));
+    }
+    // Welded groups: a link joined to its parent by a fixed joint is part of its parent's.
+    let links = b.links();
+    let mut weld: Vec<usize> = vec![0; parent.len()];
+    let mut old_of = vec![0; parent.len()];
+    for (old, &new) in new_index.iter().enumerate() {
+        old_of[new] = old;
+    }
+    for i in 0..parent.len() {
+        // Parents come first in the model's order.
+        weld[i] = match (parent[i], links[old_of[i]].joint.kind) {
+            (Some(p), JointType::Fixed) => weld[p],
+            _ => i,
+        };
+    }
+    let weld_parent = |w: usize| parent[w].map(|p| weld[p]);
+    let excluded: std::collections::HashSet<(usize, usize)> = b
+        .excluded_contacts()
+        .iter()
+        .map(|&(x, y)| {
+            let (x, y) = (weld[new_index[x.0]], weld[new_index[y.0]]);
+            (x.min(y), x.max(y))
+        })
+        .collect();
+    let touch = |x: &ContactShape, y: &ContactShape| {
+        let (wx, wy) = (weld[new_index[x.link.0]], weld[new_index[y.link.0]]);
+        wx != wy
+            && weld_parent(wx) != Some(wy)
+            && weld_parent(wy) != Some(wx)
+            && !excluded.contains(&(wx.min(wy), wx.max(wy)))
+            && x.filter.touches(&y.filter)
+    };
+    let shapes = b.contact_shapes();
+    let mut seg_of = vec![None; shapes.len()];
+    let mut box_of = vec![None; shapes.len()];
+    let mut corners_of: Vec<Option<usize>> = vec![None; shapes.len()];
+    let link_of = |c: &ContactShape| new_index[c.link.0] as u32;
+    // Shapes of different worlds never touch: pairs are searched for world by world.
+    let mut by_world = vec![Vec::new(); world_of.iter().max().map_or(0, |w| w + 1)];
+    for (k, c) in shapes.iter().enumerate() {
+        by_world[world_of[c.link.0]].push(k);
+    }
+    for (i, j) in by_world.iter().flat_map(|w| {
+        w.iter()
+            .enumerate()
+            .flat_map(move |(a, &i)| w[a + 1..].iter().map(move |&j| (i, j)))
+    }) {
+        let (x, y) = (&shapes[i], &shapes[j]);
+        {
+            if !touch(x, y) {
+                continue;
+            }
+            let mut seg = |k: usize, out: &mut LinkContacts| -> u32 {
+                *seg_of[k].get_or_insert_with(|| {
+                    let (a, e, r) = shapes[k].segment().expect("a sphere or capsule");
+                    out.segs.push((link_of(&shapes[k]), a, e, r));
+                    out.segs.len() - 1
+                }) as u32
+            };
+            let mut bx = |k: usize, out: &mut LinkContacts| -> u32 {
+                *box_of[k].get_or_insert_with(|| {
+                    let GeomShape::Box(half) = shapes[k].shape else {
+                        unreachable!("a box")
+                    };
+                    out.boxes.push((link_of(&shapes[k]), shapes[k].pose, half));
+                    out.boxes.len() - 1
+                }) as u32
+            };
+            match (x.segment().is_some(), y.segment().is_some()) {
+                (true, true) => {
+                    let pair = [seg(i, &mut out), seg(j, &mut out)];
+                    out.capsule_pairs.push(pair);
+                }
+                (true, false) => {
+                    let pair = [seg(i, &mut out), bx(j, &mut out)];
+                    out.box_pairs.push(pair);
+                }
+                (false, true) => {
+                    let pair = [seg(j, &mut out), bx(i, &mut out)];
+                    out.box_pairs.push(pair);
+                }
+                (false, false) => {
+                    // Each box's corners against the other's faces.
+                    for (c, o) in [(i, j), (j, i)] {
+                        let first = *corners_of[c].get_or_insert_with(|| {
+                            let GeomShape::Box(half) = shapes[c].shape else {
+                                unreachable!("a box")
+                            };
+                            let start = out.segs.len();
+                            for p in shapes[c].corners(&half) {
+                                out.segs.push((link_of(&shapes[c]), p, p, 0.0));
+                            }
+                            start
+                        });
+                        let other = bx(o, &mut out);
+                        for k in 0..8 {
+                            out.box_pairs.push([(first + k) as u32, other]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(out)
 }

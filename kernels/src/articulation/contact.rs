@@ -1,11 +1,117 @@
-//! Contact of links with the ground: spheres on links (boxes by their corners, capsules by
-//! their end spheres) pressed into a plane, with the library's contact law (penalty, damping
-//! ramped in over `damping_depth`, smoothed Coulomb friction, optional leaky gradient).
+//! Contact of links: spheres, capsules and boxes on links pressed into a ground plane and
+//! into each other, with the library's contact law (penalty, damping ramped in over
+//! `damping_depth`, smoothed Coulomb friction, optional leaky gradient).
+//!
+//! Against the ground a shape touches by its lowest points, which is exact for a plane: a
+//! sphere by its own, a capsule by its end spheres, a box by its corners. Between links:
+//! - sphere and capsule pairs by the closest points of their axes (a sphere's is a point):
+//!   exact, at any angle (capsules crossing in their middles touch);
+//! - a sphere or a capsule and a box by the closest points of the axis and the box: exact
+//!   while the axis stays outside the box (a penetration shallower than the radius); an axis
+//!   inside the box is pushed out through the face nearest the axis point found;
+//! - two boxes by each one's corners against the other's faces: a corner inside the other
+//!   box is pushed out through its nearest face. Two edges crossing without a corner inside
+//!   are not detected.
+//!
+//! When the closest points are not unique (parallel axes, an axis parallel to a box face) the
+//! contact is at the middle of the range where they are closest.
+//!
+//! Which shapes touch follows MuJoCo's rule: shapes `a` and `b` touch when `a.contype &
+//! b.conaffinity` or `b.contype & a.conaffinity` is non-zero ([`ContactFilter`]; the ground has
+//! its own filter), and never when their links are welded together by fixed joints, or are
+//! parent and child (after welding), or are excluded
+//! ([`ArticulationBuilder::exclude_contact`](super::ArticulationBuilder::exclude_contact)).
 
-use adflex_macros::diff_kernel;
+use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use super::model::{LinkId, Pose};
 use crate::contact::law::{contact_damping, contact_depth, contact_force};
+
+/// Which shapes touch which (MuJoCo's `contype` and `conaffinity` bit masks): `a` and `b`
+/// touch when `a.contype & b.conaffinity != 0` or `b.contype & a.conaffinity != 0`. The
+/// default (`1`, `1`) touches every other default.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ContactFilter {
+    /// This shape's type bits.
+    pub contype: u32,
+    /// The type bits this shape accepts.
+    pub conaffinity: u32,
+}
+
+impl Default for ContactFilter {
+    fn default() -> Self {
+        ContactFilter {
+            contype: 1,
+            conaffinity: 1,
+        }
+    }
+}
+
+impl ContactFilter {
+    /// A filter that touches nothing.
+    pub const NONE: ContactFilter = ContactFilter {
+        contype: 0,
+        conaffinity: 0,
+    };
+
+    /// Whether a shape with this filter touches one with `other`.
+    pub fn touches(&self, other: &ContactFilter) -> bool {
+        self.contype & other.conaffinity != 0 || other.contype & self.conaffinity != 0
+    }
+}
+
+/// A contact shape on a link: a [`GeomShape::Sphere`] (centred at `pose.pos`), a
+/// [`GeomShape::Capsule`] (along `pose`'s z) or a [`GeomShape::Box`], at `pose` in the link's
+/// frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ContactShape {
+    /// The link it is on.
+    pub link: LinkId,
+    /// Its frame in the link's frame.
+    pub pose: Pose,
+    /// Its shape.
+    pub shape: GeomShape,
+    /// Which other shapes it touches.
+    pub filter: ContactFilter,
+}
+
+impl ContactShape {
+    /// The spheres by which it touches a plane (centre in the link frame, radius): a sphere's
+    /// own, a capsule's end spheres, a box's corners (radius 0).
+    pub fn ground_spheres(&self) -> Vec<(Vec3<f64>, f64)> {
+        match self.shape {
+            GeomShape::Sphere(r) => vec![(self.pose.pos, r)],
+            GeomShape::Capsule(r, h) => vec![(self.end(-h), r), (self.end(h), r)],
+            GeomShape::Box(half) => self.corners(&half).into_iter().map(|c| (c, 0.0)).collect(),
+            GeomShape::Cylinder(..) | GeomShape::Plane => Vec::new(),
+        }
+    }
+
+    /// A sphere's or capsule's axis (its ends in the link frame) and radius; `None` for a box.
+    pub(crate) fn segment(&self) -> Option<(Vec3<f64>, Vec3<f64>, f64)> {
+        match self.shape {
+            GeomShape::Sphere(r) => Some((self.pose.pos, self.pose.pos, r)),
+            GeomShape::Capsule(r, h) => Some((self.end(-h), self.end(h), r)),
+            _ => None,
+        }
+    }
+
+    /// A box's corners in the link frame.
+    pub(crate) fn corners(&self, half: &Vec3<f64>) -> Vec<Vec3<f64>> {
+        (0..8)
+            .map(|k| {
+                let s = |b: usize| if k & (1 << b) == 0 { -1.0 } else { 1.0 };
+                let corner = Vec3::new(s(0) * half.x, s(1) * half.y, s(2) * half.z);
+                self.pose.transform_point(&corner)
+            })
+            .collect()
+    }
+
+    fn end(&self, z: f64) -> Vec3<f64> {
+        self.pose.transform_point(&Vec3::new(0.0, 0.0, z))
+    }
+}
 
 /// The shape of a geom (MJCF) or collision element (URDF), in its own frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -130,18 +236,207 @@ pub fn articulation_ground_contact<R: Real>(
     ext_f.atomic_add(l, f);
 }
 
-/// Contact of a pair of contact spheres on two links (`pair_a[tid]`, `pair_b[tid]`, indices
-/// of contact spheres): at signed distance `d = |cb - ca| - ra - rb` along `n = (cb - ca) /
-/// |cb - ca|`, the point `x` midway between the surfaces gets the ground's law with the
-/// relative velocity `v_b(x) - v_a(x)`: `f = contact_force(n, contact_depth(d, leak), ...)`
-/// pushes `b` (wrench `(x x f, f)`) and `-f` pushes `a`.
+/// The parameters `(s, t)` in `[0, 1]` of the closest points `a0 + s (a1 - a0)` and `b0 + t
+/// (b1 - b0)` of two segments (Ericson's, Real-Time Collision Detection 5.1.9). For parallel
+/// segments, the middle of the range of `s` over which they are closest.
+#[diff_func]
+pub fn closest_on_segments<R: Real>(a0: Vec3<R>, a1: Vec3<R>, b0: Vec3<R>, b1: Vec3<R>) -> Vec2<R> {
+    let d1 = a1 - a0;
+    let d2 = b1 - b0;
+    let r = a0 - b0;
+    let aa = dot(d1, d1);
+    let ee = dot(d2, d2);
+    let f = dot(d2, r);
+    let mut s = 0.0;
+    let mut t = 0.0;
+    if aa <= 0.0 {
+        if ee > 0.0 {
+            t = clamp(f / ee, 0.0, 1.0);
+        }
+    } else {
+        let c = dot(d1, r);
+        if ee <= 0.0 {
+            s = clamp(-c / aa, 0.0, 1.0);
+        } else {
+            let b = dot(d1, d2);
+            let denom = aa * ee - b * b;
+            if denom > 1e-12 * aa * ee {
+                s = clamp((b * f - c * ee) / denom, 0.0, 1.0);
+            } else {
+                // Parallel: the middle of b's shadow on a.
+                s = 0.5 * (clamp(-c / aa, 0.0, 1.0) + clamp((b - c) / aa, 0.0, 1.0));
+            }
+            t = (b * s + f) / ee;
+            if t < 0.0 {
+                t = 0.0;
+                s = clamp(-c / aa, 0.0, 1.0);
+            } else if t > 1.0 {
+                t = 1.0;
+                s = clamp((b - c) / aa, 0.0, 1.0);
+            }
+        }
+    }
+    vec2(s, t)
+}
+
+/// Half the slope of `s -> dist(p0 + s d, box)^2` (convex, so its slope never decreases).
+fn box_slope<R: Real>(p0: Vec3<R>, d: Vec3<R>, half: Vec3<R>, s: R) -> R {
+    let mut g = R::zero();
+    for k in 0..3 {
+        let p = p0[k] + d[k] * s;
+        if p > half[k] {
+            g += (p - half[k]) * d[k];
+        } else if p < -half[k] {
+            g += (p + half[k]) * d[k];
+        }
+    }
+    g
+}
+
+/// The range `[first, last]` of `s` in `[0, 1]` where `p0 + s d` is closest to the box of
+/// half extents `half` centred at the origin (by bisection on the slope; not differentiated:
+/// [`segment_box_contact`] takes the derivative from the closed form of the piece it lands
+/// on). The range is one point unless the axis runs inside the box or parallel to a face.
+pub fn closest_on_segment_to_box<R: Real>(p0: Vec3<R>, d: Vec3<R>, half: Vec3<R>) -> Vec2<R> {
+    let (zero, one, two) = (R::zero(), R::one(), R::one() + R::one());
+    let slope = |s: R| box_slope(p0, d, half, s);
+    // The first s where the slope is >= 0, and the last where it is <= 0.
+    let bisect = |up: bool| {
+        let (mut lo, mut hi) = (zero, one);
+        for _ in 0..60 {
+            let mid = (lo + hi) / two;
+            let g = slope(mid);
+            if (up && g >= zero) || (!up && g > zero) {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        if up {
+            hi
+        } else {
+            lo
+        }
+    };
+    let first = if slope(zero) >= zero {
+        zero
+    } else {
+        bisect(true)
+    };
+    let last = if slope(one) <= zero {
+        one
+    } else {
+        bisect(false)
+    };
+    Vec2::new(first, if last < first { first } else { last })
+}
+
+/// `e` in `[0, 1]` where `p0 + e d` crosses a face's plane, differentiably: 0 or 1 at the
+/// ends, else the crossing of the plane nearest the point.
+#[diff_func]
+fn face_crossing<R: Real>(p0: Vec3<R>, d: Vec3<R>, half: Vec3<R>, e: R) -> R {
+    let mut out = e;
+    if e > 0.0 && e < 1.0 {
+        let p = p0 + d * e;
+        let mut best = -1.0;
+        for k in 0..3 {
+            if abs(d[k]) > 0.0 {
+                let gap = abs(abs(p[k]) - half[k]) / abs(d[k]);
+                if best < 0.0 || gap < best {
+                    best = gap;
+                    if p[k] < 0.0 {
+                        out = (-half[k] - p0[k]) / d[k];
+                    } else {
+                        out = (half[k] - p0[k]) / d[k];
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Contact of a sphere or capsule with a box, in the box's frame: `p0`, `d` the axis
+/// (`p0 + s d`, `s` in `[0, 1]`), `r` its radius, `half` the box's half extents. Returns the
+/// contact point midway between the surfaces (`xyz`) and the signed distance (`w`); `n` gets
+/// the unit normal out of the box. `range` is [`closest_on_segment_to_box`]'s answer.
+#[diff_func]
+pub fn segment_box_contact<R: Real>(
+    p0: Vec3<R>,
+    d: Vec3<R>,
+    r: R,
+    half: Vec3<R>,
+    range: Vec2<R>,
+) -> Mat33<R> {
+    // Differentiable s: on the piece where the same faces are outside, the closed form.
+    let sb = 0.5 * (range.x + range.y);
+    let pb = p0 + d * sb;
+    let mut num = 0.0;
+    let mut den = 0.0;
+    for k in 0..3 {
+        if pb[k] > half[k] {
+            num += (p0[k] - half[k]) * d[k];
+            den += d[k] * d[k];
+        } else if pb[k] < -half[k] {
+            num += (p0[k] + half[k]) * d[k];
+            den += d[k] * d[k];
+        }
+    }
+    let mut s = sb;
+    if range.y - range.x > 1e-9 {
+        // A range (inside, or parallel to a face): its middle, between face crossings.
+        s = 0.5 * (face_crossing(p0, d, half, range.x) + face_crossing(p0, d, half, range.y));
+    } else if sb > 0.0 && sb < 1.0 && den > 1e-12 * dot(d, d) {
+        s = clamp(-num / den, 0.0, 1.0);
+    }
+    let p = p0 + d * s;
+    let q = vec3(
+        clamp(p.x, -half.x, half.x),
+        clamp(p.y, -half.y, half.y),
+        clamp(p.z, -half.z, half.z),
+    );
+    let e = p - q;
+    let dist = length(e);
+    let mut n = vec3(0.0, 0.0, 0.0);
+    let mut depth = 0.0;
+    let mut at = p;
+    if dist > 0.0 {
+        n = e / dist;
+        depth = dist - r;
+        at = q + n * (0.5 * depth);
+    } else {
+        // The axis point is inside: out through the nearest face.
+        let gap = half - vec3(abs(p.x), abs(p.y), abs(p.z));
+        let mut k = 0;
+        if gap.y < gap.x && gap.y <= gap.z {
+            k = 1;
+        } else if gap.z < gap.x && gap.z < gap.y {
+            k = 2;
+        }
+        if p[k] < 0.0 {
+            n[k] = -1.0;
+        } else {
+            n[k] = 1.0;
+        }
+        depth = -gap[k] - r;
+        at = p + n * (0.5 * (gap[k] - r));
+    }
+    mat33_cols(at, n, vec3(depth, 0.0, 0.0))
+}
+
+/// Contact of pairs of spheres or capsules on two links (`capsule_pairs[tid]`,
+/// indices of segments `seg_*`: ends in the link frame, radius): with the closest points `ca`, `cb`
+/// of their axes ([`closest_on_segments`]), at signed distance `d = |cb - ca| - ra - rb`
+/// along `n = (cb - ca) / |cb - ca|`, the point `x` midway between the surfaces gets the
+/// ground's law with the relative velocity `v_b(x) - v_a(x)`: `f = contact_force(n,
+/// contact_depth(d, leak), ...)` pushes `b` (wrench `(x x f, f)`) and `-f` pushes `a`.
 #[diff_kernel]
-pub fn articulation_pair_contact<R: Real>(
-    pair_a: &Array<u32>,
-    pair_b: &Array<u32>,
-    contact_link: &Array<u32>,
-    contact_pos: &Array<Vec3<R>>,
-    contact_radius: &Array<R>,
+pub fn articulation_capsule_contact<R: Real>(
+    capsule_pairs: &Array<[u32; 2]>,
+    seg_link: &Array<u32>,
+    seg_a: &Array<Vec3<R>>,
+    seg_b: &Array<Vec3<R>>,
+    seg_radius: &Array<R>,
     link_p: &Array<Vec3<R>>,
     link_r: &Array<Quat<R>>,
     link_w: &Array<Vec3<R>>,
@@ -154,16 +449,19 @@ pub fn articulation_pair_contact<R: Real>(
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
-    let t = tid();
-    let i = pair_a[t] as usize;
-    let j = pair_b[t] as usize;
-    let la = contact_link[i] as usize;
-    let lb = contact_link[j] as usize;
-    let ca = link_p[la] + quat_rotate(link_r[la], contact_pos[i]);
-    let cb = link_p[lb] + quat_rotate(link_r[lb], contact_pos[j]);
+    let [i, j] = capsule_pairs[tid()];
+    let la = seg_link[i as usize] as usize;
+    let lb = seg_link[j as usize] as usize;
+    let a0 = link_p[la] + quat_rotate(link_r[la], seg_a[i]);
+    let a1 = link_p[la] + quat_rotate(link_r[la], seg_b[i]);
+    let b0 = link_p[lb] + quat_rotate(link_r[lb], seg_a[j]);
+    let b1 = link_p[lb] + quat_rotate(link_r[lb], seg_b[j]);
+    let st = closest_on_segments(a0, a1, b0, b1);
+    let ca = a0 + (a1 - a0) * st.x;
+    let cb = b0 + (b1 - b0) * st.y;
     let n = normalize(cb - ca);
-    let ra = contact_radius[i];
-    let rb = contact_radius[j];
+    let ra = seg_radius[i];
+    let rb = seg_radius[j];
     let d = length(cb - ca) - ra - rb;
     let x = ca + n * (ra + 0.5 * d);
     let va = link_v[la] + cross(link_w[la], x);
@@ -175,4 +473,59 @@ pub fn articulation_pair_contact<R: Real>(
     ext_f.atomic_add(lb, f);
     ext_n.atomic_sub(la, cross(x, f));
     ext_f.atomic_sub(la, f);
+}
+
+/// Contact of a sphere or capsule (segment `box_pairs[tid][0]`, as in
+/// [`articulation_capsule_contact`]) with a box (`box_pairs[tid][1]`: its link, centre and
+/// rotation in the link frame, half extents): [`segment_box_contact`] in the box's frame
+/// gives the point `x` midway between the surfaces, the normal `n` out of the box and the
+/// signed distance `d`; `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_box(x),
+/// ...)` pushes the segment's link and `-f` the box's.
+#[diff_kernel]
+pub fn articulation_box_contact<R: Real>(
+    box_pairs: &Array<[u32; 2]>,
+    seg_link: &Array<u32>,
+    seg_a: &Array<Vec3<R>>,
+    seg_b: &Array<Vec3<R>>,
+    seg_radius: &Array<R>,
+    box_link: &Array<u32>,
+    box_pos: &Array<Vec3<R>>,
+    box_rot: &Array<Quat<R>>,
+    box_half: &Array<Vec3<R>>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    ke: R,
+    kd: R,
+    mu: R,
+    leak: R,
+    damping_depth: R,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let [i, k] = box_pairs[tid()];
+    let la = seg_link[i as usize] as usize;
+    let lb = box_link[k as usize] as usize;
+    // The box's frame in the world.
+    let rb = quat_mul(link_r[lb], box_rot[k]);
+    let ob = link_p[lb] + quat_rotate(link_r[lb], box_pos[k]);
+    let a0 = link_p[la] + quat_rotate(link_r[la], seg_a[i]);
+    let a1 = link_p[la] + quat_rotate(link_r[la], seg_b[i]);
+    let p0 = quat_rotate_inv(rb, a0 - ob);
+    let d = quat_rotate_inv(rb, a1 - a0);
+    let half = box_half[k];
+    let range = no_grad(closest_on_segment_to_box(p0, d, half));
+    let m = segment_box_contact(p0, d, seg_radius[i], half, range);
+    let x = ob + quat_rotate(rb, vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]));
+    let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
+    let va = link_v[la] + cross(link_w[la], x);
+    let vb = link_v[lb] + cross(link_w[lb], x);
+    let c = contact_depth(m[(0, 2)], leak);
+    let kdc = contact_damping(c, kd, 0.0, damping_depth);
+    let f = contact_force(n, c, va - vb, ke, kdc, mu);
+    ext_n.atomic_add(la, cross(x, f));
+    ext_f.atomic_add(la, f);
+    ext_n.atomic_sub(lb, cross(x, f));
+    ext_f.atomic_sub(lb, f);
 }

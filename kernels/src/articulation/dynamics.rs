@@ -262,16 +262,44 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
-        if let (true, Some(g), false) = (contact, &self.ground, self.pair_a.is_empty()) {
+        if let (true, Some(g), false) = (contact, &self.ground, self.capsule_pairs.is_empty()) {
             tape.launch(
-                super::contact::articulation_pair_contact,
-                self.pair_a.len(),
+                super::contact::articulation_capsule_contact,
+                self.capsule_pairs.len(),
                 (
-                    &self.pair_a,
-                    &self.pair_b,
-                    &self.contact_link,
-                    &self.contact_pos,
-                    &self.contact_radius,
+                    &self.capsule_pairs,
+                    &self.seg_link,
+                    &self.seg_a,
+                    &self.seg_b,
+                    &self.seg_radius,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    g.ke,
+                    g.kd,
+                    g.mu,
+                    g.leak,
+                    g.damping_depth,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
+        if let (true, Some(g), false) = (contact, &self.ground, self.box_pairs.is_empty()) {
+            tape.launch(
+                super::contact::articulation_box_contact,
+                self.box_pairs.len(),
+                (
+                    &self.box_pairs,
+                    &self.seg_link,
+                    &self.seg_a,
+                    &self.seg_b,
+                    &self.seg_radius,
+                    &self.box_link,
+                    &self.box_pos,
+                    &self.box_rot,
+                    &self.box_half,
                     &k.link_p,
                     &k.link_r,
                     &w,

@@ -11,11 +11,18 @@
 //! over. Anything else is an error naming the element and its line: MuJoCo would simulate it,
 //! and silently dropping it would simulate a different robot.
 //!
-//! Geoms with `contype` other than 0 touch the ground, a `plane` geom of the worldbody, with
-//! [`GroundContact`]'s law, a stiffness that lets the robot's weight sink one contact by 5 mm,
-//! half the critical damping of a quarter of its mass, and the plane's `friction` (MuJoCo's
-//! soft constraints are not reproduced: set `builder.ground` to tune it): a sphere, a capsule by its end spheres, a
-//! box by its corners; a cylinder has mass but no contact.
+//! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
+//!
+//! Geoms touch as in MuJoCo: two geoms on bodies that are neither the same, nor welded
+//! together, nor parent and child, nor excluded, touch when their `contype` and
+//! `conaffinity` masks match ([`ContactFilter`]); a geom touches the floor, a `plane` geom of
+//! the worldbody, when its masks match the plane's. Spheres, capsules and boxes touch (see
+//! [`contact`](super::contact) for how exactly); a cylinder has mass but no contact. The law
+//! is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that lets the robot's
+//! weight sink one contact by 5 mm, half the critical damping of a quarter of its mass, and
+//! the plane's `friction` (set `builder.ground` to tune it). Without a plane there is no
+//! floor (`ground_filter` [`ContactFilter::NONE`]) but geoms still touch each other; set
+//! `builder.link_contact = false` to keep only the floor.
 //!
 //! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
 //! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
@@ -53,9 +60,9 @@ use roxmltree::Node;
 
 use super::build::{check_inertial, check_mass};
 pub use super::contact::GeomShape;
-use super::contact::GroundContact;
+use super::contact::{ContactFilter, GroundContact};
 use super::model::{
-    axis_angle, ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose,
+    axis_angle, from_to, ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose,
 };
 use super::xml::{self, children, Source};
 
@@ -172,7 +179,14 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
     let items = children(
         &r.src,
         root,
-        &["compiler", "option", "default", "worldbody", "actuator"],
+        &[
+            "compiler",
+            "option",
+            "default",
+            "worldbody",
+            "actuator",
+            "contact",
+        ],
         SKIPPED,
     )?;
     let mut timestep = None;
@@ -204,9 +218,31 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
             _ => {}
         }
     }
+    for n in items.iter().filter(|n| n.has_tag_name("contact")) {
+        r.src.only_attributes(*n, &[])?;
+        for e in children(&r.src, *n, &["exclude"], &[])? {
+            r.src.only_attributes(e, &["name", "body1", "body2"])?;
+            let body = |k: &str| match e.attribute(k) {
+                None => Err(r.src.error(e, format!("<exclude> needs `{k}`"))),
+                Some(b) => r
+                    .builder
+                    .find(b)
+                    .ok_or_else(|| r.src.error(e, format!("{k}=\"{b}\" names no body"))),
+            };
+            let (a, b) = (body("body1")?, body("body2")?);
+            r.builder.exclude_contact(a, b);
+        }
+    }
     // The ground's stiffness from the robot's weight (5 mm sag on one contact), damped at half
     // the critical rate of a quarter of the mass: MuJoCo's contacts are soft constraints with
     // a time constant, not springs, so a fixed stiffness would suit only one size of robot.
+    // Geoms touch each other as in MuJoCo; without a plane there is no floor, but the
+    // ground's law serves the links' contacts.
+    if r.builder.ground.is_none() && !r.builder.contact_shapes().is_empty() {
+        r.builder.ground = Some(GroundContact::default());
+        r.builder.ground_filter = ContactFilter::NONE;
+    }
+    r.builder.link_contact = r.builder.ground.is_some();
     let mass: f64 = r.builder.links().iter().map(|l| l.inertial.mass).sum();
     let weight = mass * r.builder.gravity.norm().max(1.0);
     if let (Some(g), true) = (r.builder.ground.as_mut(), mass > 0.0) {
@@ -437,7 +473,7 @@ impl<'a> Reader<'a> {
                 "body" => self.body(c, None, Vec3::zeros(), &class)?,
                 _ => {
                     let (g, _) = self.geom(c, &class, None)?;
-                    if g.shape == GeomShape::Plane && self.attr(c, &class, "contype") != Some("0") {
+                    if g.shape == GeomShape::Plane {
                         if self.builder.ground.is_some() {
                             return Err(self.src.error(c, "a second ground plane"));
                         }
@@ -448,6 +484,7 @@ impl<'a> Reader<'a> {
                             mu: g.friction,
                             ..GroundContact::default()
                         });
+                        self.builder.ground_filter = self.filter(c, &class)?;
                     } else if g.shape != GeomShape::Plane {
                         return Err(self.src.error(
                             c,
@@ -536,8 +573,8 @@ impl<'a> Reader<'a> {
             if let Some(i) = inertial {
                 from_geoms = from_geoms.combine(&i);
             }
-            let touches = self.attr(*g, &class, "contype") != Some("0");
-            geoms.push((geom, touches));
+            let filter = self.filter(*g, &class)?;
+            geoms.push((geom, filter));
         }
         let use_geoms = match self.from_geoms {
             Some(b) => b,
@@ -596,18 +633,43 @@ impl<'a> Reader<'a> {
                     .add_link(link_name, link, joint.origin(origin), mass),
             );
         }
-        for (mut g, touches) in geoms {
+        for (mut g, filter) in geoms {
             g.link = link;
             g.pose.pos -= at;
-            if let (Some(l), true) = (link, touches) {
-                self.builder.add_contact_shape(l, &g.pose, &g.shape);
+            if let Some(l) = link {
+                if let Some(k) = self.builder.add_contact_shape(l, &g.pose, &g.shape) {
+                    self.builder.set_contact_filter(k, filter);
+                }
             }
             self.geoms.push(g);
+        }
+        // MuJoCo's filterparent: a body never touches its parent body (the world aside).
+        if let (Some(l), Some(p)) = (link, parent) {
+            self.builder.exclude_contact(l, p);
         }
         for b in kids.iter().filter(|k| k.has_tag_name("body")) {
             self.body(*b, link, at, &class)?;
         }
         Ok(())
+    }
+
+    /// A geom's `contype` and `conaffinity` (own or default; 1 when not given).
+    fn filter(&self, n: Node, class: &str) -> Result<ContactFilter, ArticulationError> {
+        let mask = |k: &str| -> Result<u32, ArticulationError> {
+            match self.attr(n, class, k) {
+                None => Ok(1),
+                Some(v) => v.trim().parse().map_err(|_| {
+                    self.src.error(
+                        n,
+                        format!("{k}=\"{v}\": a non-negative integer (a bit mask)"),
+                    )
+                }),
+            }
+        };
+        Ok(ContactFilter {
+            contype: mask("contype")?,
+            conaffinity: mask("conaffinity")?,
+        })
     }
 
     /// A joint and its `pos` in the body frame.
@@ -1028,21 +1090,6 @@ impl<'a> Reader<'a> {
             ctrlrange,
         })
     }
-}
-
-/// The shortest rotation taking unit `a` to unit `b`.
-fn from_to(a: &Vec3<f64>, b: &Vec3<f64>) -> Quat<f64> {
-    let c = a.dot(b);
-    if c < -1.0 + 1e-12 {
-        // Opposite: half a turn about any axis orthogonal to `a`.
-        let o = if a.x.abs() < 0.9 {
-            Vec3::x()
-        } else {
-            Vec3::y()
-        };
-        return Quat::from_parts(0.0, a.cross(&o).normalize());
-    }
-    Quat::from_parts(1.0 + c, a.cross(b)).normalize()
 }
 
 #[cfg(test)]

@@ -50,7 +50,7 @@ pub mod muscle;
 pub mod urdf;
 mod xml;
 
-pub use contact::GroundContact;
+pub use contact::{ContactFilter, ContactShape, GroundContact};
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, Joint,

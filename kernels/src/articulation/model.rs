@@ -5,7 +5,7 @@ use std::ops::Range;
 
 use adflex_runtime::prelude::*;
 
-use super::contact::{GeomShape, GroundContact};
+use super::contact::{ContactFilter, ContactShape, GeomShape, GroundContact};
 
 /// The kind of a joint, which says how the link moves relative to its parent.
 ///
@@ -121,6 +121,21 @@ impl Pose {
     pub fn transform_vector(&self, v: &Vec3<f64>) -> Vec3<f64> {
         rotate(&self.rot, v)
     }
+}
+
+/// The shortest rotation taking unit `a` to unit `b`.
+pub(crate) fn from_to(a: &Vec3<f64>, b: &Vec3<f64>) -> Quat<f64> {
+    let c = a.dot(b);
+    if c < -1.0 + 1e-12 {
+        // Opposite: half a turn about any axis orthogonal to `a`.
+        let o = if a.x.abs() < 0.9 {
+            Vec3::x()
+        } else {
+            Vec3::y()
+        };
+        return Quat::from_parts(0.0, a.cross(&o).normalize());
+    }
+    Quat::from_parts(1.0 + c, a.cross(b)).normalize()
 }
 
 /// The rotation by `angle` (rad) about the unit `axis`.
@@ -437,15 +452,21 @@ impl std::error::Error for ArticulationError {}
 #[derive(Clone, Debug)]
 pub struct ArticulationBuilder {
     links: Vec<LinkDesc>,
-    /// Contact spheres: link, centre in the link frame (m), radius (m).
-    contacts: Vec<(LinkId, Vec3<f64>, f64)>,
-    /// The ground the contact spheres touch (`None`: no contact).
+    /// Contact shapes (spheres, capsules, boxes on links).
+    shapes: Vec<ContactShape>,
+    /// Pairs of links whose shapes never touch each other.
+    excluded: Vec<(LinkId, LinkId)>,
+    /// The ground the contact shapes touch (`None`: no contact at all), and the contact law
+    /// of every contact.
     pub ground: Option<GroundContact<f64>>,
+    /// Which shapes touch the ground (default: every default shape; [`ContactFilter::NONE`]
+    /// for no floor, the ground's law then serving the links' contacts only).
+    pub ground_filter: ContactFilter,
     /// Muscle-tendon units.
     muscles: Vec<Muscle>,
-    /// Whether contact spheres of different links touch each other too (with the ground's
-    /// law; default false). Links joined to each other directly never touch, nor two
-    /// radius-0 points (box corners).
+    /// Whether contact shapes of different links touch each other too (with the ground's
+    /// law; default false), as their [`ContactFilter`]s say. Links welded together by fixed
+    /// joints, links joined directly (after welding) and excluded pairs never touch.
     pub link_contact: bool,
     /// Gravity (m/s^2) of the worlds not added by [`ArticulationBuilder::add_world`] (which
     /// keep their own builder's); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
@@ -477,8 +498,10 @@ impl ArticulationBuilder {
     pub fn new() -> Self {
         ArticulationBuilder {
             links: Vec::new(),
-            contacts: Vec::new(),
+            shapes: Vec::new(),
+            excluded: Vec::new(),
             ground: None,
+            ground_filter: ContactFilter::default(),
             link_contact: false,
             muscles: Vec::new(),
             gravity: Vec3::new(0.0, 0.0, -9.81),
@@ -509,41 +532,89 @@ impl ArticulationBuilder {
     }
 
     /// Adds a contact sphere of `radius` (m; 0 for a point) centred at `centre` in `link`'s
-    /// frame. It touches the ground ([`ArticulationBuilder::ground`]).
-    pub fn add_contact_sphere(&mut self, link: LinkId, centre: Vec3<f64>, radius: f64) {
-        self.contacts.push((link, centre, radius));
+    /// frame; returns its index among the contact shapes. It touches the ground
+    /// ([`ArticulationBuilder::ground`]) and, with [`ArticulationBuilder::link_contact`], the
+    /// shapes of other links.
+    pub fn add_contact_sphere(&mut self, link: LinkId, centre: Vec3<f64>, radius: f64) -> usize {
+        self.add_contact_shape(link, &Pose::at(centre), &GeomShape::Sphere(radius))
+            .expect("a sphere is a contact shape")
     }
 
-    /// Adds a box of half extents `half` at `pose` in `link`'s frame, touching by its eight
-    /// corners.
-    pub fn add_contact_box(&mut self, link: LinkId, pose: &Pose, half: Vec3<f64>) {
-        for k in 0..8 {
-            let s = |b: usize| if k & (1 << b) == 0 { -1.0 } else { 1.0 };
-            let corner = Vec3::new(s(0) * half.x, s(1) * half.y, s(2) * half.z);
-            self.add_contact_sphere(link, pose.transform_point(&corner), 0.0);
-        }
+    /// Adds a box of half extents `half` at `pose` in `link`'s frame; returns its index. It
+    /// touches the ground by its corners, other shapes by its faces.
+    pub fn add_contact_box(&mut self, link: LinkId, pose: &Pose, half: Vec3<f64>) -> usize {
+        self.add_contact_shape(link, pose, &GeomShape::Box(half))
+            .expect("a box is a contact shape")
     }
 
-    /// Adds the contact spheres of `shape` at `pose` in `link`'s frame: a sphere; a box by its
-    /// corners; a capsule by its end spheres. A cylinder or a plane adds none.
-    pub fn add_contact_shape(&mut self, link: LinkId, pose: &Pose, shape: &GeomShape) {
-        match *shape {
-            GeomShape::Sphere(r) => self.add_contact_sphere(link, pose.pos, r),
-            GeomShape::Capsule(r, h) => {
-                let a = pose.transform_point(&Vec3::new(0.0, 0.0, -h));
-                let b = pose.transform_point(&Vec3::new(0.0, 0.0, h));
-                self.add_contact_capsule(link, a, b, r);
+    /// Adds `shape` at `pose` in `link`'s frame as a contact shape (a capsule along the
+    /// pose's z), with the default [`ContactFilter`]; returns its index. A cylinder or a plane
+    /// adds nothing (`None`).
+    pub fn add_contact_shape(
+        &mut self,
+        link: LinkId,
+        pose: &Pose,
+        shape: &GeomShape,
+    ) -> Option<usize> {
+        match shape {
+            GeomShape::Cylinder(..) | GeomShape::Plane => None,
+            _ => {
+                self.shapes.push(ContactShape {
+                    link,
+                    pose: *pose,
+                    shape: *shape,
+                    filter: ContactFilter::default(),
+                });
+                Some(self.shapes.len() - 1)
             }
-            GeomShape::Box(half) => self.add_contact_box(link, pose, half),
-            GeomShape::Cylinder(..) | GeomShape::Plane => {}
         }
     }
 
-    /// Adds a capsule of `radius` whose axis runs from `a` to `b` (link frame), touching by
-    /// the spheres at its ends (exact against a plane).
-    pub fn add_contact_capsule(&mut self, link: LinkId, a: Vec3<f64>, b: Vec3<f64>, radius: f64) {
-        self.add_contact_sphere(link, a, radius);
-        self.add_contact_sphere(link, b, radius);
+    /// Adds a capsule of `radius` whose axis runs from `a` to `b` (link frame); returns its
+    /// index. It touches the ground by its end spheres (exact against a plane), other shapes
+    /// along its whole axis.
+    pub fn add_contact_capsule(
+        &mut self,
+        link: LinkId,
+        a: Vec3<f64>,
+        b: Vec3<f64>,
+        radius: f64,
+    ) -> usize {
+        let axis = b - a;
+        let pose = match axis.norm() > 0.0 {
+            true => Pose::new(0.5 * (a + b), from_to(&Vec3::z(), &axis.normalize())),
+            false => Pose::at(a),
+        };
+        self.add_contact_shape(link, &pose, &GeomShape::Capsule(radius, 0.5 * axis.norm()))
+            .expect("a capsule is a contact shape")
+    }
+
+    /// Sets which other shapes contact shape `shape` touches (MuJoCo's `contype` and
+    /// `conaffinity`).
+    ///
+    /// # Panics
+    /// If there is no shape `shape`.
+    pub fn set_contact_filter(&mut self, shape: usize, filter: ContactFilter) {
+        let n = self.shapes.len();
+        self.shapes
+            .get_mut(shape)
+            .unwrap_or_else(|| panic!("set_contact_filter: no contact shape {shape} (of {n})"))
+            .filter = filter;
+    }
+
+    /// The shapes of links `a` and `b` never touch each other (MuJoCo's `<exclude>`).
+    pub fn exclude_contact(&mut self, a: LinkId, b: LinkId) {
+        self.excluded.push((a, b));
+    }
+
+    /// The contact shapes.
+    pub fn contact_shapes(&self) -> &[ContactShape] {
+        &self.shapes
+    }
+
+    /// The pairs of links excluded from touching each other.
+    pub fn excluded_contacts(&self) -> &[(LinkId, LinkId)] {
+        &self.excluded
     }
 
     /// Adds a muscle-tendon unit; returns its index (its activation's in
@@ -558,9 +629,15 @@ impl ArticulationBuilder {
         &self.muscles
     }
 
-    /// The contact spheres: link, centre, radius.
-    pub fn contacts(&self) -> &[(LinkId, Vec3<f64>, f64)] {
-        &self.contacts
+    /// The spheres by which the contact shapes touch the ground (link, centre in the link
+    /// frame, radius; [`ContactShape::ground_spheres`]), of the shapes whose filter touches
+    /// [`ArticulationBuilder::ground_filter`].
+    pub fn contacts(&self) -> Vec<(LinkId, Vec3<f64>, f64)> {
+        self.shapes
+            .iter()
+            .filter(|c| c.filter.touches(&self.ground_filter))
+            .flat_map(|c| c.ground_spheres().into_iter().map(|(p, r)| (c.link, p, r)))
+            .collect()
     }
 
     /// The links described so far.
@@ -588,8 +665,15 @@ impl ArticulationBuilder {
             l.parent = l.parent.map(|p| LinkId(p.0 + base));
             self.links.push(l);
         }
-        for &(l, c, r) in &other.contacts {
-            self.contacts.push((LinkId(l.0 + base), c, r));
+        let shift = |l: LinkId| LinkId(l.0 + base);
+        for c in &other.shapes {
+            self.shapes.push(ContactShape {
+                link: shift(c.link),
+                ..*c
+            });
+        }
+        for &(a, b) in &other.excluded {
+            self.excluded.push((shift(a), shift(b)));
         }
         for m in &other.muscles {
             let mut m = m.clone();
@@ -634,6 +718,7 @@ impl ArticulationBuilder {
             // The first world sets the laws the worlds share.
             self.worlds.clear();
             self.ground = other.ground;
+            self.ground_filter = other.ground_filter;
             self.link_contact = other.link_contact;
             self.limit_ke = other.limit_ke;
             self.limit_kd = other.limit_kd;
@@ -650,8 +735,8 @@ impl ArticulationBuilder {
                 false => String::new(),
             };
             format!(
-                "{ground}link_contact {}, limit_ke {}, limit_kd {}",
-                b.link_contact, b.limit_ke, b.limit_kd
+                "{ground}ground_filter {:?}, link_contact {}, limit_ke {}, limit_kd {}",
+                b.ground_filter, b.link_contact, b.limit_ke, b.limit_kd
             )
         };
         if self.mismatch.is_none() && shared(self) != shared(other) {
@@ -721,8 +806,14 @@ impl ArticulationBuilder {
             self.links.push(l);
         }
         let inside = |l: LinkId| (start..end).contains(&l.0);
-        for &(l, c, r) in other.contacts.iter().filter(|c| inside(c.0)) {
-            self.contacts.push((remap(l), c, r));
+        for c in other.shapes.iter().filter(|c| inside(c.link)) {
+            self.shapes.push(ContactShape {
+                link: remap(c.link),
+                ..*c
+            });
+        }
+        for &(a, b) in other.excluded.iter().filter(|p| inside(p.0) && inside(p.1)) {
+            self.excluded.push((remap(a), remap(b)));
         }
         for m in other.muscles.iter().filter(|m| inside(m.origin.0)) {
             let mut m = m.clone();
@@ -737,12 +828,14 @@ impl ArticulationBuilder {
     fn clone_settings(&self) -> ArticulationBuilder {
         ArticulationBuilder {
             links: Vec::new(),
-            contacts: Vec::new(),
+            shapes: Vec::new(),
+            excluded: Vec::new(),
             muscles: Vec::new(),
             worlds: vec![(0, None)],
             world_added: false,
             mismatch: self.mismatch.clone(),
             ground: self.ground,
+            ground_filter: self.ground_filter,
             link_contact: self.link_contact,
             gravity: self.gravity,
             limit_ke: self.limit_ke,
@@ -928,11 +1021,29 @@ pub struct Articulations<R: Real> {
     pub contact_radius: Array<R>,
     /// The ground and its contact law (`None`: no contact).
     pub ground: Option<GroundContact<R>>,
-    /// Pairs of contact spheres that touch each other (with the ground's law), when
-    /// [`ArticulationBuilder::link_contact`] is set.
-    pub pair_a: Array<u32>,
-    /// See `pair_a`.
-    pub pair_b: Array<u32>,
+    /// Per sphere or capsule that touches another link's shapes (and per corner of a box that
+    /// touches another box): its link, the ends of its axis in the link frame (m), its radius
+    /// (m). Set when [`ArticulationBuilder::link_contact`] is.
+    pub seg_link: Array<u32>,
+    /// See `seg_link`.
+    pub seg_a: Array<Vec3<R>>,
+    /// See `seg_link`.
+    pub seg_b: Array<Vec3<R>>,
+    /// See `seg_link`.
+    pub seg_radius: Array<R>,
+    /// Per box that touches another link's shapes: its link, centre and rotation in the link
+    /// frame, half extents (m).
+    pub box_link: Array<u32>,
+    /// See `box_link`.
+    pub box_pos: Array<Vec3<R>>,
+    /// See `box_link`.
+    pub box_rot: Array<Quat<R>>,
+    /// See `box_link`.
+    pub box_half: Array<Vec3<R>>,
+    /// Pairs of segments that touch (indices into `seg_*`), with the ground's law.
+    pub capsule_pairs: Array<[u32; 2]>,
+    /// Pairs of a segment and a box that touch (indices into `seg_*` and `box_*`).
+    pub box_pairs: Array<[u32; 2]>,
     /// Per muscle: origin link and point, insertion link and point, `f_max`, `l_opt`,
     /// `tendon_slack`, `v_max` (see [`Muscle`]).
     pub muscle_origin_link: Array<u32>,

@@ -1,0 +1,522 @@
+//! Contact between the links of articulations: the closest-point rules against dense
+//! sampling, collisions of capsules, spheres and boxes (momentum, resting heights) with
+//! rollout gradients against central differences and forward mode against reverse mode, and
+//! MuJoCo's contact filters read from MJCF.
+
+use adflex_kernels::articulation::contact::{
+    closest_on_segment_to_box, closest_on_segments, segment_box_contact,
+};
+use adflex_kernels::articulation::{
+    mjcf, ArticulationBuilder, ArticulationState, Articulations, ContactFilter, GroundContact,
+    Inertial, Joint, Pose,
+};
+use adflex_runtime::{Array, Quat, Tape, Vec3};
+use adflex_testkit::Rng;
+
+fn rand3(rng: &mut Rng, s: f64) -> Vec3<f64> {
+    Vec3::new(rng.uniform(-s, s), rng.uniform(-s, s), rng.uniform(-s, s))
+}
+
+/// The distance from `p` to the box of half extents `h` at the origin (0 inside).
+fn box_distance(p: &Vec3<f64>, h: &Vec3<f64>) -> f64 {
+    let q = Vec3::new(
+        p.x.clamp(-h.x, h.x),
+        p.y.clamp(-h.y, h.y),
+        p.z.clamp(-h.z, h.z),
+    );
+    (p - q).norm()
+}
+
+#[test]
+fn closest_points_match_dense_sampling() {
+    let mut rng = Rng(17);
+    let n = 4000;
+    for case in 0..200 {
+        let (a0, b0) = (rand3(&mut rng, 1.0), rand3(&mut rng, 1.0));
+        // Some sphere-like (zero-length) and parallel segments too.
+        let a1 = if case % 10 == 0 {
+            a0
+        } else {
+            a0 + rand3(&mut rng, 1.0)
+        };
+        let b1 = match case % 7 {
+            0 => b0 + (a1 - a0) * 0.7,
+            _ => b0 + rand3(&mut rng, 1.0),
+        };
+        let st = closest_on_segments::call(a0, a1, b0, b1);
+        let found = ((a0 + (a1 - a0) * st.x) - (b0 + (b1 - b0) * st.y)).norm();
+        let mut best = f64::INFINITY;
+        for i in 0..=n {
+            let p = a0 + (a1 - a0) * (i as f64 / n as f64);
+            // The closest point of segment b to p, exactly.
+            let d = b1 - b0;
+            let t = if d.norm_squared() > 0.0 {
+                ((p - b0).dot(&d) / d.norm_squared()).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            best = best.min((p - (b0 + d * t)).norm());
+        }
+        assert!(
+            found <= best + 1e-9 && found >= best - 2.0 / n as f64,
+            "segments {case}: {found} vs sampled {best}"
+        );
+
+        // A segment and a box.
+        let half = Vec3::new(
+            rng.uniform(0.1, 0.5),
+            rng.uniform(0.1, 0.5),
+            rng.uniform(0.1, 0.5),
+        );
+        let (p0, d) = (rand3(&mut rng, 1.5), rand3(&mut rng, 1.5));
+        let range = closest_on_segment_to_box(p0, d, half);
+        let s = 0.5 * (range.x + range.y);
+        let found = box_distance(&(p0 + d * s), &half);
+        let best = (0..=n)
+            .map(|i| box_distance(&(p0 + d * (i as f64 / n as f64)), &half))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            found <= best + 1e-9,
+            "segment and box {case}: {found} vs sampled {best}"
+        );
+        // The contact's signed distance: the distance minus the radius outside; inside, minus
+        // the depth to the nearest face.
+        let m = segment_box_contact::call(p0, d, 0.05, half, range);
+        let (at, normal, dist) = (
+            m.column(0).into_owned(),
+            m.column(1).into_owned(),
+            m[(0, 2)],
+        );
+        let p = p0 + d * s;
+        if found > 0.0 {
+            assert!(
+                (dist - (found - 0.05)).abs() < 1e-9,
+                "{case}: {dist} vs {found}"
+            );
+            // Midway between the box's surface and the capsule's.
+            let surface = p - normal * 0.05;
+            assert!((box_distance(&(at - normal * (0.5 * dist)), &half)).abs() < 1e-9);
+            assert!(
+                (at - (surface - normal * (0.5 * dist))).norm() < 1e-9,
+                "{case}"
+            );
+        } else {
+            let gap = (half - p.abs()).min();
+            assert!(
+                (dist + gap + 0.05).abs() < 1e-9,
+                "{case}: {dist} vs depth {gap}"
+            );
+        }
+    }
+}
+
+#[test]
+fn contact_rules_derivatives_match_differences_and_forward_mode() {
+    use adflex_runtime::DiffFunc;
+    let mut rng = Rng(4);
+    let mut bad = Vec::new();
+    for case in 0..200 {
+        let a0 = rand3(&mut rng, 1.0);
+        let a1 = a0 + rand3(&mut rng, 1.0);
+        let b0 = rand3(&mut rng, 1.0);
+        let b1 = b0 + rand3(&mut rng, 1.0);
+        let w = Vec3::new(0.0, 0.0, 0.0) + rand3(&mut rng, 1.0);
+        // f = w . (closest point on a - closest point on b), a smooth function of the ends
+        // away from the clamps' switches.
+        let f = |a0: Vec3<f64>, a1: Vec3<f64>, b0: Vec3<f64>, b1: Vec3<f64>| {
+            let st = closest_on_segments::call(a0, a1, b0, b1);
+            w.dot(&((a0 + (a1 - a0) * st.x) - (b0 + (b1 - b0) * st.y)))
+        };
+        let da = [rand3(&mut rng, 1.0), rand3(&mut rng, 1.0)];
+        let db = [rand3(&mut rng, 1.0), rand3(&mut rng, 1.0)];
+        let h = 1e-6;
+        let fd = (f(
+            a0 + da[0] * h,
+            a1 + da[1] * h,
+            b0 + db[0] * h,
+            b1 + db[1] * h,
+        ) - f(
+            a0 - da[0] * h,
+            a1 - da[1] * h,
+            b0 - db[0] * h,
+            b1 - db[1] * h,
+        )) / (2.0 * h);
+        let st = closest_on_segments::call(a0, a1, b0, b1);
+        // The derivative through the chain rule: the seeds on (s, t) come from the points.
+        let seed = adflex_runtime::Vec2::new(w.dot(&(a1 - a0)), -w.dot(&(b1 - b0)));
+        let (ga0, ga1, gb0, gb1) = DiffFunc::adjoint(&closest_on_segments, (a0, a1, b0, b1), seed);
+        let direct = w.dot(&(da[0] * (1.0 - st.x) + da[1] * st.x))
+            - w.dot(&(db[0] * (1.0 - st.y) + db[1] * st.y));
+        let reverse =
+            direct + ga0.dot(&da[0]) + ga1.dot(&da[1]) + gb0.dot(&db[0]) + gb1.dot(&db[1]);
+        if (reverse - fd).abs() > 1e-6 * fd.abs().max(1.0) {
+            bad.push(format!(
+                "segments {case}: reverse {reverse} vs differences {fd} st {st:?}"
+            ));
+        }
+        let (_, tangent) = DiffFunc::tangent(
+            &closest_on_segments,
+            (a0, a1, b0, b1),
+            (da[0], da[1], db[0], db[1]),
+        );
+        let forward = direct + seed.dot(&tangent);
+        assert!(
+            (forward - reverse).abs() < 1e-10 * reverse.abs().max(1.0),
+            "segments {case}: forward {forward} vs reverse {reverse}"
+        );
+
+        // The box rule: w . (contact point) + distance.
+        let half = Vec3::new(0.3, 0.2, 0.4);
+        let (p0, d) = (rand3(&mut rng, 1.2), rand3(&mut rng, 1.2));
+        let g = |p0: Vec3<f64>, d: Vec3<f64>| {
+            let range = closest_on_segment_to_box(p0, d, half);
+            let m = segment_box_contact::call(p0, d, 0.05, half, range);
+            w.dot(&m.column(0).into_owned()) + m[(0, 2)] + w.dot(&m.column(1).into_owned())
+        };
+        let (dp, dd) = (rand3(&mut rng, 1.0), rand3(&mut rng, 1.0));
+        let fd = (g(p0 + dp * h, d + dd * h) - g(p0 - dp * h, d - dd * h)) / (2.0 * h);
+        let range = closest_on_segment_to_box(p0, d, half);
+        let seed = adflex_runtime::Mat33::from_columns(&[w, w, Vec3::new(1.0, 0.0, 0.0)]);
+        let (gp, gd, _, _, _) =
+            DiffFunc::adjoint(&segment_box_contact, (p0, d, 0.05, half, range), seed);
+        let reverse = gp.dot(&dp) + gd.dot(&dd);
+        if (reverse - fd).abs() > 1e-6 * fd.abs().max(1.0) {
+            bad.push(format!(
+                "segment and box {case}: reverse {reverse} vs differences {fd} range {range:?}"
+            ));
+        }
+        let (_, t) = DiffFunc::tangent(
+            &segment_box_contact,
+            (p0, d, 0.05, half, range),
+            (dp, dd, 0.0, Vec3::zeros(), adflex_runtime::Vec2::zeros()),
+        );
+        let forward = (t.component_mul(&seed)).sum();
+        assert!(
+            (forward - reverse).abs() < 1e-10 * reverse.abs().max(1.0),
+            "segment and box {case}: forward {forward} vs reverse {reverse}"
+        );
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// A free body at `x` (no rotation) with a contact shape, in a builder without gravity whose
+/// ground is far below.
+fn free_body(b: &mut ArticulationBuilder, name: &str, x: Vec3<f64>, shape: &str) {
+    // 1 kg, with the inertia of its shape (a capsule's as a slender box's).
+    let half = match shape {
+        "capsule_y" => Vec3::new(0.05, 0.45, 0.05),
+        "capsule_z" => Vec3::new(0.05, 0.05, 0.45),
+        _ => Vec3::new(0.1, 0.1, 0.1),
+    };
+    let inertial = match shape {
+        "sphere" => Inertial::sphere(1.0, 0.1, Vec3::zeros()),
+        _ => Inertial::cuboid(1.0, half, Vec3::zeros()),
+    };
+    let l = b.add_link(
+        name,
+        None,
+        Joint::free().initial(&[x.x, x.y, x.z, 0.0, 0.0, 0.0, 1.0]),
+        inertial,
+    );
+    match shape {
+        // Along y.
+        "capsule_y" => {
+            b.add_contact_capsule(l, Vec3::new(0.0, -0.4, 0.0), Vec3::new(0.0, 0.4, 0.0), 0.05);
+        }
+        // Along z.
+        "capsule_z" => {
+            b.add_contact_capsule(l, Vec3::new(0.0, 0.0, -0.4), Vec3::new(0.0, 0.0, 0.4), 0.05);
+        }
+        "box" => {
+            b.add_contact_box(l, &Pose::identity(), Vec3::new(0.1, 0.1, 0.1));
+        }
+        _ => {
+            b.add_contact_sphere(l, Vec3::zeros(), 0.1);
+        }
+    }
+}
+
+fn space(b: &mut ArticulationBuilder) {
+    b.gravity = Vec3::zeros();
+    b.ground = Some(GroundContact {
+        offset: -100.0,
+        ke: 1e4,
+        kd: 10.0,
+        mu: 0.3,
+        ..GroundContact::default()
+    });
+    b.link_contact = true;
+}
+
+/// The world linear velocity of free body `k` (7 coordinates, 6 velocities each).
+fn world_velocity(q: &[f64], qd: &[f64], k: usize) -> Vec3<f64> {
+    let (s, d) = (7 * k, 6 * k);
+    let r = Quat::new(q[s + 6], q[s + 3], q[s + 4], q[s + 5]);
+    let l = Quat::new(0.0, qd[d], qd[d + 1], qd[d + 2]);
+    (r * l * r.conjugate()).imag()
+}
+
+/// Rolls two free bodies out, the first thrown along x at `v0`; returns the tape's state.
+fn throw(
+    model: &Articulations<f64>,
+    v0: f64,
+    steps: usize,
+    tape: &mut Tape,
+) -> (Array<f64>, Array<f64>, Array<f64>) {
+    let q = Array::from_vec(model.q0.clone());
+    let mut qd0 = vec![0.0; model.n_dof];
+    qd0[0] = v0;
+    qd0[4] = 0.3; // a little spin about y
+    let qd = Array::from_vec(qd0).requires_grad();
+    let mut s = ArticulationState { q, qd: qd.clone() };
+    for _ in 0..steps {
+        s = model.step(tape, &s, None, 1e-3).unwrap();
+    }
+    (qd, s.q, s.qd)
+}
+
+/// The thrown body hits the other: momentum is conserved, the other moves off, and
+/// `d(x of the second body)/d(speed)` agrees with central differences, in reverse and in
+/// forward mode.
+fn check_collision(first: &str, second: &str, offset: Vec3<f64>) {
+    let mut b = ArticulationBuilder::new();
+    space(&mut b);
+    // (Not a whole number of steps away: a contact that starts exactly at a step is a kink.)
+    free_body(&mut b, "a", Vec3::new(-0.0123, 0.0, 0.0), first);
+    free_body(&mut b, "b", Vec3::new(0.4, 0.0, 0.0) + offset, second);
+    let model = b.finalize::<f64>().unwrap();
+    let steps = 400;
+    let mut tape = Tape::new();
+    let (qd0, q, qd) = throw(&model, 1.0, steps, &mut tape);
+    let (p, v) = (q.to_vec(), qd.to_vec());
+    let momentum = world_velocity(&p, &v, 0) + world_velocity(&p, &v, 1);
+    assert!(
+        (momentum - Vec3::new(1.0, 0.0, 0.0)).norm() < 1e-9,
+        "{first} hits {second}: momentum {momentum:?}"
+    );
+    let hit = world_velocity(&p, &v, 1);
+    assert!(
+        hit.x > 0.3,
+        "{first} hits {second}: the second moves at {hit:?}"
+    );
+    let mut w = vec![0.0; 14 + 12];
+    w[7] = 1.0;
+    let g = tape.vjp(&[&q, &qd], &w, &[&qd0]).unwrap()[0];
+    let f = |v0: f64| throw(&model, v0, steps, &mut Tape::new()).1.get(7);
+    let fd = (f(1.0 + 1e-6) - f(1.0 - 1e-6)) / 2e-6;
+    assert!(
+        (g - fd).abs() < 1e-5 * fd.abs().max(1e-2),
+        "{first} hits {second}: reverse {g} vs differences {fd}"
+    );
+    let mut dir = vec![0.0; 12];
+    dir[0] = 1.0;
+    let jv = tape.jvp(&[&qd0], &dir, &[&q]).unwrap();
+    assert!(
+        (jv[7] - g).abs() < 1e-9 * g.abs().max(1e-2),
+        "{first} hits {second}: forward {} vs reverse {g}",
+        jv[7]
+    );
+}
+
+#[test]
+fn capsules_spheres_and_boxes_collide_with_right_gradients() {
+    // Capsules crossing in their middles (their end spheres never meet).
+    check_collision("capsule_y", "capsule_z", Vec3::new(0.0, 0.0, 0.0));
+    // A sphere into a capsule's side, slightly off its axis.
+    check_collision("sphere", "capsule_z", Vec3::new(0.0, 0.03, 0.1));
+    // A sphere into a box's face, and a capsule's side into a box's edge.
+    check_collision("sphere", "box", Vec3::new(0.0, 0.02, 0.05));
+    check_collision("capsule_z", "box", Vec3::new(0.0, 0.05, 0.0));
+    // A box into a box, offset so that corners of each meet faces of the other.
+    check_collision("box", "box", Vec3::new(0.0, 0.15, 0.05));
+}
+
+#[test]
+fn shapes_rest_on_a_fixed_box() {
+    // A table: a box welded to the world; a ball, a lying capsule and a box dropped on it.
+    let top = 0.5;
+    for (shape, height) in [("sphere", 0.1), ("capsule_y", 0.05), ("box", 0.1)] {
+        let mut b = ArticulationBuilder::new();
+        b.ground = Some(GroundContact {
+            offset: -10.0,
+            ..GroundContact::default()
+        });
+        b.link_contact = true;
+        let table = b.add_link(
+            "table",
+            None,
+            Joint::fixed().origin(Pose::at(Vec3::new(0.0, 0.0, top - 0.25))),
+            Inertial::cuboid(10.0, Vec3::new(1.0, 1.0, 0.25), Vec3::zeros()),
+        );
+        b.add_contact_box(table, &Pose::identity(), Vec3::new(1.0, 1.0, 0.25));
+        free_body(
+            &mut b,
+            "thing",
+            Vec3::new(0.1, -0.2, top + height + 0.05),
+            shape,
+        );
+        let model = b.finalize::<f64>().unwrap();
+        let mut s = model.state();
+        for _ in 0..2000 {
+            s = model.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
+        }
+        let (q, v) = (s.q.to_vec(), s.qd.to_vec());
+        // Sunk by its weight over the contacts' stiffness: one contact for the ball and the
+        // capsule (the middle of its line of contact), four corners for the box.
+        let contacts = if shape == "box" { 4.0 } else { 1.0 };
+        let expected = top + height - 9.81 / (contacts * 1e4);
+        assert!(
+            (q[2] - expected).abs() < 2e-4,
+            "{shape}: height {} vs {expected}",
+            q[2]
+        );
+        // At rest but for a slow creep: smoothed Coulomb friction has no static friction.
+        let speed = v[..3].iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(speed < 5e-3, "{shape}: still moving at {speed}");
+    }
+}
+
+const TWO_BALLS: &str = r#"<mujoco>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1" FLOOR/>
+    <body name="a" pos="0 0 0.5">
+      <freejoint/>
+      <geom type="sphere" size="0.1" A/>
+      <body name="child" pos="0.1 0 0">
+        <joint type="hinge" axis="0 0 1"/>
+        <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.05"/>
+      </body>
+    </body>
+    <body name="b" pos="0.15 0 0.5">
+      <freejoint/>
+      <geom type="box" size="0.1 0.1 0.1" B/>
+    </body>
+  </worldbody>
+  CONTACT
+</mujoco>"#;
+
+fn two_balls(floor: &str, a: &str, b: &str, contact: &str) -> Articulations<f64> {
+    let xml = TWO_BALLS
+        .replace("FLOOR", floor)
+        .replace(" A/", &format!(" {a}/"))
+        .replace(" B/", &format!(" {b}/"))
+        .replace("CONTACT", contact);
+    mjcf::parse(&xml).unwrap().builder.finalize().unwrap()
+}
+
+#[test]
+fn mjcf_contact_filters_follow_mujoco() {
+    // Everything default: a's sphere and b's box touch, the child's capsule and b's box touch,
+    // a and its child never (parent and child); all touch the floor (1 + 2 + 8 spheres).
+    let m = two_balls("", "", "", "");
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (0, 2));
+    assert_eq!(m.contact_link.len(), 11);
+    // contype 2 on a's sphere: its conaffinity 1 still accepts b's contype 1.
+    let m = two_balls("", r#"contype="2""#, "", "");
+    assert_eq!(m.box_pairs.len(), 2);
+    // contype 2, conaffinity 2: b (1, 1) and the floor (1, 1) no longer touch it.
+    let m = two_balls("", r#"contype="2" conaffinity="2""#, "", "");
+    assert_eq!(m.box_pairs.len(), 1);
+    assert_eq!(m.contact_link.len(), 10);
+    // The floor's conaffinity 0 and contype 0: nothing touches it; links still touch.
+    let m = two_balls(r#"contype="0" conaffinity="0""#, "", "", "");
+    assert_eq!((m.contact_link.len(), m.box_pairs.len()), (0, 2));
+    // Excluded by name.
+    let m = two_balls(
+        "",
+        "",
+        "",
+        r#"<contact><exclude body1="b" body2="child"/></contact>"#,
+    );
+    assert_eq!(m.box_pairs.len(), 1);
+    // Defaults apply.
+    let xml = TWO_BALLS
+        .replace(
+            "<worldbody>",
+            r#"<default><geom conaffinity="0"/></default><worldbody>"#,
+        )
+        .replace("FLOOR", r#"conaffinity="1""#)
+        .replace(" A/", "/")
+        .replace(" B/", "/")
+        .replace("CONTACT", "");
+    let m: Articulations<f64> = mjcf::parse(&xml).unwrap().builder.finalize().unwrap();
+    assert_eq!((m.box_pairs.len(), m.contact_link.len()), (0, 11));
+    // Bad masks and exclusions are errors naming the element and its line.
+    for (bad, needle) in [
+        (two_balls_text("", r#"contype="-1""#, ""), "contype"),
+        (
+            two_balls_text("", "", "").replace(
+                "CONTACT",
+                r#"<contact><exclude body1="a" body2="nobody"/></contact>"#,
+            ),
+            "nobody",
+        ),
+        (
+            two_balls_text("", "", "").replace(
+                "CONTACT",
+                r#"<contact><pair geom1="x" geom2="y"/></contact>"#,
+            ),
+            "pair",
+        ),
+    ] {
+        let e = mjcf::parse(&bad.replace("CONTACT", "")).unwrap_err();
+        assert!(e.to_string().contains(needle), "{e}");
+        assert!(e.line.is_some(), "{e}");
+    }
+}
+
+fn two_balls_text(floor: &str, a: &str, b: &str) -> String {
+    TWO_BALLS
+        .replace("FLOOR", floor)
+        .replace(" A/", &format!(" {a}/"))
+        .replace(" B/", &format!(" {b}/"))
+}
+
+#[test]
+fn builder_contact_filters_welds_and_bad_shapes() {
+    let mut b = ArticulationBuilder::new();
+    space(&mut b);
+    free_body(&mut b, "a", Vec3::zeros(), "sphere");
+    free_body(&mut b, "b", Vec3::new(0.5, 0.0, 0.0), "sphere");
+    // A box welded to b: it never touches b's sphere, but touches a's.
+    let b_link = b.find("b").unwrap();
+    let welded = b.add_link(
+        "b_plate",
+        Some(b_link),
+        Joint::fixed().origin(Pose::at(Vec3::new(0.2, 0.0, 0.0))),
+        Inertial::massless(),
+    );
+    b.add_contact_box(welded, &Pose::identity(), Vec3::new(0.05, 0.05, 0.05));
+    let m: Articulations<f64> = b.clone().finalize().unwrap();
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (1, 1));
+    // Filters: a's sphere of type 2 accepting 2 touches neither.
+    let mut f = b.clone();
+    f.set_contact_filter(
+        0,
+        ContactFilter {
+            contype: 2,
+            conaffinity: 2,
+        },
+    );
+    let m: Articulations<f64> = f.finalize().unwrap();
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (0, 0));
+    // Worlds: the same scene twice has twice the pairs, never across worlds.
+    let m: Articulations<f64> = b.replicate(2).finalize().unwrap();
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (2, 2));
+    // Bad shapes are errors naming the shape and the link.
+    let mut bad = b.clone();
+    bad.add_contact_box(welded, &Pose::identity(), Vec3::new(0.05, 0.0, 0.05));
+    let e = bad.finalize::<f64>().unwrap_err().to_string();
+    assert!(
+        e.contains("contact shape 3") && e.contains("b_plate"),
+        "{e}"
+    );
+    let mut bad = b.clone();
+    bad.add_contact_sphere(welded, Vec3::new(f64::NAN, 0.0, 0.0), 0.1);
+    assert!(bad.finalize::<f64>().is_err());
+    // Link contact needs a law.
+    let mut bad = b;
+    bad.ground = None;
+    let e = bad.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("link_contact"), "{e}");
+}
