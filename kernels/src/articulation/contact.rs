@@ -135,7 +135,8 @@ pub struct GroundContact<R: Real> {
     pub normal: Vec3<R>,
     /// The plane is `dot(normal, x) = offset` (m).
     pub offset: R,
-    /// Stiffness per contact sphere (N/m; default 1e4).
+    /// Stiffness per contact: per sphere, capsule end or box corner on the ground, per pair
+    /// of shapes between links (N/m; default 1e4).
     pub ke: R,
     /// Damping in contact (N s/m; default 100), ramped in over `damping_depth`.
     pub kd: R,

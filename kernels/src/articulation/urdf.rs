@@ -54,10 +54,11 @@ use super::xml::{self, children, Source};
 pub struct UrdfOptions {
     /// Put the root link on a free joint (a floating base) instead of welding it to the world.
     pub floating_base: bool,
-    /// Read `<collision>` geometry as contact shapes: `<sphere>`, `<box>` (by its corners) and
-    /// `<capsule radius length>` (along z, by its end spheres); a `<cylinder>` or `<mesh>` is
-    /// then an error naming it. Default false: no contact shapes (most robots' collision
-    /// geometry is meshes). Set the builder's `ground` for them to touch.
+    /// Read `<collision>` geometry as contact shapes: `<sphere>`, `<box>` and `<capsule radius
+    /// length>` (along z); a `<cylinder>` or `<mesh>` is then an error naming it. Default
+    /// false: no contact shapes (most robots' collision geometry is meshes). Set the
+    /// builder's `ground` for them to touch, and `link_contact` for links to touch each other
+    /// (URDF has no filters: links welded or joined directly never touch).
     pub collisions: bool,
 }
 
