@@ -92,7 +92,21 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             dof.extend(d..d + n);
         }
         assert_eq!(dof.len(), nv, "{file}: every velocity is mapped");
-        let mut worst = [0.0f64; 6];
+        // The step's acceleration with the joints' springs and damping, without contact or
+        // limit penalties (MuJoCo's limits are constraints, its qfrc_passive has neither).
+        // (A free joint's linear velocity is stepped in the world frame: qd' - qd is qdd only
+        // without one.)
+        let free = m["joints"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|j| j["kind"] == "free");
+        let stepper = (!file.ends_with(".urdf") && !free).then(|| {
+            let mut b = mjcf::load(format!("{ROBOTS}/{file}")).unwrap().builder;
+            (b.ground, b.link_contact, b.limit_ke, b.limit_kd) = (None, false, 0.0, 0.0);
+            b.finalize::<f64>().unwrap()
+        });
+        let mut worst = [0.0f64; 7];
         for s in m["states"].as_array().unwrap() {
             let (rq, rqd, rtau) = (vecf(&s["q"]), vecf(&s["qd"]), vecf(&s["tau"]));
             let (mut q, mut qd, mut tau) = (vec![0.0; model.n_q], vec![0.0; nv], vec![0.0; nv]);
@@ -125,6 +139,29 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             worst[0] = worst[0].max(rel_err(&permute(&mm), &matf(&s["mass_matrix"])));
             worst[1] = worst[1].max(rel_err(&pv(&c), &[vecf(&s["bias"])]));
             worst[2] = worst[2].max(rel_err(&pv(&qdd), &[vecf(&s["qdd"])]));
+            if let (Some(p), Some(stepper)) = (s.get("passive"), &stepper) {
+                // With dt = 1, qd' - qd is the acceleration.
+                use adflex_kernels::articulation::{ArticulationControl, ArticulationState};
+                let state = ArticulationState {
+                    q: qa.clone(),
+                    qd: qda.clone(),
+                };
+                let control = ArticulationControl {
+                    tau: ta.clone(),
+                    ..stepper.control()
+                };
+                let next = stepper
+                    .step(&mut tape, &state, Some(&control), 1.0)
+                    .unwrap();
+                let ours: Vec<f64> = (0..nv).map(|i| next.qd.get(i) - qd[i]).collect();
+                let rm = nalgebra::DMatrix::from_fn(nv, nv, |i, j| matf(&s["mass_matrix"])[i][j]);
+                let (rt, rc, rp) = (vecf(&s["tau"]), vecf(&s["bias"]), vecf(p));
+                let rhs = nalgebra::DVector::from_fn(nv, |i, _| rt[i] - rc[i] + rp[i]);
+                let expected = rm.lu().solve(&rhs).unwrap();
+                let ours = pv(&ours).remove(0);
+                let expected: Vec<f64> = expected.iter().copied().collect();
+                worst[6] = worst[6].max(rel_err(&[ours], &[expected]));
+            }
             if s.get("dqdd_dq").is_some() {
                 let d = model.forward_dynamics_derivatives(&q, &qd, &tau).unwrap();
                 worst[3] = worst[3].max(rel_err(&permute(&d.dq), &matf(&s["dqdd_dq"])));
@@ -133,9 +170,9 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             }
         }
         report.push(format!(
-            "{file} ({}): M {:.1e}, bias {:.1e}, qdd {:.1e}, dqdd/dq {:.1e}, dqdd/dqd {:.1e}, dqdd/dtau {:.1e}",
+            "{file} ({}): M {:.1e}, bias {:.1e}, qdd {:.1e}, dqdd/dq {:.1e}, dqdd/dqd {:.1e}, dqdd/dtau {:.1e}, qdd with springs and damping {:.1e}",
             m["reference"].as_str().unwrap(),
-            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5]
+            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5], worst[6]
         ));
         assert!(
             worst.iter().all(|&w| w < 1e-9),
@@ -169,6 +206,7 @@ fn forward_dynamics_derivatives_match_central_differences() {
         ("quadruped.urdf", true),
         ("ant.xml", false),
         ("humanoid.xml", false),
+        ("walker.xml", false),
     ] {
         let model = load(file, floating);
         let n = model.n_dof;
@@ -263,6 +301,12 @@ fn rollout_gradients_match_central_differences() {
         ("arm7", load("arm7.urdf", false)),
         ("quadruped", load("quadruped.urdf", true)),
         ("humanoid", load("humanoid.xml", false)),
+        // Its springs and damping, in the air (contact has its own tests).
+        ("walker", {
+            let mut b = mjcf::load(format!("{ROBOTS}/walker.xml")).unwrap().builder;
+            (b.ground, b.link_contact) = (None, false);
+            b.finalize().unwrap()
+        }),
     ];
     for (name, model) in &models {
         let n = model.n_dof;
@@ -655,7 +699,7 @@ const MJCF: &str = r#"<mujoco>
 #[test]
 fn bad_mjcf_is_refused_naming_the_element_and_line() {
     assert!(mjcf::parse(MJCF).unwrap().builder.finalize::<f64>().is_ok());
-    let cases: [(&str, &str, u32, &str); 8] = [
+    let cases: [(&str, &str, u32, &str); 13] = [
         ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
         ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
@@ -673,7 +717,42 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
             "not a finite number",
         ),
         ("<worldbody>", "<worldbody><tendon/>", 2, "<tendon>"),
-        ("<joint name", "<joint stiffness=\"3\" name", 4, "stiffness"),
+        (
+            "<joint name",
+            "<joint frictionloss=\"3\" name",
+            4,
+            "frictionloss",
+        ),
+        (
+            "<joint name",
+            "<joint range=\"-1 1\" margin=\"0.1\" name",
+            4,
+            "margin",
+        ),
+        (
+            "type=\"hinge\"",
+            "type=\"ball\" stiffness=\"2\"",
+            4,
+            "stiffness",
+        ),
+        (
+            "<mujoco>",
+            "<mujoco><compiler coordinate=\"global\"/>",
+            1,
+            "global",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><tendon><fixed stiffness=\"1\"><joint joint=\"j\"/></fixed></tendon>",
+            7,
+            "stiffness",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><tendon><fixed><joint joint=\"nope\"/></fixed></tendon>",
+            7,
+            "nope",
+        ),
     ];
     for (from, to, line, message) in cases {
         let e = mjcf_error(&MJCF.replacen(from, to, 1));

@@ -129,6 +129,7 @@ pub(crate) fn finalize<R: Real>(
             (j.armature, "armature"),
             (j.kp, "kp"),
             (j.kv, "kv"),
+            (j.stiffness, "stiffness"),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(err(
@@ -136,6 +137,15 @@ pub(crate) fn finalize<R: Real>(
                     format!("{what} {v} must be finite and non-negative"),
                 ));
             }
+        }
+        if !j.spring_ref.is_finite() {
+            return Err(err(je(), "spring_ref must be finite"));
+        }
+        if j.stiffness > 0.0 && !j.kind.is_scalar() {
+            return Err(err(
+                je(),
+                "a spring (stiffness) applies to revolute and prismatic joints only",
+            ));
         }
         if !j.initial.is_empty() {
             let quat = j.initial.len().saturating_sub(4);
@@ -374,6 +384,8 @@ pub(crate) fn finalize<R: Real>(
                 .push((art.m_offset + (d - art.dofs.start) * art.dofs.len()) as u32);
             dof.armature.push(j.armature);
             dof.damping.push(j.damping);
+            dof.stiffness.push(j.stiffness);
+            dof.spring_ref.push(j.spring_ref);
             dof.kp.push(j.kp);
             dof.kv.push(j.kv);
             dof.lower.push(lo);
@@ -511,6 +523,8 @@ pub(crate) fn finalize<R: Real>(
         dof_m_row: Array::from_vec(dof.m_row),
         armature: rs(&dof.armature),
         damping: rs(&dof.damping),
+        stiffness: rs(&dof.stiffness),
+        spring_ref: rs(&dof.spring_ref),
         kp: rs(&dof.kp),
         kv: rs(&dof.kv),
         lower: rs(&dof.lower),
@@ -584,6 +598,8 @@ struct DofArrays {
     m_row: Vec<u32>,
     armature: Vec<f64>,
     damping: Vec<f64>,
+    stiffness: Vec<f64>,
+    spring_ref: Vec<f64>,
     kp: Vec<f64>,
     kv: Vec<f64>,
     lower: Vec<f64>,

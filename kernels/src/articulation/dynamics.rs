@@ -377,6 +377,8 @@ impl<R: Real> Articulations<R> {
                 &self.kp,
                 &self.kv,
                 &self.damping,
+                &self.stiffness,
+                &self.spring_ref,
                 &self.lower,
                 &self.upper,
                 self.limit_ke,

@@ -217,8 +217,9 @@ pub fn articulation_link_dynamics<R: Real>(
 /// `m_row[a]` of `m`; `art_start[a]` is the articulation's first degree of freedom.
 ///
 /// **Right-hand side** `tau - tau_id`, and when `passive` is 1 also
-/// `+ kp (q_target - q) + kv (qd_target - qd) - damping qd + limit` (PD and limit terms on
-/// revolute and prismatic joints, `dof_q[d]` their coordinate; the limit pushes back by
+/// `+ kp (q_target - q) + kv (qd_target - qd) - damping qd - stiffness (q - spring_ref) +
+/// limit` (PD, spring and limit terms on revolute and prismatic joints, `dof_q[d]` their
+/// coordinate; the limit pushes back by
 /// `limit_ke (lower - q) - limit_kd qd` below `lower`, likewise above `upper`).
 #[diff_kernel]
 pub fn articulation_joint_space<R: Real>(
@@ -251,6 +252,8 @@ pub fn articulation_joint_space<R: Real>(
     kp: &Array<R>,
     kv: &Array<R>,
     damping: &Array<R>,
+    stiffness: &Array<R>,
+    spring_ref: &Array<R>,
     lower: &Array<R>,
     upper: &Array<R>,
     limit_ke: R,
@@ -316,7 +319,8 @@ pub fn articulation_joint_space<R: Real>(
         f = f - damping[a] * v;
         if dof_scalar[a] == 1 {
             let x = q[dof_q[a] as usize];
-            f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v);
+            f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v)
+                - stiffness[a] * (x - spring_ref[a]);
             if x < lower[a] {
                 f = f + limit_ke * (lower[a] - x) - limit_kd * v;
             } else if x > upper[a] {

@@ -1,15 +1,20 @@
 //! Reading a subset of MuJoCo's MJCF.
 //!
-//! Read: `<compiler angle eulerseq inertiafromgeom autolimits>`, `<option timestep gravity>`,
-//! `<default>` classes (nested, with `joint`, `geom`, `motor` and `position` defaults),
-//! `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis childclass>`,
-//! `<joint type="hinge|slide|ball|free" pos axis range limited damping armature>`,
-//! `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|plane" size fromto pos quat mass
-//! density>`, `<inertial pos quat mass diaginertia|fullinertia>`, and `<actuator>` with
-//! `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`. Visual-only
-//! elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`, `<camera>`, `<light>`) are passed
-//! over. Anything else is an error naming the element and its line: MuJoCo would simulate it,
-//! and silently dropping it would simulate a different robot.
+//! Read: `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local">`, `<option
+//! timestep gravity>`, `<default>` classes (nested, with `joint`, `geom`, `motor` and
+//! `position` defaults), `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis
+//! childclass>`, `<joint type="hinge|slide|ball|free" pos axis range limited damping armature
+//! stiffness springref>` (a spring on hinges and slides; `springref` in the file's angle
+//! unit), `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|plane" size fromto pos quat
+//! mass density contype conaffinity>`, `<inertial pos quat mass diaginertia|fullinertia>`,
+//! `<actuator>` with `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
+//! Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`,
+//! `<camera>`, `<light>`), `<custom>` data, MuJoCo's own solver settings in `<option>`
+//! (`integrator`, `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the
+//! integrator is the caller's choice here), a joint's `margin` where it has no limit, and
+//! `<tendon>` with `<fixed>` tendons that have no stiffness, damping, limits or friction
+//! (they exert no force). Anything else is an error naming the element and its line: MuJoCo
+//! would simulate it, and silently dropping it would simulate a different robot.
 //!
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
@@ -151,7 +156,14 @@ struct Reader<'a> {
     joints: HashMap<String, ()>,
 }
 
-const SKIPPED: &[&str] = &["visual", "asset", "statistic", "size", "extension"];
+const SKIPPED: &[&str] = &[
+    "visual",
+    "asset",
+    "statistic",
+    "size",
+    "extension",
+    "custom",
+];
 const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
 
 fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError> {
@@ -186,6 +198,7 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
             "worldbody",
             "actuator",
             "contact",
+            "tendon",
         ],
         SKIPPED,
     )?;
@@ -195,7 +208,23 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
         match n.tag_name().name() {
             "compiler" => r.compiler(*n)?,
             "option" => {
-                r.src.only_attributes(*n, &["timestep", "gravity"])?;
+                // MuJoCo's own solver's settings name no property of the model: the
+                // integrator is the caller's choice here, and contacts follow the library's law.
+                r.src.only_attributes(
+                    *n,
+                    &[
+                        "timestep",
+                        "gravity",
+                        "integrator",
+                        "iterations",
+                        "solver",
+                        "tolerance",
+                        "cone",
+                        "jacobian",
+                        "noslip_iterations",
+                        "impratio",
+                    ],
+                )?;
                 children(&r.src, *n, &[], &[])?;
                 timestep = r.src.number(*n, "timestep")?;
                 if let Some(g) = r.src.vec3(*n, "gravity")? {
@@ -216,6 +245,27 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
                 }
             }
             _ => {}
+        }
+    }
+    // A fixed tendon without stiffness, damping, limits or an actuator exerts no force (e.g.
+    // the couplings gym's humanoid declares): read and checked, nothing to simulate.
+    for n in items.iter().filter(|n| n.has_tag_name("tendon")) {
+        r.src.only_attributes(*n, &[])?;
+        for t in children(&r.src, *n, &["fixed"], &[])? {
+            r.src
+                .only_attributes(t, &["name", "class", "group", "rgba"])
+                .map_err(|mut e| {
+                    e.message += " (a tendon with stiffness, damping, limits or friction is not \
+                                  supported)";
+                    e
+                })?;
+            for j in children(&r.src, t, &["joint"], &[])? {
+                r.src.only_attributes(j, &["joint", "coef"])?;
+                let name = r.src.required(j, "joint")?;
+                if !r.joints.contains_key(name) {
+                    return Err(r.src.error(j, format!("joint \"{name}\" is not defined")));
+                }
+            }
         }
     }
     for n in items.iter().filter(|n| n.has_tag_name("contact")) {
@@ -259,9 +309,26 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
 
 impl<'a> Reader<'a> {
     fn compiler(&mut self, n: Node) -> Result<(), ArticulationError> {
-        self.src
-            .only_attributes(n, &["angle", "eulerseq", "inertiafromgeom", "autolimits"])?;
+        self.src.only_attributes(
+            n,
+            &[
+                "angle",
+                "eulerseq",
+                "inertiafromgeom",
+                "autolimits",
+                "coordinate",
+            ],
+        )?;
         children(&self.src, n, &[], &[])?;
+        match n.attribute("coordinate") {
+            None | Some("local") => {}
+            Some(o) => {
+                return Err(self.src.error(
+                    n,
+                    format!("coordinate=\"{o}\": only local coordinates are supported"),
+                ))
+            }
+        }
         match n.attribute("angle") {
             None | Some("degree") => self.radians = false,
             Some("radian") => self.radians = true,
@@ -689,6 +756,7 @@ impl<'a> Reader<'a> {
             "ref",
             "frictionloss",
             "group",
+            "margin",
         ];
         self.src.only_attributes(n, &known)?;
         self.check_class(n)?;
@@ -718,7 +786,7 @@ impl<'a> Reader<'a> {
                 ))
             }
         };
-        for unsupported in ["stiffness", "frictionloss", "ref", "springref"] {
+        for unsupported in ["frictionloss", "ref"] {
             if let Some(v) = self.nums(n, class, unsupported, &[1])? {
                 if v[0] != 0.0 {
                     return Err(self.src.error(
@@ -756,6 +824,38 @@ impl<'a> Reader<'a> {
             }
         } else if limited == "true" && (kind == "hinge" || kind == "slide") {
             return Err(self.src.error(n, "limited=\"true\" needs a `range`"));
+        }
+        let stiffness = self
+            .nums(n, class, "stiffness", &[1])?
+            .map_or(0.0, |v| v[0]);
+        if stiffness != 0.0 {
+            if !(kind == "hinge" || kind == "slide") {
+                return Err(self.src.error(
+                    n,
+                    format!(
+                        "stiffness on a {kind} joint is not supported; remove it or set it to 0"
+                    ),
+                ));
+            }
+            if !(stiffness.is_finite() && stiffness > 0.0) {
+                return Err(self
+                    .src
+                    .error(n, format!("stiffness {stiffness} is negative")));
+            }
+            let r = self
+                .nums(n, class, "springref", &[1])?
+                .map_or(0.0, |v| v[0]);
+            let r = if kind == "hinge" { self.angle(r) } else { r };
+            j = j.stiffness(stiffness, r);
+        }
+        // A limit's margin widens where MuJoCo's limit constraint acts; on a joint without a
+        // limit it does nothing.
+        let margin = self.nums(n, class, "margin", &[1])?.map_or(0.0, |v| v[0]);
+        if margin != 0.0 && j.limits.is_some() {
+            return Err(self.src.error(
+                n,
+                "a margin on a limited joint is not supported; remove it or set it to 0",
+            ));
         }
         for (attr, set) in [("damping", 0), ("armature", 1)] {
             if let Some(v) = self.nums(n, class, attr, &[1])? {
@@ -818,6 +918,7 @@ impl<'a> Reader<'a> {
             "solref",
             "solimp",
             "margin",
+            "user",
         ];
         self.src.only_attributes(n, &known)?;
         self.check_class(n)?;

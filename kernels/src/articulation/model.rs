@@ -188,6 +188,11 @@ pub struct Joint {
     pub limits: Option<(f64, f64)>,
     /// Viscous damping (N m s/rad or N s/m) on every velocity of the joint.
     pub damping: f64,
+    /// A passive spring `-stiffness (q - spring_ref)` (N m/rad or N/m; revolute and
+    /// prismatic only; default 0: none), as MuJoCo's joint `stiffness` and `springref`.
+    pub stiffness: f64,
+    /// The spring's rest position (rad or m).
+    pub spring_ref: f64,
     /// Armature (rotor inertia, kg m^2 or kg) added to the mass matrix's diagonal.
     pub armature: f64,
     /// Position gain of a PD actuator toward `target_q` (N m/rad or N/m; 0 = none).
@@ -208,6 +213,8 @@ impl Joint {
             axis,
             limits: None,
             damping: 0.0,
+            stiffness: 0.0,
+            spring_ref: 0.0,
             armature: 0.0,
             kp: 0.0,
             kv: 0.0,
@@ -261,6 +268,13 @@ impl Joint {
     /// Sets viscous damping.
     pub fn damping(mut self, damping: f64) -> Self {
         self.damping = damping;
+        self
+    }
+
+    /// Sets a passive spring toward `reference` (revolute and prismatic joints).
+    pub fn stiffness(mut self, stiffness: f64, reference: f64) -> Self {
+        self.stiffness = stiffness;
+        self.spring_ref = reference;
         self
     }
 
@@ -1003,6 +1017,10 @@ pub struct Articulations<R: Real> {
     pub armature: Array<R>,
     /// Per velocity: viscous damping.
     pub damping: Array<R>,
+    /// Per velocity: the passive spring's stiffness (revolute and prismatic joints).
+    pub stiffness: Array<R>,
+    /// Per velocity: the passive spring's rest position.
+    pub spring_ref: Array<R>,
     /// Per velocity: PD position gain.
     pub kp: Array<R>,
     /// Per velocity: PD velocity gain.
