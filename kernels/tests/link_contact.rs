@@ -520,3 +520,71 @@ fn builder_contact_filters_welds_and_bad_shapes() {
     let e = bad.finalize::<f64>().unwrap_err().to_string();
     assert!(e.contains("link_contact"), "{e}");
 }
+
+#[test]
+fn mjcf_static_bodies_and_bodies_with_several_joints_follow_mujoco() {
+    let xml = r#"<mujoco>
+  <worldbody>
+    <geom type="plane" size="5 5 0.1"/>
+    <geom type="plane" size="5 5 0.1" contype="0" conaffinity="0"/>
+    <body name="base" pos="0 0 0.5">
+      <geom type="box" size="0.2 0.2 0.2"/>
+      <body name="arm" pos="0 0 0.2">
+        <joint type="hinge" axis="0 1 0"/>
+        <joint type="hinge" axis="1 0 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 0.4" size="0.05"/>
+        <body name="hand" pos="0 0 0.4">
+          <joint type="hinge" axis="0 1 0"/>
+          <joint type="hinge" axis="1 0 0"/>
+          <geom type="sphere" size="0.05"/>
+        </body>
+      </body>
+    </body>
+    <body name="post" pos="1 0 0.5">
+      <geom type="box" size="0.1 0.1 0.5"/>
+    </body>
+  </worldbody>
+</mujoco>"#;
+    // The arm touches its static base (MuJoCo filters a parent only when it moves) and the
+    // static post; the hand (behind two joints) never touches the arm, its parent, but touches
+    // the base and the post; the base and the post, both fixed to the world, never touch; the
+    // decorative second plane (touching nothing) is passed over.
+    let m: Articulations<f64> = mjcf::parse(xml).unwrap().builder.finalize().unwrap();
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (0, 4));
+    // Excluding the arm and the base removes that pair only.
+    let m: Articulations<f64> = mjcf::parse(&xml.replace(
+        "</worldbody>",
+        r#"</worldbody><contact><exclude body1="arm" body2="base"/></contact>"#,
+    ))
+    .unwrap()
+    .builder
+    .finalize()
+    .unwrap();
+    assert_eq!(m.box_pairs.len(), 3);
+}
+
+#[test]
+fn a_builder_added_to_another_keeps_its_contact_settings() {
+    // An MJCF robot without a plane: its links touch each other, and there is no floor.
+    let xml = r#"<mujoco><worldbody>
+    <body name="a"><freejoint/><geom type="sphere" size="0.1"/></body>
+    <body name="b" pos="0.15 0 0"><freejoint/><geom type="sphere" size="0.1"/></body>
+  </worldbody></mujoco>"#;
+    let robot = mjcf::parse(xml).unwrap().builder;
+    assert_eq!(robot.ground_filter, ContactFilter::NONE);
+    let mut scene = ArticulationBuilder::new();
+    scene.add_builder(&robot);
+    assert_eq!(scene.ground_filter, ContactFilter::NONE);
+    let m: Articulations<f64> = scene.finalize().unwrap();
+    assert_eq!((m.capsule_pairs.len(), m.contact_link.len()), (1, 0));
+    // Replicated worlds keep the exclusions of each.
+    let xml = xml.replace(
+        "</worldbody>",
+        r#"</worldbody><contact><exclude body1="a" body2="b"/></contact>"#,
+    );
+    let robot = mjcf::parse(&xml).unwrap().builder;
+    let m: Articulations<f64> = robot.replicate(3).finalize().unwrap();
+    assert_eq!(m.capsule_pairs.len(), 0);
+    let m: Articulations<f64> = robot.replicate(3).worlds_in(1..3).finalize().unwrap();
+    assert_eq!(m.capsule_pairs.len(), 0);
+}

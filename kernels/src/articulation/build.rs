@@ -667,7 +667,9 @@ fn link_contact_pairs(
              ContactFilter::NONE keeps the ground itself from touching anything)",
         ));
     }
-    // Welded groups: a link joined to its parent by a fixed joint is part of its parent's.
+    // Welded groups: a link joined to its parent by a fixed joint is part of its parent's,
+    // and a root on a fixed joint is part of the world (`WORLD`).
+    const WORLD: usize = usize::MAX;
     let links = b.links();
     let mut weld: Vec<usize> = vec![0; parent.len()];
     let mut old_of = vec![0; parent.len()];
@@ -678,24 +680,31 @@ fn link_contact_pairs(
         // Parents come first in the model's order.
         weld[i] = match (parent[i], links[old_of[i]].joint.kind) {
             (Some(p), JointType::Fixed) => weld[p],
+            (None, JointType::Fixed) => WORLD,
             _ => i,
         };
     }
     let weld_parent = |w: usize| parent[w].map(|p| weld[p]);
+    // MuJoCo's rules: nothing fixed to the world touches anything else fixed to it; welded
+    // links never touch; a child never touches its parent (after welding) unless one of them
+    // is the world; excluded pairs of links never touch.
     let excluded: std::collections::HashSet<(usize, usize)> = b
         .excluded_contacts()
         .iter()
         .map(|&(x, y)| {
-            let (x, y) = (weld[new_index[x.0]], weld[new_index[y.0]]);
+            let (x, y) = (new_index[x.0], new_index[y.0]);
             (x.min(y), x.max(y))
         })
         .collect();
     let touch = |x: &ContactShape, y: &ContactShape| {
-        let (wx, wy) = (weld[new_index[x.link.0]], weld[new_index[y.link.0]]);
+        let (lx, ly) = (new_index[x.link.0], new_index[y.link.0]);
+        let (wx, wy) = (weld[lx], weld[ly]);
+        let family = wx != WORLD
+            && wy != WORLD
+            && (weld_parent(wx) == Some(wy) || weld_parent(wy) == Some(wx));
         wx != wy
-            && weld_parent(wx) != Some(wy)
-            && weld_parent(wy) != Some(wx)
-            && !excluded.contains(&(wx.min(wy), wx.max(wy)))
+            && !family
+            && !excluded.contains(&(lx.min(ly), lx.max(ly)))
             && x.filter.touches(&y.filter)
     };
     let shapes = b.contact_shapes();

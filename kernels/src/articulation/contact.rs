@@ -14,12 +14,16 @@
 //!   are not detected.
 //!
 //! When the closest points are not unique (parallel axes, an axis parallel to a box face) the
-//! contact is at the middle of the range where they are closest.
+//! contact is one point, at the middle of the range where they are closest: a capsule lying
+//! flat on a box rests on one contact under its middle, and when it tilts the contact moves
+//! to its lower end, so the torque about that point changes abruptly there (MuJoCo makes two
+//! contacts in this case).
 //!
 //! Which shapes touch follows MuJoCo's rule: shapes `a` and `b` touch when `a.contype &
 //! b.conaffinity` or `b.contype & a.conaffinity` is non-zero ([`ContactFilter`]; the ground has
-//! its own filter), and never when their links are welded together by fixed joints, or are
-//! parent and child (after welding), or are excluded
+//! its own filter), and never when their links are welded together by fixed joints (links
+//! fixed to the world count as welded to each other), or are parent and child after welding
+//! (unless one of them is fixed to the world), or are excluded
 //! ([`ArticulationBuilder::exclude_contact`](super::ArticulationBuilder::exclude_contact)).
 
 use adflex_macros::{diff_func, diff_kernel};
@@ -135,8 +139,10 @@ pub struct GroundContact<R: Real> {
     pub normal: Vec3<R>,
     /// The plane is `dot(normal, x) = offset` (m).
     pub offset: R,
-    /// Stiffness per contact: per sphere, capsule end or box corner on the ground, per pair
-    /// of shapes between links (N/m; default 1e4).
+    /// Stiffness per contact (N/m; default 1e4): per sphere, capsule end or box corner on
+    /// the ground; between links, per pair of spheres or capsules, per sphere or capsule and
+    /// box, and per corner of a box inside another. Contacts between links use this law
+    /// (and its friction) too.
     pub ke: R,
     /// Damping in contact (N s/m; default 100), ramped in over `damping_depth`.
     pub kd: R,
@@ -339,11 +345,12 @@ fn face_crossing<R: Real>(p0: Vec3<R>, d: Vec3<R>, half: Vec3<R>, e: R) -> R {
     let mut out = e;
     if e > 0.0 && e < 1.0 {
         let p = p0 + d * e;
-        let mut best = -1.0;
+        // Snap only to a plane within 1e-3 of the range's end (in s).
+        let mut best = 1e-3;
         for k in 0..3 {
             if abs(d[k]) > 0.0 {
                 let gap = abs(abs(p[k]) - half[k]) / abs(d[k]);
-                if best < 0.0 || gap < best {
+                if gap < best {
                     best = gap;
                     if p[k] < 0.0 {
                         out = (-half[k] - p0[k]) / d[k];
@@ -354,7 +361,7 @@ fn face_crossing<R: Real>(p0: Vec3<R>, d: Vec3<R>, half: Vec3<R>, e: R) -> R {
             }
         }
     }
-    out
+    clamp(out, 0.0, 1.0)
 }
 
 /// Contact of a sphere or capsule with a box, in the box's frame: `p0`, `d` the axis
@@ -384,7 +391,8 @@ pub fn segment_box_contact<R: Real>(
         }
     }
     let mut s = sb;
-    if range.y - range.x > 1e-9 {
+    // (Narrower than 1e-6: one point, as bisection in f32 resolves it.)
+    if range.y - range.x > 1e-6 {
         // A range (inside, or parallel to a face): its middle, between face crossings.
         s = 0.5 * (face_crossing(p0, d, half, range.x) + face_crossing(p0, d, half, range.y));
     } else if sb > 0.0 && sb < 1.0 && den > 1e-12 * dot(d, d) {

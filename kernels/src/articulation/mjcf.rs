@@ -26,8 +26,10 @@
 //! is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that lets the robot's
 //! weight sink one contact by 5 mm, half the critical damping of a quarter of its mass, and
 //! the plane's `friction` (set `builder.ground` to tune it). Without a plane there is no
-//! floor (`ground_filter` [`ContactFilter::NONE`]) but geoms still touch each other; set
-//! `builder.link_contact = false` to keep only the floor.
+//! floor (`ground_filter` [`ContactFilter::NONE`]; set `builder.ground_filter` too when you add
+//! one) but geoms still touch each other; set `builder.link_contact = false` to keep only the
+//! floor. Contacts between links use the ground's law and friction, not the larger of the two
+//! geoms' frictions as MuJoCo does.
 //!
 //! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
 //! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
@@ -154,6 +156,8 @@ struct Reader<'a> {
     builder: ArticulationBuilder,
     geoms: Vec<Geom>,
     joints: HashMap<String, ()>,
+    /// Links of bodies fixed to the world (no joint on the way up).
+    world_fixed: std::collections::HashSet<usize>,
 }
 
 const SKIPPED: &[&str] = &[
@@ -180,6 +184,7 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
         builder: ArticulationBuilder::new(),
         geoms: Vec::new(),
         joints: HashMap::new(),
+        world_fixed: Default::default(),
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
@@ -540,7 +545,10 @@ impl<'a> Reader<'a> {
                 "body" => self.body(c, None, Vec3::zeros(), &class)?,
                 _ => {
                     let (g, _) = self.geom(c, &class, None)?;
-                    if g.shape == GeomShape::Plane {
+                    let touches_nothing = self.filter(c, &class)? == ContactFilter::NONE;
+                    if g.shape == GeomShape::Plane && touches_nothing {
+                        // A plane that touches nothing (decoration).
+                    } else if g.shape == GeomShape::Plane {
                         if self.builder.ground.is_some() {
                             return Err(self.src.error(c, "a second ground plane"));
                         }
@@ -666,6 +674,13 @@ impl<'a> Reader<'a> {
                     .origin(body_pose),
                 inertial,
             );
+            let on_world = match link {
+                None => true,
+                Some(p) => self.world_fixed.contains(&p.0),
+            };
+            if on_world {
+                self.world_fixed.insert(id.0);
+            }
             link = Some(id);
         }
         let count = joints.len();
@@ -710,9 +725,12 @@ impl<'a> Reader<'a> {
             }
             self.geoms.push(g);
         }
-        // MuJoCo's filterparent: a body never touches its parent body (the world aside).
+        // MuJoCo's filterparent: a body never touches its parent body, unless that is fixed
+        // to the world.
         if let (Some(l), Some(p)) = (link, parent) {
-            self.builder.exclude_contact(l, p);
+            if !self.world_fixed.contains(&p.0) {
+                self.builder.exclude_contact(l, p);
+            }
         }
         for b in kids.iter().filter(|k| k.has_tag_name("body")) {
             self.body(*b, link, at, &class)?;
@@ -799,7 +817,7 @@ impl<'a> Reader<'a> {
         let name = n
             .attribute("name")
             .map(str::to_string)
-            .unwrap_or_else(|| format!("joint{}", self.builder.links().len()));
+            .unwrap_or_else(|| format!("joint{}", self.joints.len()));
         if self.joints.insert(name.clone(), ()).is_some() {
             return Err(self.src.error(n, "a second joint with this name"));
         }

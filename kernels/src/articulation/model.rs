@@ -616,7 +616,8 @@ impl ArticulationBuilder {
             .filter = filter;
     }
 
-    /// The shapes of links `a` and `b` never touch each other (MuJoCo's `<exclude>`).
+    /// The shapes of links `a` and `b` never touch each other (MuJoCo's `<exclude>`; the
+    /// links' own shapes only, not those of links welded to them).
     pub fn exclude_contact(&mut self, a: LinkId, b: LinkId) {
         self.excluded.push((a, b));
     }
@@ -696,7 +697,11 @@ impl ArticulationBuilder {
             self.muscles.push(m);
         }
         if self.ground.is_none() {
+            // The other's contact settings come with its ground (an MJCF file without a plane
+            // brings a law but no floor, and its links touching each other).
             self.ground = other.ground;
+            self.ground_filter = other.ground_filter;
+            self.link_contact |= other.link_contact;
         }
         LinkId(base)
     }
