@@ -234,6 +234,8 @@ where
     Y::CoordDescType: ValueFormatter<f64>,
 {
     let e = |e: &dyn std::fmt::Display| e.to_string();
+    // The x axis is linear: a tick within rounding of zero (e.g. -5.6e-17) is zero.
+    let x_zero = 1e-9 * (xr.end - xr.start).abs();
     root.fill(&WHITE).map_err(|x| e(&x))?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
@@ -247,7 +249,7 @@ where
         .x_desc(x_label)
         .y_desc(y_label)
         .light_line_style(RGBColor(235, 235, 235))
-        .x_label_formatter(&|x| tick(*x))
+        .x_label_formatter(&|x| tick(if x.abs() < x_zero { 0.0 } else { *x }))
         .y_label_formatter(&|y| tick(*y))
         .draw()
         .map_err(|x| e(&x))?;
