@@ -255,10 +255,11 @@ fn first_guess(knots: usize) -> Vec<f64> {
 /// What it found.
 pub struct Outcome {
     pub report: Report,
+    /// The target, from where the ball starts.
     pub target: Vec3<f64>,
     /// Distance from the target at the end (m): first guess, found.
     pub miss: (f64, f64),
-    /// The ball's path (x, z) for the first guess and the throw found.
+    /// The ball's path (x, z from where it starts) for the first guess and the throw found.
     pub paths: (Vec<(f64, f64)>, Vec<(f64, f64)>),
     /// When the ball last touched the cup (s).
     pub release: f64,
@@ -277,7 +278,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         states
             .iter()
             .map(|st| {
-                let x = ball_at(&s, st);
+                let x = ball_at(&s, st) - s.ball_start;
                 (x.x, x.z)
             })
             .collect()
@@ -306,7 +307,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
         .map_or(f64::INFINITY, |k| k as f64 * cfg.dt);
     Ok(Outcome {
         report,
-        target,
+        target: target - s.ball_start,
         miss: (miss0, miss1),
         paths: (path(&first), path(&found)),
         release,
@@ -344,13 +345,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         [(x - d, z), (x + d, z), (x, z), (x, z - d), (x, z + d)]
     };
     let target = cross(out.target.x, out.target.z);
+    // (Both relative to the ball's start, as the paths.)
     let start = cross(out.paths.0[0].0, out.paths.0[0].1);
     for file in ["path.svg", "path.png"] {
         adflex::viz::plot::curves(
             dir.join(file),
             "arm throw: the ball's path, side view",
-            "x (m)",
-            "z (m)",
+            "x from the start (m)",
+            "z from the start (m)",
             &[
                 ("first guess", &out.paths.0[..]),
                 ("throw found", &out.paths.1[..]),
