@@ -433,6 +433,22 @@ pub fn segment_box_contact<R: Real>(
     mat33_cols(at, n, vec3(depth, 0.0, 0.0))
 }
 
+/// The contact law between two links (normal `n` from `a` to `b`, signed distance `d`, `rel`
+/// the velocity of `b`'s point at the contact relative to `a`'s; `law`: `ke, kd, mu`; `ramp`:
+/// `leak, damping_depth`): the force on `b`.
+#[diff_func]
+fn link_pair_force<R: Real>(
+    n: Vec3<R>,
+    d: R,
+    rel: Vec3<R>,
+    law: Vec3<R>,
+    ramp: Vec2<R>,
+) -> Vec3<R> {
+    let c = contact_depth(d, ramp.x);
+    let kdc = contact_damping(c, law.y, 0.0, ramp.y);
+    contact_force(n, c, rel, law.x, kdc, law.z)
+}
+
 /// Contact of pairs of spheres or capsules on two links (`capsule_pairs[tid]`,
 /// indices of segments `seg_*`: ends in the link frame, radius): with the closest points `ca`, `cb`
 /// of their axes ([`closest_on_segments`]), at signed distance `d = |cb - ca| - ra - rb`
@@ -473,11 +489,8 @@ pub fn articulation_capsule_contact<R: Real>(
     let rb = seg_radius[j];
     let d = length(cb - ca) - ra - rb;
     let x = ca + n * (ra + 0.5 * d);
-    let va = link_v[la] + cross(link_w[la], x);
-    let vb = link_v[lb] + cross(link_w[lb], x);
-    let c = contact_depth(d, leak);
-    let kdc = contact_damping(c, kd, 0.0, damping_depth);
-    let f = contact_force(n, c, vb - va, ke, kdc, mu);
+    let rel = (link_v[lb] + cross(link_w[lb], x)) - (link_v[la] + cross(link_w[la], x));
+    let f = link_pair_force(n, d, rel, vec3(ke, kd, mu), vec2(leak, damping_depth));
     ext_n.atomic_add(lb, cross(x, f));
     ext_f.atomic_add(lb, f);
     ext_n.atomic_sub(la, cross(x, f));
@@ -528,11 +541,14 @@ pub fn articulation_box_contact<R: Real>(
     let m = segment_box_contact(p0, d, seg_radius[i], half, range);
     let x = ob + quat_rotate(rb, vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]));
     let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
-    let va = link_v[la] + cross(link_w[la], x);
-    let vb = link_v[lb] + cross(link_w[lb], x);
-    let c = contact_depth(m[(0, 2)], leak);
-    let kdc = contact_damping(c, kd, 0.0, damping_depth);
-    let f = contact_force(n, c, va - vb, ke, kdc, mu);
+    let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
+    let f = link_pair_force(
+        n,
+        m[(0, 2)],
+        rel,
+        vec3(ke, kd, mu),
+        vec2(leak, damping_depth),
+    );
     ext_n.atomic_add(la, cross(x, f));
     ext_f.atomic_add(la, f);
     ext_n.atomic_sub(lb, cross(x, f));
