@@ -1033,3 +1033,63 @@ fn custom_adjoints_must_be_declared_dual_safe() {
     .unwrap();
     assert_eq!(again.hv, out.hv);
 }
+
+/// Through the contact between links (a capsule pressed into a box and into a sphere, the
+/// closest-point rules and the law), with respect to the start velocities and the masses.
+#[test]
+fn hvp_through_link_contact_matches_differences() {
+    use adflex_kernels::articulation::{
+        ArticulationBuilder, GroundContact, Inertial, Joint, Pose,
+    };
+    let mut b = ArticulationBuilder::new();
+    b.gravity = Vec3::zeros();
+    b.ground = Some(GroundContact {
+        offset: -100.0,
+        ke: 1e3,
+        kd: 5.0,
+        mu: 0.4,
+        ..GroundContact::default()
+    });
+    b.link_contact = true;
+    let body = |b: &mut ArticulationBuilder, x: f64, y: f64| {
+        b.add_link(
+            format!("body{x}"),
+            None,
+            Joint::free().initial(&[x, y, 0.0, 0.0, 0.0, 0.0, 1.0]),
+            Inertial::cuboid(1.0, Vec3::new(0.1, 0.2, 0.1), Vec3::zeros()),
+        )
+    };
+    // A capsule along y between a box and a sphere, pressed 1 cm into each.
+    let c = body(&mut b, 0.0, 0.0);
+    b.add_contact_capsule(c, Vec3::new(0.0, -0.3, 0.0), Vec3::new(0.0, 0.3, 0.0), 0.05);
+    let k = body(&mut b, 0.14, 0.05);
+    b.add_contact_box(k, &Pose::identity(), Vec3::new(0.1, 0.1, 0.1));
+    let s = body(&mut b, -0.14, -0.1);
+    b.add_contact_sphere(s, Vec3::zeros(), 0.1);
+    let md: Articulations<Dual> = b.finalize().unwrap();
+    let mf: Articulations<f64> = b.finalize().unwrap();
+    assert_eq!((md.capsule_pairs.len(), md.box_pairs.len()), (1, 2));
+    let mut rng = common::Rng(0xc0);
+    let qd0: Vec<f64> = (0..mf.n_dof).map(|_| rng.uniform(-0.2, 0.2)).collect();
+    let (q_d, q_f) = (
+        Array::from_vec(dual_of(&mf.q0)),
+        Array::from_vec(mf.q0.clone()),
+    );
+    let (qd_d, qd_f) = (
+        Array::from_vec(dual_of(&qd0)).requires_grad(),
+        Array::from_vec(qd0).requires_grad(),
+    );
+    let (massd, massf) = (
+        md.mass.clone().requires_grad(),
+        mf.mass.clone().requires_grad(),
+    );
+    let dp: [&dyn AnyArray; 2] = [&qd_d, &massd];
+    let fp: [&dyn AnyArray; 2] = [&qd_f, &massf];
+    agrees(
+        "link contact",
+        (&dp, &fp, &[]),
+        (1e-4, 1e-6, 0xc1),
+        &mut |t| robot_loss(&md, &q_d, &qd_d, t),
+        &mut |t| robot_loss(&mf, &q_f, &qd_f, t),
+    );
+}
