@@ -1038,9 +1038,7 @@ fn custom_adjoints_must_be_declared_dual_safe() {
 /// closest-point rules and the law), with respect to the start velocities and the masses.
 #[test]
 fn hvp_through_link_contact_matches_differences() {
-    use adflex_kernels::articulation::{
-        ArticulationBuilder, GroundContact, Inertial, Joint, Pose,
-    };
+    use adflex_kernels::articulation::{ArticulationBuilder, GroundContact, Inertial, Joint, Pose};
     let mut b = ArticulationBuilder::new();
     b.gravity = Vec3::zeros();
     b.ground = Some(GroundContact {
