@@ -58,7 +58,8 @@ pub struct UrdfOptions {
     /// length>` (along z); a `<cylinder>` or `<mesh>` is then an error naming it. Default
     /// false: no contact shapes (most robots' collision geometry is meshes). Set the
     /// builder's `ground` for them to touch, and `link_contact` for links to touch each other
-    /// (URDF has no filters: links welded or joined directly never touch).
+    /// by MuJoCo's rules (see [`contact`](super::contact): a link touches a parent fixed to
+    /// the world; `exclude_contact` excludes a pair).
     pub collisions: bool,
 }
 
