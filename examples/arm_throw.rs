@@ -252,6 +252,9 @@ fn first_guess(knots: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Points `(x, z)` of the ball's path.
+pub type Path = Vec<(f64, f64)>;
+
 /// What it found.
 pub struct Outcome {
     pub report: Report,
@@ -260,7 +263,7 @@ pub struct Outcome {
     /// Distance from the target at the end (m): first guess, found.
     pub miss: (f64, f64),
     /// The ball's path (x, z from where it starts) for the first guess and the throw found.
-    pub paths: (Vec<(f64, f64)>, Vec<(f64, f64)>),
+    pub paths: (Path, Path),
     /// When the ball last touched the cup (s).
     pub release: f64,
 }
@@ -274,7 +277,7 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     // The target: 1 m in front of where the ball starts and 0.3 m below, at the end.
     let target = s.ball_start + Vec3::new(1.0, 0.0, -0.3);
     let knots = Array::from_vec(first_guess(cfg.knots));
-    let path = |states: &[ArticulationState<f64>]| -> Vec<(f64, f64)> {
+    let path = |states: &[ArticulationState<f64>]| -> Path {
         states
             .iter()
             .map(|st| {
