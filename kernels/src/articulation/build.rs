@@ -393,7 +393,7 @@ pub(crate) fn finalize<R: Real>(
         }
     }
 
-    let contact = link_contact_pairs(b, &new_index, &parent, &world_of)?;
+    let contact = link_contact_pairs(b, (&order, &new_index), &parent, &world_of)?;
     let ground_spheres = b.contacts();
     let r = |x: f64| R::lit(x);
     let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
@@ -649,10 +649,10 @@ struct LinkContacts {
 
 /// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
 /// links not welded together nor joined directly (after welding) nor excluded, with filters
-/// that touch. A box's corners become segments for its pairs with other boxes.
+/// that touch (`order` and `new_index`: the model's link order and its inverse). A box's corners become segments for its pairs with other boxes.
 fn link_contact_pairs(
     b: &ArticulationBuilder,
-    new_index: &[usize],
+    (order, new_index): (&[usize], &[usize]),
     parent: &[Option<usize>],
     world_of: &[usize],
 ) -> Result<LinkContacts, ArticulationError> {
@@ -672,13 +672,9 @@ fn link_contact_pairs(
     const WORLD: usize = usize::MAX;
     let links = b.links();
     let mut weld: Vec<usize> = vec![0; parent.len()];
-    let mut old_of = vec![0; parent.len()];
-    for (old, &new) in new_index.iter().enumerate() {
-        old_of[new] = old;
-    }
     for i in 0..parent.len() {
-        // Parents come first in the model's order.
-        weld[i] = match (parent[i], links[old_of[i]].joint.kind) {
+        // Parents come first in the model's order (`order[i]`: link `i`'s builder index).
+        weld[i] = match (parent[i], links[order[i]].joint.kind) {
             (Some(p), JointType::Fixed) => weld[p],
             (None, JointType::Fixed) => WORLD,
             _ => i,

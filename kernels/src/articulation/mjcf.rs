@@ -545,8 +545,8 @@ impl<'a> Reader<'a> {
                 "body" => self.body(c, None, Vec3::zeros(), &class)?,
                 _ => {
                     let (g, _) = self.geom(c, &class, None)?;
-                    let touches_nothing = self.filter(c, &class)? == ContactFilter::NONE;
-                    if g.shape == GeomShape::Plane && touches_nothing {
+                    let filter = self.filter(c, &class)?;
+                    if g.shape == GeomShape::Plane && filter == ContactFilter::NONE {
                         // A plane that touches nothing (decoration).
                     } else if g.shape == GeomShape::Plane {
                         if self.builder.ground.is_some() {
@@ -559,7 +559,7 @@ impl<'a> Reader<'a> {
                             mu: g.friction,
                             ..GroundContact::default()
                         });
-                        self.builder.ground_filter = self.filter(c, &class)?;
+                        self.builder.ground_filter = filter;
                     } else if g.shape != GeomShape::Plane {
                         return Err(self.src.error(
                             c,
