@@ -1,13 +1,14 @@
 //! Launching kernels over the rayon thread pool.
 //!
-//! A launch smaller than [`SERIAL_BELOW`] ids, on a one-thread pool, or of a kernel that
-//! measured faster serially (each kernel, mode and size is timed both ways), runs on the
-//! calling thread in thread-id order and scatters straight into its targets. A larger launch
-//! runs in parallel in one of two ways. If the macro proved its scatters go through index
+//! A launch on a one-thread pool, smaller than [`SERIAL_BELOW`] ids and quick (under 20 us
+//! when it last ran serially), or of a kernel that measured faster serially (each kernel,
+//! mode and size is timed both ways), runs on the calling thread in thread-id order and
+//! scatters straight into its targets. Any other launch runs in parallel in one of two ways. If the macro proved its scatters go through index
 //! arrays read at the thread id (a mesh's springs), it is split into one contiguous range per
 //! worker, each writing directly all it alone touches and logging the rest, and the logs are
-//! applied in range order (`split`). Otherwise its thread ids run in chunks of [`CHUNK`]
-//! (fixed by size, never by thread count), each logging its scatters and applying its logs
+//! applied in range order (`split`). Otherwise its thread ids run in chunks of at most
+//! [`CHUNK`] (16 chunks for a smaller launch; set by the size, never by the thread count),
+//! each logging its scatters and applying its logs
 //! when every earlier chunk has applied its own. Both add in thread-id order, so the result
 //! is bitwise identical for any number of threads and from run to run.
 //!
@@ -25,8 +26,16 @@ use crate::region::Region;
 pub use crate::settings::{flush_subnormals, linger, set_flush_subnormals, set_linger};
 use crate::{settings, split};
 
-/// Thread ids per chunk.
+/// The most thread ids per chunk of a parallel launch.
 pub const CHUNK: usize = 2048;
+/// Chunks a launch of fewer than `CHUNKS * CHUNK` ids is cut into: enough for the workers to
+/// share a small launch whose ids are costly (a thousand worlds' articulated steps).
+const CHUNKS: usize = 16;
+
+/// Thread ids per chunk of a parallel launch of `dim` ids.
+fn chunk_len(dim: usize) -> usize {
+    dim.div_ceil(CHUNKS).clamp(1, CHUNK)
+}
 pub use crate::settings::SERIAL_BELOW;
 
 /// A kernel bound to its (owned) arguments: what a tape records and replays.
@@ -164,13 +173,15 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
         // Two parameters scattering into one buffer (an array passed twice, read by both, in
         // the adjoint) keep two logs, which cannot be merged back into thread-id order: such
         // launches run serially.
-        let timed = dim >= settings::serial_below() && threads > 1 && shared.is_empty();
+        let may_split = threads > 1 && shared.is_empty() && dim > 1;
         let key = (
             std::any::TypeId::of::<K>(),
             mode,
             dim.max(1).ilog2(),
             threads,
         );
+        let slot = slow::slot(&key);
+        let timed = may_split && (dim >= settings::serial_below() || slow::marked(slot));
         let serial = !timed || choice::serial(key);
         let start = std::time::Instant::now();
         let mut built = false;
@@ -198,10 +209,122 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
         }
         // The first launch that plans its split is not a fair sample of the parallel path
         // (a plan is made once per index arrays' version); later ones that plan again are.
-        if timed && !(built && choice::first_build(key)) {
-            choice::record(key, serial, start.elapsed().as_secs_f64());
+        if timed {
+            if !(built && choice::first_build(key)) {
+                choice::record(key, serial, start.elapsed().as_secs_f64());
+            }
+        } else if may_split {
+            slow::record(slot, start.elapsed());
         }
     });
+}
+
+/// Small launches that are slow: fewer than [`SERIAL_BELOW`] ids, each costing microseconds
+/// (a thousand worlds' articulated steps). A key whose serial launches took longer than
+/// [`slow::SERIAL`] [`slow::RUNS`] times in a row is marked, and from then on its launches are
+/// timed both ways as large ones are (`choice`); one slow launch (a page fault, a preempted
+/// thread) marks nothing. The marks are counters in a fixed table, read without a lock by
+/// every small launch; two keys that share a slot only make a quick launch timed both ways,
+/// and the timing keeps it serial.
+mod slow {
+    use std::hash::{Hash, Hasher};
+    use std::sync::atomic::{AtomicU8, Ordering};
+    use std::time::Duration;
+
+    use super::choice::Key;
+
+    /// A serial launch slower than this may gain from the pool: waking a worker and ordering
+    /// the chunks cost a few microseconds (docs/performance.md).
+    pub(super) const SERIAL: Duration = Duration::from_micros(20);
+    /// Slow serial launches in a row that mark a key.
+    pub(super) const RUNS: u8 = 3;
+
+    /// Slow serial launches in a row, per slot (4,096 slots).
+    static SLOW: [AtomicU8; 4096] = [const { AtomicU8::new(0) }; 4096];
+
+    /// The slot of `key`.
+    #[inline]
+    pub(super) fn slot(key: &Key) -> usize {
+        let mut h = Mix(0);
+        key.hash(&mut h);
+        (h.0 >> 52) as usize
+    }
+
+    /// Whether the key of `slot` (or one sharing it) is marked.
+    #[inline]
+    pub(super) fn marked(slot: usize) -> bool {
+        SLOW[slot].load(Ordering::Relaxed) >= RUNS
+    }
+
+    /// A serial launch of the key of `slot` took `time`.
+    #[inline]
+    pub(super) fn record(slot: usize, time: Duration) {
+        let runs = SLOW[slot].load(Ordering::Relaxed);
+        if time > SERIAL {
+            SLOW[slot].store(runs.saturating_add(1).min(RUNS), Ordering::Relaxed);
+        } else if runs > 0 && runs < RUNS {
+            SLOW[slot].store(0, Ordering::Relaxed);
+        }
+    }
+
+    /// A multiply-rotate hash: the key is a few words, and every small launch hashes it.
+    struct Mix(u64);
+
+    impl Hasher for Mix {
+        fn write(&mut self, bytes: &[u8]) {
+            for b in bytes {
+                self.write_u64(u64::from(*b));
+            }
+        }
+        fn write_u64(&mut self, n: u64) {
+            self.0 = (self.0.rotate_left(5) ^ n).wrapping_mul(0x517c_c1b7_2722_0a95);
+        }
+        fn write_u32(&mut self, n: u32) {
+            self.write_u64(u64::from(n));
+        }
+        fn write_usize(&mut self, n: usize) {
+            self.write_u64(n as u64);
+        }
+        fn write_isize(&mut self, n: isize) {
+            self.write_u64(n as u64);
+        }
+        fn finish(&self) -> u64 {
+            self.0
+        }
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use std::any::TypeId;
+
+        use super::*;
+        use crate::kernel::Mode;
+
+        #[test]
+        fn a_key_slow_several_times_in_a_row_is_marked_and_its_neighbours_mostly_not() {
+            struct K;
+            let key = |class, threads| (TypeId::of::<K>(), Mode::Tangent, class, threads);
+            let s = slot(&key(9, 3));
+            let (slow, quick) = (SERIAL * 2, SERIAL / 2);
+            record(s, slow);
+            record(s, quick);
+            for _ in 1..RUNS {
+                record(s, slow);
+            }
+            assert!(!marked(s), "a quick launch restarts the count");
+            record(s, slow);
+            assert!(marked(s));
+            record(s, quick);
+            assert!(marked(s), "a mark stays");
+            // Other size classes and pool sizes of the same kernel spread over the table.
+            let others = (0..12)
+                .flat_map(|c| (1..9).map(move |t| (c, t)))
+                .filter(|&k| k != (9, 3))
+                .filter(|&(c, t)| marked(slot(&key(c, t))))
+                .count();
+            assert!(others <= 1, "{others} other keys share the mark");
+        }
+    }
 }
 
 /// Serial or parallel, per launch, by measurement: the two paths give the same bits (both
@@ -556,21 +679,22 @@ fn mark_written(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mo
 /// while later chunks run. A chunk whose log grows large applies it early, at its turn
 /// ([`crate::kernel::Scatter`]), so memory does not grow with the contributions.
 fn run_ordered(dim: usize, region: &Region, run: &RunChunk) {
-    let chunks = dim.div_ceil(CHUNK);
+    let len = chunk_len(dim);
+    let chunks = dim.div_ceil(len);
     let order = ChunkOrder::default();
     let workers = rayon::current_num_threads().clamp(1, chunks.max(1));
     // Each worker claims chunks until none is left, and applies logs.
-    region.shares(workers, |_| run_chunks(dim, &order, chunks, run));
+    region.shares(workers, |_| run_chunks(dim, len, &order, chunks, run));
 }
 
 /// Claims and runs chunks in order until none is left (one worker of [`run_ordered`]).
-fn run_chunks(dim: usize, order: &ChunkOrder, chunks: usize, run: &RunChunk) {
+fn run_chunks(dim: usize, len: usize, order: &ChunkOrder, chunks: usize, run: &RunChunk) {
     loop {
         let k = order.claim();
         if k >= chunks {
             break;
         }
-        let range = k * CHUNK..((k + 1) * CHUNK).min(dim);
+        let range = k * len..((k + 1) * len).min(dim);
         // Wakes the waiters if this chunk panics (they would wait for its turn forever).
         struct FailOnUnwind<'o>(&'o ChunkOrder);
         impl Drop for FailOnUnwind<'_> {

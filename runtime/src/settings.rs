@@ -43,10 +43,12 @@ pub struct Settings {
     /// every thread that runs them. Default: `true`. `false` gives IEEE gradual underflow.
     /// [`set_flush_subnormals`] says why.
     pub flush_subnormals: bool,
-    /// Launches with fewer thread ids than this run serially on the calling thread; larger
-    /// ones are timed both ways and take the faster. Default: [`SERIAL_BELOW`] (4096): rayon's
-    /// per-call overhead is a few microseconds (docs/performance.md). Results are the same
-    /// bits either way.
+    /// Launches with fewer thread ids than this run serially on the calling thread unless a
+    /// serial launch of the same kernel, mode and size took over 20 us (each id costs
+    /// microseconds: a thousand worlds' articulated steps); those and larger ones are timed
+    /// both ways and take the faster. Default: [`SERIAL_BELOW`] (4096): rayon's per-call
+    /// overhead is a few microseconds (docs/performance.md). Results are the same bits either
+    /// way.
     pub serial_below: usize,
 }
 

@@ -1,5 +1,5 @@
-//! Scatters above the serial threshold give the same bits for 1 or 2 threads and across runs,
-//! forward and adjoint.
+//! Scatters above the serial threshold, and small launches of costly ids, give the same bits
+//! for 1 or 2 threads and across runs, forward and adjoint.
 
 mod common;
 
@@ -217,4 +217,39 @@ fn chunks_deposited_behind_a_slow_one_keep_the_bits() {
     assert_eq!(one, slow_first_chunk_bits(2), "1 vs 2 threads");
     assert_eq!(one, slow_first_chunk_bits(3), "1 vs 3 threads");
     assert!(one.1.iter().any(|&b| f64::from_bits(b) != 0.0));
+}
+
+/// Costly ids in a small launch (400 ids of 2,000 iterations each, below the serial
+/// threshold): after its first serial launches it is timed on the pool too, in 16 chunks.
+#[adflex_macros::diff_kernel]
+fn costly_ids(x: &Array<f64>, out: &Array<f64>) {
+    let t = tid();
+    let mut s = x[t];
+    for _k in 0..2000 {
+        s = s * 0.999 + 0.001 * sin(s);
+    }
+    out.atomic_add(t % 5, s);
+}
+
+fn costly_ids_bits(threads: usize) -> (Vec<u64>, Vec<u64>) {
+    const { assert!(400 < SERIAL_BELOW) };
+    let x = Array::from_vec(random(400, 41, -1.0, 1.0)).requires_grad();
+    let out = Array::<f64>::zeros(5);
+    with_threads(threads, || {
+        let mut tape = Tape::new();
+        for _ in 0..8 {
+            tape.launch(costly_ids, 400, (&x, &out));
+        }
+        tape.backward(&out).unwrap();
+    });
+    (bits(out.to_vec()), bits(x.grad().unwrap().to_vec()))
+}
+
+#[test]
+fn small_launches_of_costly_ids_keep_the_bits() {
+    let one = costly_ids_bits(1);
+    for threads in [2, 3, 2] {
+        assert_eq!(one, costly_ids_bits(threads), "1 vs {threads} threads");
+    }
+    assert!(one.1.iter().all(|&b| f64::from_bits(b) != 0.0));
 }
