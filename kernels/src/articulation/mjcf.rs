@@ -9,9 +9,10 @@
 //! mass density contype conaffinity>`, `<inertial pos quat mass diaginertia|fullinertia>`,
 //! `<actuator>` with `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
 //! Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`,
-//! `<camera>`, `<light>`), `<custom>` data, MuJoCo's own solver settings in `<option>`
-//! (`integrator`, `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the
-//! integrator is the caller's choice here), a joint's `margin` where it has no limit, and
+//! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
+//! state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
+//! `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the integrator is the
+//! caller's choice here), a joint's `margin` where it has no limit, and
 //! `<tendon>` with `<fixed>` tendons that have no stiffness, damping, limits or friction
 //! (they exert no force). Anything else is an error naming the element and its line: MuJoCo
 //! would simulate it, and silently dropping it would simulate a different robot.
@@ -167,6 +168,10 @@ const SKIPPED: &[&str] = &[
     "size",
     "extension",
     "custom",
+    // Sensors read the state and keyframes are states a caller may reset to: neither changes
+    // the dynamics.
+    "sensor",
+    "keyframe",
 ];
 const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
 
