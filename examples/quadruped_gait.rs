@@ -82,6 +82,7 @@ pub fn quadruped() -> Articulations<f64> {
     let options = urdf::UrdfOptions {
         floating_base: true,
         collisions: true,
+        ..Default::default()
     };
     let mut b = urdf::load(path, &options).expect("the repository's quadruped loads");
     b.ground = Some(GroundContact::default());

@@ -636,7 +636,7 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
         .unwrap()
         .finalize::<f64>()
         .is_ok());
-    let cases: [(&str, &str, u32, &str); 8] = [
+    let cases: [(&str, &str, u32, &str); 10] = [
         (
             "<parent link=\"a\"/>",
             "<parent link=\"z\"/>",
@@ -665,6 +665,14 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
             "axis is zero",
         ),
         ("<link name=\"a\"/>", "<link name=\"a\"/><foo/>", 2, "<foo>"),
+        // A misspelt attribute is an error, not a default.
+        (
+            "<axis xyz=\"0 0 1\"/>",
+            "<axis xyz=\"0 0 1\"/><limit lower=\"-1\" uper=\"1\"/>",
+            7,
+            "uper",
+        ),
+        ("<mass value", "<mass valeu=\"2\" value", 4, "valeu"),
     ];
     for (from, to, line, message) in cases {
         let e = urdf_error(&URDF.replacen(from, to, 1));
@@ -699,7 +707,7 @@ const MJCF: &str = r#"<mujoco>
 #[test]
 fn bad_mjcf_is_refused_naming_the_element_and_line() {
     assert!(mjcf::parse(MJCF).unwrap().builder.finalize::<f64>().is_ok());
-    let cases: [(&str, &str, u32, &str); 13] = [
+    let cases: [(&str, &str, u32, &str); 17] = [
         ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
         ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
@@ -753,6 +761,30 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
             7,
             "nope",
         ),
+        (
+            "mass=\"1\" diaginertia=\"0.1 0.1 0.1\"",
+            "mass=\"1\" quat=\"0 1 0 0\" fullinertia=\"0.1 0.1 0.1 0 0 0\"",
+            5,
+            "body's frame",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><actuator><motor joint=\"j\" gear=\"1 0 0 0 1 0\"/></actuator>",
+            7,
+            "gear",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><actuator><position joint=\"j\" kp=\"5\"/><position joint=\"j\" kp=\"3\"/></actuator>",
+            7,
+            "second <position>",
+        ),
+        (
+            "<joint name",
+            "<joint limited=\"true\" range=\"0.5 0.5\" name",
+            4,
+            "lower 0.5 >= upper 0.5",
+        ),
     ];
     for (from, to, line, message) in cases {
         let e = mjcf_error(&MJCF.replacen(from, to, 1));
@@ -768,6 +800,128 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         "<actuator><motor joint=\"k\"/></actuator></mujoco>",
     ));
     assert!(e.to_string().contains("joint \"k\" is not defined"), "{e}");
+}
+
+/// Where MuJoCo reads an attribute in a way of its own, the reader follows it.
+#[test]
+fn mjcf_reads_ranges_box_fromto_and_zaxis_as_mujoco() {
+    use adflex_kernels::articulation::mjcf::GeomShape;
+    use adflex_runtime::Vec3;
+    // `limited="auto"` limits only a range with lower < upper; `range="0 0"` is MuJoCo's
+    // default and leaves the joint free, and a control range "0 0" clamps nothing.
+    let m =
+        mjcf::parse(&MJCF.replace("<joint name=\"j\"", "<joint range=\"0 0\" name=\"j\"")).unwrap();
+    assert_eq!(m.builder.links()[0].joint.limits, None);
+    let m = mjcf::parse(&MJCF.replace("<joint name=\"j\"", "<joint range=\"-30 45\" name=\"j\""))
+        .unwrap();
+    let (lo, hi) = m.builder.links()[0].joint.limits.unwrap();
+    assert!((lo + 30f64.to_radians()).abs() < 1e-12 && (hi - 45f64.to_radians()).abs() < 1e-12);
+    let m = mjcf::parse(&MJCF.replace(
+        "</mujoco>",
+        "<actuator><motor joint=\"j\" ctrlrange=\"0 0\"/></actuator></mujoco>",
+    ))
+    .unwrap();
+    assert_eq!(m.actuators[0].ctrlrange, None);
+    // A class's <motor> and <position> defaults are one actuator default, as in MuJoCo: the
+    // gear and control range of a default <motor> apply to a <position>.
+    let m = mjcf::parse(
+        &MJCF
+            .replace(
+                "<mujoco>",
+                "<mujoco><default><motor gear=\"3\" ctrlrange=\"-1 1\"/></default>",
+            )
+            .replace(
+                "</mujoco>",
+                "<actuator><position joint=\"j\" kp=\"2\"/></actuator></mujoco>",
+            ),
+    )
+    .unwrap();
+    assert_eq!(m.actuators[0].ctrlrange, Some((-1.0, 1.0)));
+    assert_eq!(m.builder.links()[0].joint.kp, 2.0 * 3.0 * 3.0);
+    // A box from `fromto` has a square cross-section of half-side `size[0]`.
+    let m = mjcf::parse(&MJCF.replace(
+        "<inertial pos=\"0 0 -0.5\" mass=\"1\" diaginertia=\"0.1 0.1 0.1\"/>",
+        "<geom type=\"box\" fromto=\"0 0 0 0 0 -0.4\" size=\"0.05\"/>",
+    ))
+    .unwrap();
+    let g = m.geoms.iter().find(|g| g.link.is_some()).unwrap();
+    assert_eq!(g.shape, GeomShape::Box(Vec3::new(0.05, 0.05, 0.2)));
+    // An element's own orientation overrides its class's, whichever attribute each uses.
+    let m = mjcf::parse(
+        &MJCF
+            .replace(
+                "<mujoco>",
+                "<mujoco><default><geom quat=\"0 1 0 0\"/></default>",
+            )
+            .replace(
+                "</body>",
+                "<geom type=\"box\" size=\"0.1 0.2 0.3\" euler=\"0 0 90\"/></body>",
+            ),
+    )
+    .unwrap();
+    let g = m.geoms.iter().find(|g| g.link.is_some()).unwrap();
+    let half = std::f64::consts::FRAC_1_SQRT_2;
+    assert!((g.pose.rot.coords - Quat::new(half, 0.0, 0.0, half).coords).norm() < 1e-12);
+    // `zaxis="0 0 -1"` is half a turn about x, as MuJoCo's: a child body at y = 1 goes to
+    // y = -1 (about y it would stay at y = 1).
+    let m = mjcf::parse(&MJCF.replace(
+        "quat=\"1 0 0 0\"",
+        "zaxis=\"0 0 -1\"",
+    ).replace(
+        "</body>",
+        "<body name=\"b\" pos=\"0 1 0\"><joint name=\"k\" axis=\"1 0 0\"/><inertial pos=\"0 0 0\" mass=\"1\" diaginertia=\"0.1 0.1 0.1\"/></body></body>",
+    ))
+    .unwrap();
+    let model = m.builder.finalize::<f64>().unwrap();
+    let kin = model.kinematics(&mut Tape::new(), &model.state().q);
+    let b = model.links.iter().position(|l| l.name == "b").unwrap();
+    let p = kin.link_p.get(b);
+    assert!((p - Vec3::new(0.0, -1.0, 1.0)).norm() < 1e-12, "{p:?}");
+}
+
+/// Siblings in document order (MuJoCo's), or by joint name (Pinocchio's, through urdfdom):
+/// with pin 4.1 and mujoco 4.0, this robot's joints are [alpha, zeta, mid] and [zeta, mid,
+/// alpha].
+#[test]
+fn urdf_siblings_follow_mujoco_or_pinocchio() {
+    let link = |n: &str| {
+        format!(
+            "<link name=\"{n}\"><inertial><mass value=\"1\"/><inertia ixx=\"1\" ixy=\"0\" \
+             ixz=\"0\" iyy=\"1\" iyz=\"0\" izz=\"1\"/></inertial></link>"
+        )
+    };
+    let joint = |n: &str, p: &str, c: &str| {
+        format!(
+            "<joint name=\"{n}\" type=\"revolute\"><parent link=\"{p}\"/><child \
+             link=\"{c}\"/><axis xyz=\"0 0 1\"/><limit lower=\"-1\" upper=\"1\"/></joint>"
+        )
+    };
+    let text = format!(
+        "<robot name=\"t\">{}{}{}{}{}{}{}</robot>",
+        link("base"),
+        link("L1"),
+        link("L2"),
+        link("L3"),
+        joint("zeta", "base", "L1"),
+        joint("alpha", "base", "L2"),
+        joint("mid", "L1", "L3")
+    );
+    for (pinocchio_order, expected) in [
+        (false, ["zeta", "mid", "alpha"]),
+        (true, ["alpha", "zeta", "mid"]),
+    ] {
+        let options = urdf::UrdfOptions {
+            pinocchio_order,
+            ..Default::default()
+        };
+        let b = urdf::parse(&text, &options).unwrap();
+        let names: Vec<&str> = b.links()[1..]
+            .iter()
+            .map(|l| l.joint.name.as_str())
+            .collect();
+        assert_eq!(names, expected, "pinocchio_order {pinocchio_order}");
+        assert!(b.finalize::<f64>().is_ok());
+    }
 }
 
 #[test]
@@ -962,6 +1116,7 @@ fn urdf_quadruped_stands_on_its_collision_spheres_with_right_gradients() {
     let options = urdf::UrdfOptions {
         floating_base: true,
         collisions: true,
+        ..Default::default()
     };
     let mut b = urdf::load(format!("{ROBOTS}/quadruped.urdf"), &options).unwrap();
     assert_eq!(b.contacts().len(), 8 + 4, "a box's corners and four feet");

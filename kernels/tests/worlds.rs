@@ -14,6 +14,7 @@ fn quadruped() -> ArticulationBuilder {
     let options = urdf::UrdfOptions {
         floating_base: true,
         collisions: true,
+        ..Default::default()
     };
     let mut b = urdf::load(format!("{ROBOTS}/quadruped.urdf"), &options).unwrap();
     b.ground = Some(GroundContact::default());

@@ -1,16 +1,17 @@
 //! Launching kernels over the rayon thread pool.
 //!
-//! A launch on a one-thread pool, smaller than [`SERIAL_BELOW`] ids and quick (under 20 us
-//! when it last ran serially), or of a kernel that measured faster serially (each kernel,
-//! mode and size is timed both ways), runs on the calling thread in thread-id order and
-//! scatters straight into its targets. Any other launch runs in parallel in one of two ways. If the macro proved its scatters go through index
-//! arrays read at the thread id (a mesh's springs), it is split into one contiguous range per
-//! worker, each writing directly all it alone touches and logging the rest, and the logs are
-//! applied in range order (`split`). Otherwise its thread ids run in chunks of at most
-//! [`CHUNK`] (16 chunks for a smaller launch; set by the size, never by the thread count),
-//! each logging its scatters and applying its logs
-//! when every earlier chunk has applied its own. Both add in thread-id order, so the result
-//! is bitwise identical for any number of threads and from run to run.
+//! A launch on a one-thread pool, one smaller than [`SERIAL_BELOW`] ids unless its serial
+//! runs were slow (over 20 us three times in a row: costly ids, such as a thousand worlds'
+//! articulated steps), or one of a kernel that measured faster serially (each kernel, mode
+//! and size is timed both ways), runs on the calling thread in thread-id order and scatters
+//! straight into its targets. Any other launch runs in parallel in one of two ways. If the
+//! macro proved its scatters go through index arrays read at the thread id (a mesh's
+//! springs), it is split into one contiguous range per worker, each writing directly all it
+//! alone touches and logging the rest, and the logs are applied in range order (`split`).
+//! Otherwise its thread ids run in chunks of at most [`CHUNK`] (16 chunks for a smaller
+//! launch; set by the size, never by the thread count), each logging its scatters and
+//! applying its logs when every earlier chunk has applied its own. Both add in thread-id
+//! order, so the result is bitwise identical for any number of threads and from run to run.
 //!
 //! Launches flush subnormal floats to zero, on every thread that runs them; host code keeps
 //! IEEE subnormals. [`set_flush_subnormals`] says why and turns it off. After a parallel
@@ -28,6 +29,8 @@ use crate::{settings, split};
 
 /// The most thread ids per chunk of a parallel launch.
 pub const CHUNK: usize = 2048;
+pub use crate::settings::SERIAL_BELOW;
+
 /// Chunks a launch of fewer than `CHUNKS * CHUNK` ids is cut into: enough for the workers to
 /// share a small launch whose ids are costly (a thousand worlds' articulated steps).
 const CHUNKS: usize = 16;
@@ -36,7 +39,6 @@ const CHUNKS: usize = 16;
 fn chunk_len(dim: usize) -> usize {
     dim.div_ceil(CHUNKS).clamp(1, CHUNK)
 }
-pub use crate::settings::SERIAL_BELOW;
 
 /// A kernel bound to its (owned) arguments: what a tape records and replays.
 pub trait BoundLaunch: Send + Sync {

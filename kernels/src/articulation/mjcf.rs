@@ -30,7 +30,17 @@
 //! floor (`ground_filter` [`ContactFilter::NONE`]; set `builder.ground_filter` too when you add
 //! one) but geoms still touch each other; set `builder.link_contact = false` to keep only the
 //! floor. Contacts between links use the ground's law and friction, not the larger of the two
-//! geoms' frictions as MuJoCo does.
+//! geoms' frictions as MuJoCo does, and `condim` is passed over: every contact has friction
+//! (MuJoCo's `condim="1"` contacts have none).
+//!
+//! Where MuJoCo reads an attribute in a way of its own, so does this reader: `limited` and
+//! `ctrllimited` default to `"auto"`, which limits only a range with lower < upper (`range="0
+//! 0"` leaves a joint free); a box from `fromto` has a square cross-section of half-side
+//! `size[0]`; a class's `<motor>` and `<position>` defaults are one actuator default;
+//! `zaxis="0 0 -1"` is half a turn about x; an element's own orientation overrides any its
+//! class gives. Refused: `fullinertia` with an orientation (MuJoCo
+//! reads it in the body's frame), a gear with more than its first component, a motor or servo
+//! on a ball or free joint, and two `<position>` servos on one joint.
 //!
 //! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
 //! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
@@ -174,6 +184,16 @@ const SKIPPED: &[&str] = &[
     "keyframe",
 ];
 const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
+
+/// Where a `<default>` keeps an element's attributes: MuJoCo's actuator elements (`<motor>`,
+/// `<position>`) all write one actuator default, so a class's `<motor gear>` also applies to
+/// a `<position>`.
+fn defaults_of(tag: &str) -> String {
+    match tag {
+        "motor" | "position" => "actuator".to_string(),
+        other => other.to_string(),
+    }
+}
 
 fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError> {
     let doc = xml::parse(text, file)?;
@@ -402,7 +422,7 @@ impl<'a> Reader<'a> {
             &["site", "camera", "light", "mesh", "material"],
         )?;
         for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
-            let entry = class.entry(k.tag_name().name().to_string()).or_default();
+            let entry = class.entry(defaults_of(k.tag_name().name())).or_default();
             for a in k.attributes() {
                 entry.insert(a.name().to_string(), a.value().to_string());
             }
@@ -432,7 +452,7 @@ impl<'a> Reader<'a> {
         let class = n.attribute("class").unwrap_or(class);
         self.classes
             .get(class)
-            .and_then(|c| c.get(n.tag_name().name()))
+            .and_then(|c| c.get(&defaults_of(n.tag_name().name())))
             .and_then(|m| m.get(name))
             .map(String::as_str)
     }
@@ -498,14 +518,30 @@ impl<'a> Reader<'a> {
             ));
         }
         let axis_angle = |a: Vec3<f64>, t: f64| axis_angle(&a.normalize(), t);
-        if let Some(q) = self.nums(n, class, "quat", &[4])? {
+        // The element's own orientation, if it gives one, overrides every default: a class's
+        // `quat` does not override an element's `euler`.
+        let read = |a: &str| -> Result<Option<Vec<f64>>, ArticulationError> {
+            if given.is_empty() || given.contains(&a) {
+                let counts: &[usize] = if a == "quat" || a == "axisangle" {
+                    &[4]
+                } else if a == "xyaxes" {
+                    &[6]
+                } else {
+                    &[3]
+                };
+                self.nums(n, class, a, counts)
+            } else {
+                Ok(None)
+            }
+        };
+        if let Some(q) = read("quat")? {
             let q = Quat::new(q[0], q[1], q[2], q[3]);
             if q.norm() < 1e-12 {
                 return Err(self.src.error(n, "quat has norm 0"));
             }
             return Ok(q.normalize());
         }
-        if let Some(e) = self.nums(n, class, "euler", &[3])? {
+        if let Some(e) = read("euler")? {
             let mut q = Quat::identity();
             for (k, &(axis, intrinsic)) in self.eulerseq.iter().enumerate() {
                 let r = axis_angle(Vec3::ith(axis, 1.0), self.angle(e[k]));
@@ -513,21 +549,21 @@ impl<'a> Reader<'a> {
             }
             return Ok(q);
         }
-        if let Some(a) = self.nums(n, class, "axisangle", &[4])? {
+        if let Some(a) = read("axisangle")? {
             let axis = Vec3::new(a[0], a[1], a[2]);
             if axis.norm() < 1e-12 {
                 return Err(self.src.error(n, "axisangle has a zero axis"));
             }
             return Ok(axis_angle(axis, self.angle(a[3])));
         }
-        if let Some(a) = self.nums(n, class, "zaxis", &[3])? {
+        if let Some(a) = read("zaxis")? {
             let z = Vec3::new(a[0], a[1], a[2]);
             if z.norm() < 1e-12 {
                 return Err(self.src.error(n, "zaxis is zero"));
             }
             return Ok(from_to(&Vec3::z(), &z.normalize()));
         }
-        if let Some(a) = self.nums(n, class, "xyaxes", &[6])? {
+        if let Some(a) = read("xyaxes")? {
             let x = Vec3::new(a[0], a[1], a[2]);
             let y0 = Vec3::new(a[3], a[4], a[5]);
             let y = y0 - x * (x.dot(&y0) / x.norm_squared().max(1e-300));
@@ -833,10 +869,15 @@ impl<'a> Reader<'a> {
             if limited != "false" && (kind == "hinge" || kind == "slide") {
                 let s = |x| if kind == "hinge" { self.angle(x) } else { x };
                 let (lo, hi) = (s(r[0]), s(r[1]));
-                if lo > hi {
-                    return Err(self.src.error(n, format!("range: lower {lo} > upper {hi}")));
+                if lo > hi || (lo == hi && limited == "true") {
+                    let (a, b) = (r[0], r[1]);
+                    return Err(self.src.error(n, format!("range: lower {a} >= upper {b}")));
                 }
-                j = j.limits(lo, hi);
+                // As MuJoCo, `limited="auto"` limits only a range with lower < upper: `range="0
+                // 0"` (MuJoCo's default) leaves the joint free.
+                if lo < hi {
+                    j = j.limits(lo, hi);
+                }
             } else if limited != "false" && kind == "ball" {
                 // MuJoCo would limit the cone of a ball joint with a range.
                 return Err(self.src.error(
@@ -1001,9 +1042,10 @@ impl<'a> Reader<'a> {
             }
             "box" => {
                 if fromto.is_some() {
-                    // The length from `fromto`, the cross-section from `size`.
-                    need(2)?;
-                    GeomShape::Box(Vec3::new(size[0], size[1], half))
+                    // As MuJoCo: the length from `fromto`, a square cross-section of half-side
+                    // `size[0]`.
+                    need(1)?;
+                    GeomShape::Box(Vec3::new(size[0], size[0], half))
                 } else {
                     need(3)?;
                     GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
@@ -1121,7 +1163,19 @@ impl<'a> Reader<'a> {
             self.src.numbers(n, "fullinertia", 6)?,
         ) {
             (Some(d), None) => Mat33::from_diagonal(&d),
-            (None, Some(f)) => Mat33::new(f[0], f[3], f[4], f[3], f[1], f[5], f[4], f[5], f[2]),
+            (None, Some(f)) => {
+                // MuJoCo reads `fullinertia` in the body's frame, whatever orientation is given.
+                if ["quat", "euler", "axisangle", "xyaxes", "zaxis"]
+                    .iter()
+                    .any(|a| n.attribute(*a).is_some())
+                {
+                    return Err(self.src.error(
+                        n,
+                        "`fullinertia` is in the body's frame: remove the orientation",
+                    ));
+                }
+                Mat33::new(f[0], f[3], f[4], f[3], f[1], f[5], f[4], f[5], f[2])
+            }
             _ => {
                 return Err(self
                     .src
@@ -1168,18 +1222,40 @@ impl<'a> Reader<'a> {
                 .src
                 .error(n, format!("joint \"{joint}\" is not defined")));
         };
-        let gear = self
-            .nums(n, class, "gear", &[1, 6])?
-            .map(|g| g[0])
-            .unwrap_or(1.0);
+        let gears = self.nums(n, class, "gear", &[1, 6])?;
+        let gear = gears.as_ref().map_or(1.0, |g| g[0]);
+        // MuJoCo's other gear components turn the force into a torque, or act on the other
+        // axes of a ball or free joint: not read here, so refused.
+        if gears
+            .as_ref()
+            .is_some_and(|g| g[1..].iter().any(|&x| x != 0.0))
+        {
+            return Err(self.src.error(
+                n,
+                "gear: only the first component is supported (a force on the joint's axis)",
+            ));
+        }
+        if !self.builder.links()[link].joint.kind.is_scalar() {
+            return Err(self
+                .src
+                .error(n, format!("<{tag}> needs a hinge or slide joint")));
+        }
+        let ctrllimited = self.attr(n, class, "ctrllimited").unwrap_or("auto");
         let ctrlrange = match self.nums(n, class, "ctrlrange", &[2])? {
-            Some(r) if self.attr(n, class, "ctrllimited") != Some("false") => {
-                if r[0] > r[1] {
-                    return Err(self.src.error(n, "ctrlrange: lower > upper"));
+            Some(r) if ctrllimited != "false" => {
+                if r[0] > r[1] || (r[0] == r[1] && ctrllimited == "true") {
+                    return Err(self.src.error(n, "ctrlrange: lower >= upper"));
                 }
-                Some((r[0], r[1]))
+                // As MuJoCo, `ctrllimited="auto"` clamps only a range with lower < upper.
+                (r[0] < r[1]).then_some((r[0], r[1]))
             }
-            _ => None,
+            Some(_) => None,
+            None if ctrllimited == "true" => {
+                return Err(self
+                    .src
+                    .error(n, "ctrllimited=\"true\" needs a `ctrlrange`"));
+            }
+            None => None,
         };
         let kind = if tag == "motor" {
             ActuatorKind::Motor { gear }
@@ -1195,10 +1271,12 @@ impl<'a> Reader<'a> {
             if kp < 0.0 || kv < 0.0 {
                 return Err(self.src.error(n, "kp and kv must be non-negative"));
             }
-            if !self.builder.links()[link].joint.kind.is_scalar() {
-                return Err(self
-                    .src
-                    .error(n, "a position actuator needs a hinge or slide joint"));
+            if self.builder.links()[link].joint.kp != 0.0 {
+                // MuJoCo would add the two servos' forces; the joint has one PD here.
+                return Err(self.src.error(
+                    n,
+                    format!("a second <position> actuator on joint \"{joint}\""),
+                ));
             }
             // MuJoCo's force on the joint is gear (kp (ctrl - gear q) - kv gear qd): a PD on q
             // with gains gear^2 kp, gear^2 kv toward ctrl / gear.

@@ -127,11 +127,12 @@ impl Pose {
 pub(crate) fn from_to(a: &Vec3<f64>, b: &Vec3<f64>) -> Quat<f64> {
     let c = a.dot(b);
     if c < -1.0 + 1e-12 {
-        // Opposite: half a turn about any axis orthogonal to `a`.
-        let o = if a.x.abs() < 0.9 {
-            Vec3::x()
-        } else {
+        // Opposite: half a turn about an axis orthogonal to `a`; for `a = z` about x, as
+        // MuJoCo's `zaxis="0 0 -1"` (z x y = -x, the same half turn).
+        let o = if a.y.abs() < 0.9 {
             Vec3::y()
+        } else {
+            Vec3::x()
         };
         return Quat::from_parts(0.0, a.cross(&o).normalize());
     }

@@ -61,6 +61,11 @@ pub struct UrdfOptions {
     /// by MuJoCo's rules (see [`contact`](super::contact): a link touches a parent fixed to
     /// the world; `exclude_contact` excludes a pair).
     pub collisions: bool,
+    /// Order the children of each link by their joints' names, as Pinocchio does (through
+    /// urdfdom, which keeps joints in a map by name), instead of in document order, as MuJoCo
+    /// does. The order is that of the links, joints and so of `q` and `qd`; it matters only for
+    /// a link with several children. Default false (document order).
+    pub pinocchio_order: bool,
 }
 
 /// Reads the URDF file at `path` into a builder (add more, set gravity, then finalize).
@@ -133,6 +138,7 @@ fn parse_named(
             .children()
             .find(|c| c.has_tag_name("child"))
             .ok_or_else(|| src.error(*n, "needs a <child link=\"...\"/>"))?;
+        src.only_attributes(child, &["link"])?;
         let child_name = src.required(child, "link")?;
         let &c = index.get(child_name).ok_or_else(|| {
             src.error(
@@ -184,15 +190,23 @@ fn parse_named(
     };
     id[root] = Some(b.add_link(links[root].1.clone(), None, root_joint, links[root].2));
     let mut kids: HashMap<usize, Vec<usize>> = HashMap::new();
-    let mut order: Vec<(usize, usize)> = by_child
+    let mut order: Vec<(&str, usize, usize)> = by_child
         .iter()
-        .map(|(&c, j)| (j.node.range().start, c))
+        .map(|(&c, j)| {
+            let name = if options.pinocchio_order {
+                j.joint.name.as_str()
+            } else {
+                ""
+            };
+            (name, j.node.range().start, c)
+        })
         .collect();
     order.sort();
-    for (_, c) in order {
+    for (_, _, c) in order {
         kids.entry(index[&by_child[&c].parent]).or_default().push(c);
     }
-    // Depth first, children in document order (Pinocchio's and MuJoCo's order of joints).
+    // Depth first, children in document order (MuJoCo's order of joints) or by their joints'
+    // names (Pinocchio's).
     let mut stack: Vec<usize> = kids.get(&root).cloned().unwrap_or_default();
     stack.reverse();
     while let Some(c) = stack.pop() {
@@ -299,6 +313,7 @@ fn link_inertial(src: &Source, link: Node) -> Result<Inertial, ArticulationError
         .children()
         .find(|c| c.has_tag_name("mass"))
         .ok_or_else(|| src.error(n, "needs <mass value=\"...\"/>"))?;
+    src.only_attributes(mass_node, &["value"])?;
     let mass = src
         .number(mass_node, "value")?
         .ok_or_else(|| src.error(mass_node, "needs the attribute `value`"))?;
@@ -307,6 +322,7 @@ fn link_inertial(src: &Source, link: Node) -> Result<Inertial, ArticulationError
         .children()
         .find(|c| c.has_tag_name("inertia"))
         .ok_or_else(|| src.error(n, "needs <inertia ixx ixy ixz iyy iyz izz/>"))?;
+    src.only_attributes(i_node, &["ixx", "ixy", "ixz", "iyy", "iyz", "izz"])?;
     let mut v = [0.0; 6];
     for (k, name) in ["ixx", "ixy", "ixz", "iyy", "iyz", "izz"]
         .iter()
@@ -334,6 +350,7 @@ fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, Art
     let axis = match n.children().find(|c| c.has_tag_name("axis")) {
         None => Vec3::x(),
         Some(a) => {
+            src.only_attributes(a, &["xyz"])?;
             let v = src
                 .vec3(a, "xyz")?
                 .ok_or_else(|| src.error(a, "needs the attribute `xyz`"))?;
@@ -361,6 +378,8 @@ fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, Art
     };
     j = j.name(name).origin(origin(src, n)?);
     if let Some(l) = n.children().find(|c| c.has_tag_name("limit")) {
+        // `effort` and `velocity` are the actuator's bounds, which the dynamics do not use.
+        src.only_attributes(l, &["lower", "upper", "effort", "velocity"])?;
         if kind == "revolute" || kind == "prismatic" {
             let lo = src.number(l, "lower")?.unwrap_or(0.0);
             let hi = src.number(l, "upper")?.unwrap_or(0.0);
@@ -373,6 +392,7 @@ fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, Art
         }
     }
     if let Some(d) = n.children().find(|c| c.has_tag_name("dynamics")) {
+        src.only_attributes(d, &["damping", "friction"])?;
         let damping = src.number(d, "damping")?.unwrap_or(0.0);
         if damping < 0.0 {
             return Err(src.error(d, format!("damping {damping} is negative")));
@@ -386,6 +406,7 @@ fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, Art
         .children()
         .find(|c| c.has_tag_name("parent"))
         .ok_or_else(|| src.error(n, "needs a <parent link=\"...\"/>"))?;
+    src.only_attributes(parent, &["link"])?;
     Ok(UrdfJoint {
         node: n,
         parent: src.required(parent, "link")?.to_string(),
