@@ -38,9 +38,9 @@
 //! 0"` leaves a joint free); a box from `fromto` has a square cross-section of half-side
 //! `size[0]`; a class's `<motor>` and `<position>` defaults are one actuator default;
 //! `zaxis="0 0 -1"` is half a turn about x; an element's own orientation overrides any its
-//! class gives. Refused: `fullinertia` with an orientation (MuJoCo
-//! reads it in the body's frame), a gear with more than its first component, a motor or servo
-//! on a ball or free joint, and two `<position>` servos on one joint.
+//! class gives. Refused: `fullinertia` with an orientation (MuJoCo reads it in the body's
+//! frame), a gear with more than its first component, a motor or servo on a ball or free
+//! joint, and two `<position>` servos on one joint.
 //!
 //! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
 //! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
