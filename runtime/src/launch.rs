@@ -182,8 +182,13 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
             dim.max(1).ilog2(),
             threads,
         );
-        let slot = slow::slot(&key);
-        let timed = may_split && (dim >= settings::serial_below() || slow::marked(slot));
+        // A small launch's slot in the table of slow keys (hashed only where it is read).
+        let small = (may_split && dim < settings::serial_below()).then(|| slow::slot(&key));
+        let timed = may_split
+            && match small {
+                Some(slot) => slow::marked(slot),
+                None => true,
+            };
         let serial = !timed || choice::serial(key);
         let start = std::time::Instant::now();
         let mut built = false;
@@ -215,7 +220,7 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
             if !(built && choice::first_build(key)) {
                 choice::record(key, serial, start.elapsed().as_secs_f64());
             }
-        } else if may_split {
+        } else if let Some(slot) = small {
             slow::record(slot, start.elapsed());
         }
     });

@@ -649,7 +649,8 @@ struct LinkContacts {
 
 /// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
 /// links not welded together nor joined directly (after welding) nor excluded, with filters
-/// that touch (`order` and `new_index`: the model's link order and its inverse). A box's corners become segments for its pairs with other boxes.
+/// that touch (`order` and `new_index`: the model's link order and its inverse). A box's
+/// corners become segments for its pairs with other boxes.
 fn link_contact_pairs(
     b: &ArticulationBuilder,
     (order, new_index): (&[usize], &[usize]),

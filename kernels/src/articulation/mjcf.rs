@@ -185,13 +185,22 @@ const SKIPPED: &[&str] = &[
 ];
 const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
 
+/// The attributes that give a frame's orientation, with how many numbers each takes.
+const ORIENTATIONS: [(&str, usize); 5] = [
+    ("quat", 4),
+    ("euler", 3),
+    ("axisangle", 4),
+    ("xyaxes", 6),
+    ("zaxis", 3),
+];
+
 /// Where a `<default>` keeps an element's attributes: MuJoCo's actuator elements (`<motor>`,
 /// `<position>`) all write one actuator default, so a class's `<motor gear>` also applies to
 /// a `<position>`.
-fn defaults_of(tag: &str) -> String {
+fn defaults_of(tag: &str) -> &str {
     match tag {
-        "motor" | "position" => "actuator".to_string(),
-        other => other.to_string(),
+        "motor" | "position" => "actuator",
+        other => other,
     }
 }
 
@@ -422,7 +431,9 @@ impl<'a> Reader<'a> {
             &["site", "camera", "light", "mesh", "material"],
         )?;
         for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
-            let entry = class.entry(defaults_of(k.tag_name().name())).or_default();
+            let entry = class
+                .entry(defaults_of(k.tag_name().name()).to_string())
+                .or_default();
             for a in k.attributes() {
                 entry.insert(a.name().to_string(), a.value().to_string());
             }
@@ -452,7 +463,7 @@ impl<'a> Reader<'a> {
         let class = n.attribute("class").unwrap_or(class);
         self.classes
             .get(class)
-            .and_then(|c| c.get(&defaults_of(n.tag_name().name())))
+            .and_then(|c| c.get(defaults_of(n.tag_name().name())))
             .and_then(|m| m.get(name))
             .map(String::as_str)
     }
@@ -507,8 +518,9 @@ impl<'a> Reader<'a> {
 
     /// The orientation of a frame element (`quat`, `euler`, `axisangle`, `xyaxes`, `zaxis`).
     fn orientation(&self, n: Node, class: &str) -> Result<Quat<f64>, ArticulationError> {
-        let given: Vec<&str> = ["quat", "euler", "axisangle", "xyaxes", "zaxis"]
+        let given: Vec<&str> = ORIENTATIONS
             .into_iter()
+            .map(|(a, _)| a)
             .filter(|a| n.attribute(*a).is_some())
             .collect();
         if given.len() > 1 {
@@ -522,14 +534,8 @@ impl<'a> Reader<'a> {
         // `quat` does not override an element's `euler`.
         let read = |a: &str| -> Result<Option<Vec<f64>>, ArticulationError> {
             if given.is_empty() || given.contains(&a) {
-                let counts: &[usize] = if a == "quat" || a == "axisangle" {
-                    &[4]
-                } else if a == "xyaxes" {
-                    &[6]
-                } else {
-                    &[3]
-                };
-                self.nums(n, class, a, counts)
+                let count = ORIENTATIONS.iter().find(|o| o.0 == a).map_or(0, |o| o.1);
+                self.nums(n, class, a, &[count])
             } else {
                 Ok(None)
             }
@@ -1165,10 +1171,7 @@ impl<'a> Reader<'a> {
             (Some(d), None) => Mat33::from_diagonal(&d),
             (None, Some(f)) => {
                 // MuJoCo reads `fullinertia` in the body's frame, whatever orientation is given.
-                if ["quat", "euler", "axisangle", "xyaxes", "zaxis"]
-                    .iter()
-                    .any(|a| n.attribute(*a).is_some())
-                {
+                if ORIENTATIONS.iter().any(|(a, _)| n.attribute(*a).is_some()) {
                     return Err(self.src.error(
                         n,
                         "`fullinertia` is in the body's frame: remove the orientation",
