@@ -588,3 +588,108 @@ fn a_builder_added_to_another_keeps_its_contact_settings() {
     let m: Articulations<f64> = robot.replicate(3).worlds_in(1..3).finalize().unwrap();
     assert_eq!(m.capsule_pairs.len(), 0);
 }
+
+#[test]
+fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
+    // MJCF: the floor 0.5, a's sphere 0.2, the child's capsule MuJoCo's default 1, b's box 1.5.
+    let m = two_balls(
+        r#"friction="0.5 0.005 0.0001""#,
+        r#"friction="0.2""#,
+        r#"friction="1.5 0.1""#,
+        "",
+    );
+    // Against the floor: a's sphere max(0.5, 0.2), the capsule's ends 1, the box's corners 1.5.
+    let mut floor = vec![0.5, 1.0, 1.0];
+    floor.extend([1.5; 8]);
+    assert_eq!(m.contact_mu.to_vec(), floor);
+    // Between links: both pairs are with the box.
+    assert_eq!(m.box_pair_mu.to_vec(), vec![1.5, 1.5]);
+    let m = two_balls("", r#"friction="0.2""#, r#"friction="0.3""#, "");
+    assert_eq!(m.box_pair_mu.to_vec(), vec![0.3, 1.0]);
+    // A negative friction is an error naming the geom's line.
+    let e = mjcf::parse(&two_balls_text("", r#"friction="-1""#, "").replace("CONTACT", ""))
+        .unwrap_err();
+    assert!(e.to_string().contains("friction") && e.line == Some(6), "{e}");
+
+    // The builder: a shape without friction has the ground's; one with its own, the larger.
+    let slide = |ground_mu: f64, own: Option<f64>| -> Articulations<f64> {
+        let mut b = ArticulationBuilder::new();
+        b.ground = Some(GroundContact {
+            mu: ground_mu,
+            ..GroundContact::default()
+        });
+        let half = Vec3::new(0.1, 0.1, 0.1);
+        let z = 0.1 - 9.81 / 4e4; // resting on its four lower corners
+        let l = b.add_link(
+            "box",
+            None,
+            Joint::free().initial(&[0.0, 0.0, z, 0.0, 0.0, 0.0, 1.0]),
+            Inertial::cuboid(1.0, half, Vec3::zeros()),
+        );
+        let k = b.add_contact_box(l, &Pose::identity(), half);
+        if let Some(mu) = own {
+            b.set_contact_friction(k, mu);
+        }
+        b.finalize().unwrap()
+    };
+    // Thrown along x at 1 m/s: it slides `v^2 / (2 mu g)`.
+    let distance = |m: &Articulations<f64>, tape: &mut Tape| -> Array<f64> {
+        let mut qd = vec![0.0; 6];
+        qd[0] = 1.0;
+        let mut s = ArticulationState {
+            q: Array::from_vec(m.q0.clone()),
+            qd: Array::from_vec(qd),
+        };
+        for _ in 0..400 {
+            s = m.step(tape, &s, None, 1e-3).unwrap();
+        }
+        s.q
+    };
+    let own = slide(0.1, Some(0.4));
+    assert_eq!(own.contact_mu.to_vec(), vec![0.4; 8]);
+    assert_eq!(slide(0.6, Some(0.4)).contact_mu.to_vec(), vec![0.6; 8]);
+    let x = distance(&own, &mut Tape::new()).get(0);
+    let same = distance(&slide(0.4, None), &mut Tape::new()).get(0);
+    assert_eq!(x.to_bits(), same.to_bits(), "0.4 its own or the ground's");
+    let expected = 1.0 / (2.0 * 0.4 * 9.81);
+    assert!(
+        (x - expected).abs() < 0.05 * expected,
+        "slid {x} m, Coulomb's law gives {expected} m"
+    );
+    // Invalid: an error naming the shape.
+    let mut b = ArticulationBuilder::new();
+    let l = b.add_link("l", None, Joint::free(), Inertial::sphere(1.0, 0.1, Vec3::zeros()));
+    let k = b.add_contact_sphere(l, Vec3::zeros(), 0.1);
+    b.set_contact_friction(k, f64::NAN);
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("contact shape 0") && e.contains("friction"), "{e}");
+
+    // The gradient of the distance with respect to the contacts' friction: against central
+    // differences, and forward mode against reverse mode. (Stopped mid-slide: 200 steps.)
+    let model = slide(0.4, None);
+    let run = |mu: f64, tape: &mut Tape| {
+        let mut m = model.clone();
+        m.contact_mu = Array::from_vec(vec![mu; 8]).requires_grad();
+        let mut qd = vec![0.0; 6];
+        qd[0] = 1.0;
+        let mut s = ArticulationState {
+            q: Array::from_vec(m.q0.clone()),
+            qd: Array::from_vec(qd),
+        };
+        for _ in 0..200 {
+            s = m.step(tape, &s, None, 1e-3).unwrap();
+        }
+        (m.contact_mu, s.q)
+    };
+    let mut tape = Tape::new();
+    let (mu, q) = run(0.4, &mut tape);
+    let mut w = vec![0.0; 7];
+    w[0] = 1.0;
+    let g: f64 = tape.vjp(&[&q], &w, &[&mu]).unwrap().iter().sum();
+    let f = |mu: f64| run(mu, &mut Tape::new()).1.get(0);
+    let fd = (f(0.4 + 1e-6) - f(0.4 - 1e-6)) / 2e-6;
+    assert!(fd < -0.01, "more friction, less sliding: {fd}");
+    assert!((g - fd).abs() < 1e-5 * fd.abs(), "reverse {g} vs differences {fd}");
+    let jv = tape.jvp(&[&mu], &[1.0; 8], &[&q]).unwrap();
+    assert!((jv[0] - g).abs() < 1e-9 * g.abs(), "forward {} vs reverse {g}", jv[0]);
+}

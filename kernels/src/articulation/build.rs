@@ -198,6 +198,12 @@ pub(crate) fn finalize<R: Real>(
             GeomShape::Box(half) => finite3(&half) && half.iter().all(|&x| x > 0.0),
             GeomShape::Cylinder(..) | GeomShape::Plane => false,
         };
+        if let Some(mu) = c.friction.filter(|mu| !(mu.is_finite() && *mu >= 0.0)) {
+            return Err(err(
+                format!("contact shape {k} ({:?}) on {}", c.shape, name(c.link.0)),
+                format!("friction {mu} must be finite and non-negative"),
+            ));
+        }
         let rot = c.pose.rot.norm();
         if !(finite3(&c.pose.pos) && sizes_ok && (rot - 1.0).abs() < 1e-6) {
             return Err(err(
@@ -538,6 +544,7 @@ pub(crate) fn finalize<R: Real>(
         ),
         contact_pos: Array::from_vec(ground_spheres.iter().map(|c| v3(&c.1)).collect()),
         contact_radius: rs(&ground_spheres.iter().map(|c| c.2).collect::<Vec<_>>()),
+        contact_mu: rs(&ground_spheres.iter().map(|c| c.3).collect::<Vec<_>>()),
         ground: b.ground.map(|g| g.to()),
         muscle_origin_link: Array::from_vec(
             b.muscles()
@@ -582,7 +589,9 @@ pub(crate) fn finalize<R: Real>(
         ),
         box_half: Array::from_vec(contact.boxes.iter().map(|c| v3(&c.2)).collect()),
         capsule_pairs: Array::from_vec(contact.capsule_pairs),
+        capsule_pair_mu: rs(&contact.capsule_pair_mu),
         box_pairs: Array::from_vec(contact.box_pairs),
+        box_pair_mu: rs(&contact.box_pair_mu),
     };
     check_mass_matrix(&model)?;
     Ok(model)
@@ -638,13 +647,15 @@ fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<(), Articulati
 }
 
 /// The links' contact geometry: segments (link, ends, radius), boxes (link, pose, half
-/// extents) and the pairs that touch, in the model's link order.
+/// extents) and the pairs that touch with their friction, in the model's link order.
 #[derive(Default)]
 struct LinkContacts {
     segs: Vec<(u32, Vec3<f64>, Vec3<f64>, f64)>,
     boxes: Vec<(u32, Pose, Vec3<f64>)>,
     capsule_pairs: Vec<[u32; 2]>,
+    capsule_pair_mu: Vec<f64>,
     box_pairs: Vec<[u32; 2]>,
+    box_pair_mu: Vec<f64>,
 }
 
 /// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
@@ -740,18 +751,22 @@ fn link_contact_pairs(
                     out.boxes.len() - 1
                 }) as u32
             };
+            let mu = b.contact_friction(x, Some(y));
             match (x.segment().is_some(), y.segment().is_some()) {
                 (true, true) => {
                     let pair = [seg(i, &mut out), seg(j, &mut out)];
                     out.capsule_pairs.push(pair);
+                    out.capsule_pair_mu.push(mu);
                 }
                 (true, false) => {
                     let pair = [seg(i, &mut out), bx(j, &mut out)];
                     out.box_pairs.push(pair);
+                    out.box_pair_mu.push(mu);
                 }
                 (false, true) => {
                     let pair = [seg(j, &mut out), bx(i, &mut out)];
                     out.box_pairs.push(pair);
+                    out.box_pair_mu.push(mu);
                 }
                 (false, false) => {
                     // Each box's corners against the other's faces.
@@ -769,6 +784,7 @@ fn link_contact_pairs(
                         let other = bx(o, &mut out);
                         for k in 0..8 {
                             out.box_pairs.push([(first + k) as u32, other]);
+                            out.box_pair_mu.push(mu);
                         }
                     }
                 }

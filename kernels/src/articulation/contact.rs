@@ -78,6 +78,10 @@ pub struct ContactShape {
     pub shape: GeomShape,
     /// Which other shapes it touches.
     pub filter: ContactFilter,
+    /// Its friction coefficient (`None`: the ground's [`GroundContact::mu`]). A contact's
+    /// friction is the larger of its two sides', as MuJoCo's: the ground's and the shape's
+    /// against the ground, the two shapes' between links.
+    pub friction: Option<f64>,
 }
 
 impl ContactShape {
@@ -142,11 +146,15 @@ pub struct GroundContact<R: Real> {
     /// Stiffness per contact (N/m; default 1e4): per sphere, capsule end or box corner on
     /// the ground; between links, per pair of spheres or capsules, per sphere or capsule and
     /// box, and per corner of a box inside another. Contacts between links use this law
-    /// (and its friction) too.
+    /// too, with the shapes' own friction.
     pub ke: R,
     /// Damping in contact (N s/m; default 100), ramped in over `damping_depth`.
     pub kd: R,
-    /// Friction coefficient (default 0.8).
+    /// Friction coefficient (default 0.8): the ground's, and that of every shape without its
+    /// own ([`ContactShape::friction`]). Read when the model is built, into the per-contact
+    /// arrays `contact_mu`, `capsule_pair_mu` and `box_pair_mu` of
+    /// [`Articulations`](super::Articulations); edit those (or make them require gradients)
+    /// afterwards.
     pub mu: R,
     /// Gradient leak out of contact (default 0: exact gradients; see
     /// [`contact_depth`]).
@@ -210,13 +218,15 @@ impl GroundContact<f64> {
 /// Ground contact of contact sphere `tid` (centre `contact_pos` in the frame of link
 /// `contact_link`, radius `contact_radius`): its lowest point `x` at signed distance
 /// `d = n.x - offset` gets `f = contact_force(n, contact_depth(d, leak), v, ke, kd', mu)`,
-/// `v` the velocity of the link's point at `x` and `kd'` the ramped damping; the link
+/// `v` the velocity of the link's point at `x`, `kd'` the ramped damping and `mu` the
+/// sphere's `contact_mu`; the link
 /// receives the wrench `(x x f, f)` (world frame, at the origin).
 #[diff_kernel]
 pub fn articulation_ground_contact<R: Real>(
     contact_link: &Array<u32>,
     contact_pos: &Array<Vec3<R>>,
     contact_radius: &Array<R>,
+    contact_mu: &Array<R>,
     link_p: &Array<Vec3<R>>,
     link_r: &Array<Quat<R>>,
     link_w: &Array<Vec3<R>>,
@@ -225,7 +235,6 @@ pub fn articulation_ground_contact<R: Real>(
     offset: R,
     ke: R,
     kd: R,
-    mu: R,
     leak: R,
     damping_depth: R,
     ext_n: &Array<Vec3<R>>,
@@ -238,7 +247,7 @@ pub fn articulation_ground_contact<R: Real>(
     let v = link_v[l] + cross(link_w[l], x);
     let c = contact_depth(dot(normal, x) - offset, leak);
     let kdc = contact_damping(c, kd, 0.0, damping_depth);
-    let f = contact_force(normal, c, v, ke, kdc, mu);
+    let f = contact_force(normal, c, v, ke, kdc, contact_mu[t]);
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
 }
@@ -453,11 +462,13 @@ fn link_pair_force<R: Real>(
 /// indices of segments `seg_*`: ends in the link frame, radius): with the closest points `ca`, `cb`
 /// of their axes ([`closest_on_segments`]), at signed distance `d = |cb - ca| - ra - rb`
 /// along `n = (cb - ca) / |cb - ca|`, the point `x` midway between the surfaces gets the
-/// ground's law with the relative velocity `v_b(x) - v_a(x)`: `f = contact_force(n,
-/// contact_depth(d, leak), ...)` pushes `b` (wrench `(x x f, f)`) and `-f` pushes `a`.
+/// ground's law with the relative velocity `v_b(x) - v_a(x)` and the pair's friction
+/// `capsule_pair_mu[tid]`: `f = contact_force(n, contact_depth(d, leak), ...)` pushes `b`
+/// (wrench `(x x f, f)`) and `-f` pushes `a`.
 #[diff_kernel]
 pub fn articulation_capsule_contact<R: Real>(
     capsule_pairs: &Array<[u32; 2]>,
+    capsule_pair_mu: &Array<R>,
     seg_link: &Array<u32>,
     seg_a: &Array<Vec3<R>>,
     seg_b: &Array<Vec3<R>>,
@@ -468,13 +479,13 @@ pub fn articulation_capsule_contact<R: Real>(
     link_v: &Array<Vec3<R>>,
     ke: R,
     kd: R,
-    mu: R,
     leak: R,
     damping_depth: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
-    let [i, j] = capsule_pairs[tid()];
+    let t = tid();
+    let [i, j] = capsule_pairs[t];
     let la = seg_link[i as usize] as usize;
     let lb = seg_link[j as usize] as usize;
     let a0 = link_p[la] + quat_rotate(link_r[la], seg_a[i]);
@@ -490,7 +501,8 @@ pub fn articulation_capsule_contact<R: Real>(
     let d = length(cb - ca) - ra - rb;
     let x = ca + n * (ra + 0.5 * d);
     let rel = (link_v[lb] + cross(link_w[lb], x)) - (link_v[la] + cross(link_w[la], x));
-    let f = link_pair_force(n, d, rel, vec3(ke, kd, mu), vec2(leak, damping_depth));
+    let law = vec3(ke, kd, capsule_pair_mu[t]);
+    let f = link_pair_force(n, d, rel, law, vec2(leak, damping_depth));
     ext_n.atomic_add(lb, cross(x, f));
     ext_f.atomic_add(lb, f);
     ext_n.atomic_sub(la, cross(x, f));
@@ -502,10 +514,12 @@ pub fn articulation_capsule_contact<R: Real>(
 /// rotation in the link frame, half extents): [`segment_box_contact`] in the box's frame
 /// gives the point `x` midway between the surfaces, the normal `n` out of the box and the
 /// signed distance `d`; `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_box(x),
-/// ...)` pushes the segment's link and `-f` the box's.
+/// ...)`, with the pair's friction `box_pair_mu[tid]`, pushes the segment's link and `-f` the
+/// box's.
 #[diff_kernel]
 pub fn articulation_box_contact<R: Real>(
     box_pairs: &Array<[u32; 2]>,
+    box_pair_mu: &Array<R>,
     seg_link: &Array<u32>,
     seg_a: &Array<Vec3<R>>,
     seg_b: &Array<Vec3<R>>,
@@ -520,13 +534,13 @@ pub fn articulation_box_contact<R: Real>(
     link_v: &Array<Vec3<R>>,
     ke: R,
     kd: R,
-    mu: R,
     leak: R,
     damping_depth: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
-    let [i, k] = box_pairs[tid()];
+    let t = tid();
+    let [i, k] = box_pairs[t];
     let la = seg_link[i as usize] as usize;
     let lb = box_link[k as usize] as usize;
     // The box's frame in the world.
@@ -546,7 +560,7 @@ pub fn articulation_box_contact<R: Real>(
         n,
         m[(0, 2)],
         rel,
-        vec3(ke, kd, mu),
+        vec3(ke, kd, box_pair_mu[t]),
         vec2(leak, damping_depth),
     );
     ext_n.atomic_add(la, cross(x, f));

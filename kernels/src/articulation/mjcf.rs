@@ -26,12 +26,13 @@
 //! [`contact`](super::contact) for how exactly); a cylinder has mass but no contact. The law
 //! is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that lets the robot's
 //! weight sink one contact by 5 mm, half the critical damping of a quarter of its mass, and
-//! the plane's `friction` (set `builder.ground` to tune it). Without a plane there is no
+//! MuJoCo's friction: a contact's is the larger of its two geoms' sliding `friction` (the
+//! plane's against the floor; 1 by default), as MuJoCo combines geoms of equal `priority`
+//! (`priority` is refused). Set `builder.ground` to tune the law. Without a plane there is no
 //! floor (`ground_filter` [`ContactFilter::NONE`]; set `builder.ground_filter` too when you add
 //! one) but geoms still touch each other; set `builder.link_contact = false` to keep only the
-//! floor. Contacts between links use the ground's law and friction, not the larger of the two
-//! geoms' frictions as MuJoCo does, and `condim` is passed over: every contact has friction
-//! (MuJoCo's `condim="1"` contacts have none).
+//! floor. The torsional and rolling frictions are passed over, and so is `condim`: every
+//! contact has sliding friction (MuJoCo's `condim="1"` contacts have none).
 //!
 //! Where MuJoCo reads an attribute in a way of its own, so does this reader: `limited` and
 //! `ctrllimited` default to `"auto"`, which limits only a range with lower < upper (`range="0
@@ -768,6 +769,7 @@ impl<'a> Reader<'a> {
             if let Some(l) = link {
                 if let Some(k) = self.builder.add_contact_shape(l, &g.pose, &g.shape) {
                     self.builder.set_contact_filter(k, filter);
+                    self.builder.set_contact_friction(k, g.friction);
                 }
             }
             self.geoms.push(g);
@@ -1076,6 +1078,12 @@ impl<'a> Reader<'a> {
             .nums(n, class, "friction", &[1, 2, 3])?
             .map(|f| f[0])
             .unwrap_or(1.0);
+        if !(friction.is_finite() && friction >= 0.0) {
+            return Err(self.src.error(
+                n,
+                format!("friction {friction} must be finite and non-negative"),
+            ));
+        }
         let geom = Geom {
             name: n.attribute("name").unwrap_or("").to_string(),
             link: on_link,

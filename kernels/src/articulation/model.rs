@@ -579,6 +579,7 @@ impl ArticulationBuilder {
                     pose: *pose,
                     shape: *shape,
                     filter: ContactFilter::default(),
+                    friction: None,
                 });
                 Some(self.shapes.len() - 1)
             }
@@ -617,6 +618,21 @@ impl ArticulationBuilder {
             .filter = filter;
     }
 
+    /// Sets contact shape `shape`'s own friction coefficient (without one it has the
+    /// ground's). A contact's friction is the larger of its two sides', as MuJoCo's: the
+    /// ground's and the shape's against the ground, the two shapes' between links.
+    ///
+    /// # Panics
+    /// If there is no shape `shape`. (A coefficient that is negative or not finite is an
+    /// error when the model is built.)
+    pub fn set_contact_friction(&mut self, shape: usize, mu: f64) {
+        let n = self.shapes.len();
+        self.shapes
+            .get_mut(shape)
+            .unwrap_or_else(|| panic!("set_contact_friction: no contact shape {shape} (of {n})"))
+            .friction = Some(mu);
+    }
+
     /// The shapes of links `a` and `b` never touch each other (MuJoCo's `<exclude>`; the
     /// links' own shapes only, not those of links welded to them).
     pub fn exclude_contact(&mut self, a: LinkId, b: LinkId) {
@@ -646,14 +662,27 @@ impl ArticulationBuilder {
     }
 
     /// The spheres by which the contact shapes touch the ground (link, centre in the link
-    /// frame, radius; [`ContactShape::ground_spheres`]), of the shapes whose filter touches
-    /// [`ArticulationBuilder::ground_filter`].
-    pub fn contacts(&self) -> Vec<(LinkId, Vec3<f64>, f64)> {
+    /// frame, radius, friction; [`ContactShape::ground_spheres`]), of the shapes whose filter
+    /// touches [`ArticulationBuilder::ground_filter`]. The friction is the larger of the
+    /// ground's and the shape's own.
+    pub fn contacts(&self) -> Vec<(LinkId, Vec3<f64>, f64, f64)> {
         self.shapes
             .iter()
             .filter(|c| c.filter.touches(&self.ground_filter))
-            .flat_map(|c| c.ground_spheres().into_iter().map(|(p, r)| (c.link, p, r)))
+            .flat_map(|c| {
+                let mu = self.contact_friction(c, None);
+                let spheres = c.ground_spheres().into_iter();
+                spheres.map(move |(p, r)| (c.link, p, r, mu))
+            })
             .collect()
+    }
+
+    /// The friction of a contact of shape `a` with shape `b` (`None`: the ground): the larger
+    /// of the two sides', a shape without its own having the ground's.
+    pub(crate) fn contact_friction(&self, a: &ContactShape, b: Option<&ContactShape>) -> f64 {
+        let ground = self.ground.map_or(GroundContact::default().mu, |g| g.mu);
+        let own = |c: Option<&ContactShape>| c.and_then(|c| c.friction).unwrap_or(ground);
+        own(Some(a)).max(own(b))
     }
 
     /// The links described so far.
@@ -1043,6 +1072,9 @@ pub struct Articulations<R: Real> {
     pub contact_pos: Array<Vec3<R>>,
     /// Per contact sphere: its radius (m).
     pub contact_radius: Array<R>,
+    /// Per contact sphere: its friction coefficient (the larger of the ground's and its
+    /// shape's; [`ContactShape::friction`]). Can require gradients.
+    pub contact_mu: Array<R>,
     /// The ground and its contact law (`None`: no contact).
     pub ground: Option<GroundContact<R>>,
     /// Per sphere or capsule that touches another link's shapes (and per corner of a box that
@@ -1066,8 +1098,13 @@ pub struct Articulations<R: Real> {
     pub box_half: Array<Vec3<R>>,
     /// Pairs of segments that touch (indices into `seg_*`), with the ground's law.
     pub capsule_pairs: Array<[u32; 2]>,
+    /// Per pair in `capsule_pairs`: its friction coefficient (the larger of its two shapes';
+    /// [`ContactShape::friction`]). Can require gradients.
+    pub capsule_pair_mu: Array<R>,
     /// Pairs of a segment and a box that touch (indices into `seg_*` and `box_*`).
     pub box_pairs: Array<[u32; 2]>,
+    /// Per pair in `box_pairs`: its friction coefficient, as `capsule_pair_mu`.
+    pub box_pair_mu: Array<R>,
     /// Per muscle: origin link and point, insertion link and point, `f_max`, `l_opt`,
     /// `tendon_slack`, `v_max` (see [`Muscle`]).
     pub muscle_origin_link: Array<u32>,
