@@ -877,6 +877,22 @@ fn mjcf_reads_ranges_box_fromto_and_zaxis_as_mujoco() {
     let b = model.links.iter().position(|l| l.name == "b").unwrap();
     let p = kin.link_p.get(b);
     assert!((p - Vec3::new(0.0, -1.0, 1.0)).norm() < 1e-12, "{p:?}");
+    // Geoms outside MuJoCo's default `inertiagrouprange` (0 to 5) have no mass: a 1 kg box,
+    // and a decorative sphere in group 6.
+    let geoms = "<geom type=\"box\" size=\"0.1 0.1 0.1\" mass=\"1\"/>\
+                 <geom type=\"sphere\" size=\"0.2\" group=\"GROUP\"/>";
+    let inertial = "<inertial pos=\"0 0 -0.5\" mass=\"1\" diaginertia=\"0.1 0.1 0.1\"/>";
+    for (group, mass) in [
+        ("6", 1.0),
+        ("5", 1.0 + 4.0 / 3.0 * std::f64::consts::PI * 0.008 * 1000.0),
+    ] {
+        let m = mjcf::parse(&MJCF.replace(inertial, &geoms.replace("GROUP", group))).unwrap();
+        let got = m.builder.links()[0].inertial.mass;
+        assert!(
+            (got - mass).abs() < 1e-9,
+            "group {group}: mass {got}, MuJoCo's {mass}"
+        );
+    }
 }
 
 /// Siblings in document order (MuJoCo's), or by joint name (Pinocchio's, through urdfdom):
@@ -922,6 +938,14 @@ fn urdf_siblings_follow_mujoco_or_pinocchio() {
         assert_eq!(names, expected, "pinocchio_order {pinocchio_order}");
         assert!(b.finalize::<f64>().is_ok());
     }
+    // Equal bounds leave a joint free, as MuJoCo 4.0 reads them ("limit ignored").
+    let equal = text.replacen("lower=\"-1\" upper=\"1\"", "lower=\"0.3\" upper=\"0.3\"", 1);
+    let m = urdf::parse(&equal, &Default::default())
+        .unwrap()
+        .finalize::<f64>()
+        .unwrap();
+    assert_eq!(m.lower.to_vec(), vec![f64::NEG_INFINITY, -1.0, -1.0]);
+    assert_eq!(m.upper.to_vec(), vec![f64::INFINITY, 1.0, 1.0]);
 }
 
 #[test]

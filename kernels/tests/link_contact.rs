@@ -561,6 +561,34 @@ fn mjcf_static_bodies_and_bodies_with_several_joints_follow_mujoco() {
     .finalize()
     .unwrap();
     assert_eq!(m.box_pairs.len(), 3);
+
+    // MuJoCo's filterparent is by welds: an arm with two joints on a moving torso never
+    // touches the torso nor a plate welded to the torso (declared after the arm), but does
+    // touch a ball on a joint of its own under the torso.
+    let xml = r#"<mujoco>
+  <worldbody>
+    <body name="torso" pos="0 0 1">
+      <freejoint/>
+      <geom type="box" size="0.2 0.2 0.05"/>
+      <body name="arm" pos="0.2 0 0">
+        <joint type="hinge" axis="0 1 0"/>
+        <joint type="hinge" axis="1 0 0"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.05"/>
+      </body>
+      <body name="plate" pos="0.3 0 -0.1">
+        <geom type="box" size="0.1 0.1 0.02"/>
+      </body>
+      <body name="ball" pos="0.3 0 -0.3">
+        <joint type="slide" axis="0 0 1"/>
+        <geom type="sphere" size="0.05"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>"#;
+    let m: Articulations<f64> = mjcf::parse(xml).unwrap().builder.finalize().unwrap();
+    // The arm and the ball (one segment pair); no box pair (the torso and the plate are one
+    // weld, the arm's and the ball's parent).
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (1, 0));
 }
 
 #[test]
@@ -609,7 +637,10 @@ fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
     // A negative friction is an error naming the geom's line.
     let e = mjcf::parse(&two_balls_text("", r#"friction="-1""#, "").replace("CONTACT", ""))
         .unwrap_err();
-    assert!(e.to_string().contains("friction") && e.line == Some(6), "{e}");
+    assert!(
+        e.to_string().contains("friction") && e.line == Some(6),
+        "{e}"
+    );
 
     // The builder: a shape without friction has the ground's; one with its own, the larger.
     let slide = |ground_mu: f64, own: Option<f64>| -> Articulations<f64> {
@@ -658,11 +689,19 @@ fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
     );
     // Invalid: an error naming the shape.
     let mut b = ArticulationBuilder::new();
-    let l = b.add_link("l", None, Joint::free(), Inertial::sphere(1.0, 0.1, Vec3::zeros()));
+    let l = b.add_link(
+        "l",
+        None,
+        Joint::free(),
+        Inertial::sphere(1.0, 0.1, Vec3::zeros()),
+    );
     let k = b.add_contact_sphere(l, Vec3::zeros(), 0.1);
     b.set_contact_friction(k, f64::NAN);
     let e = b.finalize::<f64>().unwrap_err().to_string();
-    assert!(e.contains("contact shape 0") && e.contains("friction"), "{e}");
+    assert!(
+        e.contains("contact shape 0") && e.contains("friction"),
+        "{e}"
+    );
 
     // The gradient of the distance with respect to the contacts' friction: against central
     // differences, and forward mode against reverse mode. (Stopped mid-slide: 200 steps.)
@@ -689,7 +728,14 @@ fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
     let f = |mu: f64| run(mu, &mut Tape::new()).1.get(0);
     let fd = (f(0.4 + 1e-6) - f(0.4 - 1e-6)) / 2e-6;
     assert!(fd < -0.01, "more friction, less sliding: {fd}");
-    assert!((g - fd).abs() < 1e-5 * fd.abs(), "reverse {g} vs differences {fd}");
+    assert!(
+        (g - fd).abs() < 1e-5 * fd.abs(),
+        "reverse {g} vs differences {fd}"
+    );
     let jv = tape.jvp(&[&mu], &[1.0; 8], &[&q]).unwrap();
-    assert!((jv[0] - g).abs() < 1e-9 * g.abs(), "forward {} vs reverse {g}", jv[0]);
+    assert!(
+        (jv[0] - g).abs() < 1e-9 * g.abs(),
+        "forward {} vs reverse {g}",
+        jv[0]
+    );
 }

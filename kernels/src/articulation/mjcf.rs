@@ -168,8 +168,8 @@ struct Reader<'a> {
     builder: ArticulationBuilder,
     geoms: Vec<Geom>,
     joints: HashMap<String, ()>,
-    /// Links of bodies fixed to the world (no joint on the way up).
-    world_fixed: std::collections::HashSet<usize>,
+    /// Each moving body's link and its parent body's link, for MuJoCo's filterparent.
+    parents: Vec<(LinkId, LinkId)>,
 }
 
 const SKIPPED: &[&str] = &[
@@ -219,7 +219,7 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
         builder: ArticulationBuilder::new(),
         geoms: Vec::new(),
         joints: HashMap::new(),
-        world_fixed: Default::default(),
+        parents: Vec::new(),
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
@@ -308,6 +308,7 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
             }
         }
     }
+    r.filter_parents();
     for n in items.iter().filter(|n| n.has_tag_name("contact")) {
         r.src.only_attributes(*n, &[])?;
         for e in children(&r.src, *n, &["exclude"], &[])? {
@@ -722,13 +723,6 @@ impl<'a> Reader<'a> {
                     .origin(body_pose),
                 inertial,
             );
-            let on_world = match link {
-                None => true,
-                Some(p) => self.world_fixed.contains(&p.0),
-            };
-            if on_world {
-                self.world_fixed.insert(id.0);
-            }
             link = Some(id);
         }
         let count = joints.len();
@@ -774,17 +768,39 @@ impl<'a> Reader<'a> {
             }
             self.geoms.push(g);
         }
-        // MuJoCo's filterparent: a body never touches its parent body, unless that is fixed
-        // to the world.
         if let (Some(l), Some(p)) = (link, parent) {
-            if !self.world_fixed.contains(&p.0) {
-                self.builder.exclude_contact(l, p);
-            }
+            self.parents.push((l, p));
         }
         for b in kids.iter().filter(|k| k.has_tag_name("body")) {
             self.body(*b, link, at, &class)?;
         }
         Ok(())
+    }
+
+    /// MuJoCo's filterparent: a body never touches the bodies welded to its parent body (the
+    /// parent and those joined to it without a joint), unless they are fixed to the world.
+    /// (The builder's rule sees a body with several joints as a chain of links, the last one's
+    /// parent a massless link; hence the exclusions here.)
+    fn filter_parents(&mut self) {
+        let links = self.builder.links();
+        // The link at the root of each link's weld (`None`: the world).
+        let weld = |mut i: usize| -> Option<usize> {
+            while links[i].joint.kind == super::JointType::Fixed {
+                i = links[i].parent?.0;
+            }
+            Some(i)
+        };
+        let welds: Vec<Option<usize>> = (0..links.len()).map(weld).collect();
+        let mut pairs = Vec::new();
+        for &(l, p) in &self.parents {
+            if let Some(w) = welds[p.0] {
+                let group = (0..links.len()).filter(|&k| welds[k] == Some(w));
+                pairs.extend(group.map(|k| (l, LinkId(k))));
+            }
+        }
+        for (a, b) in pairs {
+            self.builder.exclude_contact(a, b);
+        }
     }
 
     /// A geom's `contype` and `conaffinity` (own or default; 1 when not given).
@@ -1137,6 +1153,11 @@ impl<'a> Reader<'a> {
         };
         if mass < 0.0 {
             return Err(self.src.error(n, format!("mass {mass} is negative")));
+        }
+        // MuJoCo's `inertiagrouprange` (default 0 to 5): a geom of another group has no mass.
+        let group = self.nums(n, class, "group", &[1])?.map_or(0.0, |g| g[0]);
+        if !(0.0..=5.0).contains(&group) {
+            return Ok((geom, None));
         }
         let local = Inertial::new(
             mass,

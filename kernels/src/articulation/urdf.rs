@@ -2,8 +2,8 @@
 //!
 //! The physics of URDF is read: `<link>` with `<inertial>` (`<origin xyz rpy>`, `<mass>`,
 //! `<inertia>`); `<joint>` of type `revolute`, `continuous`, `prismatic`, `fixed` and
-//! `floating`, with `<origin>`, `<parent>`, `<child>`, `<axis>`, `<limit lower upper>` and
-//! `<dynamics damping>`. `<visual>`, `<collision>`, `<material>`, `<gazebo>` and
+//! `floating`, with `<origin>`, `<parent>`, `<child>`, `<axis>`, `<limit lower upper>` (equal
+//! bounds leave the joint free, as MuJoCo reads them) and `<dynamics damping>`. `<visual>`, `<collision>`, `<material>`, `<gazebo>` and
 //! `<transmission>` carry nothing the dynamics uses and are passed over. Anything else (a
 //! `planar` joint, `<mimic>`, an unknown element or attribute) is an error naming the element
 //! and its line, as are a missing parent or child, a link with two parents, a cycle, a
@@ -386,6 +386,8 @@ fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, Art
             if lo > hi {
                 return Err(src.error(l, format!("lower {lo} > upper {hi}")));
             }
+            // Equal bounds leave the joint free, as MuJoCo reads them (it warns "limit
+            // ignored"); Pinocchio stores them but does not simulate limits.
             if lo < hi {
                 j = j.limits(lo, hi);
             }
