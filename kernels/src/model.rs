@@ -35,7 +35,8 @@ use crate::validation::{Check, ModelError, Problem};
 /// the list.
 #[derive(Clone, Debug)]
 pub struct ModelBuilder<R: Real> {
-    /// Gravity (m/s^2); default `(0, -9.8, 0)`.
+    /// Gravity (m/s^2) of the worlds not added by [`ModelBuilder::add_world`] (which keep
+    /// their own); default `(0, -9.8, 0)`.
     pub gravity: Vec3<R>,
     /// Radius for contact (m) of every particle not given its own radius
     /// ([`ModelBuilder::set_particle_radius`]); default 0.01.
@@ -47,8 +48,9 @@ pub struct ModelBuilder<R: Real> {
     pub(crate) constraints: ConstraintParts<R>,
     added: AddedForces<R>,
     pub(crate) problems: Vec<Problem>,
-    /// Where each world's particles and bodies start ([`ModelBuilder::add_world`]).
-    worlds: Vec<(usize, usize)>,
+    /// Where each world's particles and bodies start, and its gravity (`None`:
+    /// [`ModelBuilder::gravity`]; [`ModelBuilder::add_world`]).
+    worlds: Vec<(usize, usize, Option<Vec3<R>>)>,
     /// Whether `add_world` was called (see the articulations' builder).
     world_added: bool,
 }
@@ -80,23 +82,26 @@ impl<R: Real> ModelBuilder<R> {
             constraints: ConstraintParts::default(),
             added: AddedForces::default(),
             problems: Vec::new(),
-            worlds: vec![(0, 0)],
+            worlds: vec![(0, 0, None)],
             world_added: false,
         }
     }
 
     /// Adds the scene `other` as a new world (an empty builder's first `add_world` fills
     /// world 0); returns its index. Its particles, elements and bodies are appended with their
-    /// indices shifted; the ground, drag, shapes and gravity are the environment the worlds
-    /// share (a world with another one is a problem at finalize). Worlds never interact, and
+    /// indices shifted, and it keeps its gravity (`other.gravity`; [`Model::gravity`] has one
+    /// per world). The ground, drag and shapes are the environment the worlds share. Worlds
+    /// never interact, and
     /// each is simulated in its own frame: they need no spacing, and with the integrators made
     /// of per-element kernels (all but `ImplicitEuler`, whose Newton iterations stop on a norm
     /// over the whole model) a world's results are the same bits whatever the other worlds
     /// (`kernels/tests/worlds.rs`).
     ///
-    /// Not with worlds: particle-particle contact (`set_particle_contact`: it would cross
-    /// worlds) and forces added with [`ModelBuilder::add_force`] to `other` (add them to
-    /// the combined builder, over all particles); both are problems at finalize.
+    /// Particle-particle contact (`set_particle_contact`, the environment's, like the ground)
+    /// touches only particles of one world. Not with worlds: forces added with
+    /// [`ModelBuilder::add_force`] to `other` (add them to the combined builder, over all
+    /// particles; [`ForceContext::particle_world`](crate::forces::ForceContext::particle_world) tells a force
+    /// between particles which world each is in); a problem at finalize.
     ///
     /// ```
     /// use adflex_kernels::prelude::*;
@@ -110,6 +115,15 @@ impl<R: Real> ModelBuilder<R> {
     /// assert_eq!(model.worlds.len(), 4);
     /// assert_eq!(model.worlds[2].particles, 4..6);
     /// assert_eq!(model.particle_world.to_vec(), vec![0, 0, 1, 1, 2, 2, 3, 3]);
+    ///
+    /// // A fifth world on the Moon.
+    /// let mut moon = pendulum.clone();
+    /// moon.gravity = Vec3::new(0.0, -1.62, 0.0);
+    /// let mut b = pendulum.replicate(4);
+    /// assert_eq!(b.add_world(&moon), 4);
+    /// let model = b.finalize();
+    /// assert_eq!(model.gravity.get(4).y, -1.62);
+    /// assert_eq!(model.gravity.get(0).y, -9.8);
     /// ```
     pub fn add_world(&mut self, other: &ModelBuilder<R>) -> usize {
         let empty = self.particles.len() == 0 && self.bodies.len() == 0 && !self.world_added;
@@ -120,10 +134,12 @@ impl<R: Real> ModelBuilder<R> {
             self.particle_radius = other.particle_radius;
         }
         let first = self.worlds.len();
-        let gravity_differs = self.gravity != other.gravity;
-        for &(p0, b0) in &other.worlds {
-            self.worlds
-                .push((self.particles.len() + p0, self.bodies.len() + b0));
+        for &(p0, b0, g) in &other.worlds {
+            self.worlds.push((
+                self.particles.len() + p0,
+                self.bodies.len() + b0,
+                Some(g.unwrap_or(other.gravity)),
+            ));
         }
         let offset = self.particles.len() as u32;
         self.particles.append(
@@ -137,14 +153,6 @@ impl<R: Real> ModelBuilder<R> {
         if let Err((force, why)) = self.forces.append(&other.forces, offset) {
             self.check_one("worlds")
                 .fail(None, format!("`{force}` {why}"));
-        }
-        if gravity_differs {
-            let message = format!(
-                "is shared by all worlds of a particle model, and the world added has {:?} (the \
-                 model {:?})",
-                other.gravity, self.gravity
-            );
-            self.check_one("worlds").fail(Some("gravity"), message);
         }
         if !other.added.0.is_empty() {
             let names: Vec<&str> = other.added.0.iter().map(|f| f.name()).collect();
@@ -436,6 +444,16 @@ impl<R: Real> ModelBuilder<R> {
             index: None,
         }
         .finite3("gravity", &self.gravity);
+        for (k, g) in self.worlds.iter().enumerate() {
+            if let Some(g) = &g.2 {
+                Check {
+                    out: &mut problems,
+                    kind: "gravity",
+                    index: Some(k),
+                }
+                .finite3("gravity", g);
+            }
+        }
         Check {
             out: &mut problems,
             kind: "particle_radius",
@@ -448,7 +466,7 @@ impl<R: Real> ModelBuilder<R> {
         if self.worlds.len() > 1 {
             let n = self.particles.len();
             let mut world_of = vec![0u32; n];
-            for (k, &(p0, _)) in self.worlds.iter().enumerate() {
+            for (k, &(p0, ..)) in self.worlds.iter().enumerate() {
                 let p1 = self.worlds.get(k + 1).map_or(n, |w| w.0);
                 world_of[p0..p1].fill(k as u32);
             }
@@ -473,21 +491,6 @@ impl<R: Real> ModelBuilder<R> {
                     ),
                 );
             }
-        }
-        if self.worlds.len() > 1 && self.forces.particle_contact.is_some() {
-            Check {
-                out: &mut problems,
-                kind: "worlds",
-                index: None,
-            }
-            .fail(
-                None,
-                format!(
-                    "particle-particle contact (set_particle_contact) with {} worlds would let \
-                     particles of different worlds touch; it is not available with worlds",
-                    self.worlds.len()
-                ),
-            );
         }
         if problems.is_empty() {
             Ok(())
@@ -524,26 +527,29 @@ impl<R: Real> ModelBuilder<R> {
             .worlds
             .iter()
             .enumerate()
-            .map(|(k, &(p0, b0))| {
-                let (p1, b1) = self.worlds.get(k + 1).copied().unwrap_or((n, nb));
+            .map(|(k, &(p0, b0, _))| {
+                let (p1, b1) = self.worlds.get(k + 1).map_or((n, nb), |w| (w.0, w.1));
                 WorldRanges {
                     particles: p0..p1,
                     bodies: b0..b1,
                 }
             })
             .collect();
-        let mut particle_world = vec![0u32; n];
+        let (mut particle_world, mut body_world) = (vec![0u32; n], vec![0u32; nb]);
         for (k, w) in worlds.iter().enumerate() {
             particle_world[w.particles.clone()].fill(k as u32);
+            body_world[w.bodies.clone()].fill(k as u32);
         }
+        let gravity = self.worlds.iter().map(|w| w.2.unwrap_or(self.gravity));
         Model {
             worlds,
             particle_world: Array::from_vec(particle_world).named("particle_world"),
+            body_world: Array::from_vec(body_world).named("body_world"),
+            gravity: Array::from_vec(gravity.collect()).named("gravity"),
             particle_count: self.particles.len(),
             particle_x: particles.x,
             particle_v: particles.v,
             particle_inv_mass: particles.inv_mass,
-            gravity: self.gravity,
             particle_radius: self.particle_radius,
             particle_radii: particles.radii,
             triangles: self.particles.triangles.clone(),
@@ -569,8 +575,10 @@ pub struct WorldRanges {
 pub struct Model<R: Real> {
     /// The worlds ([`ModelBuilder::add_world`]; one unless it added more).
     pub worlds: Vec<WorldRanges>,
-    /// Per particle: its world (for per-world losses).
+    /// Per particle: its world (for per-world losses, and its gravity).
     pub particle_world: Array<u32>,
+    /// Per rigid body: its world.
+    pub body_world: Array<u32>,
     /// Number of particles.
     pub particle_count: usize,
     /// Initial particle positions (m); [`Model::state`] copies them.
@@ -579,8 +587,9 @@ pub struct Model<R: Real> {
     pub particle_v: Array<Vec3<R>>,
     /// Inverse masses (1/kg; 0 = pinned).
     pub particle_inv_mass: Array<R>,
-    /// Gravity (m/s^2).
-    pub gravity: Vec3<R>,
+    /// Gravity (m/s^2), one per world ([`ModelBuilder::gravity`], or the one of the builder
+    /// each world was added from). It can require gradients, like any parameter array.
+    pub gravity: Array<Vec3<R>>,
     /// Particle radius for contact (m): every particle's, unless [`Model::particle_radii`]
     /// is present.
     pub particle_radius: R,
@@ -735,11 +744,7 @@ impl<R: Real> Model<R> {
         from: &BodyState<R>,
     ) -> BodyState<R> {
         let n = keep.x.len();
-        let mut body_world = vec![0u32; n];
-        for (k, w) in self.worlds.iter().enumerate() {
-            body_world[w.bodies.clone()].fill(k as u32);
-        }
-        let world = Array::from_vec(body_world);
+        let world = &self.body_world;
         let next = BodyState {
             x: Array::zeros(n).named("body_x"),
             q: Array::zeros(n).named("body_q"),
@@ -751,12 +756,12 @@ impl<R: Real> Model<R> {
             (&keep.v, &from.v, &next.v),
             (&keep.w, &from.w, &next.w),
         ] {
-            tape.launch(select_worlds_vec3, n, (&world, take, a, b, out));
+            tape.launch(select_worlds_vec3, n, (world, take, a, b, out));
         }
         tape.launch(
             select_worlds_quat,
             n,
-            (&world, take, &keep.q, &from.q, &next.q),
+            (world, take, &keep.q, &from.q, &next.q),
         );
         next
     }
@@ -965,8 +970,21 @@ impl<R: Real> Model<R> {
         f
     }
 
+    /// [`Model::gravity`], checked to have one entry per world.
+    ///
+    /// # Panics
+    /// If it has not (an array set by hand of the wrong length), naming it.
+    pub(crate) fn gravity_per_world(&self) -> &Array<Vec3<R>> {
+        let (n, w) = (self.gravity.len(), self.worlds.len());
+        assert!(
+            n == w,
+            "model: `gravity` (one per world) has {n} elements, the model has {w} worlds"
+        );
+        &self.gravity
+    }
+
     /// Accelerations (m/s^2) of the particles: `f w + g [w > 0]` with `f` from
-    /// [`Model::eval_forces`] (`w` the inverse mass, `g` gravity), in a new array.
+    /// [`Model::eval_forces`] (`w` the inverse mass, `g` its world's gravity), in a new array.
     pub fn eval_accelerations(
         &self,
         tape: &mut Tape,
@@ -978,7 +996,13 @@ impl<R: Real> Model<R> {
         tape.launch(
             accelerations,
             self.particle_count,
-            (&f, &self.particle_inv_mass, self.gravity, &a),
+            (
+                &f,
+                &self.particle_inv_mass,
+                self.gravity_per_world(),
+                &self.particle_world,
+                &a,
+            ),
         );
         a
     }
@@ -1035,6 +1059,7 @@ impl<R: Real> Model<R> {
             control,
             particle_radius: self.particle_radius,
             particle_radii: self.particle_radii.as_ref(),
+            particle_world: (self.worlds.len() > 1).then_some(&self.particle_world),
         }
     }
 

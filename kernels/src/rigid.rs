@@ -48,7 +48,8 @@ pub fn eval_body_ground<R: Real>(
 }
 
 /// Semi-implicit Euler step of body `tid`:
-/// `v' = v + (f m^-1 + g [m^-1 > 0]) dt`, `x' = x + v' dt`; in the body frame
+/// `v' = v + (f m^-1 + g [m^-1 > 0]) dt` (`g = gravity[world[tid]]`), `x' = x + v' dt`; in the
+/// body frame
 /// `w_b' = w_b + I^-1 (tau_b - w_b x I w_b) dt` (explicit gyroscopic term), `w' = q w_b'`;
 /// `q' = normalize(q + (w', 0) q dt/2)`. `f` (N), `tau` (N m), `w` (rad/s) in world frame.
 #[diff_kernel]
@@ -62,7 +63,8 @@ pub fn integrate_bodies<R: Real>(
     inv_mass: &Array<R>,
     inertia: &Array<Mat33<R>>,
     inv_inertia: &Array<Mat33<R>>,
-    g: Vec3<R>,
+    gravity: &Array<Vec3<R>>,
+    world: &Array<u32>,
     dt: R,
     x_new: &Array<Vec3<R>>,
     q_new: &Array<Quat<R>>,
@@ -71,6 +73,7 @@ pub fn integrate_bodies<R: Real>(
 ) {
     let t = tid();
     let im = inv_mass[t];
+    let g = gravity[world[t] as usize];
     let v1 = v[t] + (f[t] * im + select(im > 0.0, g, g * 0.0)) * dt;
     let r = q[t];
     let wb = quat_rotate_inv(r, w[t]);
@@ -163,14 +166,17 @@ impl<R: Real> RigidBodies<R> {
         }
     }
 
-    /// Records [`integrate_bodies`]: the next body state from forces `f` and torques `tau`.
+    /// Records [`integrate_bodies`]: the next body state from forces `f` and torques `tau`,
+    /// body `k` under `gravity[world[k]]`.
+    #[allow(clippy::too_many_arguments)]
     pub fn integrate(
         &self,
         tape: &mut Tape,
         s: &BodyState<R>,
         f: &Array<Vec3<R>>,
         tau: &Array<Vec3<R>>,
-        g: Vec3<R>,
+        gravity: &Array<Vec3<R>>,
+        world: &Array<u32>,
         dt: R,
     ) -> BodyState<R> {
         let n = self.len();
@@ -193,7 +199,8 @@ impl<R: Real> RigidBodies<R> {
                 &self.inv_mass,
                 &self.inertia,
                 &self.inv_inertia,
-                g,
+                gravity,
+                world,
                 dt,
                 &next.x,
                 &next.q,

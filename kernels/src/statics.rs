@@ -159,12 +159,15 @@ struct System<R: Real> {
 }
 
 impl<R: Real> System<R> {
-    fn new(c: Copies<R>, x0: Vec<f64>, inv_mass: &[R], gravity: Vec3<R>) -> Self {
-        let g = [gravity.x.to_f64(), gravity.y.to_f64(), gravity.z.to_f64()];
+    fn new(c: Copies<R>, x0: Vec<f64>, inv_mass: &[R]) -> Self {
+        // Each particle's world's gravity.
+        let gravity = c.model.gravity_per_world().to_vec();
+        let world = c.model.particle_world.to_vec();
+        let g = (0..x0.len()).map(|k| gravity[world[k / 3] as usize][k % 3].to_f64());
         System {
-            c,
             dofs: Dofs::new(inv_mass),
-            g: (0..x0.len()).map(|k| g[k % 3]).collect(),
+            g: g.collect(),
+            c,
             x0,
             failure: PassFailure::new("Equilibrium"),
         }
@@ -374,7 +377,7 @@ impl Equilibrium {
         }
         let inv_mass = model.particle_inv_mass.to_vec();
         let x0 = flat(&guess.x);
-        let sys = System::new(copies(model, None, false), x0, &inv_mass, model.gravity);
+        let sys = System::new(copies(model, None, false), x0, &inv_mass);
         check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
         let mut stats = EquilibriumStats::default();
         let x1 = if n == 0 {
@@ -475,7 +478,6 @@ impl<R: Real> Shared<R> {
             copies(&self.model, None, grads),
             self.x_val.re.clone(),
             &self.inv_mass,
-            self.model.gravity,
         )
     }
 

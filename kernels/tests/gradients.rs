@@ -200,7 +200,12 @@ fn particle_forces_and_integrator() {
     let v = arr(r.vec3s(n, -1.0, 1.0), "v");
     let f = arr(r.vec3s(n, -1.0, 1.0), "f");
     let w = arr(r.scalars(n, 0.5, 2.0), "inv_mass");
-    let g = Vec3::new(0.0, -9.8, 0.0);
+    // Two worlds' gravity, the particles alternating between them.
+    let g = arr(
+        vec![Vec3::new(0.3, -9.8, 0.1), Vec3::new(-0.2, -1.6, 0.4)],
+        "gravity",
+    );
+    let world = Array::from_vec((0..n as u32).map(|i| i % 2).collect());
     let out = zeros3(n, "out");
     check_kernel!(
         "eval_drag",
@@ -222,16 +227,16 @@ fn particle_forces_and_integrator() {
         "accelerations",
         accelerations,
         n,
-        (&f, &w, g, &out),
-        inputs = [f, w],
+        (&f, &w, &g, &world, &out),
+        inputs = [f, w, g],
         outputs = [out]
     );
     check_kernel!(
         "add_gravity_force",
         add_gravity_force,
         n,
-        (&w, g, &out),
-        inputs = [w],
+        (&w, &g, &world, &out),
+        inputs = [w, g],
         outputs = [out]
     );
     let (x1, v1) = (zeros3(n, "x1"), zeros3(n, "v1"));
@@ -239,8 +244,8 @@ fn particle_forces_and_integrator() {
         "integrate_particles",
         integrate_particles,
         n,
-        (&x, &v, &f, &w, g, 0.01, &x1, &v1),
-        inputs = [x, v, f, w],
+        (&x, &v, &f, &w, &g, &world, 0.01, &x1, &v1),
+        inputs = [x, v, f, w, g],
         outputs = [x1, v1]
     );
     let x0 = arr(r.vec3s(n, -1.0, 1.0), "x0");
@@ -575,6 +580,11 @@ fn rigid_bodies() {
         "inv_inertia",
     );
     let inertia = arr(inertia_v, "inertia");
+    let gravity = arr(
+        vec![Vec3::new(0.3, -9.8, 0.1), Vec3::new(-0.2, -1.6, 0.4)],
+        "gravity",
+    );
+    let world = Array::from_vec((0..nb as u32).map(|i| i % 2).collect());
     let (x1, q1, v1, w1) = (
         zeros3(nb, "x1"),
         Array::<Quat<f64>>::zeros(nb).named("q1"),
@@ -595,14 +605,26 @@ fn rigid_bodies() {
             &inv_mass,
             &inertia,
             &inv_inertia,
-            Vec3::new(0.0, -9.8, 0.0),
+            &gravity,
+            &world,
             0.01,
             &x1,
             &q1,
             &v1,
             &w1
         ),
-        inputs = [bx, bq, bv, bw, f, tau, inv_mass, inertia, inv_inertia],
+        inputs = [
+            bx,
+            bq,
+            bv,
+            bw,
+            f,
+            tau,
+            inv_mass,
+            inertia,
+            inv_inertia,
+            gravity
+        ],
         outputs = [x1, q1, v1, w1]
     );
     let e: Array<f64> = Array::zeros(1);

@@ -154,7 +154,7 @@ fn the_default_ground_lets_particles_fall_freely() {
     // Semi-implicit Euler's free fall: v = g t exactly, after 0.3 s (the particle is at about
     // 0.56 m, far above the ground).
     let v = s.v.get(0).y;
-    assert!((v - model.gravity.y * 0.3).abs() < 1e-12, "{v}");
+    assert!((v - model.gravity.get(0).y * 0.3).abs() < 1e-12, "{v}");
     let with_approach = Ground {
         damp_approach: true,
         ..Ground::default()

@@ -164,7 +164,7 @@ fn the_equilibrium_has_zero_net_force() {
     let mut worst = 0.0f64;
     for (i, (f, w)) in f.iter().zip(&w).enumerate() {
         if *w > 0.0 {
-            let net = *f + model.gravity * (1.0 / w);
+            let net = *f + model.gravity.get(0) * (1.0 / w);
             worst = worst.max(net.norm());
             assert!(net.norm() < 1e-9, "particle {i}: net force {net:?}");
         }

@@ -424,12 +424,13 @@ fn a_share_of_the_worlds_gives_the_same_bits() {
 // ---- particle worlds ----------------------------------------------------------------------
 
 use adflex_kernels::prelude::{ClothGrid, Ground, Integrator, ModelBuilder, SemiImplicitEuler};
-use adflex_kernels::State;
+use adflex_kernels::{Model, State};
 use adflex_macros::diff_kernel;
 
-/// Cloth `j`: its own size, stiffness and throw, dropped on the ground.
+/// Cloth `j`: its own size, stiffness, throw and gravity, dropped on the ground.
 fn cloth_scene(j: usize) -> ModelBuilder<f64> {
     let mut b = ModelBuilder::<f64>::new();
+    b.gravity = Vec3::new(0.01 * j as f64, -9.8 - 0.1 * j as f64, 0.0);
     let n = 4 + j % 3;
     b.add_cloth_grid(&ClothGrid {
         spring_ke: 40.0 + 5.0 * j as f64,
@@ -440,17 +441,31 @@ fn cloth_scene(j: usize) -> ModelBuilder<f64> {
     b
 }
 
-/// Each world's loss and gradients (initial velocities, spring stiffnesses).
-fn run_cloths(ids: &[usize]) -> Vec<(f64, Vec<Vec3<f64>>, Vec<f64>)> {
+/// Each world's loss and gradients (initial velocities, spring stiffnesses, gravity).
+type ClothResult = (f64, Vec<Vec3<f64>>, Vec<f64>, Vec3<f64>);
+
+fn run_cloths(ids: &[usize]) -> Vec<ClothResult> {
+    run_cloths_with(ids, false)
+}
+
+/// [`run_cloths`], with particle-particle contact if `contact`.
+fn run_cloths_with(ids: &[usize], contact: bool) -> Vec<ClothResult> {
     let mut b = ModelBuilder::<f64>::new();
     let mut springs = vec![0];
     for &j in ids {
-        b.add_world(&cloth_scene(j));
+        let mut scene = cloth_scene(j);
+        if contact {
+            // Wide enough that neighbours in the cloth touch.
+            scene.particle_radius = 0.04;
+            scene.set_particle_contact(adflex_kernels::prelude::ParticleContact::default());
+        }
+        b.add_world(&scene);
         springs.push(b.spring_count());
     }
     let model = b.finalize();
     assert_eq!(model.worlds.len(), ids.len());
     let ke = model.springs().unwrap().ke.clone().requires_grad();
+    let gravity = model.gravity.clone().requires_grad();
     let s0 = model.state();
     let _ = s0.v.clone().requires_grad();
     let mut tape = Tape::new();
@@ -467,6 +482,7 @@ fn run_cloths(ids: &[usize]) -> Vec<(f64, Vec<Vec3<f64>>, Vec<f64>)> {
     );
     tape.backward(&loss).unwrap();
     let (gv, gk) = (s0.v.grad().unwrap().to_vec(), ke.grad().unwrap().to_vec());
+    let gg = gravity.grad().unwrap().to_vec();
     model
         .worlds
         .iter()
@@ -476,6 +492,7 @@ fn run_cloths(ids: &[usize]) -> Vec<(f64, Vec<Vec3<f64>>, Vec<f64>)> {
                 loss.get(w),
                 gv[r.particles.clone()].to_vec(),
                 gk[springs[w]..springs[w + 1]].to_vec(),
+                gg[w],
             )
         })
         .collect()
@@ -506,16 +523,24 @@ fn a_cloth_world_does_not_know_it_has_neighbours() {
 #[test]
 fn particle_worlds_refuse_what_would_cross_them() {
     use adflex_kernels::prelude::ParticleContact;
-    let mut b = cloth_scene(0);
-    b.set_particle_contact(ParticleContact::default());
-    let e = b.replicate(2).try_finalize().unwrap_err().to_string();
-    assert!(e.contains("particle-particle contact"), "{e}");
-    let mut moon = cloth_scene(1);
-    moon.gravity = Vec3::new(0.0, -1.62, 0.0);
+    // Particle contact is the environment's: worlds with other laws are refused.
+    let mut soft = cloth_scene(1);
+    soft.set_particle_contact(ParticleContact {
+        ke: 10.0,
+        ..ParticleContact::default()
+    });
+    let mut hard = cloth_scene(0);
+    hard.set_particle_contact(ParticleContact::default());
+    hard.add_world(&soft);
+    let e = hard.try_finalize().unwrap_err().to_string();
+    assert!(e.contains("particle_contact"), "{e}");
+    // A world's gravity must be finite, as the model's.
+    let mut bad = cloth_scene(1);
+    bad.gravity = Vec3::new(0.0, f64::NAN, 0.0);
     let mut both = cloth_scene(0);
-    both.add_world(&moon);
+    both.add_world(&bad);
     let e = both.try_finalize().unwrap_err().to_string();
-    assert!(e.contains("gravity"), "{e}");
+    assert!(e.contains("gravity[1]"), "{e}");
     // A spring added afterwards between two worlds would couple them.
     let mut two = cloth_scene(0).replicate(2);
     let last = two.particle_count() as u32 - 1;
@@ -665,4 +690,200 @@ fn resetting_selected_worlds_with_rigid_bodies() {
 fn body_height(x: &Array<Vec3<f64>>, loss: &Array<f64>) {
     let i = tid();
     loss.atomic_add(0, x[i].y + 0.5 * x[i].x);
+}
+
+/// A pendulum (a pinned particle and a bob on a spring) on the Earth and on the Moon, as two
+/// worlds of one particle model.
+fn two_pendulums() -> Model<f64> {
+    let mut p = ModelBuilder::<f64>::new();
+    let pin = p.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    let bob = p.add_particle(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), 1.0);
+    p.add_spring(pin, bob, 1e3, 1.0);
+    let mut moon = p.clone();
+    moon.gravity = Vec3::new(0.0, -1.62, 0.0);
+    let mut b = ModelBuilder::new();
+    b.add_world(&p);
+    b.add_world(&moon);
+    b.finalize()
+}
+
+/// Each world's loss (sum of squared positions) after 40 steps of `integrator` with gravity
+/// `g`, and its gradient with respect to each world's gravity.
+fn pendulum_losses<I: Integrator<f64>>(
+    model: &Model<f64>,
+    integrator: &I,
+    g: &[Vec3<f64>],
+) -> (Vec<f64>, Vec<Vec3<f64>>) {
+    let mut m = model.clone();
+    m.gravity = Array::from_vec(g.to_vec()).requires_grad();
+    let mut tape = Tape::new();
+    let s = integrator
+        .rollout(&m, &mut tape, &m.state(), None, 1e-2, 40)
+        .unwrap();
+    let loss = Array::zeros(2);
+    adflex_kernels::losses::per_world_sum_of_squares_vec3(
+        &mut tape,
+        &m.particle_world,
+        &s.x,
+        1.0,
+        &loss,
+    );
+    tape.backward(&loss).unwrap();
+    (loss.to_vec(), m.gravity.grad().unwrap().to_vec())
+}
+
+/// `d loss_w / d gravity_w` against central differences, for both worlds and every
+/// component; `exact_neighbours`: the other world's loss keeps its bits.
+fn check_pendulum_gravity<I: Integrator<f64>>(name: &str, integrator: &I, exact_neighbours: bool) {
+    let model = two_pendulums();
+    let g0 = model.gravity.to_vec();
+    assert_eq!(
+        g0,
+        vec![Vec3::new(0.0, -9.8, 0.0), Vec3::new(0.0, -1.62, 0.0)]
+    );
+    let (l, grad) = pendulum_losses(&model, integrator, &g0);
+    assert_ne!(l[0], l[1], "{name}: the moon's pendulum swings slower");
+    let h = 1e-6;
+    for w in 0..2 {
+        for c in 0..3 {
+            let (mut up, mut down) = (g0.clone(), g0.clone());
+            up[w][c] += h;
+            down[w][c] -= h;
+            let (lu, ld) = (
+                pendulum_losses(&model, integrator, &up).0,
+                pendulum_losses(&model, integrator, &down).0,
+            );
+            let fd = (lu[w] - ld[w]) / (2.0 * h);
+            assert!(
+                (grad[w][c] - fd).abs() < 1e-6 * fd.abs().max(1e-2),
+                "{name}, world {w}, component {c}: {} vs differences {fd}",
+                grad[w][c]
+            );
+            if exact_neighbours {
+                assert_eq!(lu[1 - w], l[1 - w], "{name}: world {} moved", 1 - w);
+            }
+        }
+    }
+}
+
+#[test]
+fn particle_worlds_have_their_own_gravity_with_gradients() {
+    use adflex_kernels::prelude::{ImplicitEuler, Rk4};
+    check_pendulum_gravity("SemiImplicitEuler", &SemiImplicitEuler, true);
+    check_pendulum_gravity("Rk4", &Rk4, true);
+    // Through the Newton solve's implicit-function-theorem adjoint.
+    check_pendulum_gravity("ImplicitEuler", &ImplicitEuler::default(), false);
+
+    // The equilibrium: the bob hangs lower on the Earth; d(height)/d(g_y) = m / k per world.
+    use adflex_kernels::statics::Equilibrium;
+    let model = two_pendulums();
+    let gravity = model.gravity.clone().requires_grad();
+    let mut tape = Tape::new();
+    let eq = Equilibrium::default()
+        .solve(&model, &mut tape, &model.state())
+        .unwrap();
+    let heights = Array::zeros(1);
+    tape.launch(bob_heights, 1, (&eq.x, &heights));
+    tape.backward(&heights).unwrap();
+    let g = gravity.grad().unwrap().to_vec();
+    for (w, gw) in g.iter().enumerate() {
+        let hang = eq.x.get(2 * w + 1);
+        let expected = 1.0 + model.gravity.get(w).y.abs() / 1e3;
+        assert!((hang.norm() - expected).abs() < 1e-9, "world {w}: {hang:?}");
+        assert!((gw.y + 1e-3).abs() < 1e-9, "world {w}: {gw:?}");
+    }
+
+    // Rigid bodies fall with their world's gravity.
+    let mut moon = body_scene();
+    moon.gravity = Vec3::new(0.0, -1.62, 0.0);
+    let mut b = body_scene();
+    b.set_ground(Ground {
+        offset: -100.0,
+        ..Ground::default()
+    });
+    moon.set_ground(Ground {
+        offset: -100.0,
+        ..Ground::default()
+    });
+    let mut both = ModelBuilder::new();
+    both.add_world(&b);
+    both.add_world(&moon);
+    let model = both.finalize();
+    let s = SemiImplicitEuler
+        .rollout(&model, &mut Tape::new(), &model.state(), None, 1e-3, 100)
+        .unwrap();
+    let v = s.bodies.unwrap().v.to_vec();
+    assert!((v[0].y + 9.8 * 0.1).abs() < 1e-9, "{:?}", v[0]);
+    assert!((v[1].y + 1.62 * 0.1).abs() < 1e-9, "{:?}", v[1]);
+}
+
+#[test]
+#[should_panic(expected = "`gravity` (one per world) has 1 elements, the model has 2 worlds")]
+fn a_particle_gravity_array_of_the_wrong_length_is_refused_by_name() {
+    let mut model = two_pendulums();
+    model.gravity = Array::from_vec(vec![Vec3::new(0.0, -9.8, 0.0)]);
+    let _ = SemiImplicitEuler.step(&model, &mut Tape::new(), &model.state(), None, 1e-3);
+}
+
+/// The sum of the bobs' heights below their pins (particles 1 and 3).
+#[diff_kernel]
+fn bob_heights(x: &Array<Vec3<f64>>, out: &Array<f64>) {
+    out[0] = -x[1].y - x[3].y;
+}
+
+#[test]
+fn particle_contact_touches_only_particles_of_one_world() {
+    use adflex_kernels::prelude::ParticleContact;
+    let scene = |particles: &[(f64, f64)]| {
+        let mut b = ModelBuilder::<f64>::new();
+        b.gravity = Vec3::zeros();
+        b.set_particle_contact(ParticleContact::default());
+        for &(x, v) in particles {
+            b.add_particle(Vec3::new(x, 0.0, 0.0), Vec3::new(v, 0.0, 0.0), 1.0);
+        }
+        b
+    };
+    let run = |b: &ModelBuilder<f64>| -> Vec<Vec3<f64>> {
+        let model = b.finalize();
+        let s = SemiImplicitEuler
+            .rollout(&model, &mut Tape::new(), &model.state(), None, 1e-3, 200)
+            .unwrap();
+        s.x.to_vec()
+    };
+    // World 0: a particle thrown at a resting one, which it knocks along x; world 1's
+    // particle rests overlapping world 0's target (3 mm apart, radii 1 cm).
+    let hit = scene(&[(-0.1, 1.0), (0.0, 0.0)]);
+    let rest = scene(&[(0.003, 0.0)]);
+    let alone = run(&hit);
+    assert!(
+        alone[1].x > 1e-3,
+        "the target was knocked on: {:?}",
+        alone[1]
+    );
+    let mut both = ModelBuilder::new();
+    both.add_world(&hit);
+    both.add_world(&rest);
+    let together = run(&both);
+    assert_eq!(together[..2], alone[..], "world 0 keeps its bits");
+    assert_eq!(together[2], Vec3::new(0.003, 0.0, 0.0), "world 1 untouched");
+
+    // Cloths that touch themselves: each world's loss and gradients are the same bits alone,
+    // among others, in another order and on another number of threads.
+    let ids: Vec<usize> = (0..6).collect();
+    let together = with_threads(2, || run_cloths_with(&ids, true));
+    assert!(together.iter().all(|r| r.0 > 0.0));
+    for j in [0, 5] {
+        assert_eq!(
+            run_cloths_with(&[j], true)[0],
+            together[j],
+            "cloth {j} alone"
+        );
+    }
+    let reversed: Vec<usize> = ids.iter().rev().copied().collect();
+    let back = with_threads(1, || run_cloths_with(&reversed, true));
+    for (w, &j) in reversed.iter().enumerate() {
+        assert_eq!(back[w], together[j], "cloth {j} at place {w}");
+    }
+    // And contact changed the cloths (the test would pass without it otherwise).
+    assert_ne!(run_cloths_with(&[3], false)[0].0, together[3].0);
 }

@@ -276,7 +276,7 @@ fn up_of<R: Real>(model: &Model<R>) -> Vec3<f64> {
             return n;
         }
     }
-    (-wide(model.gravity))
+    (-wide(model.gravity.get(0)))
         .try_normalize(1e-12)
         .filter(|v| v.iter().all(|c| c.is_finite()))
         .unwrap_or(Vec3::y())

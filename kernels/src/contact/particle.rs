@@ -299,7 +299,21 @@ impl<R: Real> ParticleContact<R> {
         radius: R,
         f: &Array<Vec3<R>>,
     ) -> usize {
-        let pairs = self.pairs(x, radius);
+        self.eval_in_worlds(tape, x, v, radius, None, f)
+    }
+
+    /// [`ParticleContact::eval`] on the pairs of particles of one world (`world[i]`: particle
+    /// `i`'s; `None`: all one world).
+    pub fn eval_in_worlds(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radius: R,
+        world: Option<&Array<u32>>,
+        f: &Array<Vec3<R>>,
+    ) -> usize {
+        let pairs = self.pairs(x, radius, world);
         if pairs.is_empty() {
             return 0;
         }
@@ -388,7 +402,21 @@ impl<R: Real> ParticleContact<R> {
         radii: &Array<R>,
         f: &Array<Vec3<R>>,
     ) -> usize {
-        let pairs = self.pairs_radii(x, radii);
+        self.eval_radii_in_worlds(tape, x, v, radii, None, f)
+    }
+
+    /// [`ParticleContact::eval_radii`] on the pairs of particles of one world (see
+    /// [`ParticleContact::eval_in_worlds`]).
+    pub fn eval_radii_in_worlds(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        v: &Array<Vec3<R>>,
+        radii: &Array<R>,
+        world: Option<&Array<u32>>,
+        f: &Array<Vec3<R>>,
+    ) -> usize {
+        let pairs = self.pairs_radii(x, radii, world);
         if pairs.is_empty() {
             return 0;
         }
@@ -415,18 +443,26 @@ impl<R: Real> ParticleContact<R> {
 }
 
 impl<R: Real> ParticleContact<R> {
-    /// The broad phase of [`ParticleContact::eval`]: pairs closer than `2 radius + margin`.
-    fn pairs(&self, x: &Array<Vec3<R>>, radius: R) -> Vec<[u32; 2]> {
-        find_pairs(&x.to_vec(), radius + radius + self.margin)
+    /// The broad phase of [`ParticleContact::eval`]: pairs of one world closer than
+    /// `2 radius + margin`.
+    fn pairs(&self, x: &Array<Vec3<R>>, radius: R, world: Option<&Array<u32>>) -> Vec<[u32; 2]> {
+        let world = world.map(|w| w.to_vec());
+        find_pairs_in_worlds(&x.to_vec(), world.as_deref(), radius + radius + self.margin)
     }
 
     /// The broad phase of [`ParticleContact::eval_radii`].
-    fn pairs_radii(&self, x: &Array<Vec3<R>>, radii: &Array<R>) -> Vec<[u32; 2]> {
+    fn pairs_radii(
+        &self,
+        x: &Array<Vec3<R>>,
+        radii: &Array<R>,
+        world: Option<&Array<u32>>,
+    ) -> Vec<[u32; 2]> {
         let r = radii.to_vec();
         let xs = x.to_vec();
         let rmax = r.iter().map(|r| r.to_f64()).fold(0.0, f64::max);
         let margin = self.margin.to_f64();
-        find_pairs(&xs, R::lit(2.0 * rmax + margin))
+        let world = world.map(|w| w.to_vec());
+        find_pairs_in_worlds(&xs, world.as_deref(), R::lit(2.0 * rmax + margin))
             .into_iter()
             .filter(|&[i, j]| {
                 let (i, j) = (i as usize, j as usize);
@@ -443,21 +479,33 @@ impl<R: Real> ParticleContact<R> {
 /// of cell size `cutoff`: each point is compared only with the points of its 27 neighbouring
 /// cells. O(n log n) for bounded density. Non-finite points are ignored.
 pub fn find_pairs<R: Real>(x: &[Vec3<R>], cutoff: R) -> Vec<[u32; 2]> {
+    find_pairs_in_worlds(x, None, cutoff)
+}
+
+/// [`find_pairs`] among the points of one world (`world[i]`: point `i`'s; `None`: all one
+/// world): the grid's cells are per world, so worlds that overlap in space cost no more than
+/// worlds apart, and a world's pairs are those it has alone, in the same order.
+pub fn find_pairs_in_worlds<R: Real>(
+    x: &[Vec3<R>],
+    world: Option<&[u32]>,
+    cutoff: R,
+) -> Vec<[u32; 2]> {
     let h = cutoff.to_f64();
     if h.is_nan() || h <= 0.0 || x.len() < 2 {
         return Vec::new();
     }
-    let cell = |p: &Vec3<R>| -> Option<[i64; 3]> {
+    let cell = |i: usize, p: &Vec3<R>| -> Option<[i64; 4]> {
         let c = [p.x, p.y, p.z].map(|v| (v.to_f64() / h).floor());
+        let w = world.map_or(0, |w| w[i] as i64);
         c.iter()
             .all(|v| v.is_finite() && v.abs() < 1e15)
-            .then(|| c.map(|v| v as i64))
+            .then(|| [w, c[0] as i64, c[1] as i64, c[2] as i64])
     };
-    // Points sorted by cell (then index): each cell is a contiguous run.
-    let mut sorted: Vec<([i64; 3], u32)> = x
+    // Points sorted by world and cell (then index): each cell is a contiguous run.
+    let mut sorted: Vec<([i64; 4], u32)> = x
         .iter()
         .enumerate()
-        .filter_map(|(i, p)| Some((cell(p)?, i as u32)))
+        .filter_map(|(i, p)| Some((cell(i, p)?, i as u32)))
         .collect();
     sorted.sort_unstable();
     let h2 = h * h;
@@ -467,7 +515,7 @@ pub fn find_pairs<R: Real>(x: &[Vec3<R>], cutoff: R) -> Vec<[u32; 2]> {
         for dx in -1..=1 {
             for dy in -1..=1 {
                 for dz in -1..=1 {
-                    let key = [c[0] + dx, c[1] + dy, c[2] + dz];
+                    let key = [c[0], c[1] + dx, c[2] + dy, c[3] + dz];
                     let start = sorted.partition_point(|(k, _)| *k < key);
                     for &(k, j) in &sorted[start..] {
                         if k != key {
@@ -497,9 +545,10 @@ impl<R: Real> Force<R> for ParticleContact<R> {
         NAME
     }
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
+        let world = cx.particle_world;
         match cx.particle_radii {
-            Some(r) => self.eval_radii(tape, cx.x, cx.v, r, f),
-            None => ParticleContact::eval(self, tape, cx.x, cx.v, cx.particle_radius, f),
+            Some(r) => self.eval_radii_in_worlds(tape, cx.x, cx.v, r, world, f),
+            None => self.eval_in_worlds(tape, cx.x, cx.v, cx.particle_radius, world, f),
         };
     }
     /// The penalty's potential on the pairs the broad phase finds at `cx.x`
@@ -507,8 +556,8 @@ impl<R: Real> Force<R> for ParticleContact<R> {
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
         let (x, ke) = (cx.x, self.ke);
         let pairs = match cx.particle_radii {
-            Some(r) => self.pairs_radii(x, r),
-            None => self.pairs(x, cx.particle_radius),
+            Some(r) => self.pairs_radii(x, r, cx.particle_world),
+            None => self.pairs(x, cx.particle_radius, cx.particle_world),
         };
         if !pairs.is_empty() {
             let n = pairs.len();

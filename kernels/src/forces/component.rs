@@ -60,6 +60,9 @@ pub struct ForceContext<'a, R: Real> {
     pub particle_radius: R,
     /// Per-particle contact radii (m), if the model has them ([`crate::Model::particle_radii`]).
     pub particle_radii: Option<&'a Array<R>>,
+    /// Per particle: its world ([`crate::Model::particle_world`]), if the model has several
+    /// worlds. A force between particles touches only particles of one world.
+    pub particle_world: Option<&'a Array<u32>>,
 }
 
 /// A force on the particles: a component of a [`Model`](crate::Model).

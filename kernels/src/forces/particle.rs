@@ -37,27 +37,35 @@ pub fn add_forces<R: Real>(fext: &Array<Vec3<R>>, f: &Array<Vec3<R>>) {
     f.atomic_add(t, fext[t]);
 }
 
-/// `a = f w + g [w > 0]` (m/s^2), `w` the inverse mass (1/kg), `g` gravity (m/s^2).
+/// `a = f w + g [w > 0]` (m/s^2), `w` the inverse mass (1/kg), `g = gravity[world[tid]]`
+/// the particle's world's gravity (m/s^2).
 #[diff_kernel]
 pub fn accelerations<R: Real>(
     f: &Array<Vec3<R>>,
     inv_mass: &Array<R>,
-    g: Vec3<R>,
+    gravity: &Array<Vec3<R>>,
+    world: &Array<u32>,
     a: &Array<Vec3<R>>,
 ) {
     let t = tid();
     let w = inv_mass[t];
+    let g = gravity[world[t] as usize];
     a[t] = f[t] * w + select(w > 0.0, g, g * 0.0);
 }
 
-/// Gravity as a force, `f += g / w` on particles with `w > 0`: for integrators that want the
-/// total force rather than [`accelerations`].
+/// Gravity as a force, `f += g / w` on particles with `w > 0` (`g = gravity[world[tid]]`): for
+/// integrators that want the total force rather than [`accelerations`].
 #[diff_kernel]
-pub fn add_gravity_force<R: Real>(inv_mass: &Array<R>, g: Vec3<R>, f: &Array<Vec3<R>>) {
+pub fn add_gravity_force<R: Real>(
+    inv_mass: &Array<R>,
+    gravity: &Array<Vec3<R>>,
+    world: &Array<u32>,
+    f: &Array<Vec3<R>>,
+) {
     let t = tid();
     let w = inv_mass[t];
     if w > 0.0 {
-        f.atomic_add(t, g / w);
+        f.atomic_add(t, gravity[world[t] as usize] / w);
     }
 }
 

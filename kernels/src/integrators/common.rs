@@ -30,7 +30,15 @@ pub(crate) fn step_bodies_generic<R: Real>(
     let (f, t) = model
         .eval_body_forces(tape, state, control)
         .expect("the model has rigid bodies");
-    Some(bodies.integrate(tape, s, &f, &t, model.gravity, dt))
+    Some(bodies.integrate(
+        tape,
+        s,
+        &f,
+        &t,
+        model.gravity_per_world(),
+        &model.body_world,
+        dt,
+    ))
 }
 
 precompiled! {
@@ -179,7 +187,7 @@ pub(crate) fn forces_only<R: Real>(model: &Model<R>) -> Model<R> {
     m
 }
 
-/// The copies: the inverse masses, every force's parameter arrays (its
+/// The copies: the inverse masses, the gravity, every force's parameter arrays (its
 /// [`Force::params_mut`](crate::forces::Force::params_mut) visitor, so a force added outside
 /// the library is covered), and the control's arrays.
 pub(crate) fn copies<R: Real>(
@@ -191,6 +199,7 @@ pub(crate) fn copies<R: Real>(
     let mut c = control.cloned();
     let mut l = Vec::new();
     l.push(m.particle_inv_mass.substitute(grads));
+    l.push(m.gravity.substitute(grads));
     for force in &mut m.forces {
         force.params_mut(&mut |_, p| l.push(p.substitute(grads)));
     }
@@ -512,11 +521,10 @@ pub(crate) fn check_inputs<R: Real>(
             });
         }
     }
-    let g = model.gravity;
-    if ![g.x, g.y, g.z].iter().all(|c| c.to_f64().is_finite()) {
+    if let Some(k) = model.gravity.first_non_finite() {
         return Err(Error::InvalidInput {
-            what: "gravity".into(),
-            message: format!("{who}: the model's gravity is not finite"),
+            what: format!("gravity[{k}]"),
+            message: format!("{who}: the gravity of world {k} is not finite"),
         });
     }
     Ok(())

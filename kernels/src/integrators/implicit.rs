@@ -308,7 +308,13 @@ fn explicit_accelerations<R: Real>(
     tape.launch(
         accelerations,
         n,
-        (&f, &model.particle_inv_mass, Vec3::zeros(), &a),
+        (
+            &f,
+            &model.particle_inv_mass,
+            &Array::zeros(model.gravity.len()),
+            &model.particle_world,
+            &a,
+        ),
     );
     a
 }

@@ -38,7 +38,7 @@ use crate::state::{Control, State};
 /// b.add_particle(Vec3::zeros(), Vec3::zeros(), 1.0);
 /// let model = b.finalize();
 /// let s = Midpoint.step(&model, &mut Tape::new(), &model.state(), None, 0.5).unwrap();
-/// assert!((s.x.get(0).y - 0.5 * model.gravity.y * 0.25).abs() < 1e-12);
+/// assert!((s.x.get(0).y - 0.5 * model.gravity.get(0).y * 0.25).abs() < 1e-12);
 /// ```
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Midpoint;

@@ -9,20 +9,23 @@ use crate::model::Model;
 use crate::state::{Control, State};
 
 /// `v' = v + (f w + g [w > 0]) dt`, `x' = x + v' dt` for particle `tid` (`w` the inverse mass
-/// in 1/kg, `g` gravity in m/s^2, `dt` in s), into new arrays `x_new`, `v_new`.
+/// in 1/kg, `g = gravity[world[tid]]` its world's gravity in m/s^2, `dt` in s), into new
+/// arrays `x_new`, `v_new`.
 #[diff_kernel]
 pub fn integrate_particles<R: Real>(
     x: &Array<Vec3<R>>,
     v: &Array<Vec3<R>>,
     f: &Array<Vec3<R>>,
     inv_mass: &Array<R>,
-    g: Vec3<R>,
+    gravity: &Array<Vec3<R>>,
+    world: &Array<u32>,
     dt: R,
     x_new: &Array<Vec3<R>>,
     v_new: &Array<Vec3<R>>,
 ) {
     let t = tid();
     let w = inv_mass[t];
+    let g = gravity[world[t] as usize];
     let v1 = v[t] + (f[t] * w + select(w > 0.0, g, g * 0.0)) * dt;
     x_new[t] = x[t] + v1 * dt;
     v_new[t] = v1;
@@ -56,7 +59,8 @@ impl<R: Real> Integrator<R> for SemiImplicitEuler {
                 &state.v,
                 &f,
                 &model.particle_inv_mass,
-                model.gravity,
+                model.gravity_per_world(),
+                &model.particle_world,
                 dt,
                 &x,
                 &v,
