@@ -90,18 +90,19 @@ impl<R: Real> ModelBuilder<R> {
     /// Adds the scene `other` as a new world (an empty builder's first `add_world` fills
     /// world 0); returns its index. Its particles, elements and bodies are appended with their
     /// indices shifted, and it keeps its gravity (`other.gravity`; [`Model::gravity`] has one
-    /// per world). The ground, drag and shapes are the environment the worlds share. Worlds
-    /// never interact, and
-    /// each is simulated in its own frame: they need no spacing, and with the integrators made
-    /// of per-element kernels (all but `ImplicitEuler`, whose Newton iterations stop on a norm
-    /// over the whole model) a world's results are the same bits whatever the other worlds
-    /// (`kernels/tests/worlds.rs`).
+    /// per world: setting [`ModelBuilder::gravity`] afterwards changes no added world). Worlds
+    /// never interact, and each is simulated in its own frame: they need no spacing, and with
+    /// the integrators made of per-element kernels (all but `ImplicitEuler`, whose Newton
+    /// iterations stop on a norm over the whole model) a world's results are the same bits
+    /// whatever the other worlds (`kernels/tests/worlds.rs`).
     ///
-    /// Particle-particle contact (`set_particle_contact`, the environment's, like the ground)
-    /// touches only particles of one world. Not with worlds: forces added with
-    /// [`ModelBuilder::add_force`] to `other` (add them to the combined builder, over all
-    /// particles; [`ForceContext::particle_world`](crate::forces::ForceContext::particle_world) tells a force
-    /// between particles which world each is in); a problem at finalize.
+    /// The ground, drag, shapes and particle-particle contact are the environment every world
+    /// shares (a world without one takes the model's; two different ones are a problem at
+    /// finalize); particle-particle contact touches only particles of one world. Not with
+    /// worlds: forces added with [`ModelBuilder::add_force`] to `other` (add them to the
+    /// combined builder, over all particles;
+    /// [`ForceContext::particle_world`](crate::forces::ForceContext::particle_world) tells a
+    /// force between particles which world each is in); a problem at finalize.
     ///
     /// ```
     /// use adflex_kernels::prelude::*;

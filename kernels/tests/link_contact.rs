@@ -230,6 +230,21 @@ fn free_body(b: &mut ArticulationBuilder, name: &str, x: Vec3<f64>, shape: &str)
         "box" => {
             b.add_contact_box(l, &Pose::identity(), Vec3::new(0.1, 0.1, 0.1));
         }
+        // A cube turned 45 degrees about z (an edge along z leads along x), or about y (an
+        // edge along y faces -x).
+        "box_edge_z" | "box_edge_y" => {
+            let axis = if shape == "box_edge_z" {
+                Vec3::z()
+            } else {
+                Vec3::y()
+            };
+            let turn = nalgebra::UnitQuaternion::from_axis_angle(
+                &nalgebra::Unit::new_normalize(axis),
+                std::f64::consts::FRAC_PI_4,
+            );
+            let pose = Pose::new(Vec3::zeros(), *turn.quaternion());
+            b.add_contact_box(l, &pose, Vec3::new(0.1, 0.1, 0.1));
+        }
         _ => {
             b.add_contact_sphere(l, Vec3::zeros(), 0.1);
         }
@@ -329,6 +344,9 @@ fn capsules_spheres_and_boxes_collide_with_right_gradients() {
     check_collision("capsule_z", "box", Vec3::new(0.0, 0.05, 0.0));
     // A box into a box, offset so that corners of each meet faces of the other.
     check_collision("box", "box", Vec3::new(0.0, 0.15, 0.05));
+    // Two cubes meeting edge on edge, the edges crossing at right angles: no corner of either
+    // enters the other.
+    check_collision("box_edge_z", "box_edge_y", Vec3::new(0.0, 0.01, 0.02));
 }
 
 #[test]
@@ -362,8 +380,9 @@ fn shapes_rest_on_a_fixed_box() {
         }
         let (q, v) = (s.q.to_vec(), s.qd.to_vec());
         // Sunk by its weight over the contacts' stiffness: one contact for the ball and the
-        // capsule (the middle of its line of contact), four corners for the box.
-        let contacts = if shape == "box" { 4.0 } else { 1.0 };
+        // capsule (the middle of its line of contact); for the box its four lower edges at
+        // full depth and its four side edges at half.
+        let contacts = if shape == "box" { 6.0 } else { 1.0 };
         let expected = top + height - 9.81 / (contacts * 1e4);
         assert!(
             (q[2] - expected).abs() < 2e-4,
@@ -563,8 +582,8 @@ fn mjcf_static_bodies_and_bodies_with_several_joints_follow_mujoco() {
     assert_eq!(m.box_pairs.len(), 3);
 
     // MuJoCo's filterparent is by welds: an arm with two joints on a moving torso never
-    // touches the torso nor a plate welded to the torso (declared after the arm), but does
-    // touch a ball on a joint of its own under the torso.
+    // touches the torso nor a plate welded to the torso (declared after the arm), nor does a
+    // hand welded to the arm; both touch a ball on a joint of its own under the torso.
     let xml = r#"<mujoco>
   <worldbody>
     <body name="torso" pos="0 0 1">
@@ -574,6 +593,9 @@ fn mjcf_static_bodies_and_bodies_with_several_joints_follow_mujoco() {
         <joint type="hinge" axis="0 1 0"/>
         <joint type="hinge" axis="1 0 0"/>
         <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.05"/>
+        <body name="hand" pos="0.3 0 0">
+          <geom type="sphere" size="0.05"/>
+        </body>
       </body>
       <body name="plate" pos="0.3 0 -0.1">
         <geom type="box" size="0.1 0.1 0.02"/>
@@ -586,9 +608,9 @@ fn mjcf_static_bodies_and_bodies_with_several_joints_follow_mujoco() {
   </worldbody>
 </mujoco>"#;
     let m: Articulations<f64> = mjcf::parse(xml).unwrap().builder.finalize().unwrap();
-    // The arm and the ball (one segment pair); no box pair (the torso and the plate are one
-    // weld, the arm's and the ball's parent).
-    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (1, 0));
+    // The arm and the ball, the hand and the ball (two segment pairs); no box pair (the torso
+    // and the plate are one weld, the parent of the arm's and of the ball's).
+    assert_eq!((m.capsule_pairs.len(), m.box_pairs.len()), (2, 0));
 }
 
 #[test]

@@ -661,7 +661,7 @@ struct LinkContacts {
 /// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
 /// links not welded together nor joined directly (after welding) nor excluded, with filters
 /// that touch (`order` and `new_index`: the model's link order and its inverse). A box's
-/// corners become segments for its pairs with other boxes.
+/// edges become segments (radius 0) for its pairs with other boxes.
 fn link_contact_pairs(
     b: &ArticulationBuilder,
     (order, new_index): (&[usize], &[usize]),
@@ -718,7 +718,7 @@ fn link_contact_pairs(
     let shapes = b.contact_shapes();
     let mut seg_of = vec![None; shapes.len()];
     let mut box_of = vec![None; shapes.len()];
-    let mut corners_of: Vec<Option<usize>> = vec![None; shapes.len()];
+    let mut edges_of: Vec<Option<usize>> = vec![None; shapes.len()];
     let link_of = |c: &ContactShape| new_index[c.link.0] as u32;
     // Shapes of different worlds never touch: pairs are searched for world by world.
     let mut by_world = vec![Vec::new(); world_of.iter().max().map_or(0, |w| w + 1)];
@@ -769,20 +769,21 @@ fn link_contact_pairs(
                     out.box_pair_mu.push(mu);
                 }
                 (false, false) => {
-                    // Each box's corners against the other's faces.
+                    // Each box's edges against the other box: crossing edges touch, and a
+                    // corner inside the other box sinks the three edges that meet there.
                     for (c, o) in [(i, j), (j, i)] {
-                        let first = *corners_of[c].get_or_insert_with(|| {
+                        let first = *edges_of[c].get_or_insert_with(|| {
                             let GeomShape::Box(half) = shapes[c].shape else {
                                 unreachable!("a box")
                             };
                             let start = out.segs.len();
-                            for p in shapes[c].corners(&half) {
-                                out.segs.push((link_of(&shapes[c]), p, p, 0.0));
+                            for (a, e) in shapes[c].edges(&half) {
+                                out.segs.push((link_of(&shapes[c]), a, e, 0.0));
                             }
                             start
                         });
                         let other = bx(o, &mut out);
-                        for k in 0..8 {
+                        for k in 0..12 {
                             out.box_pairs.push([(first + k) as u32, other]);
                             out.box_pair_mu.push(mu);
                         }

@@ -9,9 +9,11 @@
 //! - a sphere or a capsule and a box by the closest points of the axis and the box: exact
 //!   while the axis stays outside the box (a penetration shallower than the radius); an axis
 //!   inside the box is pushed out through the face nearest the axis point found;
-//! - two boxes by each one's corners against the other's faces: a corner inside the other
-//!   box is pushed out through its nearest face. Two edges crossing without a corner inside
-//!   are not detected.
+//! - two boxes by each one's twelve edges against the other box, as segments of radius 0: the
+//!   middle of an edge's part inside the other box is pushed out through the face nearest it
+//!   (edges crossing touch; a corner inside sinks the three edges that meet there, each by
+//!   about half the corner's depth, and a face resting on a face rests on its four edges at
+//!   full depth and the four side edges at half).
 //!
 //! When the closest points are not unique (parallel axes, an axis parallel to a box face) the
 //! contact is one point, at the middle of the range where they are closest: a capsule lying
@@ -103,6 +105,17 @@ impl ContactShape {
             GeomShape::Capsule(r, h) => Some((self.end(-h), self.end(h), r)),
             _ => None,
         }
+    }
+
+    /// A box's twelve edges (their ends) in the link frame.
+    pub(crate) fn edges(&self, half: &Vec3<f64>) -> Vec<(Vec3<f64>, Vec3<f64>)> {
+        let c = self.corners(half);
+        // Corner `k` has bit `b` set when it is on the + side along axis `b`.
+        (0..8)
+            .flat_map(|k| (0..3).map(move |b| (k, b)))
+            .filter(|&(k, b)| k & (1 << b) == 0)
+            .map(|(k, b)| (c[k], c[k | (1 << b)]))
+            .collect()
     }
 
     /// A box's corners in the link frame.

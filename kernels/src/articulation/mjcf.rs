@@ -6,7 +6,8 @@
 //! childclass>`, `<joint type="hinge|slide|ball|free" pos axis range limited damping armature
 //! stiffness springref>` (a spring on hinges and slides; `springref` in the file's angle
 //! unit), `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|plane" size fromto pos quat
-//! mass density contype conaffinity>`, `<inertial pos quat mass diaginertia|fullinertia>`,
+//! mass density contype conaffinity friction group>` (a geom outside groups 0 to 5 has no mass,
+//! as MuJoCo's default `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`,
 //! `<actuator>` with `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
 //! Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`,
 //! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
@@ -20,7 +21,8 @@
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
 //! Geoms touch as in MuJoCo: two geoms on bodies that are neither the same, nor welded
-//! together, nor parent and child, nor excluded, touch when their `contype` and
+//! together, nor parent and child after welding (MuJoCo's filterparent: unless the parent is
+//! fixed to the world), nor excluded, touch when their `contype` and
 //! `conaffinity` masks match ([`ContactFilter`]); a geom touches the floor, a `plane` geom of
 //! the worldbody, when its masks match the plane's. Spheres, capsules and boxes touch (see
 //! [`contact`](super::contact) for how exactly); a cylinder has mass but no contact. The law
@@ -777,8 +779,9 @@ impl<'a> Reader<'a> {
         Ok(())
     }
 
-    /// MuJoCo's filterparent: a body never touches the bodies welded to its parent body (the
-    /// parent and those joined to it without a joint), unless they are fixed to the world.
+    /// MuJoCo's filterparent: the bodies welded together (a body with joints and the bodies
+    /// joined to it without one) never touch those welded to its parent body, unless these
+    /// are fixed to the world.
     /// (The builder's rule sees a body with several joints as a chain of links, the last one's
     /// parent a massless link; hence the exclusions here.)
     fn filter_parents(&mut self) {
@@ -791,11 +794,16 @@ impl<'a> Reader<'a> {
             Some(i)
         };
         let welds: Vec<Option<usize>> = (0..links.len()).map(weld).collect();
+        let welds = &welds;
+        let group = |w: usize| (0..links.len()).filter(move |&k| welds[k] == Some(w));
         let mut pairs = Vec::new();
-        for &(l, p) in &self.parents {
+        // A welded body is its parent's weld (never touching it anyway): only bodies with
+        // joints start a weld, whose every link skips every link of the parent's.
+        for &(l, p) in self.parents.iter().filter(|(l, _)| welds[l.0] == Some(l.0)) {
             if let Some(w) = welds[p.0] {
-                let group = (0..links.len()).filter(|&k| welds[k] == Some(w));
-                pairs.extend(group.map(|k| (l, LinkId(k))));
+                for a in group(l.0) {
+                    pairs.extend(group(w).map(|b| (LinkId(a), LinkId(b))));
+                }
             }
         }
         for (a, b) in pairs {

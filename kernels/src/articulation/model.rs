@@ -556,7 +556,8 @@ impl ArticulationBuilder {
     }
 
     /// Adds a box of half extents `half` at `pose` in `link`'s frame; returns its index. It
-    /// touches the ground by its corners, other shapes by its faces.
+    /// touches the ground by its corners, spheres and capsules by its faces, other boxes by
+    /// its edges.
     pub fn add_contact_box(&mut self, link: LinkId, pose: &Pose, half: Vec3<f64>) -> usize {
         self.add_contact_shape(link, pose, &GeomShape::Box(half))
             .expect("a box is a contact shape")
@@ -1075,10 +1076,12 @@ pub struct Articulations<R: Real> {
     /// Per contact sphere: its friction coefficient (the larger of the ground's and its
     /// shape's; [`ContactShape::friction`]). Can require gradients.
     pub contact_mu: Array<R>,
-    /// The ground and its contact law (`None`: no contact).
+    /// The ground and its contact law (`None`: no contact). Its `mu` was read when the model
+    /// was built: the friction the kernels use is in `contact_mu`, `capsule_pair_mu` and
+    /// `box_pair_mu`.
     pub ground: Option<GroundContact<R>>,
-    /// Per sphere or capsule that touches another link's shapes (and per corner of a box that
-    /// touches another box): its link, the ends of its axis in the link frame (m), its radius
+    /// Per sphere or capsule that touches another link's shapes (and per edge of a box that
+    /// touches another box, of radius 0): its link, the ends of its axis in the link frame (m), its radius
     /// (m). Set when [`ArticulationBuilder::link_contact`] is.
     pub seg_link: Array<u32>,
     /// See `seg_link`.

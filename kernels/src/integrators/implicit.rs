@@ -311,7 +311,7 @@ fn explicit_accelerations<R: Real>(
         (
             &f,
             &model.particle_inv_mass,
-            &Array::zeros(model.gravity.len()),
+            &Array::zeros(model.worlds.len()),
             &model.particle_world,
             &a,
         ),
