@@ -685,19 +685,20 @@ fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
         }
         b.finalize().unwrap()
     };
-    // Thrown along x at 1 m/s: it slides `v^2 / (2 mu g)`.
-    let distance = |m: &Articulations<f64>, tape: &mut Tape| -> Array<f64> {
+    // Thrown along x at 1 m/s for `steps` ms: it slides `v^2 / (2 mu g)`.
+    let throw = |m: &Articulations<f64>, steps: usize, tape: &mut Tape| -> Array<f64> {
         let mut qd = vec![0.0; 6];
         qd[0] = 1.0;
         let mut s = ArticulationState {
             q: Array::from_vec(m.q0.clone()),
             qd: Array::from_vec(qd),
         };
-        for _ in 0..400 {
+        for _ in 0..steps {
             s = m.step(tape, &s, None, 1e-3).unwrap();
         }
         s.q
     };
+    let distance = |m: &Articulations<f64>, tape: &mut Tape| throw(m, 400, tape);
     let own = slide(0.1, Some(0.4));
     assert_eq!(own.contact_mu.to_vec(), vec![0.4; 8]);
     assert_eq!(slide(0.6, Some(0.4)).contact_mu.to_vec(), vec![0.6; 8]);
@@ -731,16 +732,8 @@ fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
     let run = |mu: f64, tape: &mut Tape| {
         let mut m = model.clone();
         m.contact_mu = Array::from_vec(vec![mu; 8]).requires_grad();
-        let mut qd = vec![0.0; 6];
-        qd[0] = 1.0;
-        let mut s = ArticulationState {
-            q: Array::from_vec(m.q0.clone()),
-            qd: Array::from_vec(qd),
-        };
-        for _ in 0..200 {
-            s = m.step(tape, &s, None, 1e-3).unwrap();
-        }
-        (m.contact_mu, s.q)
+        let q = throw(&m, 200, tape);
+        (m.contact_mu, q)
     };
     let mut tape = Tape::new();
     let (mu, q) = run(0.4, &mut tape);
