@@ -1081,8 +1081,8 @@ pub struct Articulations<R: Real> {
     /// `box_pair_mu`.
     pub ground: Option<GroundContact<R>>,
     /// Per sphere or capsule that touches another link's shapes (and per edge of a box that
-    /// touches another box, of radius 0): its link, the ends of its axis in the link frame (m), its radius
-    /// (m). Set when [`ArticulationBuilder::link_contact`] is.
+    /// touches another box, of radius 0): its link, the ends of its axis in the link frame
+    /// (m), its radius (m). Set when [`ArticulationBuilder::link_contact`] is.
     pub seg_link: Array<u32>,
     /// See `seg_link`.
     pub seg_a: Array<Vec3<R>>,

@@ -3,8 +3,9 @@
 //! The physics of URDF is read: `<link>` with `<inertial>` (`<origin xyz rpy>`, `<mass>`,
 //! `<inertia>`); `<joint>` of type `revolute`, `continuous`, `prismatic`, `fixed` and
 //! `floating`, with `<origin>`, `<parent>`, `<child>`, `<axis>`, `<limit lower upper>` (equal
-//! bounds leave the joint free, as MuJoCo reads them) and `<dynamics damping>`. `<visual>`, `<collision>`, `<material>`, `<gazebo>` and
-//! `<transmission>` carry nothing the dynamics uses and are passed over. Anything else (a
+//! bounds leave the joint free, as MuJoCo reads them) and `<dynamics damping>`. `<visual>`,
+//! `<collision>`, `<material>`, `<gazebo>` and `<transmission>` carry nothing the dynamics
+//! uses and are passed over. Anything else (a
 //! `planar` joint, `<mimic>`, an unknown element or attribute) is an error naming the element
 //! and its line, as are a missing parent or child, a link with two parents, a cycle, a
 //! non-finite number, a zero or negative mass and an inertia that is not positive
