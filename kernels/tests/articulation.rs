@@ -205,6 +205,7 @@ fn forward_dynamics_derivatives_match_central_differences() {
         ("arm7.urdf", false),
         ("quadruped.urdf", true),
         ("ant.xml", false),
+        ("hopper.xml", false),
         ("humanoid.xml", false),
         ("walker.xml", false),
     ] {
@@ -707,7 +708,7 @@ const MJCF: &str = r#"<mujoco>
 #[test]
 fn bad_mjcf_is_refused_naming_the_element_and_line() {
     assert!(mjcf::parse(MJCF).unwrap().builder.finalize::<f64>().is_ok());
-    let cases: [(&str, &str, u32, &str); 17] = [
+    let cases: [(&str, &str, u32, &str); 21] = [
         ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
         ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
@@ -733,9 +734,33 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ),
         (
             "<joint name",
-            "<joint range=\"-1 1\" margin=\"0.1\" name",
+            "<joint range=\"-1 1\" margin=\"1\" name",
             4,
-            "margin",
+            "closes the range",
+        ),
+        (
+            "<worldbody>",
+            "<option density=\"1.2\"/><worldbody>",
+            2,
+            "fluid forces",
+        ),
+        (
+            "<worldbody>",
+            "<option><flag passive=\"disable\"/></option><worldbody>",
+            2,
+            "passive",
+        ),
+        (
+            "<worldbody>",
+            "<option><flag gravty=\"disable\"/></option><worldbody>",
+            2,
+            "not a flag",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><default><tendon damping=\"1\"/></default><tendon><fixed><joint joint=\"j\"/></fixed></tendon>",
+            7,
+            "gives tendons `damping`",
         ),
         (
             "type=\"hinge\"",
@@ -1217,4 +1242,179 @@ fn checkpointed_robot_rollouts_give_the_whole_tapes_gradients() {
     assert_eq!(out.loss.get(0), l.get(0));
     assert_eq!(tau.grad().unwrap().to_vec(), whole, "bit for bit");
     assert!(whole.iter().any(|g| *g != 0.0));
+}
+
+/// A directory of its own under the system's temporary one, for files a test writes.
+fn scratch_dir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("adflex-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(d.join("parts")).unwrap();
+    d
+}
+
+#[test]
+fn mjcf_reads_includes_ref_flags_margins_and_walls_as_mujoco() {
+    use adflex_kernels::articulation::{ArticulationState, JointType};
+    // `<include>`: the included file's elements in its place, nested includes relative to the
+    // main file's directory (as MuJoCo), and an error in an included file names that file.
+    let dir = scratch_dir("mjcf-include");
+    let write = |f: &str, t: &str| std::fs::write(dir.join(f), t).unwrap();
+    write(
+        "parts/defaults.xml",
+        "<mujocoinclude>\n  <default><joint damping=\"0.7\"/></default>\n  \
+         <include file=\"parts/option.xml\"/>\n</mujocoinclude>",
+    );
+    write(
+        "parts/option.xml",
+        "<mujocoinclude><option timestep=\"0.004\"/></mujocoinclude>",
+    );
+    let main = MJCF.replace(
+        "<mujoco>",
+        "<mujoco>\n<include file=\"parts/defaults.xml\"/>",
+    );
+    write("main.xml", &main);
+    let m = mjcf::load(dir.join("main.xml")).unwrap();
+    assert_eq!(m.timestep, Some(0.004));
+    assert_eq!(m.builder.links()[0].joint.damping, 0.7);
+    write(
+        "parts/option.xml",
+        "<mujocoinclude>\n\n<option timestep=\"0.004\" tolerence=\"1\"/></mujocoinclude>",
+    );
+    let e = mjcf::load(dir.join("main.xml")).unwrap_err();
+    assert!(e.file.as_deref().unwrap().ends_with("option.xml"), "{e}");
+    assert_eq!(e.line, Some(3), "{e}");
+    // An error after the included lines still names the main file's own line.
+    write(
+        "main.xml",
+        &main.replace("type=\"hinge\"", "type=\"screw\""),
+    );
+    write(
+        "parts/option.xml",
+        "<mujocoinclude><option timestep=\"0.004\"/></mujocoinclude>",
+    );
+    let e = mjcf::load(dir.join("main.xml")).unwrap_err();
+    assert!(e.file.as_deref().unwrap().ends_with("main.xml"), "{e}");
+    assert_eq!(e.line, Some(5), "{e}");
+    write("main.xml", &main.replace("defaults.xml", "missing.xml"));
+    let e = mjcf::load(dir.join("main.xml")).unwrap_err();
+    assert!(
+        e.to_string().contains("missing.xml") && e.line == Some(2),
+        "{e}"
+    );
+    write(
+        "parts/defaults.xml",
+        "<mujocoinclude><include file=\"parts/defaults.xml\"/></mujocoinclude>",
+    );
+    write("main.xml", &main);
+    let e = mjcf::load(dir.join("main.xml")).unwrap_err();
+    assert!(e.to_string().contains("includes itself"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+
+    // `ref`: the body is where the file puts it when the coordinate equals ref, which is
+    // the initial coordinate (the hopper's are checked against MuJoCo's M, bias and qdd in
+    // `dynamics_agree_with_pinocchio_and_mujoco`).
+    let with_ref = |r: &str| {
+        let xml = MJCF
+            .replace("type=\"hinge\"", &format!("type=\"hinge\" ref=\"{r}\""))
+            .replace("</body>", "<body name=\"b\" pos=\"0.3 0 -1\"><joint name=\"s\" type=\"slide\" axis=\"1 0 0\" ref=\"0.2\"/><inertial pos=\"0 0 0\" mass=\"1\" diaginertia=\"0.1 0.1 0.1\"/></body></body>");
+        mjcf::parse(&xml)
+            .unwrap()
+            .builder
+            .finalize::<f64>()
+            .unwrap()
+    };
+    let (a, b) = (with_ref("30"), with_ref("0"));
+    assert!((a.q0[0] - 30f64.to_radians()).abs() < 1e-15);
+    assert_eq!(a.q0[1], 0.2);
+    let mut tape = Tape::new();
+    let (qa, qb) = (Array::from_vec(a.q0.clone()), Array::from_vec(b.q0.clone()));
+    let (ka, kb) = (a.kinematics(&mut tape, &qa), b.kinematics(&mut tape, &qb));
+    for l in 0..2 {
+        let (pa, pb) = (ka.link_p.get(l), kb.link_p.get(l));
+        assert!((pa - pb).norm() < 1e-12, "link {l}: {pa:?} vs {pb:?}");
+    }
+
+    // Flags: what they switch off is off; a limit's margin shrinks its range (MuJoCo's limit
+    // pushes back to `margin` inside it; in radians for a hinge, as MuJoCo reads it).
+    let floor = MJCF.replace(
+        "<worldbody>",
+        "<worldbody><geom type=\"plane\" size=\"1 1 1\"/>",
+    );
+    let flagged = |f: &str| {
+        let xml = floor
+            .replace(
+                "<worldbody>",
+                &format!("<option><flag {f}/></option><worldbody>"),
+            )
+            .replace("<joint name", "<joint range=\"-60 60\" margin=\"0.1\" name");
+        mjcf::parse(&xml).unwrap().builder
+    };
+    let on = flagged("energy=\"enable\"");
+    assert!(on.ground.is_some() && on.link_contact && on.gravity.z < 0.0);
+    let (lo, hi) = on.links()[0].joint.limits.unwrap();
+    assert!(
+        (lo - (0.1 - 60f64.to_radians())).abs() < 1e-15
+            && (hi - (60f64.to_radians() - 0.1)).abs() < 1e-15
+    );
+    let off = flagged("contact=\"disable\"");
+    assert!(off.ground.is_none() && !off.link_contact);
+    assert_eq!(flagged("gravity=\"disable\"").gravity.norm(), 0.0);
+    assert_eq!(flagged("limit=\"disable\"").links()[0].joint.limits, None);
+    let c = flagged("constraint=\"disable\"");
+    assert!(c.ground.is_none() && c.links()[0].joint.limits.is_none());
+
+    // `settotalmass` scales every body's mass and inertia to the total.
+    let total = mjcf::parse(&MJCF.replace("<mujoco>", "<mujoco><compiler settotalmass=\"7\"/>"))
+        .unwrap()
+        .builder;
+    assert_eq!(total.links()[0].inertial.mass, 7.0);
+    assert!((total.links()[0].inertial.inertia[(0, 0)] - 0.7).abs() < 1e-15);
+
+    // A second plane is a wall, a box in the worldbody a post: a ball sliding into the wall
+    // stops there and comes back; a geom that touches nothing is not a shape.
+    let xml = r#"<mujoco>
+  <worldbody>
+    <geom type="plane" size="5 5 .1"/>
+    <geom name="wall" type="plane" pos="1 0 0" zaxis="-1 0 0"/>
+    <geom name="post" type="box" pos="-1 0 0.5" size="0.1 0.1 0.5"/>
+    <geom name="rail" type="capsule" fromto="-1 1 0 1 1 0" size="0.02" contype="0" conaffinity="0"/>
+    <body name="ball" pos="0 0 0.5">
+      <joint name="x" type="slide" axis="1 0 0"/>
+      <geom type="sphere" size="0.1" mass="1"/>
+    </body>
+  </worldbody>
+</mujoco>"#;
+    let b = mjcf::parse(xml).unwrap().builder;
+    let world = b.find("world").unwrap();
+    assert_eq!(b.links()[world.0].joint.kind, JointType::Fixed);
+    assert_eq!(
+        b.contact_shapes()
+            .iter()
+            .filter(|s| s.link == world)
+            .count(),
+        2
+    );
+    let model = b.finalize::<f64>().unwrap();
+    for (v0, wall) in [(1.0, 1.0), (-1.0, -0.9)] {
+        let mut s = ArticulationState {
+            q: Array::from_vec(vec![0.0]),
+            qd: Array::from_vec(vec![v0]),
+        };
+        let (mut reach, mut tape) = (0.0f64, Tape::new());
+        for _ in 0..1000 {
+            s = model
+                .step(&mut tape, &s, Some(&model.control()), 1e-3)
+                .unwrap();
+            reach = if v0 > 0.0 {
+                reach.max(s.q.get(0))
+            } else {
+                reach.min(s.q.get(0))
+            };
+        }
+        let face = wall - 0.1f64.copysign(v0);
+        assert!(
+            (reach - face).abs() < 0.04,
+            "the ball reached {reach}, the face is at {face}"
+        );
+        assert!(s.qd.get(0) * v0 < 0.0, "it bounced back: {}", s.qd.get(0));
+    }
 }

@@ -158,7 +158,7 @@ pub struct GroundContact<R: Real> {
     pub offset: R,
     /// Stiffness per contact (N/m; default 1e4): per sphere, capsule end or box corner on
     /// the ground; between links, per pair of spheres or capsules, per sphere or capsule and
-    /// box, and per corner of a box inside another. Contacts between links use this law
+    /// box, and per edge of a box inside another. Contacts between links use this law
     /// too, with the shapes' own friction.
     pub ke: R,
     /// Damping in contact (N s/m; default 100), ramped in over `damping_depth`.

@@ -1,22 +1,38 @@
 //! Reading a subset of MuJoCo's MJCF.
 //!
-//! Read: `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local">`, `<option
-//! timestep gravity>`, `<default>` classes (nested, with `joint`, `geom`, `motor` and
-//! `position` defaults), `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis
-//! childclass>`, `<joint type="hinge|slide|ball|free" pos axis range limited damping armature
-//! stiffness springref>` (a spring on hinges and slides; `springref` in the file's angle
-//! unit), `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|plane" size fromto pos quat
-//! mass density contype conaffinity friction group>` (a geom outside groups 0 to 5 has no mass,
-//! as MuJoCo's default `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`,
-//! `<actuator>` with `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
+//! Read: `<include file>` (the included file's elements in its place; file names relative to
+//! the main file's directory, or the current one for [`parse`]; errors name the included file
+//! and line), `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local"
+//! settotalmass>` (and, passed over, the mesh and texture directories and the compiler's own
+//! switches), `<option timestep gravity>` with `<flag>` (`contact`, `limit`, `constraint` and
+//! `gravity` switched off are off here too; flags about MuJoCo's solver, sensors or checks are
+//! passed over; others that change the default are refused), `<default>` classes (nested, with
+//! `joint`, `geom`, `motor`, `position` and `tendon` defaults), `<worldbody>` with nested `<body
+//! pos quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint type="hinge|slide|ball|free"
+//! pos axis range limited margin ref damping armature stiffness springref>` (a spring on
+//! hinges and slides; `springref` and `ref` in the file's angle unit; `ref` is the coordinate
+//! at which the body is where the file puts it, and the initial one; a `margin` moves a limit
+//! that far inside the range, where MuJoCo's limit pushes back to), `<freejoint>`, `<geom
+//! type="sphere|capsule|box|cylinder|plane" size fromto pos quat mass density contype
+//! conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as MuJoCo's default
+//! `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`, `<actuator>` with
+//! `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
 //! Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`,
 //! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
 //! state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
 //! `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the integrator is the
-//! caller's choice here), a joint's `margin` where it has no limit, and
-//! `<tendon>` with `<fixed>` tendons that have no stiffness, damping, limits or friction
-//! (they exert no force). Anything else is an error naming the element and its line: MuJoCo
-//! would simulate it, and silently dropping it would simulate a different robot.
+//! caller's choice here) and the softness of its limit constraints (`solreflimit`,
+//! `solimplimit`: limits here are the builder's penalties), and `<tendon>` with `<fixed>`
+//! tendons that have no stiffness, damping, limits or friction (they exert no force).
+//! Refused: MuJoCo's fluid forces (`density`, `viscosity`, `wind`). Anything else is an error
+//! naming the element and its line: MuJoCo would simulate it, and silently dropping it would
+//! simulate a different robot.
+//!
+//! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
+//! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
+//! and added after the robot's links (a wall stands for its half-space as a box 2 km wide
+//! whose face is the plane). Geoms that touch nothing (`contype` and `conaffinity` 0) are
+//! decoration.
 //!
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
@@ -150,12 +166,13 @@ pub struct Geom {
 pub fn load(path: impl AsRef<Path>) -> Result<Mjcf, ArticulationError> {
     let path = path.as_ref();
     let text = xml::read(path)?;
-    parse_named(&text, Some(&path.display().to_string()))
+    let dir = path.parent().unwrap_or(Path::new(""));
+    parse_named(&text, Some(&path.display().to_string()), dir)
 }
 
-/// Reads MJCF text.
+/// Reads MJCF text; an `<include file>` is relative to the current directory.
 pub fn parse(text: &str) -> Result<Mjcf, ArticulationError> {
-    parse_named(text, None)
+    parse_named(text, None, Path::new(""))
 }
 
 /// Attribute defaults of one class, per element tag.
@@ -172,6 +189,14 @@ struct Reader<'a> {
     joints: HashMap<String, ()>,
     /// Each moving body's link and its parent body's link, for MuJoCo's filterparent.
     parents: Vec<(LinkId, LinkId)>,
+    /// `<flag contact="disable">` (or `constraint`): no contact at all.
+    no_contact: bool,
+    /// `<flag limit="disable">` (or `constraint`): joint ranges limit nothing.
+    no_limits: bool,
+    /// The worldbody's geoms that touch, other than planes.
+    world_shapes: Vec<(Geom, ContactFilter)>,
+    /// `<compiler settotalmass>`, when positive.
+    total_mass: Option<f64>,
 }
 
 const SKIPPED: &[&str] = &[
@@ -187,6 +212,10 @@ const SKIPPED: &[&str] = &[
     "keyframe",
 ];
 const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
+
+/// Half the side of the box that stands for a plane other than the ground (m): the plane's
+/// half-space within this distance.
+const WALL: f64 = 1e3;
 
 /// The attributes that give a frame's orientation, with how many numbers each takes.
 const ORIENTATIONS: [(&str, usize); 5] = [
@@ -207,12 +236,15 @@ fn defaults_of(tag: &str) -> &str {
     }
 }
 
-fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError> {
-    let doc = xml::parse(text, file)?;
+fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, ArticulationError> {
+    // MuJoCo's `<include>`: the included files' elements in its place.
+    let (text, lines) = xml::splice_includes(text, file, dir)?;
+    let doc = xml::parse(&text, file)?;
     let mut r = Reader {
         src: Source {
             file: file.map(str::to_string),
             doc: &doc,
+            lines: Some(&lines),
         },
         radians: false,
         eulerseq: vec![(0, true), (1, true), (2, true)],
@@ -222,6 +254,10 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
         geoms: Vec::new(),
         joints: HashMap::new(),
         parents: Vec::new(),
+        no_contact: false,
+        no_limits: false,
+        world_shapes: Vec::new(),
+        total_mass: None,
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
@@ -252,6 +288,23 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
             "option" => {
                 // MuJoCo's own solver's settings name no property of the model: the
                 // integrator is the caller's choice here, and contacts follow the library's law.
+                for fluid in ["density", "viscosity", "wind"] {
+                    let still = |v: Vec<f64>| v.iter().all(|&x| x == 0.0);
+                    if let Some(v) =
+                        r.src
+                            .numbers(*n, fluid, if fluid == "wind" { 3 } else { 1 })?
+                    {
+                        if !still(v) {
+                            return Err(r.src.error(
+                                *n,
+                                format!(
+                                    "`{fluid}`: MuJoCo's fluid forces (density, viscosity, \
+                                     wind) are not supported; remove it or set it to 0"
+                                ),
+                            ));
+                        }
+                    }
+                }
                 r.src.only_attributes(
                     *n,
                     &[
@@ -259,18 +312,27 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
                         "gravity",
                         "integrator",
                         "iterations",
+                        "ls_iterations",
                         "solver",
                         "tolerance",
+                        "ls_tolerance",
                         "cone",
                         "jacobian",
                         "noslip_iterations",
+                        "noslip_tolerance",
                         "impratio",
+                        "density",
+                        "viscosity",
+                        "wind",
+                        "collision",
                     ],
                 )?;
-                children(&r.src, *n, &[], &[])?;
                 timestep = r.src.number(*n, "timestep")?;
                 if let Some(g) = r.src.vec3(*n, "gravity")? {
                     r.builder.gravity = g;
+                }
+                for f in children(&r.src, *n, &["flag"], &[])? {
+                    r.flags(f)?;
                 }
             }
             "default" => r.default(*n, None)?,
@@ -294,19 +356,57 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
     for n in items.iter().filter(|n| n.has_tag_name("tendon")) {
         r.src.only_attributes(*n, &[])?;
         for t in children(&r.src, *n, &["fixed"], &[])? {
-            r.src
-                .only_attributes(t, &["name", "class", "group", "rgba"])
-                .map_err(|mut e| {
-                    e.message += " (a tendon with stiffness, damping, limits or friction is not \
+            const HARMLESS: [&str; 6] = ["name", "class", "group", "rgba", "width", "material"];
+            r.src.only_attributes(t, &HARMLESS).map_err(|mut e| {
+                e.message += " (a tendon with stiffness, damping, limits or friction is not \
                                   supported)";
-                    e
-                })?;
+                e
+            })?;
+            r.check_class(t)?;
+            let class = t.attribute("class").unwrap_or("main");
+            if let Some(d) = r.classes.get(class).and_then(|c| c.get("tendon")) {
+                if let Some(k) = d.keys().find(|k| !HARMLESS.contains(&k.as_str())) {
+                    return Err(r.src.error(
+                        t,
+                        format!(
+                            "its class \"{class}\" gives tendons `{k}`: a tendon with \
+                             stiffness, damping, limits or friction is not supported"
+                        ),
+                    ));
+                }
+            }
             for j in children(&r.src, t, &["joint"], &[])? {
                 r.src.only_attributes(j, &["joint", "coef"])?;
                 let name = r.src.required(j, "joint")?;
                 if !r.joints.contains_key(name) {
                     return Err(r.src.error(j, format!("joint \"{name}\" is not defined")));
                 }
+            }
+        }
+    }
+    // The worldbody's shapes on a massless link fixed to the world, after the robots' links
+    // (so that these keep their indices), touched by the bodies as in MuJoCo.
+    if !r.world_shapes.is_empty() {
+        let world = r.builder.add_link(
+            "world",
+            None,
+            Joint::fixed().name("world_weld"),
+            Inertial::massless(),
+        );
+        for (g, filter) in std::mem::take(&mut r.world_shapes) {
+            if let Some(k) = r.builder.add_contact_shape(world, &g.pose, &g.shape) {
+                r.builder.set_contact_filter(k, filter);
+                r.builder.set_contact_friction(k, g.friction);
+            }
+        }
+    }
+    if let Some(total) = r.total_mass {
+        let links = r.builder.links_mut();
+        let sum: f64 = links.iter().map(|l| l.inertial.mass).sum();
+        if sum > 0.0 {
+            for l in links {
+                l.inertial.mass *= total / sum;
+                l.inertial.inertia *= total / sum;
             }
         }
     }
@@ -336,6 +436,9 @@ fn parse_named(text: &str, file: Option<&str>) -> Result<Mjcf, ArticulationError
         r.builder.ground_filter = ContactFilter::NONE;
     }
     r.builder.link_contact = r.builder.ground.is_some();
+    if r.no_contact {
+        (r.builder.ground, r.builder.link_contact) = (None, false);
+    }
     let mass: f64 = r.builder.links().iter().map(|l| l.inertial.mass).sum();
     let weight = mass * r.builder.gravity.norm().max(1.0);
     if let (Some(g), true) = (r.builder.ground.as_mut(), mass > 0.0) {
@@ -360,8 +463,25 @@ impl<'a> Reader<'a> {
                 "inertiafromgeom",
                 "autolimits",
                 "coordinate",
+                "settotalmass",
+                // Where meshes and textures are, and how the compiler runs: nothing simulated
+                // here depends on them (mesh geoms are refused).
+                "meshdir",
+                "texturedir",
+                "assetdir",
+                "discardvisual",
+                "strippath",
+                "usethread",
+                "fusestatic",
+                "exactmeshinertia",
+                "fitaabb",
+                "saveinertial",
             ],
         )?;
+        if let Some(m) = self.src.number(n, "settotalmass")? {
+            // MuJoCo: a positive value scales every body's mass and inertia to that total.
+            self.total_mass = (m > 0.0).then_some(m);
+        }
         children(&self.src, n, &[], &[])?;
         match n.attribute("coordinate") {
             None | Some("local") => {}
@@ -418,6 +538,91 @@ impl<'a> Reader<'a> {
         }
     }
 
+    /// `<option><flag>`: the switches that change this model's dynamics are applied
+    /// (`contact`, `limit`, `constraint`, `gravity`); those about MuJoCo's own solver, sensors
+    /// or checks are passed over; the rest are refused when they change the default.
+    fn flags(&mut self, n: Node) -> Result<(), ArticulationError> {
+        // MuJoCo's defaults: these flags start enabled, every other one disabled.
+        const ENABLED: &[&str] = &[
+            "constraint",
+            "equality",
+            "frictionloss",
+            "limit",
+            "contact",
+            "passive",
+            "spring",
+            "damper",
+            "gravity",
+            "clampctrl",
+            "warmstart",
+            "filterparent",
+            "actuation",
+            "refsafe",
+            "sensor",
+            "midphase",
+            "eulerdamp",
+            "autoreset",
+            "nativeccd",
+            "island",
+        ];
+        // No effect on the dynamics simulated here (no equality or friction-loss constraint is
+        // read; MuJoCo's solver, sensors and checks are its own).
+        const NO_EFFECT: &[&str] = &[
+            "equality",
+            "frictionloss",
+            "warmstart",
+            "refsafe",
+            "sensor",
+            "midphase",
+            "eulerdamp",
+            "autoreset",
+            "nativeccd",
+            "island",
+            "energy",
+            "fwdinv",
+            "invdiscrete",
+            "multiccd",
+            "sleep",
+        ];
+        for a in n.attributes() {
+            let (name, value) = (a.name(), a.value());
+            let enabled = match value {
+                "enable" => true,
+                "disable" => false,
+                o => {
+                    return Err(self
+                        .src
+                        .error(n, format!("{name}=\"{o}\": use \"enable\" or \"disable\"")))
+                }
+            };
+            match (name, enabled) {
+                ("contact", false) => self.no_contact = true,
+                ("limit", false) => self.no_limits = true,
+                ("constraint", false) => (self.no_contact, self.no_limits) = (true, true),
+                ("gravity", false) => self.builder.gravity = Vec3::zeros(),
+                (f, _) if NO_EFFECT.contains(&f) => {}
+                (f, true) if ENABLED.contains(&f) => {}
+                ("override", false) => {}
+                (f, _) if !ENABLED.contains(&f) && f != "override" => {
+                    return Err(self
+                        .src
+                        .error(n, format!("`{f}` is not a flag MuJoCo knows")))
+                }
+                (f, e) => {
+                    return Err(self.src.error(
+                        n,
+                        format!(
+                            "{f}=\"{}\" is not supported (MuJoCo's default is {})",
+                            if e { "enable" } else { "disable" },
+                            if e { "disable" } else { "enable" }
+                        ),
+                    ))
+                }
+            }
+        }
+        Ok(())
+    }
+
     fn default(&mut self, n: Node, parent: Option<&str>) -> Result<(), ArticulationError> {
         self.src.only_attributes(n, &["class"])?;
         let name = match (n.attribute("class"), parent) {
@@ -431,7 +636,7 @@ impl<'a> Reader<'a> {
         let kids = children(
             &self.src,
             n,
-            &["default", "joint", "geom", "motor", "position"],
+            &["default", "joint", "geom", "motor", "position", "tendon"],
             &["site", "camera", "light", "mesh", "material"],
         )?;
         for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
@@ -599,10 +804,19 @@ impl<'a> Reader<'a> {
                     let filter = self.filter(c, &class)?;
                     if g.shape == GeomShape::Plane && filter == ContactFilter::NONE {
                         // A plane that touches nothing (decoration).
+                    } else if g.shape == GeomShape::Plane && self.builder.ground.is_some() {
+                        // A wall: its half-space as a box whose face is the plane.
+                        let pose = g.pose.compose(&Pose::at(Vec3::new(0.0, 0.0, -WALL)));
+                        let shape = GeomShape::Box(Vec3::new(WALL, WALL, WALL));
+                        self.world_shapes.push((
+                            Geom {
+                                pose,
+                                shape,
+                                ..g.clone()
+                            },
+                            filter,
+                        ));
                     } else if g.shape == GeomShape::Plane {
-                        if self.builder.ground.is_some() {
-                            return Err(self.src.error(c, "a second ground plane"));
-                        }
                         let normal = g.pose.transform_vector(&Vec3::z());
                         self.builder.ground = Some(GroundContact {
                             normal,
@@ -611,11 +825,9 @@ impl<'a> Reader<'a> {
                             ..GroundContact::default()
                         });
                         self.builder.ground_filter = filter;
-                    } else if g.shape != GeomShape::Plane {
-                        return Err(self.src.error(
-                            c,
-                            "only a plane can be a geom of the worldbody (put others in a body)",
-                        ));
+                    } else if filter != ContactFilter::NONE {
+                        // A static shape (a wall, a rail), added once the bodies are.
+                        self.world_shapes.push((g.clone(), filter));
                     }
                     self.geoms.push(g);
                 }
@@ -742,6 +954,18 @@ impl<'a> Reader<'a> {
             } else {
                 Pose::at(jpos - at)
             };
+            // A joint with a `ref` places the body at q = ref: the joint's frame is moved by
+            // -ref along (about) its axis, which the axis does not change.
+            let origin = match (joint.kind, joint.initial.as_slice()) {
+                (super::JointType::Revolute, &[r]) => origin.compose(&Pose::new(
+                    Vec3::zeros(),
+                    axis_angle(&joint.axis.normalize(), -r),
+                )),
+                (super::JointType::Prismatic, &[r]) => {
+                    origin.compose(&Pose::at(-joint.axis.normalize() * r))
+                }
+                _ => origin,
+            };
             at = jpos;
             let last = k + 1 == count;
             let link_name = if last {
@@ -848,6 +1072,12 @@ impl<'a> Reader<'a> {
             "frictionloss",
             "group",
             "margin",
+            // The softness of MuJoCo's limit constraints: limits here are the builder's
+            // penalties (`limit_ke`, `limit_kd`), as contacts follow the library's law.
+            "solreflimit",
+            "solimplimit",
+            "solreffriction",
+            "solimpfriction",
         ];
         self.src.only_attributes(n, &known)?;
         self.check_class(n)?;
@@ -877,15 +1107,23 @@ impl<'a> Reader<'a> {
                 ))
             }
         };
-        for unsupported in ["frictionloss", "ref"] {
-            if let Some(v) = self.nums(n, class, unsupported, &[1])? {
-                if v[0] != 0.0 {
-                    return Err(self.src.error(
-                        n,
-                        format!("`{unsupported}` is not supported; remove it or set it to 0"),
-                    ));
-                }
+        if let Some(v) = self.nums(n, class, "frictionloss", &[1])? {
+            if v[0] != 0.0 {
+                return Err(self.src.error(
+                    n,
+                    "`frictionloss` is not supported; remove it or set it to 0",
+                ));
             }
+        }
+        // MuJoCo's `ref` (hinges and slides): the coordinate at which the body is where the
+        // file puts it, and the initial one. `body` turns the joint's frame by `-ref`.
+        if let (Some(v), "hinge" | "slide") = (self.nums(n, class, "ref", &[1])?, kind) {
+            let r = if kind == "hinge" {
+                self.angle(v[0])
+            } else {
+                v[0]
+            };
+            j = j.initial(&[r]);
         }
         let name = n
             .attribute("name")
@@ -896,6 +1134,12 @@ impl<'a> Reader<'a> {
         }
         j = j.name(name);
         let range = self.nums(n, class, "range", &[2])?;
+        // MuJoCo's limit acts from `margin` inside the range and pushes back to there: the
+        // limit is at the range shrunk by the margin.
+        let margin = self.nums(n, class, "margin", &[1])?.map_or(0.0, |v| v[0]);
+        if margin < 0.0 {
+            return Err(self.src.error(n, format!("margin {margin} is negative")));
+        }
         let limited = self.attr(n, class, "limited").unwrap_or("auto");
         if let Some(r) = range {
             if limited != "false" && (kind == "hinge" || kind == "slide") {
@@ -907,8 +1151,16 @@ impl<'a> Reader<'a> {
                 }
                 // As MuJoCo, `limited="auto"` limits only a range with lower < upper: `range="0
                 // 0"` (MuJoCo's default) leaves the joint free.
-                if lo < hi {
-                    j = j.limits(lo, hi);
+                if lo < hi && !self.no_limits {
+                    // In the joint's coordinate (radians for a hinge), as MuJoCo reads it.
+                    let m = margin;
+                    if lo + m >= hi - m {
+                        return Err(self.src.error(
+                            n,
+                            format!("margin {margin} closes the range [{}, {}]", r[0], r[1]),
+                        ));
+                    }
+                    j = j.limits(lo + m, hi - m);
                 }
             } else if limited != "false" && kind == "ball" {
                 // MuJoCo would limit the cone of a ball joint with a range.
@@ -943,15 +1195,6 @@ impl<'a> Reader<'a> {
                 .map_or(0.0, |v| v[0]);
             let r = if kind == "hinge" { self.angle(r) } else { r };
             j = j.stiffness(stiffness, r);
-        }
-        // A limit's margin widens where MuJoCo's limit constraint acts; on a joint without a
-        // limit it does nothing.
-        let margin = self.nums(n, class, "margin", &[1])?.map_or(0.0, |v| v[0]);
-        if margin != 0.0 && j.limits.is_some() {
-            return Err(self.src.error(
-                n,
-                "a margin on a limited joint is not supported; remove it or set it to 0",
-            ));
         }
         for (attr, set) in [("damping", 0), ("armature", 1)] {
             if let Some(v) = self.nums(n, class, attr, &[1])? {

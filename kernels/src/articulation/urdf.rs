@@ -104,6 +104,7 @@ fn parse_named(
     let src = Source {
         file: file.map(str::to_string),
         doc: &doc,
+        lines: None,
     };
     let robot = doc.root_element();
     if robot.tag_name().name() != "robot" {

@@ -10,12 +10,18 @@ use super::model::ArticulationError;
 pub(crate) struct Source<'a> {
     pub file: Option<String>,
     pub doc: &'a roxmltree::Document<'a>,
+    /// Where the document's lines come from, when it was spliced from several files.
+    pub lines: Option<&'a Lines>,
 }
 
 impl Source<'_> {
-    /// An error at `node`: `<tag name="...">` on its line.
+    /// An error at `node`: `<tag name="...">` on its line (of the file it came from).
     pub fn error(&self, node: Node, message: impl Into<String>) -> ArticulationError {
-        let pos = self.doc.text_pos_at(node.range().start);
+        let at = node.range().start;
+        let (file, row) = match self.lines {
+            Some(lines) => lines.origin(self.doc.input_text(), at),
+            None => (self.file.clone(), self.doc.text_pos_at(at).row),
+        };
         let tag = node.tag_name().name();
         let element = match node.attribute("name") {
             Some(n) => format!("<{tag} name=\"{n}\">"),
@@ -23,8 +29,8 @@ impl Source<'_> {
         };
         ArticulationError {
             element,
-            file: self.file.clone(),
-            line: Some(pos.row),
+            file,
+            line: Some(row),
             message: message.into(),
         }
     }
@@ -157,4 +163,127 @@ pub(crate) fn read(path: &std::path::Path) -> Result<String, ArticulationError> 
         line: None,
         message: e.to_string(),
     })
+}
+
+/// Where each part of a text spliced from several files comes from: pieces in order, each
+/// its first byte in the splice, its file and the line it starts on there.
+#[derive(Debug, Default)]
+pub(crate) struct Lines(Vec<(usize, Option<String>, u32)>);
+
+impl Lines {
+    /// The file and line of byte `at` of the splice `text`.
+    fn origin(&self, text: &str, at: usize) -> (Option<String>, u32) {
+        match self.0.iter().rev().find(|p| p.0 <= at) {
+            Some((first, file, line)) => {
+                let below = text[*first..at].matches('\n').count() as u32;
+                (file.clone(), line + below)
+            }
+            None => (None, 1),
+        }
+    }
+}
+
+/// How deep `<include>`s may nest (a file including itself would otherwise never end).
+const INCLUDE_DEPTH: usize = 16;
+
+/// `text` with every `<include file="...">` replaced by the children of the included file's
+/// root (MJCF's `<mujocoinclude>`), recursively; file names are relative to `dir`. Returns
+/// the splice and where its lines come from, so that errors name the right file and line.
+pub(crate) fn splice_includes(
+    text: &str,
+    file: Option<&str>,
+    dir: &std::path::Path,
+) -> Result<(String, Lines), ArticulationError> {
+    let mut out = String::new();
+    let mut lines = Lines::default();
+    let doc = parse(text, file)?;
+    splice(
+        &doc,
+        text,
+        file,
+        0..text.len(),
+        dir,
+        0,
+        &mut out,
+        &mut lines,
+    )?;
+    Ok((out, lines))
+}
+
+/// Copies `text[range]` of `doc` into `out`, splicing its `<include>`s.
+#[allow(clippy::too_many_arguments)]
+fn splice(
+    doc: &roxmltree::Document,
+    text: &str,
+    file: Option<&str>,
+    range: std::ops::Range<usize>,
+    dir: &std::path::Path,
+    depth: usize,
+    out: &mut String,
+    lines: &mut Lines,
+) -> Result<(), ArticulationError> {
+    let src = Source {
+        file: file.map(str::to_string),
+        doc,
+        lines: None,
+    };
+    let copy = |from: usize, to: usize, out: &mut String, lines: &mut Lines| {
+        if from < to {
+            let line = doc.text_pos_at(from).row;
+            lines.0.push((out.len(), file.map(str::to_string), line));
+            out.push_str(&text[from..to]);
+        }
+    };
+    let mut at = range.start;
+    let includes = doc.descendants().filter(|n| {
+        n.has_tag_name("include") && n.range().start >= range.start && n.range().end <= range.end
+    });
+    for inc in includes {
+        src.only_attributes(inc, &["file"])?;
+        children(&src, inc, &[], &[])?;
+        let name = src.required(inc, "file")?;
+        if depth >= INCLUDE_DEPTH {
+            return Err(src.error(
+                inc,
+                format!(
+                    "includes nest deeper than {INCLUDE_DEPTH} files (a file includes itself?)"
+                ),
+            ));
+        }
+        let path = dir.join(name);
+        let inner = std::fs::read_to_string(&path)
+            .map_err(|e| src.error(inc, format!("cannot read \"{}\": {e}", path.display())))?;
+        let inner_file = path.display().to_string();
+        let inner_doc = parse(&inner, Some(&inner_file))?;
+        let root = inner_doc.root_element();
+        let inner_src = Source {
+            file: Some(inner_file.clone()),
+            doc: &inner_doc,
+            lines: None,
+        };
+        if !matches!(root.tag_name().name(), "mujocoinclude" | "mujoco") {
+            return Err(inner_src.error(
+                root,
+                "the root element of an included file must be <mujocoinclude>",
+            ));
+        }
+        inner_src.only_attributes(root, &["model"])?;
+        copy(at, inc.range().start, out, lines);
+        if let (Some(first), Some(last)) = (root.first_child(), root.last_child()) {
+            let inner_range = first.range().start..last.range().end;
+            splice(
+                &inner_doc,
+                &inner,
+                Some(&inner_file),
+                inner_range,
+                dir,
+                depth + 1,
+                out,
+                lines,
+            )?;
+        }
+        at = inc.range().end;
+    }
+    copy(at, range.end, out, lines);
+    Ok(())
 }
