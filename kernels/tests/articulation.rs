@@ -103,7 +103,10 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             .any(|j| j["kind"] == "free");
         let stepper = (!file.ends_with(".urdf") && !free).then(|| {
             let mut b = mjcf::load(format!("{ROBOTS}/{file}")).unwrap().builder;
-            (b.ground, b.link_contact, b.limit_ke, b.limit_kd) = (None, false, 0.0, 0.0);
+            (b.ground, b.link_contact) = (None, false);
+            for l in b.links_mut() {
+                l.joint.limits = None;
+            }
             b.finalize::<f64>().unwrap()
         });
         let mut worst = [0.0f64; 7];
@@ -572,8 +575,6 @@ fn quadruped_rollout_through_ground_contact_has_right_gradients() {
     let g = b.ground.as_mut().unwrap();
     // A contact as stiff as the ant is light (about 1 cm sag on one foot).
     (g.ke, g.kd) = (mass * 9.81 / 0.01, mass * 5.0);
-    b.limit_ke = 10.0;
-    b.limit_kd = 0.1;
     let model = b.finalize::<f64>().unwrap();
     let n = model.n_dof;
     let steps = 250;
@@ -1417,4 +1418,113 @@ fn mjcf_reads_includes_ref_flags_margins_and_walls_as_mujoco() {
         );
         assert!(s.qd.get(0) * v0 < 0.0, "it bounced back: {}", s.qd.get(0));
     }
+}
+
+#[test]
+fn limits_with_a_time_constant_come_back_alike_for_light_and_heavy_links_at_any_step() {
+    use adflex_kernels::articulation::{
+        ArticulationBuilder, ArticulationControl, ArticulationState, Inertial, Joint,
+    };
+    use adflex_runtime::Vec3;
+    // A pendulum without gravity started 0.5 rad past its upper limit 0.1.
+    let pendulum = |mass: f64, tc: Option<f64>| {
+        let mut b = ArticulationBuilder::new();
+        b.gravity = Vec3::zeros();
+        let mut j = Joint::revolute(Vec3::y()).limits(-0.1, 0.1);
+        if let Some(tc) = tc {
+            j = j.limit_time_constant(tc, 1.0);
+        }
+        b.add_link(
+            "pole",
+            None,
+            j,
+            Inertial::point(mass, Vec3::new(0.0, 0.0, -0.5)),
+        );
+        b.finalize::<f64>().unwrap()
+    };
+    let run = |model: &Articulations<f64>, q0: f64, dt: f64, t: f64| -> Vec<f64> {
+        let mut s = ArticulationState {
+            q: Array::from_vec(vec![q0]),
+            qd: Array::from_vec(vec![0.0]),
+        };
+        let c: ArticulationControl<f64> = model.control();
+        let mut tape = Tape::new();
+        let mut out = Vec::new();
+        for _ in 0..(t / dt).round() as usize {
+            s = model.step(&mut tape, &s, Some(&c), dt).unwrap();
+            out.push(s.q.get(0));
+        }
+        out
+    };
+    let tc = 0.02;
+    for dt in [1e-3, 0.01, 0.05] {
+        let light = run(&pendulum(1e-3, Some(tc)), 0.6, dt, 0.3);
+        let heavy = run(&pendulum(1e3, Some(tc)), 0.6, dt, 0.3);
+        // The same motion whatever the inertia (to rounding).
+        for (a, b) in light.iter().zip(&heavy) {
+            assert!((a - b).abs() < 1e-12, "dt {dt}: light {a} vs heavy {b}");
+        }
+        // Critically damped: back to the limit without crossing it, within a few time
+        // constants, at a step 2.5 times the time constant too (the limit is implicit).
+        let undershoot = light.iter().fold(f64::MAX, |m, &x| m.min(x));
+        assert!(
+            undershoot > 0.1 - 1e-9,
+            "dt {dt}: crossed the limit to {undershoot}"
+        );
+        let k = (5.0 * tc / dt).ceil() as usize;
+        let left = light[k.min(light.len() - 1)] - 0.1;
+        println!("dt {dt}: after 5 time constants {left:.2e} of 0.5 past the limit left");
+        assert!(
+            left < 0.5 * 0.1,
+            "dt {dt}: {left} left after 5 time constants"
+        );
+    }
+    // The builder's one stiffness for every joint: in 50 ms a light link is back, a heavy one
+    // has hardly moved (the behaviour the time constant avoids).
+    let light = run(&pendulum(1e-3, None), 0.6, 1e-4, 0.05);
+    let heavy = run(&pendulum(1e3, None), 0.6, 1e-4, 0.05);
+    let (l, h) = (light.last().unwrap(), heavy.last().unwrap());
+    assert!(
+        *l < 0.11 && *h > 0.5,
+        "penalty limit: light at {l}, heavy at {h}"
+    );
+
+    // Gradients through the limit: d q(T) / d q0 and d q(T) / d mass against central
+    // differences, and forward mode against reverse.
+    let model = pendulum(2.0, Some(tc));
+    let loss_at = |q0: f64, m: f64| -> f64 {
+        let model = Articulations {
+            mass: Array::from_vec(vec![m]),
+            ..model.clone()
+        };
+        *run(&model, q0, 0.01, 0.05).last().unwrap()
+    };
+    let q0 = Array::from_vec(vec![0.35]);
+    let mut tape = Tape::new();
+    let mut s = ArticulationState {
+        q: q0.clone(),
+        qd: Array::from_vec(vec![0.0]),
+    };
+    let c = model.control();
+    for _ in 0..5 {
+        s = model.step(&mut tape, &s, Some(&c), 0.01).unwrap();
+    }
+    let g = tape.vjp(&[&s.q], &[1.0], &[&q0, &model.mass]).unwrap();
+    let h = 1e-6;
+    let fd = [
+        (loss_at(0.35 + h, 2.0) - loss_at(0.35 - h, 2.0)) / (2.0 * h),
+        (loss_at(0.35, 2.0 + h) - loss_at(0.35, 2.0 - h)) / (2.0 * h),
+    ];
+    println!("through the limit: {g:?} vs central differences {fd:?}");
+    assert!(
+        (g[0] - fd[0]).abs() < 1e-6 * fd[0].abs().max(1.0),
+        "{g:?} vs {fd:?}"
+    );
+    // The time-constant law is scaled by the inertia: the mass drops out.
+    assert!(g[1].abs() < 1e-9 && fd[1].abs() < 1e-6, "{g:?} vs {fd:?}");
+    let jv = tape.jvp(&[&q0, &model.mass], &[1.0, 0.3], &[&s.q]).unwrap();
+    assert!(
+        (jv[0] - (g[0] + 0.3 * g[1])).abs() < 1e-9,
+        "{jv:?} vs {g:?}"
+    );
 }

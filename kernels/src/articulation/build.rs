@@ -177,6 +177,17 @@ pub(crate) fn finalize<R: Real>(
                 ));
             }
         }
+        if let Some((tc, zeta)) = j.limit_time {
+            if !(tc.is_finite() && tc > 0.0 && zeta.is_finite() && zeta > 0.0) {
+                return Err(err(
+                    je(),
+                    format!(
+                        "limit time constant {tc} and damping ratio {zeta} must be finite and \
+                         positive"
+                    ),
+                ));
+            }
+        }
         if d.parent.is_some() && j.kind == JointType::Free {
             // Allowed (a floating child), but rare: nothing to check.
         }
@@ -396,6 +407,12 @@ pub(crate) fn finalize<R: Real>(
             dof.kv.push(j.kv);
             dof.lower.push(lo);
             dof.upper.push(hi);
+            let (k, b) = match j.limit_time {
+                Some((tc, zeta)) => (1.0 / (tc * zeta).powi(2), 2.0 / tc),
+                None => (0.0, 0.0),
+            };
+            dof.limit_k.push(k);
+            dof.limit_b.push(b);
         }
     }
 
@@ -535,6 +552,8 @@ pub(crate) fn finalize<R: Real>(
         kv: rs(&dof.kv),
         lower: rs(&dof.lower),
         upper: rs(&dof.upper),
+        limit_k: rs(&dof.limit_k),
+        limit_b: rs(&dof.limit_b),
         m_len,
         contact_link: Array::from_vec(
             ground_spheres
@@ -613,6 +632,8 @@ struct DofArrays {
     kv: Vec<f64>,
     lower: Vec<f64>,
     upper: Vec<f64>,
+    limit_k: Vec<f64>,
+    limit_b: Vec<f64>,
 }
 
 /// A joint whose motion moves no mass makes the mass matrix singular: found from the

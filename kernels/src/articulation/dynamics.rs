@@ -57,6 +57,8 @@ struct PassInput<'a, R: Real> {
     tau: &'a Array<R>,
     control: Option<&'a ArticulationControl<R>>,
     contact: bool,
+    /// A step's time step (0 otherwise): violated limits are integrated implicitly.
+    dt: R,
 }
 
 impl<'a, R: Real> PassInput<'a, R> {
@@ -68,6 +70,7 @@ impl<'a, R: Real> PassInput<'a, R> {
             tau,
             control: None,
             contact: false,
+            dt: R::lit(0.0),
         }
     }
 }
@@ -194,6 +197,7 @@ impl<R: Real> Articulations<R> {
             tau,
             control,
             contact,
+            dt,
         } = input;
         self.check_len(qd, self.n_dof, "qd");
         self.check_len(tau, self.n_dof, "tau");
@@ -383,6 +387,9 @@ impl<R: Real> Articulations<R> {
                 &self.upper,
                 self.limit_ke,
                 self.limit_kd,
+                &self.limit_k,
+                &self.limit_b,
+                dt,
                 &tau_id,
                 &m,
                 &rhs,
@@ -469,6 +476,7 @@ impl<R: Real> Articulations<R> {
             PassInput {
                 control: Some(control),
                 contact: true,
+                dt,
                 ..PassInput::new(q, qd, &control.tau)
             },
         );

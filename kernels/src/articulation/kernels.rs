@@ -219,8 +219,11 @@ pub fn articulation_link_dynamics<R: Real>(
 /// **Right-hand side** `tau - tau_id`, and when `passive` is 1 also
 /// `+ kp (q_target - q) + kv (qd_target - qd) - damping qd - stiffness (q - spring_ref) +
 /// limit` (PD, spring and limit terms on revolute and prismatic joints, `dof_q[d]` their
-/// coordinate; the limit pushes back by
-/// `limit_ke (lower - q) - limit_kd qd` below `lower`, likewise above `upper`).
+/// coordinate; the limit pushes back by `ke (lower - q) - kd qd` below `lower`, likewise above
+/// `upper`, with `ke = limit_ke`, `kd = limit_kd`, or, where `limit_k[a]` is not 0,
+/// `ke = M[a][a] limit_k[a]`, `kd = M[a][a] limit_b[a]`). With `dt > 0` (a step), a violated
+/// limit is integrated implicitly: `dt kd + dt^2 ke` joins `M[a][a]` and `-dt ke qd` the
+/// right-hand side (backward Euler of the limit's spring and damper, linearized).
 #[diff_kernel]
 pub fn articulation_joint_space<R: Real>(
     dof_link: &Array<u32>,
@@ -258,6 +261,9 @@ pub fn articulation_joint_space<R: Real>(
     upper: &Array<R>,
     limit_ke: R,
     limit_kd: R,
+    limit_k: &Array<R>,
+    limit_b: &Array<R>,
+    dt: R,
     tau_id: &Array<R>,
     m: &Array<R>,
     rhs: &Array<R>,
@@ -287,16 +293,19 @@ pub fn articulation_joint_space<R: Real>(
     let fa = va * mc - cross(hc, wa);
     let c0 = chain_start[la] as usize;
     let c1 = chain_start[la + 1] as usize;
+    // The diagonal entry is stored last: a step's implicit limit adds to it.
+    let mut m_aa = mc * 0.0;
     for k in c0..c1 {
         let j = chain[k] as usize;
         let d0 = qd_start[j] as usize;
         let d1 = qd_start[j + 1] as usize;
         for b in d0..d1 {
-            let mut e = dot(s_w[b], na) + dot(s_v[b], fa);
+            let e = dot(s_w[b], na) + dot(s_v[b], fa);
             if b == a {
-                e = e + armature[a];
+                m_aa = e + armature[a];
+            } else {
+                m[row + b - first] = e;
             }
-            m[row + b - first] = e;
         }
     }
     // Strict descendants (the subtree list starts with the link itself): Ic_i S_a.
@@ -314,6 +323,7 @@ pub fn articulation_joint_space<R: Real>(
     }
     // Right-hand side.
     let mut f = tau[a] - tid_a;
+    let mut extra = m_aa * 0.0;
     if passive == 1 {
         let v = qd[a];
         f = f - damping[a] * v;
@@ -321,13 +331,20 @@ pub fn articulation_joint_space<R: Real>(
             let x = q[dof_q[a] as usize];
             f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v)
                 - stiffness[a] * (x - spring_ref[a]);
-            if x < lower[a] {
-                f = f + limit_ke * (lower[a] - x) - limit_kd * v;
-            } else if x > upper[a] {
-                f = f + limit_ke * (upper[a] - x) - limit_kd * v;
+            let mut ke = limit_ke;
+            let mut kd = limit_kd;
+            if limit_k[a] != 0.0 {
+                ke = m_aa * limit_k[a];
+                kd = m_aa * limit_b[a];
+            }
+            let past = select(x < lower[a], lower[a], upper[a]);
+            if x < lower[a] || x > upper[a] {
+                f = f + ke * (past - x) - kd * v - ke * v * dt;
+                extra = (kd + ke * dt) * dt;
             }
         }
     }
+    m[row + a - first] = m_aa + extra;
     rhs[a] = f;
 }
 

@@ -21,8 +21,9 @@
 //! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
 //! state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
 //! `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the integrator is the
-//! caller's choice here) and the softness of its limit constraints (`solreflimit`,
-//! `solimplimit`: limits here are the builder's penalties), and `<tendon>` with `<fixed>`
+//! caller's choice here) and the impedance of its limit constraints (`solimplimit`; a limit
+//! follows `solreflimit`, MuJoCo's default `0.02 1`, as [`Joint::limit_time_constant`]
+//! describes), and `<tendon>` with `<fixed>`
 //! tendons that have no stiffness, damping, limits or friction (they exert no force).
 //! Refused: MuJoCo's fluid forces (`density`, `viscosity`, `wind`). Anything else is an error
 //! naming the element and its line: MuJoCo would simulate it, and silently dropping it would
@@ -1072,8 +1073,8 @@ impl<'a> Reader<'a> {
             "frictionloss",
             "group",
             "margin",
-            // The softness of MuJoCo's limit constraints: limits here are the builder's
-            // penalties (`limit_ke`, `limit_kd`), as contacts follow the library's law.
+            // A limit's time constant and damping ratio (read below); the impedance of
+            // MuJoCo's constraints, and friction loss's (refused anyway), are its solver's.
             "solreflimit",
             "solimplimit",
             "solreffriction",
@@ -1161,6 +1162,19 @@ impl<'a> Reader<'a> {
                         ));
                     }
                     j = j.limits(lo + m, hi - m);
+                    // MuJoCo's limit law: a time constant and a damping ratio.
+                    let sr = self.nums(n, class, "solreflimit", &[2])?;
+                    let (tc, zeta) = sr.map_or((0.02, 1.0), |v| (v[0], v[1]));
+                    if !(tc > 0.0 && zeta > 0.0) {
+                        return Err(self.src.error(
+                            n,
+                            format!(
+                                "solreflimit=\"{tc} {zeta}\": only a positive time constant and \
+                                 damping ratio are supported"
+                            ),
+                        ));
+                    }
+                    j = j.limit_time_constant(tc, zeta);
                 }
             } else if limited != "false" && kind == "ball" {
                 // MuJoCo would limit the cone of a ball joint with a range.

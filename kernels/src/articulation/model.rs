@@ -187,6 +187,10 @@ pub struct Joint {
     pub axis: Vec3<f64>,
     /// Lower and upper position limits (rad or m), revolute and prismatic only.
     pub limits: Option<(f64, f64)>,
+    /// How the limits push back: `None`, the builder's penalty `limit_ke`, `limit_kd`; or
+    /// `(time constant, damping ratio)` (s, 1): a spring and damper scaled by the joint's
+    /// inertia, MuJoCo's `solreflimit` (see [`Joint::limit_time_constant`]).
+    pub limit_time: Option<(f64, f64)>,
     /// Viscous damping (N m s/rad or N s/m) on every velocity of the joint.
     pub damping: f64,
     /// A passive spring `-stiffness (q - spring_ref)` (N m/rad or N/m; revolute and
@@ -213,6 +217,7 @@ impl Joint {
             origin: Pose::identity(),
             axis,
             limits: None,
+            limit_time: None,
             damping: 0.0,
             stiffness: 0.0,
             spring_ref: 0.0,
@@ -263,6 +268,19 @@ impl Joint {
     /// Sets position limits.
     pub fn limits(mut self, lower: f64, upper: f64) -> Self {
         self.limits = Some((lower, upper));
+        self
+    }
+
+    /// Makes the limits push back as MuJoCo's (`solreflimit="time_constant damping_ratio"`,
+    /// MuJoCo's default `0.02 1`): past a limit by `r` at velocity `v`, the joint gets
+    /// `-m (r / (tc zeta)^2 + 2 v / tc)`, with `m` its diagonal entry of the mass matrix, so
+    /// that a light link and a heavy one come back alike, in about `tc`, whatever their
+    /// inertia. (The builder's `limit_ke`, `limit_kd` are one stiffness for every joint: a
+    /// light link pressed far past its limit snaps back, and needs a small step.) A step
+    /// integrates both kinds implicitly (the limit's stiffness and damping are added to the
+    /// mass matrix's diagonal times `dt^2` and `dt`), so that they are stable at any `dt`.
+    pub fn limit_time_constant(mut self, time_constant: f64, damping_ratio: f64) -> Self {
+        self.limit_time = Some((time_constant, damping_ratio));
         self
     }
 
@@ -486,7 +504,8 @@ pub struct ArticulationBuilder {
     /// Gravity (m/s^2) of the worlds not added by [`ArticulationBuilder::add_world`] (which
     /// keep their own builder's); default `(0, 0, -9.81)` (z up, as URDF and MJCF).
     pub gravity: Vec3<f64>,
-    /// Stiffness of the joint limits (N m/rad or N/m).
+    /// Stiffness of the joint limits (N m/rad or N/m), for the joints without a
+    /// [`Joint::limit_time_constant`] (those scale theirs by their inertia).
     pub limit_ke: f64,
     /// Damping of the joint limits while violated.
     pub limit_kd: f64,
@@ -1061,6 +1080,12 @@ pub struct Articulations<R: Real> {
     pub kp: Array<R>,
     /// Per velocity: PD velocity gain.
     pub kv: Array<R>,
+    /// Per velocity: the limit's stiffness and damping per unit of inertia, `1 / (tc
+    /// zeta)^2` and `2 / tc` for a joint with a [`Joint::limit_time_constant`]; 0 for the
+    /// others, whose limits use `limit_ke`, `limit_kd`.
+    pub limit_k: Array<R>,
+    /// See [`limit_k`](Self::limit_k).
+    pub limit_b: Array<R>,
     /// Per velocity: lower limit (`-inf` when none).
     pub lower: Array<R>,
     /// Per velocity: upper limit (`inf` when none).
