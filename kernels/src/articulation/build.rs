@@ -196,6 +196,19 @@ pub(crate) fn finalize<R: Real>(
     if let Some(g) = &b.ground {
         g.check().map_err(|m| err("ground".into(), m))?;
     }
+    if let Some(f) = &b.fluid {
+        let ok = |x: f64| x.is_finite() && x >= 0.0;
+        if !(ok(f.density) && ok(f.viscosity) && f.wind.iter().all(|x| x.is_finite())) {
+            return Err(err(
+                "fluid".into(),
+                format!(
+                    "density {} and viscosity {} must be finite and non-negative, the wind {:?} \
+                     finite",
+                    f.density, f.viscosity, f.wind
+                ),
+            ));
+        }
+    }
     for (k, c) in b.contact_shapes().iter().enumerate() {
         if c.link.0 >= n {
             return Err(err(
@@ -207,7 +220,7 @@ pub(crate) fn finalize<R: Real>(
             GeomShape::Sphere(r) => r.is_finite() && r >= 0.0,
             GeomShape::Capsule(r, h) => r.is_finite() && r >= 0.0 && h.is_finite() && h >= 0.0,
             GeomShape::Box(half) => finite3(&half) && half.iter().all(|&x| x > 0.0),
-            GeomShape::Cylinder(..) | GeomShape::Plane => false,
+            GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => false,
         };
         if let Some(mu) = c.friction.filter(|mu| !(mu.is_finite() && *mu >= 0.0)) {
             return Err(err(
@@ -421,6 +434,15 @@ pub(crate) fn finalize<R: Real>(
     let r = |x: f64| R::lit(x);
     let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
     let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
+    let quat = |q: &Quat<f64>| Quat::new(r(q.w), r(q.i), r(q.j), r(q.k));
+    // The fluid's inertia boxes, per link with mass, in the model's link order.
+    let boxes = super::fluid::inertia_boxes(
+        &order
+            .iter()
+            .enumerate()
+            .map(|(i, &l)| (i, links[l].inertial))
+            .collect::<Vec<_>>(),
+    );
     // Worlds: contiguous in the new order too (trees never span worlds, roots keep their order).
     let link_world: Vec<usize> = order.iter().map(|&l| world_of[l]).collect();
     let mut worlds: Vec<WorldInfo> = (0..gravity.len())
@@ -491,6 +513,14 @@ pub(crate) fn finalize<R: Real>(
         gravity: Array::from_vec(gravity.iter().map(v3).collect()),
         limit_ke: r(b.limit_ke),
         limit_kd: r(b.limit_kd),
+        fluid_on: b.fluid.is_some(),
+        fluid_density: rs(&[b.fluid.map_or(0.0, |f| f.density)]),
+        fluid_viscosity: rs(&[b.fluid.map_or(0.0, |f| f.viscosity)]),
+        wind: Array::from_vec(vec![v3(&b.fluid.map_or(Vec3::zeros(), |f| f.wind))]),
+        fluid_link: Array::from_vec(boxes.iter().map(|x| x.link).collect()),
+        fluid_com: Array::from_vec(boxes.iter().map(|x| v3(&x.com)).collect()),
+        fluid_rot: Array::from_vec(boxes.iter().map(|x| quat(&x.rot)).collect()),
+        fluid_box: Array::from_vec(boxes.iter().map(|x| v3(&x.sides)).collect()),
         q0: neutral.iter().map(|&x| r(x)).collect(),
         chain_start: Array::from_vec(chain_start),
         chain: Array::from_vec(chain),

@@ -94,7 +94,7 @@ impl ContactShape {
             GeomShape::Sphere(r) => vec![(self.pose.pos, r)],
             GeomShape::Capsule(r, h) => vec![(self.end(-h), r), (self.end(h), r)],
             GeomShape::Box(half) => self.corners(&half).into_iter().map(|c| (c, 0.0)).collect(),
-            GeomShape::Cylinder(..) | GeomShape::Plane => Vec::new(),
+            GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => Vec::new(),
         }
     }
 
@@ -145,6 +145,8 @@ pub enum GeomShape {
     Cylinder(f64, f64),
     /// A box of these half extents.
     Box(Vec3<f64>),
+    /// An ellipsoid of these semi-axes (mass only: it touches nothing).
+    Ellipsoid(Vec3<f64>),
     /// A plane through the origin with normal z.
     Plane,
 }

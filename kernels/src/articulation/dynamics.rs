@@ -342,6 +342,27 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
+        if let (Some(_), true, false) = (control, self.fluid_on, self.fluid_link.is_empty()) {
+            tape.launch(
+                super::fluid::articulation_fluid,
+                self.fluid_link.len(),
+                (
+                    &self.fluid_link,
+                    &self.fluid_com,
+                    &self.fluid_rot,
+                    &self.fluid_box,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    &self.fluid_density,
+                    &self.fluid_viscosity,
+                    &self.wind,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
         let (tz, qz) = (zeros(), zeros());
         let (target_q, target_qd, passive) = match control {
             Some(c) => (&c.target_q, &c.target_qd, 1u32),

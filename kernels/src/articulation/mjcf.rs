@@ -4,7 +4,8 @@
 //! the main file's directory, or the current one for [`parse`]; errors name the included file
 //! and line), `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local"
 //! settotalmass>` (and, passed over, the mesh and texture directories and the compiler's own
-//! switches), `<option timestep gravity>` with `<flag>` (`contact`, `limit`, `constraint` and
+//! switches), `<option timestep gravity density viscosity wind>` (a fluid: MuJoCo's
+//! inertia-box model, [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint` and
 //! `gravity` switched off are off here too; flags about MuJoCo's solver, sensors or checks are
 //! passed over; others that change the default are refused), `<default>` classes (nested, with
 //! `joint`, `geom`, `motor`, `position` and `tendon` defaults), `<worldbody>` with nested `<body
@@ -13,7 +14,7 @@
 //! hinges and slides; `springref` and `ref` in the file's angle unit; `ref` is the coordinate
 //! at which the body is where the file puts it, and the initial one; a `margin` moves a limit
 //! that far inside the range, where MuJoCo's limit pushes back to), `<freejoint>`, `<geom
-//! type="sphere|capsule|box|cylinder|plane" size fromto pos quat mass density contype
+//! type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat mass density contype
 //! conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as MuJoCo's default
 //! `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`, `<actuator>` with
 //! `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
@@ -25,8 +26,7 @@
 //! follows `solreflimit`, MuJoCo's default `0.02 1`, as [`Joint::limit_time_constant`]
 //! describes), and `<tendon>` with `<fixed>`
 //! tendons that have no stiffness, damping, limits or friction (they exert no force).
-//! Refused: MuJoCo's fluid forces (`density`, `viscosity`, `wind`). Anything else is an error
-//! naming the element and its line: MuJoCo would simulate it, and silently dropping it would
+//! Anything else is an error naming the element and its line: MuJoCo would simulate it, and silently dropping it would
 //! simulate a different robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
@@ -42,7 +42,7 @@
 //! fixed to the world), nor excluded, touch when their `contype` and
 //! `conaffinity` masks match ([`ContactFilter`]); a geom touches the floor, a `plane` geom of
 //! the worldbody, when its masks match the plane's. Spheres, capsules and boxes touch (see
-//! [`contact`](super::contact) for how exactly); a cylinder has mass but no contact. The law
+//! [`contact`](super::contact) for how exactly); a cylinder or an ellipsoid has mass but no contact. The law
 //! is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that lets the robot's
 //! weight sink one contact by 5 mm, half the critical damping of a quarter of its mass, and
 //! MuJoCo's friction: a contact's is the larger of its two geoms' sliding `friction` (the
@@ -99,6 +99,7 @@ use roxmltree::Node;
 use super::build::{check_inertial, check_mass};
 pub use super::contact::GeomShape;
 use super::contact::{ContactFilter, GroundContact};
+use super::fluid::Fluid;
 use super::model::{
     axis_angle, from_to, ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose,
 };
@@ -287,25 +288,24 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         match n.tag_name().name() {
             "compiler" => r.compiler(*n)?,
             "option" => {
+                // MuJoCo's inertia-box fluid model, on when density or viscosity is.
+                let density = r.src.number(*n, "density")?.unwrap_or(0.0);
+                let viscosity = r.src.number(*n, "viscosity")?.unwrap_or(0.0);
+                let wind = r.src.vec3(*n, "wind")?.unwrap_or_else(Vec3::zeros);
+                if density < 0.0 || viscosity < 0.0 {
+                    return Err(r
+                        .src
+                        .error(*n, "density and viscosity must be non-negative"));
+                }
+                if density > 0.0 || viscosity > 0.0 {
+                    r.builder.fluid = Some(Fluid {
+                        density,
+                        viscosity,
+                        wind,
+                    });
+                }
                 // MuJoCo's own solver's settings name no property of the model: the
                 // integrator is the caller's choice here, and contacts follow the library's law.
-                for fluid in ["density", "viscosity", "wind"] {
-                    let still = |v: Vec<f64>| v.iter().all(|&x| x == 0.0);
-                    if let Some(v) =
-                        r.src
-                            .numbers(*n, fluid, if fluid == "wind" { 3 } else { 1 })?
-                    {
-                        if !still(v) {
-                            return Err(r.src.error(
-                                *n,
-                                format!(
-                                    "`{fluid}`: MuJoCo's fluid forces (density, viscosity, \
-                                     wind) are not supported; remove it or set it to 0"
-                                ),
-                            ));
-                        }
-                    }
-                }
                 r.src.only_attributes(
                     *n,
                     &[
@@ -1340,6 +1340,10 @@ impl<'a> Reader<'a> {
                     GeomShape::Box(Vec3::new(size[0], size[1], size[2]))
                 }
             }
+            "ellipsoid" => {
+                need(3)?;
+                GeomShape::Ellipsoid(Vec3::new(size[0], size[1], size[2]))
+            }
             "plane" => {
                 if on_link.is_some() {
                     return Err(self.src.error(n, "a plane must be a geom of the worldbody"));
@@ -1350,7 +1354,8 @@ impl<'a> Reader<'a> {
                 return Err(self.src.error(
                     n,
                     format!(
-                        "geom type `{o}` is not supported (sphere, capsule, cylinder, box, plane)"
+                        "geom type `{o}` is not supported (sphere, capsule, cylinder, ellipsoid, \
+                         box, plane)"
                     ),
                 ))
             }
@@ -1404,6 +1409,14 @@ impl<'a> Reader<'a> {
                         Vec3::new(t, t, fc * 0.5 * r * r + fs * 0.4 * r * r),
                     )
                 }
+                GeomShape::Ellipsoid(a) => (
+                    4.0 / 3.0 * PI * a.x * a.y * a.z,
+                    Vec3::new(
+                        a.y * a.y + a.z * a.z,
+                        a.x * a.x + a.z * a.z,
+                        a.x * a.x + a.y * a.y,
+                    ) / 5.0,
+                ),
                 GeomShape::Plane => (0.0, Vec3::zeros()),
             }
         };

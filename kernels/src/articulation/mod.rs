@@ -43,6 +43,7 @@
 mod build;
 pub mod contact;
 mod dynamics;
+pub mod fluid;
 pub mod kernels;
 pub mod mjcf;
 mod model;
@@ -52,6 +53,7 @@ mod xml;
 
 pub use contact::{ContactFilter, ContactShape, GroundContact};
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
+pub use fluid::Fluid;
 pub use model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, Joint,
     JointType, LinkDesc, LinkId, LinkInfo, Muscle, Pose, WorldInfo,

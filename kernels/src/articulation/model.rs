@@ -6,6 +6,7 @@ use std::ops::Range;
 use adflex_runtime::prelude::*;
 
 use super::contact::{ContactFilter, ContactShape, GeomShape, GroundContact};
+use super::fluid::Fluid;
 
 /// The kind of a joint, which says how the link moves relative to its parent.
 ///
@@ -509,6 +510,9 @@ pub struct ArticulationBuilder {
     pub limit_ke: f64,
     /// Damping of the joint limits while violated.
     pub limit_kd: f64,
+    /// A fluid around the links (default `None`): drag of MuJoCo's inertia-box model (see
+    /// [`fluid`](super::fluid)).
+    pub fluid: Option<Fluid>,
     /// The worlds: each one's first link and gravity (`None`: [`ArticulationBuilder::gravity`]).
     /// World 0 starts at link 0; links added with [`ArticulationBuilder::add_link`] go to the
     /// last world.
@@ -541,6 +545,7 @@ impl ArticulationBuilder {
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
+            fluid: None,
             worlds: vec![(0, None)],
             world_added: false,
             mismatch: None,
@@ -592,7 +597,7 @@ impl ArticulationBuilder {
         shape: &GeomShape,
     ) -> Option<usize> {
         match shape {
-            GeomShape::Cylinder(..) | GeomShape::Plane => None,
+            GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => None,
             _ => {
                 self.shapes.push(ContactShape {
                     link,
@@ -791,6 +796,7 @@ impl ArticulationBuilder {
             self.link_contact = other.link_contact;
             self.limit_ke = other.limit_ke;
             self.limit_kd = other.limit_kd;
+            self.fluid = other.fluid;
             0
         } else {
             self.worlds.len()
@@ -804,8 +810,9 @@ impl ArticulationBuilder {
                 false => String::new(),
             };
             format!(
-                "{ground}ground_filter {:?}, link_contact {}, limit_ke {}, limit_kd {}",
-                b.ground_filter, b.link_contact, b.limit_ke, b.limit_kd
+                "{ground}ground_filter {:?}, link_contact {}, limit_ke {}, limit_kd {}, fluid \
+                 {:?}",
+                b.ground_filter, b.link_contact, b.limit_ke, b.limit_kd, b.fluid
             )
         };
         if self.mismatch.is_none() && shared(self) != shared(other) {
@@ -909,6 +916,7 @@ impl ArticulationBuilder {
             gravity: self.gravity,
             limit_ke: self.limit_ke,
             limit_kd: self.limit_kd,
+            fluid: self.fluid,
         }
     }
 
@@ -1027,6 +1035,24 @@ pub struct Articulations<R: Real> {
     pub limit_ke: R,
     /// Damping of the joint limits while violated.
     pub limit_kd: R,
+    /// Whether a fluid acts ([`ArticulationBuilder::fluid`]); its density (kg/m^3), viscosity
+    /// (Pa s) and wind (m/s) are one-element arrays, which can require gradients.
+    pub fluid_on: bool,
+    /// See [`fluid_on`](Self::fluid_on).
+    pub fluid_density: Array<R>,
+    /// See [`fluid_on`](Self::fluid_on).
+    pub fluid_viscosity: Array<R>,
+    /// See [`fluid_on`](Self::fluid_on).
+    pub wind: Array<Vec3<R>>,
+    /// Per link with mass: the link, its centre of mass (link frame), principal axes (a
+    /// rotation in the link frame) and the full sides of its inertia box, for the fluid.
+    pub fluid_link: Array<u32>,
+    /// See [`fluid_link`](Self::fluid_link).
+    pub fluid_com: Array<Vec3<R>>,
+    /// See [`fluid_link`](Self::fluid_link).
+    pub fluid_rot: Array<Quat<R>>,
+    /// See [`fluid_link`](Self::fluid_link).
+    pub fluid_box: Array<Vec3<R>>,
     /// The initial configuration ([`Articulations::state`] starts there): each joint's
     /// [`Joint::initial`], or zeros and identity quaternions.
     pub q0: Vec<R>,
