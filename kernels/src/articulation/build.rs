@@ -177,6 +177,16 @@ pub(crate) fn finalize<R: Real>(
                 ));
             }
         }
+        let (dmin, dmax, width) = j.limit_impedance;
+        if !(0.0 < dmin && dmin <= dmax && dmax < 1.0 && width.is_finite() && width > 0.0) {
+            return Err(err(
+                je(),
+                format!(
+                    "limit impedance ({dmin}, {dmax}, {width}): 0 < dmin <= dmax < 1 and a \
+                     positive width"
+                ),
+            ));
+        }
         if let Some((tc, zeta)) = j.limit_time {
             if !(tc.is_finite() && tc > 0.0 && zeta.is_finite() && zeta > 0.0) {
                 return Err(err(
@@ -420,12 +430,15 @@ pub(crate) fn finalize<R: Real>(
             dof.kv.push(j.kv);
             dof.lower.push(lo);
             dof.upper.push(hi);
+            // Per unit inertia here; `scale_limits` multiplies by the joint's.
+            let (dmin, dmax, width) = j.limit_impedance;
             let (k, b) = match j.limit_time {
-                Some((tc, zeta)) => (1.0 / (tc * zeta).powi(2), 2.0 / tc),
+                Some((tc, zeta)) => (1.0 / (dmax * tc * zeta).powi(2), 2.0 / (dmax * tc)),
                 None => (0.0, 0.0),
             };
             dof.limit_k.push(k);
             dof.limit_b.push(b);
+            dof.limit_imp.push(Vec3::new(dmin, dmax, width));
         }
     }
 
@@ -584,6 +597,7 @@ pub(crate) fn finalize<R: Real>(
         upper: rs(&dof.upper),
         limit_k: rs(&dof.limit_k),
         limit_b: rs(&dof.limit_b),
+        limit_imp: Array::from_vec(dof.limit_imp.iter().map(v3).collect()),
         m_len,
         contact_link: Array::from_vec(
             ground_spheres
@@ -643,7 +657,32 @@ pub(crate) fn finalize<R: Real>(
         box_pair_mu: rs(&contact.box_pair_mu),
     };
     check_mass_matrix(&model)?;
+    scale_limits(&model);
     Ok(model)
+}
+
+/// Scales the time-constant limits' per-unit stiffness and damping by each joint's inertia
+/// as a limit sees it, `1 / (M^-1)[d][d]` at the neutral configuration (MuJoCo's
+/// `dof_invweight0`): a joint deep in a chain or on a floating base moves more easily than
+/// its diagonal entry of `M` says.
+fn scale_limits<R: Real>(model: &Articulations<R>) {
+    let mut tape = Tape::new();
+    let q = Array::from_vec(model.q0.clone());
+    let m = model.mass_matrix(&mut tape, &q).to_vec();
+    for a in &model.articulations {
+        let n = a.dofs.len();
+        let block = nalgebra::DMatrix::from_fn(n, n, |i, j| m[a.m_offset + i * n + j].to_f64());
+        // Positive definite (checked just before).
+        let Some(inv) = block.cholesky().map(|c| c.inverse()) else {
+            continue;
+        };
+        for i in 0..n {
+            let d = a.dofs.start + i;
+            let inertia = R::lit(1.0 / inv[(i, i)]);
+            model.limit_k.set(d, model.limit_k.get(d) * inertia);
+            model.limit_b.set(d, model.limit_b.get(d) * inertia);
+        }
+    }
 }
 
 #[derive(Default)]
@@ -664,6 +703,7 @@ struct DofArrays {
     upper: Vec<f64>,
     limit_k: Vec<f64>,
     limit_b: Vec<f64>,
+    limit_imp: Vec<Vec3<f64>>,
 }
 
 /// A joint whose motion moves no mass makes the mass matrix singular: found from the

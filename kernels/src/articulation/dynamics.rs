@@ -410,6 +410,7 @@ impl<R: Real> Articulations<R> {
                 self.limit_kd,
                 &self.limit_k,
                 &self.limit_b,
+                &self.limit_imp,
                 dt,
                 &tau_id,
                 &m,

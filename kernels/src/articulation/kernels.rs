@@ -221,7 +221,8 @@ pub fn articulation_link_dynamics<R: Real>(
 /// limit` (PD, spring and limit terms on revolute and prismatic joints, `dof_q[d]` their
 /// coordinate; the limit pushes back by `ke (lower - q) - kd qd` below `lower`, likewise above
 /// `upper`, with `ke = limit_ke`, `kd = limit_kd`, or, where `limit_k[a]` is not 0,
-/// `ke = M[a][a] limit_k[a]`, `kd = M[a][a] limit_b[a]`). With `dt > 0` (a step), a violated
+/// `ke = d^2 limit_k[a]`, `kd = d limit_b[a]` with `d` the impedance at that depth, MuJoCo's
+/// `solimp` function of `limit_imp[a] = (dmin, dmax, width)`, midpoint 0.5 and power 2). With `dt > 0` (a step), a violated
 /// limit is integrated implicitly: `dt kd + dt^2 ke` joins `M[a][a]` and `-dt ke qd` the
 /// right-hand side (backward Euler of the limit's spring and damper, linearized).
 #[diff_kernel]
@@ -263,6 +264,7 @@ pub fn articulation_joint_space<R: Real>(
     limit_kd: R,
     limit_k: &Array<R>,
     limit_b: &Array<R>,
+    limit_imp: &Array<Vec3<R>>,
     dt: R,
     tau_id: &Array<R>,
     m: &Array<R>,
@@ -331,14 +333,22 @@ pub fn articulation_joint_space<R: Real>(
             let x = q[dof_q[a] as usize];
             f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v)
                 - stiffness[a] * (x - spring_ref[a]);
-            let mut ke = limit_ke;
-            let mut kd = limit_kd;
-            if limit_k[a] != 0.0 {
-                ke = m_aa * limit_k[a];
-                kd = m_aa * limit_b[a];
-            }
-            let past = select(x < lower[a], lower[a], upper[a]);
             if x < lower[a] || x > upper[a] {
+                let past = select(x < lower[a], lower[a], upper[a]);
+                let mut ke = limit_ke;
+                let mut kd = limit_kd;
+                if limit_k[a] != 0.0 {
+                    let imp = limit_imp[a];
+                    // MuJoCo's impedance: from dmin at the limit to dmax at `width` past it.
+                    let s = min(abs(past - x) / imp.z, 1.0);
+                    let mut y = 2.0 * s * s;
+                    if s > 0.5 {
+                        y = 1.0 - 2.0 * (1.0 - s) * (1.0 - s);
+                    }
+                    let d = imp.x + y * (imp.y - imp.x);
+                    ke = limit_k[a] * d * d;
+                    kd = limit_b[a] * d;
+                }
                 f = f + ke * (past - x) - kd * v - ke * v * dt;
                 extra = (kd + ke * dt) * dt;
             }

@@ -22,16 +22,17 @@
 //! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
 //! state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
 //! `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the integrator is the
-//! caller's choice here) and the impedance of its limit constraints (`solimplimit`; a limit
-//! follows `solreflimit`, MuJoCo's default `0.02 1`, as [`Joint::limit_time_constant`]
-//! describes), and `<tendon>` with `<fixed>`
-//! tendons that have no stiffness, damping, limits or friction (they exert no force).
+//! caller's choice here), and `<tendon>` with `<fixed>` tendons that have no stiffness,
+//! damping, limits or friction (they exert no force). A limit follows the joint's
+//! `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`; the time
+//! constant at least twice the time step unless `<flag refsafe="disable">`), as
+//! [`Joint::limit_time_constant`] describes.
 //! Anything else is an error naming the element and its line: MuJoCo would simulate it, and silently dropping it would
 //! simulate a different robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
-//! and added after the robot's links (a wall stands for its half-space as a box 2 km wide
+//! and added after the robot's links (a wall stands for its half-space as a box 200 m wide
 //! whose face is the plane). Geoms that touch nothing (`contype` and `conaffinity` 0) are
 //! decoration.
 //!
@@ -199,6 +200,11 @@ struct Reader<'a> {
     world_shapes: Vec<(Geom, ContactFilter)>,
     /// `<compiler settotalmass>`, when positive.
     total_mass: Option<f64>,
+    /// `<option timestep>` (MuJoCo's default 2 ms): MuJoCo's `refsafe` keeps a limit's time
+    /// constant at least twice it.
+    timestep: f64,
+    /// `<flag refsafe>` (on by default).
+    refsafe: bool,
 }
 
 const SKIPPED: &[&str] = &[
@@ -215,9 +221,76 @@ const SKIPPED: &[&str] = &[
 ];
 const BODY_SKIPPED: &[&str] = &["site", "camera", "light"];
 
+/// The attributes of a `<joint>` read (or passed over, as said where they are read).
+const JOINT_ATTRS: &[&str] = &[
+    "name",
+    "type",
+    "pos",
+    "axis",
+    "range",
+    "limited",
+    "damping",
+    "armature",
+    "class",
+    "stiffness",
+    "springref",
+    "ref",
+    "frictionloss",
+    "group",
+    "margin",
+    // A limit's time constant, damping ratio and impedance (read below); friction loss's
+    // (refused anyway).
+    "solreflimit",
+    "solimplimit",
+    "solreffriction",
+    "solimpfriction",
+];
+
+/// The attributes of a `<geom>` read (or passed over).
+const GEOM_ATTRS: &[&str] = &[
+    "name",
+    "type",
+    "size",
+    "fromto",
+    "pos",
+    "quat",
+    "euler",
+    "axisangle",
+    "xyaxes",
+    "zaxis",
+    "mass",
+    "density",
+    "class",
+    "rgba",
+    "material",
+    "friction",
+    "contype",
+    "conaffinity",
+    "condim",
+    "group",
+    "solref",
+    "solimp",
+    "margin",
+    "user",
+];
+
+/// The attributes of a `<motor>` or `<position>` read (`forcerange` to refuse it).
+const ACTUATOR_ATTRS: &[&str] = &[
+    "name",
+    "joint",
+    "gear",
+    "ctrlrange",
+    "ctrllimited",
+    "kp",
+    "kv",
+    "class",
+    "forcerange",
+    "forcelimited",
+];
+
 /// Half the side of the box that stands for a plane other than the ground (m): the plane's
 /// half-space within this distance.
-const WALL: f64 = 1e3;
+const WALL: f64 = 100.0;
 
 /// The attributes that give a frame's orientation, with how many numbers each takes.
 const ORIENTATIONS: [(&str, usize); 5] = [
@@ -260,6 +333,8 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         no_limits: false,
         world_shapes: Vec::new(),
         total_mass: None,
+        timestep: 0.002,
+        refsafe: true,
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
@@ -329,6 +404,15 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                     ],
                 )?;
                 timestep = r.src.number(*n, "timestep")?;
+                r.timestep = timestep.unwrap_or(0.002);
+                match n.attribute("collision") {
+                    None | Some("all") => {}
+                    Some(o) => {
+                        return Err(r
+                            .src
+                            .error(*n, format!("collision=\"{o}\": only \"all\" is supported")))
+                    }
+                }
                 if let Some(g) = r.src.vec3(*n, "gravity")? {
                     r.builder.gravity = g;
                 }
@@ -418,6 +502,8 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
             r.src.only_attributes(e, &["name", "body1", "body2"])?;
             let body = |k: &str| match e.attribute(k) {
                 None => Err(r.src.error(e, format!("<exclude> needs `{k}`"))),
+                // MuJoCo's would cover the floor too, which is the ground's law here.
+                Some("world") => Err(r.src.error(e, "excluding the world is not supported")),
                 Some(b) => r
                     .builder
                     .find(b)
@@ -473,7 +559,6 @@ impl<'a> Reader<'a> {
                 "discardvisual",
                 "strippath",
                 "usethread",
-                "fusestatic",
                 "exactmeshinertia",
                 "fitaabb",
                 "saveinertial",
@@ -572,7 +657,6 @@ impl<'a> Reader<'a> {
             "equality",
             "frictionloss",
             "warmstart",
-            "refsafe",
             "sensor",
             "midphase",
             "eulerdamp",
@@ -601,13 +685,15 @@ impl<'a> Reader<'a> {
                 ("limit", false) => self.no_limits = true,
                 ("constraint", false) => (self.no_contact, self.no_limits) = (true, true),
                 ("gravity", false) => self.builder.gravity = Vec3::zeros(),
+                ("refsafe", e) => self.refsafe = e,
+                ("sleep", true) => {
+                    return Err(self.src.error(n, "sleep=\"enable\" is not supported"))
+                }
                 (f, _) if NO_EFFECT.contains(&f) => {}
                 (f, true) if ENABLED.contains(&f) => {}
                 ("override", false) => {}
                 (f, _) if !ENABLED.contains(&f) && f != "override" => {
-                    return Err(self
-                        .src
-                        .error(n, format!("`{f}` is not a flag MuJoCo knows")))
+                    return Err(self.src.error(n, format!("flag `{f}` is not supported")))
                 }
                 (f, e) => {
                     return Err(self.src.error(
@@ -641,6 +727,14 @@ impl<'a> Reader<'a> {
             &["site", "camera", "light", "mesh", "material"],
         )?;
         for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
+            // A class's attributes are checked as an element's: one the reader does not know
+            // would be lost on every element of the class.
+            match k.tag_name().name() {
+                "joint" => self.src.only_attributes(*k, JOINT_ATTRS)?,
+                "geom" => self.src.only_attributes(*k, GEOM_ATTRS)?,
+                "motor" | "position" => self.src.only_attributes(*k, ACTUATOR_ATTRS)?,
+                _ => {}
+            }
             let entry = class
                 .entry(defaults_of(k.tag_name().name()).to_string())
                 .or_default();
@@ -827,6 +921,14 @@ impl<'a> Reader<'a> {
                         });
                         self.builder.ground_filter = filter;
                     } else if filter != ContactFilter::NONE {
+                        if matches!(g.shape, GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..)) {
+                            return Err(self.src.error(
+                                c,
+                                "a cylinder or ellipsoid of the worldbody that touches is not \
+                                 supported (they have no contact here); set contype and \
+                                 conaffinity to 0, or use a capsule or box",
+                            ));
+                        }
                         // A static shape (a wall, a rail), added once the bodies are.
                         self.world_shapes.push((g.clone(), filter));
                     }
@@ -1057,30 +1159,7 @@ impl<'a> Reader<'a> {
 
     /// A joint and its `pos` in the body frame.
     fn joint(&mut self, n: Node, class: &str) -> Result<(Joint, Vec3<f64>), ArticulationError> {
-        let known = [
-            "name",
-            "type",
-            "pos",
-            "axis",
-            "range",
-            "limited",
-            "damping",
-            "armature",
-            "class",
-            "stiffness",
-            "springref",
-            "ref",
-            "frictionloss",
-            "group",
-            "margin",
-            // A limit's time constant and damping ratio (read below); the impedance of
-            // MuJoCo's constraints, and friction loss's (refused anyway), are its solver's.
-            "solreflimit",
-            "solimplimit",
-            "solreffriction",
-            "solimpfriction",
-        ];
-        self.src.only_attributes(n, &known)?;
+        self.src.only_attributes(n, JOINT_ATTRS)?;
         self.check_class(n)?;
         let kind = if n.has_tag_name("freejoint") {
             "free"
@@ -1174,7 +1253,32 @@ impl<'a> Reader<'a> {
                             ),
                         ));
                     }
+                    // MuJoCo's `refsafe`: a time constant at least twice the time step.
+                    let tc = if self.refsafe {
+                        tc.max(2.0 * self.timestep)
+                    } else {
+                        tc
+                    };
                     j = j.limit_time_constant(tc, zeta);
+                    if let Some(v) = self.nums(n, class, "solimplimit", &[3, 4, 5])? {
+                        if v.len() > 3 && (v[3] != 0.5 || v.get(4).is_some_and(|&p| p != 2.0)) {
+                            return Err(self.src.error(
+                                n,
+                                "solimplimit: only MuJoCo's default midpoint 0.5 and power 2 \
+                                 are supported",
+                            ));
+                        }
+                        // MuJoCo keeps the impedance within [1e-4, 0.9999].
+                        let clamp = |x: f64| x.clamp(1e-4, 0.9999);
+                        let (dmin, dmax) = (clamp(v[0]), clamp(v[1]));
+                        if dmin > dmax || v[2] <= 0.0 {
+                            return Err(self.src.error(
+                                n,
+                                "solimplimit: dmin <= dmax and a positive width are supported",
+                            ));
+                        }
+                        j = j.limit_impedance(dmin, dmax, v[2]);
+                    }
                 }
             } else if limited != "false" && kind == "ball" {
                 // MuJoCo would limit the cone of a ball joint with a range.
@@ -1247,33 +1351,7 @@ impl<'a> Reader<'a> {
         class: &str,
         on_link: Option<LinkId>,
     ) -> Result<(Geom, Option<Inertial>), ArticulationError> {
-        let known = [
-            "name",
-            "type",
-            "size",
-            "fromto",
-            "pos",
-            "quat",
-            "euler",
-            "axisangle",
-            "xyaxes",
-            "zaxis",
-            "mass",
-            "density",
-            "class",
-            "rgba",
-            "material",
-            "friction",
-            "contype",
-            "conaffinity",
-            "condim",
-            "group",
-            "solref",
-            "solimp",
-            "margin",
-            "user",
-        ];
-        self.src.only_attributes(n, &known)?;
+        self.src.only_attributes(n, GEOM_ATTRS)?;
         self.check_class(n)?;
         let kind = self.attr(n, class, "type").unwrap_or("sphere");
         let size = self.nums(n, class, "size", &[1, 2, 3])?.unwrap_or_default();
@@ -1500,21 +1578,7 @@ impl<'a> Reader<'a> {
     fn actuator(&mut self, n: Node) -> Result<Actuator, ArticulationError> {
         let tag = n.tag_name().name();
         let class = "main";
-        self.src.only_attributes(
-            n,
-            &[
-                "name",
-                "joint",
-                "gear",
-                "ctrlrange",
-                "ctrllimited",
-                "kp",
-                "kv",
-                "class",
-                "forcerange",
-                "forcelimited",
-            ],
-        )?;
+        self.src.only_attributes(n, ACTUATOR_ATTRS)?;
         if self.attr(n, class, "forcerange").is_some()
             || self.attr(n, class, "forcelimited") == Some("true")
         {

@@ -192,6 +192,9 @@ pub struct Joint {
     /// `(time constant, damping ratio)` (s, 1): a spring and damper scaled by the joint's
     /// inertia, MuJoCo's `solreflimit` (see [`Joint::limit_time_constant`]).
     pub limit_time: Option<(f64, f64)>,
+    /// MuJoCo's `solimplimit` `(dmin, dmax, width)` for a limit with a time constant
+    /// (default `(0.9, 0.95, 0.001)`, MuJoCo's; see [`Joint::limit_impedance`]).
+    pub limit_impedance: (f64, f64, f64),
     /// Viscous damping (N m s/rad or N s/m) on every velocity of the joint.
     pub damping: f64,
     /// A passive spring `-stiffness (q - spring_ref)` (N m/rad or N/m; revolute and
@@ -219,6 +222,7 @@ impl Joint {
             axis,
             limits: None,
             limit_time: None,
+            limit_impedance: (0.9, 0.95, 0.001),
             damping: 0.0,
             stiffness: 0.0,
             spring_ref: 0.0,
@@ -274,14 +278,26 @@ impl Joint {
 
     /// Makes the limits push back as MuJoCo's (`solreflimit="time_constant damping_ratio"`,
     /// MuJoCo's default `0.02 1`): past a limit by `r` at velocity `v`, the joint gets
-    /// `-m (r / (tc zeta)^2 + 2 v / tc)`, with `m` its diagonal entry of the mass matrix, so
-    /// that a light link and a heavy one come back alike, in about `tc`, whatever their
-    /// inertia. (The builder's `limit_ke`, `limit_kd` are one stiffness for every joint: a
-    /// light link pressed far past its limit snaps back, and needs a small step.) A step
-    /// integrates both kinds implicitly (the limit's stiffness and damping are added to the
-    /// mass matrix's diagonal times `dt^2` and `dt`), so that they are stable at any `dt`.
+    /// `-m d (2 v / (dmax tc) + d r / (dmax tc zeta)^2)`, with `m = 1 / (M^-1)[j][j]` the
+    /// joint's inertia as a limit sees it at the neutral configuration (MuJoCo's
+    /// `dof_invweight0`) and `d` the impedance ([`Joint::limit_impedance`]; `dmax` beyond its
+    /// width). A light link and a heavy one come back alike, in about `tc`. (The builder's
+    /// `limit_ke`, `limit_kd` are one stiffness for every joint: a light link pressed far past
+    /// its limit snaps back, and needs a small step.) A step integrates both kinds implicitly
+    /// (the limit's stiffness and damping join the mass matrix's diagonal times `dt^2` and
+    /// `dt`), so that they are stable at any `dt`. Unlike MuJoCo's limit constraint, this one
+    /// does not cancel the load pressing into it: a steady load sags past the limit by
+    /// `load / stiffness` (about 20 times more than in MuJoCo with its defaults).
     pub fn limit_time_constant(mut self, time_constant: f64, damping_ratio: f64) -> Self {
         self.limit_time = Some((time_constant, damping_ratio));
+        self
+    }
+
+    /// Sets the impedance of a time-constant limit (MuJoCo's `solimplimit`, with its default
+    /// midpoint 0.5 and power 2): `d` rises from `dmin` at the limit to `dmax` at `width`
+    /// past it.
+    pub fn limit_impedance(mut self, dmin: f64, dmax: f64, width: f64) -> Self {
+        self.limit_impedance = (dmin, dmax, width);
         self
     }
 
@@ -1106,12 +1122,14 @@ pub struct Articulations<R: Real> {
     pub kp: Array<R>,
     /// Per velocity: PD velocity gain.
     pub kv: Array<R>,
-    /// Per velocity: the limit's stiffness and damping per unit of inertia, `1 / (tc
-    /// zeta)^2` and `2 / tc` for a joint with a [`Joint::limit_time_constant`]; 0 for the
-    /// others, whose limits use `limit_ke`, `limit_kd`.
+    /// Per velocity: a time-constant limit's stiffness and damping at full impedance, `m /
+    /// (dmax tc zeta)^2` and `2 m / (dmax tc)` ([`Joint::limit_time_constant`]); 0 for the
+    /// other joints, whose limits use `limit_ke`, `limit_kd`.
     pub limit_k: Array<R>,
     /// See [`limit_k`](Self::limit_k).
     pub limit_b: Array<R>,
+    /// Per velocity: the limit's impedance `(dmin, dmax, width)` ([`Joint::limit_impedance`]).
+    pub limit_imp: Array<Vec3<R>>,
     /// Per velocity: lower limit (`-inf` when none).
     pub lower: Array<R>,
     /// Per velocity: upper limit (`inf` when none).

@@ -250,7 +250,14 @@ fn splice(
                 ),
             ));
         }
-        let path = dir.join(name);
+        // Relative to the main file's directory, or else to the including file's (as MuJoCo).
+        let mut path = dir.join(name);
+        if let (false, Some(parent)) = (path.exists(), file.map(std::path::Path::new)) {
+            let beside = parent.parent().unwrap_or(dir).join(name);
+            if beside.exists() {
+                path = beside;
+            }
+        }
         let inner = std::fs::read_to_string(&path)
             .map_err(|e| src.error(inc, format!("cannot read \"{}\": {e}", path.display())))?;
         let inner_file = path.display().to_string();
