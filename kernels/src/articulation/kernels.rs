@@ -222,9 +222,10 @@ pub fn articulation_link_dynamics<R: Real>(
 /// coordinate; the limit pushes back by `ke (lower - q) - kd qd` below `lower`, likewise above
 /// `upper`, with `ke = limit_ke`, `kd = limit_kd`, or, where `limit_k[a]` is not 0,
 /// `ke = d^2 limit_k[a]`, `kd = d limit_b[a]` with `d` the impedance at that depth, MuJoCo's
-/// `solimp` function of `limit_imp[a] = (dmin, dmax, width)`, midpoint 0.5 and power 2). With `dt > 0` (a step), a violated
-/// limit is integrated implicitly: `dt kd + dt^2 ke` joins `M[a][a]` and `-dt ke qd` the
-/// right-hand side (backward Euler of the limit's spring and damper, linearized).
+/// `solimp` function of `limit_imp[a] = (dmin, dmax, width)`, midpoint 0.5 and power 2).
+/// With `dt > 0` (a step), a violated limit is integrated implicitly: `dt kd + dt^2 ke` joins
+/// `M[a][a]` and `-dt ke qd` the right-hand side (backward Euler of the limit's spring and
+/// damper, linearized).
 #[diff_kernel]
 pub fn articulation_joint_space<R: Real>(
     dof_link: &Array<u32>,

@@ -26,9 +26,9 @@
 //! damping, limits or friction (they exert no force). A limit follows the joint's
 //! `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`; the time
 //! constant at least twice the time step unless `<flag refsafe="disable">`), as
-//! [`Joint::limit_time_constant`] describes.
-//! Anything else is an error naming the element and its line: MuJoCo would simulate it, and silently dropping it would
-//! simulate a different robot.
+//! [`Joint::limit_time_constant`] describes. Anything else is an error naming the element and
+//! its line: MuJoCo would simulate it, and silently dropping it would simulate a different
+//! robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
@@ -43,9 +43,10 @@
 //! fixed to the world), nor excluded, touch when their `contype` and
 //! `conaffinity` masks match ([`ContactFilter`]); a geom touches the floor, a `plane` geom of
 //! the worldbody, when its masks match the plane's. Spheres, capsules and boxes touch (see
-//! [`contact`](super::contact) for how exactly); a cylinder or an ellipsoid has mass but no contact. The law
-//! is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that lets the robot's
-//! weight sink one contact by 5 mm, half the critical damping of a quarter of its mass, and
+//! [`contact`](super::contact) for how exactly); a cylinder or an ellipsoid has mass but no
+//! contact. The law is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that
+//! lets the robot's weight sink one contact by 5 mm, half the critical damping of a quarter of
+//! its mass, and
 //! MuJoCo's friction: a contact's is the larger of its two geoms' sliding `friction` (the
 //! plane's against the floor; 1 by default), as MuJoCo combines geoms of equal `priority`
 //! (`priority` is refused). Set `builder.ground` to tune the law. Without a plane there is no
