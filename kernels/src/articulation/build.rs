@@ -449,13 +449,7 @@ pub(crate) fn finalize<R: Real>(
     let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
     let quat = |q: &Quat<f64>| Quat::new(r(q.w), r(q.i), r(q.j), r(q.k));
     // The fluid's inertia boxes, per link with mass, in the model's link order.
-    let boxes = super::fluid::inertia_boxes(
-        &order
-            .iter()
-            .enumerate()
-            .map(|(i, &l)| (i, links[l].inertial))
-            .collect::<Vec<_>>(),
-    );
+    let boxes = super::fluid::inertia_boxes(order.iter().map(|&l| &links[l].inertial));
     // Worlds: contiguous in the new order too (trees never span worlds, roots keep their order).
     let link_world: Vec<usize> = order.iter().map(|&l| world_of[l]).collect();
     let mut worlds: Vec<WorldInfo> = (0..gravity.len())
@@ -656,19 +650,16 @@ pub(crate) fn finalize<R: Real>(
         box_pairs: Array::from_vec(contact.box_pairs),
         box_pair_mu: rs(&contact.box_pair_mu),
     };
-    check_mass_matrix(&model)?;
-    scale_limits(&model);
+    let m0 = check_mass_matrix(&model)?;
+    scale_limits(&model, &m0);
     Ok(model)
 }
 
 /// Scales the time-constant limits' per-unit stiffness and damping by each joint's inertia
 /// as a limit sees it, `1 / (M^-1)[d][d]` at the neutral configuration (MuJoCo's
 /// `dof_invweight0`): a joint deep in a chain or on a floating base moves more easily than
-/// its diagonal entry of `M` says.
-fn scale_limits<R: Real>(model: &Articulations<R>) {
-    let mut tape = Tape::new();
-    let q = Array::from_vec(model.q0.clone());
-    let m = model.mass_matrix(&mut tape, &q).to_vec();
+/// its diagonal entry of `M` says. `m` is the mass matrix there.
+fn scale_limits<R: Real>(model: &Articulations<R>, m: &[R]) {
     for a in &model.articulations {
         let n = a.dofs.len();
         let block = nalgebra::DMatrix::from_fn(n, n, |i, j| m[a.m_offset + i * n + j].to_f64());
@@ -707,8 +698,9 @@ struct DofArrays {
 }
 
 /// A joint whose motion moves no mass makes the mass matrix singular: found from the
-/// diagonal at the neutral configuration (and the Cholesky factorization).
-fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<(), ArticulationError> {
+/// diagonal at the neutral configuration (and the Cholesky factorization). Returns the mass
+/// matrix there.
+fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<Vec<R>, ArticulationError> {
     let mut tape = Tape::new();
     let q = Array::from_vec(model.q0.clone());
     let m = model.mass_matrix(&mut tape, &q).to_vec();
@@ -734,7 +726,7 @@ fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<(), Articulati
              same way, or a joint moves no mass); add mass or armature",
         )
     })?;
-    Ok(())
+    Ok(m)
 }
 
 /// The links' contact geometry: segments (link, ends, radius), boxes (link, pose, half

@@ -93,13 +93,16 @@ pub(crate) struct InertiaBox {
     pub sides: adflex_runtime::Vec3<f64>,
 }
 
-/// The inertia box of each link with mass, from its mass properties.
-pub(crate) fn inertia_boxes(inertials: &[(usize, super::Inertial)]) -> Vec<InertiaBox> {
+/// The inertia box of each link with mass, from the links' mass properties in the model's
+/// order.
+pub(crate) fn inertia_boxes<'a>(
+    inertials: impl Iterator<Item = &'a super::Inertial>,
+) -> Vec<InertiaBox> {
     use adflex_runtime::Vec3;
     inertials
-        .iter()
+        .enumerate()
         .filter(|(_, i)| i.mass > 0.0)
-        .map(|&(l, i)| {
+        .map(|(l, i)| {
             let sym = (i.inertia + i.inertia.transpose()) * 0.5;
             let eig = nalgebra::SymmetricEigen::new(sym);
             let mut axes = eig.eigenvectors;
