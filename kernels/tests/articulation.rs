@@ -101,14 +101,20 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             .unwrap()
             .iter()
             .any(|j| j["kind"] == "free");
-        let stepper = (!file.ends_with(".urdf") && !free).then(|| {
-            let mut b = mjcf::load(format!("{ROBOTS}/{file}")).unwrap().builder;
-            (b.ground, b.link_contact) = (None, false);
-            for l in b.links_mut() {
-                l.joint.limits = None;
-            }
-            b.finalize::<f64>().unwrap()
-        });
+        // (The damping explicit, as in qfrc_passive, and only for models whose actuators
+        // exert nothing at ctrl = 0: qfrc_passive has no actuator force.)
+        let stepper = (!file.ends_with(".urdf") && !free)
+            .then(|| {
+                let mut b = mjcf::load(format!("{ROBOTS}/{file}")).unwrap().builder;
+                (b.ground, b.link_contact) = (None, false);
+                b.implicit_damping = false;
+                for l in b.links_mut() {
+                    l.joint.limits = None;
+                }
+                let idle = b.actuators().iter().all(|a| a.bias == [0.0; 3]);
+                idle.then(|| b.finalize::<f64>().unwrap())
+            })
+            .flatten();
         let mut worst = [0.0f64; 7];
         for s in m["states"].as_array().unwrap() {
             let (rq, rqd, rtau) = (vecf(&s["q"]), vecf(&s["qd"]), vecf(&s["tau"]));
@@ -183,6 +189,93 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             report.join("\n")
         );
     }
+    println!("{}", report.join("\n"));
+}
+
+/// Rollouts of the MJCF robots with random controls (some beyond their ranges) step by step
+/// as MuJoCo's `mj_step` (its Euler integrator: damping implicit, actuators, springs, the
+/// fluid explicit), contact and limits off on both sides: the states every 50 steps agree.
+#[test]
+fn mjcf_rollouts_agree_with_mujoco_step_by_step() {
+    use adflex_kernels::articulation::{ArticulationControl, ArticulationState};
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/references/robots.json"
+    ))
+    .unwrap();
+    let refs: Value = serde_json::from_str(&text).unwrap();
+    let mut report = Vec::new();
+    let mut checked = 0;
+    for m in refs["models"].as_array().unwrap() {
+        let Some(r) = m.get("rollout") else { continue };
+        let file = m["file"].as_str().unwrap();
+        let robot = mjcf::load(format!("{ROBOTS}/{file}")).unwrap();
+        let mut b = robot.builder;
+        (b.ground, b.link_contact) = (None, false);
+        for l in b.links_mut() {
+            l.joint.limits = None;
+        }
+        let model = b.finalize::<f64>().unwrap();
+        let map = joint_map(&model, m["joints"].as_array().unwrap());
+        let to_ours = |rq: &[f64], rqd: &[f64]| {
+            let (mut q, mut qd) = (vec![0.0; model.n_q], vec![0.0; model.n_dof]);
+            let (mut kq, mut kv) = (0, 0);
+            for &(qs, nq, ds, n) in &map {
+                q[qs..qs + nq].copy_from_slice(&rq[kq..kq + nq]);
+                qd[ds..ds + n].copy_from_slice(&rqd[kv..kv + n]);
+                kq += nq;
+                kv += n;
+            }
+            (q, qd)
+        };
+        let dt = r["dt"].as_f64().unwrap();
+        assert_eq!(
+            robot.timestep.unwrap().min(0.002),
+            dt,
+            "{file}: the time step"
+        );
+        let (q0, qd0) = to_ours(&vecf(&r["q0"]), &vecf(&r["qd0"]));
+        let mut s = ArticulationState {
+            q: Array::from_vec(q0),
+            qd: Array::from_vec(qd0),
+        };
+        let control = ArticulationControl {
+            ctrl: Array::from_vec(vecf(&r["ctrl"])),
+            ..model.control()
+        };
+        let every = r["every"].as_u64().unwrap() as usize;
+        let (rq, rqd) = (matf(&r["q"]), matf(&r["qd"]));
+        let mut worst = 0.0f64;
+        for (k, (eq, eqd)) in rq.iter().zip(&rqd).enumerate() {
+            for _ in 0..every {
+                s = model
+                    .step(&mut Tape::new(), &s, Some(&control), dt)
+                    .unwrap();
+            }
+            let (eq, eqd) = to_ours(eq, eqd);
+            let err = |a: &[f64], b: &[f64]| {
+                let scale = b.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+                a.iter()
+                    .zip(b)
+                    .fold(0.0f64, |m, (x, y)| m.max((x - y).abs() / scale))
+            };
+            let e = err(&s.q.to_vec(), &eq).max(err(&s.qd.to_vec(), &eqd));
+            worst = worst.max(e);
+            assert!(
+                e < 1e-8,
+                "{file}: after {} steps, q {:?} qd {:?}, MuJoCo q {eq:?} qd {eqd:?}",
+                (k + 1) * every,
+                s.q.to_vec(),
+                s.qd.to_vec()
+            );
+        }
+        report.push(format!(
+            "{file}: {} steps, worst {worst:.1e}",
+            rq.len() * every
+        ));
+        checked += 1;
+    }
+    assert!(checked >= 6, "every MJCF robot has a rollout reference");
     println!("{}", report.join("\n"));
 }
 
@@ -405,7 +498,10 @@ fn rollout_gradients_match_central_differences() {
             let h = 1e-6;
             let fd = (loss(&v, h) - loss(&v, -h)) / (2.0 * h);
             let an: f64 = grad.iter().zip(&v).map(|(a, b)| a * b).sum();
-            worst = worst.max((fd - an).abs() / an.abs().max(1e-2));
+            // Relative to the sum of the terms' sizes: along every input at once the
+            // directional derivative is a sum of hundreds of terms that may nearly cancel.
+            let terms: f64 = grad.iter().zip(&v).map(|(a, b)| (a * b).abs()).sum();
+            worst = worst.max((fd - an).abs() / an.abs().max(terms).max(1e-2));
         }
         println!("{name}: rollout gradient vs central differences {worst:.1e}");
         assert!(worst < 1e-6, "{name}: {worst:.2e}");
@@ -709,7 +805,7 @@ const MJCF: &str = r#"<mujoco>
 #[test]
 fn bad_mjcf_is_refused_naming_the_element_and_line() {
     assert!(mjcf::parse(MJCF).unwrap().builder.finalize::<f64>().is_ok());
-    let cases: [(&str, &str, u32, &str); 27] = [
+    let cases: [(&str, &str, u32, &str); 28] = [
         ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
         ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
@@ -837,9 +933,15 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ),
         (
             "</worldbody>",
-            "</worldbody><actuator><position joint=\"j\" kp=\"5\"/><position joint=\"j\" kp=\"3\"/></actuator>",
+            "</worldbody><actuator><general joint=\"j\" dyntype=\"filter\"/></actuator>",
             7,
-            "second <position>",
+            "dyntype=\"filter\" is not supported",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><actuator><motor joint=\"j\" forcerange=\"1 -1\"/></actuator>",
+            7,
+            "forcerange: lower >= upper",
         ),
         (
             "<joint name",
@@ -883,7 +985,7 @@ fn mjcf_reads_ranges_box_fromto_and_zaxis_as_mujoco() {
         "<actuator><motor joint=\"j\" ctrlrange=\"0 0\"/></actuator></mujoco>",
     ))
     .unwrap();
-    assert_eq!(m.actuators[0].ctrlrange, None);
+    assert_eq!(m.builder.actuators()[0].ctrl_range, None);
     // A class's <motor> and <position> defaults are one actuator default, as in MuJoCo: the
     // gear and control range of a default <motor> apply to a <position>.
     let m = mjcf::parse(
@@ -898,8 +1000,12 @@ fn mjcf_reads_ranges_box_fromto_and_zaxis_as_mujoco() {
             ),
     )
     .unwrap();
-    assert_eq!(m.actuators[0].ctrlrange, Some((-1.0, 1.0)));
-    assert_eq!(m.builder.links()[0].joint.kp, 2.0 * 3.0 * 3.0);
+    let a = &m.builder.actuators()[0];
+    assert_eq!(a.ctrl_range, Some((-1.0, 1.0)));
+    assert_eq!(
+        (a.gear, a.gain, a.bias),
+        (3.0, [2.0, 0.0, 0.0], [0.0, -2.0, 0.0])
+    );
     // A box from `fromto` has a square cross-section of half-side `size[0]`.
     let m = mjcf::parse(&MJCF.replace(
         "<inertial pos=\"0 0 -0.5\" mass=\"1\" diaginertia=\"0.1 0.1 0.1\"/>",
@@ -1719,4 +1825,164 @@ fn a_fluid_propels_a_swimmer_with_right_gradients_of_density_viscosity_and_wind(
         (lhs - rhs).abs() < 1e-9 * rhs.abs().max(1.0),
         "{lhs} vs {rhs}"
     );
+}
+
+/// MuJoCo's actuators (motor with clamped control and force, position and velocity servos,
+/// a general one with affine gain and bias): the gradients of a rollout with respect to the
+/// controls and every actuator parameter against central differences and forward mode; a
+/// control clamped by its range gets no gradient; each world's controls drive its own robot.
+#[test]
+fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
+    use adflex_kernels::articulation::{ArticulationControl, Articulations};
+    let mut b = mjcf::load(format!("{ROBOTS}/servo_arm.xml"))
+        .unwrap()
+        .builder;
+    (b.ground, b.link_contact) = (None, false);
+    let model = b.finalize::<f64>().unwrap();
+    assert_eq!(model.actuator_names[3], "wrist_general");
+    // The last control is past its range (-2, 2): clamped, so its gradient is 0.
+    let ctrl0 = [0.5, 0.9, 0.7, 2.5];
+    let (steps, dt) = (150, 2e-3);
+    let w: Vec<f64> = (0..model.n_q + model.n_dof)
+        .map(|i| (i as f64 * 0.7).sin())
+        .collect();
+    let flat = |a: &Array<adflex_runtime::Vec3<f64>>| -> Vec<f64> {
+        a.to_vec().iter().flat_map(|v| [v.x, v.y, v.z]).collect()
+    };
+    // Inputs, flattened: ctrl, gear, gain, bias, damping.
+    let p0: Vec<f64> = ctrl0
+        .iter()
+        .copied()
+        .chain(model.act_gear.to_vec())
+        .chain(flat(&model.act_gain))
+        .chain(flat(&model.act_bias))
+        .chain(model.damping.to_vec())
+        .collect();
+    let arrays = |p: &[f64]| {
+        let v3 = |x: &[f64]| {
+            Array::from_vec(
+                x.chunks(3)
+                    .map(|c| adflex_runtime::Vec3::new(c[0], c[1], c[2]))
+                    .collect(),
+            )
+        };
+        let m = Articulations {
+            act_gear: Array::from_vec(p[4..8].to_vec()),
+            act_gain: v3(&p[8..20]),
+            act_bias: v3(&p[20..32]),
+            damping: Array::from_vec(p[32..36].to_vec()),
+            ..model.clone()
+        };
+        (Array::from_vec(p[..4].to_vec()), m)
+    };
+    let run = |tape: &mut Tape, ctrl: &Array<f64>, m: &Articulations<f64>| {
+        let control = ArticulationControl {
+            ctrl: ctrl.clone(),
+            ..m.control()
+        };
+        let mut s = m.state();
+        for _ in 0..steps {
+            s = m.step(tape, &s, Some(&control), dt).unwrap();
+        }
+        s
+    };
+    let loss = |p: &[f64]| {
+        let (ctrl, m) = arrays(p);
+        let s = run(&mut Tape::new(), &ctrl, &m);
+        let f: Vec<f64> = s.q.to_vec().into_iter().chain(s.qd.to_vec()).collect();
+        f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let (ctrl, m) = arrays(&p0);
+    let mut tape = Tape::new();
+    let s = run(&mut tape, &ctrl, &m);
+    let inputs: [&dyn adflex_runtime::AnyArray; 5] =
+        [&ctrl, &m.act_gear, &m.act_gain, &m.act_bias, &m.damping];
+    let g = tape.vjp(&[&s.q, &s.qd], &w, &inputs).unwrap();
+    assert_eq!(g.len(), p0.len());
+    assert_eq!(g[3], 0.0, "a clamped control has no gradient");
+    let mut worst = 0.0f64;
+    for k in 0..p0.len() {
+        let h = 1e-6 * p0[k].abs().max(1.0);
+        let mut p = p0.clone();
+        p[k] += h;
+        let up = loss(&p);
+        p[k] -= 2.0 * h;
+        let fd = (up - loss(&p)) / (2.0 * h);
+        worst = worst.max((fd - g[k]).abs() / fd.abs().max(1e-3));
+    }
+    println!("actuator gradients against central differences: {worst:.1e}");
+    assert!(worst < 1e-6, "{worst:.2e}");
+    assert!(g[..3].iter().all(|x| x.abs() > 1e-3), "{g:?}");
+    // Forward mode against reverse mode.
+    let v: Vec<f64> = (0..p0.len()).map(|i| (i as f64 * 1.3).cos()).collect();
+    let jv = tape.jvp(&inputs, &v, &[&s.q, &s.qd]).unwrap();
+    let lhs: f64 = jv.iter().zip(&w).map(|(a, b)| a * b).sum();
+    let rhs: f64 = g.iter().zip(&v).map(|(a, b)| a * b).sum();
+    assert!(
+        (lhs - rhs).abs() < 1e-9 * rhs.abs().max(1.0),
+        "{lhs} vs {rhs}"
+    );
+
+    // Three worlds: world 1's controls drive world 1 only, with the bits of one world alone.
+    let mut b3 = mjcf::load(format!("{ROBOTS}/servo_arm.xml"))
+        .unwrap()
+        .builder;
+    (b3.ground, b3.link_contact) = (None, false);
+    let worlds = b3.replicate(3).finalize::<f64>().unwrap();
+    assert_eq!(worlds.worlds[1].actuators, 4..8);
+    let mut c3 = vec![0.0; 12];
+    c3[4..8].copy_from_slice(&ctrl0);
+    let s3 = run(&mut Tape::new(), &Array::from_vec(c3), &worlds);
+    let alone = run(&mut Tape::new(), &Array::from_vec(ctrl0.to_vec()), &model);
+    assert_eq!(
+        s3.q.to_vec()[worlds.worlds[1].q.clone()],
+        alone.q.to_vec()[..]
+    );
+    let idle = run(&mut Tape::new(), &Array::zeros(4), &model);
+    assert_eq!(
+        s3.q.to_vec()[worlds.worlds[0].q.clone()],
+        idle.q.to_vec()[..]
+    );
+}
+
+/// Joint damping is implicit in the step, as in MuJoCo's Euler integrator: a light link with
+/// a strong damper slows to `qd m / (m + dt d)` per step instead of blowing up, and the
+/// explicit law (`implicit_damping = false`) is the one that blows up.
+#[test]
+fn joint_damping_is_implicit_and_stable_at_any_step() {
+    use adflex_kernels::articulation::{ArticulationBuilder, Inertial, Joint};
+    use adflex_runtime::Vec3;
+    let build = |implicit: bool| {
+        let mut b = ArticulationBuilder::new();
+        b.gravity = Vec3::zeros();
+        b.implicit_damping = implicit;
+        b.add_link(
+            "wheel",
+            None,
+            Joint::revolute(Vec3::z()).damping(100.0),
+            Inertial::sphere(0.1, 0.1, Vec3::zeros()),
+        );
+        b.finalize::<f64>().unwrap()
+    };
+    let (dt, m, d) = (1e-2, 0.4 * 0.1 * 0.1 * 0.1, 100.0);
+    for implicit in [true, false] {
+        let model = build(implicit);
+        let mut s = model.state();
+        s.qd.set(0, 1.0);
+        let mut expected = 1.0;
+        for _ in 0..20 {
+            s = model.step(&mut Tape::new(), &s, None, dt).unwrap();
+            expected *= m / (m + dt * d);
+        }
+        let v = s.qd.get(0);
+        if implicit {
+            // (qd + qdd dt cancels to 4e-4 of qd each step: 2.5e-13 of rounding a step.)
+            assert!((v - expected).abs() < 1e-10 * expected, "{v} vs {expected}");
+        } else {
+            assert!(
+                v.abs() > 1e10,
+                "explicit damping at dt d / m = 2.5e3 blows up: {v}"
+            );
+        }
+    }
 }

@@ -289,6 +289,7 @@ pub(crate) fn finalize<R: Real>(
             ));
         }
     }
+    check_actuators(b, &world_of)?;
     // Topology: articulations are the trees under each root; links stay in the order given
     // (parents first), grouped by tree.
     let mut root_of = vec![0usize; n];
@@ -458,6 +459,7 @@ pub(crate) fn finalize<R: Real>(
             articulations: arts.len()..arts.len(),
             q: nq..nq,
             dofs: nv..nv,
+            actuators: 0..0,
         })
         .collect();
     let (mut q_world, mut dof_world) = (vec![0u32; nq], vec![0u32; nv]);
@@ -474,6 +476,7 @@ pub(crate) fn finalize<R: Real>(
                 articulations: art_of[i]..art_of[i],
                 q: q0..q0,
                 dofs: d0..d0,
+                actuators: 0..0,
             };
         }
         info.links.end = i + 1;
@@ -490,11 +493,21 @@ pub(crate) fn finalize<R: Real>(
                     articulations: next.articulations.start..next.articulations.start,
                     q: next.q.start..next.q.start,
                     dofs: next.dofs.start..next.dofs.start,
+                    actuators: 0..0,
                 };
             }
         }
     }
     debug_assert!(link_world.windows(2).all(|p| p[0] <= p[1]));
+    // Each world's actuators (grouped by world, as `check_actuators` made sure).
+    let act_world: Vec<usize> = b.actuators().iter().map(|a| world_of[a.link.0]).collect();
+    for (w, info) in worlds.iter_mut().enumerate() {
+        let before = act_world.iter().filter(|&&x| x < w).count();
+        info.actuators = before..before + act_world.iter().filter(|&&x| x == w).count();
+    }
+    let act_link: Vec<usize> = b.actuators().iter().map(|a| new_index[a.link.0]).collect();
+    let act_dof: Vec<u32> = act_link.iter().map(|&i| qd_start[i]).collect();
+    let act_coord: Vec<u32> = act_link.iter().map(|&i| q_start[i]).collect();
     let infos = order
         .iter()
         .enumerate()
@@ -521,6 +534,7 @@ pub(crate) fn finalize<R: Real>(
         limit_ke: r(b.limit_ke),
         limit_kd: r(b.limit_kd),
         fluid_on: b.fluid.is_some(),
+        implicit_damping: b.implicit_damping,
         fluid_density: rs(&[b.fluid.map_or(0.0, |f| f.density)]),
         fluid_viscosity: rs(&[b.fluid.map_or(0.0, |f| f.viscosity)]),
         wind: Array::from_vec(vec![v3(&b.fluid.map_or(Vec3::zeros(), |f| f.wind))]),
@@ -628,6 +642,48 @@ pub(crate) fn finalize<R: Real>(
             .collect::<Vec<_>>()),
         muscle_v_max: rs(&b.muscles().iter().map(|m| m.v_max).collect::<Vec<_>>()),
         muscle_names: b.muscles().iter().map(|m| m.name.clone()).collect(),
+        act_dof: Array::from_vec(act_dof),
+        act_coord: Array::from_vec(act_coord),
+        act_gear: rs(&b.actuators().iter().map(|a| a.gear).collect::<Vec<_>>()),
+        act_gain: Array::from_vec(
+            b.actuators()
+                .iter()
+                .map(|a| v3(&Vec3::from(a.gain)))
+                .collect(),
+        ),
+        act_bias: Array::from_vec(
+            b.actuators()
+                .iter()
+                .map(|a| v3(&Vec3::from(a.bias)))
+                .collect(),
+        ),
+        act_limited: Array::from_vec(
+            b.actuators()
+                .iter()
+                .map(|a| a.ctrl_range.is_some() as u32 + 2 * a.force_range.is_some() as u32)
+                .collect(),
+        ),
+        act_ctrl_lo: rs(&b
+            .actuators()
+            .iter()
+            .map(|a| a.ctrl_range.map_or(0.0, |r| r.0))
+            .collect::<Vec<_>>()),
+        act_ctrl_hi: rs(&b
+            .actuators()
+            .iter()
+            .map(|a| a.ctrl_range.map_or(0.0, |r| r.1))
+            .collect::<Vec<_>>()),
+        act_force_lo: rs(&b
+            .actuators()
+            .iter()
+            .map(|a| a.force_range.map_or(0.0, |r| r.0))
+            .collect::<Vec<_>>()),
+        act_force_hi: rs(&b
+            .actuators()
+            .iter()
+            .map(|a| a.force_range.map_or(0.0, |r| r.1))
+            .collect::<Vec<_>>()),
+        actuator_names: b.actuators().iter().map(|a| a.name.clone()).collect(),
         seg_link: Array::from_vec(contact.segs.iter().map(|s| s.0).collect()),
         seg_a: Array::from_vec(contact.segs.iter().map(|s| v3(&s.1)).collect()),
         seg_b: Array::from_vec(contact.segs.iter().map(|s| v3(&s.2)).collect()),
@@ -653,6 +709,53 @@ pub(crate) fn finalize<R: Real>(
     let m0 = check_mass_matrix(&model)?;
     scale_limits(&model, &m0);
     Ok(model)
+}
+
+/// Refuses an actuator on a missing link or a joint that is not revolute or prismatic, with a
+/// parameter that is not finite or a range whose lower end is above its upper, or added among
+/// another world's actuators.
+fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), ArticulationError> {
+    let links = b.links();
+    let mut last_world = 0;
+    for (k, a) in b.actuators().iter().enumerate() {
+        let what = format!("actuator \"{}\" ({k})", a.name);
+        let e = |why: String| Err(err(what.clone(), why));
+        let Some(link) = links.get(a.link.0) else {
+            return e(format!("link {} does not exist", a.link.0));
+        };
+        if !link.joint.kind.is_scalar() {
+            return e(format!(
+                "it drives joint \"{}\", a {:?} joint: actuators drive revolute and prismatic \
+                 joints",
+                link.joint.name, link.joint.kind
+            ));
+        }
+        let params = [a.gear].into_iter().chain(a.gain).chain(a.bias);
+        if !params.into_iter().all(f64::is_finite) {
+            return e(format!(
+                "gear {}, gain {:?} and bias {:?} must be finite",
+                a.gear, a.gain, a.bias
+            ));
+        }
+        for (range, name) in [(a.ctrl_range, "ctrl_range"), (a.force_range, "force_range")] {
+            if let Some((lo, hi)) = range {
+                if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                    return e(format!(
+                        "{name} ({lo}, {hi}) must be finite with lower <= upper"
+                    ));
+                }
+            }
+        }
+        let w = world_of[a.link.0];
+        if w < last_world {
+            return e(format!(
+                "it acts in world {w} but comes after an actuator of world {last_world}: add a \
+                 world's actuators before the next world's"
+            ));
+        }
+        last_world = w;
+    }
+    Ok(())
 }
 
 /// Scales the time-constant limits' per-unit stiffness and damping by each joint's inertia

@@ -47,6 +47,9 @@ pub struct ArticulationControl<R: Real> {
     /// Muscle activations in `[0, 1]`, one per muscle (see
     /// [`Muscle`](super::Muscle)).
     pub activation: Array<R>,
+    /// Actuator controls, one per actuator (see [`actuator`](super::actuator); MuJoCo's
+    /// `ctrl`).
+    pub ctrl: Array<R>,
 }
 
 /// What [`Articulations::pass`] computes with.
@@ -128,6 +131,7 @@ impl<R: Real> Articulations<R> {
             target_q: Array::zeros(self.n_dof),
             target_qd: Array::zeros(self.n_dof),
             activation: Array::zeros(self.muscle_f_max.len()),
+            ctrl: Array::zeros(self.act_dof.len()),
         }
     }
 
@@ -363,6 +367,30 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
+        let act_tau = zeros();
+        if let (Some(c), false) = (control, self.act_dof.is_empty()) {
+            self.check_len(&c.ctrl, self.act_dof.len(), "control.ctrl");
+            tape.launch(
+                super::actuator::articulation_actuators,
+                self.act_dof.len(),
+                (
+                    &self.act_dof,
+                    &self.act_coord,
+                    &self.act_gear,
+                    &self.act_gain,
+                    &self.act_bias,
+                    &self.act_limited,
+                    &self.act_ctrl_lo,
+                    &self.act_ctrl_hi,
+                    &self.act_force_lo,
+                    &self.act_force_hi,
+                    &c.ctrl,
+                    q,
+                    qd,
+                    &act_tau,
+                ),
+            );
+        }
         let (tz, qz) = (zeros(), zeros());
         let (target_q, target_qd, passive) = match control {
             Some(c) => (&c.target_q, &c.target_qd, 1u32),
@@ -397,6 +425,7 @@ impl<R: Real> Articulations<R> {
                 q,
                 qd,
                 tau,
+                &act_tau,
                 target_q,
                 target_qd,
                 &self.kp,
@@ -412,6 +441,10 @@ impl<R: Real> Articulations<R> {
                 &self.limit_b,
                 &self.limit_imp,
                 dt,
+                match self.implicit_damping {
+                    true => dt,
+                    false => R::lit(0.0),
+                },
                 &tau_id,
                 &m,
                 &rhs,
@@ -464,11 +497,14 @@ impl<R: Real> Articulations<R> {
         self.solve(tape, &p.m, &p.rhs)
     }
 
-    /// One semi-implicit Euler step: `qdd` from the dynamics with the control's torques, PD
-    /// actuators and muscle activations, joint damping and limits, and the ground contact of
-    /// the contact spheres;
+    /// One semi-implicit Euler step, as MuJoCo's Euler integrator: `qdd` from the dynamics
+    /// with the control's torques, actuators ([`actuator`](super::actuator)), PD targets and
+    /// muscle activations, joint springs, damping and limits, the fluid and the contacts;
     /// `qd' = qd + qdd dt`, then `q'` from `qd'` (quaternions by the exponential map,
-    /// renormalized). Returns the new state; every launch is on `tape`.
+    /// renormalized). The joint damping is implicit (`dt damping` joins the mass matrix's
+    /// diagonal, MuJoCo's `eulerdamp`) unless [`ArticulationBuilder::implicit_damping`] is
+    /// off, and so are violated limits; the other forces are explicit. Returns the new state;
+    /// every launch is on `tape`.
     pub fn step(
         &self,
         tape: &mut Tape,

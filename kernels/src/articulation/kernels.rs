@@ -216,7 +216,8 @@ pub fn articulation_link_dynamics<R: Real>(
 /// ancestor of (or is) the other, and 0 otherwise; armature on the diagonal. Row `a` starts at
 /// `m_row[a]` of `m`; `art_start[a]` is the articulation's first degree of freedom.
 ///
-/// **Right-hand side** `tau - tau_id`, and when `passive` is 1 also
+/// **Right-hand side** `tau + act_tau - tau_id` (`act_tau` the actuators' forces), and when
+/// `passive` is 1 also
 /// `+ kp (q_target - q) + kv (qd_target - qd) - damping qd - stiffness (q - spring_ref) +
 /// limit` (PD, spring and limit terms on revolute and prismatic joints, `dof_q[d]` their
 /// coordinate; the limit pushes back by `ke (lower - q) - kd qd` below `lower`, likewise above
@@ -225,7 +226,8 @@ pub fn articulation_link_dynamics<R: Real>(
 /// `solimp` function of `limit_imp[a] = (dmin, dmax, width)`, midpoint 0.5 and power 2).
 /// With `dt > 0` (a step), a violated limit is integrated implicitly: `dt kd + dt^2 ke` joins
 /// `M[a][a]` and `-dt ke qd` the right-hand side (backward Euler of the limit's spring and
-/// damper, linearized).
+/// damper, linearized). The joint damping is implicit too when `damp_dt` is the step's `dt`
+/// (MuJoCo's Euler integrator): `damp_dt damping` joins `M[a][a]`.
 #[diff_kernel]
 pub fn articulation_joint_space<R: Real>(
     dof_link: &Array<u32>,
@@ -252,6 +254,7 @@ pub fn articulation_joint_space<R: Real>(
     q: &Array<R>,
     qd: &Array<R>,
     tau: &Array<R>,
+    act_tau: &Array<R>,
     target_q: &Array<R>,
     target_qd: &Array<R>,
     kp: &Array<R>,
@@ -267,6 +270,7 @@ pub fn articulation_joint_space<R: Real>(
     limit_b: &Array<R>,
     limit_imp: &Array<Vec3<R>>,
     dt: R,
+    damp_dt: R,
     tau_id: &Array<R>,
     m: &Array<R>,
     rhs: &Array<R>,
@@ -325,11 +329,12 @@ pub fn articulation_joint_space<R: Real>(
         }
     }
     // Right-hand side.
-    let mut f = tau[a] - tid_a;
+    let mut f = tau[a] + act_tau[a] - tid_a;
     let mut extra = m_aa * 0.0;
     if passive == 1 {
         let v = qd[a];
         f = f - damping[a] * v;
+        extra = damping[a] * damp_dt;
         if dof_scalar[a] == 1 {
             let x = q[dof_q[a] as usize];
             f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v)
@@ -351,7 +356,7 @@ pub fn articulation_joint_space<R: Real>(
                     kd = limit_b[a] * d;
                 }
                 f = f + ke * (past - x) - kd * v - ke * v * dt;
-                extra = (kd + ke * dt) * dt;
+                extra = extra + (kd + ke * dt) * dt;
             }
         }
     }

@@ -6,9 +6,10 @@
 //! settotalmass>` (and, passed over, the mesh and texture directories and the compiler's own
 //! switches), `<option timestep gravity density viscosity wind>` (a fluid: MuJoCo's
 //! inertia-box model, [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint` and
-//! `gravity` switched off are off here too; flags about MuJoCo's solver, sensors or checks are
+//! `gravity` switched off are off here too, `eulerdamp` switches
+//! [`ArticulationBuilder::implicit_damping`] and `clampctrl` the clamping of controls; flags about MuJoCo's solver, sensors or checks are
 //! passed over; others that change the default are refused), `<default>` classes (nested, with
-//! `joint`, `geom`, `motor`, `position` and `tendon` defaults), `<worldbody>` with nested `<body
+//! `joint`, `geom`, actuator and `tendon` defaults), `<worldbody>` with nested `<body
 //! pos quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint type="hinge|slide|ball|free"
 //! pos axis range limited margin ref damping armature stiffness springref>` (a spring on
 //! hinges and slides; `springref` and `ref` in the file's angle unit; `ref` is the coordinate
@@ -17,7 +18,11 @@
 //! type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat mass density contype
 //! conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as MuJoCo's default
 //! `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`, `<actuator>` with
-//! `<motor joint gear ctrlrange>` and `<position joint kp kv ctrlrange>`.
+//! `<motor>`, `<position kp kv>`, `<velocity kv>` and `<general gaintype biastype gainprm
+//! biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint, with `gear`,
+//! `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`: each becomes an
+//! [`Actuator`] of the builder, driven by `ArticulationControl::ctrl` as MuJoCo's `ctrl`
+//! (clamped unless `<flag clampctrl="disable">`).
 //! Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`,
 //! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
 //! state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
@@ -58,11 +63,11 @@
 //! Where MuJoCo reads an attribute in a way of its own, so does this reader: `limited` and
 //! `ctrllimited` default to `"auto"`, which limits only a range with lower < upper (`range="0
 //! 0"` leaves a joint free); a box from `fromto` has a square cross-section of half-side
-//! `size[0]`; a class's `<motor>` and `<position>` defaults are one actuator default;
+//! `size[0]`; a class's actuator defaults (`<motor>`, `<position>`, ...) are one default;
 //! `zaxis="0 0 -1"` is half a turn about x; an element's own orientation overrides any its
 //! class gives. Refused: `fullinertia` with an orientation (MuJoCo reads it in the body's
-//! frame), a gear with more than its first component, a motor or servo on a ball or free
-//! joint, and two `<position>` servos on one joint.
+//! frame), a gear with more than its first component, and an actuator on a ball or free
+//! joint.
 //!
 //! Angles are in degrees unless `<compiler angle="radian">` (MuJoCo's default). A body
 //! without `<inertial>` gets its mass properties from its geoms (density 1000 by default),
@@ -82,7 +87,7 @@
 //!   <actuator><motor joint="hinge" gear="2"/></actuator>
 //! </mujoco>"#;
 //! let robot = mjcf::parse(xml).unwrap();
-//! assert_eq!(robot.actuators.len(), 1);
+//! assert_eq!(robot.builder.actuators().len(), 1);
 //! let model = robot.builder.finalize::<f64>().unwrap();
 //! assert_eq!(model.n_dof, 1);
 //!
@@ -98,6 +103,7 @@ use std::path::Path;
 use adflex_runtime::{Mat33, Quat, Vec3};
 use roxmltree::Node;
 
+use super::actuator::Actuator;
 use super::build::{check_inertial, check_mass};
 pub use super::contact::GeomShape;
 use super::contact::{ContactFilter, GroundContact};
@@ -112,43 +118,10 @@ use super::xml::{self, children, Source};
 pub struct Mjcf {
     /// The links and joints (set gravity or add more, then finalize).
     pub builder: ArticulationBuilder,
-    /// The actuators, in file order.
-    pub actuators: Vec<Actuator>,
     /// `<option timestep>`, if given (s).
     pub timestep: Option<f64>,
     /// The geoms: on links, and the world's (planes are the ground).
     pub geoms: Vec<Geom>,
-}
-
-/// How an actuator acts on its joint.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum ActuatorKind {
-    /// A force or torque `gear * ctrl`.
-    Motor {
-        /// The gear.
-        gear: f64,
-    },
-    /// A servo: MuJoCo's force `gear (kp (ctrl - gear q) - kv gear qd)`, which is the joint's
-    /// PD with `kp gear^2`, `kv gear^2` (set from it) toward `target_q = ctrl / gear`.
-    Position {
-        /// Position gain.
-        kp: f64,
-        /// Velocity gain.
-        kv: f64,
-    },
-}
-
-/// An actuator on one joint.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Actuator {
-    /// Its name (empty if none).
-    pub name: String,
-    /// The joint's name.
-    pub joint: String,
-    /// What it does.
-    pub kind: ActuatorKind,
-    /// The control's range, if limited.
-    pub ctrlrange: Option<(f64, f64)>,
 }
 
 /// A geom: its shape, where it is and whose it is.
@@ -206,6 +179,8 @@ struct Reader<'a> {
     timestep: f64,
     /// `<flag refsafe>` (on by default).
     refsafe: bool,
+    /// `<flag clampctrl>` (on by default): controls are clamped to their `ctrlrange`.
+    clamp_ctrl: bool,
 }
 
 const SKIPPED: &[&str] = &[
@@ -275,18 +250,29 @@ const GEOM_ATTRS: &[&str] = &[
     "user",
 ];
 
-/// The attributes of a `<motor>` or `<position>` read (`forcerange` to refuse it).
+/// The actuator elements read: MuJoCo's general actuator and its shortcuts without
+/// activation dynamics.
+const ACTUATOR_TAGS: &[&str] = &["motor", "position", "velocity", "general"];
+
+/// The attributes of an actuator element read.
 const ACTUATOR_ATTRS: &[&str] = &[
     "name",
     "joint",
     "gear",
     "ctrlrange",
     "ctrllimited",
-    "kp",
-    "kv",
-    "class",
     "forcerange",
     "forcelimited",
+    "kp",
+    "kv",
+    "gainprm",
+    "biasprm",
+    "gaintype",
+    "biastype",
+    "dyntype",
+    "dynprm",
+    "class",
+    "group",
 ];
 
 /// Half the side of the box that stands for a plane other than the ground (m): the plane's
@@ -302,12 +288,11 @@ const ORIENTATIONS: [(&str, usize); 5] = [
     ("zaxis", 3),
 ];
 
-/// Where a `<default>` keeps an element's attributes: MuJoCo's actuator elements (`<motor>`,
-/// `<position>`) all write one actuator default, so a class's `<motor gear>` also applies to
-/// a `<position>`.
+/// Where a `<default>` keeps an element's attributes: MuJoCo's actuator elements all write
+/// one actuator default, so a class's `<motor gear>` also applies to a `<position>`.
 fn defaults_of(tag: &str) -> &str {
     match tag {
-        "motor" | "position" => "actuator",
+        t if ACTUATOR_TAGS.contains(&t) => "actuator",
         other => other,
     }
 }
@@ -336,6 +321,7 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         total_mass: None,
         timestep: 0.002,
         refsafe: true,
+        clamp_ctrl: true,
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
@@ -425,13 +411,12 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
             _ => {}
         }
     }
-    let mut actuators = Vec::new();
     for n in &items {
         match n.tag_name().name() {
             "worldbody" => r.worldbody(*n)?,
             "actuator" => {
-                for a in children(&r.src, *n, &["motor", "position"], &[])? {
-                    actuators.push(r.actuator(a)?);
+                for a in children(&r.src, *n, ACTUATOR_TAGS, &[])? {
+                    r.actuator(a)?;
                 }
             }
             _ => {}
@@ -535,7 +520,6 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
     }
     Ok(Mjcf {
         builder: r.builder,
-        actuators,
         timestep,
         geoms: r.geoms,
     })
@@ -660,7 +644,6 @@ impl<'a> Reader<'a> {
             "warmstart",
             "sensor",
             "midphase",
-            "eulerdamp",
             "autoreset",
             "nativeccd",
             "island",
@@ -687,6 +670,8 @@ impl<'a> Reader<'a> {
                 ("constraint", false) => (self.no_contact, self.no_limits) = (true, true),
                 ("gravity", false) => self.builder.gravity = Vec3::zeros(),
                 ("refsafe", e) => self.refsafe = e,
+                ("eulerdamp", e) => self.builder.implicit_damping = e,
+                ("clampctrl", e) => self.clamp_ctrl = e,
                 ("sleep", true) => {
                     return Err(self.src.error(n, "sleep=\"enable\" is not supported"))
                 }
@@ -724,7 +709,9 @@ impl<'a> Reader<'a> {
         let kids = children(
             &self.src,
             n,
-            &["default", "joint", "geom", "motor", "position", "tendon"],
+            &[
+                "default", "joint", "geom", "motor", "position", "velocity", "general", "tendon",
+            ],
             &["site", "camera", "light", "mesh", "material"],
         )?;
         for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
@@ -733,7 +720,7 @@ impl<'a> Reader<'a> {
             match k.tag_name().name() {
                 "joint" => self.src.only_attributes(*k, JOINT_ATTRS)?,
                 "geom" => self.src.only_attributes(*k, GEOM_ATTRS)?,
-                "motor" | "position" => self.src.only_attributes(*k, ACTUATOR_ATTRS)?,
+                t if ACTUATOR_TAGS.contains(&t) => self.src.only_attributes(*k, ACTUATOR_ATTRS)?,
                 _ => {}
             }
             let entry = class
@@ -1576,15 +1563,13 @@ impl<'a> Reader<'a> {
         Ok(i)
     }
 
-    fn actuator(&mut self, n: Node) -> Result<Actuator, ArticulationError> {
+    /// An actuator element: MuJoCo's general actuator (`dyntype="none"`; fixed or affine
+    /// gain, none or affine bias) and its `<motor>`, `<position>` and `<velocity>` shortcuts,
+    /// on a hinge or slide joint, added to the builder.
+    fn actuator(&mut self, n: Node) -> Result<(), ArticulationError> {
         let tag = n.tag_name().name();
         let class = "main";
         self.src.only_attributes(n, ACTUATOR_ATTRS)?;
-        if self.attr(n, class, "forcerange").is_some()
-            || self.attr(n, class, "forcelimited") == Some("true")
-        {
-            return Err(self.src.error(n, "forcerange is not supported"));
-        }
         self.check_class(n)?;
         let joint = self.src.required(n, "joint")?.to_string();
         let Some(link) = self
@@ -1615,56 +1600,97 @@ impl<'a> Reader<'a> {
                 .src
                 .error(n, format!("<{tag}> needs a hinge or slide joint")));
         }
-        let ctrllimited = self.attr(n, class, "ctrllimited").unwrap_or("auto");
-        let ctrlrange = match self.nums(n, class, "ctrlrange", &[2])? {
-            Some(r) if ctrllimited != "false" => {
-                if r[0] > r[1] || (r[0] == r[1] && ctrllimited == "true") {
-                    return Err(self.src.error(n, "ctrlrange: lower >= upper"));
+        let ctrl_range = self.range(n, class, "ctrl")?.filter(|_| self.clamp_ctrl);
+        let force_range = self.range(n, class, "force")?;
+        let gain = |name: &str, default: f64| -> Result<f64, ArticulationError> {
+            let v = self.nums(n, class, name, &[1])?.map_or(default, |v| v[0]);
+            match v >= 0.0 {
+                true => Ok(v),
+                false => Err(self.src.error(n, format!("{name} must be non-negative"))),
+            }
+        };
+        let link = LinkId(link);
+        let mut actuator = match tag {
+            "motor" => Actuator::motor(link),
+            "position" => Actuator::position(link, gain("kp", 1.0)?, gain("kv", 0.0)?),
+            "velocity" => Actuator::velocity(link, gain("kv", 1.0)?),
+            _ => self.general(n, class, link)?,
+        };
+        actuator.name = n.attribute("name").unwrap_or("").to_string();
+        actuator.gear = gear;
+        actuator.ctrl_range = ctrl_range;
+        actuator.force_range = force_range;
+        self.builder.add_actuator(actuator);
+        Ok(())
+    }
+
+    /// A `<general>` actuator's gain and bias.
+    fn general(&self, n: Node, class: &str, link: LinkId) -> Result<Actuator, ArticulationError> {
+        let kind = |what: &str| self.attr(n, class, what).unwrap_or("none");
+        for (what, allowed) in [
+            ("dyntype", &["none"][..]),
+            ("gaintype", &["fixed", "affine"][..]),
+            ("biastype", &["none", "affine"][..]),
+        ] {
+            let v = self.attr(n, class, what).unwrap_or(allowed[0]);
+            if !allowed.contains(&v) {
+                return Err(self.src.error(
+                    n,
+                    format!(
+                        "{what}=\"{v}\" is not supported (only {})",
+                        allowed.join(", ")
+                    ),
+                ));
+            }
+        }
+        let prm = |name: &str, default: [f64; 3]| -> Result<[f64; 3], ArticulationError> {
+            let counts: Vec<usize> = (1..=10).collect();
+            Ok(match self.nums(n, class, name, &counts)? {
+                Some(v) => std::array::from_fn(|i| v.get(i).copied().unwrap_or(0.0)),
+                None => default,
+            })
+        };
+        let mut gain = prm("gainprm", [1.0, 0.0, 0.0])?;
+        if kind("gaintype") != "affine" {
+            gain[1..].fill(0.0);
+        }
+        let mut bias = prm("biasprm", [0.0; 3])?;
+        if kind("biastype") != "affine" {
+            bias = [0.0; 3];
+        }
+        Ok(Actuator {
+            gain,
+            bias,
+            ..Actuator::motor(link)
+        })
+    }
+
+    /// `ctrlrange`/`ctrllimited` (`what` "ctrl") or `forcerange`/`forcelimited` ("force"), as
+    /// MuJoCo reads them: `"auto"` (the default) limits a range with lower < upper.
+    fn range(
+        &self,
+        n: Node,
+        class: &str,
+        what: &str,
+    ) -> Result<Option<(f64, f64)>, ArticulationError> {
+        let limited = self
+            .attr(n, class, &format!("{what}limited"))
+            .unwrap_or("auto");
+        Ok(match self.nums(n, class, &format!("{what}range"), &[2])? {
+            Some(r) if limited != "false" => {
+                if r[0] > r[1] || (r[0] == r[1] && limited == "true") {
+                    return Err(self.src.error(n, format!("{what}range: lower >= upper")));
                 }
-                // As MuJoCo, `ctrllimited="auto"` clamps only a range with lower < upper.
+                // As MuJoCo, `"auto"` limits only a range with lower < upper.
                 (r[0] < r[1]).then_some((r[0], r[1]))
             }
             Some(_) => None,
-            None if ctrllimited == "true" => {
+            None if limited == "true" => {
                 return Err(self
                     .src
-                    .error(n, "ctrllimited=\"true\" needs a `ctrlrange`"));
+                    .error(n, format!("{what}limited=\"true\" needs a `{what}range`")));
             }
             None => None,
-        };
-        let kind = if tag == "motor" {
-            ActuatorKind::Motor { gear }
-        } else {
-            let kp = self
-                .nums(n, class, "kp", &[1])?
-                .map(|v| v[0])
-                .unwrap_or(1.0);
-            let kv = self
-                .nums(n, class, "kv", &[1])?
-                .map(|v| v[0])
-                .unwrap_or(0.0);
-            if kp < 0.0 || kv < 0.0 {
-                return Err(self.src.error(n, "kp and kv must be non-negative"));
-            }
-            if self.builder.links()[link].joint.kp != 0.0 {
-                // MuJoCo would add the two servos' forces; the joint has one PD here.
-                return Err(self.src.error(
-                    n,
-                    format!("a second <position> actuator on joint \"{joint}\""),
-                ));
-            }
-            // MuJoCo's force on the joint is gear (kp (ctrl - gear q) - kv gear qd): a PD on q
-            // with gains gear^2 kp, gear^2 kv toward ctrl / gear.
-            let j = &mut self.builder.links_mut()[link].joint;
-            j.kp = kp * gear * gear;
-            j.kv = kv * gear * gear;
-            ActuatorKind::Position { kp, kv }
-        };
-        Ok(Actuator {
-            name: n.attribute("name").unwrap_or("").to_string(),
-            joint,
-            kind,
-            ctrlrange,
         })
     }
 }

@@ -6,7 +6,8 @@
 //! - [`ArticulationBuilder`] describes links, joints and mass properties;
 //!   [`urdf`] and [`mjcf`] read robot files into one.
 //! - [`Articulations`] is the model; [`ArticulationState`] holds `q` and `qd`;
-//!   [`ArticulationControl`] the joint torques and PD targets.
+//!   [`ArticulationControl`] the joint torques, PD targets, actuator controls
+//!   ([`actuator`]) and muscle activations.
 //! - [`Articulations::mass_matrix`], [`Articulations::bias_forces`],
 //!   [`Articulations::inverse_dynamics`], [`Articulations::forward_dynamics`] and
 //!   [`Articulations::step`] record their launches on a tape;
@@ -40,6 +41,7 @@
 //! assert!(state.q.get(1) > 0.1); // it falls
 //! ```
 
+pub mod actuator;
 mod build;
 pub mod contact;
 mod dynamics;
@@ -51,6 +53,7 @@ pub mod muscle;
 pub mod urdf;
 mod xml;
 
+pub use actuator::Actuator;
 pub use contact::{ContactFilter, ContactShape, GroundContact};
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use fluid::Fluid;

@@ -5,6 +5,7 @@ use std::ops::Range;
 
 use adflex_runtime::prelude::*;
 
+use super::actuator::Actuator;
 use super::contact::{ContactFilter, ContactShape, GeomShape, GroundContact};
 use super::fluid::Fluid;
 
@@ -514,6 +515,8 @@ pub struct ArticulationBuilder {
     pub ground_filter: ContactFilter,
     /// Muscle-tendon units.
     muscles: Vec<Muscle>,
+    /// Actuators on joints.
+    actuators: Vec<Actuator>,
     /// Whether contact shapes of different links touch each other too (with the ground's
     /// law; default false), as their [`ContactFilter`]s say. Links welded together by fixed
     /// joints, links joined directly (after welding) and excluded pairs never touch.
@@ -526,6 +529,9 @@ pub struct ArticulationBuilder {
     pub limit_ke: f64,
     /// Damping of the joint limits while violated.
     pub limit_kd: f64,
+    /// Whether a step integrates the joint damping implicitly (default true, as MuJoCo's
+    /// Euler integrator with its `eulerdamp` flag): stable for any damping at any step.
+    pub implicit_damping: bool,
     /// A fluid around the links (default `None`): drag of MuJoCo's inertia-box model (see
     /// [`fluid`](super::fluid)).
     pub fluid: Option<Fluid>,
@@ -558,9 +564,11 @@ impl ArticulationBuilder {
             ground_filter: ContactFilter::default(),
             link_contact: false,
             muscles: Vec::new(),
+            actuators: Vec::new(),
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
+            implicit_damping: true,
             fluid: None,
             worlds: vec![(0, None)],
             world_added: false,
@@ -702,6 +710,19 @@ impl ArticulationBuilder {
         &self.muscles
     }
 
+    /// Adds an actuator on a joint; returns its index (its control's in
+    /// [`ArticulationControl::ctrl`](super::ArticulationControl)). Add a world's actuators
+    /// before the next world's.
+    pub fn add_actuator(&mut self, actuator: Actuator) -> usize {
+        self.actuators.push(actuator);
+        self.actuators.len() - 1
+    }
+
+    /// The actuators.
+    pub fn actuators(&self) -> &[Actuator] {
+        &self.actuators
+    }
+
     /// The spheres by which the contact shapes touch the ground (link, centre in the link
     /// frame, radius, friction; [`ContactShape::ground_spheres`]), of the shapes whose filter
     /// touches [`ArticulationBuilder::ground_filter`]. The friction is the larger of the
@@ -767,6 +788,12 @@ impl ArticulationBuilder {
             m.insertion.0 = LinkId(m.insertion.0 .0 + base);
             self.muscles.push(m);
         }
+        for a in &other.actuators {
+            self.actuators.push(Actuator {
+                link: shift(a.link),
+                ..a.clone()
+            });
+        }
         if self.ground.is_none() {
             // The other's contact settings come with its ground (an MJCF file without a plane
             // brings a law but no floor, and its links touching each other).
@@ -812,6 +839,7 @@ impl ArticulationBuilder {
             self.link_contact = other.link_contact;
             self.limit_ke = other.limit_ke;
             self.limit_kd = other.limit_kd;
+            self.implicit_damping = other.implicit_damping;
             self.fluid = other.fluid;
             0
         } else {
@@ -826,9 +854,14 @@ impl ArticulationBuilder {
                 false => String::new(),
             };
             format!(
-                "{ground}ground_filter {:?}, link_contact {}, limit_ke {}, limit_kd {}, fluid \
-                 {:?}",
-                b.ground_filter, b.link_contact, b.limit_ke, b.limit_kd, b.fluid
+                "{ground}ground_filter {:?}, link_contact {}, limit_ke {}, limit_kd {}, \
+                 implicit_damping {}, fluid {:?}",
+                b.ground_filter,
+                b.link_contact,
+                b.limit_ke,
+                b.limit_kd,
+                b.implicit_damping,
+                b.fluid
             )
         };
         if self.mismatch.is_none() && shared(self) != shared(other) {
@@ -884,7 +917,7 @@ impl ArticulationBuilder {
         b
     }
 
-    /// Appends world `k` of `other` as a new world: its links, contacts and muscles with
+    /// Appends world `k` of `other` as a new world: its links, contacts, muscles and actuators with
     /// their link ids shifted, and its gravity.
     fn append_world(&mut self, other: &ArticulationBuilder, k: usize) {
         let (start, g) = other.worlds[k];
@@ -914,6 +947,12 @@ impl ArticulationBuilder {
             m.insertion.0 = LinkId((m.insertion.0 .0 + base).wrapping_sub(start));
             self.muscles.push(m);
         }
+        for a in other.actuators.iter().filter(|a| inside(a.link)) {
+            self.actuators.push(Actuator {
+                link: remap(a.link),
+                ..a.clone()
+            });
+        }
     }
 
     /// This builder's settings (ground, laws, gravity) without links.
@@ -923,6 +962,7 @@ impl ArticulationBuilder {
             shapes: Vec::new(),
             excluded: Vec::new(),
             muscles: Vec::new(),
+            actuators: Vec::new(),
             worlds: vec![(0, None)],
             world_added: false,
             mismatch: self.mismatch.clone(),
@@ -932,6 +972,7 @@ impl ArticulationBuilder {
             gravity: self.gravity,
             limit_ke: self.limit_ke,
             limit_kd: self.limit_kd,
+            implicit_damping: self.implicit_damping,
             fluid: self.fluid,
         }
     }
@@ -998,6 +1039,9 @@ pub struct WorldInfo {
     pub q: Range<usize>,
     /// Its velocities in `qd`.
     pub dofs: Range<usize>,
+    /// Its actuators (their controls in
+    /// [`ArticulationControl::ctrl`](super::ArticulationControl)).
+    pub actuators: Range<usize>,
 }
 
 /// A link of the model: names, joint and where its joint's coordinates are.
@@ -1051,6 +1095,9 @@ pub struct Articulations<R: Real> {
     pub limit_ke: R,
     /// Damping of the joint limits while violated.
     pub limit_kd: R,
+    /// Whether a step integrates the joint damping implicitly
+    /// ([`ArticulationBuilder::implicit_damping`]).
+    pub implicit_damping: bool,
     /// Whether a fluid acts ([`ArticulationBuilder::fluid`]); its density (kg/m^3), viscosity
     /// (Pa s) and wind (m/s) are one-element arrays, which can require gradients.
     pub fluid_on: bool,
@@ -1196,6 +1243,31 @@ pub struct Articulations<R: Real> {
     pub muscle_v_max: Array<R>,
     /// Muscle names.
     pub muscle_names: Vec<String>,
+    /// Per actuator ([`Actuator`]): the degree of freedom it drives and that joint's
+    /// coordinate in `q`.
+    pub act_dof: Array<u32>,
+    /// See `act_dof`.
+    pub act_coord: Array<u32>,
+    /// Per actuator: gear, gain and bias (constant, length and speed terms), and which
+    /// ranges clamp (bit 0 the control, bit 1 the force) to what. The real-valued ones can
+    /// require gradients.
+    pub act_gear: Array<R>,
+    /// See `act_gear`.
+    pub act_gain: Array<Vec3<R>>,
+    /// See `act_gear`.
+    pub act_bias: Array<Vec3<R>>,
+    /// See `act_gear`.
+    pub act_limited: Array<u32>,
+    /// See `act_gear`.
+    pub act_ctrl_lo: Array<R>,
+    /// See `act_gear`.
+    pub act_ctrl_hi: Array<R>,
+    /// See `act_gear`.
+    pub act_force_lo: Array<R>,
+    /// See `act_gear`.
+    pub act_force_hi: Array<R>,
+    /// Actuator names.
+    pub actuator_names: Vec<String>,
 }
 
 impl<R: Real> Articulations<R> {

@@ -132,6 +132,68 @@ def aba_derivatives(pm, pd, q, v, tau):
     return np.array(pd.ddq_dq), np.array(pd.ddq_dv)
 
 
+def to_mujoco(model, kinds, q, v):
+    """adflex's (q, qd) to MuJoCo's (qpos, qvel), and T with qvel = T qd: quaternions w first,
+    a free joint's linear velocity in the world frame."""
+    qm, T = q.copy(), np.eye(model.nv)
+    for j, kind in enumerate(kinds):
+        a, d = model.jnt_qposadr[j], model.jnt_dofadr[j]
+        if kind == "ball":
+            qm[a:a + 4] = np.roll(q[a:a + 4], 1)
+        if kind == "free":
+            qm[a + 3:a + 7] = np.roll(q[a + 3:a + 7], 1)
+            R = np.zeros(9)
+            mujoco.mju_quat2Mat(R, qm[a + 3:a + 7])
+            T[d:d + 3, d:d + 3] = R.reshape(3, 3)
+    return qm, T @ v, T
+
+
+def from_mujoco(model, kinds, qm, vm):
+    """MuJoCo's (qpos, qvel) to adflex's (q, qd)."""
+    q, v = qm.copy(), vm.copy()
+    for j, kind in enumerate(kinds):
+        a, d = model.jnt_qposadr[j], model.jnt_dofadr[j]
+        if kind == "ball":
+            q[a:a + 4] = np.roll(qm[a:a + 4], -1)
+        if kind == "free":
+            q[a + 3:a + 7] = np.roll(qm[a + 3:a + 7], -1)
+            R = np.zeros(9)
+            mujoco.mju_quat2Mat(R, qm[a + 3:a + 7])
+            v[d:d + 3] = R.reshape(3, 3).T @ vm[d:d + 3]
+    return q, v
+
+
+def mujoco_rollout(model, data, kinds, steps=200):
+    """mj_step from a random state with random controls (some outside their range, to check
+    the clamping), contact and limits off, by MuJoCo's Euler integrator at the file's time step or 2 ms if shorter (the
+    legs of gym's ant, driven hard without limits, blow up at its 10 ms): the states every
+    50 steps, in adflex's terms."""
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
+    model.opt.timestep = min(model.opt.timestep, 0.002)
+    # adflex's step is MuJoCo's Euler integrator, whatever the file asks (the walker: RK4).
+    model.opt.integrator = int(mujoco.mjtIntegrator.mjINT_EULER)
+    q, v = random_state(kinds, RNG)
+    ctrl = []
+    for u in range(model.nu):
+        lo, hi = model.actuator_ctrlrange[u] if model.actuator_ctrllimited[u] else (-1, 1)
+        ctrl.append(RNG.uniform(lo - 0.25 * (hi - lo), hi + 0.25 * (hi - lo)))
+    mujoco.mj_resetData(model, data)
+    data.qpos[:], data.qvel[:], _ = to_mujoco(model, kinds, q, v)
+    data.ctrl[:] = ctrl
+    out = {"dt": model.opt.timestep, "q0": q.tolist(), "qd0": v.tolist(), "ctrl": ctrl,
+           "every": 50, "q": [], "qd": []}
+    for k in range(1, steps + 1):
+        mujoco.mj_step(model, data)
+        if data.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number:
+            raise RuntimeError("the reference rollout blew up")
+        if k % 50 == 0:
+            qa, va = from_mujoco(model, kinds, data.qpos, data.qvel)
+            out["q"].append(qa.tolist())
+            out["qd"].append(va.tolist())
+    return out
+
+
 def mujoco_reference(file, n_random=4):
     """M, bias and qacc from MuJoCo (no contact), converted to adflex's conventions."""
     model = mujoco.MjModel.from_xml_path(str(ROBOTS / file))
@@ -148,18 +210,7 @@ def mujoco_reference(file, n_random=4):
     for s in range(n_random + 1):
         q, v = random_state(kinds, RNG, neutral=(s == 0))
         tau = np.zeros(model.nv) if s == 0 else RNG.normal(size=model.nv)
-        # adflex -> MuJoCo: quaternions w first; a free joint's linear velocity in world.
-        qm, vm, T = q.copy(), v.copy(), np.eye(model.nv)
-        for j, kind in enumerate(kinds):
-            a, d = model.jnt_qposadr[j], model.jnt_dofadr[j]
-            if kind == "ball":
-                qm[a:a + 4] = np.roll(q[a:a + 4], 1)
-            if kind == "free":
-                qm[a + 3:a + 7] = np.roll(q[a + 3:a + 7], 1)
-                R = np.zeros(9)
-                mujoco.mju_quat2Mat(R, qm[a + 3:a + 7])
-                T[d:d + 3, d:d + 3] = R.reshape(3, 3)
-        vm = T @ v
+        qm, vm, T = to_mujoco(model, kinds, q, v)
         data.qpos[:] = qm
         data.qvel[:] = vm
         data.qfrc_applied[:] = 0
@@ -207,6 +258,7 @@ def mujoco_reference(file, n_random=4):
         "reference": f"mujoco {mujoco.__version__}, pinocchio {pin.__version__}",
         "joints": [{"name": n, "kind": k} for n, k in zip(names, kinds)],
         "states": states,
+        "rollout": mujoco_rollout(model, data, kinds),
         "body_mass": model.body_mass[1:].tolist(),
     }
 

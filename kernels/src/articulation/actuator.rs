@@ -1,0 +1,167 @@
+//! Actuators as MuJoCo's: a control `ctrl` turned into a force on one joint.
+//!
+//! An [`Actuator`] on a hinge or slide joint with gear `g` has the length `l = g q` and the
+//! speed `v = g qd` (`q`, `qd` its joint's coordinate and velocity). Its control is clamped
+//! to `ctrl_range` when it has one, and its force is
+//! `f = (gain[0] + gain[1] l + gain[2] v) ctrl + bias[0] + bias[1] l + bias[2] v`,
+//! clamped to `force_range` when it has one; the joint gets the generalized force `g f`.
+//! This is MuJoCo's general actuator without activation dynamics (`dyntype="none"`, affine
+//! gain and bias), which MuJoCo's shortcuts are:
+//!
+//! | MJCF | gain | bias |
+//! |---|---|---|
+//! | `<motor>` | `(1, 0, 0)` | `(0, 0, 0)` |
+//! | `<position kp kv>` | `(kp, 0, 0)` | `(0, -kp, -kv)` |
+//! | `<velocity kv>` | `(kv, 0, 0)` | `(0, 0, -kv)` |
+//! | `<general gainprm biasprm>` | `gainprm` (`gaintype="affine"`) or its first | `biasprm` |
+//!
+//! The force is explicit in the step, as in MuJoCo's Euler integrator. The controls are
+//! [`ArticulationControl::ctrl`](super::ArticulationControl), one per actuator in the order
+//! they were added (each world's together, [`WorldInfo::actuators`](super::WorldInfo)); they
+//! and every actuator parameter of the model can require gradients.
+//!
+//! ```
+//! use adflex_kernels::articulation::*;
+//! use adflex_runtime::prelude::*;
+//!
+//! let mut b = ArticulationBuilder::new();
+//! b.gravity = Vec3::zeros();
+//! let l = b.add_link("pole", None, Joint::revolute(Vec3::y()),
+//!     Inertial::sphere(1.0, 0.1, Vec3::new(0.5, 0.0, 0.0)));
+//! // A servo to ctrl: kp = 10, kv = 2.
+//! b.add_actuator(Actuator::position(l, 10.0, 2.0).ctrl_range(-1.0, 1.0));
+//! let model = b.finalize::<f64>().unwrap();
+//! let control = ArticulationControl {
+//!     ctrl: Array::from_vec(vec![0.5]),
+//!     ..model.control()
+//! };
+//! let mut s = model.state();
+//! for _ in 0..4000 {
+//!     s = model.step(&mut Tape::new(), &s, Some(&control), 1e-3).unwrap();
+//! }
+//! assert!((s.q.get(0) - 0.5).abs() < 1e-3);
+//! ```
+
+use adflex_macros::diff_kernel;
+use adflex_runtime::prelude::*;
+
+use super::model::LinkId;
+
+/// An actuator on the joint of one link (see the [module](self) for its force).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Actuator {
+    /// Name, for errors (empty if none).
+    pub name: String,
+    /// The link whose joint (a revolute or prismatic one) it drives.
+    pub link: LinkId,
+    /// The gear `g`: length `g q`, generalized force `g f`.
+    pub gear: f64,
+    /// The gain's constant, length and speed terms.
+    pub gain: [f64; 3],
+    /// The bias's constant, length and speed terms.
+    pub bias: [f64; 3],
+    /// The control's range (`None`: not clamped).
+    pub ctrl_range: Option<(f64, f64)>,
+    /// The force's range (`None`: not clamped).
+    pub force_range: Option<(f64, f64)>,
+}
+
+impl Actuator {
+    /// A motor: force `ctrl` (gear 1).
+    pub fn motor(link: LinkId) -> Self {
+        Actuator {
+            name: String::new(),
+            link,
+            gear: 1.0,
+            gain: [1.0, 0.0, 0.0],
+            bias: [0.0; 3],
+            ctrl_range: None,
+            force_range: None,
+        }
+    }
+
+    /// A position servo: force `kp (ctrl - l) - kv v`.
+    pub fn position(link: LinkId, kp: f64, kv: f64) -> Self {
+        Actuator {
+            gain: [kp, 0.0, 0.0],
+            bias: [0.0, -kp, -kv],
+            ..Actuator::motor(link)
+        }
+    }
+
+    /// A velocity servo: force `kv (ctrl - v)`.
+    pub fn velocity(link: LinkId, kv: f64) -> Self {
+        Actuator {
+            gain: [kv, 0.0, 0.0],
+            bias: [0.0, 0.0, -kv],
+            ..Actuator::motor(link)
+        }
+    }
+
+    /// With this gear.
+    pub fn gear(self, gear: f64) -> Self {
+        Actuator { gear, ..self }
+    }
+
+    /// With the control clamped to `[lower, upper]`.
+    pub fn ctrl_range(self, lower: f64, upper: f64) -> Self {
+        Actuator {
+            ctrl_range: Some((lower, upper)),
+            ..self
+        }
+    }
+
+    /// With the force clamped to `[lower, upper]`.
+    pub fn force_range(self, lower: f64, upper: f64) -> Self {
+        Actuator {
+            force_range: Some((lower, upper)),
+            ..self
+        }
+    }
+
+    /// With this name.
+    pub fn named(self, name: impl Into<String>) -> Self {
+        Actuator {
+            name: name.into(),
+            ..self
+        }
+    }
+}
+
+/// Actuator `tid` on degree of freedom `dof[tid]` (coordinate `coord[tid]`): adds `gear f` to
+/// `act_tau[dof]`, `f` the module's force. `limited` has bit 0 for a clamped control (to
+/// `ctrl_lo`, `ctrl_hi`) and bit 1 for a clamped force (to `force_lo`, `force_hi`).
+#[diff_kernel]
+pub fn articulation_actuators<R: Real>(
+    dof: &Array<u32>,
+    coord: &Array<u32>,
+    gear: &Array<R>,
+    gain: &Array<Vec3<R>>,
+    bias: &Array<Vec3<R>>,
+    limited: &Array<u32>,
+    ctrl_lo: &Array<R>,
+    ctrl_hi: &Array<R>,
+    force_lo: &Array<R>,
+    force_hi: &Array<R>,
+    ctrl: &Array<R>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    act_tau: &Array<R>,
+) {
+    let t = tid();
+    let d = dof[t] as usize;
+    let g = gear[t];
+    let l = g * q[coord[t] as usize];
+    let v = g * qd[d];
+    let mut c = ctrl[t];
+    if limited[t] % 2 == 1 {
+        c = clamp(c, ctrl_lo[t], ctrl_hi[t]);
+    }
+    let k = gain[t];
+    let b = bias[t];
+    let mut f = (k.x + k.y * l + k.z * v) * c + b.x + b.y * l + b.z * v;
+    if limited[t] / 2 == 1 {
+        f = clamp(f, force_lo[t], force_hi[t]);
+    }
+    act_tau.atomic_add(d, g * f);
+}
