@@ -1828,7 +1828,7 @@ fn a_fluid_propels_a_swimmer_with_right_gradients_of_density_viscosity_and_wind(
 }
 
 /// MuJoCo's actuators (motor with clamped control and force, position and velocity servos,
-/// a general one with affine gain and bias): the gradients of a rollout with respect to the
+/// a general one with affine gain and bias, a motor on a fixed tendon): the gradients of a rollout with respect to the
 /// controls and every actuator parameter against central differences and forward mode; a
 /// control clamped by its range gets no gradient; each world's controls drive its own robot.
 #[test]
@@ -1841,7 +1841,9 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     let model = b.finalize::<f64>().unwrap();
     assert_eq!(model.actuator_names[3], "wrist_general");
     // The last control is past its range (-2, 2): clamped, so its gradient is 0.
-    let ctrl0 = [0.5, 0.9, 0.7, 2.5];
+    let ctrl0 = [0.5, 0.9, 0.7, 2.5, -0.6];
+    let (na, nc) = (ctrl0.len(), model.act_coef.len());
+    assert_eq!((model.act_gear.len(), nc), (na, na + 1));
     let (steps, dt) = (150, 2e-3);
     let w: Vec<f64> = (0..model.n_q + model.n_dof)
         .map(|i| (i as f64 * 0.7).sin())
@@ -1849,15 +1851,17 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     let flat = |a: &Array<adflex_runtime::Vec3<f64>>| -> Vec<f64> {
         a.to_vec().iter().flat_map(|v| [v.x, v.y, v.z]).collect()
     };
-    // Inputs, flattened: ctrl, gear, gain, bias, damping.
+    // Inputs, flattened: ctrl, gear, gain, bias, tendon coefficients, damping.
     let p0: Vec<f64> = ctrl0
         .iter()
         .copied()
         .chain(model.act_gear.to_vec())
         .chain(flat(&model.act_gain))
         .chain(flat(&model.act_bias))
+        .chain(model.act_coef.to_vec())
         .chain(model.damping.to_vec())
         .collect();
+    let at = |k: usize| [0, na, 2 * na, 5 * na, 8 * na, 8 * na + nc, 8 * na + nc + 4][k];
     let arrays = |p: &[f64]| {
         let v3 = |x: &[f64]| {
             Array::from_vec(
@@ -1867,13 +1871,14 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
             )
         };
         let m = Articulations {
-            act_gear: Array::from_vec(p[4..8].to_vec()),
-            act_gain: v3(&p[8..20]),
-            act_bias: v3(&p[20..32]),
-            damping: Array::from_vec(p[32..36].to_vec()),
+            act_gear: Array::from_vec(p[at(1)..at(2)].to_vec()),
+            act_gain: v3(&p[at(2)..at(3)]),
+            act_bias: v3(&p[at(3)..at(4)]),
+            act_coef: Array::from_vec(p[at(4)..at(5)].to_vec()),
+            damping: Array::from_vec(p[at(5)..at(6)].to_vec()),
             ..model.clone()
         };
-        (Array::from_vec(p[..4].to_vec()), m)
+        (Array::from_vec(p[..na].to_vec()), m)
     };
     let run = |tape: &mut Tape, ctrl: &Array<f64>, m: &Articulations<f64>| {
         let control = ArticulationControl {
@@ -1895,11 +1900,20 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     let (ctrl, m) = arrays(&p0);
     let mut tape = Tape::new();
     let s = run(&mut tape, &ctrl, &m);
-    let inputs: [&dyn adflex_runtime::AnyArray; 5] =
-        [&ctrl, &m.act_gear, &m.act_gain, &m.act_bias, &m.damping];
+    let inputs: [&dyn adflex_runtime::AnyArray; 6] = [
+        &ctrl,
+        &m.act_gear,
+        &m.act_gain,
+        &m.act_bias,
+        &m.act_coef,
+        &m.damping,
+    ];
     let g = tape.vjp(&[&s.q, &s.qd], &w, &inputs).unwrap();
     assert_eq!(g.len(), p0.len());
     assert_eq!(g[3], 0.0, "a clamped control has no gradient");
+    // (Relative to the largest gradient below a hundredth of it: central differences'
+    // rounding is about 1e-9 here.)
+    let gmax = g.iter().fold(0.0f64, |m, x| m.max(x.abs()));
     let mut worst = 0.0f64;
     for k in 0..p0.len() {
         let h = 1e-6 * p0[k].abs().max(1.0);
@@ -1908,11 +1922,14 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
         let up = loss(&p);
         p[k] -= 2.0 * h;
         let fd = (up - loss(&p)) / (2.0 * h);
-        worst = worst.max((fd - g[k]).abs() / fd.abs().max(1e-3));
+        worst = worst.max((fd - g[k]).abs() / fd.abs().max(1e-2 * gmax));
     }
     println!("actuator gradients against central differences: {worst:.1e}");
     assert!(worst < 1e-6, "{worst:.2e}");
-    assert!(g[..3].iter().all(|x| x.abs() > 1e-3), "{g:?}");
+    assert!(
+        g[..3].iter().chain(&g[4..5]).all(|x| x.abs() > 1e-3),
+        "{g:?}"
+    );
     // Forward mode against reverse mode.
     let v: Vec<f64> = (0..p0.len()).map(|i| (i as f64 * 1.3).cos()).collect();
     let jv = tape.jvp(&inputs, &v, &[&s.q, &s.qd]).unwrap();
@@ -1929,16 +1946,16 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
         .builder;
     (b3.ground, b3.link_contact) = (None, false);
     let worlds = b3.replicate(3).finalize::<f64>().unwrap();
-    assert_eq!(worlds.worlds[1].actuators, 4..8);
-    let mut c3 = vec![0.0; 12];
-    c3[4..8].copy_from_slice(&ctrl0);
+    assert_eq!(worlds.worlds[1].actuators, na..2 * na);
+    let mut c3 = vec![0.0; 3 * na];
+    c3[na..2 * na].copy_from_slice(&ctrl0);
     let s3 = run(&mut Tape::new(), &Array::from_vec(c3), &worlds);
     let alone = run(&mut Tape::new(), &Array::from_vec(ctrl0.to_vec()), &model);
     assert_eq!(
         s3.q.to_vec()[worlds.worlds[1].q.clone()],
         alone.q.to_vec()[..]
     );
-    let idle = run(&mut Tape::new(), &Array::zeros(4), &model);
+    let idle = run(&mut Tape::new(), &Array::zeros(na), &model);
     assert_eq!(
         s3.q.to_vec()[worlds.worlds[0].q.clone()],
         idle.q.to_vec()[..]

@@ -1,10 +1,13 @@
 //! Actuators as MuJoCo's: a control `ctrl` turned into a force on one joint.
 //!
-//! An [`Actuator`] on a hinge or slide joint with gear `g` has the length `l = g q` and the
-//! speed `v = g qd` (`q`, `qd` its joint's coordinate and velocity). Its control is clamped
+//! An [`Actuator`] with gear `g` on a hinge or slide joint has the length `l = g q` and the
+//! speed `v = g qd` (`q`, `qd` its joint's coordinate and velocity); on a fixed tendon, a
+//! combination `sum_i c_i q_i` of such joints' coordinates (MuJoCo's `<fixed>` tendon), it
+//! has `l = g sum_i c_i q_i` and `v = g sum_i c_i qd_i`. Its control is clamped
 //! to `ctrl_range` when it has one, and its force is
 //! `f = (gain[0] + gain[1] l + gain[2] v) ctrl + bias[0] + bias[1] l + bias[2] v`,
-//! clamped to `force_range` when it has one; the joint gets the generalized force `g f`.
+//! clamped to `force_range` when it has one; the joint gets the generalized force `g f` (each
+//! joint of a tendon `g c_i f`).
 //! This is MuJoCo's general actuator without activation dynamics (`dyntype="none"`, affine
 //! gain and bias), which MuJoCo's shortcuts are:
 //!
@@ -52,8 +55,9 @@ use super::model::LinkId;
 pub struct Actuator {
     /// Name, for errors (empty if none).
     pub name: String,
-    /// The link whose joint (a revolute or prismatic one) it drives.
-    pub link: LinkId,
+    /// What it drives: joints (of links; revolute or prismatic) and their coefficients in
+    /// the length, `[(link, 1.0)]` for one joint, several for a fixed tendon.
+    pub transmission: Vec<(LinkId, f64)>,
     /// The gear `g`: length `g q`, generalized force `g f`.
     pub gear: f64,
     /// The gain's constant, length and speed terms.
@@ -67,11 +71,11 @@ pub struct Actuator {
 }
 
 impl Actuator {
-    /// A motor: force `ctrl` (gear 1).
+    /// A motor on the joint of `link`: force `ctrl` (gear 1).
     pub fn motor(link: LinkId) -> Self {
         Actuator {
             name: String::new(),
-            link,
+            transmission: vec![(link, 1.0)],
             gear: 1.0,
             gain: [1.0, 0.0, 0.0],
             bias: [0.0; 3],
@@ -95,6 +99,15 @@ impl Actuator {
             gain: [kv, 0.0, 0.0],
             bias: [0.0, 0.0, -kv],
             ..Actuator::motor(link)
+        }
+    }
+
+    /// On a fixed tendon instead of one joint: length `sum_i c_i q_i` of the joints of
+    /// `joints` (links and coefficients `c_i`).
+    pub fn fixed_tendon(self, joints: Vec<(LinkId, f64)>) -> Self {
+        Actuator {
+            transmission: joints,
+            ..self
         }
     }
 
@@ -128,13 +141,16 @@ impl Actuator {
     }
 }
 
-/// Actuator `tid` on degree of freedom `dof[tid]` (coordinate `coord[tid]`): adds `gear f` to
-/// `act_tau[dof]`, `f` the module's force. `limited` has bit 0 for a clamped control (to
+/// Actuator `tid` on the degrees of freedom `dof[k]` (coordinates `coord[k]`) with
+/// coefficients `coef[k]`, `k` in `start[tid]..start[tid + 1]`: adds `gear coef[k] f` to
+/// `act_tau[dof[k]]`, `f` the module's force. `limited` has bit 0 for a clamped control (to
 /// `ctrl_lo`, `ctrl_hi`) and bit 1 for a clamped force (to `force_lo`, `force_hi`).
 #[diff_kernel]
 pub fn articulation_actuators<R: Real>(
+    start: &Array<u32>,
     dof: &Array<u32>,
     coord: &Array<u32>,
+    coef: &Array<R>,
     gear: &Array<R>,
     gain: &Array<Vec3<R>>,
     bias: &Array<Vec3<R>>,
@@ -149,10 +165,17 @@ pub fn articulation_actuators<R: Real>(
     act_tau: &Array<R>,
 ) {
     let t = tid();
-    let d = dof[t] as usize;
     let g = gear[t];
-    let l = g * q[coord[t] as usize];
-    let v = g * qd[d];
+    let k0 = start[t] as usize;
+    let k1 = start[t + 1] as usize;
+    let mut l = g * 0.0;
+    let mut v = g * 0.0;
+    for k in k0..k1 {
+        l = l + coef[k] * q[coord[k] as usize];
+        v = v + coef[k] * qd[dof[k] as usize];
+    }
+    l = g * l;
+    v = g * v;
     let mut c = ctrl[t];
     if limited[t] % 2 == 1 {
         c = clamp(c, ctrl_lo[t], ctrl_hi[t]);
@@ -163,5 +186,7 @@ pub fn articulation_actuators<R: Real>(
     if limited[t] / 2 == 1 {
         f = clamp(f, force_lo[t], force_hi[t]);
     }
-    act_tau.atomic_add(d, g * f);
+    for k in k0..k1 {
+        act_tau.atomic_add(dof[k] as usize, g * coef[k] * f);
+    }
 }

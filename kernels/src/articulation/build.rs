@@ -500,14 +500,25 @@ pub(crate) fn finalize<R: Real>(
     }
     debug_assert!(link_world.windows(2).all(|p| p[0] <= p[1]));
     // Each world's actuators (grouped by world, as `check_actuators` made sure).
-    let act_world: Vec<usize> = b.actuators().iter().map(|a| world_of[a.link.0]).collect();
+    let act_world: Vec<usize> = b
+        .actuators()
+        .iter()
+        .map(|a| world_of[a.transmission[0].0 .0])
+        .collect();
     for (w, info) in worlds.iter_mut().enumerate() {
         let before = act_world.iter().filter(|&&x| x < w).count();
         info.actuators = before..before + act_world.iter().filter(|&&x| x == w).count();
     }
-    let act_link: Vec<usize> = b.actuators().iter().map(|a| new_index[a.link.0]).collect();
-    let act_dof: Vec<u32> = act_link.iter().map(|&i| qd_start[i]).collect();
-    let act_coord: Vec<u32> = act_link.iter().map(|&i| q_start[i]).collect();
+    let mut act_start = vec![0u32];
+    let (mut act_dof, mut act_coord, mut act_coef) = (Vec::new(), Vec::new(), Vec::new());
+    for a in b.actuators() {
+        for &(l, c) in &a.transmission {
+            act_dof.push(qd_start[new_index[l.0]]);
+            act_coord.push(q_start[new_index[l.0]]);
+            act_coef.push(c);
+        }
+        act_start.push(act_dof.len() as u32);
+    }
     let infos = order
         .iter()
         .enumerate()
@@ -642,8 +653,10 @@ pub(crate) fn finalize<R: Real>(
             .collect::<Vec<_>>()),
         muscle_v_max: rs(&b.muscles().iter().map(|m| m.v_max).collect::<Vec<_>>()),
         muscle_names: b.muscles().iter().map(|m| m.name.clone()).collect(),
+        act_start: Array::from_vec(act_start),
         act_dof: Array::from_vec(act_dof),
         act_coord: Array::from_vec(act_coord),
+        act_coef: rs(&act_coef),
         act_gear: rs(&b.actuators().iter().map(|a| a.gear).collect::<Vec<_>>()),
         act_gain: Array::from_vec(
             b.actuators()
@@ -720,15 +733,27 @@ fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), Ar
     for (k, a) in b.actuators().iter().enumerate() {
         let what = format!("actuator \"{}\" ({k})", a.name);
         let e = |why: String| Err(err(what.clone(), why));
-        let Some(link) = links.get(a.link.0) else {
-            return e(format!("link {} does not exist", a.link.0));
-        };
-        if !link.joint.kind.is_scalar() {
-            return e(format!(
-                "it drives joint \"{}\", a {:?} joint: actuators drive revolute and prismatic \
-                 joints",
-                link.joint.name, link.joint.kind
-            ));
+        if a.transmission.is_empty() {
+            return e("it drives no joint".into());
+        }
+        for &(l, c) in &a.transmission {
+            let Some(link) = links.get(l.0) else {
+                return e(format!("link {} does not exist", l.0));
+            };
+            if !link.joint.kind.is_scalar() {
+                return e(format!(
+                    "it drives joint \"{}\", a {:?} joint: actuators drive revolute and \
+                     prismatic joints",
+                    link.joint.name, link.joint.kind
+                ));
+            }
+            if world_of[l.0] != world_of[a.transmission[0].0 .0] || !c.is_finite() {
+                return e(format!(
+                    "joint \"{}\" (coefficient {c}): a tendon's joints are in one world, with \
+                     finite coefficients",
+                    link.joint.name
+                ));
+            }
         }
         let params = [a.gear].into_iter().chain(a.gain).chain(a.bias);
         if !params.into_iter().all(f64::is_finite) {
@@ -746,7 +771,7 @@ fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), Ar
                 }
             }
         }
-        let w = world_of[a.link.0];
+        let w = world_of[a.transmission[0].0 .0];
         if w < last_world {
             return e(format!(
                 "it acts in world {w} but comes after an actuator of world {last_world}: add a \

@@ -131,7 +131,7 @@ impl<R: Real> Articulations<R> {
             target_q: Array::zeros(self.n_dof),
             target_qd: Array::zeros(self.n_dof),
             activation: Array::zeros(self.muscle_f_max.len()),
-            ctrl: Array::zeros(self.act_dof.len()),
+            ctrl: Array::zeros(self.act_gear.len()),
         }
     }
 
@@ -368,14 +368,16 @@ impl<R: Real> Articulations<R> {
             );
         }
         let act_tau = zeros();
-        if let (Some(c), false) = (control, self.act_dof.is_empty()) {
-            self.check_len(&c.ctrl, self.act_dof.len(), "control.ctrl");
+        if let (Some(c), false) = (control, self.act_gear.is_empty()) {
+            self.check_len(&c.ctrl, self.act_gear.len(), "control.ctrl");
             tape.launch(
                 super::actuator::articulation_actuators,
-                self.act_dof.len(),
+                self.act_gear.len(),
                 (
+                    &self.act_start,
                     &self.act_dof,
                     &self.act_coord,
+                    &self.act_coef,
                     &self.act_gear,
                     &self.act_gain,
                     &self.act_bias,
@@ -497,14 +499,14 @@ impl<R: Real> Articulations<R> {
         self.solve(tape, &p.m, &p.rhs)
     }
 
-    /// One semi-implicit Euler step, as MuJoCo's Euler integrator: `qdd` from the dynamics
-    /// with the control's torques, actuators ([`actuator`](super::actuator)), PD targets and
-    /// muscle activations, joint springs, damping and limits, the fluid and the contacts;
-    /// `qd' = qd + qdd dt`, then `q'` from `qd'` (quaternions by the exponential map,
-    /// renormalized). The joint damping is implicit (`dt damping` joins the mass matrix's
-    /// diagonal, MuJoCo's `eulerdamp`) unless [`ArticulationBuilder::implicit_damping`] is
-    /// off, and so are violated limits; the other forces are explicit. Returns the new state;
-    /// every launch is on `tape`.
+    /// One semi-implicit Euler step, as MuJoCo's Euler integrator: `qdd` from the dynamics with the
+    /// control's torques, actuators ([`actuator`](super::actuator)), PD targets and muscle
+    /// activations, joint springs, damping and limits, the fluid and the contacts; `qd' = qd + qdd
+    /// dt`, then `q'` from `qd'` (quaternions by the exponential map, renormalized). The joint
+    /// damping is implicit (`dt damping` joins the mass matrix's diagonal, MuJoCo's `eulerdamp`)
+    /// unless [`implicit_damping`](super::ArticulationBuilder::implicit_damping) is off, and so are
+    /// violated limits; the other forces are explicit. Returns the new state; every launch is on
+    /// `tape`.
     pub fn step(
         &self,
         tape: &mut Tape,

@@ -1,39 +1,37 @@
 //! Reading a subset of MuJoCo's MJCF.
 //!
-//! Read: `<include file>` (the included file's elements in its place; file names relative to
-//! the main file's directory, or the current one for [`parse`]; errors name the included file
-//! and line), `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local"
-//! settotalmass>` (and, passed over, the mesh and texture directories and the compiler's own
-//! switches), `<option timestep gravity density viscosity wind>` (a fluid: MuJoCo's
-//! inertia-box model, [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint` and
-//! `gravity` switched off are off here too, `eulerdamp` switches
-//! [`ArticulationBuilder::implicit_damping`] and `clampctrl` the clamping of controls; flags about MuJoCo's solver, sensors or checks are
-//! passed over; others that change the default are refused), `<default>` classes (nested, with
-//! `joint`, `geom`, actuator and `tendon` defaults), `<worldbody>` with nested `<body
-//! pos quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint type="hinge|slide|ball|free"
-//! pos axis range limited margin ref damping armature stiffness springref>` (a spring on
-//! hinges and slides; `springref` and `ref` in the file's angle unit; `ref` is the coordinate
-//! at which the body is where the file puts it, and the initial one; a `margin` moves a limit
-//! that far inside the range, where MuJoCo's limit pushes back to), `<freejoint>`, `<geom
+//! Read: `<include file>` (the included file's elements in its place; file names relative to the
+//! main file's directory, or the current one for [`parse`]; errors name the included file and
+//! line), `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local" settotalmass>`
+//! (and, passed over, the mesh and texture directories and the compiler's own switches), `<option
+//! timestep gravity density viscosity wind>` (a fluid: MuJoCo's inertia-box model,
+//! [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint` and `gravity` switched off are
+//! off here too, `eulerdamp` switches [`ArticulationBuilder::implicit_damping`] and `clampctrl` the
+//! clamping of controls; flags about MuJoCo's solver, sensors or checks are passed over; others
+//! that change the default are refused), `<default>` classes (nested, with `joint`, `geom`,
+//! actuator and `tendon` defaults), `<worldbody>` with nested `<body pos
+//! quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint type="hinge|slide|ball|free" pos axis
+//! range limited margin ref damping armature stiffness springref>` (a spring on hinges and slides;
+//! `springref` and `ref` in the file's angle unit; `ref` is the coordinate at which the body is
+//! where the file puts it, and the initial one; a `margin` moves a limit that far inside the range,
+//! where MuJoCo's limit pushes back to), `<freejoint>`, `<geom
 //! type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat mass density contype
 //! conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as MuJoCo's default
 //! `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`, `<actuator>` with
-//! `<motor>`, `<position kp kv>`, `<velocity kv>` and `<general gaintype biastype gainprm
-//! biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint, with `gear`,
-//! `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`: each becomes an
-//! [`Actuator`] of the builder, driven by `ArticulationControl::ctrl` as MuJoCo's `ctrl`
-//! (clamped unless `<flag clampctrl="disable">`).
-//! Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`, `<site>`,
-//! `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set the
-//! state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
+//! `<motor>`, `<position kp kv>`, `<velocity kv>` and `<general gaintype biastype gainprm biasprm>`
+//! (`dyntype="none"`, fixed or affine gain and bias) on a joint or a fixed tendon, with `gear`,
+//! `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`: each becomes an [`Actuator`] of the
+//! builder, driven by `ArticulationControl::ctrl` as MuJoCo's `ctrl` (clamped unless `<flag
+//! clampctrl="disable">`). Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`,
+//! `<site>`, `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set
+//! the state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
 //! `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the integrator is the
-//! caller's choice here), and `<tendon>` with `<fixed>` tendons that have no stiffness,
-//! damping, limits or friction (they exert no force). A limit follows the joint's
-//! `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`; the time
-//! constant at least twice the time step unless `<flag refsafe="disable">`), as
-//! [`Joint::limit_time_constant`] describes. Anything else is an error naming the element and
-//! its line: MuJoCo would simulate it, and silently dropping it would simulate a different
-//! robot.
+//! caller's choice here), and `<tendon>` with `<fixed>` tendons that have no stiffness, damping,
+//! limits or friction (they exert no force of their own; actuators may drive them). A limit follows
+//! the joint's `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`;
+//! the time constant at least twice the time step unless `<flag refsafe="disable">`), as
+//! [`Joint::limit_time_constant`] describes. Anything else is an error naming the element and its
+//! line: MuJoCo would simulate it, and silently dropping it would simulate a different robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
@@ -181,6 +179,8 @@ struct Reader<'a> {
     refsafe: bool,
     /// `<flag clampctrl>` (on by default): controls are clamped to their `ctrlrange`.
     clamp_ctrl: bool,
+    /// The named fixed tendons: their joints' links and coefficients.
+    tendons: HashMap<String, Vec<(LinkId, f64)>>,
 }
 
 const SKIPPED: &[&str] = &[
@@ -258,6 +258,7 @@ const ACTUATOR_TAGS: &[&str] = &["motor", "position", "velocity", "general"];
 const ACTUATOR_ATTRS: &[&str] = &[
     "name",
     "joint",
+    "tendon",
     "gear",
     "ctrlrange",
     "ctrllimited",
@@ -322,6 +323,7 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         timestep: 0.002,
         refsafe: true,
         clamp_ctrl: true,
+        tendons: HashMap::new(),
     };
     let root = doc.root_element();
     if root.tag_name().name() != "mujoco" {
@@ -411,19 +413,11 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
             _ => {}
         }
     }
-    for n in &items {
-        match n.tag_name().name() {
-            "worldbody" => r.worldbody(*n)?,
-            "actuator" => {
-                for a in children(&r.src, *n, ACTUATOR_TAGS, &[])? {
-                    r.actuator(a)?;
-                }
-            }
-            _ => {}
-        }
+    for n in items.iter().filter(|n| n.has_tag_name("worldbody")) {
+        r.worldbody(*n)?;
     }
-    // A fixed tendon without stiffness, damping, limits or an actuator exerts no force (e.g.
-    // the couplings gym's humanoid declares): read and checked, nothing to simulate.
+    // A fixed tendon without stiffness, damping, limits or friction exerts no force of its
+    // own (e.g. the couplings gym's humanoid declares); an actuator may drive it.
     for n in items.iter().filter(|n| n.has_tag_name("tendon")) {
         r.src.only_attributes(*n, &[])?;
         for t in children(&r.src, *n, &["fixed"], &[])? {
@@ -446,13 +440,24 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                     ));
                 }
             }
+            let mut joints = Vec::new();
             for j in children(&r.src, t, &["joint"], &[])? {
                 r.src.only_attributes(j, &["joint", "coef"])?;
                 let name = r.src.required(j, "joint")?;
-                if !r.joints.contains_key(name) {
+                let Some(link) = r.joint_link(name) else {
                     return Err(r.src.error(j, format!("joint \"{name}\" is not defined")));
-                }
+                };
+                let coef = r.src.number(j, "coef")?.unwrap_or(1.0);
+                joints.push((link, coef));
             }
+            if let Some(name) = t.attribute("name") {
+                r.tendons.insert(name.to_string(), joints);
+            }
+        }
+    }
+    for n in items.iter().filter(|n| n.has_tag_name("actuator")) {
+        for a in children(&r.src, *n, ACTUATOR_TAGS, &[])? {
+            r.actuator(a)?;
         }
     }
     // The worldbody's shapes on a massless link fixed to the world, after the robots' links
@@ -1571,16 +1576,29 @@ impl<'a> Reader<'a> {
         let class = "main";
         self.src.only_attributes(n, ACTUATOR_ATTRS)?;
         self.check_class(n)?;
-        let joint = self.src.required(n, "joint")?.to_string();
-        let Some(link) = self
-            .builder
-            .links()
-            .iter()
-            .position(|l| l.joint.name == joint)
-        else {
-            return Err(self
-                .src
-                .error(n, format!("joint \"{joint}\" is not defined")));
+        let transmission = match (n.attribute("joint"), n.attribute("tendon")) {
+            (Some(joint), None) => match self.joint_link(joint) {
+                Some(link) => vec![(link, 1.0)],
+                None => {
+                    return Err(self
+                        .src
+                        .error(n, format!("joint \"{joint}\" is not defined")))
+                }
+            },
+            (None, Some(tendon)) => match self.tendons.get(tendon) {
+                Some(joints) => joints.clone(),
+                None => {
+                    return Err(self
+                        .src
+                        .error(n, format!("fixed tendon \"{tendon}\" is not defined")))
+                }
+            },
+            _ => {
+                return Err(self.src.error(
+                    n,
+                    "an actuator needs a `joint` or a fixed `tendon` (exactly one)",
+                ))
+            }
         };
         let gears = self.nums(n, class, "gear", &[1, 6])?;
         let gear = gears.as_ref().map_or(1.0, |g| g[0]);
@@ -1595,10 +1613,17 @@ impl<'a> Reader<'a> {
                 "gear: only the first component is supported (a force on the joint's axis)",
             ));
         }
-        if !self.builder.links()[link].joint.kind.is_scalar() {
-            return Err(self
-                .src
-                .error(n, format!("<{tag}> needs a hinge or slide joint")));
+        if let Some(&(l, _)) = transmission
+            .iter()
+            .find(|(l, _)| !self.builder.links()[l.0].joint.kind.is_scalar())
+        {
+            return Err(self.src.error(
+                n,
+                format!(
+                    "<{tag}> needs hinge or slide joints (joint \"{}\" is not)",
+                    self.builder.links()[l.0].joint.name
+                ),
+            ));
         }
         let ctrl_range = self.range(n, class, "ctrl")?.filter(|_| self.clamp_ctrl);
         let force_range = self.range(n, class, "force")?;
@@ -1609,19 +1634,26 @@ impl<'a> Reader<'a> {
                 false => Err(self.src.error(n, format!("{name} must be non-negative"))),
             }
         };
-        let link = LinkId(link);
+        let link = transmission[0].0;
         let mut actuator = match tag {
             "motor" => Actuator::motor(link),
             "position" => Actuator::position(link, gain("kp", 1.0)?, gain("kv", 0.0)?),
             "velocity" => Actuator::velocity(link, gain("kv", 1.0)?),
             _ => self.general(n, class, link)?,
         };
+        actuator.transmission = transmission;
         actuator.name = n.attribute("name").unwrap_or("").to_string();
         actuator.gear = gear;
         actuator.ctrl_range = ctrl_range;
         actuator.force_range = force_range;
         self.builder.add_actuator(actuator);
         Ok(())
+    }
+
+    /// The link of the joint called `name`.
+    fn joint_link(&self, name: &str) -> Option<LinkId> {
+        let links = self.builder.links();
+        links.iter().position(|l| l.joint.name == name).map(LinkId)
     }
 
     /// A `<general>` actuator's gain and bias.

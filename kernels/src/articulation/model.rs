@@ -790,7 +790,7 @@ impl ArticulationBuilder {
         }
         for a in &other.actuators {
             self.actuators.push(Actuator {
-                link: shift(a.link),
+                transmission: a.transmission.iter().map(|&(l, c)| (shift(l), c)).collect(),
                 ..a.clone()
             });
         }
@@ -947,11 +947,15 @@ impl ArticulationBuilder {
             m.insertion.0 = LinkId((m.insertion.0 .0 + base).wrapping_sub(start));
             self.muscles.push(m);
         }
-        for a in other.actuators.iter().filter(|a| inside(a.link)) {
-            self.actuators.push(Actuator {
-                link: remap(a.link),
-                ..a.clone()
-            });
+        for a in other.actuators.iter() {
+            // (A joint outside the world wraps to an index finalize refuses.)
+            if a.transmission.first().is_some_and(|j| inside(j.0)) {
+                let shift = |l: LinkId| LinkId((l.0 + base).wrapping_sub(start));
+                self.actuators.push(Actuator {
+                    transmission: a.transmission.iter().map(|&(l, c)| (shift(l), c)).collect(),
+                    ..a.clone()
+                });
+            }
         }
     }
 
@@ -1243,11 +1247,16 @@ pub struct Articulations<R: Real> {
     pub muscle_v_max: Array<R>,
     /// Muscle names.
     pub muscle_names: Vec<String>,
-    /// Per actuator ([`Actuator`]): the degree of freedom it drives and that joint's
-    /// coordinate in `q`.
+    /// Per actuator ([`Actuator`]): where its joints start in `act_dof`, `act_coord` and
+    /// `act_coef` (one more entry than actuators).
+    pub act_start: Array<u32>,
+    /// Per joint of an actuator: its degree of freedom, its coordinate in `q` and its
+    /// coefficient in the actuator's length (can require gradients).
     pub act_dof: Array<u32>,
     /// See `act_dof`.
     pub act_coord: Array<u32>,
+    /// See `act_dof`.
+    pub act_coef: Array<R>,
     /// Per actuator: gear, gain and bias (constant, length and speed terms), and which
     /// ranges clamp (bit 0 the control, bit 1 the force) to what. The real-valued ones can
     /// require gradients.
