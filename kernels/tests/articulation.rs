@@ -805,7 +805,7 @@ const MJCF: &str = r#"<mujoco>
 #[test]
 fn bad_mjcf_is_refused_naming_the_element_and_line() {
     assert!(mjcf::parse(MJCF).unwrap().builder.finalize::<f64>().is_ok());
-    let cases: [(&str, &str, u32, &str); 28] = [
+    let cases: [(&str, &str, u32, &str); 29] = [
         ("quat=\"1 0 0 0\"", "quat=\"0 0 0 0\"", 3, "norm 0"),
         ("mass=\"1\"", "mass=\"0\"", 5, "zero"),
         ("mass=\"1\"", "mass=\"-1\"", 5, "negative"),
@@ -891,9 +891,9 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ),
         (
             "</worldbody>",
-            "</worldbody><default><tendon damping=\"1\"/></default><tendon><fixed><joint joint=\"j\"/></fixed></tendon>",
+            "</worldbody><default><tendon limited=\"true\"/></default><tendon><fixed><joint joint=\"j\"/></fixed></tendon>",
             7,
-            "gives tendons `damping`",
+            "gives tendons `limited`",
         ),
         (
             "type=\"hinge\"",
@@ -909,9 +909,15 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ),
         (
             "</worldbody>",
-            "</worldbody><tendon><fixed stiffness=\"1\"><joint joint=\"j\"/></fixed></tendon>",
+            "</worldbody><tendon><fixed range=\"0 1\"><joint joint=\"j\"/></fixed></tendon>",
             7,
-            "stiffness",
+            "range",
+        ),
+        (
+            "</worldbody>",
+            "</worldbody><tendon><fixed stiffness=\"-1\"><joint joint=\"j\"/></fixed></tendon>",
+            7,
+            "stiffness must be non-negative",
         ),
         (
             "</worldbody>",
@@ -1827,10 +1833,11 @@ fn a_fluid_propels_a_swimmer_with_right_gradients_of_density_viscosity_and_wind(
     );
 }
 
-/// MuJoCo's actuators (motor with clamped control and force, position and velocity servos,
-/// a general one with affine gain and bias, a motor on a fixed tendon): the gradients of a rollout with respect to the
-/// controls and every actuator parameter against central differences and forward mode; a
-/// control clamped by its range gets no gradient; each world's controls drive its own robot.
+/// MuJoCo's actuators (motor with clamped control and force, position and velocity servos, a
+/// general one with affine gain and bias, a motor on a fixed tendon, a damper) and passive tendons
+/// (a spring and damper, a dead band): the gradients of a rollout with respect to the controls and
+/// every actuator and tendon parameter against central differences and forward mode; a control
+/// clamped by its range gets no gradient; each world's controls drive its own robot.
 #[test]
 fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     use adflex_kernels::articulation::{ArticulationControl, Articulations};
@@ -1841,7 +1848,7 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     let model = b.finalize::<f64>().unwrap();
     assert_eq!(model.actuator_names[3], "wrist_general");
     // The last control is past its range (-2, 2): clamped, so its gradient is 0.
-    let ctrl0 = [0.5, 0.9, 0.7, 2.5, -0.6];
+    let ctrl0 = [0.5, 0.9, 0.7, 2.5, -0.6, 0.4];
     let (na, nc) = (ctrl0.len(), model.act_coef.len());
     assert_eq!((model.act_gear.len(), nc), (na, na + 1));
     let (steps, dt) = (150, 2e-3);
@@ -1851,7 +1858,10 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     let flat = |a: &Array<adflex_runtime::Vec3<f64>>| -> Vec<f64> {
         a.to_vec().iter().flat_map(|v| [v.x, v.y, v.z]).collect()
     };
-    // Inputs, flattened: ctrl, gear, gain, bias, tendon coefficients, damping.
+    // Inputs, flattened: ctrl, gear, gain, bias, tendon coefficients, damping, and the
+    // passive tendons' stiffness, damping and rest lengths.
+    let nt = model.tendon_stiffness.len();
+    assert_eq!(nt, 2);
     let p0: Vec<f64> = ctrl0
         .iter()
         .copied()
@@ -1860,8 +1870,26 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
         .chain(flat(&model.act_bias))
         .chain(model.act_coef.to_vec())
         .chain(model.damping.to_vec())
+        .chain(model.tendon_stiffness.to_vec())
+        .chain(model.tendon_damping.to_vec())
+        .chain(model.tendon_rest_lo.to_vec())
+        .chain(model.tendon_rest_hi.to_vec())
         .collect();
-    let at = |k: usize| [0, na, 2 * na, 5 * na, 8 * na, 8 * na + nc, 8 * na + nc + 4][k];
+    let at = |k: usize| {
+        let d = 8 * na + nc + 4;
+        [
+            0,
+            na,
+            2 * na,
+            5 * na,
+            8 * na,
+            8 * na + nc,
+            d,
+            d + nt,
+            d + 2 * nt,
+            d + 3 * nt,
+        ][k]
+    };
     let arrays = |p: &[f64]| {
         let v3 = |x: &[f64]| {
             Array::from_vec(
@@ -1876,6 +1904,10 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
             act_bias: v3(&p[at(3)..at(4)]),
             act_coef: Array::from_vec(p[at(4)..at(5)].to_vec()),
             damping: Array::from_vec(p[at(5)..at(6)].to_vec()),
+            tendon_stiffness: Array::from_vec(p[at(6)..at(7)].to_vec()),
+            tendon_damping: Array::from_vec(p[at(7)..at(8)].to_vec()),
+            tendon_rest_lo: Array::from_vec(p[at(8)..at(9)].to_vec()),
+            tendon_rest_hi: Array::from_vec(p[at(9)..].to_vec()),
             ..model.clone()
         };
         (Array::from_vec(p[..na].to_vec()), m)
@@ -1900,13 +1932,17 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
     let (ctrl, m) = arrays(&p0);
     let mut tape = Tape::new();
     let s = run(&mut tape, &ctrl, &m);
-    let inputs: [&dyn adflex_runtime::AnyArray; 6] = [
+    let inputs: [&dyn adflex_runtime::AnyArray; 10] = [
         &ctrl,
         &m.act_gear,
         &m.act_gain,
         &m.act_bias,
         &m.act_coef,
         &m.damping,
+        &m.tendon_stiffness,
+        &m.tendon_damping,
+        &m.tendon_rest_lo,
+        &m.tendon_rest_hi,
     ];
     let g = tape.vjp(&[&s.q, &s.qd], &w, &inputs).unwrap();
     assert_eq!(g.len(), p0.len());

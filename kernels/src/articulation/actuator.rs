@@ -141,6 +141,64 @@ impl Actuator {
     }
 }
 
+/// A passive fixed tendon (MuJoCo's `<fixed stiffness damping springlength>`): with length
+/// `l = sum_i c_i q_i` and speed `v = sum_i c_i qd_i` of its joints, the force
+/// `f = -stiffness (l - rest.1) - damping v` above `rest.1`, `-stiffness (l - rest.0) -
+/// damping v` below `rest.0` and `-damping v` between (a dead band when the two differ); each
+/// joint gets `c_i f`. Both are explicit in the step, as in MuJoCo.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TendonSpring {
+    /// Name, for errors (empty if none).
+    pub name: String,
+    /// Its joints (of links; revolute or prismatic) and their coefficients `c_i`.
+    pub joints: Vec<(LinkId, f64)>,
+    /// Stiffness (N/m or N m/rad per unit of length), non-negative.
+    pub stiffness: f64,
+    /// Damping, non-negative.
+    pub damping: f64,
+    /// The rest lengths, lower and upper (`None`: the length at the joints' spring references,
+    /// [`Joint::stiffness`](super::Joint::stiffness)'s, as MuJoCo's default).
+    pub rest: Option<(f64, f64)>,
+}
+
+/// Passive tendon `tid` on the joints `k` in `start[tid]..start[tid + 1]` (as
+/// [`articulation_actuators`]'): adds `coef[k] f` to `act_tau[dof[k]]`, `f` the force of
+/// [`TendonSpring`] with `stiffness`, `damping`, `rest_lo`, `rest_hi`.
+#[diff_kernel]
+pub fn articulation_tendon_springs<R: Real>(
+    start: &Array<u32>,
+    dof: &Array<u32>,
+    coord: &Array<u32>,
+    coef: &Array<R>,
+    stiffness: &Array<R>,
+    damping: &Array<R>,
+    rest_lo: &Array<R>,
+    rest_hi: &Array<R>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    act_tau: &Array<R>,
+) {
+    let t = tid();
+    let k0 = start[t] as usize;
+    let k1 = start[t + 1] as usize;
+    let mut l = stiffness[t] * 0.0;
+    let mut v = stiffness[t] * 0.0;
+    for k in k0..k1 {
+        l = l + coef[k] * q[coord[k] as usize];
+        v = v + coef[k] * qd[dof[k] as usize];
+    }
+    let mut f = -damping[t] * v;
+    if l > rest_hi[t] {
+        f = f - stiffness[t] * (l - rest_hi[t]);
+    }
+    if l < rest_lo[t] {
+        f = f - stiffness[t] * (l - rest_lo[t]);
+    }
+    for k in k0..k1 {
+        act_tau.atomic_add(dof[k] as usize, coef[k] * f);
+    }
+}
+
 /// Actuator `tid` on the degrees of freedom `dof[k]` (coordinates `coord[k]`) with
 /// coefficients `coef[k]`, `k` in `start[tid]..start[tid + 1]`: adds `gear coef[k] f` to
 /// `act_tau[dof[k]]`, `f` the module's force. `limited` has bit 0 for a clamped control (to

@@ -5,7 +5,7 @@ use adflex_runtime::prelude::*;
 use super::contact::{ContactShape, GeomShape};
 use super::model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, JointType,
-    LinkInfo, Pose, WorldInfo,
+    LinkId, LinkInfo, Pose, WorldInfo,
 };
 
 fn err(element: String, message: impl Into<String>) -> ArticulationError {
@@ -509,16 +509,35 @@ pub(crate) fn finalize<R: Real>(
         let before = act_world.iter().filter(|&&x| x < w).count();
         info.actuators = before..before + act_world.iter().filter(|&&x| x == w).count();
     }
-    let mut act_start = vec![0u32];
-    let (mut act_dof, mut act_coord, mut act_coef) = (Vec::new(), Vec::new(), Vec::new());
-    for a in b.actuators() {
-        for &(l, c) in &a.transmission {
-            act_dof.push(qd_start[new_index[l.0]]);
-            act_coord.push(q_start[new_index[l.0]]);
-            act_coef.push(c);
+    // Actuators' and passive tendons' joints, flattened.
+    let flatten = |lists: Vec<&[(LinkId, f64)]>| {
+        let mut t = Transmissions {
+            start: vec![0],
+            ..Default::default()
+        };
+        for joints in lists {
+            for &(l, c) in joints {
+                t.dof.push(qd_start[new_index[l.0]]);
+                t.coord.push(q_start[new_index[l.0]]);
+                t.coef.push(c);
+            }
+            t.start.push(t.dof.len() as u32);
         }
-        act_start.push(act_dof.len() as u32);
-    }
+        t
+    };
+    let act = flatten(b.actuators().iter().map(|a| &a.transmission[..]).collect());
+    let ten = flatten(b.tendon_springs().iter().map(|t| &t.joints[..]).collect());
+    // A tendon's rest length is its length at the joints' spring references unless given (as
+    // MuJoCo's, from `qpos_spring`).
+    let rest: Vec<(f64, f64)> = (0..b.tendon_springs().len())
+        .map(|k| {
+            let (k0, k1) = (ten.start[k] as usize, ten.start[k + 1] as usize);
+            let l0: f64 = (k0..k1)
+                .map(|j| ten.coef[j] * dof.spring_ref[ten.dof[j] as usize])
+                .sum();
+            b.tendon_springs()[k].rest.unwrap_or((l0, l0))
+        })
+        .collect();
     let infos = order
         .iter()
         .enumerate()
@@ -653,10 +672,10 @@ pub(crate) fn finalize<R: Real>(
             .collect::<Vec<_>>()),
         muscle_v_max: rs(&b.muscles().iter().map(|m| m.v_max).collect::<Vec<_>>()),
         muscle_names: b.muscles().iter().map(|m| m.name.clone()).collect(),
-        act_start: Array::from_vec(act_start),
-        act_dof: Array::from_vec(act_dof),
-        act_coord: Array::from_vec(act_coord),
-        act_coef: rs(&act_coef),
+        act_start: Array::from_vec(act.start),
+        act_dof: Array::from_vec(act.dof),
+        act_coord: Array::from_vec(act.coord),
+        act_coef: rs(&act.coef),
         act_gear: rs(&b.actuators().iter().map(|a| a.gear).collect::<Vec<_>>()),
         act_gain: Array::from_vec(
             b.actuators()
@@ -697,6 +716,22 @@ pub(crate) fn finalize<R: Real>(
             .map(|a| a.force_range.map_or(0.0, |r| r.1))
             .collect::<Vec<_>>()),
         actuator_names: b.actuators().iter().map(|a| a.name.clone()).collect(),
+        tendon_start: Array::from_vec(ten.start),
+        tendon_dof: Array::from_vec(ten.dof),
+        tendon_coord: Array::from_vec(ten.coord),
+        tendon_coef: rs(&ten.coef),
+        tendon_stiffness: rs(&b
+            .tendon_springs()
+            .iter()
+            .map(|t| t.stiffness)
+            .collect::<Vec<_>>()),
+        tendon_damping: rs(&b
+            .tendon_springs()
+            .iter()
+            .map(|t| t.damping)
+            .collect::<Vec<_>>()),
+        tendon_rest_lo: rs(&rest.iter().map(|r| r.0).collect::<Vec<_>>()),
+        tendon_rest_hi: rs(&rest.iter().map(|r| r.1).collect::<Vec<_>>()),
         seg_link: Array::from_vec(contact.segs.iter().map(|s| s.0).collect()),
         seg_a: Array::from_vec(contact.segs.iter().map(|s| v3(&s.1)).collect()),
         seg_b: Array::from_vec(contact.segs.iter().map(|s| v3(&s.2)).collect()),
@@ -724,36 +759,78 @@ pub(crate) fn finalize<R: Real>(
     Ok(model)
 }
 
-/// Refuses an actuator on a missing link or a joint that is not revolute or prismatic, with a
-/// parameter that is not finite or a range whose lower end is above its upper, or added among
-/// another world's actuators.
+/// The joints of actuators or passive tendons, flattened: each one's start, then per joint
+/// its degree of freedom, coordinate and coefficient.
+#[derive(Default)]
+struct Transmissions {
+    start: Vec<u32>,
+    dof: Vec<u32>,
+    coord: Vec<u32>,
+    coef: Vec<f64>,
+}
+
+/// Refuses joints (of an actuator or a tendon) that are none, on a missing link, not revolute
+/// or prismatic, in several worlds or with a coefficient that is not finite.
+fn check_joints(
+    joints: &[(LinkId, f64)],
+    links: &[super::model::LinkDesc],
+    world_of: &[usize],
+) -> Result<(), String> {
+    if joints.is_empty() {
+        return Err("it acts on no joint".into());
+    }
+    for &(l, c) in joints {
+        let Some(link) = links.get(l.0) else {
+            return Err(format!("link {} does not exist", l.0));
+        };
+        if !link.joint.kind.is_scalar() {
+            return Err(format!(
+                "it acts on joint \"{}\", a {:?} joint: only revolute and prismatic joints",
+                link.joint.name, link.joint.kind
+            ));
+        }
+        if world_of[l.0] != world_of[joints[0].0 .0] || !c.is_finite() {
+            return Err(format!(
+                "joint \"{}\" (coefficient {c}): a tendon's joints are in one world, with \
+                 finite coefficients",
+                link.joint.name
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Refuses an actuator on bad joints ([`check_joints`]), with a parameter that is not finite
+/// or a range whose lower end is above its upper, or added among another world's actuators;
+/// and a passive tendon on bad joints or with a negative or non-finite parameter.
 fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), ArticulationError> {
     let links = b.links();
+    for (k, t) in b.tendon_springs().iter().enumerate() {
+        let what = || format!("tendon spring \"{}\" ({k})", t.name);
+        check_joints(&t.joints, links, world_of).map_err(|m| err(what(), m))?;
+        let rest_ok = t
+            .rest
+            .is_none_or(|r| r.0.is_finite() && r.1.is_finite() && r.0 <= r.1);
+        let params_ok = [t.stiffness, t.damping]
+            .iter()
+            .all(|&x| x >= 0.0 && x.is_finite());
+        if !(params_ok && rest_ok) {
+            return Err(err(
+                what(),
+                format!(
+                    "stiffness {} and damping {} must be finite and non-negative, the rest \
+                     lengths {:?} finite with lower <= upper",
+                    t.stiffness, t.damping, t.rest
+                ),
+            ));
+        }
+    }
     let mut last_world = 0;
     for (k, a) in b.actuators().iter().enumerate() {
         let what = format!("actuator \"{}\" ({k})", a.name);
         let e = |why: String| Err(err(what.clone(), why));
-        if a.transmission.is_empty() {
-            return e("it drives no joint".into());
-        }
-        for &(l, c) in &a.transmission {
-            let Some(link) = links.get(l.0) else {
-                return e(format!("link {} does not exist", l.0));
-            };
-            if !link.joint.kind.is_scalar() {
-                return e(format!(
-                    "it drives joint \"{}\", a {:?} joint: actuators drive revolute and \
-                     prismatic joints",
-                    link.joint.name, link.joint.kind
-                ));
-            }
-            if world_of[l.0] != world_of[a.transmission[0].0 .0] || !c.is_finite() {
-                return e(format!(
-                    "joint \"{}\" (coefficient {c}): a tendon's joints are in one world, with \
-                     finite coefficients",
-                    link.joint.name
-                ));
-            }
+        if let Err(m) = check_joints(&a.transmission, links, world_of) {
+            return e(m);
         }
         let params = [a.gear].into_iter().chain(a.gain).chain(a.bias);
         if !params.into_iter().all(f64::is_finite) {

@@ -393,6 +393,25 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
+        if let (Some(_), false) = (control, self.tendon_stiffness.is_empty()) {
+            tape.launch(
+                super::actuator::articulation_tendon_springs,
+                self.tendon_stiffness.len(),
+                (
+                    &self.tendon_start,
+                    &self.tendon_dof,
+                    &self.tendon_coord,
+                    &self.tendon_coef,
+                    &self.tendon_stiffness,
+                    &self.tendon_damping,
+                    &self.tendon_rest_lo,
+                    &self.tendon_rest_hi,
+                    q,
+                    qd,
+                    &act_tau,
+                ),
+            );
+        }
         let (tz, qz) = (zeros(), zeros());
         let (target_q, target_qd, passive) = match control {
             Some(c) => (&c.target_q, &c.target_qd, 1u32),

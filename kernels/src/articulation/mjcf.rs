@@ -18,20 +18,21 @@
 //! type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat mass density contype
 //! conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as MuJoCo's default
 //! `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`, `<actuator>` with
-//! `<motor>`, `<position kp kv>`, `<velocity kv>` and `<general gaintype biastype gainprm biasprm>`
-//! (`dyntype="none"`, fixed or affine gain and bias) on a joint or a fixed tendon, with `gear`,
-//! `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`: each becomes an [`Actuator`] of the
-//! builder, driven by `ArticulationControl::ctrl` as MuJoCo's `ctrl` (clamped unless `<flag
-//! clampctrl="disable">`). Passed over: visual-only elements (`<visual>`, `<asset>`, `<statistic>`,
-//! `<site>`, `<camera>`, `<light>`), `<custom>` data, `<sensor>` and `<keyframe>` (they read or set
-//! the state, not the dynamics), MuJoCo's own solver settings in `<option>` (`integrator`,
-//! `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`: the integrator is the
-//! caller's choice here), and `<tendon>` with `<fixed>` tendons that have no stiffness, damping,
-//! limits or friction (they exert no force of their own; actuators may drive them). A limit follows
-//! the joint's `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`;
-//! the time constant at least twice the time step unless `<flag refsafe="disable">`), as
-//! [`Joint::limit_time_constant`] describes. Anything else is an error naming the element and its
-//! line: MuJoCo would simulate it, and silently dropping it would simulate a different robot.
+//! `<motor>`, `<position kp kv>`, `<velocity kv>`, `<damper kv>` and `<general gaintype biastype
+//! gainprm biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint or a fixed
+//! tendon, with `gear`, `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`: each becomes
+//! an [`Actuator`] of the builder, driven by `ArticulationControl::ctrl` as MuJoCo's `ctrl`
+//! (clamped unless `<flag clampctrl="disable">`). Passed over: visual-only elements (`<visual>`,
+//! `<asset>`, `<statistic>`, `<site>`, `<camera>`, `<light>`), `<custom>` data, `<sensor>` and
+//! `<keyframe>` (they read or set the state, not the dynamics), MuJoCo's own solver settings in
+//! `<option>` (`integrator`, `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`:
+//! the integrator is the caller's choice here). `<tendon>` with `<fixed>` tendons (no limits or
+//! friction): a spring and damper with `stiffness`, `damping` and `springlength`
+//! ([`TendonSpring`]), and what actuators may drive. A limit follows the joint's `solreflimit` and
+//! `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`; the time constant at least twice
+//! the time step unless `<flag refsafe="disable">`), as [`Joint::limit_time_constant`] describes.
+//! Anything else is an error naming the element and its line: MuJoCo would simulate it, and
+//! silently dropping it would simulate a different robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
@@ -101,7 +102,7 @@ use std::path::Path;
 use adflex_runtime::{Mat33, Quat, Vec3};
 use roxmltree::Node;
 
-use super::actuator::Actuator;
+use super::actuator::{Actuator, TendonSpring};
 use super::build::{check_inertial, check_mass};
 pub use super::contact::GeomShape;
 use super::contact::{ContactFilter, GroundContact};
@@ -252,7 +253,7 @@ const GEOM_ATTRS: &[&str] = &[
 
 /// The actuator elements read: MuJoCo's general actuator and its shortcuts without
 /// activation dynamics.
-const ACTUATOR_TAGS: &[&str] = &["motor", "position", "velocity", "general"];
+const ACTUATOR_TAGS: &[&str] = &["motor", "position", "velocity", "damper", "general"];
 
 /// The attributes of an actuator element read.
 const ACTUATOR_ATTRS: &[&str] = &[
@@ -294,6 +295,7 @@ const ORIENTATIONS: [(&str, usize); 5] = [
 fn defaults_of(tag: &str) -> &str {
     match tag {
         t if ACTUATOR_TAGS.contains(&t) => "actuator",
+        "fixed" | "spatial" => "tendon",
         other => other,
     }
 }
@@ -416,15 +418,24 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
     for n in items.iter().filter(|n| n.has_tag_name("worldbody")) {
         r.worldbody(*n)?;
     }
-    // A fixed tendon without stiffness, damping, limits or friction exerts no force of its
-    // own (e.g. the couplings gym's humanoid declares); an actuator may drive it.
+    // Fixed tendons: a spring and damper when they have stiffness or damping (the couplings
+    // gym's humanoid declares have neither), and what actuators may drive.
     for n in items.iter().filter(|n| n.has_tag_name("tendon")) {
         r.src.only_attributes(*n, &[])?;
         for t in children(&r.src, *n, &["fixed"], &[])? {
-            const HARMLESS: [&str; 6] = ["name", "class", "group", "rgba", "width", "material"];
+            const HARMLESS: [&str; 9] = [
+                "name",
+                "class",
+                "group",
+                "rgba",
+                "width",
+                "material",
+                "stiffness",
+                "damping",
+                "springlength",
+            ];
             r.src.only_attributes(t, &HARMLESS).map_err(|mut e| {
-                e.message += " (a tendon with stiffness, damping, limits or friction is not \
-                                  supported)";
+                e.message += " (a tendon with limits or friction is not supported)";
                 e
             })?;
             r.check_class(t)?;
@@ -434,8 +445,8 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                     return Err(r.src.error(
                         t,
                         format!(
-                            "its class \"{class}\" gives tendons `{k}`: a tendon with \
-                             stiffness, damping, limits or friction is not supported"
+                            "its class \"{class}\" gives tendons `{k}`: a tendon with limits \
+                             or friction is not supported"
                         ),
                     ));
                 }
@@ -450,6 +461,7 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                 let coef = r.src.number(j, "coef")?.unwrap_or(1.0);
                 joints.push((link, coef));
             }
+            r.tendon_spring(t, class, &joints)?;
             if let Some(name) = t.attribute("name") {
                 r.tendons.insert(name.to_string(), joints);
             }
@@ -711,12 +723,14 @@ impl<'a> Reader<'a> {
         let mut class = parent
             .and_then(|p| self.classes.get(p).cloned())
             .unwrap_or_default();
+        let tags: Vec<&str> = ["default", "joint", "geom", "tendon"]
+            .into_iter()
+            .chain(ACTUATOR_TAGS.iter().copied())
+            .collect();
         let kids = children(
             &self.src,
             n,
-            &[
-                "default", "joint", "geom", "motor", "position", "velocity", "general", "tendon",
-            ],
+            &tags,
             &["site", "camera", "light", "mesh", "material"],
         )?;
         for k in kids.iter().filter(|k| k.tag_name().name() != "default") {
@@ -1639,6 +1653,19 @@ impl<'a> Reader<'a> {
             "motor" => Actuator::motor(link),
             "position" => Actuator::position(link, gain("kp", 1.0)?, gain("kv", 0.0)?),
             "velocity" => Actuator::velocity(link, gain("kv", 1.0)?),
+            "damper" => {
+                // MuJoCo's damper: force -kv v ctrl, with a non-negative control range.
+                if !ctrl_range.is_some_and(|r| r.0 >= 0.0) {
+                    return Err(self.src.error(
+                        n,
+                        "<damper> needs a `ctrlrange` with a non-negative lower end",
+                    ));
+                }
+                Actuator {
+                    gain: [0.0, 0.0, -gain("kv", 1.0)?],
+                    ..Actuator::motor(link)
+                }
+            }
             _ => self.general(n, class, link)?,
         };
         actuator.transmission = transmission;
@@ -1647,6 +1674,42 @@ impl<'a> Reader<'a> {
         actuator.ctrl_range = ctrl_range;
         actuator.force_range = force_range;
         self.builder.add_actuator(actuator);
+        Ok(())
+    }
+
+    /// A fixed tendon's spring and damper, if it has stiffness or damping: MuJoCo's
+    /// `springlength` (one length, or a dead band's two; `-1`, the default, for the length
+    /// at the joints' spring references).
+    fn tendon_spring(
+        &mut self,
+        t: Node,
+        class: &str,
+        joints: &[(LinkId, f64)],
+    ) -> Result<(), ArticulationError> {
+        let one = |name: &str| -> Result<f64, ArticulationError> {
+            let v = self.nums(t, class, name, &[1])?.map_or(0.0, |v| v[0]);
+            match v >= 0.0 {
+                true => Ok(v),
+                false => Err(self.src.error(t, format!("{name} must be non-negative"))),
+            }
+        };
+        let (stiffness, damping) = (one("stiffness")?, one("damping")?);
+        if stiffness == 0.0 && damping == 0.0 {
+            return Ok(());
+        }
+        let rest = match self.nums(t, class, "springlength", &[1, 2])?.as_deref() {
+            None | Some([-1.0]) | Some([-1.0, -1.0]) => None,
+            Some(&[l]) => Some((l, l)),
+            Some(&[lo, hi]) if lo <= hi => Some((lo, hi)),
+            Some(_) => return Err(self.src.error(t, "springlength: lower > upper")),
+        };
+        self.builder.add_tendon_spring(TendonSpring {
+            name: t.attribute("name").unwrap_or("").to_string(),
+            joints: joints.to_vec(),
+            stiffness,
+            damping,
+            rest,
+        });
         Ok(())
     }
 

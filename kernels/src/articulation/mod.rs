@@ -53,7 +53,7 @@ pub mod muscle;
 pub mod urdf;
 mod xml;
 
-pub use actuator::Actuator;
+pub use actuator::{Actuator, TendonSpring};
 pub use contact::{ContactFilter, ContactShape, GroundContact};
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use fluid::Fluid;

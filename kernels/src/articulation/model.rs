@@ -5,7 +5,7 @@ use std::ops::Range;
 
 use adflex_runtime::prelude::*;
 
-use super::actuator::Actuator;
+use super::actuator::{Actuator, TendonSpring};
 use super::contact::{ContactFilter, ContactShape, GeomShape, GroundContact};
 use super::fluid::Fluid;
 
@@ -517,6 +517,8 @@ pub struct ArticulationBuilder {
     muscles: Vec<Muscle>,
     /// Actuators on joints.
     actuators: Vec<Actuator>,
+    /// Passive fixed tendons.
+    tendon_springs: Vec<TendonSpring>,
     /// Whether contact shapes of different links touch each other too (with the ground's
     /// law; default false), as their [`ContactFilter`]s say. Links welded together by fixed
     /// joints, links joined directly (after welding) and excluded pairs never touch.
@@ -565,6 +567,7 @@ impl ArticulationBuilder {
             link_contact: false,
             muscles: Vec::new(),
             actuators: Vec::new(),
+            tendon_springs: Vec::new(),
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
@@ -723,6 +726,18 @@ impl ArticulationBuilder {
         &self.actuators
     }
 
+    /// Adds a passive fixed tendon (a spring and damper on a combination of joints); returns
+    /// its index.
+    pub fn add_tendon_spring(&mut self, tendon: TendonSpring) -> usize {
+        self.tendon_springs.push(tendon);
+        self.tendon_springs.len() - 1
+    }
+
+    /// The passive fixed tendons.
+    pub fn tendon_springs(&self) -> &[TendonSpring] {
+        &self.tendon_springs
+    }
+
     /// The spheres by which the contact shapes touch the ground (link, centre in the link
     /// frame, radius, friction; [`ContactShape::ground_spheres`]), of the shapes whose filter
     /// touches [`ArticulationBuilder::ground_filter`]. The friction is the larger of the
@@ -792,6 +807,12 @@ impl ArticulationBuilder {
             self.actuators.push(Actuator {
                 transmission: a.transmission.iter().map(|&(l, c)| (shift(l), c)).collect(),
                 ..a.clone()
+            });
+        }
+        for t in &other.tendon_springs {
+            self.tendon_springs.push(TendonSpring {
+                joints: t.joints.iter().map(|&(l, c)| (shift(l), c)).collect(),
+                ..t.clone()
             });
         }
         if self.ground.is_none() {
@@ -947,13 +968,21 @@ impl ArticulationBuilder {
             m.insertion.0 = LinkId((m.insertion.0 .0 + base).wrapping_sub(start));
             self.muscles.push(m);
         }
+        // (A joint outside the world wraps to an index finalize refuses.)
+        let shift = |l: LinkId| LinkId((l.0 + base).wrapping_sub(start));
         for a in other.actuators.iter() {
-            // (A joint outside the world wraps to an index finalize refuses.)
             if a.transmission.first().is_some_and(|j| inside(j.0)) {
-                let shift = |l: LinkId| LinkId((l.0 + base).wrapping_sub(start));
                 self.actuators.push(Actuator {
                     transmission: a.transmission.iter().map(|&(l, c)| (shift(l), c)).collect(),
                     ..a.clone()
+                });
+            }
+        }
+        for t in other.tendon_springs.iter() {
+            if t.joints.first().is_some_and(|j| inside(j.0)) {
+                self.tendon_springs.push(TendonSpring {
+                    joints: t.joints.iter().map(|&(l, c)| (shift(l), c)).collect(),
+                    ..t.clone()
                 });
             }
         }
@@ -967,6 +996,7 @@ impl ArticulationBuilder {
             excluded: Vec::new(),
             muscles: Vec::new(),
             actuators: Vec::new(),
+            tendon_springs: Vec::new(),
             worlds: vec![(0, None)],
             world_added: false,
             mismatch: self.mismatch.clone(),
@@ -1277,6 +1307,24 @@ pub struct Articulations<R: Real> {
     pub act_force_hi: Array<R>,
     /// Actuator names.
     pub actuator_names: Vec<String>,
+    /// Per passive tendon ([`TendonSpring`]): where its joints start in `tendon_dof`,
+    /// `tendon_coord` and `tendon_coef` (one more entry than tendons).
+    pub tendon_start: Array<u32>,
+    /// Per joint of a passive tendon: its degree of freedom, coordinate and coefficient.
+    pub tendon_dof: Array<u32>,
+    /// See `tendon_dof`.
+    pub tendon_coord: Array<u32>,
+    /// See `tendon_dof`.
+    pub tendon_coef: Array<R>,
+    /// Per passive tendon: stiffness, damping and rest lengths (resolved: the length at the
+    /// joints' spring references where none was given). Can require gradients.
+    pub tendon_stiffness: Array<R>,
+    /// See `tendon_stiffness`.
+    pub tendon_damping: Array<R>,
+    /// See `tendon_stiffness`.
+    pub tendon_rest_lo: Array<R>,
+    /// See `tendon_stiffness`.
+    pub tendon_rest_hi: Array<R>,
 }
 
 impl<R: Real> Articulations<R> {
