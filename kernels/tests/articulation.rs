@@ -24,6 +24,24 @@ fn load(file: &str, floating: bool) -> Articulations<f64> {
     b.unwrap_or_else(|e| panic!("{e}")).finalize().unwrap()
 }
 
+/// The references from Pinocchio and MuJoCo (`references/robots.py`).
+fn references() -> Value {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/references/robots.json");
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// An MJCF robot without contact or joint limits (MuJoCo's limits are constraints, not
+/// compared here).
+fn in_the_air(file: &str) -> mjcf::Mjcf {
+    let mut robot = mjcf::load(format!("{ROBOTS}/{file}")).unwrap();
+    let b = &mut robot.builder;
+    (b.ground, b.link_contact) = (None, false);
+    for l in b.links_mut() {
+        l.joint.limits = None;
+    }
+    robot
+}
+
 /// The reference's joints in this model: for each, (q range, dof range) here.
 fn joint_map(model: &Articulations<f64>, joints: &[Value]) -> Vec<(usize, usize, usize, usize)> {
     joints
@@ -74,12 +92,7 @@ fn rel_err(ours: &[Vec<f64>], reference: &[Vec<f64>]) -> f64 {
 
 #[test]
 fn dynamics_agree_with_pinocchio_and_mujoco() {
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/references/robots.json"
-    ))
-    .unwrap();
-    let refs: Value = serde_json::from_str(&text).unwrap();
+    let refs = references();
     let mut report = Vec::new();
     for m in refs["models"].as_array().unwrap() {
         let file = m["file"].as_str().unwrap();
@@ -105,12 +118,8 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
         // exert nothing at ctrl = 0: qfrc_passive has no actuator force.)
         let stepper = (!file.ends_with(".urdf") && !free)
             .then(|| {
-                let mut b = mjcf::load(format!("{ROBOTS}/{file}")).unwrap().builder;
-                (b.ground, b.link_contact) = (None, false);
+                let mut b = in_the_air(file).builder;
                 b.implicit_damping = false;
-                for l in b.links_mut() {
-                    l.joint.limits = None;
-                }
                 let idle = b.actuators().iter().all(|a| a.bias == [0.0; 3]);
                 idle.then(|| b.finalize::<f64>().unwrap())
             })
@@ -198,24 +207,14 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
 #[test]
 fn mjcf_rollouts_agree_with_mujoco_step_by_step() {
     use adflex_kernels::articulation::{ArticulationControl, ArticulationState};
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/references/robots.json"
-    ))
-    .unwrap();
-    let refs: Value = serde_json::from_str(&text).unwrap();
+    let refs = references();
     let mut report = Vec::new();
     let mut checked = 0;
     for m in refs["models"].as_array().unwrap() {
         let Some(r) = m.get("rollout") else { continue };
         let file = m["file"].as_str().unwrap();
-        let robot = mjcf::load(format!("{ROBOTS}/{file}")).unwrap();
-        let mut b = robot.builder;
-        (b.ground, b.link_contact) = (None, false);
-        for l in b.links_mut() {
-            l.joint.limits = None;
-        }
-        let model = b.finalize::<f64>().unwrap();
+        let robot = in_the_air(file);
+        let model = robot.builder.finalize::<f64>().unwrap();
         let map = joint_map(&model, m["joints"].as_array().unwrap());
         let to_ours = |rq: &[f64], rqd: &[f64]| {
             let (mut q, mut qd) = (vec![0.0; model.n_q], vec![0.0; model.n_dof]);

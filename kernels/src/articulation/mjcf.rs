@@ -1583,8 +1583,9 @@ impl<'a> Reader<'a> {
     }
 
     /// An actuator element: MuJoCo's general actuator (`dyntype="none"`; fixed or affine
-    /// gain, none or affine bias) and its `<motor>`, `<position>` and `<velocity>` shortcuts,
-    /// on a hinge or slide joint, added to the builder.
+    /// gain, none or affine bias) and its `<motor>`, `<position>`, `<velocity>` and `<damper>`
+    /// shortcuts, on a hinge or slide joint or a fixed tendon of such joints, added to the
+    /// builder.
     fn actuator(&mut self, n: Node) -> Result<(), ArticulationError> {
         let tag = n.tag_name().name();
         let class = "main";
