@@ -1642,13 +1642,7 @@ impl<'a> Reader<'a> {
         }
         let ctrl_range = self.range(n, class, "ctrl")?.filter(|_| self.clamp_ctrl);
         let force_range = self.range(n, class, "force")?;
-        let gain = |name: &str, default: f64| -> Result<f64, ArticulationError> {
-            let v = self.nums(n, class, name, &[1])?.map_or(default, |v| v[0]);
-            match v >= 0.0 {
-                true => Ok(v),
-                false => Err(self.src.error(n, format!("{name} must be non-negative"))),
-            }
-        };
+        let gain = |name: &str, default: f64| self.non_negative(n, class, name, default);
         let link = transmission[0].0;
         let mut actuator = match tag {
             "motor" => Actuator::motor(link),
@@ -1687,14 +1681,8 @@ impl<'a> Reader<'a> {
         class: &str,
         joints: &[(LinkId, f64)],
     ) -> Result<(), ArticulationError> {
-        let one = |name: &str| -> Result<f64, ArticulationError> {
-            let v = self.nums(t, class, name, &[1])?.map_or(0.0, |v| v[0]);
-            match v >= 0.0 {
-                true => Ok(v),
-                false => Err(self.src.error(t, format!("{name} must be non-negative"))),
-            }
-        };
-        let (stiffness, damping) = (one("stiffness")?, one("damping")?);
+        let stiffness = self.non_negative(t, class, "stiffness", 0.0)?;
+        let damping = self.non_negative(t, class, "damping", 0.0)?;
         if stiffness == 0.0 && damping == 0.0 {
             return Ok(());
         }
@@ -1712,6 +1700,22 @@ impl<'a> Reader<'a> {
             rest,
         });
         Ok(())
+    }
+
+    /// A number attribute (own or default; `default` when neither) that must be
+    /// non-negative.
+    fn non_negative(
+        &self,
+        n: Node,
+        class: &str,
+        name: &str,
+        default: f64,
+    ) -> Result<f64, ArticulationError> {
+        let v = self.nums(n, class, name, &[1])?.map_or(default, |v| v[0]);
+        match v >= 0.0 {
+            true => Ok(v),
+            false => Err(self.src.error(n, format!("{name} must be non-negative"))),
+        }
     }
 
     /// The link of the joint called `name`.
