@@ -202,20 +202,62 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
 }
 
 /// Rollouts of the MJCF robots with random controls (some beyond their ranges) step by step
-/// as MuJoCo's `mj_step` (its Euler integrator: damping implicit, actuators, springs, the
-/// fluid explicit), contact and limits off on both sides: the states every 50 steps agree.
+/// as MuJoCo's `mj_step` by each of its integrators adflex offers (Euler: damping implicit,
+/// actuators, springs, the fluid explicit; RK4; implicitfast), contact and limits off on both
+/// sides: the states every 50 steps agree.
 #[test]
 fn mjcf_rollouts_agree_with_mujoco_step_by_step() {
-    use adflex_kernels::articulation::{ArticulationControl, ArticulationState};
+    use adflex_kernels::articulation::{
+        ArticulationControl, ArticulationIntegrator, ArticulationState,
+    };
     let refs = references();
     let mut report = Vec::new();
-    let mut checked = 0;
+    let mut checked = [0; 3];
     for m in refs["models"].as_array().unwrap() {
-        let Some(r) = m.get("rollout") else { continue };
+        let Some(rollouts) = m.get("rollouts") else {
+            continue;
+        };
         let file = m["file"].as_str().unwrap();
-        let robot = in_the_air(file);
-        let model = robot.builder.finalize::<f64>().unwrap();
-        let map = joint_map(&model, m["joints"].as_array().unwrap());
+        for r in rollouts.as_array().unwrap() {
+            let mut robot = in_the_air(file);
+            let name = r["integrator"].as_str().unwrap();
+            let (k, integrator) = match name {
+                "Euler" => (0, ArticulationIntegrator::Euler),
+                "RK4" => (1, ArticulationIntegrator::Rk4),
+                "implicitfast" => (2, ArticulationIntegrator::ImplicitFast),
+                o => panic!("{file}: integrator {o}"),
+            };
+            robot.builder.integrator = integrator;
+            let model = robot.builder.finalize::<f64>().unwrap();
+            let worst = rollout_error(&model, &m["joints"], r, file, name);
+            assert_eq!(
+                robot.timestep.unwrap().min(0.002),
+                r["dt"].as_f64().unwrap(),
+                "{file}: the time step"
+            );
+            report.push(format!("{file}, {name}: worst {worst:.1e}"));
+            checked[k] += 1;
+        }
+    }
+    assert!(
+        checked[0] >= 6 && checked[1] >= 6 && checked[2] >= 5,
+        "every MJCF robot has rollout references ({checked:?})"
+    );
+    // The file's integrator is the model's.
+    let walker = mjcf::load(format!("{ROBOTS}/walker.xml")).unwrap();
+    assert_eq!(walker.builder.integrator, ArticulationIntegrator::Rk4);
+    println!("{}", report.join("\n"));
+
+    /// The largest difference from MuJoCo's states along the rollout `r`, relative to the
+    /// state's size.
+    fn rollout_error(
+        model: &Articulations<f64>,
+        joints: &Value,
+        r: &Value,
+        file: &str,
+        integrator: &str,
+    ) -> f64 {
+        let map = joint_map(model, joints.as_array().unwrap());
         let to_ours = |rq: &[f64], rqd: &[f64]| {
             let (mut q, mut qd) = (vec![0.0; model.n_q], vec![0.0; model.n_dof]);
             let (mut kq, mut kv) = (0, 0);
@@ -228,11 +270,6 @@ fn mjcf_rollouts_agree_with_mujoco_step_by_step() {
             (q, qd)
         };
         let dt = r["dt"].as_f64().unwrap();
-        assert_eq!(
-            robot.timestep.unwrap().min(0.002),
-            dt,
-            "{file}: the time step"
-        );
         let (q0, qd0) = to_ours(&vecf(&r["q0"]), &vecf(&r["qd0"]));
         let mut s = ArticulationState {
             q: Array::from_vec(q0),
@@ -262,20 +299,14 @@ fn mjcf_rollouts_agree_with_mujoco_step_by_step() {
             worst = worst.max(e);
             assert!(
                 e < 1e-8,
-                "{file}: after {} steps, q {:?} qd {:?}, MuJoCo q {eq:?} qd {eqd:?}",
+                "{file}, {integrator}: after {} steps, q {:?} qd {:?}, MuJoCo q {eq:?} qd {eqd:?}",
                 (k + 1) * every,
                 s.q.to_vec(),
                 s.qd.to_vec()
             );
         }
-        report.push(format!(
-            "{file}: {} steps, worst {worst:.1e}",
-            rq.len() * every
-        ));
-        checked += 1;
+        worst
     }
-    assert!(checked >= 6, "every MJCF robot has a rollout reference");
-    println!("{}", report.join("\n"));
 }
 
 /// `qdd` at a state, on a throwaway tape.

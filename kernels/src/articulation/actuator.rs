@@ -203,6 +203,10 @@ pub fn articulation_tendon_springs<R: Real>(
 /// coefficients `coef[k]`, `k` in `start[tid]..start[tid + 1]`: adds `gear coef[k] f` to
 /// `act_tau[dof[k]]`, `f` the module's force. `limited` has bit 0 for a clamped control (to
 /// `ctrl_lo`, `ctrl_hi`) and bit 1 for a clamped force (to `force_lo`, `force_hi`).
+///
+/// `damping[tid]` gets the actuator's damping as the implicit integrator sees it (MuJoCo's
+/// `implicitfast`): `-d f / d v` times `gear^2`, zero while the force is at a limit of its
+/// range (as MuJoCo, which skips a clamped actuator).
 #[diff_kernel]
 pub fn articulation_actuators<R: Real>(
     start: &Array<u32>,
@@ -221,6 +225,7 @@ pub fn articulation_actuators<R: Real>(
     q: &Array<R>,
     qd: &Array<R>,
     act_tau: &Array<R>,
+    damping: &Array<R>,
 ) {
     let t = tid();
     let g = gear[t];
@@ -241,10 +246,48 @@ pub fn articulation_actuators<R: Real>(
     let k = gain[t];
     let b = bias[t];
     let mut f = (k.x + k.y * l + k.z * v) * c + b.x + b.y * l + b.z * v;
+    let mut free = 1;
     if limited[t] / 2 == 1 {
+        if f <= force_lo[t] || f >= force_hi[t] {
+            free = 0;
+        }
         f = clamp(f, force_lo[t], force_hi[t]);
     }
     for k in k0..k1 {
         act_tau.atomic_add(dof[k] as usize, g * coef[k] * f);
+    }
+    if free == 1 {
+        damping[t] = -(k.z * c + b.z) * g * g;
+    }
+}
+
+/// Implicit velocity coupling `tid` (MuJoCo's `implicitfast`): a damping `damping[tid]` on
+/// the combination `sum_k coef[k] qd[dof[k]]`, `k` in `start[tid]..start[tid + 1]` (a tendon's
+/// or an actuator's joints, of one articulation), adds `h damping coef[i] coef[j]` to the mass
+/// matrix's entry `(dof[i], dof[j])` (rows at `m_row`, blocks from `art_start`), so that the
+/// step solves with `M - h df/dqd`.
+#[diff_kernel]
+pub fn articulation_implicit_damping<R: Real>(
+    start: &Array<u32>,
+    dof: &Array<u32>,
+    coef: &Array<R>,
+    damping: &Array<R>,
+    art_start: &Array<u32>,
+    m_row: &Array<u32>,
+    h: R,
+    m: &Array<R>,
+) {
+    let t = tid();
+    let k0 = start[t] as usize;
+    let k1 = start[t + 1] as usize;
+    let s = damping[t] * h;
+    for i in k0..k1 {
+        let di = dof[i] as usize;
+        let row = m_row[di] as usize;
+        let first = art_start[di] as usize;
+        for j in k0..k1 {
+            let dj = dof[j] as usize;
+            m.atomic_add(row + dj - first, s * coef[i] * coef[j]);
+        }
     }
 }

@@ -4,8 +4,8 @@ use adflex_runtime::prelude::*;
 
 use super::contact::{ContactShape, GeomShape};
 use super::model::{
-    ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, JointType,
-    LinkId, LinkInfo, Pose, WorldInfo,
+    ArticulationBuilder, ArticulationError, ArticulationInfo, ArticulationIntegrator,
+    Articulations, Inertial, JointType, LinkId, LinkInfo, Pose, WorldInfo,
 };
 
 fn err(element: String, message: impl Into<String>) -> ArticulationError {
@@ -565,6 +565,7 @@ pub(crate) fn finalize<R: Real>(
         limit_kd: r(b.limit_kd),
         fluid_on: b.fluid.is_some(),
         implicit_damping: b.implicit_damping,
+        integrator: b.integrator,
         fluid_density: rs(&[b.fluid.map_or(0.0, |f| f.density)]),
         fluid_viscosity: rs(&[b.fluid.map_or(0.0, |f| f.viscosity)]),
         wind: Array::from_vec(vec![v3(&b.fluid.map_or(Vec3::zeros(), |f| f.wind))]),
@@ -805,6 +806,9 @@ fn check_joints(
 /// and a passive tendon on bad joints or with a negative or non-finite parameter.
 fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), ArticulationError> {
     let links = b.links();
+    if b.integrator == ArticulationIntegrator::ImplicitFast {
+        check_implicit_fast(b)?;
+    }
     for (k, t) in b.tendon_springs().iter().enumerate() {
         let what = || format!("tendon spring \"{}\" ({k})", t.name);
         check_joints(&t.joints, links, world_of).map_err(|m| err(what(), m))?;
@@ -856,6 +860,48 @@ fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), Ar
             ));
         }
         last_world = w;
+    }
+    Ok(())
+}
+
+/// `ImplicitFast` puts a tendon's or an actuator's damping into its articulation's block of the
+/// mass matrix: its joints must be in one articulation; and it would need the fluid's velocity
+/// derivative, which is not offered.
+fn check_implicit_fast(b: &ArticulationBuilder) -> Result<(), ArticulationError> {
+    let links = b.links();
+    let root = |mut l: usize| {
+        while let Some(p) = links[l].parent {
+            l = p.0;
+        }
+        l
+    };
+    if b.fluid.is_some() {
+        return Err(err(
+            "integrator".into(),
+            "ImplicitFast with a fluid: MuJoCo's implicitfast includes the fluid forces' \
+             velocity derivative, which adflex does not compute; use Euler or Rk4",
+        ));
+    }
+    let one = |kind: &str, k: usize, name: &str, joints: &[(LinkId, f64)]| {
+        let roots: Vec<usize> = joints
+            .iter()
+            .filter(|j| j.0 .0 < links.len())
+            .map(|j| root(j.0 .0))
+            .collect();
+        match roots.windows(2).any(|w| w[0] != w[1]) {
+            true => Err(err(
+                format!("{kind} \"{name}\" ({k})"),
+                "its joints are in several articulations: ImplicitFast couples them in one \
+                 articulation's mass matrix; use Euler or Rk4",
+            )),
+            false => Ok(()),
+        }
+    };
+    for (k, a) in b.actuators().iter().enumerate() {
+        one("actuator", k, &a.name, &a.transmission)?;
+    }
+    for (k, t) in b.tendon_springs().iter().enumerate() {
+        one("tendon spring", k, &t.name, &t.joints)?;
     }
     Ok(())
 }

@@ -8,7 +8,7 @@ use adflex_runtime::prelude::*;
 use adflex_runtime::{AnyArray, Element};
 
 use super::kernels::*;
-use super::model::{Articulations, JointType};
+use super::model::{ArticulationIntegrator, Articulations, JointType};
 use crate::solver::parts::Parts;
 
 /// Coordinates and velocities of every articulation of a model.
@@ -368,6 +368,7 @@ impl<R: Real> Articulations<R> {
             );
         }
         let act_tau = zeros();
+        let act_damping = Array::<R>::zeros(self.act_gear.len());
         if let (Some(c), false) = (control, self.act_gear.is_empty()) {
             self.check_len(&c.ctrl, self.act_gear.len(), "control.ctrl");
             tape.launch(
@@ -390,6 +391,7 @@ impl<R: Real> Articulations<R> {
                     q,
                     qd,
                     &act_tau,
+                    &act_damping,
                 ),
             );
         }
@@ -462,15 +464,44 @@ impl<R: Real> Articulations<R> {
                 &self.limit_b,
                 &self.limit_imp,
                 dt,
-                match self.implicit_damping {
-                    true => dt,
-                    false => R::lit(0.0),
+                match (self.integrator, self.implicit_damping) {
+                    (ArticulationIntegrator::ImplicitFast, _) | (_, true) => dt,
+                    _ => R::lit(0.0),
                 },
                 &tau_id,
                 &m,
                 &rhs,
             ),
         );
+        // MuJoCo's implicitfast: the tendons' and actuators' damping join M too.
+        if self.integrator == ArticulationIntegrator::ImplicitFast && dt.to_f64() > 0.0 {
+            for (start, dof, coef, damping) in [
+                (&self.act_start, &self.act_dof, &self.act_coef, &act_damping),
+                (
+                    &self.tendon_start,
+                    &self.tendon_dof,
+                    &self.tendon_coef,
+                    &self.tendon_damping,
+                ),
+            ] {
+                if !damping.is_empty() && control.is_some() {
+                    tape.launch(
+                        super::actuator::articulation_implicit_damping,
+                        damping.len(),
+                        (
+                            start,
+                            dof,
+                            coef,
+                            damping,
+                            &self.dof_art_start,
+                            &self.dof_m_row,
+                            dt,
+                            &m,
+                        ),
+                    );
+                }
+            }
+        }
         Pass { tau_id, m, rhs }
     }
 
@@ -518,14 +549,16 @@ impl<R: Real> Articulations<R> {
         self.solve(tape, &p.m, &p.rhs)
     }
 
-    /// One semi-implicit Euler step, as MuJoCo's Euler integrator: `qdd` from the dynamics with the
+    /// One step of `dt` by the model's [`integrator`](super::ArticulationBuilder::integrator),
+    /// as MuJoCo's (see [`ArticulationIntegrator`]). `qdd` comes from the dynamics with the
     /// control's torques, actuators ([`actuator`](super::actuator)), PD targets and muscle
-    /// activations, joint springs, damping and limits, the fluid and the contacts; `qd' = qd + qdd
-    /// dt`, then `q'` from `qd'` (quaternions by the exponential map, renormalized). The joint
-    /// damping is implicit (`dt damping` joins the mass matrix's diagonal, MuJoCo's `eulerdamp`)
-    /// unless [`implicit_damping`](super::ArticulationBuilder::implicit_damping) is off, and so are
-    /// violated limits; the other forces are explicit. Returns the new state; every launch is on
-    /// `tape`.
+    /// activations, joint springs, damping and limits, the fluid and the contacts. By default
+    /// (`Euler`) `qd' = qd + qdd dt`, then `q'` from `qd'` (quaternions by the exponential map,
+    /// renormalized), with the joint damping implicit (`dt damping` joins the mass matrix's
+    /// diagonal, MuJoCo's `eulerdamp`) unless
+    /// [`implicit_damping`](super::ArticulationBuilder::implicit_damping) is off, and so are
+    /// violated limits; the other forces are explicit. Returns the new state; every launch is
+    /// on `tape`.
     pub fn step(
         &self,
         tape: &mut Tape,
@@ -549,17 +582,10 @@ impl<R: Real> Articulations<R> {
         };
         self.check_len(&control.target_q, self.n_dof, "control.target_q");
         self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
-        let (q, qd) = (&state.q, &state.qd);
-        let p = self.pass(
-            tape,
-            PassInput {
-                control: Some(control),
-                contact: true,
-                dt,
-                ..PassInput::new(q, qd, &control.tau)
-            },
-        );
-        let qdd = self.solve(tape, &p.m, &p.rhs)?;
+        if self.integrator == ArticulationIntegrator::Rk4 {
+            return self.rk4_step(tape, state, control, dt);
+        }
+        let qdd = self.accelerations(tape, state, control, dt)?;
         let next = ArticulationState {
             q: Array::zeros(self.n_q),
             qd: Array::zeros(self.n_dof),
@@ -571,8 +597,8 @@ impl<R: Real> Articulations<R> {
                 &self.joint_type,
                 &self.q_start,
                 &self.qd_start,
-                q,
-                qd,
+                &state.q,
+                &state.qd,
                 &qdd,
                 dt,
                 &next.q,
@@ -580,6 +606,104 @@ impl<R: Real> Articulations<R> {
             ),
         );
         Ok(next)
+    }
+
+    /// `qdd` at `state` with everything a step applies; with `dt > 0` the step's implicit terms
+    /// join the solve (see [`ArticulationIntegrator`]), with `dt = 0` every force is explicit.
+    fn accelerations(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        control: &ArticulationControl<R>,
+        dt: R,
+    ) -> Result<Array<R>, Error> {
+        let p = self.pass(
+            tape,
+            PassInput {
+                control: Some(control),
+                contact: true,
+                dt,
+                ..PassInput::new(&state.q, &state.qd, &control.tau)
+            },
+        );
+        self.solve(tape, &p.m, &p.rhs)
+    }
+
+    /// MuJoCo's RK4 (`mj_RungeKutta`, as in MuJoCo 4): four explicit evaluations, each stage's
+    /// rates where they combine ([`articulation_rates`]: rotations in exponential coordinates
+    /// at the start, a free joint's linear velocity in the world frame) and the state advanced
+    /// from the start along them ([`articulation_advance`]).
+    fn rk4_step(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        control: &ArticulationControl<R>,
+        dt: R,
+    ) -> Result<ArticulationState<R>, Error> {
+        let (n, nq, nd) = (self.n_links(), self.n_q, self.n_dof);
+        let advance = |tape: &mut Tape, vel: &Array<R>, acc: &Array<R>, h: R| {
+            let next = ArticulationState {
+                q: Array::zeros(nq),
+                qd: Array::zeros(nd),
+            };
+            tape.launch(
+                articulation_advance,
+                n,
+                (
+                    &self.joint_type,
+                    &self.q_start,
+                    &self.qd_start,
+                    &state.q,
+                    &state.qd,
+                    vel,
+                    acc,
+                    h,
+                    &next.q,
+                    &next.qd,
+                ),
+            );
+            next
+        };
+        let (mut vels, mut accs) = (Vec::with_capacity(4), Vec::with_capacity(4));
+        let mut stage = state.clone();
+        for i in 0..4 {
+            let qdd = self.accelerations(tape, &stage, control, R::lit(0.0))?;
+            let (vel, acc) = (Array::zeros(nd), Array::zeros(nd));
+            tape.launch(
+                articulation_rates,
+                n,
+                (
+                    &self.joint_type,
+                    &self.q_start,
+                    &self.qd_start,
+                    &state.q,
+                    &stage.q,
+                    &stage.qd,
+                    &qdd,
+                    &vel,
+                    &acc,
+                ),
+            );
+            if i < 3 {
+                // MuJoCo's RK4_A: the stages at dt/2, dt/2, dt, each from the previous rates.
+                let h = if i < 2 { dt * R::lit(0.5) } else { dt };
+                stage = advance(tape, &vel, &acc, h);
+            }
+            vels.push(vel);
+            accs.push(acc);
+        }
+        let combine = |tape: &mut Tape, x: &[Array<R>], len: usize| {
+            let out = Array::zeros(len);
+            tape.launch(
+                articulation_rk4_combine,
+                len,
+                (&x[0], &x[1], &x[2], &x[3], &out),
+            );
+            out
+        };
+        let vel = combine(tape, &vels, nd);
+        let acc = combine(tape, &accs, nd);
+        Ok(advance(tape, &vel, &acc, dt))
     }
 
     /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s, recorded

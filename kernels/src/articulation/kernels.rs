@@ -13,7 +13,7 @@
 //! of ancestors (or its subtree) itself, `O(links x depth)` in all: the threads of one launch
 //! are independent, so every pass is one launch, whatever the depth of the tree.
 
-use adflex_macros::diff_kernel;
+use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
 /// Kinematics of link `tid`: its world pose, the motion vectors of its joint's velocities and
@@ -403,21 +403,12 @@ pub fn articulation_integrate<R: Real>(
         qd_new[a] = w1.x;
         qd_new[a + 1] = w1.y;
         qd_new[a + 2] = w1.z;
-        let w = w1 * dt;
         let mut rs = s;
         if jt == 4 {
             rs = s + 3;
         }
         let r = quat_normalize(quat(q[rs], q[rs + 1], q[rs + 2], q[rs + 3]));
-        let th2 = dot(w, w);
-        let mut k = 0.5 - th2 / 48.0;
-        let mut c = 1.0 - th2 / 8.0;
-        if th2 > 1e-8 {
-            let th = sqrt(th2);
-            k = sin(th * 0.5) / th;
-            c = cos(th * 0.5);
-        }
-        let r1 = quat_normalize(r * quat(w.x * k, w.y * k, w.z * k, c));
+        let r1 = quat_step(r, w1 * dt);
         q_new[rs] = r1.x;
         q_new[rs + 1] = r1.y;
         q_new[rs + 2] = r1.z;
@@ -436,6 +427,175 @@ pub fn articulation_integrate<R: Real>(
             qd_new[d0 + 2] = v1.z;
         }
     }
+}
+
+/// `normalize(r exp(w))`: the unit quaternion `r` turned by the rotation vector `w` in its own
+/// frame (MuJoCo's `mju_quatIntegrate`); `exp` uses its series near zero rotation (no division
+/// by `|w|`).
+#[diff_func]
+pub fn quat_step<R: Real>(r: Quat<R>, w: Vec3<R>) -> Quat<R> {
+    let th2 = dot(w, w);
+    let mut k = 0.5 - th2 / 48.0;
+    let mut c = 1.0 - th2 / 8.0;
+    if th2 > 1e-8 {
+        let th = sqrt(th2);
+        k = sin(th * 0.5) / th;
+        c = cos(th * 0.5);
+    }
+    quat_normalize(r * quat(w.x * k, w.y * k, w.z * k, c))
+}
+
+/// The rate of a rotation in exponential coordinates at `r0`: with `r = r0 exp(phi)`, a body
+/// angular velocity `w` moves `phi` at `J_r(phi)^-1 w = w + phi x w / 2 + c phi x (phi x w)`,
+/// `c = 1/t^2 - (1 + cos t) / (2 t sin t)`, `t = |phi|` (the right Jacobian's inverse; the
+/// series near `t = 0`). Runge-Kutta stages of a rotation combine these rates (the
+/// Runge-Kutta-Munthe-Kaas method, MuJoCo 4's RK4).
+#[diff_func]
+pub fn rotation_rate<R: Real>(r0: Quat<R>, r: Quat<R>, w: Vec3<R>) -> Vec3<R> {
+    let mut e = quat_normalize(quat_conjugate(r0) * r);
+    if e.w < 0.0 {
+        e = quat(-e.x, -e.y, -e.z, -e.w);
+    }
+    let u = vec3(e.x, e.y, e.z);
+    let s = sqrt(dot(u, u));
+    // phi = u t / s, t = 2 atan2(s, w); near s = 0, t / s = 2 / w.
+    let mut k = 2.0 / e.w;
+    if s > 1e-6 {
+        k = 2.0 * atan2(s, e.w) / s;
+    }
+    let phi = u * k;
+    let t2 = dot(phi, phi);
+    let mut c = 1.0 / 12.0 + t2 / 720.0;
+    if t2 > 1e-6 {
+        let t = sqrt(t2);
+        c = 1.0 / t2 - (1.0 + cos(t)) / (2.0 * t * sin(t));
+    }
+    let pw = cross(phi, w);
+    w + pw * 0.5 + cross(phi, pw) * c
+}
+
+/// The rates of the joint of link `tid` where the stages of a Runge-Kutta step from `q0`
+/// combine, as MuJoCo 4's RK4: `vel`, the velocities (except a rotation's, its
+/// [`rotation_rate`] at `q0`'s, and a free joint's linear part, in the world frame: `R v`),
+/// and `acc`, their derivatives (`qdd`, except a free joint's linear part, in the world
+/// frame, as its local frame turns between stages: `R (a + w x v)`).
+#[diff_kernel]
+pub fn articulation_rates<R: Real>(
+    joint_type: &Array<u32>,
+    q_start: &Array<u32>,
+    qd_start: &Array<u32>,
+    q0: &Array<R>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    qdd: &Array<R>,
+    vel: &Array<R>,
+    acc: &Array<R>,
+) {
+    let l = tid();
+    let jt = joint_type[l];
+    let d0 = qd_start[l] as usize;
+    let d1 = qd_start[l + 1] as usize;
+    for d in d0..d1 {
+        vel[d] = qd[d];
+        acc[d] = qdd[d];
+    }
+    if jt == 3 || jt == 4 {
+        let s = q_start[l] as usize;
+        let a = d1 - 3;
+        let mut rs = s;
+        if jt == 4 {
+            rs = s + 3;
+        }
+        let r0 = quat_normalize(quat(q0[rs], q0[rs + 1], q0[rs + 2], q0[rs + 3]));
+        let r = quat_normalize(quat(q[rs], q[rs + 1], q[rs + 2], q[rs + 3]));
+        let w = vec3(qd[a], qd[a + 1], qd[a + 2]);
+        let rw = rotation_rate(r0, r, w);
+        vel[a] = rw.x;
+        vel[a + 1] = rw.y;
+        vel[a + 2] = rw.z;
+        if jt == 4 {
+            let v = vec3(qd[d0], qd[d0 + 1], qd[d0 + 2]);
+            let dv = vec3(qdd[d0], qdd[d0 + 1], qdd[d0 + 2]);
+            let u = quat_rotate(r, v);
+            let du = quat_rotate(r, dv + cross(w, v));
+            vel[d0] = u.x;
+            vel[d0 + 1] = u.y;
+            vel[d0 + 2] = u.z;
+            acc[d0] = du.x;
+            acc[d0 + 1] = du.y;
+            acc[d0 + 2] = du.z;
+        }
+    }
+}
+
+/// The state `(q0, qd0)` advanced by `h` along the rates `(vel, acc)` of
+/// [`articulation_rates`] (a Runge-Kutta stage or its final combination, MuJoCo's `X0 + h
+/// dX`), joint of link `tid`: `q' = q0 + h vel` (a quaternion `r0 exp(h vel)`, [`quat_step`]),
+/// `qd' = qd0 + h acc`, a free joint's linear velocity in the world frame (`R0 v0 + h acc`)
+/// and back to the new link frame.
+#[diff_kernel]
+pub fn articulation_advance<R: Real>(
+    joint_type: &Array<u32>,
+    q_start: &Array<u32>,
+    qd_start: &Array<u32>,
+    q0: &Array<R>,
+    qd0: &Array<R>,
+    vel: &Array<R>,
+    acc: &Array<R>,
+    h: R,
+    q_new: &Array<R>,
+    qd_new: &Array<R>,
+) {
+    let l = tid();
+    let jt = joint_type[l];
+    let s = q_start[l] as usize;
+    let d0 = qd_start[l] as usize;
+    let d1 = qd_start[l + 1] as usize;
+    for d in d0..d1 {
+        qd_new[d] = qd0[d] + acc[d] * h;
+    }
+    if jt == 1 || jt == 2 {
+        q_new[s] = q0[s] + vel[d0] * h;
+    } else if jt == 3 || jt == 4 {
+        let a = d1 - 3;
+        let mut rs = s;
+        if jt == 4 {
+            rs = s + 3;
+        }
+        let r0 = quat_normalize(quat(q0[rs], q0[rs + 1], q0[rs + 2], q0[rs + 3]));
+        let r1 = quat_step(r0, vec3(vel[a], vel[a + 1], vel[a + 2]) * h);
+        q_new[rs] = r1.x;
+        q_new[rs + 1] = r1.y;
+        q_new[rs + 2] = r1.z;
+        q_new[rs + 3] = r1.w;
+        if jt == 4 {
+            let v0 = vec3(qd0[d0], qd0[d0 + 1], qd0[d0 + 2]);
+            let u = quat_rotate(r0, v0) + vec3(acc[d0], acc[d0 + 1], acc[d0 + 2]) * h;
+            q_new[s] = q0[s] + vel[d0] * h;
+            q_new[s + 1] = q0[s + 1] + vel[d0 + 1] * h;
+            q_new[s + 2] = q0[s + 2] + vel[d0 + 2] * h;
+            let v1 = quat_rotate_inv(r1, u);
+            qd_new[d0] = v1.x;
+            qd_new[d0 + 1] = v1.y;
+            qd_new[d0 + 2] = v1.z;
+        }
+    }
+}
+
+/// Entry `tid` of the classic Runge-Kutta combination of four stages' rates: `out = (x1 + 2
+/// x2 + 2 x3 + x4) / 6` (MuJoCo's `RK4_B`).
+#[diff_kernel]
+pub fn articulation_rk4_combine<R: Real>(
+    x1: &Array<R>,
+    x2: &Array<R>,
+    x3: &Array<R>,
+    x4: &Array<R>,
+    out: &Array<R>,
+) {
+    let d = tid();
+    let b1 = 1.0 / 6.0;
+    let b2 = 1.0 / 3.0;
+    out[d] = x1[d] * b1 + x2[d] * b2 + x3[d] * b2 + x4[d] * b1;
 }
 
 /// `out[tid]` is `from[tid]` in the worlds `take` marks (non-zero, indexed by `world[tid]`),

@@ -4,7 +4,8 @@
 //! main file's directory, or the current one for [`parse`]; errors name the included file and
 //! line), `<compiler angle eulerseq inertiafromgeom autolimits coordinate="local" settotalmass>`
 //! (and, passed over, the mesh and texture directories and the compiler's own switches), `<option
-//! timestep gravity density viscosity wind>` (a fluid: MuJoCo's inertia-box model,
+//! timestep gravity integrator density viscosity wind>` (`integrator` `Euler`, `RK4` or
+//! `implicitfast`, [`ArticulationBuilder::integrator`]; a fluid: MuJoCo's inertia-box model,
 //! [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint` and `gravity` switched off are
 //! off here too, `eulerdamp` switches [`ArticulationBuilder::implicit_damping`] and `clampctrl` the
 //! clamping of controls; flags about MuJoCo's solver, sensors or checks are passed over; others
@@ -25,8 +26,7 @@
 //! (clamped unless `<flag clampctrl="disable">`). Passed over: visual-only elements (`<visual>`,
 //! `<asset>`, `<statistic>`, `<site>`, `<camera>`, `<light>`), `<custom>` data, `<sensor>` and
 //! `<keyframe>` (they read or set the state, not the dynamics), MuJoCo's own solver settings in
-//! `<option>` (`integrator`, `iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`:
-//! the integrator is the caller's choice here). `<tendon>` with `<fixed>` tendons (no limits or
+//! `<option>` (`iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`). `<tendon>` with `<fixed>` tendons (no limits or
 //! friction): a spring and damper with `stiffness`, `damping` and `springlength`
 //! ([`TendonSpring`]), and what actuators may drive. A limit follows the joint's `solreflimit` and
 //! `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`; the time constant at least twice
@@ -108,7 +108,8 @@ pub use super::contact::GeomShape;
 use super::contact::{ContactFilter, GroundContact};
 use super::fluid::Fluid;
 use super::model::{
-    axis_angle, from_to, ArticulationBuilder, ArticulationError, Inertial, Joint, LinkId, Pose,
+    axis_angle, from_to, ArticulationBuilder, ArticulationError, ArticulationIntegrator, Inertial,
+    Joint, LinkId, Pose,
 };
 use super::xml::{self, children, Source};
 
@@ -370,8 +371,8 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                         wind,
                     });
                 }
-                // MuJoCo's own solver's settings name no property of the model: the
-                // integrator is the caller's choice here, and contacts follow the library's law.
+                // MuJoCo's own solver's settings name no property of the model: contacts
+                // follow the library's law.
                 r.src.only_attributes(
                     *n,
                     &[
@@ -396,6 +397,21 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                 )?;
                 timestep = r.src.number(*n, "timestep")?;
                 r.timestep = timestep.unwrap_or(0.002);
+                r.builder.integrator = match n.attribute("integrator") {
+                    None | Some("Euler") => ArticulationIntegrator::Euler,
+                    Some("RK4") => ArticulationIntegrator::Rk4,
+                    Some("implicitfast") => ArticulationIntegrator::ImplicitFast,
+                    Some(o) => {
+                        return Err(r.src.error(
+                            *n,
+                            format!(
+                                "integrator=\"{o}\": Euler, RK4 and implicitfast are supported \
+                                 (MuJoCo's implicit adds the Coriolis forces' velocity \
+                                 derivative to implicitfast's)"
+                            ),
+                        ))
+                    }
+                };
                 match n.attribute("collision") {
                     None | Some("all") => {}
                     Some(o) => {

@@ -58,6 +58,6 @@ pub use contact::{ContactFilter, ContactShape, GroundContact};
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use fluid::Fluid;
 pub use model::{
-    ArticulationBuilder, ArticulationError, ArticulationInfo, Articulations, Inertial, Joint,
-    JointType, LinkDesc, LinkId, LinkInfo, Muscle, Pose, WorldInfo,
+    ArticulationBuilder, ArticulationError, ArticulationInfo, ArticulationIntegrator,
+    Articulations, Inertial, Joint, JointType, LinkDesc, LinkId, LinkInfo, Muscle, Pose, WorldInfo,
 };

@@ -163,16 +163,17 @@ def from_mujoco(model, kinds, qm, vm):
     return q, v
 
 
-def mujoco_rollout(model, data, kinds, steps=200):
-    """mj_step from a random state with random controls (some outside their range, to check
-    the clamping), contact and limits off, by MuJoCo's Euler integrator at the file's time step or 2 ms if shorter (the
-    legs of gym's ant, driven hard without limits, blow up at its 10 ms): the states every
-    50 steps, in adflex's terms."""
+def mujoco_rollout(model, data, kinds, integrator, steps=200):
+    """mj_step by `integrator` ("Euler", "RK4" or "implicitfast") from a random state with random
+    controls (some outside their range, to check the clamping), contact and limits off, at the
+    file's time step or 2 ms if shorter (the legs of gym's ant, driven hard without limits, blow
+    up at its 10 ms): the states every 50 steps, in adflex's terms."""
     model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
     model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
     model.opt.timestep = min(model.opt.timestep, 0.002)
-    # adflex's step is MuJoCo's Euler integrator, whatever the file asks (the walker: RK4).
-    model.opt.integrator = int(mujoco.mjtIntegrator.mjINT_EULER)
+    model.opt.integrator = int({"Euler": mujoco.mjtIntegrator.mjINT_EULER,
+                                "RK4": mujoco.mjtIntegrator.mjINT_RK4,
+                                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}[integrator])
     q, v = random_state(kinds, RNG)
     ctrl = []
     for u in range(model.nu):
@@ -181,7 +182,7 @@ def mujoco_rollout(model, data, kinds, steps=200):
     mujoco.mj_resetData(model, data)
     data.qpos[:], data.qvel[:], _ = to_mujoco(model, kinds, q, v)
     data.ctrl[:] = ctrl
-    out = {"dt": model.opt.timestep, "q0": q.tolist(), "qd0": v.tolist(), "ctrl": ctrl,
+    out = {"integrator": integrator, "dt": model.opt.timestep, "q0": q.tolist(), "qd0": v.tolist(), "ctrl": ctrl,
            "every": 50, "q": [], "qd": []}
     for k in range(1, steps + 1):
         mujoco.mj_step(model, data)
@@ -258,7 +259,10 @@ def mujoco_reference(file, n_random=4):
         "reference": f"mujoco {mujoco.__version__}, pinocchio {pin.__version__}",
         "joints": [{"name": n, "kind": k} for n, k in zip(names, kinds)],
         "states": states,
-        "rollout": mujoco_rollout(model, data, kinds),
+        # Every integrator adflex offers; implicitfast needs the fluid's velocity derivative,
+        # which adflex does not compute (it refuses the pair).
+        "rollouts": [mujoco_rollout(model, data, kinds, i) for i in ["Euler", "RK4", "implicitfast"]
+                     if i != "implicitfast" or (model.opt.density == 0 and model.opt.viscosity == 0)],
         "body_mass": model.body_mass[1:].tolist(),
     }
 
