@@ -120,6 +120,7 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             .then(|| {
                 let mut b = in_the_air(file).builder;
                 b.implicit_damping = false;
+                b.integrator = adflex_kernels::articulation::ArticulationIntegrator::Euler;
                 let idle = b.actuators().iter().all(|a| a.bias == [0.0; 3]);
                 idle.then(|| b.finalize::<f64>().unwrap())
             })
@@ -421,6 +422,15 @@ fn rollout(
 
 #[test]
 fn rollout_gradients_match_central_differences() {
+    use adflex_kernels::articulation::ArticulationIntegrator::{self, *};
+    fn by(m: Articulations<f64>, integrator: ArticulationIntegrator) -> Articulations<f64> {
+        Articulations { integrator, ..m }
+    }
+    fn air(file: &str, integrator: ArticulationIntegrator) -> Articulations<f64> {
+        let mut b = in_the_air(file).builder;
+        b.integrator = integrator;
+        b.finalize().unwrap()
+    }
     let mut rng = adflex_testkit::Rng(11);
     let models = [
         ("spinning box", spinning_box()),
@@ -428,12 +438,17 @@ fn rollout_gradients_match_central_differences() {
         ("arm7", load("arm7.urdf", false)),
         ("quadruped", load("quadruped.urdf", true)),
         ("humanoid", load("humanoid.xml", false)),
-        // Its springs and damping, in the air (contact has its own tests).
-        ("walker", {
+        // Its springs and damping, in the air (contact has its own tests); the file asks RK4.
+        ("walker (RK4)", {
             let mut b = mjcf::load(format!("{ROBOTS}/walker.xml")).unwrap().builder;
             (b.ground, b.link_contact) = (None, false);
             b.finalize().unwrap()
         }),
+        // The other integrators through free and ball joints, in the air (explicit penalty
+        // contact in RK4's stages needs smaller steps than 2 ms).
+        ("spinning box (RK4)", by(spinning_box(), Rk4)),
+        ("humanoid (RK4)", air("humanoid.xml", Rk4)),
+        ("humanoid (implicitfast)", air("humanoid.xml", ImplicitFast)),
     ];
     for (name, model) in &models {
         let n = model.n_dof;
@@ -1868,13 +1883,23 @@ fn a_fluid_propels_a_swimmer_with_right_gradients_of_density_viscosity_and_wind(
 /// (a spring and damper, a dead band): the gradients of a rollout with respect to the controls and
 /// every actuator and tendon parameter against central differences and forward mode; a control
 /// clamped by its range gets no gradient; each world's controls drive its own robot.
+/// By each integrator: Euler, RK4 and implicitfast (whose solve has the actuators' and
+/// tendons' damping, so their gradients flow through the mass matrix too).
 #[test]
 fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
+    use adflex_kernels::articulation::ArticulationIntegrator::*;
+    for integrator in [Euler, Rk4, ImplicitFast] {
+        check_actuators(integrator);
+    }
+}
+
+fn check_actuators(integrator: adflex_kernels::articulation::ArticulationIntegrator) {
     use adflex_kernels::articulation::{ArticulationControl, Articulations};
     let mut b = mjcf::load(format!("{ROBOTS}/servo_arm.xml"))
         .unwrap()
         .builder;
     (b.ground, b.link_contact) = (None, false);
+    b.integrator = integrator;
     let model = b.finalize::<f64>().unwrap();
     assert_eq!(model.actuator_names[3], "wrist_general");
     // The last control is past its range (-2, 2): clamped, so its gradient is 0.
@@ -1990,7 +2015,7 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
         let fd = (up - loss(&p)) / (2.0 * h);
         worst = worst.max((fd - g[k]).abs() / fd.abs().max(1e-2 * gmax));
     }
-    println!("actuator gradients against central differences: {worst:.1e}");
+    println!("{integrator:?}: actuator gradients against central differences: {worst:.1e}");
     assert!(worst < 1e-6, "{worst:.2e}");
     assert!(
         g[..3].iter().chain(&g[4..5]).all(|x| x.abs() > 1e-3),
@@ -2011,6 +2036,7 @@ fn actuators_have_right_gradients_clamp_and_stay_in_their_worlds() {
         .unwrap()
         .builder;
     (b3.ground, b3.link_contact) = (None, false);
+    b3.integrator = integrator;
     let worlds = b3.replicate(3).finalize::<f64>().unwrap();
     assert_eq!(worlds.worlds[1].actuators, na..2 * na);
     let mut c3 = vec![0.0; 3 * na];
@@ -2068,4 +2094,118 @@ fn joint_damping_is_implicit_and_stable_at_any_step() {
             );
         }
     }
+}
+
+/// RK4 is fourth-order on a tumbling free body (rotations included: its stages combine in
+/// exponential coordinates), Euler first-order: halving the step divides the error by about
+/// 16 and 2. The free body spins about an axis near its unstable middle one, torque-free.
+#[test]
+fn rk4_is_fourth_order_through_rotations_and_euler_first() {
+    use adflex_kernels::articulation::ArticulationIntegrator::{self, *};
+    let end_state = |integrator: ArticulationIntegrator, dt: f64| -> Vec<f64> {
+        let model = Articulations {
+            integrator,
+            ..spinning_box()
+        };
+        let mut s = model.state();
+        for (d, w) in [(0, 0.3), (3, 0.2), (4, 4.0), (5, 0.3)] {
+            s.qd.set(d, w);
+        }
+        let steps = (0.5 / dt).round() as usize;
+        for _ in 0..steps {
+            s = model.step(&mut Tape::new(), &s, None, dt).unwrap();
+        }
+        s.q.to_vec().into_iter().chain(s.qd.to_vec()).collect()
+    };
+    let exact = end_state(Rk4, 1.0 / 3200.0);
+    let error = |i, dt| -> f64 {
+        let s = end_state(i, dt);
+        s.iter()
+            .zip(&exact)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+    };
+    let rk4 = (error(Rk4, 1.0 / 50.0), error(Rk4, 1.0 / 100.0));
+    let euler = (error(Euler, 1.0 / 400.0), error(Euler, 1.0 / 800.0));
+    println!("errors: RK4 {rk4:?}, Euler {euler:?}");
+    assert!(rk4.0 / rk4.1 > 12.0 && rk4.0 / rk4.1 < 20.0, "RK4: {rk4:?}");
+    assert!(
+        euler.0 / euler.1 > 1.6 && euler.0 / euler.1 < 2.5,
+        "Euler: {euler:?}"
+    );
+}
+
+/// MuJoCo's implicitfast keeps a stiff velocity servo (`kv dt / m = 100`) stable where Euler's
+/// explicit actuator force blows up; it solves with `M + dt kv`, so the speed goes to the
+/// servo's by `m / (m + dt kv)` per step.
+#[test]
+fn implicitfast_keeps_a_stiff_velocity_servo_stable() {
+    use adflex_kernels::articulation::ArticulationIntegrator::{self, *};
+    use adflex_kernels::articulation::{
+        Actuator, ArticulationBuilder, ArticulationControl, Inertial, Joint,
+    };
+    use adflex_runtime::Vec3;
+    let build = |integrator: ArticulationIntegrator| {
+        let mut b = ArticulationBuilder::new();
+        b.gravity = Vec3::zeros();
+        b.integrator = integrator;
+        let l = b.add_link(
+            "slider",
+            None,
+            Joint::prismatic(Vec3::x()),
+            Inertial::point(0.01, Vec3::zeros()),
+        );
+        b.add_actuator(Actuator::velocity(l, 100.0));
+        b.finalize::<f64>().unwrap()
+    };
+    let (dt, m, kv) = (1e-2, 0.01, 100.0);
+    for integrator in [ImplicitFast, Euler] {
+        let model = build(integrator);
+        let control = ArticulationControl {
+            ctrl: Array::from_vec(vec![1.0]),
+            ..model.control()
+        };
+        let mut s = model.state();
+        let mut expected = 0.0;
+        for _ in 0..20 {
+            s = model
+                .step(&mut Tape::new(), &s, Some(&control), dt)
+                .unwrap();
+            expected = 1.0 + (expected - 1.0) * m / (m + dt * kv);
+        }
+        let v = s.qd.get(0);
+        match integrator {
+            ImplicitFast => assert!((v - expected).abs() < 1e-12, "{v} vs {expected}"),
+            _ => assert!(v.abs() > 1e10, "explicit: {v}"),
+        }
+    }
+}
+
+/// What an integrator cannot do is refused, naming why: implicitfast with a fluid (its
+/// velocity derivative is not computed) at `finalize` and at `step` when set on the model,
+/// and MJCF's `integrator="implicit"`.
+#[test]
+fn integrators_refuse_what_they_cannot_do() {
+    use adflex_kernels::articulation::ArticulationIntegrator::*;
+    let mut b = mjcf::load(format!("{ROBOTS}/swimmer.xml")).unwrap().builder;
+    b.integrator = ImplicitFast;
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("fluid") && e.contains("Rk4"), "{e}");
+    b.integrator = Euler;
+    let model = Articulations {
+        integrator: ImplicitFast,
+        ..b.finalize::<f64>().unwrap()
+    };
+    let e = model
+        .step(&mut Tape::new(), &model.state(), None, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("ImplicitFast") && e.contains("fluid"), "{e}");
+    let e = mjcf_error(
+        r#"<mujoco>
+  <option integrator="implicit"/>
+  <worldbody><body><joint type="hinge"/><geom size="0.1"/></body></worldbody>
+</mujoco>"#,
+    )
+    .to_string();
+    assert!(e.contains("line 2") && e.contains("implicitfast"), "{e}");
 }

@@ -582,8 +582,10 @@ impl<R: Real> Articulations<R> {
         };
         self.check_len(&control.target_q, self.n_dof, "control.target_q");
         self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
-        if self.integrator == ArticulationIntegrator::Rk4 {
-            return self.rk4_step(tape, state, control, dt);
+        match self.integrator {
+            ArticulationIntegrator::Rk4 => return self.rk4_step(tape, state, control, dt),
+            ArticulationIntegrator::ImplicitFast => self.check_implicit_fast()?,
+            ArticulationIntegrator::Euler => {}
         }
         let qdd = self.accelerations(tape, state, control, dt)?;
         let next = ArticulationState {
@@ -606,6 +608,42 @@ impl<R: Real> Articulations<R> {
             ),
         );
         Ok(next)
+    }
+
+    /// `ImplicitFast` (set on the model, not only through the builder, which refuses these
+    /// too): no fluid, and each actuator's and passive tendon's joints in one articulation.
+    fn check_implicit_fast(&self) -> Result<(), Error> {
+        let refuse = |message: String| {
+            Err(Error::InvalidInput {
+                what: "integrator ImplicitFast".into(),
+                message,
+            })
+        };
+        if self.fluid_on {
+            return refuse(
+                "a fluid's velocity derivative is not computed (MuJoCo's implicitfast has it); \
+                 use Euler or Rk4"
+                    .into(),
+            );
+        }
+        let first = self.dof_art_start.to_vec();
+        for (what, start, dof) in [
+            ("actuator", &self.act_start, &self.act_dof),
+            ("passive tendon", &self.tendon_start, &self.tendon_dof),
+        ] {
+            let (start, dof) = (start.to_vec(), dof.to_vec());
+            for (k, w) in start.windows(2).enumerate() {
+                let arts: Vec<u32> = (w[0]..w[1])
+                    .map(|j| first[dof[j as usize] as usize])
+                    .collect();
+                if arts.windows(2).any(|p| p[0] != p[1]) {
+                    return refuse(format!(
+                        "{what} {k} acts on joints of several articulations; use Euler or Rk4"
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// `qdd` at `state` with everything a step applies; with `dt > 0` the step's implicit terms
