@@ -18,7 +18,9 @@
 //! | `<velocity kv>` | `(kv, 0, 0)` | `(0, 0, -kv)` |
 //! | `<general gainprm biasprm>` | `gainprm` (`gaintype="affine"`) or its first | `biasprm` |
 //!
-//! The force is explicit in the step, as in MuJoCo's Euler integrator. The controls are
+//! The force is explicit in the step, as in MuJoCo's Euler and RK4 integrators; its speed terms
+//! join the solve with [`ArticulationIntegrator::ImplicitFast`](super::ArticulationIntegrator),
+//! as in MuJoCo's `implicitfast`. The controls are
 //! [`ArticulationControl::ctrl`](super::ArticulationControl), one per actuator in the order
 //! they were added (each world's together, [`WorldInfo::actuators`](super::WorldInfo)); they
 //! and every actuator parameter of the model can require gradients.

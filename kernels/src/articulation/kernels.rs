@@ -227,7 +227,7 @@ pub fn articulation_link_dynamics<R: Real>(
 /// With `dt > 0` (a step), a violated limit is integrated implicitly: `dt kd + dt^2 ke` joins
 /// `M[a][a]` and `-dt ke qd` the right-hand side (backward Euler of the limit's spring and
 /// damper, linearized). The joint damping is implicit too when `damp_dt` is the step's `dt`
-/// (MuJoCo's Euler integrator): `damp_dt damping` joins `M[a][a]`.
+/// (MuJoCo's Euler and implicitfast integrators): `damp_dt damping` joins `M[a][a]`.
 #[diff_kernel]
 pub fn articulation_joint_space<R: Real>(
     dof_link: &Array<u32>,
