@@ -2209,3 +2209,69 @@ fn integrators_refuse_what_they_cannot_do() {
     .to_string();
     assert!(e.contains("line 2") && e.contains("implicitfast"), "{e}");
 }
+
+/// `<flag spring|damper|actuation="disable">` switch those forces off, as MuJoCo's: springs and
+/// damping of joints and tendons, the actuators' forces (their controls remain), and with
+/// springs and dampers both off the fluid too (MuJoCo 4 has no `passive` flag: refused).
+#[test]
+fn mjcf_flags_switch_springs_dampers_and_actuation_off() {
+    let with_flags = |file: &str, flags: &str| {
+        let text = std::fs::read_to_string(format!("{ROBOTS}/{file}")).unwrap();
+        let text = match text.find("<option") {
+            Some(_) if text.contains("<flag") => text.replace("<flag ", &format!("<flag {flags} ")),
+            Some(i) => {
+                let close = i + text[i..].find('>').unwrap();
+                match text[..close].ends_with('/') {
+                    true => format!(
+                        "{}><flag {flags}/></option>{}",
+                        &text[..close - 1],
+                        &text[close + 1..]
+                    ),
+                    false => format!("{}><flag {flags}/>{}", &text[..close], &text[close + 1..]),
+                }
+            }
+            None => text.replace(
+                "<worldbody>",
+                &format!("<option><flag {flags}/></option><worldbody>"),
+            ),
+        };
+        mjcf::parse(&text).map(|m| m.builder)
+    };
+    let b = with_flags("servo_arm.xml", r#"spring="disable""#).unwrap();
+    assert!(b.links().iter().all(|l| l.joint.stiffness == 0.0));
+    assert!(b.tendon_springs().iter().all(|t| t.stiffness == 0.0));
+    assert!(b.links().iter().any(|l| l.joint.damping > 0.0));
+    let b = with_flags("servo_arm.xml", r#"damper="disable" actuation="disable""#).unwrap();
+    assert!(b.links().iter().all(|l| l.joint.damping == 0.0));
+    assert!(b.tendon_springs().iter().all(|t| t.damping == 0.0));
+    assert!(b.links().iter().any(|l| l.joint.stiffness > 0.0));
+    assert_eq!(b.actuators().len(), 6, "the controls remain");
+    assert!(b
+        .actuators()
+        .iter()
+        .all(|a| a.gain == [0.0; 3] && a.bias == [0.0; 3]));
+    // Without actuation the controls move nothing.
+    let model = b.finalize::<f64>().unwrap();
+    let run = |ctrl: Vec<f64>| {
+        let control = adflex_kernels::articulation::ArticulationControl {
+            ctrl: Array::from_vec(ctrl),
+            ..model.control()
+        };
+        let mut s = model.state();
+        for _ in 0..20 {
+            s = model
+                .step(&mut Tape::new(), &s, Some(&control), 2e-3)
+                .unwrap();
+        }
+        s.q.to_vec()
+    };
+    assert_eq!(run(vec![1.0; 6]), run(vec![0.0; 6]));
+    // The fluid goes with springs and dampers both, not with one.
+    let swimmer = |flags| with_flags("swimmer.xml", flags).unwrap().fluid.is_some();
+    assert!(swimmer(r#"damper="disable""#));
+    assert!(!swimmer(r#"spring="disable" damper="disable""#));
+    let e = with_flags("servo_arm.xml", r#"passive="disable""#)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("passive"), "{e}");
+}

@@ -6,8 +6,8 @@
 //! (and, passed over, the mesh and texture directories and the compiler's own switches), `<option
 //! timestep gravity integrator density viscosity wind>` (`integrator` `Euler`, `RK4` or
 //! `implicitfast`, [`ArticulationBuilder::integrator`]; a fluid: MuJoCo's inertia-box model,
-//! [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint` and `gravity` switched off are
-//! off here too, `eulerdamp` switches [`ArticulationBuilder::implicit_damping`] and `clampctrl` the
+//! [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint`, `gravity`, `spring`,
+//! `damper` and `actuation` switched off are off here too, `eulerdamp` switches [`ArticulationBuilder::implicit_damping`] and `clampctrl` the
 //! clamping of controls; flags about MuJoCo's solver, sensors or checks are passed over; others
 //! that change the default are refused), `<default>` classes (nested, with `joint`, `geom`,
 //! actuator and `tendon` defaults), `<worldbody>` with nested `<body pos
@@ -170,6 +170,11 @@ struct Reader<'a> {
     no_contact: bool,
     /// `<flag limit="disable">` (or `constraint`): joint ranges limit nothing.
     no_limits: bool,
+    /// `<flag spring="disable">`, `damper`, `actuation`: those forces are off (and with both
+    /// springs and dampers off, the fluid, as MuJoCo's passive forces).
+    no_spring: bool,
+    no_damper: bool,
+    no_actuation: bool,
     /// The worldbody's geoms that touch, other than planes.
     world_shapes: Vec<(Geom, ContactFilter)>,
     /// `<compiler settotalmass>`, when positive.
@@ -321,6 +326,9 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         parents: Vec::new(),
         no_contact: false,
         no_limits: false,
+        no_spring: false,
+        no_damper: false,
+        no_actuation: false,
         world_shapes: Vec::new(),
         total_mass: None,
         timestep: 0.002,
@@ -545,6 +553,7 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
     if r.no_contact {
         (r.builder.ground, r.builder.link_contact) = (None, false);
     }
+    r.switch_off_forces();
     let mass: f64 = r.builder.links().iter().map(|l| l.inertial.mass).sum();
     let weight = mass * r.builder.gravity.norm().max(1.0);
     if let (Some(g), true) = (r.builder.ground.as_mut(), mass > 0.0) {
@@ -642,9 +651,42 @@ impl<'a> Reader<'a> {
         }
     }
 
+    /// The forces `<flag>` switched off, on the model read: MuJoCo's `spring` (joint and tendon
+    /// springs), `damper` (joint and tendon damping) and, with both, the fluid (MuJoCo's other
+    /// passive forces); `actuation` (the actuators' gains and biases become 0: their controls
+    /// remain, exerting nothing, as MuJoCo's).
+    fn switch_off_forces(&mut self) {
+        let (spring, damper) = (self.no_spring, self.no_damper);
+        for l in self.builder.links_mut() {
+            if spring {
+                l.joint.stiffness = 0.0;
+            }
+            if damper {
+                l.joint.damping = 0.0;
+            }
+        }
+        for t in self.builder.tendon_springs_mut() {
+            if spring {
+                t.stiffness = 0.0;
+            }
+            if damper {
+                t.damping = 0.0;
+            }
+        }
+        if spring && damper {
+            self.builder.fluid = None;
+        }
+        if self.no_actuation {
+            for a in self.builder.actuators_mut() {
+                (a.gain, a.bias) = ([0.0; 3], [0.0; 3]);
+            }
+        }
+    }
+
     /// `<option><flag>`: the switches that change this model's dynamics are applied
-    /// (`contact`, `limit`, `constraint`, `gravity`); those about MuJoCo's own solver, sensors
-    /// or checks are passed over; the rest are refused when they change the default.
+    /// (`contact`, `limit`, `constraint`, `gravity`, `spring`, `damper`, `actuation`,
+    /// `eulerdamp`, `clampctrl`, `refsafe`); those about MuJoCo's own solver, sensors or checks
+    /// are passed over; the rest are refused when they change the default.
     fn flags(&mut self, n: Node) -> Result<(), ArticulationError> {
         // MuJoCo's defaults: these flags start enabled, every other one disabled.
         const ENABLED: &[&str] = &[
@@ -653,7 +695,6 @@ impl<'a> Reader<'a> {
             "frictionloss",
             "limit",
             "contact",
-            "passive",
             "spring",
             "damper",
             "gravity",
@@ -705,6 +746,9 @@ impl<'a> Reader<'a> {
                 ("refsafe", e) => self.refsafe = e,
                 ("eulerdamp", e) => self.builder.implicit_damping = e,
                 ("clampctrl", e) => self.clamp_ctrl = e,
+                ("spring", e) => self.no_spring = !e,
+                ("damper", e) => self.no_damper = !e,
+                ("actuation", e) => self.no_actuation = !e,
                 ("sleep", true) => {
                     return Err(self.src.error(n, "sleep=\"enable\" is not supported"))
                 }

@@ -799,6 +799,16 @@ impl ArticulationBuilder {
         &mut self.links
     }
 
+    /// The actuators, to edit (as [`ArticulationBuilder::actuators`]).
+    pub fn actuators_mut(&mut self) -> &mut [Actuator] {
+        &mut self.actuators
+    }
+
+    /// The passive tendons, to edit (as [`ArticulationBuilder::tendon_springs`]).
+    pub fn tendon_springs_mut(&mut self) -> &mut [TendonSpring] {
+        &mut self.tendon_springs
+    }
+
     /// The link called `name`.
     pub fn find(&self, name: &str) -> Option<LinkId> {
         self.links.iter().position(|l| l.name == name).map(LinkId)
