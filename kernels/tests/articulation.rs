@@ -444,8 +444,8 @@ fn rollout_gradients_match_central_differences() {
             (b.ground, b.link_contact) = (None, false);
             b.finalize().unwrap()
         }),
-        // The other integrators through free and ball joints, in the air (explicit penalty
-        // contact in RK4's stages needs smaller steps than 2 ms).
+        // The other integrators through free and ball joints, in the air (this start drives
+        // the humanoid's feet into the ground at speeds where central differences fail).
         ("spinning box (RK4)", by(spinning_box(), Rk4)),
         ("humanoid (RK4)", air("humanoid.xml", Rk4)),
         ("humanoid (implicitfast)", air("humanoid.xml", ImplicitFast)),
