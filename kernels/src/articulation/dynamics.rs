@@ -588,26 +588,71 @@ impl<R: Real> Articulations<R> {
             ArticulationIntegrator::Euler => {}
         }
         let qdd = self.accelerations(tape, state, control, dt)?;
-        let next = ArticulationState {
-            q: Array::zeros(self.n_q),
-            qd: Array::zeros(self.n_dof),
-        };
+        let (vel, acc) = self.rates(tape, state, state, &qdd);
+        Ok(self.advance(tape, state, (&vel, &acc), dt, dt))
+    }
+
+    /// The rates of `stage` where the stages of a step from `start` combine
+    /// ([`articulation_rates`]): velocities (rotations' in exponential coordinates at
+    /// `start`'s, a free joint's linear one in the world frame) and their derivatives.
+    fn rates(
+        &self,
+        tape: &mut Tape,
+        start: &ArticulationState<R>,
+        stage: &ArticulationState<R>,
+        qdd: &Array<R>,
+    ) -> (Array<R>, Array<R>) {
+        let (vel, acc) = (Array::zeros(self.n_dof), Array::zeros(self.n_dof));
         tape.launch(
-            articulation_integrate,
+            articulation_rates,
             self.n_links(),
             (
                 &self.joint_type,
                 &self.q_start,
                 &self.qd_start,
-                &state.q,
-                &state.qd,
-                &qdd,
-                dt,
+                &start.q,
+                &stage.q,
+                &stage.qd,
+                qdd,
+                &vel,
+                &acc,
+            ),
+        );
+        (vel, acc)
+    }
+
+    /// `start` advanced by `h` along the rates `(vel, acc)`, positions by `vel + kick acc`
+    /// ([`articulation_advance`]: `kick = h` is the semi-implicit Euler step).
+    fn advance(
+        &self,
+        tape: &mut Tape,
+        start: &ArticulationState<R>,
+        (vel, acc): (&Array<R>, &Array<R>),
+        h: R,
+        kick: R,
+    ) -> ArticulationState<R> {
+        let next = ArticulationState {
+            q: Array::zeros(self.n_q),
+            qd: Array::zeros(self.n_dof),
+        };
+        tape.launch(
+            articulation_advance,
+            self.n_links(),
+            (
+                &self.joint_type,
+                &self.q_start,
+                &self.qd_start,
+                &start.q,
+                &start.qd,
+                vel,
+                acc,
+                h,
+                kick,
                 &next.q,
                 &next.qd,
             ),
         );
-        Ok(next)
+        next
     }
 
     /// `ImplicitFast` (set on the model, not only through the builder, which refuses these
@@ -678,70 +723,31 @@ impl<R: Real> Articulations<R> {
         control: &ArticulationControl<R>,
         dt: R,
     ) -> Result<ArticulationState<R>, Error> {
-        let (n, nq, nd) = (self.n_links(), self.n_q, self.n_dof);
-        let advance = |tape: &mut Tape, vel: &Array<R>, acc: &Array<R>, h: R| {
-            let next = ArticulationState {
-                q: Array::zeros(nq),
-                qd: Array::zeros(nd),
-            };
-            tape.launch(
-                articulation_advance,
-                n,
-                (
-                    &self.joint_type,
-                    &self.q_start,
-                    &self.qd_start,
-                    &state.q,
-                    &state.qd,
-                    vel,
-                    acc,
-                    h,
-                    &next.q,
-                    &next.qd,
-                ),
-            );
-            next
-        };
+        let zero = R::lit(0.0);
         let (mut vels, mut accs) = (Vec::with_capacity(4), Vec::with_capacity(4));
         let mut stage = state.clone();
         for i in 0..4 {
-            let qdd = self.accelerations(tape, &stage, control, R::lit(0.0))?;
-            let (vel, acc) = (Array::zeros(nd), Array::zeros(nd));
-            tape.launch(
-                articulation_rates,
-                n,
-                (
-                    &self.joint_type,
-                    &self.q_start,
-                    &self.qd_start,
-                    &state.q,
-                    &stage.q,
-                    &stage.qd,
-                    &qdd,
-                    &vel,
-                    &acc,
-                ),
-            );
+            let qdd = self.accelerations(tape, &stage, control, zero)?;
+            let (vel, acc) = self.rates(tape, state, &stage, &qdd);
             if i < 3 {
                 // MuJoCo's RK4_A: the stages at dt/2, dt/2, dt, each from the previous rates.
                 let h = if i < 2 { dt * R::lit(0.5) } else { dt };
-                stage = advance(tape, &vel, &acc, h);
+                stage = self.advance(tape, state, (&vel, &acc), h, zero);
             }
             vels.push(vel);
             accs.push(acc);
         }
-        let combine = |tape: &mut Tape, x: &[Array<R>], len: usize| {
-            let out = Array::zeros(len);
+        let combine = |tape: &mut Tape, x: &[Array<R>]| {
+            let out = Array::zeros(self.n_dof);
             tape.launch(
                 articulation_rk4_combine,
-                len,
+                self.n_dof,
                 (&x[0], &x[1], &x[2], &x[3], &out),
             );
             out
         };
-        let vel = combine(tape, &vels, nd);
-        let acc = combine(tape, &accs, nd);
-        Ok(advance(tape, &vel, &acc, dt))
+        let (vel, acc) = (combine(tape, &vels), combine(tape, &accs));
+        Ok(self.advance(tape, state, (&vel, &acc), dt, zero))
     }
 
     /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s, recorded
