@@ -2208,6 +2208,70 @@ fn integrators_refuse_what_they_cannot_do() {
     )
     .to_string();
     assert!(e.contains("line 2") && e.contains("implicitfast"), "{e}");
+
+    // A tendon across two articulations cannot join one articulation's mass matrix.
+    use adflex_kernels::articulation::{ArticulationBuilder, Inertial, Joint, TendonSpring};
+    use adflex_runtime::Vec3;
+    let mut b = ArticulationBuilder::new();
+    let l: Vec<_> = (0..2)
+        .map(|k| {
+            b.add_link(
+                format!("pole{k}"),
+                None,
+                Joint::revolute(Vec3::y()),
+                Inertial::point(1.0, Vec3::new(0.0, 0.0, 0.5)),
+            )
+        })
+        .collect();
+    b.add_tendon_spring(TendonSpring {
+        name: "across".into(),
+        joints: vec![(l[0], 1.0), (l[1], -1.0)],
+        stiffness: 1.0,
+        damping: 0.5,
+        rest: None,
+    });
+    let ok = b.finalize::<f64>().unwrap();
+    b.integrator = ImplicitFast;
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("several articulations"), "{e}");
+    let set = Articulations {
+        integrator: ImplicitFast,
+        ..ok
+    };
+    let e = set
+        .step(&mut Tape::new(), &set.state(), None, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("several articulations"), "{e}");
+}
+
+/// MJCF's `integrator` is read (`implicitfast` too), kept by a later `<option>` that does not
+/// set it, and kept by `add_builder` into an empty builder.
+#[test]
+fn mjcf_integrator_is_read_kept_and_carried() {
+    use adflex_kernels::articulation::{ArticulationBuilder, ArticulationIntegrator::*};
+    let robot = |options: &str| {
+        mjcf::parse(&format!(
+            r#"<mujoco>{options}
+  <worldbody><body><joint type="hinge"/><geom size="0.1" pos="0 0 0.2"/></body></worldbody>
+</mujoco>"#
+        ))
+        .unwrap()
+    };
+    assert_eq!(robot("").builder.integrator, Euler);
+    let r =
+        robot(r#"<option integrator="implicitfast" timestep="0.004"/><option gravity="0 0 -1"/>"#);
+    assert_eq!(
+        (r.builder.integrator, r.timestep),
+        (ImplicitFast, Some(0.004))
+    );
+    let mut b = ArticulationBuilder::new();
+    b.add_builder(&robot(r#"<option integrator="RK4"/>"#).builder);
+    assert_eq!(b.integrator, Rk4);
+    // A second robot stepped otherwise is refused at finalize.
+    b.add_builder(&robot("").builder);
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("integrator"), "{e}");
 }
 
 /// `<flag spring|damper|actuation="disable">` switch those forces off, as MuJoCo's: springs and
@@ -2249,7 +2313,7 @@ fn mjcf_flags_switch_springs_dampers_and_actuation_off() {
     assert!(b
         .actuators()
         .iter()
-        .all(|a| a.gain == [0.0; 3] && a.bias == [0.0; 3]));
+        .all(|a| a.gain == [0.0; 3] && a.bias == [0.0; 3] && a.force_range.is_none()));
     // Without actuation the controls move nothing.
     let model = b.finalize::<f64>().unwrap();
     let run = |ctrl: Vec<f64>| {

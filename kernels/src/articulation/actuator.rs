@@ -147,7 +147,9 @@ impl Actuator {
 /// `l = sum_i c_i q_i` and speed `v = sum_i c_i qd_i` of its joints, the force
 /// `f = -stiffness (l - rest.1) - damping v` above `rest.1`, `-stiffness (l - rest.0) -
 /// damping v` below `rest.0` and `-damping v` between (a dead band when the two differ); each
-/// joint gets `c_i f`. Both are explicit in the step, as in MuJoCo.
+/// joint gets `c_i f`. Both are explicit in the step, as in MuJoCo, except the damping under
+/// [`ArticulationIntegrator::ImplicitFast`](super::ArticulationIntegrator), which joins the
+/// solve (MuJoCo's `implicitfast`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TendonSpring {
     /// Name, for errors (empty if none).

@@ -755,6 +755,11 @@ pub(crate) fn finalize<R: Real>(
         box_pairs: Array::from_vec(contact.box_pairs),
         box_pair_mu: rs(&contact.box_pair_mu),
     };
+    if model.integrator == ArticulationIntegrator::ImplicitFast {
+        model
+            .check_implicit_fast()
+            .map_err(|e| err("integrator ImplicitFast".into(), e.to_string()))?;
+    }
     let m0 = check_mass_matrix(&model)?;
     scale_limits(&model, &m0);
     Ok(model)
@@ -806,9 +811,6 @@ fn check_joints(
 /// and a passive tendon on bad joints or with a negative or non-finite parameter.
 fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), ArticulationError> {
     let links = b.links();
-    if b.integrator == ArticulationIntegrator::ImplicitFast {
-        check_implicit_fast(b)?;
-    }
     for (k, t) in b.tendon_springs().iter().enumerate() {
         let what = || format!("tendon spring \"{}\" ({k})", t.name);
         check_joints(&t.joints, links, world_of).map_err(|m| err(what(), m))?;
@@ -860,48 +862,6 @@ fn check_actuators(b: &ArticulationBuilder, world_of: &[usize]) -> Result<(), Ar
             ));
         }
         last_world = w;
-    }
-    Ok(())
-}
-
-/// `ImplicitFast` puts a tendon's or an actuator's damping into its articulation's block of the
-/// mass matrix: its joints must be in one articulation; and it would need the fluid's velocity
-/// derivative, which is not offered.
-fn check_implicit_fast(b: &ArticulationBuilder) -> Result<(), ArticulationError> {
-    let links = b.links();
-    let root = |mut l: usize| {
-        while let Some(p) = links[l].parent {
-            l = p.0;
-        }
-        l
-    };
-    if b.fluid.is_some() {
-        return Err(err(
-            "integrator".into(),
-            "ImplicitFast with a fluid: MuJoCo's implicitfast includes the fluid forces' \
-             velocity derivative, which adflex does not compute; use Euler or Rk4",
-        ));
-    }
-    let one = |kind: &str, k: usize, name: &str, joints: &[(LinkId, f64)]| {
-        let roots: Vec<usize> = joints
-            .iter()
-            .filter(|j| j.0 .0 < links.len())
-            .map(|j| root(j.0 .0))
-            .collect();
-        match roots.windows(2).any(|w| w[0] != w[1]) {
-            true => Err(err(
-                format!("{kind} \"{name}\" ({k})"),
-                "its joints are in several articulations: ImplicitFast couples them in one \
-                 articulation's mass matrix; use Euler or Rk4",
-            )),
-            false => Ok(()),
-        }
-    };
-    for (k, a) in b.actuators().iter().enumerate() {
-        one("actuator", k, &a.name, &a.transmission)?;
-    }
-    for (k, t) in b.tendon_springs().iter().enumerate() {
-        one("tendon spring", k, &t.name, &t.joints)?;
     }
     Ok(())
 }

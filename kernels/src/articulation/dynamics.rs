@@ -1,6 +1,6 @@
 //! The algorithms on a tape: kinematics, inverse dynamics (RNEA), the mass matrix (CRBA),
 //! forward dynamics (a Cholesky solve recorded as one custom step with its adjoint and
-//! tangent), the semi-implicit step, and the derivatives of the forward dynamics.
+//! tangent), the step by MuJoCo's integrators, and the derivatives of the forward dynamics.
 
 use std::sync::Arc;
 
@@ -60,7 +60,8 @@ struct PassInput<'a, R: Real> {
     tau: &'a Array<R>,
     control: Option<&'a ArticulationControl<R>>,
     contact: bool,
-    /// A step's time step (0 otherwise): violated limits are integrated implicitly.
+    /// A step's time step (0 otherwise, and in RK4's stages): violated limits are integrated
+    /// implicitly, and so are the damping terms of the model's integrator.
     dt: R,
 }
 
@@ -468,6 +469,10 @@ impl<R: Real> Articulations<R> {
                     (ArticulationIntegrator::ImplicitFast, _) | (_, true) => dt,
                     _ => R::lit(0.0),
                 },
+                match self.integrator {
+                    ArticulationIntegrator::ImplicitFast => dt,
+                    _ => R::lit(0.0),
+                },
                 &tau_id,
                 &m,
                 &rhs,
@@ -655,9 +660,11 @@ impl<R: Real> Articulations<R> {
         next
     }
 
-    /// `ImplicitFast` (set on the model, not only through the builder, which refuses these
-    /// too): no fluid, and each actuator's and passive tendon's joints in one articulation.
-    fn check_implicit_fast(&self) -> Result<(), Error> {
+    /// What `ImplicitFast` needs (checked by `finalize`, and by each step for a model whose
+    /// `integrator` was set afterwards): no fluid (MuJoCo's implicitfast has the fluid's
+    /// velocity derivative, not computed here), and each actuator's and passive tendon's
+    /// joints in one articulation (their damping joins that articulation's block of `M`).
+    pub(crate) fn check_implicit_fast(&self) -> Result<(), Error> {
         let refuse = |message: String| {
             Err(Error::InvalidInput {
                 what: "integrator ImplicitFast".into(),
@@ -671,19 +678,30 @@ impl<R: Real> Articulations<R> {
                     .into(),
             );
         }
+        if self.act_dof.is_empty() && self.tendon_dof.is_empty() {
+            return Ok(());
+        }
         let first = self.dof_art_start.to_vec();
+        let name = |what: &str, k: usize| match (what, self.actuator_names.get(k)) {
+            ("actuator", Some(n)) if !n.is_empty() => format!("actuator \"{n}\" ({k})"),
+            _ => format!("{what} {k}"),
+        };
         for (what, start, dof) in [
             ("actuator", &self.act_start, &self.act_dof),
             ("passive tendon", &self.tendon_start, &self.tendon_dof),
         ] {
             let (start, dof) = (start.to_vec(), dof.to_vec());
             for (k, w) in start.windows(2).enumerate() {
-                let arts: Vec<u32> = (w[0]..w[1])
-                    .map(|j| first[dof[j as usize] as usize])
-                    .collect();
-                if arts.windows(2).any(|p| p[0] != p[1]) {
+                let dofs: Vec<u32> = (w[0]..w[1]).map(|j| dof[j as usize]).collect();
+                if dofs
+                    .windows(2)
+                    .any(|p| first[p[0] as usize] != first[p[1] as usize])
+                {
                     return refuse(format!(
-                        "{what} {k} acts on joints of several articulations; use Euler or Rk4"
+                        "{} acts on joints of several articulations (degrees of freedom \
+                         {dofs:?}): implicitfast couples them in one articulation's mass \
+                         matrix; use Euler or Rk4",
+                        name(what, k)
                     ));
                 }
             }

@@ -1,6 +1,6 @@
 //! The articulation kernels: forward kinematics, joint motion vectors, velocities and
 //! accelerations, link inertias and forces, the joint-space mass matrix and the
-//! semi-implicit step.
+//! steps by MuJoCo's integrators.
 //!
 //! Everything is in the world frame, with spatial vectors at the world origin: a twist is
 //! `(w, v)` (angular velocity; velocity of the body point at the origin), a wrench `(n, f)`
@@ -227,7 +227,8 @@ pub fn articulation_link_dynamics<R: Real>(
 /// With `dt > 0` (a step), a violated limit is integrated implicitly: `dt kd + dt^2 ke` joins
 /// `M[a][a]` and `-dt ke qd` the right-hand side (backward Euler of the limit's spring and
 /// damper, linearized). The joint damping is implicit too when `damp_dt` is the step's `dt`
-/// (MuJoCo's Euler and implicitfast integrators): `damp_dt damping` joins `M[a][a]`.
+/// (MuJoCo's Euler and implicitfast integrators): `damp_dt damping` joins `M[a][a]`, and the
+/// PD's `kv_dt kv` (implicitfast: the PD is an actuator's speed term).
 #[diff_kernel]
 pub fn articulation_joint_space<R: Real>(
     dof_link: &Array<u32>,
@@ -271,6 +272,7 @@ pub fn articulation_joint_space<R: Real>(
     limit_imp: &Array<Vec3<R>>,
     dt: R,
     damp_dt: R,
+    kv_dt: R,
     tau_id: &Array<R>,
     m: &Array<R>,
     rhs: &Array<R>,
@@ -339,6 +341,7 @@ pub fn articulation_joint_space<R: Real>(
             let x = q[dof_q[a] as usize];
             f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v)
                 - stiffness[a] * (x - spring_ref[a]);
+            extra = extra + kv[a] * kv_dt;
             if x < lower[a] || x > upper[a] {
                 let past = select(x < lower[a], lower[a], upper[a]);
                 let mut ke = limit_ke;
@@ -400,8 +403,10 @@ pub fn rotation_rate<R: Real>(r0: Quat<R>, r: Quat<R>, w: Vec3<R>) -> Vec3<R> {
     }
     let phi = u * k;
     let t2 = dot(phi, phi);
-    let mut c = 1.0 / 12.0 + t2 / 720.0;
-    if t2 > 1e-6 {
+    // The closed form cancels badly for small t (its derivative worse, and in f32): the
+    // series to t^4 is exact to rounding below t^2 = 1e-2.
+    let mut c = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0;
+    if t2 > 1e-2 {
         let t = sqrt(t2);
         c = 1.0 / t2 - (1.0 + cos(t)) / (2.0 * t * sin(t));
     }

@@ -403,21 +403,30 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                         "collision",
                     ],
                 )?;
-                timestep = r.src.number(*n, "timestep")?;
-                r.timestep = timestep.unwrap_or(0.002);
+                // A later <option> without these attributes keeps what an earlier one set.
+                if let Some(t) = r.src.number(*n, "timestep")? {
+                    (timestep, r.timestep) = (Some(t), t);
+                }
                 r.builder.integrator = match n.attribute("integrator") {
-                    None | Some("Euler") => ArticulationIntegrator::Euler,
+                    None => r.builder.integrator,
+                    Some("Euler") => ArticulationIntegrator::Euler,
                     Some("RK4") => ArticulationIntegrator::Rk4,
                     Some("implicitfast") => ArticulationIntegrator::ImplicitFast,
                     Some(o) => {
+                        let why = match o {
+                            "implicit" => {
+                                " (MuJoCo's implicit adds the Coriolis forces' velocity \
+                                 derivative to implicitfast's, which adflex does not compute)"
+                            }
+                            _ => "",
+                        };
                         return Err(r.src.error(
                             *n,
                             format!(
-                                "integrator=\"{o}\": Euler, RK4 and implicitfast are supported \
-                                 (MuJoCo's implicit adds the Coriolis forces' velocity \
-                                 derivative to implicitfast's)"
+                                "integrator=\"{o}\": Euler, RK4 and implicitfast are \
+                                 supported{why}"
                             ),
-                        ))
+                        ));
                     }
                 };
                 match n.attribute("collision") {
@@ -653,8 +662,8 @@ impl<'a> Reader<'a> {
 
     /// The forces `<flag>` switched off, on the model read: MuJoCo's `spring` (joint and tendon
     /// springs), `damper` (joint and tendon damping) and, with both, the fluid (MuJoCo's other
-    /// passive forces); `actuation` (the actuators' gains and biases become 0: their controls
-    /// remain, exerting nothing, as MuJoCo's).
+    /// passive forces); `actuation` (the actuators' gains and biases become 0 and their force
+    /// ranges go: their controls remain, exerting nothing, as MuJoCo's).
     fn switch_off_forces(&mut self) {
         let (spring, damper) = (self.no_spring, self.no_damper);
         for l in self.builder.links_mut() {
@@ -678,7 +687,7 @@ impl<'a> Reader<'a> {
         }
         if self.no_actuation {
             for a in self.builder.actuators_mut() {
-                (a.gain, a.bias) = ([0.0; 3], [0.0; 3]);
+                (a.gain, a.bias, a.force_range) = ([0.0; 3], [0.0; 3], None);
             }
         }
     }

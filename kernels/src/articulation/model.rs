@@ -16,7 +16,7 @@ use super::fluid::Fluid;
 /// |---|---|---|
 /// | `Euler` | `Euler` | `qd' = qd + dt qdd`, then `q'` from `qd'` (semi-implicit); the joint damping implicit when [`ArticulationBuilder::implicit_damping`] (MuJoCo's `eulerdamp`) |
 /// | `Rk4` | `RK4` | the classic fourth-order Runge-Kutta method on `(q, qd)`: four evaluations of the dynamics, every force explicit |
-/// | `ImplicitFast` | `implicitfast` | as `Euler`, solving with `M - dt df/dqd` in place of `M`: the velocity derivatives of the joint damping, the tendons' damping and the actuators' speed terms (not the Coriolis terms') |
+/// | `ImplicitFast` | `implicitfast` | as `Euler`, solving with `M - dt df/dqd` in place of `M`: the velocity derivatives of the joint damping, the tendons' damping, the actuators' speed terms and the joints' PD `kv` (not the Coriolis terms') |
 ///
 /// Violated joint limits are implicit in `Euler` and `ImplicitFast` steps
 /// ([`Joint::limit_time_constant`]) and explicit in `Rk4`'s stages; contact, muscles and the
@@ -308,9 +308,10 @@ impl Joint {
     /// `dof_invweight0`) and `d` the impedance ([`Joint::limit_impedance`]; `dmax` beyond its
     /// width). A light link and a heavy one come back alike, in about `tc`. (The builder's
     /// `limit_ke`, `limit_kd` are one stiffness for every joint: a light link pressed far past
-    /// its limit snaps back, and needs a small step.) A step integrates both kinds implicitly
-    /// (the limit's stiffness and damping join the mass matrix's diagonal times `dt^2` and
-    /// `dt`), so that they are stable at any `dt`. Unlike MuJoCo's limit constraint, this one
+    /// its limit snaps back, and needs a small step.) An `Euler` or `ImplicitFast` step
+    /// integrates both kinds implicitly (the limit's stiffness and damping join the mass
+    /// matrix's diagonal times `dt^2` and `dt`), so that they are stable at any `dt`; `Rk4`'s
+    /// stages apply them explicitly. Unlike MuJoCo's limit constraint, this one
     /// does not cancel the load pressing into it: a steady load sags past the limit by
     /// `load / stiffness` (about 20 times more than in MuJoCo with its defaults).
     pub fn limit_time_constant(mut self, time_constant: f64, damping_ratio: f64) -> Self {
@@ -555,8 +556,9 @@ pub struct ArticulationBuilder {
     pub limit_ke: f64,
     /// Damping of the joint limits while violated.
     pub limit_kd: f64,
-    /// Whether a step integrates the joint damping implicitly (default true, as MuJoCo's
-    /// Euler integrator with its `eulerdamp` flag): stable for any damping at any step.
+    /// Whether an `Euler` step integrates the joint damping implicitly (default true, as
+    /// MuJoCo's Euler integrator with its `eulerdamp` flag): stable for any damping at any
+    /// step. (`ImplicitFast` always does, `Rk4` never: see [`ArticulationIntegrator`].)
     pub implicit_damping: bool,
     /// How a step integrates (default [`ArticulationIntegrator::Euler`]).
     pub integrator: ArticulationIntegrator,
@@ -819,6 +821,18 @@ impl ArticulationBuilder {
     /// returns the id of `other`'s first link here.
     pub fn add_builder(&mut self, other: &ArticulationBuilder) -> LinkId {
         let base = self.links.len();
+        // The step's settings come with the first links; later ones must agree.
+        let step = |b: &ArticulationBuilder| (b.integrator, b.implicit_damping, b.fluid);
+        if base == 0 && !self.world_added {
+            (self.integrator, self.implicit_damping, self.fluid) = step(other);
+        } else if step(self) != step(other) && self.mismatch.is_none() {
+            self.mismatch = Some(format!(
+                "add_builder: the added builder's integrator, implicit_damping and fluid {:?} \
+                 differ from this builder's {:?}; set them alike",
+                step(other),
+                step(self)
+            ));
+        }
         for l in &other.links {
             let mut l = l.clone();
             l.parent = l.parent.map(|p| LinkId(p.0 + base));
@@ -927,7 +941,8 @@ impl ArticulationBuilder {
         if self.mismatch.is_none() && shared(self) != shared(other) {
             self.mismatch = Some(format!(
                 "world {first} was added with other shared settings ({}) than the model's ({}): \
-                 the ground and the contact and limit laws are the same in every world",
+                 the ground, the contact and limit laws, the integrator and the fluid are the \
+                 same in every world",
                 shared(other),
                 shared(self)
             ));
