@@ -593,8 +593,26 @@ impl<R: Real> Articulations<R> {
             ArticulationIntegrator::Euler => {}
         }
         let qdd = self.accelerations(tape, state, control, dt)?;
-        let (vel, acc) = self.rates(tape, state, state, &qdd);
-        Ok(self.advance(tape, state, (&vel, &acc), dt, dt))
+        let next = ArticulationState {
+            q: Array::zeros(self.n_q),
+            qd: Array::zeros(self.n_dof),
+        };
+        tape.launch(
+            articulation_integrate,
+            self.n_links(),
+            (
+                &self.joint_type,
+                &self.q_start,
+                &self.qd_start,
+                &state.q,
+                &state.qd,
+                &qdd,
+                dt,
+                &next.q,
+                &next.qd,
+            ),
+        );
+        Ok(next)
     }
 
     /// The rates of `stage` where the stages of a step from `start` combine
@@ -626,15 +644,13 @@ impl<R: Real> Articulations<R> {
         (vel, acc)
     }
 
-    /// `start` advanced by `h` along the rates `(vel, acc)`, positions by `vel + kick acc`
-    /// ([`articulation_advance`]: `kick = h` is the semi-implicit Euler step).
+    /// `start` advanced by `h` along the rates `(vel, acc)` ([`articulation_advance`]).
     fn advance(
         &self,
         tape: &mut Tape,
         start: &ArticulationState<R>,
         (vel, acc): (&Array<R>, &Array<R>),
         h: R,
-        kick: R,
     ) -> ArticulationState<R> {
         let next = ArticulationState {
             q: Array::zeros(self.n_q),
@@ -652,7 +668,6 @@ impl<R: Real> Articulations<R> {
                 vel,
                 acc,
                 h,
-                kick,
                 &next.q,
                 &next.qd,
             ),
@@ -750,7 +765,7 @@ impl<R: Real> Articulations<R> {
             if i < 3 {
                 // MuJoCo's RK4_A: the stages at dt/2, dt/2, dt, each from the previous rates.
                 let h = if i < 2 { dt * R::lit(0.5) } else { dt };
-                stage = self.advance(tape, state, (&vel, &acc), h, zero);
+                stage = self.advance(tape, state, (&vel, &acc), h);
             }
             vels.push(vel);
             accs.push(acc);
@@ -765,7 +780,7 @@ impl<R: Real> Articulations<R> {
             out
         };
         let (vel, acc) = (combine(tape, &vels), combine(tape, &accs));
-        Ok(self.advance(tape, state, (&vel, &acc), dt, zero))
+        Ok(self.advance(tape, state, (&vel, &acc), dt))
     }
 
     /// A state whose worlds listed in `worlds` are `from`'s and the others `state`'s, recorded

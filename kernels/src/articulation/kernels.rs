@@ -367,6 +367,71 @@ pub fn articulation_joint_space<R: Real>(
     rhs[a] = f;
 }
 
+/// Semi-implicit Euler step of the joint of link `tid`: `qd' = qd + qdd dt`, then
+/// revolute/prismatic `q' = q + qd' dt`; ball `quat' = normalize(quat exp(w' dt))` with the
+/// angular velocity `w'` in the link frame. A free joint's linear velocity is stepped in the
+/// world frame, where a body without force keeps it exactly: `u' = R (v + (a + w x v) dt)`
+/// (`a` its `qdd`, `w x v` the frame's rotation it contains), `p' = p + u' dt`, and
+/// `v' = R'^T u'` in the new link frame. The quaternion stays on the unit sphere, and `exp`
+/// uses its series near zero rotation (no division by `|w|`).
+#[diff_kernel]
+pub fn articulation_integrate<R: Real>(
+    joint_type: &Array<u32>,
+    q_start: &Array<u32>,
+    qd_start: &Array<u32>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    qdd: &Array<R>,
+    dt: R,
+    q_new: &Array<R>,
+    qd_new: &Array<R>,
+) {
+    let l = tid();
+    let jt = joint_type[l];
+    let s = q_start[l] as usize;
+    let d0 = qd_start[l] as usize;
+    let d1 = qd_start[l + 1] as usize;
+    if jt == 1 || jt == 2 {
+        let v = qd[d0] + qdd[d0] * dt;
+        qd_new[d0] = v;
+        q_new[s] = q[s] + v * dt;
+    } else if jt == 3 || jt == 4 {
+        // The rotation's velocities are the joint's last three.
+        let a = d1 - 3;
+        let w1 = vec3(
+            qd[a] + qdd[a] * dt,
+            qd[a + 1] + qdd[a + 1] * dt,
+            qd[a + 2] + qdd[a + 2] * dt,
+        );
+        qd_new[a] = w1.x;
+        qd_new[a + 1] = w1.y;
+        qd_new[a + 2] = w1.z;
+        let mut rs = s;
+        if jt == 4 {
+            rs = s + 3;
+        }
+        let r = quat_normalize(quat(q[rs], q[rs + 1], q[rs + 2], q[rs + 3]));
+        let r1 = quat_step(r, w1 * dt);
+        q_new[rs] = r1.x;
+        q_new[rs + 1] = r1.y;
+        q_new[rs + 2] = r1.z;
+        q_new[rs + 3] = r1.w;
+        if jt == 4 {
+            let v = vec3(qd[d0], qd[d0 + 1], qd[d0 + 2]);
+            let acc = vec3(qdd[d0], qdd[d0 + 1], qdd[d0 + 2]);
+            let w0 = vec3(qd[a], qd[a + 1], qd[a + 2]);
+            let u = quat_rotate(r, v + (acc + cross(w0, v)) * dt);
+            q_new[s] = q[s] + u.x * dt;
+            q_new[s + 1] = q[s + 1] + u.y * dt;
+            q_new[s + 2] = q[s + 2] + u.z * dt;
+            let v1 = quat_rotate_inv(r1, u);
+            qd_new[d0] = v1.x;
+            qd_new[d0 + 1] = v1.y;
+            qd_new[d0 + 2] = v1.z;
+        }
+    }
+}
+
 /// `normalize(r exp(w))`: the unit quaternion `r` turned by the rotation vector `w` in its own
 /// frame (MuJoCo's `mju_quatIntegrate`); `exp` uses its series near zero rotation (no division
 /// by `|w|`).
@@ -469,13 +534,11 @@ pub fn articulation_rates<R: Real>(
 }
 
 /// The state `(q0, qd0)` advanced by `h` along the rates `(vel, acc)` of
-/// [`articulation_rates`], joint of link `tid`: `qd' = qd0 + h acc`, then `q' = q0 + h (vel +
-/// kick acc)` (a quaternion `r0 exp(h (vel + kick acc))`, [`quat_step`], so it stays on the unit
-/// sphere). A free joint's linear velocity is stepped in the world frame (`R0 v0 + h acc`),
-/// where a body without force keeps it exactly however it spins, and expressed in the new link
-/// frame after. `kick = h` is the semi-implicit Euler step (positions by the new velocities,
-/// MuJoCo's Euler); `kick = 0` a Runge-Kutta stage or its final combination (MuJoCo's `X0 + h
-/// dX`).
+/// [`articulation_rates`] (a Runge-Kutta stage or its final combination, MuJoCo's `X0 + h
+/// dX`), joint of link `tid`: `q' = q0 + h vel` (a quaternion `r0 exp(h vel)`, [`quat_step`]),
+/// `qd' = qd0 + h acc`, a free joint's linear velocity in the world frame (`R0 v0 + h acc`)
+/// and back to the new link frame. (The Euler step, [`articulation_integrate`], is this with
+/// the positions moved by the new velocities, in one kernel.)
 #[diff_kernel]
 pub fn articulation_advance<R: Real>(
     joint_type: &Array<u32>,
@@ -486,7 +549,6 @@ pub fn articulation_advance<R: Real>(
     vel: &Array<R>,
     acc: &Array<R>,
     h: R,
-    kick: R,
     q_new: &Array<R>,
     qd_new: &Array<R>,
 ) {
@@ -499,7 +561,7 @@ pub fn articulation_advance<R: Real>(
         qd_new[d] = qd0[d] + acc[d] * h;
     }
     if jt == 1 || jt == 2 {
-        q_new[s] = q0[s] + (vel[d0] + acc[d0] * kick) * h;
+        q_new[s] = q0[s] + vel[d0] * h;
     } else if jt == 3 || jt == 4 {
         let a = d1 - 3;
         let mut rs = s;
@@ -507,20 +569,17 @@ pub fn articulation_advance<R: Real>(
             rs = s + 3;
         }
         let r0 = quat_normalize(quat(q0[rs], q0[rs + 1], q0[rs + 2], q0[rs + 3]));
-        let w = vec3(vel[a], vel[a + 1], vel[a + 2]) + vec3(acc[a], acc[a + 1], acc[a + 2]) * kick;
-        let r1 = quat_step(r0, w * h);
+        let r1 = quat_step(r0, vec3(vel[a], vel[a + 1], vel[a + 2]) * h);
         q_new[rs] = r1.x;
         q_new[rs + 1] = r1.y;
         q_new[rs + 2] = r1.z;
         q_new[rs + 3] = r1.w;
         if jt == 4 {
             let v0 = vec3(qd0[d0], qd0[d0 + 1], qd0[d0 + 2]);
-            let du = vec3(acc[d0], acc[d0 + 1], acc[d0 + 2]);
-            let u = quat_rotate(r0, v0) + du * h;
-            let p = vec3(vel[d0], vel[d0 + 1], vel[d0 + 2]) + du * kick;
-            q_new[s] = q0[s] + p.x * h;
-            q_new[s + 1] = q0[s + 1] + p.y * h;
-            q_new[s + 2] = q0[s + 2] + p.z * h;
+            let u = quat_rotate(r0, v0) + vec3(acc[d0], acc[d0 + 1], acc[d0 + 2]) * h;
+            q_new[s] = q0[s] + vel[d0] * h;
+            q_new[s + 1] = q0[s + 1] + vel[d0 + 1] * h;
+            q_new[s + 2] = q0[s + 2] + vel[d0 + 2] * h;
             let v1 = quat_rotate_inv(r1, u);
             qd_new[d0] = v1.x;
             qd_new[d0 + 1] = v1.y;
