@@ -6,33 +6,33 @@
 //! (and, passed over, the mesh and texture directories and the compiler's own switches), `<option
 //! timestep gravity integrator density viscosity wind>` (`integrator` `Euler`, `RK4` or
 //! `implicitfast`, [`ArticulationBuilder::integrator`]; a fluid: MuJoCo's inertia-box model,
-//! [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint`, `gravity`, `spring`,
-//! `damper` and `actuation` switched off are off here too, `eulerdamp` switches [`ArticulationBuilder::implicit_damping`] and `clampctrl` the
-//! clamping of controls; flags about MuJoCo's solver, sensors or checks are passed over; others
-//! that change the default are refused), `<default>` classes (nested, with `joint`, `geom`,
-//! actuator and `tendon` defaults), `<worldbody>` with nested `<body pos
-//! quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint type="hinge|slide|ball|free" pos axis
-//! range limited margin ref damping armature stiffness springref>` (a spring on hinges and slides;
-//! `springref` and `ref` in the file's angle unit; `ref` is the coordinate at which the body is
-//! where the file puts it, and the initial one; a `margin` moves a limit that far inside the range,
-//! where MuJoCo's limit pushes back to), `<freejoint>`, `<geom
-//! type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat mass density contype
-//! conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as MuJoCo's default
-//! `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`, `<actuator>` with
-//! `<motor>`, `<position kp kv>`, `<velocity kv>`, `<damper kv>` and `<general gaintype biastype
-//! gainprm biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint or a fixed
-//! tendon, with `gear`, `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`: each becomes
-//! an [`Actuator`] of the builder, driven by `ArticulationControl::ctrl` as MuJoCo's `ctrl`
-//! (clamped unless `<flag clampctrl="disable">`). Passed over: visual-only elements (`<visual>`,
-//! `<asset>`, `<statistic>`, `<site>`, `<camera>`, `<light>`), `<custom>` data, `<sensor>` and
-//! `<keyframe>` (they read or set the state, not the dynamics), MuJoCo's own solver settings in
-//! `<option>` (`iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`). `<tendon>` with `<fixed>` tendons (no limits or
-//! friction): a spring and damper with `stiffness`, `damping` and `springlength`
-//! ([`TendonSpring`]), and what actuators may drive. A limit follows the joint's `solreflimit` and
-//! `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`; the time constant at least twice
-//! the time step unless `<flag refsafe="disable">`), as [`Joint::limit_time_constant`] describes.
-//! Anything else is an error naming the element and its line: MuJoCo would simulate it, and
-//! silently dropping it would simulate a different robot.
+//! [`super::fluid`]) with `<flag>` (`contact`, `limit`, `constraint`, `gravity`, `spring`, `damper`
+//! and `actuation` switched off are off here too, `eulerdamp` switches
+//! [`ArticulationBuilder::implicit_damping`] and `clampctrl` the clamping of controls; flags about
+//! MuJoCo's solver, sensors or checks are passed over; others that change the default are refused),
+//! `<default>` classes (nested, with `joint`, `geom`, actuator and `tendon` defaults),
+//! `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint
+//! type="hinge|slide|ball|free" pos axis range limited margin ref damping armature stiffness
+//! springref>` (a spring on hinges and slides; `springref` and `ref` in the file's angle unit;
+//! `ref` is the coordinate at which the body is where the file puts it, and the initial one; a
+//! `margin` moves a limit that far inside the range, where MuJoCo's limit pushes back to),
+//! `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat
+//! mass density contype conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as
+//! MuJoCo's default `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`,
+//! `<actuator>` with `<motor>`, `<position kp kv>`, `<velocity kv>`, `<damper kv>` and `<general
+//! gaintype biastype gainprm biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint
+//! or a fixed tendon, with `gear`, `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`:
+//! each becomes an [`Actuator`] of the builder, driven by `ArticulationControl::ctrl` as MuJoCo's
+//! `ctrl` (clamped unless `<flag clampctrl="disable">`). Passed over: visual-only elements
+//! (`<visual>`, `<asset>`, `<statistic>`, `<site>`, `<camera>`, `<light>`), `<custom>` data,
+//! `<sensor>` and `<keyframe>` (they read or set the state, not the dynamics), MuJoCo's own solver
+//! settings in `<option>` (`iterations`, `solver`, `tolerance`, `cone`, `jacobian`, `impratio`).
+//! `<tendon>` with `<fixed>` tendons (no limits or friction): a spring and damper with `stiffness`,
+//! `damping` and `springlength` ([`TendonSpring`]), and what actuators may drive. A limit follows
+//! the joint's `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`;
+//! the time constant at least twice the time step unless `<flag refsafe="disable">`), as
+//! [`Joint::limit_time_constant`] describes. Anything else is an error naming the element and its
+//! line: MuJoCo would simulate it, and silently dropping it would simulate a different robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
