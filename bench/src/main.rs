@@ -20,6 +20,10 @@
 //!   [--newton PATH]`: many worlds in one model (256 cloths against one; cartpoles), forward
 //!   and backward: time per world-step at W = 1 and W = 1024, on 1 and 2 threads, peak
 //!   memory; with `--python`, MuJoCo's batched rollout; with `--newton`, Newton's worlds
+//! - `worlds-implicit [--worlds 16] [--steps 10] [--reps 1]`: implicit Euler on W cloths of
+//!   different sizes dropped on the ground, as W worlds of one model (each solved by its own
+//!   Newton iteration) against W models stepped one after another: seconds per step forward
+//!   and backward, and the shared passes per step
 //! - `mpm [--n-grid 128] [--steps 1024] [--iters 5] [--python PATH]`: DiffTaichi's MPM
 //!   walker, seconds per optimization iteration on 1 and 2 threads; with `--python`, the
 //!   Taichi script on the same scene in the same run, and the ratios
@@ -121,6 +125,7 @@ fn main() {
         "smoke" => smoke::main(rest),
         "second-order" => second_order::main(rest),
         "worlds-case" => println!("{}", worlds::case(rest)),
+        "worlds-implicit" => worlds::implicit(rest),
         "cloth" => match cloth::parse(rest) {
             Ok(o) => println!("{}", cloth::run(&o)),
             Err(e) => {

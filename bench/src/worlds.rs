@@ -152,6 +152,88 @@ fn cloths(threads: usize, steps: usize, reps: usize) -> (f64, f64) {
     (time(&many), time(&one))
 }
 
+/// Cloth `j` of [`implicit`]: its own size, stiffness and height, dropped on the ground.
+fn implicit_cloth(j: usize) -> adflex_kernels::ModelBuilder<f64> {
+    let mut b = adflex_kernels::ModelBuilder::<f64>::new();
+    b.add_cloth_grid(&adflex_kernels::prelude::ClothGrid {
+        spring_ke: 400.0 + 50.0 * (j % 5) as f64,
+        origin: Vec3::new(0.0, 0.05 + 0.01 * (j % 7) as f64, 0.0),
+        ..adflex_kernels::prelude::ClothGrid::benchmark(8 + j % 5)
+    });
+    b.set_ground(adflex_kernels::prelude::Ground::default());
+    b
+}
+
+/// Implicit Euler (1/60 s) on `--worlds` cloths as worlds of one model, against the same
+/// cloths as separate models stepped one after another: seconds per step, forward and
+/// backward (the gradient of every particle's height with respect to the initial
+/// velocities), best of `--reps`, and each case's force evaluations and tangent products per
+/// step. One JSON line, on one thread.
+pub fn implicit(rest: &[String]) {
+    use adflex_kernels::integrators::ImplicitEuler;
+    let worlds = arg(rest, "--worlds").unwrap_or(16);
+    let steps = arg(rest, "--steps").unwrap_or(10);
+    let reps = arg(rest, "--reps").unwrap_or(1);
+    let solver = ImplicitEuler::default();
+    // Seconds, force evaluations and products of `steps` steps of `model` and the backward.
+    let run = |model: &adflex_kernels::Model<f64>| {
+        let t0 = Instant::now();
+        let mut tape = Tape::new();
+        let s0 = model.state();
+        let v0 = s0.v.clone().requires_grad();
+        let mut s = s0;
+        let (mut evaluations, mut products) = (0, 0);
+        for _ in 0..steps {
+            let (next, stats) = solver
+                .step_with_stats(model, &mut tape, &s, None, 1.0 / 60.0)
+                .expect("an implicit step");
+            evaluations += stats.force_evaluations;
+            products += stats.linear_iterations;
+            s = next;
+        }
+        let loss = Array::zeros(1);
+        adflex_kernels::losses::sum_of_squares_vec3(&mut tape, &s.x, 1.0, &loss);
+        tape.backward(&loss).expect("a backward pass");
+        assert!(v0.grad().is_ok());
+        (t0.elapsed().as_secs_f64(), evaluations, products)
+    };
+    let mut together = adflex_kernels::ModelBuilder::<f64>::new();
+    let apart: Vec<_> = (0..worlds)
+        .map(|j| {
+            together.add_world(&implicit_cloth(j));
+            implicit_cloth(j).finalize()
+        })
+        .collect();
+    let together = together.finalize();
+    let best = |f: &(dyn Fn() -> (f64, usize, usize) + Sync)| {
+        with_threads(1, || {
+            (0..reps.max(1))
+                .map(|_| f())
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .expect("a run")
+        })
+    };
+    let (t_together, e_together, p_together) = best(&|| run(&together));
+    let (t_apart, e_apart, p_apart) = best(&|| {
+        apart
+            .iter()
+            .map(run)
+            .fold((0.0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
+    });
+    println!(
+        "{}",
+        json!({"system": "adflex", "case": "implicit Euler, cloths as worlds vs apart",
+               "worlds": worlds, "steps": steps, "threads": 1,
+               "together_s_per_step": t_together / steps as f64,
+               "apart_s_per_step": t_apart / steps as f64,
+               "ratio": t_together / t_apart,
+               "together_evaluations_per_step": e_together as f64 / steps as f64,
+               "apart_evaluations_per_step": e_apart as f64 / steps as f64,
+               "together_products_per_step": p_together as f64 / steps as f64,
+               "apart_products_per_step": p_apart as f64 / steps as f64})
+    );
+}
+
 pub fn main(rest: &[String]) {
     for threads in [1, 2] {
         let (many, one) = cloths(threads, 50, 3);

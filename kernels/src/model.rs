@@ -92,9 +92,9 @@ impl<R: Real> ModelBuilder<R> {
     /// indices shifted, and it keeps its gravity (`other.gravity`; [`Model::gravity`] has one
     /// per world: setting [`ModelBuilder::gravity`] afterwards changes no added world). Worlds
     /// never interact, and each is simulated in its own frame: they need no spacing, and with
-    /// the integrators made of per-element kernels (all but `ImplicitEuler`, whose Newton
-    /// iterations stop on a norm over the whole model) a world's results are the same bits
-    /// whatever the other worlds (`kernels/tests/worlds.rs`).
+    /// every integrator (`ImplicitEuler` and `Equilibrium` solve each world by its own Newton
+    /// iteration) a world's results are the same bits whatever the other worlds
+    /// (`kernels/tests/worlds.rs`).
     ///
     /// The ground, drag, shapes and particle-particle contact are the environment every world
     /// shares (a world without one takes the model's; two different ones are a problem at
@@ -1066,15 +1066,15 @@ impl<R: Real> Model<R> {
 
     /// Records the elastic potential energy of the forces that have one ([`Force::energy`]:
     /// springs, membranes, tetrahedra, bending, the contact penalties, and any added force
-    /// with a potential) (J) and returns it as a one-element array (for tests and
-    /// energy-based integrators).
+    /// with a potential) (J) and returns it with one entry per world (one for a model of one
+    /// world), for tests and energy-based integrators.
     pub fn elastic_energy(
         &self,
         tape: &mut Tape,
         state: &State<R>,
         control: Option<&Control<R>>,
     ) -> Array<R> {
-        let e = Array::zeros(1).named("energy");
+        let e = Array::zeros(self.worlds.len().max(1)).named("energy");
         let cx = self.context(state, control);
         for force in &self.forces {
             force.energy(&cx, tape, &e);

@@ -86,6 +86,7 @@
 //! assert!((rest.grad().unwrap().get(0) + 1.0).abs() < 1e-9);
 //! ```
 
+use std::ops::Range;
 use std::sync::Arc;
 
 use adflex_runtime::prelude::*;
@@ -96,10 +97,10 @@ use crate::integrators::common::{
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
-use crate::solver::krylov::{SolveInfo, SolveSettings};
+use crate::solver::krylov::SolveSettings;
 use crate::solver::newton::{
-    dot, max_abs, newton, solve_linear, solve_transposed, NewtonSettings, NewtonSystem, Parts,
-    PassFailure,
+    dot, max_abs, newton, solve_linear, solve_transposed, with_world, world_context, LinearSolve,
+    NewtonSettings, NewtonSystem, Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::State;
@@ -165,7 +166,7 @@ impl<R: Real> System<R> {
         let world = c.model.particle_world.to_vec();
         let g = (0..x0.len()).map(|k| gravity[world[k / 3] as usize][k % 3].to_f64());
         System {
-            dofs: Dofs::new(inv_mass),
+            dofs: Dofs::new(&c.model, inv_mass),
             g: g.collect(),
             c,
             x0,
@@ -215,28 +216,34 @@ impl<R: Real> NewtonSystem for System<R> {
         r.iter().map(|r| -r).collect()
     }
 
+    fn worlds(&self) -> &[Range<usize>] {
+        &self.dofs.worlds
+    }
+
     /// `0.5 |r|^2` (N^2).
-    fn merit(&self, r: &[f64]) -> f64 {
-        0.5 * dot(r, r)
+    fn merit(&self, r: &[f64], w: Range<usize>) -> f64 {
+        0.5 * dot(&r[w.clone()], &r[w])
     }
 
     /// The force scale at `p`: the largest weight `m |g|` and force `|f| = |m (a - g)|` (N).
-    fn scale(&self, p: &Point<R>) -> f64 {
-        (0..self.dofs.mass.len())
-            .filter(|&k| self.dofs.free[k])
-            .fold(0.0f64, |s, k| {
-                let m = self.dofs.mass[k];
-                s.max((m * self.g[k]).abs())
-                    .max((m * (p.a_val[k] - self.g[k])).abs())
-            })
+    fn scale(&self, p: &Point<R>, w: Range<usize>) -> f64 {
+        w.filter(|&k| self.dofs.free[k]).fold(0.0f64, |s, k| {
+            let m = self.dofs.mass[k];
+            s.max((m * self.g[k]).abs())
+                .max((m * (p.a_val[k] - self.g[k])).abs())
+        })
     }
 
     /// `eps |x|` times the stiffness `|K d| / |d|` along the Newton step `d` (with `K d = r`),
     /// times a safety factor of 100 (N).
-    fn roundoff_floor(&self, r: &[f64], d: &[f64]) -> f64 {
-        let dn = max_abs(d);
-        let k = if dn > 0.0 { max_abs(r) / dn } else { 0.0 };
-        100.0 * epsilon::<R>() * k * max_abs(&self.x0).max(1.0)
+    fn roundoff_floor(&self, r: &[f64], d: &[f64], w: Range<usize>) -> f64 {
+        let dn = max_abs(&d[w.clone()]);
+        let k = if dn > 0.0 {
+            max_abs(&r[w.clone()]) / dn
+        } else {
+            0.0
+        };
+        100.0 * epsilon::<R>() * k * max_abs(&self.x0[w]).max(1.0)
     }
 
     fn epsilon(&self) -> f64 {
@@ -299,25 +306,31 @@ impl<R: Real> NewtonSystem for System<R> {
         r.to_vec()
     }
 
-    /// The step of the quadratic model where `K` is positive along `d` (one tangent pass),
-    /// else a tenth of the scene's size.
-    fn steepest_length(
+    /// Per world, the step of the quadratic model where `K` is positive along `d` (one
+    /// tangent pass for all worlds), else a tenth of the world's size.
+    fn steepest_lengths(
         &self,
         p: &mut Point<R>,
         d: &[f64],
-        slope: f64,
+        slopes: &[Option<f64>],
         stats: &mut NewtonStats,
-    ) -> f64 {
+    ) -> Vec<f64> {
         let mut kd = vec![0.0; d.len()];
         self.apply(p, d, &mut kd);
         stats.linear_iterations += 1;
         self.mask(&mut kd);
-        let curvature = dot(d, &kd);
-        if curvature > 0.0 {
-            -slope / curvature
-        } else {
-            0.1 * max_abs(&self.x0).max(1.0) / max_abs(d)
-        }
+        let lengths = self.dofs.worlds.iter().zip(slopes).map(|(w, slope)| {
+            let Some(slope) = slope else {
+                return 1.0;
+            };
+            let curvature = dot(&d[w.clone()], &kd[w.clone()]);
+            if curvature > 0.0 {
+                -slope / curvature
+            } else {
+                0.1 * max_abs(&self.x0[w.clone()]).max(1.0) / max_abs(&d[w.clone()])
+            }
+        });
+        lengths.collect()
     }
 }
 
@@ -406,9 +419,10 @@ impl Equilibrium {
             self.on_failure.handle(Error::NotConverged {
                 solver: "Equilibrium Newton".into(),
                 context: format!(
-                    "static equilibrium that would be step #{} on the tape; {} force \
+                    "static equilibrium that would be step #{} on the tape{}; {} force \
                      evaluations, {} line-search halvings",
                     tape.len(),
+                    with_world(stats.world, model.worlds.len()),
                     stats.force_evaluations,
                     stats.backtracks
                 ),
@@ -580,8 +594,8 @@ impl<R: Real> Shared<R> {
         let mut rhs: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * ad[k]).collect();
         sys.mask(&mut rhs);
         let settings = self.solver.gradient_settings();
-        let (mut dx, info, _) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
-        self.check_gradient_solve("tangent", &info)?;
+        let (mut dx, solve) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
+        self.check_gradient_solve("tangent", &solve)?;
         for k in 0..m {
             if !sys.dofs.free[k] {
                 dx[k] = dpin[k];
@@ -592,14 +606,14 @@ impl<R: Real> Shared<R> {
 
     /// The policy's answer to a gradient solve (`which`: adjoint or tangent) that missed its
     /// tolerance.
-    fn check_gradient_solve(&self, which: &str, info: &SolveInfo) -> Result<(), Error> {
-        if info.converged {
+    fn check_gradient_solve(&self, which: &str, solve: &LinearSolve) -> Result<(), Error> {
+        let Some((world, info)) = solve.failed() else {
             return Ok(());
-        }
+        };
         let s = self.solver.gradient_settings();
         self.solver.on_failure.handle(Error::NotConverged {
             solver: format!("Equilibrium {which} linear solve (CG, then BiCGSTAB)"),
-            context: String::new(),
+            context: world_context(world, solve.infos.len()),
             iterations: info.iterations,
             residual: info.residual,
             tolerance: info.tolerance,

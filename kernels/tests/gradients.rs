@@ -59,12 +59,12 @@ fn springs() {
         inputs = [x, v, rest, ke, kd],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     check_kernel!(
         "spring_energy",
         spring_energy,
         8,
-        (&x, &pairs, &rest, &ke, &e),
+        (&x, &pairs, &rest, &ke, &two_worlds(&x), &e),
         inputs = [x, rest, ke],
         outputs = [e]
     );
@@ -115,12 +115,12 @@ fn bending() {
         inputs = [x, v, rest, ke, kd],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     check_kernel!(
         "bending_energy",
         bending_energy,
         m,
-        (&x, &quads, &rest, &ke, &e),
+        (&x, &quads, &rest, &ke, &two_worlds(&x), &e),
         inputs = [x, rest, ke],
         outputs = [e]
     );
@@ -172,12 +172,12 @@ fn ground_contact() {
         inputs = [x, v],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     check_kernel!(
         "ground_energy",
         ground_energy,
         n,
-        (&x, tilt, -0.01, 0.01, 1000.0, &e),
+        (&x, tilt, -0.01, 0.01, 1000.0, &two_worlds(&x), &e),
         inputs = [x],
         outputs = [e]
     );
@@ -186,7 +186,7 @@ fn ground_contact() {
         "ground_energy_radii",
         ground_energy_radii,
         n,
-        (&x, up, 0.0, &radii, 1000.0, &e),
+        (&x, up, 0.0, &radii, 1000.0, &two_worlds(&x), &e),
         inputs = [x, radii],
         outputs = [e]
     );
@@ -292,12 +292,21 @@ fn triangle_membranes() {
         inputs = [x, v, t.dm_inv, t.area, t.mu, t.lambda, t.kd],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     check_kernel!(
         "triangle_energy",
         triangle_energy,
         nt,
-        (&x, &t.tris, &t.dm_inv, &t.area, &t.mu, &t.lambda, &e),
+        (
+            &x,
+            &t.tris,
+            &t.dm_inv,
+            &t.area,
+            &t.mu,
+            &t.lambda,
+            &two_worlds(&x),
+            &e
+        ),
         inputs = [x, t.dm_inv, t.area, t.mu, t.lambda],
         outputs = [e]
     );
@@ -350,7 +359,7 @@ fn tetrahedra() {
         inputs = [x, v, t.dm_inv, t.rest_volume, t.mu, t.lambda, t.kd, act],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     check_kernel!(
         "tetrahedron_energy",
         tetrahedron_energy,
@@ -363,6 +372,7 @@ fn tetrahedra() {
             &t.mu,
             &t.lambda,
             &act,
+            &two_worlds(&x),
             &e
         ),
         inputs = [x, t.dm_inv, t.rest_volume, t.mu, t.lambda, act],
@@ -400,12 +410,12 @@ fn particle_particle_contact() {
         inputs = [x, v],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     check_kernel!(
         "particle_contact_energy",
         particle_contact_energy,
         np,
-        (&x, &pairs, radius, 1000.0, &e),
+        (&x, &pairs, radius, 1000.0, &two_worlds(&x), &e),
         inputs = [x],
         outputs = [e]
     );
@@ -414,7 +424,7 @@ fn particle_particle_contact() {
         "particle_contact_energy_radii",
         particle_contact_energy_radii,
         np,
-        (&x, &pairs, &radii, 1000.0, &e),
+        (&x, &pairs, &radii, 1000.0, &two_worlds(&x), &e),
         inputs = [x, radii],
         outputs = [e]
     );
@@ -489,13 +499,24 @@ fn shape_contact() {
         inputs = [x, v, pos, rot, size],
         outputs = [f]
     );
-    let e: Array<f64> = Array::zeros(1);
+    let e: Array<f64> = Array::zeros(2);
     let radii = arr(vec![0.02; n], "radius");
     check_kernel!(
         "shape_contact_energy",
         shape_contact_energy,
         n * 3,
-        (&x, &kind, &pos, &rot, &size, 3usize, &radii, 1000.0, &e),
+        (
+            &x,
+            &kind,
+            &pos,
+            &rot,
+            &size,
+            3usize,
+            &radii,
+            1000.0,
+            &two_worlds(&x),
+            &e
+        ),
         inputs = [x, pos, rot, size, radii],
         outputs = [e]
     );
@@ -702,4 +723,9 @@ fn xpbd_distance_constraints() {
         inputs = [x, rest, soft],
         outputs = [e]
     );
+}
+
+/// Each particle's world for an energy kernel's check: alternately 0 and 1 (two energies).
+fn two_worlds(x: &Array<Vec3<f64>>) -> Array<u32> {
+    Array::from_vec((0..x.len()).map(|i| (i % 2) as u32).collect())
 }

@@ -81,7 +81,8 @@ pub fn eval_ground_radii<R: Real>(
 }
 
 /// Penalty energy of particle `tid` against the ground of [`eval_ground`]:
-/// `penalty_energy(dot(normal, x) - offset - radius, ke)`, added to `energy[0]`.
+/// `penalty_energy(dot(normal, x) - offset - radius, ke)`, added to its world's
+/// `energy[world[tid]]`.
 #[diff_kernel]
 pub fn ground_energy<R: Real>(
     x: &Array<Vec3<R>>,
@@ -89,10 +90,14 @@ pub fn ground_energy<R: Real>(
     offset: R,
     radius: R,
     ke: R,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
-    energy.atomic_add(0, penalty_energy(dot(normal, x[t]) - offset - radius, ke));
+    energy.atomic_add(
+        world[t] as usize,
+        penalty_energy(dot(normal, x[t]) - offset - radius, ke),
+    );
 }
 
 /// [`ground_energy`] with a radius per particle: `radius[tid]` (m).
@@ -103,11 +108,12 @@ pub fn ground_energy_radii<R: Real>(
     offset: R,
     radius: &Array<R>,
     ke: R,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
     energy.atomic_add(
-        0,
+        world[t] as usize,
         penalty_energy(dot(normal, x[t]) - offset - radius[t], ke),
     );
 }
@@ -275,15 +281,16 @@ impl<R: Real> Force<R> for Ground<R> {
     /// The penalty's potential ([`ground_energy`]); damping and friction have none.
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
         let (n, off, ke) = (self.normal, self.offset, self.ke);
+        let w = &cx.particle_worlds();
         match cx.particle_radii {
             Some(r) => tape.launch(
                 ground_energy_radii,
                 cx.x.len(),
-                (cx.x, n, off, r, ke, energy),
+                (cx.x, n, off, r, ke, w, energy),
             ),
             None => {
                 let r = cx.particle_radius;
-                tape.launch(ground_energy, cx.x.len(), (cx.x, n, off, r, ke, energy))
+                tape.launch(ground_energy, cx.x.len(), (cx.x, n, off, r, ke, w, energy))
             }
         }
         true

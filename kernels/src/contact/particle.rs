@@ -119,18 +119,22 @@ pub fn eval_particle_contact_radii<R: Real>(
 }
 
 /// Penalty energy of pair `tid = (i, j)` of [`eval_particle_contact`]:
-/// `penalty_energy(|x_i - x_j| - 2 radius, ke)` (J), added to `energy[0]`.
+/// `penalty_energy(|x_i - x_j| - 2 radius, ke)` (J), added to its world's `energy[world[i]]`.
 #[diff_kernel]
 pub fn particle_contact_energy<R: Real>(
     x: &Array<Vec3<R>>,
     pairs: &Array<[u32; 2]>,
     radius: R,
     ke: R,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
     let [i, j] = pairs[t];
-    energy.atomic_add(0, penalty_energy(length(x[i] - x[j]) - 2.0 * radius, ke));
+    energy.atomic_add(
+        world[i] as usize,
+        penalty_energy(length(x[i] - x[j]) - 2.0 * radius, ke),
+    );
 }
 
 /// [`particle_contact_energy`] with a radius per particle: the pair touches at
@@ -141,12 +145,13 @@ pub fn particle_contact_energy_radii<R: Real>(
     pairs: &Array<[u32; 2]>,
     radius: &Array<R>,
     ke: R,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
     let [i, j] = pairs[t];
     energy.atomic_add(
-        0,
+        world[i] as usize,
         penalty_energy(length(x[i] - x[j]) - radius[i] - radius[j], ke),
     );
 }
@@ -562,13 +567,16 @@ impl<R: Real> Force<R> for ParticleContact<R> {
         if !pairs.is_empty() {
             let n = pairs.len();
             let pairs = Array::from_vec(pairs).named("contact_pairs");
+            let w = &cx.particle_worlds();
             match cx.particle_radii {
-                Some(r) => {
-                    tape.launch(particle_contact_energy_radii, n, (x, &pairs, r, ke, energy))
-                }
+                Some(r) => tape.launch(
+                    particle_contact_energy_radii,
+                    n,
+                    (x, &pairs, r, ke, w, energy),
+                ),
                 None => {
                     let r = cx.particle_radius;
-                    tape.launch(particle_contact_energy, n, (x, &pairs, r, ke, energy))
+                    tape.launch(particle_contact_energy, n, (x, &pairs, r, ke, w, energy))
                 }
             }
         }

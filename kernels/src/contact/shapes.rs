@@ -132,7 +132,8 @@ pub fn shape_contact_force<R: Real>(
 }
 
 /// Penalty energy of particle `tid / num_shapes` against shape `tid % num_shapes`:
-/// `penalty_energy(shape_gap(..), ke)` (J), added to `energy[0]`; `radius` per particle.
+/// `penalty_energy(shape_gap(..), ke)` (J), added to its world's `energy[world[i]]`; `radius` per
+/// particle.
 #[diff_kernel]
 pub fn shape_contact_energy<R: Real>(
     x: &Array<Vec3<R>>,
@@ -143,13 +144,14 @@ pub fn shape_contact_energy<R: Real>(
     num_shapes: usize,
     radius: &Array<R>,
     ke: R,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
     let p = t / num_shapes;
     let s = t % num_shapes;
     let d = shape_gap(x[p], kind[s], pos[s], rot[s], size[s], radius[p]);
-    energy.atomic_add(0, penalty_energy(d, ke));
+    energy.atomic_add(world[p] as usize, penalty_energy(d, ke));
 }
 
 /// Contact of particle `tid / num_shapes` with shape `tid % num_shapes`: kind 0 sphere, 1 box,
@@ -423,7 +425,16 @@ impl<R: Real> Force<R> for Shapes<R> {
             shape_contact_energy,
             cx.x.len() * ns,
             (
-                cx.x, &self.kind, &self.pos, &self.rot, &self.size, ns, &radii, self.ke, energy,
+                cx.x,
+                &self.kind,
+                &self.pos,
+                &self.rot,
+                &self.size,
+                ns,
+                &radii,
+                self.ke,
+                &cx.particle_worlds(),
+                energy,
             ),
         );
         true

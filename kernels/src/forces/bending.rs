@@ -79,17 +79,18 @@ pub fn eval_bending<R: Real>(
     f.atomic_add(l, d4 * f_total);
 }
 
-/// Bending energy of element `tid`, `ke/2 |e| (angle - rest)^2` (J) with `|e|` the shared
-/// edge's length, added to `energy[0]`: the discrete-shells energy whose gradient is
+/// Bending energy of element `tid`, `ke/2 |e| (angle - rest)^2` (J) with `|e|` the shared edge's
+/// length, added to its world's `energy[world[i]]`: the discrete-shells energy whose gradient is
 /// [`eval_bending`]'s elastic force up to the edge length's own variation, which dFlex's force
-/// leaves out (the difference, `ke/2 (angle - rest)^2 d|e|/dx`, is second order in the bend).
-/// A degenerate element has no energy, as it has no force.
+/// leaves out (the difference, `ke/2 (angle - rest)^2 d|e|/dx`, is second order in the bend). A
+/// degenerate element has no energy, as it has no force.
 #[diff_kernel]
 pub fn bending_energy<R: Real>(
     x: &Array<Vec3<R>>,
     quads: &Array<[u32; 4]>,
     rest: &Array<R>,
     ke: &Array<R>,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
@@ -110,7 +111,7 @@ pub fn bending_energy<R: Real>(
     let rcp = 1.0 / (n1_length * n2_length);
     let angle = atan2(dot(cross(n2, n1), e_hat) * rcp, dot(n1, n2) * rcp);
     let c = angle - rest[t];
-    energy.atomic_add(0, 0.5 * ke[t] * length(e) * c * c);
+    energy.atomic_add(world[i] as usize, 0.5 * ke[t] * length(e) * c * c);
 }
 
 /// The bending elements of a model.
@@ -152,12 +153,19 @@ impl<R: Real> Bending<R> {
         );
     }
 
-    /// Records [`bending_energy`] on `tape`, adding into `energy[0]`.
-    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
+    /// Records [`bending_energy`] on `tape`, adding into `energy[world[i]]`
+    /// (`world`: each particle's world).
+    pub fn energy(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        world: &Array<u32>,
+        energy: &Array<R>,
+    ) {
         tape.launch(
             bending_energy,
             self.len(),
-            (x, &self.quads, &self.rest, &self.ke, energy),
+            (x, &self.quads, &self.rest, &self.ke, world, energy),
         );
     }
 }
@@ -229,7 +237,7 @@ impl<R: Real> Force<R> for Bending<R> {
         Bending::eval(self, tape, cx.x, cx.v, f);
     }
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
-        Bending::energy(self, tape, cx.x, energy);
+        Bending::energy(self, tape, cx.x, &cx.particle_worlds(), energy);
         true
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {

@@ -65,6 +65,17 @@ pub struct ForceContext<'a, R: Real> {
     pub particle_world: Option<&'a Array<u32>>,
 }
 
+impl<R: Real> ForceContext<'_, R> {
+    /// Per particle: its world, zeros in a model of one world (where an element's energy goes,
+    /// [`Force::energy`]).
+    pub fn particle_worlds(&self) -> Array<u32> {
+        match self.particle_world {
+            Some(w) => w.clone(),
+            None => Array::zeros(self.x.len()),
+        }
+    }
+}
+
 /// A force on the particles: a component of a [`Model`](crate::Model).
 ///
 /// Implement it once, for a `Clone + Debug` struct holding the force's arrays (clones are
@@ -89,7 +100,9 @@ pub trait Force<R: Real>: ForceClone<R> + Debug + Send + Sync {
     /// into `f` (with `atomic_add`: other forces accumulate into the same array).
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>);
 
-    /// Records the force's potential energy (J), added into `energy[0]`, and returns `true`;
+    /// Records the force's potential energy (J), each element's added into its world's entry
+    /// `energy[w]` (`energy` has one entry per world; [`ForceContext::particle_worlds`]
+    /// gives each particle's), and returns `true`;
     /// the default (a force without a potential: drag, wind) records nothing and returns
     /// `false`. For a force with damping or friction, the energy of its conservative part
     /// (the library's springs, membranes, tetrahedra, bending and contact penalties do this).

@@ -91,7 +91,7 @@ pub fn eval_tetrahedra<R: Real>(
     f.atomic_add(i, f1 + f2 + f3);
 }
 
-/// Elastic energy of tetrahedron `tid`, `V0 psi` (J), added to `energy[0]`.
+/// Elastic energy of tetrahedron `tid`, `V0 psi` (J), added to its world's `energy[world[i]]`.
 #[diff_kernel]
 pub fn tetrahedron_energy<R: Real>(
     x: &Array<Vec3<R>>,
@@ -101,6 +101,7 @@ pub fn tetrahedron_energy<R: Real>(
     mu: &Array<R>,
     lambda: &Array<R>,
     activation: &Array<R>,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
@@ -113,7 +114,7 @@ pub fn tetrahedron_energy<R: Real>(
     let alpha = 1.0 + 0.75 * m / la;
     let dj = determinant(ff) - alpha + activation[t];
     let psi = 0.5 * m * (ic - 3.0) + 0.5 * la * dj * dj - 0.5 * m * ln(ic + 1.0);
-    energy.atomic_add(0, rest_volume[t] * psi);
+    energy.atomic_add(world[i] as usize, rest_volume[t] * psi);
 }
 
 /// The tetrahedra of a model.
@@ -174,12 +175,14 @@ impl<R: Real> TetFem<R> {
         );
     }
 
-    /// Records [`tetrahedron_energy`], adding into `energy[0]`.
+    /// Records [`tetrahedron_energy`], adding into `energy[world[i]]`
+    /// (`world`: each particle's world).
     pub fn energy(
         &self,
         tape: &mut Tape,
         x: &Array<Vec3<R>>,
         activation: Option<&Array<R>>,
+        world: &Array<u32>,
         energy: &Array<R>,
     ) {
         let act = activation.unwrap_or(&self.activation);
@@ -194,6 +197,7 @@ impl<R: Real> TetFem<R> {
                 &self.mu,
                 &self.lambda,
                 act,
+                world,
                 energy,
             ),
         );
@@ -246,7 +250,7 @@ impl<R: Real> Force<R> for TetFem<R> {
     }
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
         let act = cx.control.and_then(|c| c.tet_activation.as_ref());
-        TetFem::energy(self, tape, cx.x, act, energy);
+        TetFem::energy(self, tape, cx.x, act, &cx.particle_worlds(), energy);
         true
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {

@@ -85,7 +85,7 @@ pub fn eval_triangles<R: Real>(
 }
 
 /// Elastic energy of triangle `tid`, `A (mu E:E + lambda/2 tr(E)^2)` (J), added to
-/// `energy[0]`.
+/// its world's `energy[world[i]]`.
 #[diff_kernel]
 pub fn triangle_energy<R: Real>(
     x: &Array<Vec3<R>>,
@@ -94,6 +94,7 @@ pub fn triangle_energy<R: Real>(
     area: &Array<R>,
     mu: &Array<R>,
     lambda: &Array<R>,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
@@ -108,7 +109,7 @@ pub fn triangle_energy<R: Real>(
     let e01 = 0.5 * dot(f1, f2);
     let tr = e00 + e11;
     let psi = mu[t] * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * lambda[t] * tr * tr;
-    energy.atomic_add(0, area[t] * psi);
+    energy.atomic_add(world[i] as usize, area[t] * psi);
 }
 
 /// The FEM triangles of a model.
@@ -164,8 +165,15 @@ impl<R: Real> TriangleFem<R> {
         );
     }
 
-    /// Records [`triangle_energy`], adding into `energy[0]`.
-    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
+    /// Records [`triangle_energy`], adding into `energy[world[i]]`
+    /// (`world`: each particle's world).
+    pub fn energy(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        world: &Array<u32>,
+        energy: &Array<R>,
+    ) {
         tape.launch(
             triangle_energy,
             self.len(),
@@ -176,6 +184,7 @@ impl<R: Real> TriangleFem<R> {
                 &self.area,
                 &self.mu,
                 &self.lambda,
+                world,
                 energy,
             ),
         );
@@ -214,7 +223,7 @@ impl<R: Real> Force<R> for TriangleFem<R> {
         TriangleFem::eval(self, tape, cx.x, cx.v, f);
     }
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
-        TriangleFem::energy(self, tape, cx.x, energy);
+        TriangleFem::energy(self, tape, cx.x, &cx.particle_worlds(), energy);
         true
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {

@@ -50,19 +50,21 @@ pub fn eval_springs<R: Real>(
     f.atomic_add(j, fs);
 }
 
-/// Elastic energy of spring `tid`, `ke/2 (|x_i - x_j| - rest)^2` (J), added to `energy[0]`.
+/// Elastic energy of spring `tid`, `ke/2 (|x_i - x_j| - rest)^2` (J), added to its world's
+/// `energy[world[i]]`.
 #[diff_kernel]
 pub fn spring_energy<R: Real>(
     x: &Array<Vec3<R>>,
     pairs: &Array<[u32; 2]>,
     rest: &Array<R>,
     ke: &Array<R>,
+    world: &Array<u32>,
     energy: &Array<R>,
 ) {
     let t = tid();
     let [i, j] = pairs[t];
     let c = length(x[i] - x[j]) - rest[t];
-    energy.atomic_add(0, 0.5 * ke[t] * c * c);
+    energy.atomic_add(world[i] as usize, 0.5 * ke[t] * c * c);
 }
 
 /// The springs of a model: index pairs and per-spring parameters (each array a possible
@@ -105,12 +107,19 @@ impl<R: Real> Springs<R> {
         );
     }
 
-    /// Records [`spring_energy`] on `tape`, adding into `energy[0]`.
-    pub fn energy(&self, tape: &mut Tape, x: &Array<Vec3<R>>, energy: &Array<R>) {
+    /// Records [`spring_energy`] on `tape`, adding into `energy[world[i]]`
+    /// (`world`: each particle's world).
+    pub fn energy(
+        &self,
+        tape: &mut Tape,
+        x: &Array<Vec3<R>>,
+        world: &Array<u32>,
+        energy: &Array<R>,
+    ) {
         tape.launch(
             spring_energy,
             self.len(),
-            (x, &self.pairs, &self.rest, &self.ke, energy),
+            (x, &self.pairs, &self.rest, &self.ke, world, energy),
         );
     }
 }
@@ -123,7 +132,7 @@ impl<R: Real> Force<R> for Springs<R> {
         Springs::eval(self, tape, cx.x, cx.v, f);
     }
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, energy: &Array<R>) -> bool {
-        Springs::energy(self, tape, cx.x, energy);
+        Springs::energy(self, tape, cx.x, &cx.particle_worlds(), energy);
         true
     }
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {

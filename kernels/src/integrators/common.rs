@@ -231,12 +231,32 @@ pub(crate) struct Dofs {
     pub(crate) mass: Vec<f64>,
     /// Per DOF: whether it is free (inverse mass > 0).
     pub(crate) free: Vec<bool>,
+    /// Each world's DOFs (three per particle of [`WorldRanges::particles`]): the blocks
+    /// the solves treat apart.
+    ///
+    /// [`WorldRanges::particles`]: crate::model::WorldRanges::particles
+    pub(crate) worlds: Vec<std::ops::Range<usize>>,
 }
 
 impl Dofs {
-    pub(crate) fn new<R: Real>(inv_mass: &[R]) -> Self {
+    pub(crate) fn new<R: Real>(model: &Model<R>, inv_mass: &[R]) -> Self {
         let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
+        let mut worlds: Vec<std::ops::Range<usize>> = model
+            .worlds
+            .iter()
+            .map(|r| 3 * r.particles.start..3 * r.particles.end)
+            .collect();
+        // The worlds tile the particles (`ModelBuilder::add_world` appends them); anything
+        // else is solved as one block.
+        let tiles = worlds.first().is_some_and(|r| r.start == 0)
+            && worlds.windows(2).all(|p| p[0].end == p[1].start)
+            && worlds.last().is_some_and(|r| r.end == w.len());
+        if !tiles {
+            worlds.clear();
+            worlds.push(0..w.len());
+        }
         Dofs {
+            worlds,
             mass: w
                 .iter()
                 .map(|&w| if w > 0.0 { 1.0 / w } else { 0.0 })

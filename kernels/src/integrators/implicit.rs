@@ -100,6 +100,7 @@
 //! (`gamma = c / m`) a step is stable for `gamma dt < 2 + (omega dt)^2 / 2` (tests and
 //! `docs/charts/integrators_stability.svg` check it).
 
+use std::ops::Range;
 use std::sync::Arc;
 
 use adflex_runtime::prelude::*;
@@ -114,10 +115,10 @@ use crate::forces::particle::accelerations;
 use crate::forces::Force;
 use crate::model::Model;
 use crate::precompiled::precompiled;
-use crate::solver::krylov::{SolveInfo, SolveSettings};
+use crate::solver::krylov::SolveSettings;
 use crate::solver::newton::{
-    direction, max_abs, newton, solve_linear, solve_transposed, NewtonSettings, NewtonSystem,
-    Parts, PassFailure,
+    direction, linear_solve, max_abs, newton, solve_linear, solve_transposed, with_world,
+    world_context, LinearSolve, NewtonSettings, NewtonSystem, Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::{Control, State};
@@ -343,10 +344,10 @@ impl<R: Real> System<R> {
         let w: Vec<f64> = inv_mass.iter().flat_map(|w| [w.to_f64(); 3]).collect();
         System {
             a_e,
+            dofs: Dofs::new(&c.model, inv_mass),
             c,
             x0,
             v0,
-            dofs: Dofs::new(inv_mass),
             precond: w.iter().map(|&w| if w > 0.0 { w } else { 1.0 }).collect(),
             dt,
             failure: PassFailure::new("ImplicitEuler"),
@@ -404,20 +405,25 @@ impl<R: Real> NewtonSystem for System<R> {
         e.iter().zip(&self.dofs.mass).map(|(e, m)| m * e).collect()
     }
 
+    fn worlds(&self) -> &[Range<usize>] {
+        &self.dofs.worlds
+    }
+
     /// `0.5 e^T M e` (J).
-    fn merit(&self, e: &[f64]) -> f64 {
-        0.5 * e
+    fn merit(&self, e: &[f64], w: Range<usize>) -> f64 {
+        0.5 * e[w.clone()]
             .iter()
-            .zip(&self.dofs.mass)
+            .zip(&self.dofs.mass[w])
             .map(|(e, m)| m * e * e)
             .sum::<f64>()
     }
 
     /// The largest of `|v0|`, `|v'|`, `dt |a|`, `dt |a_e|` over free DOFs (m/s).
-    fn scale(&self, p: &Point<R>) -> f64 {
+    fn scale(&self, p: &Point<R>, w: Range<usize>) -> f64 {
         let free_max = |v: &[f64]| {
-            v.iter()
-                .zip(&self.dofs.free)
+            v[w.clone()]
+                .iter()
+                .zip(&self.dofs.free[w.clone()])
                 .filter(|(_, &f)| f)
                 .fold(0.0f64, |m, (x, _)| m.max(x.abs()))
         };
@@ -430,14 +436,14 @@ impl<R: Real> NewtonSystem for System<R> {
     /// The rounding of the positions, `eps |x|`, times the stiffness `dt |da/dx| ~ s / dt`,
     /// with `s = |M^-1 A d| / |d| = |e| / |d|` the stiffness ratio along the Newton step `d`
     /// (times a safety factor of 100).
-    fn roundoff_floor(&self, e: &[f64], d: &[f64]) -> f64 {
-        let dn = max_abs(d);
+    fn roundoff_floor(&self, e: &[f64], d: &[f64], w: Range<usize>) -> f64 {
+        let dn = max_abs(&d[w.clone()]);
         let s = if dn > 0.0 {
-            (max_abs(e) / dn).max(1.0)
+            (max_abs(&e[w.clone()]) / dn).max(1.0)
         } else {
             1.0
         };
-        100.0 * epsilon::<R>() * s * max_abs(&self.x0.re).max(1.0) / self.dt
+        100.0 * epsilon::<R>() * s * max_abs(&self.x0.re[w]).max(1.0) / self.dt
     }
 
     fn epsilon(&self) -> f64 {
@@ -509,11 +515,11 @@ impl<R: Real> NewtonSystem for System<R> {
         e.iter().map(|e| -e).collect()
     }
 
-    /// The incremental potential's conservative part at `p` and its slope along `d`:
-    /// `E_c = 0.5 (v' - v0)^T M (v' - v0) + U(x0 + dt v')` (J), with `U` the energies of the
-    /// forces that have one ([`Force::energy`]), and `dE_c/ds = (M (v' - v0) + dt dU/dx) . d`
-    /// (one tangent pass of the energy kernels).
-    fn energy(&self, p: &Point<R>, d: &[f64]) -> Option<Result<(f64, f64), Error>> {
+    /// Per world, the incremental potential's conservative part at `p` and its slope along
+    /// `d`: `E_c = 0.5 (v' - v0)^T M (v' - v0) + U(x0 + dt v')` (J), with `U` the energies of
+    /// the forces that have one ([`Force::energy`]), and `dE_c/ds = (M (v' - v0) + dt dU/dx)
+    /// . d` (one tangent pass of the energy kernels).
+    fn energy(&self, p: &Point<R>, d: &[f64]) -> Option<Result<Vec<(f64, f64)>, Error>> {
         let mut tape = Tape::new();
         let energy =
             self.c
@@ -529,23 +535,26 @@ impl<R: Real> NewtonSystem for System<R> {
         if let Err(e) = tape.tangent() {
             return Some(Err(self.failure.in_pass("energy tangent", e)));
         }
-        let du = energy.tangent_buffer().map_or(0.0, |t| t.get(0).to_f64());
-        let (mut kinetic, mut slope) = (0.0, 0.0);
-        for (k, dk) in d.iter().enumerate() {
-            if self.dofs.free[k] {
-                let m_dv = self.dofs.mass[k] * (p.u[k] - self.v0[k]);
-                kinetic += 0.5 * m_dv * (p.u[k] - self.v0[k]);
-                slope += m_dv * dk;
+        let du = energy.tangent_buffer().map(|t| t.to_vec());
+        let worlds = self.dofs.worlds.iter().enumerate().map(|(w, r)| {
+            let (mut kinetic, mut slope) = (0.0, 0.0);
+            for k in r.clone() {
+                if self.dofs.free[k] {
+                    let m_dv = self.dofs.mass[k] * (p.u[k] - self.v0[k]);
+                    kinetic += 0.5 * m_dv * (p.u[k] - self.v0[k]);
+                    slope += m_dv * d[k];
+                }
             }
-        }
-        Some(Ok((kinetic + energy.get(0).to_f64(), slope + du)))
+            let du = du.as_ref().map_or(0.0, |t| t[w].to_f64());
+            (kinetic + energy.get(w).to_f64(), slope + du)
+        });
+        Some(Ok(worlds.collect()))
     }
 
     /// `sum m |a (x0 + dt v')|` over free DOFs: the forces times the positions, whose
     /// rounding the energies carry.
-    fn work(&self, p: &Point<R>) -> f64 {
-        (0..p.u.len())
-            .filter(|&k| self.dofs.free[k])
+    fn work(&self, p: &Point<R>, w: Range<usize>) -> f64 {
+        w.filter(|&k| self.dofs.free[k])
             .map(|k| self.dofs.mass[k] * (p.a_val[k] * (self.x0.re[k] + self.dt * p.u[k])).abs())
             .sum()
     }
@@ -674,7 +683,8 @@ impl ImplicitEuler {
             self.newton(&sys, &mut stats)?
         };
         if !stats.converged {
-            self.on_failure.handle(self.step_failure(dtf, &stats))?;
+            self.on_failure
+                .handle(self.step_failure(dtf, &stats, model.worlds.len()))?;
         }
 
         let a_e_arr = (!explicit.is_empty())
@@ -746,7 +756,7 @@ impl ImplicitEuler {
 
     /// The error of a step whose solve missed its tolerance, with advice that fits what
     /// stopped it.
-    fn step_failure(&self, dt: f64, stats: &NewtonStats) -> Error {
+    fn step_failure(&self, dt: f64, stats: &NewtonStats, worlds: usize) -> Error {
         let policy = "or set `on_failure` to SolverPolicy::Warn or Continue to accept the \
                       unconverged step";
         let (solver, hint) = if self.linearized && !stats.residual.is_finite() {
@@ -800,9 +810,12 @@ impl ImplicitEuler {
         Error::NotConverged {
             solver: solver.into(),
             context: format!(
-                "time step of dt = {dt} s; {} force evaluations, {} line-search halvings, {} \
-                 BiCGSTAB fallbacks",
-                stats.force_evaluations, stats.backtracks, stats.fallbacks
+                "time step of dt = {dt} s{}; {} force evaluations, {} line-search halvings, \
+                 {} BiCGSTAB fallbacks",
+                with_world(stats.world, worlds),
+                stats.force_evaluations,
+                stats.backtracks,
+                stats.fallbacks
             ),
             iterations: stats.newton_iterations,
             residual: stats.residual,
@@ -822,13 +835,17 @@ impl ImplicitEuler {
         sys.check_visited(&p, Needs::Gradient)?;
         stats.force_evaluations = 1;
         let e = sys.residual(&p);
-        let (d, info, fell_back) = direction(sys, &mut p, &e, &self.linear)?;
+        let active = vec![true; sys.dofs.worlds.len()];
+        let (d, solved) = direction(sys, &mut p, &e, &self.linear, &active)?;
+        let solve = linear_solve(&solved.into_iter().flatten().collect::<Vec<_>>());
+        let (world, info) = solve.worst();
         stats.newton_iterations = 1;
-        stats.linear_iterations = info.iterations;
-        stats.fallbacks = fell_back as usize;
+        stats.linear_iterations = solve.products;
+        stats.fallbacks = solve.fallbacks;
         stats.residual = info.residual;
         stats.tolerance = info.tolerance;
-        stats.converged = info.converged && d.iter().all(|d| d.is_finite());
+        stats.world = world;
+        stats.converged = solve.failed().is_none() && d.iter().all(|d| d.is_finite());
         Ok(sys.v0.iter().zip(&d).map(|(v, d)| v + d).collect())
     }
 
@@ -838,14 +855,14 @@ impl ImplicitEuler {
     }
 
     /// Checks a gradient solve (adjoint or tangent) per the policy.
-    fn check_gradient_solve(&self, what: &str, info: &SolveInfo) -> Result<(), Error> {
-        if info.converged {
+    fn check_gradient_solve(&self, what: &str, solve: &LinearSolve) -> Result<(), Error> {
+        let Some((world, info)) = solve.failed() else {
             return Ok(());
-        }
+        };
         let s = self.gradient_settings();
         self.on_failure.handle(Error::NotConverged {
             solver: format!("ImplicitEuler {what} linear solve (CG, then BiCGSTAB)"),
-            context: String::new(),
+            context: world_context(world, solve.infos.len()),
             iterations: info.iterations,
             residual: info.residual,
             tolerance: info.tolerance,
@@ -929,14 +946,14 @@ impl<R: Real> Shared<R> {
         }
     }
 
-    /// The step `d = v' - v0` of the linearized method, and the scale `eps` of the
+    /// The step `d = v' - v0` of the linearized method, and per DOF the scale `eps` of the
     /// perturbations `v0 +- eps d` (positions `+- eps dt d`) whose central difference gives
-    /// the second-order term: `eps_R^(1/3)` relative to the state, on the positions
-    /// (`eps dt |d| <= eps_R^(1/3) max(1, |x0|)`) and on the velocities
+    /// the second-order term: per world, `eps_R^(1/3)` relative to the world's state, on the
+    /// positions (`eps dt |d| <= eps_R^(1/3) max(1, |x0|)`) and on the velocities
     /// (`eps |d| <= eps_R^(1/3) max(|v0|, |d|)`: contact and friction change over small
-    /// velocities), the step that balances truncation and rounding. `None` if `d = 0` (no
-    /// second-order term).
-    fn linear_direction(&self) -> Option<(Vec<f64>, f64)> {
+    /// velocities), the step that balances truncation and rounding; 0 in a world where
+    /// `d = 0` (no second-order term there). `None` if `d = 0` everywhere.
+    fn linear_direction(&self) -> Option<(Vec<f64>, Vec<f64>)> {
         let d: Vec<f64> = self
             .v1_val
             .re
@@ -944,18 +961,24 @@ impl<R: Real> Shared<R> {
             .zip(&self.v0_val)
             .map(|(a, b)| a - b)
             .collect();
-        let dn = max_abs(&d);
-        if !(dn > 0.0) {
-            return None;
+        let mut eps = vec![0.0; d.len()];
+        for w in Dofs::new(&self.model, &self.inv_mass).worlds {
+            let dn = max_abs(&d[w.clone()]);
+            if !(dn > 0.0) {
+                continue;
+            }
+            let on_x = max_abs(&self.x0_val.re[w.clone()]).max(1.0) / (self.dt * dn);
+            let on_v = max_abs(&self.v0_val[w.clone()]).max(dn) / dn;
+            eps[w].fill(epsilon::<R>().cbrt() * on_x.min(on_v));
         }
-        let on_x = max_abs(&self.x0_val.re).max(1.0) / (self.dt * dn);
-        let on_v = max_abs(&self.v0_val).max(dn) / dn;
-        Some((d, epsilon::<R>().cbrt() * on_x.min(on_v)))
+        eps.iter().any(|&e| e > 0.0).then_some((d, eps))
     }
 
-    /// `v0 + s d`.
-    fn shifted(&self, d: &[f64], s: f64) -> Vec<f64> {
-        self.v0_val.iter().zip(d).map(|(v, d)| v + s * d).collect()
+    /// `v0 + s eps d`, per DOF.
+    fn shifted(&self, d: &[f64], eps: &[f64], s: f64) -> Vec<f64> {
+        (0..d.len())
+            .map(|k| self.v0_val[k] + s * eps[k] * d[k])
+            .collect()
     }
 
     /// The adjoint solve of both methods: the system with gradient-carrying copies, the forces
@@ -1034,10 +1057,13 @@ impl<R: Real> Shared<R> {
         let (gx, gv) = pull(&mut p, &seed).map_err(adjoint)?;
         let (mut gx, mut gv) = (gx.re, gv.re);
         if let Some((d, eps)) = self.linear_direction() {
-            let c = dt / (2.0 * eps);
+            let c = |k: usize| match eps[k] > 0.0 {
+                true => dt / (2.0 * eps[k]),
+                false => 0.0,
+            };
             for s in [1.0, -1.0] {
-                let mut q = sys.eval_at(&Parts::real(self.shifted(&d, s * eps)), true);
-                let seed = Parts::real(mu.iter().map(|u| s * c * u).collect());
+                let mut q = sys.eval_at(&Parts::real(self.shifted(&d, &eps, s)), true);
+                let seed = Parts::real((0..m).map(|k| s * c(k) * mu[k]).collect());
                 let (qx, qv) = pull(&mut q, &seed).map_err(adjoint)?;
                 gx.iter_mut().zip(qx.re).for_each(|(g, q)| *g += q);
                 gv.iter_mut().zip(qv.re).for_each(|(g, q)| *g += q);
@@ -1057,12 +1083,16 @@ impl<R: Real> Shared<R> {
         let sys = self.system(false);
         let dxp: Vec<f64> = (0..m).map(|k| dx0[k] + dt * dv0[k]).collect();
         let direction = self.linear_direction();
-        let mut points = vec![(1.0, sys.eval(&self.v0_val))];
+        let mut points = vec![(vec![1.0; m], sys.eval(&self.v0_val))];
         sys.check_visited(&points[0].1, Needs::Tangent)?;
         if let Some((d, eps)) = &direction {
-            let c = 1.0 / (2.0 * eps);
-            points.push((c, sys.eval(&self.shifted(d, *eps))));
-            points.push((-c, sys.eval(&self.shifted(d, -eps))));
+            for s in [1.0, -1.0] {
+                let c = eps.iter().map(|&e| match e > 0.0 {
+                    true => s * (1.0 / (2.0 * e)),
+                    false => 0.0,
+                });
+                points.push((c.collect(), sys.eval(&self.shifted(d, eps, s))));
+            }
         }
         for l in &sys.c.links {
             l.share_tangent(true);
@@ -1075,7 +1105,7 @@ impl<R: Real> Shared<R> {
             ran = ran.and(q.tape.tangent());
             if let Some(t) = q.a.tangent_buffer() {
                 let ad = flat(&t);
-                (0..m).for_each(|k| rhs[k] += *c * dt * ad[k]);
+                (0..m).for_each(|k| rhs[k] += c[k] * dt * ad[k]);
             }
         }
         for l in &sys.c.links {
@@ -1086,8 +1116,8 @@ impl<R: Real> Shared<R> {
         sys.mask(&mut rhs);
         let mut p = points.swap_remove(0).1;
         let settings = self.integrator.gradient_settings();
-        let (dd, info, _) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
-        self.integrator.check_gradient_solve("tangent", &info)?;
+        let (dd, solve) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
+        self.integrator.check_gradient_solve("tangent", &solve)?;
         let dv1: Vec<f64> = (0..m).map(|k| dv0[k] + dd[k]).collect();
         self.set_output_tangents(&dx0, &dv1);
         Ok(())
@@ -1178,8 +1208,8 @@ impl<R: Real> Shared<R> {
             .collect();
         sys.mask(&mut rhs);
         let settings = self.integrator.gradient_settings();
-        let (mut dv1, info, _) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
-        self.integrator.check_gradient_solve("tangent", &info)?;
+        let (mut dv1, solve) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
+        self.integrator.check_gradient_solve("tangent", &solve)?;
         for k in 0..m {
             if !sys.dofs.free[k] {
                 dv1[k] = dv0[k];

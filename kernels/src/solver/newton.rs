@@ -20,8 +20,19 @@
 //! curvature, or along steepest descent ([`NewtonSystem::steepest`]), and else the best
 //! residual decrease. The solve is converged when `max |residual| <= tolerance * scale`, or
 //! when it is within the rounding floor ([`NewtonSystem::roundoff_floor`]).
+//!
+//! # Worlds
+//!
+//! A model of several worlds ([`crate::ModelBuilder::add_world`]) is a block-diagonal system,
+//! one block per world ([`NewtonSystem::worlds`]). Each world has its own iteration: its own
+//! tolerance (relative to its own scale), Krylov solves ([`krylov::solve_blocks`]), line search
+//! and stopping test; a world that is done waits for the others. Every pass of the force model
+//! (an evaluation, a tangent or adjoint product) covers all worlds at once, each world's part
+//! of it being what that world needs next. A world's iterates, solution and gradients are so
+//! the bits it has alone, whatever its neighbours (`kernels/tests/worlds.rs`).
 
 use std::cell::RefCell;
+use std::ops::Range;
 
 use adflex_runtime::Error;
 
@@ -48,8 +59,13 @@ pub struct NewtonStats {
     pub residual: f64,
     /// The tolerance `residual` was held to, `tolerance * scale`.
     pub tolerance: f64,
-    /// Whether the tolerance was met (never for a NaN residual).
+    /// Whether the tolerance was met (never for a NaN residual), in every world.
     pub converged: bool,
+    /// The world `residual` and `tolerance` are of: the one farthest from its tolerance
+    /// (0 in a model of one world). Each world is solved by its own iteration (its residual
+    /// held to its own scale), so that its result has the same bits alone or among others;
+    /// the counts above are those of the shared passes, each covering every world.
+    pub world: usize,
 }
 
 /// The settings of one Newton solve.
@@ -75,16 +91,21 @@ pub(crate) trait NewtonSystem {
     fn eval(&self, u: &[f64]) -> Self::Point;
     /// The unknowns `u` of a point.
     fn unknowns<'a>(&self, p: &'a Self::Point) -> &'a [f64];
+    /// The unknowns of each world: disjoint ranges covering them all. The system is block
+    /// diagonal over them (a world's residual depends on its unknowns alone), and each world
+    /// is solved by its own iteration.
+    fn worlds(&self) -> &[Range<usize>];
     /// The residual at `p` (0 on fixed DOFs).
     fn residual(&self, p: &Self::Point) -> Vec<f64>;
     /// `G` from the residual.
     fn gradient(&self, e: &[f64]) -> Vec<f64>;
-    /// The residual's merit (line search and progress).
-    fn merit(&self, e: &[f64]) -> f64;
-    /// The scale the tolerance is relative to, at `p`.
-    fn scale(&self, p: &Self::Point) -> f64;
-    /// The residual that rounding alone leaves, given the Newton step `d` from residual `e`.
-    fn roundoff_floor(&self, e: &[f64], d: &[f64]) -> f64;
+    /// The residual's merit over the unknowns `w` (line search and progress).
+    fn merit(&self, e: &[f64], w: Range<usize>) -> f64;
+    /// The scale the tolerance of the unknowns `w` is relative to, at `p`.
+    fn scale(&self, p: &Self::Point, w: Range<usize>) -> f64;
+    /// The residual that rounding alone leaves on the unknowns `w`, given the Newton step `d`
+    /// from residual `e`.
+    fn roundoff_floor(&self, e: &[f64], d: &[f64], w: Range<usize>) -> f64;
     /// The precision's epsilon (of the model's `Real`).
     fn epsilon(&self) -> f64;
     /// The Krylov solves' diagonal preconditioner, if any.
@@ -114,25 +135,28 @@ pub(crate) trait NewtonSystem {
     /// The steepest-descent direction of the potential from residual `e` (in the metric of
     /// the preconditioner).
     fn steepest(&self, e: &[f64]) -> Vec<f64>;
-    /// The first step length along the steepest-descent direction `d` (slope `slope` of the
-    /// potential), counting any product it takes in `stats`.
-    fn steepest_length(
+    /// The first step lengths along the steepest-descent direction `d` of the worlds with a
+    /// slope (`slopes[w]`, that of the potential along `d`; the other worlds' lengths are
+    /// not used), counting any product it takes in `stats`.
+    fn steepest_lengths(
         &self,
         _p: &mut Self::Point,
         _d: &[f64],
-        _slope: f64,
+        slopes: &[Option<f64>],
         _stats: &mut NewtonStats,
-    ) -> f64 {
-        1.0
+    ) -> Vec<f64> {
+        vec![1.0; slopes.len()]
     }
-    /// The potential's exactly known part at `p` and its slope along `d`, if the system has
-    /// energies: `None` if it has none (the potential is then estimated from `G` alone),
-    /// `Some(Err)` if an energy pass failed (no potential: the search keeps to the residual).
-    fn energy(&self, _p: &Self::Point, _d: &[f64]) -> Option<Result<(f64, f64), Error>> {
+    /// Per world, the potential's exactly known part at `p` and its slope along `d`, if the
+    /// system has energies: `None` if it has none (the potential is then estimated from `G`
+    /// alone), `Some(Err)` if an energy pass failed (no potential: the search keeps to the
+    /// residual).
+    fn energy(&self, _p: &Self::Point, _d: &[f64]) -> Option<Result<Vec<(f64, f64)>, Error>> {
         None
     }
-    /// The size of the work terms whose rounding the potential's change carries (J).
-    fn work(&self, _p: &Self::Point) -> f64 {
+    /// The size of the work terms on the unknowns `w` whose rounding the potential's change
+    /// carries (J).
+    fn work(&self, _p: &Self::Point, _w: Range<usize>) -> f64 {
         0.0
     }
 }
@@ -197,20 +221,67 @@ pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(a, b)| a * b).sum()
 }
 
+/// Per world, the figures of its linear solve and whether BiCGSTAB took over (`None` for a
+/// world not solved).
+type Solved = Vec<Option<(SolveInfo, bool)>>;
+
+/// The figures of a linear solve per world, and how many of them BiCGSTAB took over.
+pub(crate) struct LinearSolve {
+    /// Per world.
+    pub infos: Vec<SolveInfo>,
+    /// Products of the whole system (each covers every world).
+    pub products: usize,
+    pub fallbacks: usize,
+}
+
+impl LinearSolve {
+    /// The first world (in order) that missed its tolerance, if any.
+    pub fn failed(&self) -> Option<(usize, &SolveInfo)> {
+        self.infos.iter().enumerate().find(|(_, i)| !i.converged)
+    }
+
+    /// The figures of the world farthest from its tolerance, and that world.
+    pub fn worst(&self) -> (usize, SolveInfo) {
+        let ratio = |i: &SolveInfo| match i.residual / i.tolerance {
+            r if r.is_nan() => f64::INFINITY,
+            r => r,
+        };
+        let w = (0..self.infos.len())
+            .max_by(|&a, &b| {
+                let (ia, ib) = (&self.infos[a], &self.infos[b]);
+                (!ia.converged, ratio(ia))
+                    .partial_cmp(&(!ib.converged, ratio(ib)))
+                    .expect("not NaN")
+                    .then(b.cmp(&a))
+            })
+            .unwrap_or(0);
+        (
+            w,
+            self.infos.get(w).copied().unwrap_or(SolveInfo {
+                iterations: 0,
+                residual: 0.0,
+                tolerance: 0.0,
+                converged: true,
+                negative_curvature: false,
+            }),
+        )
+    }
+}
+
 /// Solves `A^T x = rhs` at `p` part by part (the adjoint solve of the implicit function
 /// theorem): `A0^T x0 = rhs0`, then, at a point recorded in `Dual`, `A0^T x1 = rhs1 - A1^T x0`
 /// (the theorem's second-order term: the derivative of `A^T x = rhs` along the direction).
-/// `check` judges each solve's figures (an error if it missed its tolerance and the policy
-/// says so).
+/// `check` judges each solve's figures (an error if a world missed its tolerance and the
+/// policy says so).
 pub(crate) fn solve_transposed<S: NewtonSystem>(
     sys: &S,
     p: &mut S::Point,
     rhs: &Parts,
     settings: &SolveSettings,
-    check: impl Fn(&SolveInfo) -> Result<(), Error>,
+    check: impl Fn(&LinearSolve) -> Result<(), Error>,
 ) -> Result<Parts, Error> {
-    let (re, info, _) = solve_linear(sys, p, &rhs.re, settings, true)?;
-    check(&info)?;
+    let (re, solve) = solve_linear(sys, p, &rhs.re, settings, true)?;
+    check(&solve)?;
     let eps = match &rhs.eps {
         None => None,
         Some(rhs_eps) => {
@@ -222,26 +293,52 @@ pub(crate) fn solve_transposed<S: NewtonSystem>(
                 None => rhs_eps.clone(),
             };
             sys.mask(&mut r);
-            let (x, info, _) = solve_linear(sys, p, &r, settings, true)?;
-            check(&info)?;
+            let (x, solve) = solve_linear(sys, p, &r, settings, true)?;
+            check(&solve)?;
             Some(x)
         }
     };
     Ok(Parts { re, eps })
 }
 
-/// Solves `A x = rhs` (or `A^T x = rhs`) at `p` by [`krylov::solve`] with the system's
-/// preconditioner; returns `x` (masked), the solve's figures and whether BiCGSTAB took over;
-/// an error if a pass of the force model failed in it.
+/// Solves `A x = rhs` (or `A^T x = rhs`) at `p` in every world by [`krylov::solve_blocks`]
+/// with the system's preconditioner; returns `x` (masked) and the solve's figures; an error
+/// if a pass of the force model failed in it.
 pub(crate) fn solve_linear<S: NewtonSystem>(
     sys: &S,
     p: &mut S::Point,
     rhs: &[f64],
     settings: &SolveSettings,
     transpose: bool,
-) -> Result<(Vec<f64>, SolveInfo, bool), Error> {
+) -> Result<(Vec<f64>, LinearSolve), Error> {
+    let active = vec![true; sys.worlds().len()];
+    let (x, solved) = solve_worlds(sys, p, rhs, settings, transpose, &active, true)?;
+    let infos: Vec<(SolveInfo, bool)> = solved.into_iter().flatten().collect();
+    Ok((x, linear_solve(&infos)))
+}
+
+/// The figures of the per-world solves `infos` (with whether BiCGSTAB took over).
+pub(crate) fn linear_solve(infos: &[(SolveInfo, bool)]) -> LinearSolve {
+    LinearSolve {
+        products: infos.iter().map(|i| i.0.iterations).max().unwrap_or(0),
+        fallbacks: infos.iter().filter(|i| i.1).count(),
+        infos: infos.iter().map(|i| i.0).collect(),
+    }
+}
+
+/// Solves the `active` worlds' blocks of `A x = rhs` (or `A^T x = rhs`) at `p` (CG, then
+/// BiCGSTAB if `fall_back`); `x` is masked, and zero in the other worlds.
+fn solve_worlds<S: NewtonSystem>(
+    sys: &S,
+    p: &mut S::Point,
+    rhs: &[f64],
+    settings: &SolveSettings,
+    transpose: bool,
+    active: &[bool],
+    fall_back: bool,
+) -> Result<(Vec<f64>, Solved), Error> {
     let mut x = vec![0.0; rhs.len()];
-    let (info, fell_back) = krylov::solve(
+    let solved = krylov::solve_blocks(
         |u, out| match transpose {
             true => sys.apply_t(p, u, out),
             false => sys.apply(p, u, out),
@@ -250,28 +347,33 @@ pub(crate) fn solve_linear<S: NewtonSystem>(
         &mut x,
         sys.precond(),
         settings,
+        sys.worlds(),
+        active,
+        fall_back,
     );
     sys.checked()?;
     sys.mask(&mut x);
-    Ok((x, info, fell_back))
+    Ok((x, solved))
 }
 
-/// The Newton direction at `p` of residual `e`: `A d = -G`.
+/// The Newton direction at `p` of residual `e` in the `active` worlds: `A d = -G` (zero in
+/// the others), with each active world's solve.
 pub(crate) fn direction<S: NewtonSystem>(
     sys: &S,
     p: &mut S::Point,
     e: &[f64],
     linear: &SolveSettings,
-) -> Result<(Vec<f64>, SolveInfo, bool), Error> {
+    active: &[bool],
+) -> Result<(Vec<f64>, Solved), Error> {
     let rhs: Vec<f64> = sys.gradient(e).iter().map(|g| -g).collect();
-    solve_linear(sys, p, &rhs, linear, false)
+    solve_worlds(sys, p, &rhs, linear, false, active, true)
 }
 
-/// The potential `E = E_c + E_r` along a search direction `d`, at one point: `E_c` the part
-/// the system knows exactly ([`NewtonSystem::energy`]: inertia and the forces' energies), `E_r`
-/// the rest (gravity, control, damping, friction, forces without an energy), whose slope along
-/// `d` is what `G . d` leaves after `E_c`'s; `E_r`'s change is estimated by the trapezoid rule
-/// on its slopes (exact for constant and linear forces).
+/// The potential `E = E_c + E_r` of one world along a search direction `d`, at one point:
+/// `E_c` the part the system knows exactly ([`NewtonSystem::energy`]: inertia and the forces'
+/// energies), `E_r` the rest (gravity, control, damping, friction, forces without an energy),
+/// whose slope along `d` is what `G . d` leaves after `E_c`'s; `E_r`'s change is estimated by
+/// the trapezoid rule on its slopes (exact for constant and linear forces).
 struct Potential {
     /// `E_c` (J).
     conservative: f64,
@@ -286,21 +388,33 @@ struct Potential {
 }
 
 impl Potential {
-    /// At point `p` of residual `e`, along `d`; `None` if an energy pass failed.
-    fn at<S: NewtonSystem>(sys: &S, p: &S::Point, e: &[f64], d: &[f64]) -> Option<Self> {
-        let (exact, (conservative, slope_c)) = match sys.energy(p, d) {
-            None => (false, (0.0, 0.0)),
+    /// Each world's, at point `p` of residual `e`, along `d`; `None` if an energy pass
+    /// failed.
+    fn at<S: NewtonSystem>(sys: &S, p: &S::Point, e: &[f64], d: &[f64]) -> Option<Vec<Self>> {
+        let worlds = sys.worlds();
+        let (exact, energies) = match sys.energy(p, d) {
+            None => (false, vec![(0.0, 0.0); worlds.len()]),
             Some(Ok(c)) => (true, c),
             Some(Err(_)) => return None,
         };
-        let slope = dot(&sys.gradient(e), d);
-        Some(Potential {
-            conservative,
-            slope_c,
-            slope,
-            magnitude: conservative.abs() + sys.work(p) + slope_c.abs() + slope.abs(),
-            exact,
-        })
+        let g = sys.gradient(e);
+        let potentials = worlds
+            .iter()
+            .zip(energies)
+            .map(|(w, (conservative, slope_c))| {
+                let slope = dot(&g[w.clone()], &d[w.clone()]);
+                Potential {
+                    conservative,
+                    slope_c,
+                    slope,
+                    magnitude: conservative.abs()
+                        + sys.work(p, w.clone())
+                        + slope_c.abs()
+                        + slope.abs(),
+                    exact,
+                }
+            });
+        Some(potentials.collect())
     }
 
     /// `E(t) - E(self)` for the step of length `alpha` (along `d`) from `self` to `t`.
@@ -329,172 +443,391 @@ impl Potential {
     }
 }
 
-/// A line search's accepted step: its merit, point and residual.
-type Accepted<P> = (f64, P, Vec<f64>);
+/// A world's accepted step: its merit and its unknowns.
+type Accepted = (f64, Vec<f64>);
 
-fn along(u: &[f64], d: &[f64], alpha: f64) -> Vec<f64> {
-    u.iter().zip(d).map(|(u, d)| u + alpha * d).collect()
+/// An evaluated point of the whole system: the point, its residual and its unknowns.
+struct Evaluated<P> {
+    point: P,
+    residual: Vec<f64>,
+    unknowns: Vec<f64>,
+}
+
+impl<P> Evaluated<P> {
+    fn at<S: NewtonSystem<Point = P>>(sys: &S, u: Vec<f64>, stats: &mut NewtonStats) -> Self {
+        let point = sys.eval(&u);
+        stats.force_evaluations += 1;
+        Evaluated {
+            residual: sys.residual(&point),
+            point,
+            unknowns: u,
+        }
+    }
+}
+
+/// `u + alpha d` on the unknowns `w`.
+fn along(u: &[f64], d: &[f64], alpha: f64, w: Range<usize>) -> Vec<f64> {
+    u[w.clone()]
+        .iter()
+        .zip(&d[w])
+        .map(|(u, d)| u + alpha * d)
+        .collect()
+}
+
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits())
+}
+
+/// Where a world is in a line search.
+#[derive(Clone, Copy, PartialEq)]
+enum Search {
+    /// Not searching (solved, stopped, or not in this search).
+    Idle,
+    Trying,
+    Accepted,
+    Failed,
 }
 
 /// Newton with line search from the point `first` (already evaluated, and counted here as a
-/// force evaluation); returns the last iterate's unknowns, `stats` saying whether it
-/// converged. Errors only if a pass of the force model failed.
+/// force evaluation), each world by its own iteration (its own directions, step lengths and
+/// stopping tests; a world that is done waits): every pass covers all worlds, and a world's
+/// iterates have the bits it would have alone. Returns the last iterate's unknowns, `stats`
+/// saying whether every world converged. Errors only if a pass of the force model failed.
 pub(crate) fn newton<S: NewtonSystem>(
     sys: &S,
     first: S::Point,
     s: &NewtonSettings<'_>,
     stats: &mut NewtonStats,
 ) -> Result<Vec<f64>, Error> {
-    let mut p = first;
+    let worlds = sys.worlds().to_vec();
+    let nw = worlds.len();
     stats.force_evaluations += 1;
-    let mut e = sys.residual(&p);
-    let mut phi = sys.merit(&e);
+    let e = sys.residual(&first);
+    let mut at = Evaluated {
+        unknowns: sys.unknowns(&first).to_vec(),
+        point: first,
+        residual: e,
+    };
+    let mut phi: Vec<f64> = worlds
+        .iter()
+        .map(|w| sys.merit(&at.residual, w.clone()))
+        .collect();
+    let mut iterations = vec![0; nw];
+    let mut done = vec![false; nw];
+    let mut converged = vec![false; nw];
+    let (mut residual, mut tolerance) = (vec![0.0; nw], vec![0.0; nw]);
     loop {
-        stats.residual = max_abs(&e);
-        stats.tolerance = s.tolerance * sys.scale(&p);
-        // A NaN or infinite residual (or scale) is never converged.
-        if within(stats.residual, stats.tolerance) {
-            stats.converged = true;
-            break;
+        for (w, r) in worlds.iter().enumerate() {
+            if done[w] {
+                continue;
+            }
+            residual[w] = max_abs(&at.residual[r.clone()]);
+            tolerance[w] = s.tolerance * sys.scale(&at.point, r.clone());
+            // A NaN or infinite residual (or scale) is never converged.
+            if within(residual[w], tolerance[w]) {
+                (converged[w], done[w]) = (true, true);
+            } else if iterations[w] >= s.max_newton || !phi[w].is_finite() {
+                done[w] = true;
+            }
         }
-        if stats.newton_iterations >= s.max_newton || !phi.is_finite() {
+        let mut active: Vec<bool> = done.iter().map(|d| !d).collect();
+        if !active.contains(&true) {
             break;
         }
         stats.newton_iterations += 1;
-        let (d, info, fell_back) = direction(sys, &mut p, &e, s.linear)?;
-        stats.linear_iterations += info.iterations;
-        stats.fallbacks += fell_back as usize;
-        if within(stats.residual, sys.roundoff_floor(&e, &d)) {
-            stats.converged = true;
+        for (n, _) in iterations.iter_mut().zip(&active).filter(|(_, &a)| a) {
+            *n += 1;
+        }
+        let (d, solved) = direction(sys, &mut at.point, &at.residual, s.linear, &active)?;
+        let infos: Vec<(SolveInfo, bool)> = solved.into_iter().flatten().collect();
+        let solve = linear_solve(&infos);
+        stats.linear_iterations += solve.products;
+        stats.fallbacks += solve.fallbacks;
+        for (w, r) in worlds.iter().enumerate() {
+            if active[w] && within(residual[w], sys.roundoff_floor(&at.residual, &d, r.clone())) {
+                (converged[w], done[w], active[w]) = (true, true, false);
+            }
+        }
+        if !active.contains(&true) {
             break;
         }
-        // Backtracking line search: a step is accepted if it decreases either merit (module
-        // docs). The potential is what makes large steps on stiff nonlinear forces and
-        // through contact converge: there the residual has local minima.
-        let slope0 = dot(&sys.gradient(&e), &d);
-        // `None`: not computed yet; `Some(None)`: unavailable (an energy pass failed; the
-        // search then keeps to the residual).
-        let mut start: Option<Option<Potential>> = None;
-        let mut alpha = 1.0;
-        let mut best: Option<Accepted<S::Point>> = None;
-        let mut accepted = None;
-        for k in 0..=s.max_backtracks {
-            let pt = sys.eval(&along(sys.unknowns(&p), &d, alpha));
-            stats.force_evaluations += 1;
-            let et = sys.residual(&pt);
-            let phit = sys.merit(&et);
-            let mut residual_ok = phit <= (1.0 - 2e-4 * alpha) * phi;
+        let steps = line_search(sys, &mut at, &d, &phi, &active, s, stats)?;
+        // The next iterate: each searching world's step, the others' unknowns as they are.
+        let mut next = at.unknowns.clone();
+        for (w, r) in worlds.iter().enumerate() {
+            if !active[w] {
+                continue;
+            }
+            match &steps.steps[w] {
+                Some((phit, u)) => {
+                    phi[w] = *phit;
+                    next[r.clone()].copy_from_slice(u);
+                }
+                // No decrease either way: at the attainable precision (or stuck).
+                None => {
+                    let floor = 10.0 * sys.roundoff_floor(&at.residual, &d, r.clone());
+                    (converged[w], done[w]) = (within(residual[w], floor), true);
+                }
+            }
+        }
+        at = match steps
+            .points
+            .into_iter()
+            .find(|p| same_bits(&p.unknowns, &next))
+        {
+            Some(p) => p,
+            None => Evaluated::at(sys, next, stats),
+        };
+    }
+    // The figures of the world farthest from its tolerance.
+    let ratio = |w: usize| match residual[w] / tolerance[w] {
+        r if r.is_nan() => f64::INFINITY,
+        r => r,
+    };
+    let worst = (0..nw)
+        .max_by(|&a, &b| {
+            (!converged[a], ratio(a))
+                .partial_cmp(&(!converged[b], ratio(b)))
+                .expect("not NaN")
+                .then(b.cmp(&a))
+        })
+        .unwrap_or(0);
+    stats.world = worst;
+    stats.residual = residual.get(worst).copied().unwrap_or(0.0);
+    stats.tolerance = tolerance.get(worst).copied().unwrap_or(0.0);
+    stats.converged = converged.iter().all(|&c| c);
+    Ok(at.unknowns)
+}
+
+/// What a line search found: per world its step (`None`: none decreases either merit, or
+/// not searching), and the points it evaluated that the next iterate may be.
+struct Steps<P> {
+    steps: Vec<Option<Accepted>>,
+    points: Vec<Evaluated<P>>,
+}
+
+/// Backtracking line searches along `d` from `at` for the `active` worlds: a step is accepted
+/// if it decreases either merit (module docs). The potential is what makes large steps on
+/// stiff nonlinear forces and through contact converge: there the residual has local minima.
+/// A world where neither merit decreases along the Newton direction (not a descent direction
+/// of the potential where `A` is indefinite) takes a potential step, or else its best
+/// residual decrease.
+fn line_search<S: NewtonSystem>(
+    sys: &S,
+    at: &mut Evaluated<S::Point>,
+    d: &[f64],
+    phi: &[f64],
+    active: &[bool],
+    s: &NewtonSettings<'_>,
+    stats: &mut NewtonStats,
+) -> Result<Steps<S::Point>, Error> {
+    let worlds = sys.worlds();
+    let nw = worlds.len();
+    let g = sys.gradient(&at.residual);
+    let slope0: Vec<f64> = worlds
+        .iter()
+        .map(|w| dot(&g[w.clone()], &d[w.clone()]))
+        .collect();
+    let mut state: Vec<Search> = active
+        .iter()
+        .map(|&a| if a { Search::Trying } else { Search::Idle })
+        .collect();
+    // Which worlds check the potential; their potentials at the start (`None`: an energy
+    // pass failed, and the search keeps to the residual).
+    let with_potential: Vec<bool> = (0..nw)
+        .map(|w| active[w] && s.line_search && slope0[w] < 0.0)
+        .collect();
+    let start = match with_potential.contains(&true) {
+        true => Potential::at(sys, &at.point, &at.residual, d),
+        false => None,
+    };
+    let mut alpha = vec![1.0; nw];
+    let mut steps: Vec<Option<Accepted>> = vec![None; nw];
+    let mut best: Vec<Option<Accepted>> = vec![None; nw];
+    // The trial where a best was last found, and the last trial.
+    let (mut best_point, mut last) = (None, None);
+    // The accepted worlds' unknowns stay in the later trials (the same bits there).
+    let mut target = at.unknowns.clone();
+    for k in 0..=s.max_backtracks {
+        if !state.contains(&Search::Trying) {
+            break;
+        }
+        let mut u = target.clone();
+        for (w, r) in worlds.iter().enumerate() {
+            if state[w] == Search::Trying {
+                u[r.clone()].copy_from_slice(&along(&at.unknowns, d, alpha[w], r.clone()));
+            }
+        }
+        let t = Evaluated::at(sys, u, stats);
+        // Every trial, even one the residual accepts, is checked against the potential
+        // (for implicit Euler, an energy pass and its tangent: 1.25x the time of a small
+        // cloth dropped on the ground, 1.01x that of a 96-tet block, docs/performance.md).
+        // Checking it only once a potential step was taken is cheaper but let a block
+        // thrown at the ground at 1/60 s stall again.
+        let checks = (0..nw).any(|w| state[w] == Search::Trying && with_potential[w]);
+        let trial = match (&start, checks) {
+            (Some(_), true) => Potential::at(sys, &t.point, &t.residual, d),
+            _ => None,
+        };
+        let (mut halved, mut found) = (false, false);
+        for (w, r) in worlds.iter().enumerate() {
+            if state[w] != Search::Trying {
+                continue;
+            }
+            let phit = sys.merit(&t.residual, r.clone());
+            let mut residual_ok = phit <= (1.0 - 2e-4 * alpha[w]) * phi[w];
             let mut potential_ok = false;
-            // Every trial, even one the residual accepts, is checked against the potential
-            // (for implicit Euler, an energy pass and its tangent: 1.25x the time of a small
-            // cloth dropped on the ground, 1.01x that of a 96-tet block, docs/performance.md).
-            // Checking it only once a potential step was taken is cheaper but let a block
-            // thrown at the ground at 1/60 s stall again.
-            if s.line_search && slope0 < 0.0 {
-                let s0 = start.get_or_insert_with(|| Potential::at(sys, &p, &e, &d));
-                let t = s0.as_ref().and_then(|_| Potential::at(sys, &pt, &et, &d));
-                if let (Some(s0), Some(t)) = (s0.as_ref(), t) {
-                    let change = s0.change(&t, alpha);
-                    potential_ok = change.is_finite() && change <= 1e-4 * alpha * slope0;
-                    // A residual decrease that raises the exact potential (beyond its
-                    // rounding) is refused: taking both merits' steps in turn can cycle
-                    // (seen at impacts with friction).
-                    if s0.exact {
-                        residual_ok &= !(change > s0.rounding(&t, sys.epsilon()));
-                    }
+            if let (true, Some(s0), Some(tp)) = (with_potential[w], &start, &trial) {
+                let (s0, tp) = (&s0[w], &tp[w]);
+                let change = s0.change(tp, alpha[w]);
+                potential_ok = change.is_finite() && change <= 1e-4 * alpha[w] * slope0[w];
+                // A residual decrease that raises the exact potential (beyond its
+                // rounding) is refused: taking both merits' steps in turn can cycle
+                // (seen at impacts with friction).
+                if s0.exact {
+                    residual_ok &= !(change > s0.rounding(tp, sys.epsilon()));
                 }
             }
             if !s.line_search || (phit.is_finite() && (residual_ok || potential_ok)) {
-                accepted = Some((phit, pt, et));
-                break;
+                state[w] = Search::Accepted;
+                steps[w] = Some((phit, t.unknowns[r.clone()].to_vec()));
+                target[r.clone()].copy_from_slice(&t.unknowns[r.clone()]);
+                continue;
             }
-            if phit.is_finite() && !best.as_ref().is_some_and(|b| phit >= b.0) {
-                best = Some((phit, pt, et));
+            if phit.is_finite() && !best[w].as_ref().is_some_and(|b| phit >= b.0) {
+                best[w] = Some((phit, t.unknowns[r.clone()].to_vec()));
+                found = true;
             }
             if k < s.max_backtracks {
-                stats.backtracks += 1;
-                alpha *= 0.5;
+                halved = true;
+                alpha[w] *= 0.5;
+            } else {
+                state[w] = Search::Failed;
             }
         }
-        // Neither merit decreases along the Newton direction (not a descent direction of the
-        // potential where `A` is indefinite): a potential step, or else the best residual
-        // decrease.
-        let step = match accepted {
-            Some(a) => Some(a),
-            None => {
-                let step = potential_step(sys, &mut p, &e, s, stats)?;
-                sys.checked()?;
-                step.or_else(|| best.filter(|b| b.0 < phi))
-            }
-        };
-        match step {
-            Some((phit, pt, et)) => {
-                phi = phit;
-                p = pt;
-                e = et;
-            }
-            // No decrease either way: at the attainable precision (or stuck).
-            None => {
-                stats.converged = within(stats.residual, 10.0 * sys.roundoff_floor(&e, &d));
-                break;
-            }
+        stats.backtracks += halved as usize;
+        match found {
+            true => best_point = Some(t),
+            false => last = Some(t),
         }
     }
-    Ok(sys.unknowns(&p).to_vec())
+    let failed: Vec<bool> = state.iter().map(|&s| s == Search::Failed).collect();
+    let mut points: Vec<Evaluated<S::Point>> = Vec::new();
+    if failed.contains(&true) {
+        let (potential, point) = potential_step(sys, at, &failed, s, stats)?;
+        sys.checked()?;
+        for w in (0..nw).filter(|&w| failed[w]) {
+            steps[w] = potential[w]
+                .clone()
+                .or_else(|| best[w].take().filter(|b| b.0 < phi[w]));
+        }
+        points.extend(point);
+    }
+    points.extend(last);
+    points.extend(best_point);
+    Ok(Steps { steps, points })
 }
 
-/// A step that decreases the potential `E` (gradient `G`): along the CG solution of
-/// `A d = -G` truncated at negative curvature (a descent direction of `E`), or else along
-/// steepest descent, with a backtracking (Armijo) line search on `E`. Returns the merit, point
-/// and residual reached, or `None`.
+/// Steps that decrease the potential `E` (gradient `G`) in the worlds `which`: along the CG
+/// solution of `A d = -G` truncated at negative curvature (a descent direction of `E`), or
+/// else along steepest descent, with a backtracking (Armijo) line search on `E`. Returns per
+/// world the merit and unknowns reached, or `None`, and the last point evaluated.
+#[allow(clippy::type_complexity)]
 fn potential_step<S: NewtonSystem>(
     sys: &S,
-    p: &mut S::Point,
-    e: &[f64],
+    at: &mut Evaluated<S::Point>,
+    which: &[bool],
     s: &NewtonSettings<'_>,
     stats: &mut NewtonStats,
-) -> Result<Option<Accepted<S::Point>>, Error> {
-    let g = sys.gradient(e);
+) -> Result<(Vec<Option<Accepted>>, Option<Evaluated<S::Point>>), Error> {
+    let worlds = sys.worlds();
+    let nw = worlds.len();
+    let mut found: Vec<Option<Accepted>> = vec![None; nw];
+    let g = sys.gradient(&at.residual);
     let rhs: Vec<f64> = g.iter().map(|g| -g).collect();
-    let mut d = vec![0.0; g.len()];
-    let info = krylov::cg(
-        |u, out| sys.apply(p, u, out),
-        &rhs,
-        &mut d,
-        sys.precond(),
-        s.linear,
-    );
-    stats.linear_iterations += info.iterations;
-    sys.mask(&mut d);
-    let mut alpha = 1.0;
-    let slope0 = dot(&g, &d);
-    if slope0.is_nan() || slope0 >= 0.0 {
-        d = sys.steepest(e);
-        let slope = dot(&g, &d);
-        if slope.is_nan() || slope >= 0.0 {
-            return Ok(None);
+    let (mut d, solved) = solve_worlds(sys, &mut at.point, &rhs, s.linear, false, which, false)?;
+    let infos: Vec<(SolveInfo, bool)> = solved.into_iter().flatten().collect();
+    stats.linear_iterations += linear_solve(&infos).products;
+    let mut alpha = vec![1.0; nw];
+    let mut searching = which.to_vec();
+    // Worlds where the truncated CG direction does not descend: steepest descent.
+    let mut slopes: Vec<Option<f64>> = vec![None; nw];
+    let mut steepest = None;
+    for (w, r) in worlds.iter().enumerate() {
+        let slope0 = dot(&g[r.clone()], &d[r.clone()]);
+        if !which[w] || !(slope0.is_nan() || slope0 >= 0.0) {
+            continue;
         }
-        alpha = sys.steepest_length(p, &d, slope, stats);
+        let sd = steepest.get_or_insert_with(|| sys.steepest(&at.residual));
+        d[r.clone()].copy_from_slice(&sd[r.clone()]);
+        let slope = dot(&g[r.clone()], &d[r.clone()]);
+        match slope.is_nan() || slope >= 0.0 {
+            true => searching[w] = false,
+            false => slopes[w] = Some(slope),
+        }
+    }
+    if slopes.iter().any(Option::is_some) {
+        let lengths = sys.steepest_lengths(&mut at.point, &d, &slopes, stats);
+        for w in (0..nw).filter(|&w| slopes[w].is_some()) {
+            alpha[w] = lengths[w];
+        }
     }
     // An energy whose pass fails: no potential step (the residual's best is next).
-    let Some(s0) = Potential::at(sys, p, e, &d) else {
-        return Ok(None);
+    let Some(start) = Potential::at(sys, &at.point, &at.residual, &d) else {
+        return Ok((found, None));
     };
-    if s0.slope.is_nan() || s0.slope >= 0.0 {
-        return Ok(None);
-    }
-    for _ in 0..=s.max_backtracks {
-        let pt = sys.eval(&along(sys.unknowns(p), &d, alpha));
-        stats.force_evaluations += 1;
-        let et = sys.residual(&pt);
-        let Some(t) = Potential::at(sys, &pt, &et, &d) else {
-            return Ok(None);
-        };
-        if s0.armijo(&t, alpha) {
-            return Ok(Some((sys.merit(&et), pt, et)));
+    for (w, s0) in start.iter().enumerate() {
+        if s0.slope.is_nan() || s0.slope >= 0.0 {
+            searching[w] = false;
         }
-        stats.backtracks += 1;
-        alpha *= 0.5;
     }
-    Ok(None)
+    let mut last = None;
+    for _ in 0..=s.max_backtracks {
+        if !searching.contains(&true) {
+            break;
+        }
+        let mut u = at.unknowns.clone();
+        for (w, r) in worlds.iter().enumerate() {
+            if searching[w] {
+                u[r.clone()].copy_from_slice(&along(&at.unknowns, &d, alpha[w], r.clone()));
+            }
+        }
+        let t = Evaluated::at(sys, u, stats);
+        let Some(trial) = Potential::at(sys, &t.point, &t.residual, &d) else {
+            return Ok((found, None));
+        };
+        let mut halved = false;
+        for (w, r) in worlds.iter().enumerate() {
+            if !searching[w] {
+                continue;
+            }
+            if start[w].armijo(&trial[w], alpha[w]) {
+                let merit = sys.merit(&t.residual, r.clone());
+                found[w] = Some((merit, t.unknowns[r.clone()].to_vec()));
+                searching[w] = false;
+            } else {
+                halved = true;
+                alpha[w] *= 0.5;
+            }
+        }
+        stats.backtracks += halved as usize;
+        last = Some(t);
+    }
+    Ok((found, last))
+}
+
+/// Names world `world` in an error's context, in a model of more than one.
+pub(crate) fn world_context(world: usize, worlds: usize) -> String {
+    match worlds > 1 {
+        true => format!("in world {world} of {worlds} (each world is solved apart)"),
+        false => String::new(),
+    }
+}
+
+/// `", in world w of n ..."` for a context that goes on, in a model of more than one world.
+pub(crate) fn with_world(world: usize, worlds: usize) -> String {
+    match worlds > 1 {
+        true => format!(", {}", world_context(world, worlds)),
+        false => String::new(),
+    }
 }
