@@ -1015,6 +1015,13 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         "<actuator><motor joint=\"k\"/></actuator></mujoco>",
     ));
     assert!(e.to_string().contains("joint \"k\" is not defined"), "{e}");
+    // With contact switched off (dm_control's reacher), a worldbody cylinder touches nothing.
+    let off = MJCF.replace(
+        "<worldbody>",
+        "<option><flag contact=\"disable\"/></option>\
+         <worldbody><geom type=\"cylinder\" size=\"0.1 0.1\"/>",
+    );
+    assert!(mjcf::parse(&off).unwrap().builder.finalize::<f64>().is_ok());
 }
 
 /// Where MuJoCo reads an attribute in a way of its own, the reader follows it.

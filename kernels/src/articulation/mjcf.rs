@@ -37,8 +37,9 @@
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
 //! and added after the robot's links (a wall stands for its half-space as a box 200 m wide
-//! whose face is the plane). Geoms that touch nothing (`contype` and `conaffinity` 0) are
-//! decoration.
+//! whose face is the plane). Geoms that touch nothing (`contype` and `conaffinity` 0, or any
+//! geom under `<flag contact="disable">`) are decoration; a worldbody cylinder or ellipsoid that
+//! would touch is an error.
 //!
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
@@ -996,7 +997,7 @@ impl<'a> Reader<'a> {
                             ..GroundContact::default()
                         });
                         self.builder.ground_filter = filter;
-                    } else if filter != ContactFilter::NONE {
+                    } else if filter != ContactFilter::NONE && !self.no_contact {
                         if matches!(g.shape, GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..)) {
                             return Err(self.src.error(
                                 c,
