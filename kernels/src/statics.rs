@@ -110,8 +110,9 @@ use crate::state::State;
 #[derive(Clone, Debug, PartialEq)]
 pub struct Equilibrium {
     /// Newton stops when `max |r_k| <= tolerance * scale` (N) over the free DOFs, `scale` the
-    /// largest of the particles' weights `m |g|` and the forces `|f|` on them. `None`
-    /// (default): `1e-10` in f64, `1e-4` in f32.
+    /// largest of the particles' weights `m |g|` and the forces `|f|` on them, each over one
+    /// world's particles (each world is solved by its own iteration). `None` (default):
+    /// `1e-10` in f64, `1e-4` in f32.
     pub tolerance: Option<f64>,
     /// Maximum Newton iterations (default 50).
     pub max_newton: usize,

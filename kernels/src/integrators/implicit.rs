@@ -151,10 +151,12 @@ use crate::state::{Control, State};
 /// and the module's "Failures").
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImplicitEuler {
-    /// Maximum Newton iterations per step (default 30).
+    /// Maximum Newton iterations per step (default 30), per world.
     pub max_newton: usize,
     /// Newton stops when `max |v' - v - dt (a + a_e)| <= tolerance * scale` (m/s), `scale`
-    /// the largest of `|v|`, `|v'|`, `dt |a|`, `dt |a_e|` (`a_e`: the explicit forces' part). `None` (default): `1e-10` in f64, `1e-4` in f32.
+    /// the largest of `|v|`, `|v'|`, `dt |a|`, `dt |a_e|` (`a_e`: the explicit forces' part),
+    /// each over one world's particles (each world is solved by its own iteration). `None`
+    /// (default): `1e-10` in f64, `1e-4` in f32.
     pub tolerance: Option<f64>,
     /// Stopping rule of the linear solves (Newton, and adjoint/tangent unless
     /// `adjoint_linear` is set; default: relative `1e-10`, 1000 iterations). A Newton linear

@@ -31,7 +31,8 @@ use std::ops::Range;
 /// Stopping rule of the Krylov solvers.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SolveSettings {
-    /// Converged when `|r| <= rel_tol |b| + abs_tol` (Euclidean norms; default `1e-10`).
+    /// Converged when `|r| <= rel_tol |b| + abs_tol` (Euclidean norms; default `1e-10`; in
+    /// the library's solves over several worlds, each world's norms).
     pub rel_tol: f64,
     /// Absolute floor of the tolerance (default `1e-14`).
     pub abs_tol: f64,

@@ -44,7 +44,8 @@ pub(crate) use super::parts::Parts;
 /// whether it converged.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct NewtonStats {
-    /// Newton iterations (linear solves).
+    /// Newton iterations (linear solves); with several worlds, the rounds (the most any world
+    /// ran).
     pub newton_iterations: usize,
     /// Matrix-vector products (tangent passes) of all the linear solves.
     pub linear_iterations: usize,
@@ -52,7 +53,7 @@ pub struct NewtonStats {
     pub force_evaluations: usize,
     /// Step halvings in the line searches.
     pub backtracks: usize,
-    /// Linear solves where CG failed and BiCGSTAB took over.
+    /// Linear solves where CG failed and BiCGSTAB took over (one per world that fell back).
     pub fallbacks: usize,
     /// Final `max |residual|` over free DOFs (in the system's units: m/s for
     /// `ImplicitEuler`, N for `Equilibrium`; NaN if the iterate is not finite).
@@ -64,7 +65,8 @@ pub struct NewtonStats {
     /// The world `residual` and `tolerance` are of: the one farthest from its tolerance
     /// (0 in a model of one world). Each world is solved by its own iteration (its residual
     /// held to its own scale), so that its result has the same bits alone or among others;
-    /// the counts above are those of the shared passes, each covering every world.
+    /// the products and force evaluations above count the shared passes, each covering every
+    /// world.
     pub world: usize,
 }
 
@@ -243,6 +245,7 @@ impl LinearSolve {
     /// The figures of the world farthest from its tolerance, and that world.
     pub fn worst(&self) -> (usize, SolveInfo) {
         let ratio = |i: &SolveInfo| match i.residual / i.tolerance {
+            _ if i.residual == 0.0 => 0.0,
             r if r.is_nan() => f64::INFINITY,
             r => r,
         };
@@ -570,6 +573,9 @@ pub(crate) fn newton<S: NewtonSystem>(
                 }
             }
         }
+        if same_bits(&next, &at.unknowns) {
+            continue; // no world moved (each is done)
+        }
         at = match steps
             .points
             .into_iter()
@@ -581,6 +587,7 @@ pub(crate) fn newton<S: NewtonSystem>(
     }
     // The figures of the world farthest from its tolerance.
     let ratio = |w: usize| match residual[w] / tolerance[w] {
+        _ if residual[w] == 0.0 => 0.0,
         r if r.is_nan() => f64::INFINITY,
         r => r,
     };
@@ -714,7 +721,7 @@ fn line_search<S: NewtonSystem>(
     let failed: Vec<bool> = state.iter().map(|&s| s == Search::Failed).collect();
     let mut points: Vec<Evaluated<S::Point>> = Vec::new();
     if failed.contains(&true) {
-        let (potential, point) = potential_step(sys, at, &failed, s, stats)?;
+        let (potential, point) = potential_step(sys, at, &target, &failed, s, stats)?;
         sys.checked()?;
         for w in (0..nw).filter(|&w| failed[w]) {
             steps[w] = potential[w]
@@ -730,12 +737,15 @@ fn line_search<S: NewtonSystem>(
 
 /// Steps that decrease the potential `E` (gradient `G`) in the worlds `which`: along the CG
 /// solution of `A d = -G` truncated at negative curvature (a descent direction of `E`), or
-/// else along steepest descent, with a backtracking (Armijo) line search on `E`. Returns per
-/// world the merit and unknowns reached, or `None`, and the last point evaluated.
+/// else along steepest descent, with a backtracking (Armijo) line search on `E`. The other
+/// worlds stay at their unknowns in `others` in the trials (their next iterate's, so that the
+/// last trial can be it). Returns per world the merit and unknowns reached, or `None`, and
+/// the last point evaluated.
 #[allow(clippy::type_complexity)]
 fn potential_step<S: NewtonSystem>(
     sys: &S,
     at: &mut Evaluated<S::Point>,
+    others: &[f64],
     which: &[bool],
     s: &NewtonSettings<'_>,
     stats: &mut NewtonStats,
@@ -786,10 +796,15 @@ fn potential_step<S: NewtonSystem>(
         if !searching.contains(&true) {
             break;
         }
-        let mut u = at.unknowns.clone();
+        let mut u = others.to_vec();
         for (w, r) in worlds.iter().enumerate() {
-            if searching[w] {
-                u[r.clone()].copy_from_slice(&along(&at.unknowns, &d, alpha[w], r.clone()));
+            if which[w] {
+                let uw = match (searching[w], &found[w]) {
+                    (true, _) => along(&at.unknowns, &d, alpha[w], r.clone()),
+                    (false, Some((_, uw))) => uw.clone(),
+                    (false, None) => at.unknowns[r.clone()].to_vec(),
+                };
+                u[r.clone()].copy_from_slice(&uw);
             }
         }
         let t = Evaluated::at(sys, u, stats);
