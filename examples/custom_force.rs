@@ -28,18 +28,21 @@ fn eval_anchors<R: Real>(
     f.atomic_add(i, (anchor[k] - x[i]) * ke[k]);
 }
 
-/// Its potential, `ke |x - anchor|^2 / 2` (J).
+/// Its potential, `ke |x - anchor|^2 / 2` (J), added into the particle's world's entry of `e`
+/// (one per world: implicit Euler solves each world apart).
 #[diff_kernel]
 fn anchor_energy<R: Real>(
     x: &Array<Vec3<R>>,
     idx: &Array<u32>,
     anchor: &Array<Vec3<R>>,
     ke: &Array<R>,
+    world: &Array<u32>,
     e: &Array<R>,
 ) {
     let k = tid();
-    let d = x[idx[k]] - anchor[k];
-    e.atomic_add(0, ke[k] * dot(d, d) * 0.5);
+    let i = idx[k];
+    let d = x[i] - anchor[k];
+    e.atomic_add(world[i] as usize, ke[k] * dot(d, d) * 0.5);
 }
 
 /// The force component: its arrays, and how to evaluate it.
@@ -62,10 +65,11 @@ impl<R: Real> Force<R> for Anchors<R> {
         );
     }
     fn energy(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, e: &Array<R>) -> bool {
+        let world = cx.particle_worlds();
         tape.launch(
             anchor_energy,
             self.idx.len(),
-            (cx.x, &self.idx, &self.anchor, &self.ke, e),
+            (cx.x, &self.idx, &self.anchor, &self.ke, &world, e),
         );
         true
     }
