@@ -244,31 +244,40 @@ impl LinearSolve {
 
     /// The figures of the world farthest from its tolerance, and that world.
     pub fn worst(&self) -> (usize, SolveInfo) {
-        let ratio = |i: &SolveInfo| match i.residual / i.tolerance {
-            _ if i.residual == 0.0 => 0.0,
+        let i = &self.infos;
+        let w = farthest(i.len(), |w| (i[w].converged, i[w].residual, i[w].tolerance));
+        let converged = SolveInfo {
+            iterations: 0,
+            residual: 0.0,
+            tolerance: 0.0,
+            converged: true,
+            negative_curvature: false,
+        };
+        (w, i.get(w).copied().unwrap_or(converged))
+    }
+}
+
+/// Of `n` worlds with `figures(w) = (converged, residual, tolerance)`, the one farthest from
+/// its tolerance: unconverged before converged, then the largest `residual / tolerance` (a
+/// NaN one counts as infinite, a zero residual as 0), the first of equals; 0 if `n = 0`.
+fn farthest(n: usize, figures: impl Fn(usize) -> (bool, f64, f64)) -> usize {
+    let key = |w: usize| {
+        let (converged, residual, tolerance) = figures(w);
+        let ratio = match residual / tolerance {
+            _ if residual == 0.0 => 0.0,
             r if r.is_nan() => f64::INFINITY,
             r => r,
         };
-        let w = (0..self.infos.len())
-            .max_by(|&a, &b| {
-                let (ia, ib) = (&self.infos[a], &self.infos[b]);
-                (!ia.converged, ratio(ia))
-                    .partial_cmp(&(!ib.converged, ratio(ib)))
-                    .expect("not NaN")
-                    .then(b.cmp(&a))
-            })
-            .unwrap_or(0);
-        (
-            w,
-            self.infos.get(w).copied().unwrap_or(SolveInfo {
-                iterations: 0,
-                residual: 0.0,
-                tolerance: 0.0,
-                converged: true,
-                negative_curvature: false,
-            }),
-        )
-    }
+        (!converged, ratio)
+    };
+    (0..n)
+        .max_by(|&a, &b| {
+            key(a)
+                .partial_cmp(&key(b))
+                .expect("not NaN")
+                .then(b.cmp(&a))
+        })
+        .unwrap_or(0)
 }
 
 /// Solves `A^T x = rhs` at `p` part by part (the adjoint solve of the implicit function
@@ -586,19 +595,7 @@ pub(crate) fn newton<S: NewtonSystem>(
         };
     }
     // The figures of the world farthest from its tolerance.
-    let ratio = |w: usize| match residual[w] / tolerance[w] {
-        _ if residual[w] == 0.0 => 0.0,
-        r if r.is_nan() => f64::INFINITY,
-        r => r,
-    };
-    let worst = (0..nw)
-        .max_by(|&a, &b| {
-            (!converged[a], ratio(a))
-                .partial_cmp(&(!converged[b], ratio(b)))
-                .expect("not NaN")
-                .then(b.cmp(&a))
-        })
-        .unwrap_or(0);
+    let worst = farthest(nw, |w| (converged[w], residual[w], tolerance[w]));
     stats.world = worst;
     stats.residual = residual.get(worst).copied().unwrap_or(0.0);
     stats.tolerance = tolerance.get(worst).copied().unwrap_or(0.0);
