@@ -37,6 +37,7 @@
 pub mod articulation;
 pub mod constraints;
 pub mod contact;
+pub mod coupling;
 pub mod fluid;
 pub mod forces;
 pub mod integrators;

@@ -6,6 +6,7 @@ mod common;
 mod articulation;
 mod cloth;
 mod contact_leak;
+mod coupling;
 mod every_force;
 mod fluid;
 mod gradients;

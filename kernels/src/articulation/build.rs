@@ -2,7 +2,7 @@
 
 use adflex_runtime::prelude::*;
 
-use super::contact::{ContactShape, GeomShape};
+use super::contact::{ContactShape, GeomShape, LinkShapes};
 use super::model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, ArticulationIntegrator,
     Articulations, Inertial, JointType, LinkId, LinkInfo, Pose, WorldInfo,
@@ -638,6 +638,7 @@ pub(crate) fn finalize<R: Real>(
         limit_b: rs(&dof.limit_b),
         limit_imp: Array::from_vec(dof.limit_imp.iter().map(v3).collect()),
         m_len,
+        shapes: LinkShapes::new(b.contact_shapes(), |l| new_index[l]),
         contact_link: Array::from_vec(
             ground_spheres
                 .iter()

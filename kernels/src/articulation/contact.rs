@@ -151,6 +151,70 @@ pub enum GeomShape {
     Plane,
 }
 
+/// Every contact shape of the links (spheres, capsules, boxes) as particles touch them
+/// ([`crate::coupling::LinkParticleContact`]), in the form of the particles' shape SDFs
+/// ([`shape_sdf`](crate::contact::shapes::shape_sdf)): `kind` 0 a sphere of radius `size.x`,
+/// 1 a box of half extents `size`, 2 a capsule of radius `size.x` and half length `size.y`
+/// along its frame's x axis (a [`GeomShape::Capsule`] is along its z axis: its rotation here
+/// includes the turn from x to z). Positions and rotations are in the link's frame.
+#[derive(Clone, Debug)]
+pub struct LinkShapes<R: Real> {
+    /// Per shape: its link (the model's link order).
+    pub link: Array<u32>,
+    /// Per shape: 0 sphere, 1 box, 2 capsule.
+    pub kind: Array<u32>,
+    /// Per shape: its centre in the link frame (m).
+    pub pos: Array<Vec3<R>>,
+    /// Per shape: its rotation in the link frame.
+    pub rot: Array<Quat<R>>,
+    /// Per shape: its size (m), as `kind` says.
+    pub size: Array<Vec3<R>>,
+}
+
+impl<R: Real> LinkShapes<R> {
+    /// The shapes of `shapes`, their links renumbered by `link_of`.
+    pub(crate) fn new(shapes: &[ContactShape], link_of: impl Fn(usize) -> usize) -> Self {
+        let r = |x: f64| R::lit(x);
+        let v3 = |x: f64, y: f64, z: f64| Vec3::new(r(x), r(y), r(z));
+        // The turn by -90 degrees about y takes the SDF's x axis to the capsule's z axis.
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let x_to_z = Quat::new(h, 0.0, -h, 0.0);
+        let (mut link, mut kind, mut pos, mut rot, mut size) =
+            (vec![], vec![], vec![], vec![], vec![]);
+        for c in shapes {
+            let (k, q, s) = match c.shape {
+                GeomShape::Sphere(radius) => (0, c.pose.rot, v3(radius, 0.0, 0.0)),
+                GeomShape::Box(half) => (1, c.pose.rot, v3(half.x, half.y, half.z)),
+                GeomShape::Capsule(radius, half) => (2, c.pose.rot * x_to_z, v3(radius, half, 0.0)),
+                // Refused by the builder's checks.
+                GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => continue,
+            };
+            link.push(link_of(c.link.0) as u32);
+            kind.push(k);
+            pos.push(v3(c.pose.pos.x, c.pose.pos.y, c.pose.pos.z));
+            rot.push(Quat::new(r(q.w), r(q.i), r(q.j), r(q.k)));
+            size.push(s);
+        }
+        LinkShapes {
+            link: Array::from_vec(link),
+            kind: Array::from_vec(kind),
+            pos: Array::from_vec(pos),
+            rot: Array::from_vec(rot),
+            size: Array::from_vec(size),
+        }
+    }
+
+    /// Number of shapes.
+    pub fn len(&self) -> usize {
+        self.link.len()
+    }
+
+    /// Whether there is none.
+    pub fn is_empty(&self) -> bool {
+        self.link.is_empty()
+    }
+}
+
 /// The ground plane links touch, and its contact law.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GroundContact<R: Real> {

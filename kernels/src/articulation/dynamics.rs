@@ -50,6 +50,13 @@ pub struct ArticulationControl<R: Real> {
     /// Actuator controls, one per actuator (see [`actuator`](super::actuator); MuJoCo's
     /// `ctrl`).
     pub ctrl: Array<R>,
+    /// External force on each link, applied at its centre of mass (N, world frame; MuJoCo's
+    /// `xfrc_applied[0..3]`), e.g. the reaction of particles on the links
+    /// ([`crate::coupling`]). `None`: no force.
+    pub link_f: Option<Array<Vec3<R>>>,
+    /// External torque on each link (N m, world frame; MuJoCo's `xfrc_applied[3..6]`).
+    /// `None`: no torque.
+    pub link_t: Option<Array<Vec3<R>>>,
 }
 
 /// What [`Articulations::pass`] computes with.
@@ -133,6 +140,8 @@ impl<R: Real> Articulations<R> {
             target_qd: Array::zeros(self.n_dof),
             activation: Array::zeros(self.muscle_f_max.len()),
             ctrl: Array::zeros(self.act_gear.len()),
+            link_f: None,
+            link_t: None,
         }
     }
 
@@ -346,6 +355,9 @@ impl<R: Real> Articulations<R> {
                     &ef,
                 ),
             );
+        }
+        if let Some(c) = control {
+            self.applied_wrenches(tape, c, &k, (&en, &ef));
         }
         if let (Some(_), true, false) = (control, self.fluid_on, self.fluid_link.is_empty()) {
             tape.launch(
@@ -585,6 +597,21 @@ impl<R: Real> Articulations<R> {
                 &own
             }
         };
+        for (name, a) in [
+            ("control.link_f", &control.link_f),
+            ("control.link_t", &control.link_t),
+        ] {
+            if let Some(a) = a.as_ref().filter(|a| a.len() != self.n_links()) {
+                return Err(Error::InvalidInput {
+                    what: name.into(),
+                    message: format!(
+                        "has {} elements, one per link ({}) is needed",
+                        a.len(),
+                        self.n_links()
+                    ),
+                });
+            }
+        }
         self.check_len(&control.target_q, self.n_dof, "control.target_q");
         self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
         match self.integrator {
@@ -722,6 +749,31 @@ impl<R: Real> Articulations<R> {
             }
         }
         Ok(())
+    }
+
+    /// Adds the control's external link forces and torques ([`ArticulationControl::link_f`],
+    /// `link_t`) into the links' wrenches about the origin `(en, ef)`.
+    fn applied_wrenches(
+        &self,
+        tape: &mut Tape,
+        c: &ArticulationControl<R>,
+        k: &Kinematics<R>,
+        (en, ef): (&Array<Vec3<R>>, &Array<Vec3<R>>),
+    ) {
+        if c.link_f.is_none() && c.link_t.is_none() {
+            return;
+        }
+        let n = self.n_links();
+        let zeros = Array::<Vec3<R>>::zeros(n);
+        let f = c.link_f.as_ref().unwrap_or(&zeros);
+        let t = c.link_t.as_ref().unwrap_or(&zeros);
+        self.check_len(f, n, "control.link_f (one per link)");
+        self.check_len(t, n, "control.link_t (one per link)");
+        tape.launch(
+            articulation_applied_wrench,
+            n,
+            (&k.link_p, &k.link_r, &self.com, f, t, en, ef),
+        );
     }
 
     /// `qdd` at `state` with everything a step applies; with `dt > 0` the step's implicit terms

@@ -621,3 +621,55 @@ pub fn articulation_select_worlds<R: Real>(
         out[t] = keep[t];
     }
 }
+
+/// The external force `force[tid]` at link `tid`'s centre of mass (`com`, link frame) and
+/// torque `torque[tid]` (world frame) as a wrench about the world origin, added into the
+/// link's `(ext_n, ext_f)`.
+#[diff_kernel]
+pub fn articulation_applied_wrench<R: Real>(
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    com: &Array<Vec3<R>>,
+    force: &Array<Vec3<R>>,
+    torque: &Array<Vec3<R>>,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let l = tid();
+    let c = link_p[l] + quat_rotate(link_r[l], com[l]);
+    let f = force[l];
+    ext_n.atomic_add(l, torque[l] + cross(c, f));
+    ext_f.atomic_add(l, f);
+}
+
+/// The twist of link `tid`, world frame: its angular velocity `link_w` and the velocity
+/// `link_v` of the body point at the world origin (a point `x` of the link moves at `link_v +
+/// link_w x x`), the sum of `S_j qd_j` over the joints of its chain.
+#[diff_kernel]
+pub fn articulation_link_twist<R: Real>(
+    chain_start: &Array<u32>,
+    chain: &Array<u32>,
+    qd_start: &Array<u32>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+    qd: &Array<R>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+) {
+    let l = tid();
+    let mut w = vec3(0.0, 0.0, 0.0);
+    let mut v = vec3(0.0, 0.0, 0.0);
+    let c0 = chain_start[l] as usize;
+    let c1 = chain_start[l + 1] as usize;
+    for k in c0..c1 {
+        let j = chain[k] as usize;
+        let d0 = qd_start[j] as usize;
+        let d1 = qd_start[j + 1] as usize;
+        for d in d0..d1 {
+            w = w + s_w[d] * qd[d];
+            v = v + s_v[d] * qd[d];
+        }
+    }
+    link_w[l] = w;
+    link_v[l] = v;
+}

@@ -54,7 +54,7 @@ pub mod urdf;
 mod xml;
 
 pub use actuator::{Actuator, TendonSpring};
-pub use contact::{ContactFilter, ContactShape, GroundContact};
+pub use contact::{ContactFilter, ContactShape, GroundContact, LinkShapes};
 pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
 pub use fluid::Fluid;
 pub use model::{

@@ -1274,6 +1274,8 @@ pub struct Articulations<R: Real> {
     pub upper: Array<R>,
     /// Length of the mass-matrix array (the sum of the blocks' sizes).
     pub m_len: usize,
+    /// Every contact shape of the links, as particles touch them.
+    pub shapes: super::contact::LinkShapes<R>,
     /// Per contact sphere: its link.
     pub contact_link: Array<u32>,
     /// Per contact sphere: its centre in the link frame (m).
