@@ -5,7 +5,7 @@
 //!
 //! That rests on adflex's worlds never interacting: a world's results are the same bits
 //! whatever the other worlds of its model (`kernels/tests/worlds.rs`), so a rank's share
-//! ([`shard`], `ArticulationBuilder::worlds_in`) computes exactly what the whole scene would.
+//! ([`shard`], `ArticulationBuilder::worlds_in`, `ModelBuilder::worlds_in`) computes exactly what the whole scene would.
 //!
 //! [`run_worlds`] is the whole protocol, on any [`Communicator`]:
 //! 1. the ranks compare fingerprints of their scenes ([`fingerprint`]); ranks whose scene

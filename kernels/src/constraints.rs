@@ -300,6 +300,18 @@ impl<R: Real> ConstraintParts<R> {
         self.compliance.extend(&other.compliance);
     }
 
+    /// The constraints among the particles `range` (one share of the worlds), indices shifted
+    /// down by `range.start`.
+    pub(crate) fn worlds_in(&self, range: &std::ops::Range<u32>) -> Self {
+        use crate::forces::component::{elements_in, pick};
+        let (idx, pairs) = elements_in(&self.pairs, range);
+        ConstraintParts {
+            pairs,
+            rest: pick(&self.rest, &idx),
+            compliance: pick(&self.compliance, &idx),
+        }
+    }
+
     /// The model's constraints, if the scene has any.
     pub(crate) fn build(&self) -> Option<DistanceConstraints<R>> {
         (!self.pairs.is_empty()).then(|| DistanceConstraints {

@@ -181,6 +181,102 @@ impl<R: Real> ModelBuilder<R> {
         b
     }
 
+    /// A builder with only the worlds in `worlds` (their particles, elements, bodies,
+    /// constraints and gravity; the same shared environment: ground, drag, shapes, contact
+    /// laws): one process's or thread's share of a scene whose worlds are spread over several
+    /// (`adflex-distributed`). World `worlds.start` of this builder is world 0 of the new one;
+    /// each world's results are the same bits in either (worlds never interact).
+    ///
+    /// Forces added with [`ModelBuilder::add_force`] act over all particles and cannot be
+    /// split: a share of a builder that has some records a problem (add them to each share),
+    /// and so does one of a builder whose elements span worlds.
+    ///
+    /// ```
+    /// use adflex_kernels::prelude::*;
+    /// use adflex_runtime::Vec3;
+    ///
+    /// let mut net = ModelBuilder::<f64>::new();
+    /// let pin = net.add_particle(Vec3::zeros(), Vec3::zeros(), 0.0);
+    /// let bob = net.add_particle(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), 1.0);
+    /// net.add_spring(pin, bob, 1e3, 0.0);
+    /// let all = net.replicate(10);
+    /// let share = all.worlds_in(4..7).finalize();
+    /// assert_eq!(share.worlds.len(), 3);
+    /// assert_eq!(share.springs().unwrap().pairs.to_vec(), vec![[0, 1], [2, 3], [4, 5]]);
+    /// ```
+    ///
+    /// # Panics
+    /// If the range is empty or past the last world.
+    pub fn worlds_in(&self, worlds: std::ops::Range<usize>) -> ModelBuilder<R> {
+        let n = self.worlds.len();
+        assert!(
+            !worlds.is_empty() && worlds.end <= n,
+            "ModelBuilder::worlds_in({worlds:?}): the builder has {n} worlds"
+        );
+        let start = |k: usize| match self.worlds.get(k) {
+            Some(&(p, b, _)) => (p as u32, b as u32),
+            None => (self.particles.len() as u32, self.bodies.len() as u32),
+        };
+        let ((p0, b0), (p1, b1)) = (start(worlds.start), start(worlds.end));
+        let particles = p0..p1;
+        let mut share = ModelBuilder {
+            gravity: self.gravity,
+            particle_radius: self.particle_radius,
+            particles: self.particles.worlds_in(&particles),
+            forces: self.forces.worlds_in(&particles),
+            bodies: self.bodies.worlds_in(&(b0..b1)),
+            constraints: self.constraints.worlds_in(&particles),
+            added: AddedForces::default(),
+            problems: self.problems.clone(),
+            worlds: self.worlds[worlds]
+                .iter()
+                .map(|&(p, b, g)| (p - p0 as usize, b - b0 as usize, g))
+                .collect(),
+            world_added: true,
+        };
+        if !self.added.0.is_empty() {
+            let names: Vec<&str> = self.added.0.iter().map(|f| f.name()).collect();
+            share.check_one("worlds").fail(
+                None,
+                format!(
+                    "worlds_in: the builder has forces added with add_force ({names:?}), which \
+                     act over all particles and cannot be split by world: add them to the share"
+                ),
+            );
+        }
+        if let Some((force, k, p, worlds)) = self.spanning_element() {
+            share.check_one("worlds").fail(
+                None,
+                format!(
+                    "worlds_in: `{force}` element {k} joins particles {p:?} of worlds \
+                     {worlds:?}, so the worlds cannot be split"
+                ),
+            );
+        }
+        share
+    }
+
+    /// The first element (of a library force or a constraint) whose particles are in
+    /// different worlds: its force's name, its index, its particles and their worlds.
+    fn spanning_element(&self) -> Option<(&'static str, usize, Vec<u32>, Vec<u32>)> {
+        if self.worlds.len() < 2 {
+            return None;
+        }
+        let n = self.particles.len();
+        let mut world_of = vec![0u32; n];
+        for (k, &(p0, ..)) in self.worlds.iter().enumerate() {
+            let p1 = self.worlds.get(k + 1).map_or(n, |w| w.0);
+            world_of[p0..p1].fill(k as u32);
+        }
+        let (force, k, p) = self.forces.spanning_worlds(&world_of).or_else(|| {
+            self.constraints
+                .spanning_worlds(&world_of)
+                .map(|(k, p)| ("distance_constraints", k, p))
+        })?;
+        let worlds = p.iter().map(|&i| world_of[i as usize]).collect();
+        Some((force, k, p, worlds))
+    }
+
     /// Number of worlds (1 unless [`ModelBuilder::add_world`] added more).
     pub fn world_count(&self) -> usize {
         self.worlds.len()
@@ -464,20 +560,8 @@ impl<R: Real> ModelBuilder<R> {
         for p in &mut problems[self.problems.len()..] {
             p.param = None; // `gravity.gravity` reads as `gravity`
         }
-        if self.worlds.len() > 1 {
-            let n = self.particles.len();
-            let mut world_of = vec![0u32; n];
-            for (k, &(p0, ..)) in self.worlds.iter().enumerate() {
-                let p1 = self.worlds.get(k + 1).map_or(n, |w| w.0);
-                world_of[p0..p1].fill(k as u32);
-            }
-            let spanning = self.forces.spanning_worlds(&world_of).or_else(|| {
-                self.constraints
-                    .spanning_worlds(&world_of)
-                    .map(|(k, p)| ("distance_constraints", k, p))
-            });
-            if let Some((force, k, p)) = spanning {
-                let worlds: Vec<u32> = p.iter().map(|&i| world_of[i as usize]).collect();
+        {
+            if let Some((force, k, p, worlds)) = self.spanning_element() {
                 Check {
                     out: &mut problems,
                     kind: force,

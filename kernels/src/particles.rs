@@ -64,6 +64,19 @@ impl<R: Real> Particles<R> {
             .extend(crate::forces::component::shifted(&other.triangles, offset));
     }
 
+    /// The particles `range` (one share of the worlds) and the triangles among them, indices
+    /// shifted down by `range.start`.
+    pub(crate) fn worlds_in(&self, range: &std::ops::Range<u32>) -> Self {
+        let r = range.start as usize..range.end as usize;
+        Particles {
+            x: self.x[r.clone()].to_vec(),
+            radii: self.radii[r.clone()].to_vec(),
+            v: self.v[r.clone()].to_vec(),
+            inv_mass: self.inv_mass[r].to_vec(),
+            triangles: crate::forces::component::elements_in(&self.triangles, range).1,
+        }
+    }
+
     /// Particle `i`'s position in `f64` (m).
     pub(crate) fn wide(&self, i: u32) -> Vec3<f64> {
         let p = self.x[i as usize];

@@ -334,6 +334,20 @@ impl<R: Real> BodyParts<R> {
             .extend(other.contacts.iter().map(|&(b, p)| (b + offset, p)));
     }
 
+    /// The bodies `range` (one share of the worlds) and their contact points, body indices
+    /// shifted down by `range.start`.
+    pub(crate) fn worlds_in(&self, range: &std::ops::Range<u32>) -> Self {
+        BodyParts {
+            bodies: self.bodies[range.start as usize..range.end as usize].to_vec(),
+            contacts: self
+                .contacts
+                .iter()
+                .filter(|c| range.contains(&c.0))
+                .map(|&(b, p)| (b - range.start, p))
+                .collect(),
+        }
+    }
+
     /// The model's bodies, if the scene has any.
     pub(crate) fn build(&self) -> Option<RigidBodies<R>> {
         (!self.bodies.is_empty()).then(|| {

@@ -1044,3 +1044,82 @@ fn particle_contact_touches_only_particles_of_one_world() {
         together[3].0
     );
 }
+
+/// `ModelBuilder::worlds_in`: a share of different particle worlds (a rigid body with a
+/// spring, a cloth with membranes, a soft block) steps each world to the bits it
+/// has among all of them; what cannot be split is refused.
+#[test]
+fn a_share_of_particle_worlds_gives_the_same_bits() {
+    use adflex_kernels::prelude::TetGrid;
+    let mut soft = ModelBuilder::<f64>::new();
+    soft.add_tet_grid(&TetGrid {
+        origin: Vec3::new(0.0, 0.02, 0.0),
+        ..TetGrid::default()
+    });
+    soft.set_ground(Ground::default());
+    let mut membrane = cloth_scene(1);
+    let t = membrane.triangles().to_vec();
+    for [i, j, k] in t.into_iter().take(6) {
+        membrane.add_triangle_fem(i, j, k, 100.0, 50.0, 0.1);
+    }
+    let scenes = [cloth_scene(0), body_scene(), membrane, soft, cloth_scene(2)];
+    let mut all = ModelBuilder::<f64>::new();
+    for s in &scenes {
+        all.add_world(s);
+    }
+    let flat = |s: &State<f64>, w: &adflex_kernels::WorldRanges| {
+        let mut out: Vec<u64> = s.x.to_vec()[w.particles.clone()]
+            .iter()
+            .chain(&s.v.to_vec()[w.particles.clone()])
+            .flat_map(|p| [p.x, p.y, p.z])
+            .map(f64::to_bits)
+            .collect();
+        if let Some(b) = &s.bodies {
+            let x = b.x.to_vec();
+            out.extend(
+                x[w.bodies.clone()]
+                    .iter()
+                    .flat_map(|p| [p.x, p.y, p.z])
+                    .map(f64::to_bits),
+            );
+        }
+        out
+    };
+    let run = |b: &ModelBuilder<f64>| {
+        let model = b.finalize();
+        let s = SemiImplicitEuler
+            .rollout(&model, &mut Tape::new(), &model.state(), None, 1e-3, 200)
+            .unwrap();
+        let per_world: Vec<Vec<u64>> = model.worlds.iter().map(|w| flat(&s, w)).collect();
+        per_world
+    };
+    let whole = run(&all);
+    let share = all.worlds_in(1..4);
+    assert_eq!(share.world_count(), 3);
+    let part = run(&share);
+    for k in 0..3 {
+        assert!(!part[k].is_empty());
+        assert_eq!(
+            part[k],
+            whole[k + 1],
+            "world {} of the whole, {k} of the share",
+            k + 1
+        );
+    }
+    // Each world alone too (the share of one world is that world's scene).
+    for (k, s) in scenes.iter().enumerate() {
+        assert_eq!(run(&all.worlds_in(k..k + 1))[0], run(s)[0], "world {k}");
+    }
+
+    // A force added over all particles cannot be split.
+    let mut with_user = all.clone();
+    with_user.add_force(adflex_kernels::forces::particle::Drag::<f64>::default());
+    let e = with_user
+        .worlds_in(0..2)
+        .try_finalize()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("add_force") && e.contains("worlds_in"), "{e}");
+    let bad = std::panic::catch_unwind(|| all.worlds_in(3..6));
+    assert!(bad.is_err());
+}

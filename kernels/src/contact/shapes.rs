@@ -490,6 +490,10 @@ impl<R: Real> ForcePart<R> for ShapeParts<R> {
         Ok(())
     }
 
+    fn worlds_in(&self, _particles: &std::ops::Range<u32>) -> Self {
+        self.clone()
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.shapes.is_empty()).then(|| {
             let codes: Vec<(u32, Vec3<R>)> = self.shapes.iter().map(|s| s.kind.code()).collect();

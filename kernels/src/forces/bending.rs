@@ -326,6 +326,17 @@ impl<R: Real> ForcePart<R> for BendingParts<R> {
         Ok(())
     }
 
+    fn worlds_in(&self, particles: &std::ops::Range<u32>) -> Self {
+        use super::component::{elements_in, pick};
+        let (idx, quads) = elements_in(&self.quads, particles);
+        BendingParts {
+            quads,
+            rest: pick(&self.rest, &idx),
+            ke: pick(&self.ke, &idx),
+            kd: pick(&self.kd, &idx),
+        }
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.quads.is_empty()).then(|| {
             Box::new(Bending {

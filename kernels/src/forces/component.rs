@@ -245,6 +245,11 @@ pub(crate) trait ForcePart<R: Real>: Clone + Debug {
     /// environment: `other`'s must be this one's if both have it (`Err` says so).
     fn append(&mut self, other: &Self, offset: u32) -> Result<(), String>;
 
+    /// This force's part of the worlds whose particles are `particles`: the elements inside,
+    /// their particle indices shifted down by `particles.start` (elements never span worlds).
+    /// A force given whole is the shared environment, kept whole.
+    fn worlds_in(&self, particles: &std::ops::Range<u32>) -> Self;
+
     /// The first element whose particles are in different worlds (`world_of` per particle),
     /// as `(element index, its particles)`: such an element would couple the worlds.
     fn spanning_worlds(&self, _world_of: &[u32]) -> Option<(usize, Vec<u32>)> {
@@ -273,6 +278,10 @@ impl<R: Real, T: Force<R> + Clone + 'static> ForcePart<R> for Option<T> {
     fn append(&mut self, other: &Self, _offset: u32) -> Result<(), String> {
         shared(self, other)
     }
+
+    fn worlds_in(&self, _particles: &std::ops::Range<u32>) -> Self {
+        self.clone()
+    }
 }
 
 /// Part of the environment every world shares: taken from `other` if `this` has none, else
@@ -293,6 +302,25 @@ pub(crate) fn shared<T: Clone + Debug>(
              {a:?})"
         )),
     }
+}
+
+/// The indices of the `elements` whose particles are all in `particles`, and those elements
+/// with their indices shifted down by `particles.start` (a share of the worlds).
+pub(crate) fn elements_in<const N: usize>(
+    elements: &[[u32; N]],
+    particles: &std::ops::Range<u32>,
+) -> (Vec<usize>, Vec<[u32; N]>) {
+    elements
+        .iter()
+        .enumerate()
+        .filter(|(_, e)| e.iter().all(|i| particles.contains(i)))
+        .map(|(k, e)| (k, e.map(|i| i - particles.start)))
+        .unzip()
+}
+
+/// The entries `idx` of `v`.
+pub(crate) fn pick<T: Clone>(v: &[T], idx: &[usize]) -> Vec<T> {
+    idx.iter().map(|&k| v[k].clone()).collect()
 }
 
 /// Element indices shifted by `offset` (a new world's particles).

@@ -390,6 +390,19 @@ impl<R: Real> ForcePart<R> for TetParts<R> {
         Ok(())
     }
 
+    fn worlds_in(&self, particles: &std::ops::Range<u32>) -> Self {
+        use super::component::{elements_in, pick};
+        let (idx, tets) = elements_in(&self.tets, particles);
+        TetParts {
+            tets,
+            dm_inv: pick(&self.dm_inv, &idx),
+            volume: pick(&self.volume, &idx),
+            mu: pick(&self.mu, &idx),
+            lambda: pick(&self.lambda, &idx),
+            kd: pick(&self.kd, &idx),
+        }
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.tets.is_empty()).then(|| {
             Box::new(TetFem {

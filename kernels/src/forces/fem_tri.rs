@@ -359,6 +359,19 @@ impl<R: Real> ForcePart<R> for TriangleParts<R> {
         Ok(())
     }
 
+    fn worlds_in(&self, particles: &std::ops::Range<u32>) -> Self {
+        use super::component::{elements_in, pick};
+        let (idx, tris) = elements_in(&self.tris, particles);
+        TriangleParts {
+            tris,
+            dm_inv: pick(&self.dm_inv, &idx),
+            area: pick(&self.area, &idx),
+            mu: pick(&self.mu, &idx),
+            lambda: pick(&self.lambda, &idx),
+            kd: pick(&self.kd, &idx),
+        }
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.tris.is_empty()).then(|| {
             Box::new(TriangleFem {

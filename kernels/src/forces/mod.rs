@@ -124,6 +124,12 @@ macro_rules! library_forces {
                 None
             }
 
+            /// The forces' parts of the worlds whose particles are `particles` (see
+            /// [`ForcePart::worlds_in`]).
+            pub(crate) fn worlds_in(&self, particles: &std::ops::Range<u32>) -> Self {
+                ForceParts { $($field: ForcePart::<R>::worlds_in(&self.$field, particles),)* }
+            }
+
             /// Appends `other`'s forces as a new world's (see [`ForcePart::append`]); the
             /// first force that cannot be, by name, with why.
             pub(crate) fn append(&mut self, other: &Self, offset: u32) -> Result<(), (&'static str, String)> {

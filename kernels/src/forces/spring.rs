@@ -222,6 +222,17 @@ impl<R: Real> ForcePart<R> for SpringParts<R> {
         Ok(())
     }
 
+    fn worlds_in(&self, particles: &std::ops::Range<u32>) -> Self {
+        use super::component::{elements_in, pick};
+        let (idx, pairs) = elements_in(&self.pairs, particles);
+        SpringParts {
+            pairs,
+            rest: pick(&self.rest, &idx),
+            ke: pick(&self.ke, &idx),
+            kd: pick(&self.kd, &idx),
+        }
+    }
+
     fn build(&self) -> Option<Box<dyn Force<R>>> {
         (!self.pairs.is_empty()).then(|| {
             Box::new(Springs {
