@@ -27,8 +27,14 @@
 //! its slopes. A step may also be accepted for decreasing the residual's merit
 //! `0.5 (v' - v - dt a)^T M (v' - v - dt a)`, but not if it raises `E` beyond `E`'s rounding
 //! along a descent direction of `E`: alternating the two merits can cycle (it did, at a
-//! block's impact with friction). An energy whose tangent pass fails leaves the search to the
-//! residual.
+//! block's impact with friction). Friction and damping make `E`'s estimate depend on the
+//! path, and the two merits could still go round a cycle (a cloth landing on the ground at
+//! 1/60 s went round three iterates for hundreds of iterations): a world whose new iterate
+//! comes back near one of its last four searches on the residual alone from there. Of 100
+//! landings of cloths and soft blocks at 1/60 and 1/30 s, 95 converge within the default 30
+//! iterations (91 before the watchdog); stiff springs (80 cases up to `omega dt` of about 600)
+//! take the same iterations as before.
+//! An energy whose tangent pass fails leaves the search to the residual.
 //!
 //! # The gradient
 //!
