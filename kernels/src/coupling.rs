@@ -16,12 +16,20 @@
 //! differentiates with respect to the other's states and parameters (a robot arm pushing
 //! cloth, cloth dropped on a robot).
 //!
-//! Every particle is tested against every shape of its world (the world of a particle is its
-//! [`Model::particle_world`], of a link its [`Articulations::link_world`]): the cost is
-//! particles x shapes per step. Both families must have the same number of worlds and fall
-//! the same way (equal gravity where both have one): particle scenes are often built with y
-//! up (`ModelBuilder`'s default gravity is `-y`) and robots with z up, so a difference is
-//! refused rather than simulated.
+//! Which shapes particles touch follows MuJoCo's filters: the particles have
+//! [`LinkParticleContact::filter`] (default `contype = conaffinity = 1`) and touch a shape
+//! whose [`ContactFilter`] accepts it (a visual geom, `contype = conaffinity = 0`, touches
+//! nothing). A contact's friction is the larger of the law's `mu` and the shape's own
+//! ([`ContactShape::friction`](crate::articulation::ContactShape::friction), MJCF's geom
+//! `friction`), as MuJoCo combines two geoms'.
+//!
+//! Only a particle and a link of the same world touch (the world of a particle is its
+//! [`Model::particle_world`], of a link its [`Articulations::link_world`]), but the launch
+//! covers every particle against every shape that touches particles, of all worlds: the cost
+//! is particles x shapes per step, which grows with the square of the number of worlds. Both
+//! families must have the same number of worlds and fall the same way (equal gravity where
+//! both have one): particle scenes are often built with y up (`ModelBuilder`'s default
+//! gravity is `-y`) and robots with z up, so a difference is refused rather than simulated.
 //!
 //! ```
 //! use adflex_kernels::articulation::*;
@@ -62,7 +70,7 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
 use crate::articulation::kernels::articulation_link_twist;
-use crate::articulation::{ArticulationControl, ArticulationState, Articulations};
+use crate::articulation::{ArticulationControl, ArticulationState, Articulations, ContactFilter};
 use crate::contact::shapes::shape_contact_force;
 use crate::{Control, Integrator, Model, State};
 
@@ -82,6 +90,9 @@ pub struct LinkParticleContact<R: Real> {
     /// Gradient leak out of contact (default 0: exact gradients; see
     /// [`contact_depth`](crate::contact::law::contact_depth)).
     pub leak: R,
+    /// The particles' contact filter (default `contype = conaffinity = 1`, MuJoCo's default
+    /// geom's): a shape touches them if its filter and this one accept each other.
+    pub filter: ContactFilter,
 }
 
 impl<R: Real> Default for LinkParticleContact<R> {
@@ -92,6 +103,7 @@ impl<R: Real> Default for LinkParticleContact<R> {
             damping_depth: R::lit(1e-4),
             mu: R::lit(0.5),
             leak: R::lit(0.0),
+            filter: ContactFilter::default(),
         }
     }
 }
@@ -124,6 +136,7 @@ pub fn link_particle_contact<R: Real>(
     shape_pos: &Array<Vec3<R>>,
     shape_rot: &Array<Quat<R>>,
     shape_size: &Array<Vec3<R>>,
+    shape_mu: &Array<R>,
     num_shapes: usize,
     link_p: &Array<Vec3<R>>,
     link_r: &Array<Quat<R>>,
@@ -131,7 +144,7 @@ pub fn link_particle_contact<R: Real>(
     link_v: &Array<Vec3<R>>,
     link_com: &Array<Vec3<R>>,
     link_world: &Array<u32>,
-    law: Vec4<R>,
+    law: Vec3<R>,
     leak: R,
     particle_f: &Array<Vec3<R>>,
     link_f: &Array<Vec3<R>>,
@@ -149,7 +162,7 @@ pub fn link_particle_contact<R: Real>(
     let q = quat_mul(r, shape_rot[s]);
     let xp = x[p];
     let rel = v[p] - (link_v[l] + cross(link_w[l], xp));
-    // law = (ke, kd, damping depth, mu).
+    // law = (ke, kd, damping depth).
     let fc = shape_contact_force(
         xp,
         rel,
@@ -161,13 +174,32 @@ pub fn link_particle_contact<R: Real>(
         law.x,
         law.y,
         law.z,
-        law.w,
+        shape_mu[s],
         leak,
     );
     particle_f.atomic_add(p, fc);
     let c = link_p[l] + quat_rotate(r, link_com[l]);
     link_f.atomic_sub(l, fc);
     link_t.atomic_sub(l, cross(xp - c, fc));
+}
+
+/// The shapes of the links that touch particles (see [`LinkParticleContact::forces`]).
+struct Touching<R: Real> {
+    link: Array<u32>,
+    kind: Array<u32>,
+    pos: Array<Vec3<R>>,
+    rot: Array<Quat<R>>,
+    size: Array<Vec3<R>>,
+    mu: Array<R>,
+}
+
+impl<R: Real> Touching<R> {
+    fn len(&self) -> usize {
+        self.link.len()
+    }
+    fn is_empty(&self) -> bool {
+        self.link.is_empty()
+    }
 }
 
 /// `out[tid] = a[tid] + b[tid]`.
@@ -207,6 +239,30 @@ fn plus<R: Real>(
 }
 
 impl<R: Real> LinkParticleContact<R> {
+    /// The links' shapes that touch the particles, with each one's friction.
+    fn touching(&self, arts: &Articulations<R>) -> Touching<R> {
+        let s = &arts.shapes;
+        let keep: Vec<usize> = (0..s.len())
+            .filter(|&k| s.filter[k].touches(&self.filter))
+            .collect();
+        let pick = |a: &[u32]| Array::from_vec(keep.iter().map(|&k| a[k]).collect());
+        let (link, kind) = (pick(&s.link.to_vec()), pick(&s.kind.to_vec()));
+        let (pos, rot, size) = (s.pos.to_vec(), s.rot.to_vec(), s.size.to_vec());
+        let mu = self.mu.to_f64();
+        Touching {
+            link,
+            kind,
+            pos: Array::from_vec(keep.iter().map(|&k| pos[k]).collect()),
+            rot: Array::from_vec(keep.iter().map(|&k| rot[k]).collect()),
+            size: Array::from_vec(keep.iter().map(|&k| size[k]).collect()),
+            mu: Array::from_vec(
+                keep.iter()
+                    .map(|&k| R::lit(s.friction[k].map_or(mu, |f| f.max(mu))))
+                    .collect(),
+            ),
+        }
+    }
+
     /// The checks [`LinkParticleContact::forces`] makes: the law's parameters, the worlds and
     /// the gravities.
     fn check(&self, model: &Model<R>, arts: &Articulations<R>) -> Result<(), Error> {
@@ -270,6 +326,14 @@ impl<R: Real> LinkParticleContact<R> {
     ) -> Result<CouplingForces<R>, Error> {
         self.check(model, arts)?;
         let (np, nl) = (model.particle_count, arts.n_links());
+        for (a, n, what) in [(&astate.q, arts.n_q, "q"), (&astate.qd, arts.n_dof, "qd")] {
+            if a.len() != n {
+                return Err(invalid(
+                    "LinkParticleContact articulation state",
+                    format!("`{what}` has {} elements, the model needs {n}", a.len()),
+                ));
+            }
+        }
         if state.x.len() != np || state.v.len() != np {
             return Err(invalid(
                 "LinkParticleContact state",
@@ -285,7 +349,7 @@ impl<R: Real> LinkParticleContact<R> {
             link_f: Array::zeros(nl),
             link_t: Array::zeros(nl),
         };
-        let shapes = &arts.shapes;
+        let shapes = self.touching(arts);
         if np == 0 || shapes.is_empty() {
             return Ok(out);
         }
@@ -309,7 +373,7 @@ impl<R: Real> LinkParticleContact<R> {
             Some(r) => r.clone(),
             None => Array::from_vec(vec![model.particle_radius; np]),
         };
-        let law = Vec4::new(self.ke, self.kd, self.damping_depth, self.mu);
+        let law = Vec3::new(self.ke, self.kd, self.damping_depth);
         tape.launch(
             link_particle_contact,
             np * shapes.len(),
@@ -323,6 +387,7 @@ impl<R: Real> LinkParticleContact<R> {
                 &shapes.pos,
                 &shapes.rot,
                 &shapes.size,
+                &shapes.mu,
                 shapes.len(),
                 &k.link_p,
                 &k.link_r,

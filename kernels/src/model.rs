@@ -189,7 +189,9 @@ impl<R: Real> ModelBuilder<R> {
     ///
     /// Forces added with [`ModelBuilder::add_force`] act over all particles and cannot be
     /// split: a share of a builder that has some records a problem (add them to each share),
-    /// and so does one of a builder whose elements span worlds.
+    /// and so does one of a builder whose elements span worlds. Surface triangles (output
+    /// only) that span worlds are left out, and problems the builder had already recorded are
+    /// kept as they were (their indices are the whole builder's).
     ///
     /// ```
     /// use adflex_kernels::prelude::*;

@@ -1126,6 +1126,18 @@ fn a_share_of_particle_worlds_gives_the_same_bits() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("add_force") && e.contains("worlds_in"), "{e}");
+    // An element joining two worlds cannot be split either.
+    let mut joined = all.clone();
+    joined.add_spring(0, all.particle_count() as u32 - 1, 10.0, 0.0);
+    let e = joined
+        .worlds_in(0..1)
+        .try_finalize()
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("cannot be split") && e.contains("springs"),
+        "{e}"
+    );
     let bad = std::panic::catch_unwind(|| all.worlds_in(3..6));
     assert!(bad.is_err());
 }

@@ -169,6 +169,10 @@ pub struct LinkShapes<R: Real> {
     pub rot: Array<Quat<R>>,
     /// Per shape: its size (m), as `kind` says.
     pub size: Array<Vec3<R>>,
+    /// Per shape: which others it touches ([`ContactShape::filter`]).
+    pub filter: Vec<ContactFilter>,
+    /// Per shape: its own friction coefficient, if it has one ([`ContactShape::friction`]).
+    pub friction: Vec<Option<f64>>,
 }
 
 impl<R: Real> LinkShapes<R> {
@@ -181,6 +185,7 @@ impl<R: Real> LinkShapes<R> {
         let x_to_z = Quat::new(h, 0.0, -h, 0.0);
         let (mut link, mut kind, mut pos, mut rot, mut size) =
             (vec![], vec![], vec![], vec![], vec![]);
+        let (mut filter, mut friction) = (vec![], vec![]);
         for c in shapes {
             let (k, q, s) = match c.shape {
                 GeomShape::Sphere(radius) => (0, c.pose.rot, v3(radius, 0.0, 0.0)),
@@ -194,6 +199,8 @@ impl<R: Real> LinkShapes<R> {
             pos.push(v3(c.pose.pos.x, c.pose.pos.y, c.pose.pos.z));
             rot.push(Quat::new(r(q.w), r(q.i), r(q.j), r(q.k)));
             size.push(s);
+            filter.push(c.filter);
+            friction.push(c.friction);
         }
         LinkShapes {
             link: Array::from_vec(link),
@@ -201,6 +208,8 @@ impl<R: Real> LinkShapes<R> {
             pos: Array::from_vec(pos),
             rot: Array::from_vec(rot),
             size: Array::from_vec(size),
+            filter,
+            friction,
         }
     }
 

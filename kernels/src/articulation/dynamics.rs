@@ -569,7 +569,8 @@ impl<R: Real> Articulations<R> {
     /// One step of `dt` by the model's [`integrator`](super::ArticulationBuilder::integrator),
     /// as MuJoCo's (see [`ArticulationIntegrator`]). `qdd` comes from the dynamics with the
     /// control's torques, actuators ([`actuator`](super::actuator)), PD targets and muscle
-    /// activations, joint springs, damping and limits, the fluid and the contacts. By default
+    /// activations, external link forces and torques ([`ArticulationControl::link_f`],
+    /// `link_t`), joint springs, damping and limits, the fluid and the contacts. By default
     /// (`Euler`) `qd' = qd + qdd dt`, then `q'` from `qd'` (quaternions by the exponential map,
     /// renormalized), with the joint damping implicit (`dt damping` joins the mass matrix's
     /// diagonal, MuJoCo's `eulerdamp`) unless
