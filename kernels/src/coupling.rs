@@ -85,7 +85,8 @@ pub struct LinkParticleContact<R: Real> {
     pub kd: R,
     /// Penetration depth (m; default 1e-4) over which the damping rises from 0 to `kd`.
     pub damping_depth: R,
-    /// Friction coefficient (default 0.5).
+    /// Friction coefficient (default 0.5); a contact's is the larger of this and its shape's
+    /// own, if the shape has one.
     pub mu: R,
     /// Gradient leak out of contact (default 0: exact gradients; see
     /// [`contact_depth`](crate::contact::law::contact_depth)).
