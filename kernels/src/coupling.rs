@@ -12,6 +12,11 @@
 //! particle relative to the link's point where it is. The link's share acts on the particle's
 //! centre, so momentum and angular momentum pass from one family to the other exactly.
 //!
+//! The coupling force is explicit (evaluated once, at the start of the step), whatever the
+//! families' integrators: even with [`ImplicitEuler`](crate::integrators::ImplicitEuler) for
+//! the particles, the contact with links limits the step as an explicit penalty does (about
+//! `dt < 2 sqrt(m / ke)` for a particle of mass `m`).
+//!
 //! [`LinkParticleContact::step`] records both steps on one tape, so a loss on either family
 //! differentiates with respect to the other's states and parameters (a robot arm pushing
 //! cloth, cloth dropped on a robot).
