@@ -562,22 +562,20 @@ impl<R: Real> ModelBuilder<R> {
         for p in &mut problems[self.problems.len()..] {
             p.param = None; // `gravity.gravity` reads as `gravity`
         }
-        {
-            if let Some((force, k, p, worlds)) = self.spanning_element() {
-                Check {
-                    out: &mut problems,
-                    kind: force,
-                    index: Some(k),
-                }
-                .fail(
-                    None,
-                    format!(
-                        "joins particles {p:?} of worlds {worlds:?}: worlds must not share \
-                         elements (add each world's elements to its own builder before \
-                         add_world)"
-                    ),
-                );
+        if let Some((force, k, p, worlds)) = self.spanning_element() {
+            Check {
+                out: &mut problems,
+                kind: force,
+                index: Some(k),
             }
+            .fail(
+                None,
+                format!(
+                    "joins particles {p:?} of worlds {worlds:?}: worlds must not share \
+                     elements (add each world's elements to its own builder before \
+                     add_world)"
+                ),
+            );
         }
         if problems.is_empty() {
             Ok(())
