@@ -38,6 +38,7 @@ pub mod articulation;
 pub mod constraints;
 pub mod contact;
 pub mod coupling;
+pub mod family;
 pub mod fluid;
 pub mod forces;
 pub mod integrators;

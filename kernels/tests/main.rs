@@ -8,6 +8,7 @@ mod cloth;
 mod contact_leak;
 mod coupling;
 mod every_force;
+mod families;
 mod fluid;
 mod gradients;
 mod integrators;
