@@ -48,7 +48,7 @@ use crate::articulation::{ArticulationControl, ArticulationState, Articulations}
 use crate::fluid::{FluidGrid, Pressure};
 use crate::integrators::Integrator;
 use crate::model::Model;
-use crate::mpm::{Dim, Mpm, MpmState};
+use crate::mpm::{Launches, Mpm, MpmState};
 use crate::state::{Control, State};
 
 /// What every physics family offers: its initial state, a control, and one step recorded on
@@ -233,7 +233,7 @@ impl<R: Real> Family<R> for Articulations<R> {
     }
 }
 
-impl<R: Real, D: Dim> Family<R> for Mpm<R, D> {
+impl<R: Real, D: Launches> Family<R> for Mpm<R, D> {
     const NAME: &'static str = "mpm";
     type State = MpmState<R, D>;
     /// One actuation value per actuator (empty for a model without actuators).

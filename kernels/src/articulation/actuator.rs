@@ -50,7 +50,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use super::model::LinkId;
+use super::pose::LinkId;
 
 /// An actuator on the joint of one link (see the [module](self) for its force).
 #[derive(Clone, Debug, PartialEq)]

@@ -8,6 +8,19 @@ use super::model::{
     Articulations, Inertial, JointType, LinkId, LinkInfo, Pose, WorldInfo,
 };
 
+impl ArticulationBuilder {
+    /// Checks the description and builds the model.
+    ///
+    /// Errors name the link or joint: a parent added after its child or missing, a
+    /// non-finite number, a negative mass, an inertia that is not symmetric positive
+    /// semi-definite, a zero axis or quaternion, limits
+    /// with `lower > upper`, a negative damping, armature or gain, and a joint whose motion
+    /// moves no mass (the mass matrix would be singular).
+    pub fn finalize<R: Real>(&self) -> Result<Articulations<R>, ArticulationError> {
+        finalize(self)
+    }
+}
+
 fn err(element: String, message: impl Into<String>) -> ArticulationError {
     ArticulationError::new(element, message)
 }

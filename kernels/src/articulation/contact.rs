@@ -31,7 +31,7 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use super::model::{LinkId, Pose};
+use super::pose::{LinkId, Pose};
 use crate::contact::law::{contact_damping, contact_depth, contact_force};
 
 /// Which shapes touch which (MuJoCo's `contype` and `conaffinity` bit masks): `a` and `b`

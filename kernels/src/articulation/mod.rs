@@ -50,6 +50,7 @@ pub mod kernels;
 pub mod mjcf;
 mod model;
 pub mod muscle;
+mod pose;
 pub mod urdf;
 mod xml;
 

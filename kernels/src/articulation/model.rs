@@ -8,6 +8,8 @@ use adflex_runtime::prelude::*;
 use super::actuator::{Actuator, TendonSpring};
 use super::contact::{ContactFilter, ContactShape, GeomShape, GroundContact};
 use super::fluid::Fluid;
+pub(crate) use super::pose::{axis_angle, from_to, rotate, rotation_matrix};
+pub use super::pose::{LinkId, Pose};
 
 /// How [`Articulations::step`] advances a state by `dt`: MuJoCo's integrators, step for step
 /// (checked against `mj_step` in the tests, contact and limits aside).
@@ -97,94 +99,6 @@ impl JointType {
     pub fn is_scalar(self) -> bool {
         self.nq() == 1
     }
-}
-
-/// A rigid transform: position and unit quaternion (`x, y, z, w`, nalgebra's `Quaternion`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Pose {
-    /// Translation (m).
-    pub pos: Vec3<f64>,
-    /// Rotation.
-    pub rot: Quat<f64>,
-}
-
-impl Pose {
-    /// The identity.
-    pub fn identity() -> Self {
-        Pose {
-            pos: Vec3::zeros(),
-            rot: Quat::identity(),
-        }
-    }
-
-    /// A translation.
-    pub fn at(pos: Vec3<f64>) -> Self {
-        Pose {
-            pos,
-            rot: Quat::identity(),
-        }
-    }
-
-    /// A translation and a rotation.
-    pub fn new(pos: Vec3<f64>, rot: Quat<f64>) -> Self {
-        Pose { pos, rot }
-    }
-
-    /// `self * other`: `other` expressed in `self`'s parent frame.
-    pub fn compose(&self, other: &Pose) -> Pose {
-        Pose {
-            pos: self.pos + rotate(&self.rot, &other.pos),
-            rot: self.rot * other.rot,
-        }
-    }
-
-    /// Maps a point of this frame to the parent frame.
-    pub fn transform_point(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        self.pos + rotate(&self.rot, p)
-    }
-
-    /// Maps a direction of this frame to the parent frame.
-    pub fn transform_vector(&self, v: &Vec3<f64>) -> Vec3<f64> {
-        rotate(&self.rot, v)
-    }
-}
-
-/// The shortest rotation taking unit `a` to unit `b`.
-pub(crate) fn from_to(a: &Vec3<f64>, b: &Vec3<f64>) -> Quat<f64> {
-    let c = a.dot(b);
-    if c < -1.0 + 1e-12 {
-        // Opposite: half a turn about an axis orthogonal to `a`; for `a = z` about x, as
-        // MuJoCo's `zaxis="0 0 -1"` (z x y = -x, the same half turn).
-        let o = if a.y.abs() < 0.9 {
-            Vec3::y()
-        } else {
-            Vec3::x()
-        };
-        return Quat::from_parts(0.0, a.cross(&o).normalize());
-    }
-    Quat::from_parts(1.0 + c, a.cross(b)).normalize()
-}
-
-/// The rotation by `angle` (rad) about the unit `axis`.
-pub(crate) fn axis_angle(axis: &Vec3<f64>, angle: f64) -> Quat<f64> {
-    let (s, c) = (0.5 * angle).sin_cos();
-    Quat::from_parts(c, axis * s)
-}
-
-/// `q v q*` for a unit `q`.
-pub(crate) fn rotate(q: &Quat<f64>, v: &Vec3<f64>) -> Vec3<f64> {
-    let u = q.imag();
-    let t = u.cross(v) * 2.0;
-    v + t * q.w + u.cross(&t)
-}
-
-/// The rotation matrix of a unit quaternion.
-pub(crate) fn rotation_matrix(q: &Quat<f64>) -> Mat33<f64> {
-    Mat33::from_columns(&[
-        rotate(q, &Vec3::x()),
-        rotate(q, &Vec3::y()),
-        rotate(q, &Vec3::z()),
-    ])
 }
 
 /// A joint: its kind, where it sits on the parent link, its axis and its passive and actuation
@@ -447,10 +361,6 @@ pub struct Muscle {
     /// Maximum shortening speed, in optimal lengths per second (typically 10).
     pub v_max: f64,
 }
-
-/// A link of an [`ArticulationBuilder`], by its index.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct LinkId(pub usize);
 
 /// A link as described: name, parent, the joint to the parent, mass properties.
 #[derive(Clone, Debug, PartialEq)]
@@ -1089,17 +999,6 @@ impl ArticulationBuilder {
             .map(|w| w.1.unwrap_or(self.gravity))
             .collect();
         (of, g)
-    }
-
-    /// Checks the description and builds the model.
-    ///
-    /// Errors name the link or joint: a parent added after its child or missing, a
-    /// non-finite number, a negative mass, an inertia that is not symmetric positive
-    /// semi-definite, a zero axis or quaternion, limits
-    /// with `lower > upper`, a negative damping, armature or gain, and a joint whose motion
-    /// moves no mass (the mass matrix would be singular).
-    pub fn finalize<R: Real>(&self) -> Result<Articulations<R>, ArticulationError> {
-        super::build::finalize(self)
     }
 }
 

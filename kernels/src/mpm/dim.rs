@@ -1,16 +1,13 @@
-//! The dimension of an MPM model: [`D2`] or [`D3`], each with its vector and matrix types and
-//! the launches of its kernels. The builder, model and state are written once over [`Dim`].
+//! The dimension of an MPM model: [`D2`] or [`D3`], each with its vector and matrix types. The
+//! builder, model and state are written once over [`Dim`]; the launches of a step per
+//! dimension are [`Launches`](super::Launches) (`step.rs`).
 
 use std::fmt::Debug;
 
 use adflex_runtime::prelude::*;
 use adflex_runtime::{Element, Mat22, Mat33, Vec2, Vec3};
 
-use super::kernels::{
-    mpm3_g2p, mpm3_grid_update, mpm3_p2g, mpm3_weighted_sum, mpm_g2p, mpm_grid_update, mpm_p2g,
-    mpm_weighted_sum,
-};
-use super::model::{Mpm, MpmState};
+use super::kernels::{mpm3_weighted_sum, mpm_weighted_sum};
 
 /// Two dimensions: `Vec2`, `Mat22`, a 3 x 3 stencil.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -38,15 +35,6 @@ pub trait Dim: Copy + Debug + Default + Send + Sync + 'static {
     fn inside<R: Real>(v: &Self::V<R>, lo: f64, hi: f64) -> bool;
     /// The determinant of `m`.
     fn determinant<R: Real>(m: &Self::M<R>) -> f64;
-    /// Records the three kernels of one step on `tape` and returns the new state (inputs
-    /// already checked).
-    fn launch_step<R: Real>(
-        mpm: &Mpm<R, Self>,
-        tape: &mut Tape,
-        state: &MpmState<R, Self>,
-        actuation: &Array<R>,
-        dt: f64,
-    ) -> MpmState<R, Self>;
     /// Records `out[0] += sum_p x[p] * weight`.
     fn launch_weighted_sum<R: Real>(
         tape: &mut Tape,
@@ -54,60 +42,6 @@ pub trait Dim: Copy + Debug + Default + Send + Sync + 'static {
         weight: R,
         out: &Array<Self::V<R>>,
     );
-}
-
-/// The grid arrays of a step: momentum, mass, velocity.
-type Grid<R, D> = (Array<<D as Dim>::V<R>>, Array<R>, Array<<D as Dim>::V<R>>);
-
-/// The fresh arrays of a step: the next state and the grid.
-fn fresh<R: Real, D: Dim>(n: usize, ng: usize) -> (MpmState<R, D>, Grid<R, D>) {
-    let cells = ng.pow(D::D as u32);
-    (
-        MpmState {
-            x: Array::zeros(n).named("mpm.x"),
-            v: Array::zeros(n).named("mpm.v"),
-            c: Array::zeros(n).named("mpm.C"),
-            f: Array::zeros(n).named("mpm.F"),
-        },
-        (
-            Array::zeros(cells).named("mpm.grid_mv"),
-            Array::zeros(cells).named("mpm.grid_m"),
-            Array::zeros(cells).named("mpm.grid_v"),
-        ),
-    )
-}
-
-/// [`Dim::launch_step`] of a dimension: the same three launches in 2D and 3D but for the
-/// kernels, and the 3D kernels' `stencil` bound.
-macro_rules! launch_step {
-    ($d:ty, $p2g:ident, $grid:ident, $g2p:ident $(, $stencil:expr)?) => {
-        fn launch_step<R: Real>(
-            mpm: &Mpm<R, $d>,
-            tape: &mut Tape,
-            s: &MpmState<R, $d>,
-            actuation: &Array<R>,
-            dt: f64,
-        ) -> MpmState<R, $d> {
-            let (n, ng) = (mpm.particle_count(), mpm.n_grid);
-            let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
-            let (next, (mv, m, gv)) = fresh::<R, $d>(n, ng);
-            let p = (&mpm.mass, &mpm.volume, &mpm.mu, &mpm.lambda, &mpm.kind);
-            let a = (&mpm.actuator, &mpm.act_gain, &mpm.fiber);
-            tape.launch(
-                $p2g,
-                n,
-                (
-                    &s.x, &s.v, &s.c, &s.f, p.0, p.1, p.2, p.3, p.4, a.0, a.1, a.2, actuation,
-                    ng, $($stencil,)? dx, dtr, &next.f, &mv, &m,
-                ),
-            );
-            let (cells, friction) = (ng.pow(<$d as Dim>::D as u32), R::lit(mpm.friction));
-            let grid = (&mv, &m, &mpm.gravity, ng, mpm.bound, friction, dtr, &gv);
-            tape.launch($grid, cells, grid);
-            tape.launch($g2p, n, (&s.x, &gv, ng, $($stencil,)? dx, dtr, &next.x, &next.v, &next.c));
-            next
-        }
-    };
 }
 
 impl Dim for D2 {
@@ -129,7 +63,6 @@ impl Dim for D2 {
     fn determinant<R: Real>(m: &Mat22<R>) -> f64 {
         m.map(|v| v.to_f64()).determinant()
     }
-    launch_step!(D2, mpm_p2g, mpm_grid_update, mpm_g2p);
     fn launch_weighted_sum<R: Real>(
         tape: &mut Tape,
         x: &Array<Vec2<R>>,
@@ -159,7 +92,6 @@ impl Dim for D3 {
     fn determinant<R: Real>(m: &Mat33<R>) -> f64 {
         m.map(|v| v.to_f64()).determinant()
     }
-    launch_step!(D3, mpm3_p2g, mpm3_grid_update, mpm3_g2p, 3usize);
     fn launch_weighted_sum<R: Real>(
         tape: &mut Tape,
         x: &Array<Vec3<R>>,

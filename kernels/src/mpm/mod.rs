@@ -19,7 +19,9 @@ mod dim;
 pub mod kernels;
 mod model;
 pub mod scenes;
+mod step;
 
 pub use dim::{Dim, D2, D3};
 pub use model::{Floor, Material, Mpm, MpmBuilder, MpmState};
 pub use scenes::WalkerTask;
+pub use step::Launches;

@@ -508,7 +508,7 @@ pub struct Mpm<R: Real, D: Dim = D2> {
     pub fiber: Array<D::V<R>>,
     /// Number of actuators: the length of a step's actuation array.
     pub n_actuators: usize,
-    no_actuation: Array<R>,
+    pub(super) no_actuation: Array<R>,
     x0: Vec<D::V<R>>,
     v0: Vec<D::V<R>>,
     stable_dt: f64,
@@ -569,62 +569,10 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         self.stable_dt
     }
 
-    /// One MLS-MPM step of `dt`: particle to grid ([`mpm_p2g`](super::kernels::mpm_p2g)),
-    /// grid update ([`mpm_grid_update`](super::kernels::mpm_grid_update)), grid to particle
-    /// ([`mpm_g2p`](super::kernels::mpm_g2p); the `mpm3_*` kernels in 3D), all on `tape`;
-    /// returns the new state. `actuation` holds one value per actuator (`None`: all zero).
-    ///
-    /// Errors ([`Error::InvalidInput`]) instead of a panic or a NaN later: a `dt` that is not
-    /// finite and positive, an actuation array or a state array of the wrong length, and, in
-    /// the input state or the one the step produced, a particle that is not finite, has left
-    /// the domain inside the walls, or is inverted where its material needs `det F > 0`
-    /// (naming it; the step was unstable: reduce `dt` below [`Mpm::stable_dt`]).
-    pub fn step(
-        &self,
-        tape: &mut Tape,
-        state: &MpmState<R, D>,
-        actuation: Option<&Array<R>>,
-        dt: f64,
-    ) -> Result<MpmState<R, D>, Error> {
-        if !(dt.is_finite() && dt > 0.0) {
-            return Err(invalid("dt", format!("{dt} must be finite and positive")));
-        }
-        let actuation = match actuation {
-            None => &self.no_actuation,
-            Some(a) if a.len() == self.n_actuators && self.n_actuators > 0 => a,
-            Some(a) if a.is_empty() && self.n_actuators == 0 => &self.no_actuation,
-            Some(a) => {
-                return Err(invalid(
-                    &a.label(),
-                    format!(
-                        "the actuation array has {} elements; the model has {} actuators",
-                        a.len(),
-                        self.n_actuators
-                    ),
-                ));
-            }
-        };
-        self.check_state(state, "the step's input")?;
-        let next = D::launch_step(self, tape, state, actuation, dt);
-        // The new state is checked too, so that the last step of a rollout cannot hand on a
-        // NaN or an inverted particle without an error.
-        self.check_state(&next, "the step's result")?;
-        Ok(next)
-    }
-
-    /// The mean position of the particles (one element), recorded on `tape` (DiffTaichi's
-    /// `diffmpm` loss is minus its `x`).
-    pub fn mean_position(&self, tape: &mut Tape, state: &MpmState<R, D>) -> Array<D::V<R>> {
-        let out = Array::zeros(1).named("mpm.mean_position");
-        let n = self.particle_count();
-        D::launch_weighted_sum(tape, &state.x, R::lit(1.0 / n as f64), &out);
-        out
-    }
-
     /// Every array of the model's length; every particle finite and inside the walls (so
     /// that its stencil is on the grid); `det F > 0` where the material needs it (all but the
     /// 2D corotated one, whose closed-form rotation handles inversion).
-    fn check_state(&self, state: &MpmState<R, D>, which: &str) -> Result<(), Error> {
+    pub(super) fn check_state(&self, state: &MpmState<R, D>, which: &str) -> Result<(), Error> {
         let n = self.particle_count();
         let lens = [
             (state.x.len(), state.x.label()),
@@ -683,7 +631,7 @@ impl<R: Real, D: Dim> Mpm<R, D> {
     }
 }
 
-fn invalid(what: &str, message: String) -> Error {
+pub(super) fn invalid(what: &str, message: String) -> Error {
     Error::InvalidInput {
         what: what.into(),
         message,
