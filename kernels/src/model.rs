@@ -413,8 +413,10 @@ impl<R: Real> ModelBuilder<R> {
     }
 
     /// Adds a bending element on every edge shared by two of the triangles added so far, in
-    /// dFlex/Warp order (see [`bending_edges`](crate::forces::bending::bending_edges)); returns how many. Call it once, after the
-    /// triangles.
+    /// dFlex/Warp order (see [`bending_edges`](crate::forces::bending::bending_edges)); returns how
+    /// many. A triangle added more than once (in any order of its particles, e.g. a cloth
+    /// grid's triangles given again to [`ModelBuilder::add_triangle_fem`]) counts once. Call it
+    /// once, after the triangles.
     pub fn add_bending_edges(&mut self, ke: R, kd: R, rest: RestAngle) -> usize {
         let (f, mut el) = self.parts();
         let triangles = el.particles.triangles.clone();

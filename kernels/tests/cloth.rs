@@ -120,3 +120,22 @@ fn timing() {
         );
     }
 }
+
+#[test]
+fn triangles_added_twice_bend_once() {
+    use adflex_kernels::prelude::RestAngle;
+    use adflex_kernels::ModelBuilder;
+    use adflex_runtime::Vec3;
+    // A square of two triangles, both added as topology and again (reordered) as membranes.
+    let mut b = ModelBuilder::<f64>::new();
+    for (x, z) in [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)] {
+        b.add_particle(Vec3::new(x, 0.0, z), Vec3::zeros(), 0.1);
+    }
+    b.add_triangle(0, 1, 2);
+    b.add_triangle(0, 2, 3);
+    b.add_triangle_fem(1, 2, 0, 10.0, 10.0, 0.0);
+    b.add_triangle_fem(3, 0, 2, 10.0, 10.0, 0.0);
+    assert_eq!(b.add_bending_edges(1.0, 0.0, RestAngle::Flat), 1);
+    let model = b.try_finalize().expect("no degenerate bending element");
+    assert_eq!(model.bending().unwrap().quads.to_vec(), vec![[1, 3, 2, 0]]);
+}

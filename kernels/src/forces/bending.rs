@@ -299,7 +299,19 @@ impl<R: Real> BendingParts<R> {
         kd: R,
         rest: RestAngle,
     ) -> usize {
-        let quads = bending_edges(triangles);
+        // A triangle added twice (e.g. a cloth grid's triangles given again as membranes)
+        // is one face: its copies would pair into quads with a repeated particle.
+        let mut seen = std::collections::HashSet::new();
+        let faces: Vec<[u32; 3]> = triangles
+            .iter()
+            .filter(|t| {
+                let mut key = **t;
+                key.sort_unstable();
+                seen.insert(key)
+            })
+            .copied()
+            .collect();
+        let quads = bending_edges(&faces);
         let xs = el.particles.wide_all();
         for &q in &quads {
             let angle = match rest {
