@@ -136,8 +136,7 @@ pub fn rollout<R: Real, F: Family<R>>(
 /// every `every` steps: the loss `loss(tape, final state)` and the gradients of the arrays
 /// that require them (the model's parameters, the control's, the initial state's), with the
 /// memory of `every` steps' intermediates and `steps / every` states instead of the whole
-/// tape (as [`Checkpointed`](adflex_runtime::checkpoint::Checkpointed); an error names its
-/// step).
+/// tape (as [`Checkpointed`]; an error names its step).
 pub fn checkpointed_rollout<R: Real, F: Family<R>, L: Element>(
     family: &F,
     initial: &F::State,
