@@ -45,7 +45,7 @@ use adflex_runtime::prelude::*;
 use adflex_runtime::Element;
 
 use crate::articulation::{ArticulationControl, ArticulationState, Articulations};
-use crate::fluid::{FluidGrid, Pressure};
+use crate::fluid::{FluidGrid, FluidState, Pressure};
 use crate::integrators::Integrator;
 use crate::model::Model;
 use crate::mpm::{Launches, Mpm, MpmState};
@@ -73,8 +73,8 @@ pub trait Family<R: Real> {
     }
     /// One step of `dt` seconds from `state`, recorded on `tape`; the new state.
     ///
-    /// Errors: the family's own (an invalid `dt`, arrays of the wrong length, a solve that
-    /// did not converge, an unstable step), never a panic or a NaN later.
+    /// Errors: the family's own (an invalid `dt`, a state or control array of the wrong
+    /// length, a solve that did not converge, an unstable step; see its `step`).
     fn step(
         &self,
         tape: &mut Tape,
@@ -111,8 +111,9 @@ fn info<F: Family<f64>>(path: &'static str) -> FamilyInfo {
     }
 }
 
-/// `steps` steps of `family` from `initial` with `control`, on `tape`; the last state. An
-/// error names the step it came from (`step k of n`).
+/// `steps` steps (at least one) of `family` from `initial` with `control`, on `tape`; the last
+/// state. An error names the family and the step it came from (`articulations rollout step k
+/// of n`, counted from 0 as [`Integrator::rollout`] does).
 pub fn rollout<R: Real, F: Family<R>>(
     family: &F,
     tape: &mut Tape,
@@ -121,13 +122,19 @@ pub fn rollout<R: Real, F: Family<R>>(
     steps: usize,
     dt: f64,
 ) -> Result<F::State, Error> {
+    if steps == 0 {
+        return Err(Error::InvalidInput {
+            what: format!("rollout of {}", F::NAME),
+            message: "steps must be at least 1".into(),
+        });
+    }
     let mut state = family
         .step(tape, initial, control, dt)
-        .map_err(|e| at(e, 0, steps))?;
+        .map_err(|e| at::<R, F>(e, 0, steps))?;
     for k in 1..steps {
         state = family
             .step(tape, &state, control, dt)
-            .map_err(|e| at(e, k, steps))?;
+            .map_err(|e| at::<R, F>(e, k, steps))?;
     }
     Ok(state)
 }
@@ -161,8 +168,8 @@ pub fn checkpointed_rollout<R: Real, F: Family<R>, L: Element>(
     )
 }
 
-fn at(e: Error, k: usize, n: usize) -> Error {
-    e.in_context(format!("rollout step {} of {n}", k + 1))
+fn at<R: Real, F: Family<R>>(e: Error, k: usize, n: usize) -> Error {
+    e.in_context(format!("{} rollout step {k} of {n}", F::NAME))
 }
 
 /// The particle family (particles with their forces, rigid bodies, XPBD constraints, all in
@@ -255,37 +262,14 @@ impl<R: Real, D: Launches> Family<R> for Mpm<R, D> {
     }
 }
 
-/// The state of a smoke grid: the velocity's components (2 or 3, as the grid's dimension)
-/// and the density, one value per cell each.
-#[derive(Clone, Debug)]
-pub struct FluidState<R: Real> {
-    /// `[u, v]` or `[u, v, w]`.
-    pub velocity: Vec<Array<R>>,
-    /// The advected density.
-    pub density: Array<R>,
-}
-
-impl<R: Real> Checkpoint for FluidState<R> {
-    fn arrays(&self) -> Vec<&dyn AnyArray> {
-        let mut a: Vec<&dyn AnyArray> = self.velocity.iter().map(|v| v as _).collect();
-        a.push(&self.density);
-        a
-    }
-    fn snapshot(&self) -> Self {
-        FluidState {
-            velocity: self.velocity.iter().map(Array::deep_clone).collect(),
-            density: self.density.deep_clone(),
-        }
-    }
-}
-
 impl<R: Real> Family<R> for FluidGrid {
     const NAME: &'static str = "fluid";
     type State = FluidState<R>;
     /// The pressure solve of each step's projection.
     type Control = Pressure;
 
-    /// At rest, without density.
+    /// At rest, without density: a fixed point of the step (set the velocity or the density
+    /// before rolling out).
     fn initial_state(&self) -> FluidState<R> {
         FluidState {
             velocity: (0..self.dim())

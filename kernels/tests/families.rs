@@ -4,10 +4,10 @@
 //! central differences), and the errors a generic caller gets.
 
 use adflex_kernels::articulation::{urdf, Articulations};
-use adflex_kernels::family::{self, families, Family, FluidState, ParticleSystem};
-use adflex_kernels::fluid::{FluidGrid, Pressure};
+use adflex_kernels::family::{self, families, Family, ParticleSystem};
+use adflex_kernels::fluid::{FluidGrid, FluidState, Pressure};
 use adflex_kernels::integrators::ImplicitEuler;
-use adflex_kernels::mpm::{Material, Mpm, MpmBuilder};
+use adflex_kernels::mpm::{Material, Mpm, MpmBuilder, MpmState, D3};
 use adflex_kernels::{Model, ModelBuilder, SemiImplicitEuler};
 use adflex_macros::diff_kernel;
 use adflex_runtime::checkpoint::Checkpoint;
@@ -74,20 +74,20 @@ fn run<F: Family<f64>>(c: &Case<'_, F>, every: Option<usize>) -> (f64, Vec<u64>)
 }
 
 /// A checkpointed rollout against a rollout on one tape (the same bits), and the gradient
-/// against a central difference along the direction that moves every scalar of the first
-/// array by the same amount (so the derivative is the sum of the gradient's scalars).
+/// against a central difference along a fixed direction `d_k = sin(1.7 k + 0.3)` over the
+/// scalars of the first array.
 fn check_family<F: Family<f64>>(c: &Case<'_, F>) {
     let (l, g) = run(c, None);
     let (lc, gc) = run(c, Some(3));
     assert_eq!(l.to_bits(), lc.to_bits(), "{}: loss", F::NAME);
     assert_eq!(g, gc, "{}: the checkpointed gradient", F::NAME);
     let g: Vec<f64> = g.into_iter().map(f64::from_bits).collect();
-    assert!(g.iter().any(|x| *x != 0.0), "{}: a zero gradient", F::NAME);
-    let at = |d: f64| {
+    let dir = |k: usize| (1.7 * k as f64 + 0.3).sin();
+    let at = |h: f64| {
         let s = (c.init)();
         let a = s.arrays()[0];
         for k in 0..a.len() * a.element_dim() {
-            a.set_scalar(k, a.scalar(k) + d);
+            a.set_scalar(k, a.scalar(k) + h * dir(k));
         }
         let mut tape = Tape::new();
         let end = family::rollout(c.family, &mut tape, &s, &c.control, c.steps, c.dt).unwrap();
@@ -95,9 +95,14 @@ fn check_family<F: Family<f64>>(c: &Case<'_, F>) {
     };
     let h = 1e-6;
     let fd = (at(h) - at(-h)) / (2.0 * h);
-    let analytic: f64 = g.iter().sum();
+    let analytic: f64 = g.iter().enumerate().map(|(k, g)| g * dir(k)).sum();
     assert!(
-        (fd - analytic).abs() <= 1e-6 * fd.abs().max(1e-3),
+        analytic.abs() > 1e-3,
+        "{}: a vanishing derivative {analytic}",
+        F::NAME
+    );
+    assert!(
+        (fd - analytic).abs() <= 1e-6 * fd.abs(),
         "{}: gradient {analytic} against central difference {fd}",
         F::NAME
     );
@@ -108,7 +113,11 @@ fn particles() -> Model<f64> {
     let p: Vec<u32> = (0..4)
         .map(|i| {
             let x = Vec3::new(0.3 * i as f64, 1.0 + 0.05 * i as f64, 0.1 * (i % 2) as f64);
-            b.add_particle(x, Vec3::new(0.2, 0.0, -0.1), 0.1)
+            b.add_particle(
+                x,
+                Vec3::new(0.2 * i as f64, -0.3, 0.1 - 0.1 * i as f64),
+                0.1,
+            )
         })
         .collect();
     for w in p.windows(2) {
@@ -223,23 +232,22 @@ fn every_family_rolls_out_and_checkpoints_to_the_same_bits_with_right_gradients(
         dt: 1e-3,
     });
 
-    // An elastic MPM block.
-    let mut b = MpmBuilder::new(16, 1.0 / 16.0);
+    // An elastic MPM block, in 2D and in 3D, thrown with a shearing velocity.
     let (mu, lambda) = Material::lame(400.0, 0.2);
-    b.add_rect(
-        [0.4, 0.4].into(),
-        [0.2, 0.2].into(),
-        1e-2,
-        1e-2,
-        Material::Corotated { mu, lambda },
-    );
+    let mut b = MpmBuilder::new(16, 1.0 / 16.0);
+    let block = Material::Corotated { mu, lambda };
+    b.add_rect([0.4, 0.4].into(), [0.2, 0.2].into(), 1e-2, 1e-2, block);
     let mpm: Mpm<f64> = b.finalize().unwrap();
     let init = || {
         let s = mpm.initial_state();
+        let v: Vec<Vec2<f64>> = (s.x.to_vec().iter())
+            .map(|p| Vec2::new(2.0 * (p.y - 0.5), 0.5 - p.x))
+            .collect();
+        s.v.assign(&v);
         let _ = s.x.clone().requires_grad();
         s
     };
-    let loss = |tape: &mut Tape, s: &adflex_kernels::mpm::MpmState<f64>| {
+    let loss = |tape: &mut Tape, s: &MpmState<f64>| {
         let l = Array::zeros(1);
         tape.launch(weighted_vec2, s.x.len(), (&s.x, &l));
         Ok(l)
@@ -251,6 +259,61 @@ fn every_family_rolls_out_and_checkpoints_to_the_same_bits_with_right_gradients(
         loss: &loss,
         steps: 7,
         dt: 1e-3,
+    });
+    let mut b = MpmBuilder::new_3d(12, 1.0 / 12.0);
+    let size = Vec3::new(0.25, 0.25, 0.25);
+    b.add_rect(Vec3::new(0.35, 0.35, 0.35), size, 1e-2, 1e-3, block);
+    let mpm: Mpm<f64, D3> = b.finalize().unwrap();
+    let init = || {
+        let s = mpm.initial_state();
+        let v: Vec<Vec3<f64>> = (s.x.to_vec().iter())
+            .map(|p| Vec3::new(2.0 * (p.y - 0.5), 0.5 - p.z, p.x - 0.5))
+            .collect();
+        s.v.assign(&v);
+        let _ = s.x.clone().requires_grad();
+        s
+    };
+    let loss = |tape: &mut Tape, s: &MpmState<f64, D3>| {
+        let l = Array::zeros(1);
+        tape.launch(weighted_vec3, s.x.len(), (&s.x, &l));
+        Ok(l)
+    };
+    check_family(&Case {
+        family: &mpm,
+        control: mpm.default_control(),
+        init: &init,
+        loss: &loss,
+        steps: 7,
+        dt: 1e-3,
+    });
+
+    // Smoke on a 3D grid (CG pressure).
+    let grid = FluidGrid::new_3d(6, 1.0 / 6.0).unwrap();
+    let init = || {
+        let s: FluidState<f64> = grid.initial_state();
+        let c = grid.cells();
+        for (k, a) in s.velocity.iter().chain([&s.density]).enumerate() {
+            a.assign(
+                &(0..c)
+                    .map(|i| ((i * (3 + 2 * k)) % 7) as f64 * 0.1 - 0.27)
+                    .collect::<Vec<_>>(),
+            );
+        }
+        let _ = s.velocity[0].clone().requires_grad();
+        s
+    };
+    let loss = |tape: &mut Tape, s: &FluidState<f64>| {
+        let l = Array::zeros(1);
+        tape.launch(weighted, s.density.len(), (&s.density, &l));
+        Ok(l)
+    };
+    check_family(&Case {
+        family: &grid,
+        control: Pressure::cg(),
+        init: &init,
+        loss: &loss,
+        steps: 4,
+        dt: 0.02,
     });
 
     // Smoke on a grid, both pressure solves.
@@ -299,8 +362,32 @@ fn a_generic_caller_gets_errors_naming_the_step() {
     )
     .unwrap_err()
     .to_string();
-    assert!(err.contains("rollout step 1 of 5"), "{err}");
+    assert!(err.contains("particles rollout step 0 of 5"), "{err}");
     assert!(err.contains("dt"), "{err}");
+
+    // A robot's state or control of the wrong length is an error naming it, not a panic.
+    let arm: Articulations<f64> = urdf::load(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/robots/arm7.urdf"),
+        &Default::default(),
+    )
+    .unwrap()
+    .finalize()
+    .unwrap();
+    let mut c = arm.default_control();
+    c.tau = Array::zeros(3);
+    let err = family::rollout(&arm, &mut tape, &arm.initial_state(), &c, 2, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("control.tau") && err.contains("articulations rollout step 0"),
+        "{err}"
+    );
+    let mut s = arm.initial_state();
+    s.qd = Array::zeros(2);
+    let err = Family::<f64>::step(&arm, &mut tape, &s, &arm.default_control(), 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("state.qd"), "{err}");
 
     let grid = FluidGrid::new(8, 1.0 / 8.0).unwrap();
     let mut s: FluidState<f64> = grid.initial_state();

@@ -613,8 +613,31 @@ impl<R: Real> Articulations<R> {
                 });
             }
         }
-        self.check_len(&control.target_q, self.n_dof, "control.target_q");
-        self.check_len(&control.target_qd, self.n_dof, "control.target_qd");
+        // Every array of the wrong length is an error naming it (never a panic in a pass).
+        let n_act = self.act_gear.len();
+        for (name, len, n) in [
+            ("state.q", state.q.len(), self.n_q),
+            ("state.qd", state.qd.len(), self.n_dof),
+            ("control.tau", control.tau.len(), self.n_dof),
+            ("control.target_q", control.target_q.len(), self.n_dof),
+            ("control.target_qd", control.target_qd.len(), self.n_dof),
+            (
+                "control.activation",
+                control.activation.len(),
+                self.muscle_f_max.len(),
+            ),
+            ("control.ctrl", control.ctrl.len(), n_act),
+        ] {
+            // (Activations and actuator controls of a model without muscles or actuators
+            // are not read.)
+            let unread = n == 0 && name.starts_with("control.") && name != "control.tau";
+            if len != n && !unread {
+                return Err(Error::InvalidInput {
+                    what: name.into(),
+                    message: format!("has {len} elements, the model needs {n}"),
+                });
+            }
+        }
         match self.integrator {
             ArticulationIntegrator::Rk4 => return self.rk4_step(tape, state, control, dt),
             ArticulationIntegrator::ImplicitFast => self.check_implicit_fast()?,

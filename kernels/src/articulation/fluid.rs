@@ -96,7 +96,7 @@ pub(crate) struct InertiaBox {
 /// The inertia box of each link with mass, from the links' mass properties in the model's
 /// order.
 pub(crate) fn inertia_boxes<'a>(
-    inertials: impl Iterator<Item = &'a super::Inertial>,
+    inertials: impl Iterator<Item = &'a super::pose::Inertial>,
 ) -> Vec<InertiaBox> {
     use adflex_runtime::Vec3;
     inertials

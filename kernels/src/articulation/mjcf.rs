@@ -1867,7 +1867,7 @@ impl<'a> Reader<'a> {
 
 #[cfg(test)]
 mod tests {
-    use super::super::model::{rotate, rotation_matrix};
+    use super::super::pose::{rotate, rotation_matrix};
     use super::*;
 
     #[test]

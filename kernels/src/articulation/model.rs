@@ -8,8 +8,8 @@ use adflex_runtime::prelude::*;
 use super::actuator::{Actuator, TendonSpring};
 use super::contact::{ContactFilter, ContactShape, GeomShape, GroundContact};
 use super::fluid::Fluid;
-pub(crate) use super::pose::{axis_angle, from_to, rotate, rotation_matrix};
-pub use super::pose::{LinkId, Pose};
+pub(crate) use super::pose::{axis_angle, from_to, rotate};
+pub use super::pose::{Inertial, LinkId, Pose};
 
 /// How [`Articulations::step`] advances a state by `dt`: MuJoCo's integrators, step for step
 /// (checked against `mj_step` in the tests, contact and limits aside).
@@ -271,74 +271,6 @@ impl Joint {
         self.kp = kp;
         self.kv = kv;
         self
-    }
-}
-
-/// Mass properties of a link, in its frame.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Inertial {
-    /// Mass (kg).
-    pub mass: f64,
-    /// Centre of mass (m).
-    pub com: Vec3<f64>,
-    /// Rotational inertia about the centre of mass, in the link's axes (kg m^2).
-    pub inertia: Mat33<f64>,
-}
-
-impl Inertial {
-    /// `mass` at `com` with `inertia` about it.
-    pub fn new(mass: f64, com: Vec3<f64>, inertia: Mat33<f64>) -> Self {
-        Inertial { mass, com, inertia }
-    }
-
-    /// No mass (a frame, or an intermediate link of a compound joint).
-    pub fn massless() -> Self {
-        Self::new(0.0, Vec3::zeros(), Mat33::zeros())
-    }
-
-    /// A point mass.
-    pub fn point(mass: f64, com: Vec3<f64>) -> Self {
-        Self::new(mass, com, Mat33::zeros())
-    }
-
-    /// A solid sphere of `mass` and `radius` centred at `com`.
-    pub fn sphere(mass: f64, radius: f64, com: Vec3<f64>) -> Self {
-        Self::new(
-            mass,
-            com,
-            Mat33::identity() * (0.4 * mass * radius * radius),
-        )
-    }
-
-    /// A solid box of `mass` and half extents `half`, centred at `com`, axis aligned.
-    pub fn cuboid(mass: f64, half: Vec3<f64>, com: Vec3<f64>) -> Self {
-        let (x, y, z) = (half.x * half.x, half.y * half.y, half.z * half.z);
-        let i = Mat33::from_diagonal(&Vec3::new(y + z, x + z, x + y)) * (mass / 3.0);
-        Self::new(mass, com, i)
-    }
-
-    /// The sum of two bodies' mass properties in one frame.
-    pub fn combine(&self, other: &Inertial) -> Inertial {
-        let m = self.mass + other.mass;
-        if m <= 0.0 {
-            return Inertial::massless();
-        }
-        let c = (self.com * self.mass + other.com * other.mass) / m;
-        let shift = |i: &Inertial| {
-            let d = i.com - c;
-            i.inertia + (Mat33::identity() * d.dot(&d) - d * d.transpose()) * i.mass
-        };
-        Inertial::new(m, c, shift(self) + shift(other))
-    }
-
-    /// These mass properties seen from a frame in which this one is at `pose`.
-    pub fn transformed(&self, pose: &Pose) -> Inertial {
-        let r = rotation_matrix(&pose.rot);
-        Inertial::new(
-            self.mass,
-            pose.transform_point(&self.com),
-            r * self.inertia * r.transpose(),
-        )
     }
 }
 

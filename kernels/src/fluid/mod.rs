@@ -48,6 +48,30 @@ use kernels::{
 /// The fields a smoke step carries: the velocity's `x` and `y` components and the density.
 pub type Flow<R> = (Array<R>, Array<R>, Array<R>);
 
+/// The state of a smoke grid: the velocity's components (2 or 3, as the grid's dimension)
+/// and the density, one value per cell each.
+#[derive(Clone, Debug)]
+pub struct FluidState<R: Real> {
+    /// `[u, v]` or `[u, v, w]`.
+    pub velocity: Vec<Array<R>>,
+    /// The advected density.
+    pub density: Array<R>,
+}
+
+impl<R: Real> adflex_runtime::checkpoint::Checkpoint for FluidState<R> {
+    fn arrays(&self) -> Vec<&dyn AnyArray> {
+        let mut a: Vec<&dyn AnyArray> = self.velocity.iter().map(|v| v as _).collect();
+        a.push(&self.density);
+        a
+    }
+    fn snapshot(&self) -> Self {
+        FluidState {
+            velocity: self.velocity.iter().map(Array::deep_clone).collect(),
+            density: self.density.deep_clone(),
+        }
+    }
+}
+
 /// How the pressure equation is solved (see the [module docs](self)).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Pressure {

@@ -16,7 +16,9 @@ pub struct D2;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct D3;
 
-/// What an MPM model needs of its dimension.
+/// What an MPM model needs of its dimension (its types; the launches of a step are
+/// [`Launches`](super::Launches), which [`D2`] and [`D3`] implement: code generic over the
+/// dimension that steps a model bounds `D: Launches`).
 pub trait Dim: Copy + Debug + Default + Send + Sync + 'static {
     /// 2 or 3.
     const D: usize;

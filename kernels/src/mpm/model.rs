@@ -569,6 +569,15 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         self.stable_dt
     }
 
+    /// The mean position of the particles (one element), recorded on `tape` (DiffTaichi's
+    /// `diffmpm` loss is minus its `x`).
+    pub fn mean_position(&self, tape: &mut Tape, state: &MpmState<R, D>) -> Array<D::V<R>> {
+        let out = Array::zeros(1).named("mpm.mean_position");
+        let n = self.particle_count();
+        D::launch_weighted_sum(tape, &state.x, R::lit(1.0 / n as f64), &out);
+        out
+    }
+
     /// Every array of the model's length; every particle finite and inside the walls (so
     /// that its stencil is on the grid); `det F > 0` where the material needs it (all but the
     /// 2D corotated one, whose closed-form rotation handles inversion).

@@ -126,13 +126,4 @@ impl<R: Real, D: Launches> Mpm<R, D> {
         self.check_state(&next, "the step's result")?;
         Ok(next)
     }
-
-    /// The mean position of the particles (one element), recorded on `tape` (DiffTaichi's
-    /// `diffmpm` loss is minus its `x`).
-    pub fn mean_position(&self, tape: &mut Tape, state: &MpmState<R, D>) -> Array<D::V<R>> {
-        let out = Array::zeros(1).named("mpm.mean_position");
-        let n = self.particle_count();
-        D::launch_weighted_sum(tape, &state.x, R::lit(1.0 / n as f64), &out);
-        out
-    }
 }
