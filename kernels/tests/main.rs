@@ -20,6 +20,7 @@ mod physics;
 mod restitution;
 mod scene_file;
 mod second_order;
+mod snow;
 mod soft_body;
 mod solver_failure;
 mod stability;

@@ -65,27 +65,70 @@ fn each_kernel_matches_central_differences_and_its_tangent() {
     let mu = scalars(5.0, 20.0, 3).named("mu");
     let lambda = scalars(5.0, 20.0, 4).named("lambda");
     let act_gain = scalars(1.0, 4.0, 5).named("act_gain");
-    // All three materials, two actuators.
-    let kind = Array::from_vec((0..n as u32).map(|p| p % 3).collect::<Vec<u32>>());
+    // Snow's plasticity: bounds the random F's stretches cross, some packed, some loose.
+    let jp = scalars(0.8, 1.2, 6).named("Jp");
+    let compression = scalars(0.02, 0.1, 7).named("compression");
+    let stretch = scalars(0.01, 0.05, 8).named("stretch");
+    let hardening = scalars(1.0, 10.0, 9).named("hardening");
+    // All four materials, two actuators.
+    let kind = Array::from_vec((0..n as u32).map(|p| p % 4).collect::<Vec<u32>>());
     let actuator = Array::from_vec((0..n as u32).map(|p| p % 2).collect::<Vec<u32>>());
     let actuation = Array::from_vec(vec![0.3, -0.7]).named("actuation");
     let f_out = Array::<Mat22<f64>>::zeros(n).named("F_out");
+    let jp_out = Array::<f64>::zeros(n).named("Jp_out");
     let grid_mv = Array::<Vec2<f64>>::zeros(ng * ng).named("grid_mv");
     let grid_m = Array::<f64>::zeros(ng * ng).named("grid_m");
     let p2g_args = (
-        &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &kind, &actuator, &act_gain, &fiber,
-        &actuation, ng, dx, dt, &f_out, &grid_mv, &grid_m,
+        &x,
+        &v,
+        &c,
+        &f,
+        &jp,
+        &mass,
+        &volume,
+        &mu,
+        &lambda,
+        &kind,
+        &compression,
+        &stretch,
+        &hardening,
+        &actuator,
+        &act_gain,
+        &fiber,
+        &actuation,
+        ng,
+        dx,
+        dt,
+        &f_out,
+        &jp_out,
+        &grid_mv,
+        &grid_m,
     );
     GradCheck::new()
         .kernel(mpm_p2g, n, p2g_args)
         .unwrap()
         .assert_within(1e-6);
-    let p2g_inputs: [&dyn AnyArray; 11] = [
-        &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &act_gain, &fiber, &actuation,
+    let p2g_inputs: [&dyn AnyArray; 15] = [
+        &x,
+        &v,
+        &c,
+        &f,
+        &jp,
+        &mass,
+        &volume,
+        &mu,
+        &lambda,
+        &compression,
+        &stretch,
+        &hardening,
+        &act_gain,
+        &fiber,
+        &actuation,
     ];
     let p2g_run = |tape: &mut Tape| {
-        let (fo, mv, m) = (
+        let (fo, jo, mv, m) = (
             f_out.zeros_like(),
+            jp_out.zeros_like(),
             grid_mv.zeros_like(),
             grid_m.zeros_like(),
         );
@@ -93,11 +136,33 @@ fn each_kernel_matches_central_differences_and_its_tangent() {
             mpm_p2g,
             n,
             (
-                &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &kind, &actuator, &act_gain, &fiber,
-                &actuation, ng, dx, dt, &fo, &mv, &m,
+                &x,
+                &v,
+                &c,
+                &f,
+                &jp,
+                &mass,
+                &volume,
+                &mu,
+                &lambda,
+                &kind,
+                &compression,
+                &stretch,
+                &hardening,
+                &actuator,
+                &act_gain,
+                &fiber,
+                &actuation,
+                ng,
+                dx,
+                dt,
+                &fo,
+                &jo,
+                &mv,
+                &m,
             ),
         );
-        vec![fo.boxed(), mv.boxed(), m.boxed()]
+        vec![fo.boxed(), jo.boxed(), mv.boxed(), m.boxed()]
     };
     dot_test(p2g_run, &p2g_inputs, 3)
         .unwrap()
@@ -488,7 +553,7 @@ fn steps_are_stable_below_the_wave_speed_limit() {
 #[test]
 fn three_d_kernels_match_central_differences_and_their_tangents() {
     use adflex_kernels::mpm::kernels::{mpm3_g2p, mpm3_grid_update, mpm3_p2g};
-    let (n, ng, dx, dt) = (6, 8usize, 1.0 / 8.0, 2e-3);
+    let (n, ng, dx, dt) = (8, 8usize, 1.0 / 8.0, 2e-3);
     let mut r = Rng(17);
     let mut v3 = |lo: f64, hi: f64| -> Vec<Vec3<f64>> {
         (0..n)
@@ -519,12 +584,17 @@ fn three_d_kernels_match_central_differences_and_their_tangents() {
         scalars(5.0, 20.0, 4).named("lambda"),
     );
     let act_gain = scalars(1.0, 4.0, 5).named("act_gain");
-    let kind = Array::from_vec((0..n as u32).map(|p| p % 3).collect::<Vec<u32>>());
+    let jp = scalars(0.8, 1.2, 6).named("Jp");
+    let compression = scalars(0.02, 0.1, 7).named("compression");
+    let stretch = scalars(0.01, 0.05, 8).named("stretch");
+    let hardening = scalars(1.0, 10.0, 9).named("hardening");
+    let kind = Array::from_vec((0..n as u32).map(|p| p % 4).collect::<Vec<u32>>());
     let actuator = Array::from_vec((0..n as u32).map(|p| p % 2).collect::<Vec<u32>>());
     let actuation = Array::from_vec(vec![0.3, -0.7]).named("actuation");
     let cells = ng * ng * ng;
-    let (f_out, grid_mv, grid_m) = (
+    let (f_out, jp_out, grid_mv, grid_m) = (
         Array::<Mat33<f64>>::zeros(n).named("F_out"),
+        Array::<f64>::zeros(n).named("Jp_out"),
         Array::<Vec3<f64>>::zeros(cells).named("grid_mv"),
         Array::<f64>::zeros(cells).named("grid_m"),
     );
@@ -533,15 +603,39 @@ fn three_d_kernels_match_central_differences_and_their_tangents() {
             mpm3_p2g,
             n,
             (
-                &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &kind, &actuator, &act_gain, &fiber,
-                &actuation, ng, 3usize, dx, dt, &f_out, &grid_mv, &grid_m,
+                &x,
+                &v,
+                &c,
+                &f,
+                &jp,
+                &mass,
+                &volume,
+                &mu,
+                &lambda,
+                &kind,
+                &compression,
+                &stretch,
+                &hardening,
+                &actuator,
+                &act_gain,
+                &fiber,
+                &actuation,
+                ng,
+                3usize,
+                dx,
+                dt,
+                &f_out,
+                &jp_out,
+                &grid_mv,
+                &grid_m,
             ),
         )
         .unwrap()
         .assert_within(1e-6);
     let run = |tape: &mut Tape| {
-        let (fo, mv, m) = (
+        let (fo, jo, mv, m) = (
             f_out.zeros_like(),
+            jp_out.zeros_like(),
             grid_mv.zeros_like(),
             grid_m.zeros_like(),
         );
@@ -549,15 +643,50 @@ fn three_d_kernels_match_central_differences_and_their_tangents() {
             mpm3_p2g,
             n,
             (
-                &x, &v, &c, &f, &mass, &volume, &mu, &lambda, &kind, &actuator, &act_gain, &fiber,
-                &actuation, ng, 3usize, dx, dt, &fo, &mv, &m,
+                &x,
+                &v,
+                &c,
+                &f,
+                &jp,
+                &mass,
+                &volume,
+                &mu,
+                &lambda,
+                &kind,
+                &compression,
+                &stretch,
+                &hardening,
+                &actuator,
+                &act_gain,
+                &fiber,
+                &actuation,
+                ng,
+                3usize,
+                dx,
+                dt,
+                &fo,
+                &jo,
+                &mv,
+                &m,
             ),
         );
-        vec![fo.boxed(), mv.boxed(), m.boxed()]
+        vec![fo.boxed(), jo.boxed(), mv.boxed(), m.boxed()]
     };
-    dot_test(run, &[&x, &v, &c, &f, &mu, &lambda, &fiber, &actuation], 6)
-        .unwrap()
-        .assert_within(1e-10);
+    let inputs: [&dyn AnyArray; 12] = [
+        &x,
+        &v,
+        &c,
+        &f,
+        &jp,
+        &mu,
+        &lambda,
+        &compression,
+        &stretch,
+        &hardening,
+        &fiber,
+        &actuation,
+    ];
+    dot_test(run, &inputs, 6).unwrap().assert_within(1e-10);
     let mut r = Rng(23);
     let mv = Array::from_vec(
         (0..cells)

@@ -4,12 +4,20 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
+use super::plastic::{clamp_spectrum2, clamp_spectrum3};
+
 /// The fixed-corotated material (`kind` 0 in [`mpm_p2g`]).
 pub const COROTATED: u32 = 0;
 /// The compressible neo-Hookean material (`kind` 1).
 pub const NEO_HOOKEAN: u32 = 1;
 /// A weakly compressible fluid (`kind` 2): the deformation gradient keeps only its volume.
 pub const FLUID: u32 = 2;
+/// Snow (`kind` 3, Stomakhin et al. 2013): fixed corotated elasticity whose singular values
+/// of `F` are clamped to `[1 - compression, 1 + stretch]` each step (the excess becomes plastic
+/// deformation, tracked by its volume ratio `Jp`), and whose moduli harden by
+/// `exp(hardening (1 - Jp))` (MLS-MPM's `mpm99` convention: the hardening of the step's
+/// start).
+pub const SNOW: u32 = 3;
 
 /// Quadratic B-spline weight of node `k` (0, 1, 2 from the base node) for a particle at
 /// `fx` cells from the base node (`0.5 <= fx < 1.5`).
@@ -63,9 +71,16 @@ pub fn kirchhoff_stress<R: Real>(f: Mat22<R>, mu: R, lambda: R, kind: u32) -> Ma
     }
 }
 
-/// Particle to grid: updates particle `tid`'s deformation gradient into `f_out`, and scatters
-/// its mass, momentum and stress (APIC affine momentum `C` and the MLS force) into the
-/// `n_grid x n_grid` nodes of its stencil (`grid_mv`, `grid_m`, node `i * n_grid + j`).
+/// Particle to grid: updates particle `tid`'s deformation gradient into `f_out` (and its
+/// plastic volume ratio `Jp` into `jp_out`: [`SNOW`] changes it, the other materials copy
+/// it), and scatters its mass, momentum and stress (APIC affine momentum `C` and the MLS force)
+/// into the `n_grid x n_grid` nodes of its stencil (`grid_mv`, `grid_m`, node
+/// `i * n_grid + j`).
+///
+/// Snow's plastic projection: with `F = R S` (polar), `S` becomes
+/// [`clamp_spectrum2`]`(S, 1 - compression, 1 + stretch)` (the singular values of `F` clamped),
+/// `Jp` is multiplied by `det F / det F_new`, and the stress is the corotated one of `F_new`
+/// with `mu` and `lambda` times `exp(hardening (1 - Jp))`.
 ///
 /// Active stress: `a F (d d^T) F^T` added to the Kirchhoff stress, with `a =
 /// actuation[actuator[p]] * act_gain[p]` and `d = fiber[p]` (a contraction or extension along
@@ -76,11 +91,15 @@ pub fn mpm_p2g<R: Real>(
     v: &Array<Vec2<R>>,
     c: &Array<Mat22<R>>,
     f: &Array<Mat22<R>>,
+    jp: &Array<R>,
     mass: &Array<R>,
     volume: &Array<R>,
     mu: &Array<R>,
     lambda: &Array<R>,
     kind: &Array<u32>,
+    compression: &Array<R>,
+    stretch: &Array<R>,
+    hardening: &Array<R>,
     actuator: &Array<u32>,
     act_gain: &Array<R>,
     fiber: &Array<Vec2<R>>,
@@ -89,6 +108,7 @@ pub fn mpm_p2g<R: Real>(
     dx: R,
     dt: R,
     f_out: &Array<Mat22<R>>,
+    jp_out: &Array<R>,
     grid_mv: &Array<Vec2<R>>,
     grid_m: &Array<R>,
 ) {
@@ -101,14 +121,30 @@ pub fn mpm_p2g<R: Real>(
     let cp = c[p];
     let mut fp = (mat22_identity() + cp * dt) * f[p];
     let k = kind[p];
-    if k == 2 {
-        let sj = sqrt(determinant(fp));
-        fp = mat22(sj, 0.0, 0.0, sj);
+    let mut jn = jp[p];
+    let mut tau = mat22(0.0, 0.0, 0.0, 0.0);
+    if k == 3 {
+        // Snow: F = R S, the stretch's eigenvalues clamped, then corotated with hardened moduli.
+        let r = polar_rotation(fp);
+        let s = clamp_spectrum2(transpose(r) * fp, 1.0 - compression[p], 1.0 + stretch[p]);
+        let j = determinant(s);
+        jn = jn * determinant(fp) / j;
+        fp = r * s;
+        let h = exp(hardening[p] * (1.0 - jp[p]));
+        tau = (fp - r) * transpose(fp) * (2.0 * mu[p] * h)
+            + mat22_identity() * (lambda[p] * h * (j - 1.0) * j);
+    } else {
+        if k == 2 {
+            let sj = sqrt(determinant(fp));
+            fp = mat22(sj, 0.0, 0.0, sj);
+        }
+        tau = kirchhoff_stress(fp, mu[p], lambda[p], k);
     }
     f_out[p] = fp;
+    jp_out[p] = jn;
     let d = fiber[p];
     let a = actuation[actuator[p]] * act_gain[p];
-    let tau = kirchhoff_stress(fp, mu[p], lambda[p], k) + fp * outer(d, d) * transpose(fp) * a;
+    tau += fp * outer(d, d) * transpose(fp) * a;
     let m = mass[p];
     let affine = tau * (-(dt * volume[p] * 4.0) / (dx * dx)) + cp * m;
     let mv = v[p] * m;
@@ -265,11 +301,15 @@ pub fn mpm3_p2g<R: Real>(
     v: &Array<Vec3<R>>,
     c: &Array<Mat33<R>>,
     f: &Array<Mat33<R>>,
+    jp: &Array<R>,
     mass: &Array<R>,
     volume: &Array<R>,
     mu: &Array<R>,
     lambda: &Array<R>,
     kind: &Array<u32>,
+    compression: &Array<R>,
+    stretch: &Array<R>,
+    hardening: &Array<R>,
     actuator: &Array<u32>,
     act_gain: &Array<R>,
     fiber: &Array<Vec3<R>>,
@@ -279,6 +319,7 @@ pub fn mpm3_p2g<R: Real>(
     dx: R,
     dt: R,
     f_out: &Array<Mat33<R>>,
+    jp_out: &Array<R>,
     grid_mv: &Array<Vec3<R>>,
     grid_m: &Array<R>,
 ) {
@@ -292,14 +333,29 @@ pub fn mpm3_p2g<R: Real>(
     let cp = c[p];
     let mut fp = (mat33_identity() + cp * dt) * f[p];
     let k = kind[p];
-    if k == 2 {
-        let s = pow(determinant(fp), 1.0 / 3.0);
-        fp = mat33_identity() * s;
+    let mut jn = jp[p];
+    let mut tau = mat33_identity() * 0.0;
+    if k == 3 {
+        let r = polar_rotation3(fp);
+        let s = clamp_spectrum3(transpose(r) * fp, 1.0 - compression[p], 1.0 + stretch[p]);
+        let j = determinant(s);
+        jn = jn * determinant(fp) / j;
+        fp = r * s;
+        let h = exp(hardening[p] * (1.0 - jp[p]));
+        tau = (fp - r) * transpose(fp) * (2.0 * mu[p] * h)
+            + mat33_identity() * (lambda[p] * h * (j - 1.0) * j);
+    } else {
+        if k == 2 {
+            let s = pow(determinant(fp), 1.0 / 3.0);
+            fp = mat33_identity() * s;
+        }
+        tau = kirchhoff_stress3(fp, mu[p], lambda[p], k);
     }
     f_out[p] = fp;
+    jp_out[p] = jn;
     let d = fiber[p];
     let a = actuation[actuator[p]] * act_gain[p];
-    let tau = kirchhoff_stress3(fp, mu[p], lambda[p], k) + fp * outer(d, d) * transpose(fp) * a;
+    tau += fp * outer(d, d) * transpose(fp) * a;
     let m = mass[p];
     let affine = tau * (-(dt * volume[p] * 4.0) / (dx * dx)) + cp * m;
     let mv = v[p] * m;

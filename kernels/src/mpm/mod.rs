@@ -3,7 +3,8 @@
 //! gradient `F`; each step scatters them to a grid with quadratic B-splines, updates the grid
 //! velocities with gravity and the walls, and gathers them back.
 //!
-//! - [`MpmBuilder`] describes the grid, walls, particles, [`Material`]s and actuators;
+//! - [`MpmBuilder`] describes the grid, walls, particles, [`Material`]s (elastic, fluid, and
+//!   snow, whose plasticity is in [`plastic`]) and actuators;
 //!   [`MpmBuilder::finalize`] checks it into an [`Mpm`].
 //! - [`Mpm::step`] records the three kernels of a step on a tape ([`kernels::mpm_p2g`],
 //!   [`kernels::mpm_grid_update`], [`kernels::mpm_g2p`]); every per-particle parameter, the
@@ -18,6 +19,7 @@
 mod dim;
 pub mod kernels;
 mod model;
+pub mod plastic;
 pub mod scenes;
 mod step;
 

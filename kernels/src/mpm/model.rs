@@ -7,7 +7,7 @@ use adflex_runtime::prelude::*;
 use adflex_runtime::AnyArray;
 
 use super::dim::{Dim, D2, D3};
-use super::kernels::{COROTATED, FLUID, NEO_HOOKEAN};
+use super::kernels::{COROTATED, FLUID, NEO_HOOKEAN, SNOW};
 use crate::validation::{ModelError, Problem};
 
 /// The constitutive model of a particle, with its Lame parameters (Pa, in the model's units).
@@ -36,6 +36,24 @@ pub enum Material {
         /// Bulk modulus.
         bulk: f64,
     },
+    /// Snow (Stomakhin et al. 2013, as in Taichi's `mpm99`): fixed corotated elasticity
+    /// whose deformation yields: each step the singular values of `F` are clamped to
+    /// `[1 - compression, 1 + stretch]`, the excess becoming plastic deformation (its volume
+    /// ratio `Jp` is in [`MpmState::jp`]), and the moduli harden as the snow is packed:
+    /// `mu` and `lambda` times `exp(hardening (1 - Jp))`. [`Material::snow`] gives the
+    /// usual values. `hardening = 0` is perfect plasticity (a clay-like material).
+    Snow {
+        /// Shear modulus (before hardening).
+        mu: f64,
+        /// Lame's first parameter (before hardening).
+        lambda: f64,
+        /// Critical compression `theta_c` (in `[0, 1)`; 2.5e-2 for snow).
+        compression: f64,
+        /// Critical stretch `theta_s` (`>= 0`; 4.5e-3 in `mpm99`, 7.5e-3 in the paper).
+        stretch: f64,
+        /// Hardening coefficient `xi` (`>= 0`; 10 for snow).
+        hardening: f64,
+    },
 }
 
 impl Material {
@@ -47,11 +65,38 @@ impl Material {
         )
     }
 
+    /// Snow with Young's modulus `e` and Poisson's ratio `nu`, and the plasticity of Taichi's
+    /// `mpm99`: critical compression 2.5e-2, critical stretch 4.5e-3, hardening 10.
+    pub fn snow(e: f64, nu: f64) -> Material {
+        let (mu, lambda) = Material::lame(e, nu);
+        Material::Snow {
+            mu,
+            lambda,
+            compression: 2.5e-2,
+            stretch: 4.5e-3,
+            hardening: 10.0,
+        }
+    }
+
     fn params(&self) -> (u32, f64, f64) {
         match *self {
             Material::Corotated { mu, lambda } => (COROTATED, mu, lambda),
             Material::NeoHookean { mu, lambda } => (NEO_HOOKEAN, mu, lambda),
             Material::Fluid { bulk } => (FLUID, 0.0, bulk),
+            Material::Snow { mu, lambda, .. } => (SNOW, mu, lambda),
+        }
+    }
+
+    /// Critical compression, critical stretch and hardening (zeros: no plasticity).
+    fn plasticity(&self) -> [f64; 3] {
+        match *self {
+            Material::Snow {
+                compression,
+                stretch,
+                hardening,
+                ..
+            } => [compression, stretch, hardening],
+            _ => [0.0; 3],
         }
     }
 
@@ -385,6 +430,24 @@ impl<D: Dim> MpmBuilder<D> {
                     format!("{:?}: the moduli must be finite and >= 0", self.material[i]),
                 ));
             }
+            let [compression, stretch, hardening] = self.material[i].plasticity();
+            if !((0.0..1.0).contains(&compression)
+                && stretch.is_finite()
+                && stretch >= 0.0
+                && hardening.is_finite()
+                && hardening >= 0.0)
+            {
+                problems.push(problem_at(
+                    "particles",
+                    i,
+                    Some("material"),
+                    format!(
+                        "{:?}: compression must be in [0, 1), stretch and hardening finite and \
+                         >= 0",
+                        self.material[i]
+                    ),
+                ));
+            }
             if !D::components(&self.v[i]).iter().all(|c| c.is_finite()) {
                 problems.push(problem_at(
                     "particles",
@@ -408,6 +471,14 @@ impl<D: Dim> MpmBuilder<D> {
         let vec2 = |v: &D::V<f64>| D::vector::<R>(&D::components(v));
         let np = self.x.len();
         let params: Vec<_> = self.material.iter().map(Material::params).collect();
+        let plastic = |k: usize| {
+            Array::from_vec(
+                self.material
+                    .iter()
+                    .map(|m| lit(m.plasticity()[k]))
+                    .collect(),
+            )
+        };
         let stable_dt = (0..np)
             .map(|i| dx / self.material[i].wave_speed(self.mass[i] / self.volume[i]))
             .fold(f64::INFINITY, f64::min);
@@ -426,6 +497,9 @@ impl<D: Dim> MpmBuilder<D> {
             mu: Array::from_vec(params.iter().map(|p| lit(p.1)).collect()).named("mpm.mu"),
             lambda: Array::from_vec(params.iter().map(|p| lit(p.2)).collect()).named("mpm.lambda"),
             kind: Array::from_vec(params.iter().map(|p| p.0).collect()).named("mpm.kind"),
+            compression: plastic(0).named("mpm.compression"),
+            stretch: plastic(1).named("mpm.stretch"),
+            hardening: plastic(2).named("mpm.hardening"),
             actuator: Array::from_vec(
                 self.actuator
                     .iter()
@@ -500,6 +574,12 @@ pub struct Mpm<R: Real, D: Dim = D2> {
     pub lambda: Array<R>,
     /// Material of each particle (the constants of [`super::kernels`]).
     pub kind: Array<u32>,
+    /// Critical compression of each snow particle (0 for the other materials).
+    pub compression: Array<R>,
+    /// Critical stretch of each snow particle (0 for the other materials).
+    pub stretch: Array<R>,
+    /// Hardening coefficient of each snow particle (0 for the other materials).
+    pub hardening: Array<R>,
     /// Actuator of each particle (0 for passive ones, whose gain is 0).
     pub actuator: Array<u32>,
     /// Actuation strength of each particle (0: passive).
@@ -514,8 +594,8 @@ pub struct Mpm<R: Real, D: Dim = D2> {
     stable_dt: f64,
 }
 
-/// The state of the particles: positions, velocities, APIC matrices `C` and deformation
-/// gradients `F`.
+/// The state of the particles: positions, velocities, APIC matrices `C`, deformation
+/// gradients `F` (the elastic part, for snow) and plastic volume ratios `Jp`.
 #[derive(Clone, Debug)]
 pub struct MpmState<R: Real, D: Dim = D2> {
     /// Positions.
@@ -524,13 +604,16 @@ pub struct MpmState<R: Real, D: Dim = D2> {
     pub v: Array<D::V<R>>,
     /// APIC affine velocity matrices.
     pub c: Array<D::M<R>>,
-    /// Deformation gradients.
+    /// Deformation gradients (for snow, the elastic part `F_E`).
     pub f: Array<D::M<R>>,
+    /// Plastic volume ratios `Jp = det F_P` (below 1: packed); 1 and unchanged for the
+    /// materials other than [`Material::Snow`].
+    pub jp: Array<R>,
 }
 
 impl<R: Real, D: Dim> Checkpoint for MpmState<R, D> {
     fn arrays(&self) -> Vec<&dyn AnyArray> {
-        vec![&self.x, &self.v, &self.c, &self.f]
+        vec![&self.x, &self.v, &self.c, &self.f, &self.jp]
     }
     fn snapshot(&self) -> Self {
         MpmState {
@@ -538,6 +621,7 @@ impl<R: Real, D: Dim> Checkpoint for MpmState<R, D> {
             v: self.v.deep_clone(),
             c: self.c.deep_clone(),
             f: self.f.deep_clone(),
+            jp: self.jp.deep_clone(),
         }
     }
 }
@@ -548,7 +632,7 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         self.mass.len()
     }
 
-    /// The initial state: the builder's positions and velocities, `C = 0`, `F = I`.
+    /// The initial state: the builder's positions and velocities, `C = 0`, `F = I`, `Jp = 1`.
     pub fn state(&self) -> MpmState<R, D> {
         let n = self.particle_count();
         MpmState {
@@ -556,6 +640,7 @@ impl<R: Real, D: Dim> Mpm<R, D> {
             v: Array::from_vec(self.v0.clone()).named("mpm.v"),
             c: Array::zeros(n).named("mpm.C"),
             f: Array::from_vec(vec![D::identity::<R>(); n]).named("mpm.F"),
+            jp: Array::from_vec(vec![R::lit(1.0); n]).named("mpm.Jp"),
         }
     }
 
@@ -588,6 +673,7 @@ impl<R: Real, D: Dim> Mpm<R, D> {
             (state.v.len(), state.v.label()),
             (state.c.len(), state.c.label()),
             (state.f.len(), state.f.label()),
+            (state.jp.len(), state.jp.label()),
         ];
         for (len, label) in lens {
             if len != n {
@@ -616,6 +702,19 @@ impl<R: Real, D: Dim> Mpm<R, D> {
                         "particle {i} at {c:?} is not finite or has left the grid [{lo}, {hi})^{} \
                          ({which}): {}",
                         D::D,
+                        unstable()
+                    ),
+                ));
+            }
+        }
+        for (i, jp) in state.jp.to_vec().iter().enumerate() {
+            let jp = jp.to_f64();
+            if !(jp.is_finite() && jp > 0.0) {
+                return Err(invalid(
+                    &format!("{}[{i}]", state.jp.label()),
+                    format!(
+                        "particle {i}'s plastic volume ratio Jp = {jp:e} must be finite and > 0 \
+                         ({which}): {}",
                         unstable()
                     ),
                 ));

@@ -33,6 +33,7 @@ fn fresh<R: Real, D: Dim>(n: usize, ng: usize) -> (MpmState<R, D>, Grid<R, D>) {
             v: Array::zeros(n).named("mpm.v"),
             c: Array::zeros(n).named("mpm.C"),
             f: Array::zeros(n).named("mpm.F"),
+            jp: Array::zeros(n).named("mpm.Jp"),
         },
         (
             Array::zeros(cells).named("mpm.grid_mv"),
@@ -57,13 +58,14 @@ macro_rules! launch_step {
             let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
             let (next, (mv, m, gv)) = fresh::<R, $d>(n, ng);
             let p = (&mpm.mass, &mpm.volume, &mpm.mu, &mpm.lambda, &mpm.kind);
+            let y = (&mpm.compression, &mpm.stretch, &mpm.hardening);
             let a = (&mpm.actuator, &mpm.act_gain, &mpm.fiber);
             tape.launch(
                 $p2g,
                 n,
                 (
-                    &s.x, &s.v, &s.c, &s.f, p.0, p.1, p.2, p.3, p.4, a.0, a.1, a.2, actuation,
-                    ng, $($stencil,)? dx, dtr, &next.f, &mv, &m,
+                    &s.x, &s.v, &s.c, &s.f, &s.jp, p.0, p.1, p.2, p.3, p.4, y.0, y.1, y.2, a.0,
+                    a.1, a.2, actuation, ng, $($stencil,)? dx, dtr, &next.f, &next.jp, &mv, &m,
                 ),
             );
             let (cells, friction) = (ng.pow(<$d as Dim>::D as u32), R::lit(mpm.friction));
