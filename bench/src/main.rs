@@ -27,6 +27,9 @@
 //! - `mpm [--n-grid 128] [--steps 1024] [--iters 5] [--python PATH]`: DiffTaichi's MPM
 //!   walker, seconds per optimization iteration on 1 and 2 threads; with `--python`, the
 //!   Taichi script on the same scene in the same run, and the ratios
+//! - `snow [--n-grid 128] [--steps 200] [--iters 5] [--python PATH]`: Taichi's `mpm99` scene
+//!   (fluid, jelly, snow), seconds per forward step and per step forward and backward on 1
+//!   and 2 threads; with `--python`, mpm99 in Taichi (forward) and the ratios
 //! - `smoke [--n 110] [--steps 100] [--iters 3] [--jacobi 30] [--python PATH]`: the
 //!   smoke-control task per optimization iteration, CG and Jacobi pressure; with `--python`,
 //!   Taichi (Jacobi) and JAX (CG and Jacobi) in the same run, their losses and the ratios
@@ -122,6 +125,7 @@ fn main() {
         "robots" => robots::main(rest),
         "worlds" => worlds::main(rest),
         "mpm" => mpm::main(rest),
+        "snow" => mpm::snow(rest),
         "smoke" => smoke::main(rest),
         "second-order" => second_order::main(rest),
         "worlds-case" => println!("{}", worlds::case(rest)),

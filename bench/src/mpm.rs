@@ -7,7 +7,7 @@
 
 use std::time::Instant;
 
-use adflex_kernels::mpm::WalkerTask;
+use adflex_kernels::mpm::{scenes, WalkerTask};
 use adflex_runtime::prelude::*;
 use serde_json::json;
 
@@ -104,6 +104,95 @@ pub fn main(rest: &[String]) {
             "{}",
             json!({"ratio": format!("adflex / Taichi (ti.cpu) per iteration, {threads} thread(s)"),
                 "value": ours[threads - 1] / s})
+        );
+    }
+}
+
+/// `snow [--n-grid 128] [--steps 200] [--iters 5] [--python PATH]`: Taichi's `mpm99` scene
+/// (fluid, jelly and snow, [`scenes::mpm99`], f32, `dt = 1e-4`): the seconds per forward step
+/// on 1 and 2 threads (the median of `--iters` rollouts of `--steps` steps after one), and per
+/// step of a rollout on one tape with its backward pass (gradients of every particle's
+/// moduli, yield strains and hardening, and of the initial state). With `--python` (a venv
+/// with `taichi==1.7.4`), `kernels/tests/references/taichi_mpm99.py --bench`: mpm99 itself
+/// (`ti.svd`, f32) on the same scene, forward only (Taichi's SVD has no derivative), then the
+/// ratios. One JSON line each.
+pub fn snow(rest: &[String]) {
+    let n_grid = arg(rest, "--n-grid").unwrap_or(128);
+    let steps = arg(rest, "--steps").unwrap_or(200);
+    let iters = arg(rest, "--iters").unwrap_or(5);
+    let mpm = scenes::mpm99(n_grid)
+        .finalize::<f32>()
+        .expect("the mpm99 scene builds");
+    let n = mpm.particle_count();
+    let mut forward = Vec::new();
+    for threads in [1, 2] {
+        let s = with_threads(threads, || {
+            time(iters, || {
+                let mut s = mpm.state();
+                for _ in 0..steps {
+                    s = mpm
+                        .step(&mut Tape::new(), &s, None, 1e-4)
+                        .expect("mpm99 steps");
+                }
+            })
+        }) / steps as f64;
+        forward.push(s);
+        let backward = with_threads(threads, || {
+            time(iters, || {
+                for a in [
+                    &mpm.mu,
+                    &mpm.lambda,
+                    &mpm.compression,
+                    &mpm.stretch,
+                    &mpm.hardening,
+                ] {
+                    let _ = a.clone().requires_grad();
+                    a.zero_grad();
+                }
+                let s0 = mpm.state();
+                let _ = s0.v.clone().requires_grad();
+                let mut tape = Tape::new();
+                let mut s = s0.clone();
+                for _ in 0..steps {
+                    s = mpm.step(&mut tape, &s, None, 1e-4).expect("mpm99 steps");
+                }
+                let c = mpm.mean_position(&mut tape, &s);
+                tape.backward(&c).expect("mpm99's gradient");
+            })
+        }) / steps as f64;
+        println!(
+            "{}",
+            json!({"peer": "adflex", "case": "mpm99", "n_grid": n_grid, "particles": n,
+                "threads": threads, "s_per_step": s, "forward_backward_s_per_step": backward})
+        );
+    }
+    let Some(python) = rest
+        .iter()
+        .position(|a| a == "--python")
+        .and_then(|k| rest.get(k + 1))
+    else {
+        return;
+    };
+    for threads in [1, 2] {
+        let args = [
+            "--bench".to_string(),
+            "--n-grid".into(),
+            n_grid.to_string(),
+            "--steps".into(),
+            steps.to_string(),
+            "--threads".into(),
+            threads.to_string(),
+        ];
+        let script = "../../kernels/tests/references/taichi_mpm99.py";
+        let Some(v) = crate::peer_json(python, script, &args) else {
+            return;
+        };
+        println!("{v}");
+        let s = v["s_per_step"].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "{}",
+            json!({"ratio": format!("adflex / Taichi (ti.cpu) per mpm99 step, {threads} thread(s)"),
+                "value": forward[threads - 1] / s})
         );
     }
 }

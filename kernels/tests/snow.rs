@@ -145,6 +145,17 @@ fn taichis_mpm99_is_reproduced() {
     let r = mpm99();
     let mpm = mpm99_scene(&r).finalize::<f64>().unwrap();
     let n = mpm.particle_count();
+    // The library's scene is the reference's.
+    let scene = scenes::mpm99(32).finalize::<f64>().unwrap();
+    let (a, b) = (scene.state(), mpm.state());
+    assert_eq!(a.x.to_vec(), b.x.to_vec());
+    assert_eq!(a.v.to_vec(), b.v.to_vec());
+    assert_eq!(scene.mu.to_vec(), mpm.mu.to_vec());
+    assert_eq!(scene.lambda.to_vec(), mpm.lambda.to_vec());
+    assert_eq!(scene.kind.to_vec(), mpm.kind.to_vec());
+    assert_eq!(scene.mass.to_vec(), mpm.mass.to_vec());
+    assert_eq!(scene.gravity.to_vec(), mpm.gravity.to_vec());
+    assert_eq!(scene.friction, mpm.friction);
     assert_eq!(n, r["x"].as_array().unwrap().len());
     let dt = r["dt"].as_f64().unwrap();
     let mut s = mpm.state();

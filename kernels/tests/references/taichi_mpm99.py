@@ -19,20 +19,32 @@ construction (`exact_svd2d`: the polar decomposition, then the eigenvectors of `
 form). The run with `ti.svd` itself is stored too (`ti_svd_x`, `ti_svd_Jp`), to show the size
 of that approximation.
 
-Run: python taichi_mpm99.py (regenerate.sh runs it in a venv with pinned versions).
+Run: python taichi_mpm99.py (regenerate.sh runs it in a venv with pinned versions). With
+`--bench [--n-grid 128] [--steps 200] [--threads N]` it times mpm99 itself (`ti.svd`, f32) for
+`adflex-bench snow` and prints one JSON line instead.
 """
+import argparse
 import json
 import math
 import os
+import time
 
 import taichi as ti
 
-ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=1, random_seed=0)
+ap = argparse.ArgumentParser()
+ap.add_argument("--bench", action="store_true", help="time steps in f32, print one JSON line")
+ap.add_argument("--n-grid", type=int, default=32)
+ap.add_argument("--steps", type=int, default=500)
+ap.add_argument("--threads", type=int, default=1)
+args = ap.parse_args()
 
-n_grid = 32
+fp = ti.f32 if args.bench else ti.f64
+ti.init(arch=ti.cpu, default_fp=fp, cpu_max_num_threads=args.threads, random_seed=0)
+
+n_grid = args.n_grid
 dx = 1.0 / n_grid
 dt = 1e-4
-steps = 500
+steps = args.steps
 p_vol = (dx * 0.5) ** 2
 p_rho = 1.0
 p_mass = p_vol * p_rho
@@ -175,6 +187,22 @@ def run(exact):
         substep(exact)
 
 
+if args.bench:
+    # mpm99 as it is (ti.svd), f32: the seconds per step, the median of 5 rollouts after one
+    # that compiles.
+    times = []
+    for k in range(6):
+        run(False)  # compiles on the first call
+        ti.sync()
+        t = time.perf_counter()
+        for _ in range(steps):
+            substep(False)
+        ti.sync()
+        times.append((time.perf_counter() - t) / steps)
+    times = sorted(times[1:])
+    print(json.dumps(dict(peer="taichi", case="mpm99", n_grid=n_grid, particles=n,
+                          threads=args.threads, s_per_step=times[len(times) // 2])))
+    raise SystemExit
 run(False)
 ti_svd_x, ti_svd_jp = x.to_numpy().tolist(), Jp.to_numpy().tolist()
 run(True)
