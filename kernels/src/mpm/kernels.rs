@@ -56,7 +56,9 @@ pub fn polar_rotation<R: Real>(f: Mat22<R>) -> Mat22<R> {
 ///
 /// - fixed corotated: `2 mu (F - R) F^T + lambda (J - 1) J I`;
 /// - neo-Hookean: `mu (F F^T - I) + lambda ln(J) I` (needs `J > 0`);
-/// - fluid: `lambda (J - 1) J I` (`mu` unused).
+/// - fluid: `lambda (J - 1) J I` (`mu` unused);
+/// - any other `kind` is the fluid's (snow's stress, with its plastic projection and
+///   hardening, is computed in [`mpm_p2g`] itself).
 #[diff_func]
 pub fn kirchhoff_stress<R: Real>(f: Mat22<R>, mu: R, lambda: R, kind: u32) -> Mat22<R> {
     let j = determinant(f);

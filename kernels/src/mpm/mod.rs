@@ -15,7 +15,7 @@
 //!
 //! The model and the boundary conditions are those of DiffTaichi's `diffmpm` (Hu et al.
 //! 2020): [`scenes::walker`] builds its walking robot, [`WalkerTask`] its controller and loss.
-//! [`scenes::mpm99`] is Taichi's `mpm99` scene of fluid, jelly and snow.
+//! [`scenes::mpm99`] has the fluid, jelly and snow of Taichi's `mpm99`.
 
 mod dim;
 pub mod kernels;

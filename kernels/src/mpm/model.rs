@@ -430,22 +430,12 @@ impl<D: Dim> MpmBuilder<D> {
                     format!("{:?}: the moduli must be finite and >= 0", self.material[i]),
                 ));
             }
-            let [compression, stretch, hardening] = self.material[i].plasticity();
-            if !((0.0..1.0).contains(&compression)
-                && stretch.is_finite()
-                && stretch >= 0.0
-                && hardening.is_finite()
-                && hardening >= 0.0)
-            {
+            if let Some(message) = plasticity_problem(self.material[i].plasticity()) {
                 problems.push(problem_at(
                     "particles",
                     i,
                     Some("material"),
-                    format!(
-                        "{:?}: compression must be in [0, 1), stretch and hardening finite and \
-                         >= 0",
-                        self.material[i]
-                    ),
+                    format!("{:?}: {message}", self.material[i]),
                 ));
             }
             if !D::components(&self.v[i]).iter().all(|c| c.is_finite()) {
@@ -528,6 +518,27 @@ impl<D: Dim> MpmBuilder<D> {
             stable_dt,
         })
     }
+}
+
+/// What is wrong with snow's `[compression, stretch, hardening]`, if anything (all zero: not
+/// snow). `compression + stretch > 0`: with both 0 the clamp is a constant, whose derivative
+/// the rules would not give.
+fn plasticity_problem([compression, stretch, hardening]: [f64; 3]) -> Option<String> {
+    if [compression, stretch, hardening] == [0.0; 3] {
+        return None;
+    }
+    let ok = (0.0..1.0).contains(&compression)
+        && stretch.is_finite()
+        && stretch >= 0.0
+        && compression + stretch > 0.0
+        && hardening.is_finite()
+        && hardening >= 0.0;
+    (!ok).then(|| {
+        format!(
+            "compression ({compression}) must be in [0, 1), stretch ({stretch}) finite and >= 0, \
+             not both 0, hardening ({hardening}) finite and >= 0"
+        )
+    })
 }
 
 /// How a particle is driven: its actuator, the strength and the unit fiber direction.
@@ -649,7 +660,9 @@ impl<R: Real, D: Dim> Mpm<R, D> {
     /// the builder's values (changing the `mu`, `lambda`, `mass` or `volume` arrays later
     /// does not update it). Measured, steps stay stable up to 1.1 to 1.9 times it
     /// (`docs/performance.md`, "MPM stability against stiffness") and fail beyond; the
-    /// particles' own speed must also stay below `dx / dt`.
+    /// particles' own speed must also stay below `dx / dt`. Snow's moduli harden as it is
+    /// packed (`exp(hardening (1 - Jp))`, 7.4 times at `Jp = 0.8` with hardening 10), which
+    /// divides the limit by the square root of that factor: it is not counted here.
     pub fn stable_dt(&self) -> f64 {
         self.stable_dt
     }
@@ -663,9 +676,10 @@ impl<R: Real, D: Dim> Mpm<R, D> {
         out
     }
 
-    /// Every array of the model's length; every particle finite and inside the walls (so
-    /// that its stencil is on the grid); `det F > 0` where the material needs it (all but the
-    /// 2D corotated one, whose closed-form rotation handles inversion).
+    /// Every array of the model's length; snow's parameters in range; every particle finite
+    /// and inside the walls (so that its stencil is on the grid), `Jp` finite and positive;
+    /// `det F > 0` where the material needs it (all but the 2D corotated one, whose
+    /// closed-form rotation handles inversion).
     pub(super) fn check_state(&self, state: &MpmState<R, D>, which: &str) -> Result<(), Error> {
         let n = self.particle_count();
         let lens = [
@@ -707,6 +721,21 @@ impl<R: Real, D: Dim> Mpm<R, D> {
                 ));
             }
         }
+        let kinds = self.kind.to_vec();
+        // Snow's parameters are gradient targets an optimizer may have moved out of range.
+        let plastic = [&self.compression, &self.stretch, &self.hardening].map(|a| a.to_vec());
+        for (i, &k) in kinds.iter().enumerate() {
+            if k != SNOW {
+                continue;
+            }
+            let p = [0, 1, 2].map(|a| plastic[a][i].to_f64());
+            if let Some(message) = plasticity_problem(p) {
+                return Err(invalid(
+                    &format!("mpm.compression[{i}], mpm.stretch[{i}], mpm.hardening[{i}]"),
+                    format!("particle {i}: {message} ({which})"),
+                ));
+            }
+        }
         for (i, jp) in state.jp.to_vec().iter().enumerate() {
             let jp = jp.to_f64();
             if !(jp.is_finite() && jp > 0.0) {
@@ -714,13 +743,12 @@ impl<R: Real, D: Dim> Mpm<R, D> {
                     &format!("{}[{i}]", state.jp.label()),
                     format!(
                         "particle {i}'s plastic volume ratio Jp = {jp:e} must be finite and > 0 \
-                         ({which}): {}",
+                         ({which}; a snow particle whose F inverted within a step ends here): {}",
                         unstable()
                     ),
                 ));
             }
         }
-        let kinds = self.kind.to_vec();
         for (i, f) in state.f.to_vec().iter().enumerate() {
             let needs_positive = !(D::D == 2 && kinds[i] == COROTATED);
             let det = D::determinant(f);

@@ -1,5 +1,5 @@
 //! Ready-made MPM scenes and tasks: DiffTaichi's walker ([`walker`]) and its open-loop
-//! sine-wave controller ([`WalkerTask`]); Taichi's `mpm99` scene of fluid, jelly and snow
+//! sine-wave controller ([`WalkerTask`]); the fluid, jelly and snow of Taichi's `mpm99`
 //! ([`mpm99`]).
 
 use adflex_macros::diff_kernel;
@@ -45,7 +45,9 @@ pub fn walker(n_grid: usize) -> MpmBuilder {
     b
 }
 
-/// Taichi's `mpm99` example as a scene on an `n_grid x n_grid` grid of the unit square: a
+/// The materials and numerics of Taichi's `mpm99` example on a layout of its own (mpm99 drops
+/// three blocks of 3,000 random particles at rest), on an `n_grid x n_grid` grid of the unit
+/// square: a
 /// block of fluid (`0.2 x 0.2` at `(0.15, 0.15)`, falling at 1 m/s), one of jelly (`0.15 x
 /// 0.15` at `(0.42, 0.45)`, 2 m/s; corotated with `0.3` times the moduli) and one of snow
 /// (`0.2 x 0.2` at `(0.62, 0.2)`, 3 m/s; [`Material::snow`]), Young's modulus 1000 and Poisson's

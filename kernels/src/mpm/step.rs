@@ -94,7 +94,9 @@ impl<R: Real, D: Launches> Mpm<R, D> {
     /// Errors ([`Error::InvalidInput`]) instead of a panic or a NaN later: a `dt` that is not
     /// finite and positive, an actuation array or a state array of the wrong length, and, in
     /// the input state or the one the step produced, a particle that is not finite, has left
-    /// the domain inside the walls, or is inverted where its material needs `det F > 0`
+    /// the domain inside the walls, has a plastic volume ratio `Jp` that is not finite and
+    /// positive, or is inverted where its material needs `det F > 0`; a snow particle's yield
+    /// strains or hardening out of range
     /// (naming it; the step was unstable: reduce `dt` below [`Mpm::stable_dt`]).
     pub fn step(
         &self,
