@@ -572,6 +572,24 @@ fn bad_plasticity_and_second_order_passes_are_refused_by_name() {
         .to_string();
     assert!(e.contains("particle 4") && e.contains("Jp"), "{e}");
 
+    // A snow particle whose F inverts within a step (I + dt C reflects x): the clamp keeps
+    // the stored F a rotation times a positive stretch, so the inversion shows in Jp, which
+    // turns negative, and the step refuses its own result by name rather than hand it on.
+    let mpm = thrown_snow::<f64>(Floor::Sticky);
+    let s = mpm.state();
+    s.c.set(4, Mat22::new(-2.0 / 1e-3, 0.0, 0.0, 0.0));
+    let e = mpm
+        .step(&mut Tape::new(), &s, None, 1e-3)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("particle 4")
+            && e.contains("Jp")
+            && e.contains("inverted")
+            && e.contains("the step's result"),
+        "{e}"
+    );
+
     // Hessian-vector products: the clamp's rules run in f64, so the pass refuses, naming it.
     let mpm = thrown_snow::<Dual>(Floor::Sticky);
     let mu = mpm.mu.clone().requires_grad();
