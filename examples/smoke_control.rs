@@ -14,7 +14,7 @@
 //! - the loss adds the distance of the densities filtered by 6 cells
 //!   ([`SmokeTask::with_coarse_loss`]), which has a gradient towards target discs the smoke
 //!   does not touch yet;
-//! - the first guess is a vortex pair under the disc ([`dipole`]), not rest: at rest every
+//! - the first guess is a vortex pair in the disc ([`dipole`]), not rest: at rest every
 //!   backtraced point lands on a cell centre, where bilinear interpolation's derivative is
 //!   one-sided, so the first gradient is lopsided and the two halves part unevenly.
 //!
@@ -43,11 +43,11 @@ pub struct Config {
     /// The pressure solve.
     pub pressure: Pressure,
     /// Width (cells) of the Gaussian filter from the parameters to the initial velocity.
-    pub smoothing: f64,
+    pub smoothing_sigma: f64,
     /// Width (cells) of the loss's coarse term (0: none).
-    pub coarse_loss: f64,
+    pub coarse_sigma: f64,
     /// Strength of the first guess's vortex pair (m/s; 0: at rest).
-    pub guess: f64,
+    pub guess_strength: f64,
     /// L-BFGS (true) or the peers' normalized gradient descent with step `lr`.
     pub lbfgs: bool,
 }
@@ -61,9 +61,9 @@ impl Config {
             iterations: 50,
             lr: 1.0,
             pressure: Pressure::cg(),
-            smoothing: 3.0,
-            coarse_loss: 6.0,
-            guess: 0.3,
+            smoothing_sigma: 3.0,
+            coarse_sigma: 6.0,
+            guess_strength: 0.3,
             lbfgs: true,
         }
     }
@@ -74,8 +74,8 @@ impl Config {
             n: 32,
             steps: 30,
             iterations: 20,
-            smoothing: 1.0,
-            coarse_loss: 2.0,
+            smoothing_sigma: 1.0,
+            coarse_sigma: 2.0,
             ..Config::full()
         }
     }
@@ -83,9 +83,9 @@ impl Config {
     /// DiffTaichi's set-up: per-cell velocities from rest, the squared distance alone.
     pub fn plain(self) -> Self {
         Config {
-            smoothing: 0.0,
-            coarse_loss: 0.0,
-            guess: 0.0,
+            smoothing_sigma: 0.0,
+            coarse_sigma: 0.0,
+            guess_strength: 0.0,
             ..self
         }
     }
@@ -105,10 +105,11 @@ pub struct Outcome {
     pub fields: [Vec<f64>; 4],
 }
 
-/// The velocity `(u, v)` of a vortex pair of strength `a` (m/s) centred under the disc of
-/// smoke, on an `n x n` grid: the stream function `psi = -a (x - 0.5) g` with `g` a Gaussian
-/// of 0.15 around `(0.5, 0.35)` (`u = dpsi/dy`, `v = -dpsi/dx`), so the fluid rises at `a` in
-/// the middle and turns outwards on both sides: divergence-free and mirror-symmetric.
+/// The velocity `(u, v)` of a vortex pair of strength `a` (m/s) centred in the disc of smoke,
+/// just above its centre, on an `n x n` grid: the stream function `psi = -a (x - 0.5) g`
+/// with `g` a Gaussian of 0.15 around `(0.5, 0.35)` (`u = dpsi/dy`, `v = -dpsi/dx`), so the
+/// fluid rises at `a` in the middle and turns outwards on both sides: divergence-free and
+/// mirror-symmetric.
 pub fn dipole(n: usize, a: f64) -> (Vec<f64>, Vec<f64>) {
     let s2 = 0.15f64 * 0.15;
     (0..n * n)
@@ -124,9 +125,9 @@ pub fn dipole(n: usize, a: f64) -> (Vec<f64>, Vec<f64>) {
 /// Runs the optimization.
 pub fn run(cfg: &Config) -> Result<Outcome, Error> {
     let task = SmokeTask::new(cfg.n, cfg.steps, cfg.pressure.clone())?
-        .smoothed(cfg.smoothing)?
-        .with_coarse_loss(cfg.coarse_loss)?;
-    let (u, v) = dipole(cfg.n, cfg.guess);
+        .smoothed(cfg.smoothing_sigma)?
+        .with_coarse_loss(cfg.coarse_sigma)?;
+    let (u, v) = dipole(cfg.n, cfg.guess_strength);
     task.u0.assign(&u);
     task.v0.assign(&v);
     let (before, distance_before) = (task.final_density()?.to_vec(), task.distance()?);
@@ -137,10 +138,9 @@ pub fn run(cfg: &Config) -> Result<Outcome, Error> {
             .minimize_with(&params, || task.loss_and_grad())?;
         // Not converged within the budget is the expected outcome here: say so.
         println!("L-BFGS: {report}");
-        let evaluations = report.history.last().map_or(1, |it| it.evaluations);
         (
             report.losses(),
-            report.elapsed.as_secs_f64() / evaluations as f64,
+            report.elapsed.as_secs_f64() / report.evaluations.max(1) as f64,
         )
     } else {
         let (mut losses, mut times) = (Vec::new(), Vec::new());
@@ -205,7 +205,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         cfg.pressure,
         out.losses[0],
         out.losses.last().unwrap(),
-        cfg.iterations,
+        out.losses.len() - 1,
         100.0 * d1 / d0,
         out.seconds_per_evaluation
     );

@@ -445,17 +445,20 @@ fn the_pressure_operator_is_symmetric_and_the_jacobi_one() {
     assert!(grid.divergence(&mut Tape::new(), &f, &f).is_err());
 }
 
-/// The smoothed smoke task: the filter kernel along each axis (cells near both walls) and
-/// the task's loss through the filter and a rollout against central differences; forward
-/// against reverse; the filter of a constant field is the constant away from the walls and
-/// less at them (zero outside); a bad width is an error.
+/// The smoothed smoke task: the filter kernel along each axis (asymmetric weights, cells near
+/// both walls) against central differences, forward against reverse, and its values on a
+/// single-cell spike (the documented direction); the task's loss through the velocity filter,
+/// a rollout and the coarse term against central differences; the filter of a constant field
+/// is the constant away from the walls and less at them (zero outside); bad widths are errors
+/// naming the method.
 #[test]
 fn the_smoothed_smoke_task_differentiates_through_its_filter() {
     let n = 10;
     let c = n * n;
     let mut r = Rng(21);
     let q = r.field(c, -1.0, 1.0, "q");
-    let w = Array::from_vec(vec![0.1, 0.2, 0.4, 0.2, 0.1]).named("weights");
+    let weights = [0.05, 0.15, 0.4, 0.3, 0.1];
+    let w = Array::from_vec(weights.to_vec()).named("weights");
     let out = Array::<f64>::zeros(c).named("out");
     for axis in 0..2 {
         GradCheck::new()
@@ -468,10 +471,25 @@ fn the_smoothed_smoke_task_differentiates_through_its_filter() {
             vec![o.boxed()]
         };
         dot_test(run, &[&q, &w], 2).unwrap().assert_within(1e-10);
+        // A spike at cell (4, 6): out[t] = w[k] where t is k - 2 cells before the spike.
+        let mut spike = vec![0.0; c];
+        spike[4 * n + 6] = 1.0;
+        let spike = Array::from_vec(spike);
+        let o = out.zeros_like();
+        launch(filter_axis, c, (&spike, &w, n, 2usize, axis, &o));
+        let o = o.to_vec();
+        let stride = if axis == 0 { n } else { 1 };
+        for (k, wk) in weights.iter().enumerate() {
+            let t = 4 * n + 6 + 2 * stride - k * stride;
+            assert_eq!(o[t], *wk, "axis {axis}, k {k}");
+        }
+        assert!((o.iter().sum::<f64>() - 1.0).abs() < 1e-12);
     }
     let task = SmokeTask::new(12, 5, Pressure::cg())
         .unwrap()
         .smoothed(1.5)
+        .unwrap()
+        .with_coarse_loss(2.0)
         .unwrap();
     let ones = Array::from_vec(vec![1.0; 144]);
     task.u0.assign(&ones.to_vec());
@@ -488,13 +506,17 @@ fn the_smoothed_smoke_task_differentiates_through_its_filter() {
         .unwrap()
         .assert_within(1e-6);
     assert!(task.u0.grad().unwrap().to_vec().iter().any(|g| *g != 0.0));
-    for bad in [-1.0, f64::NAN] {
-        let e = SmokeTask::new(12, 5, Pressure::cg())
-            .unwrap()
-            .smoothed(bad)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("sigma"), "{e}");
+    let coarse = task.loss(&mut Tape::new()).unwrap().get(0) - task.distance().unwrap();
+    assert!(coarse > 1e-3, "the coarse term adds {coarse}");
+    for bad in [-1.0, f64::NAN, f64::INFINITY, 13.0] {
+        let task = || SmokeTask::new(12, 5, Pressure::cg()).unwrap();
+        let e = task().smoothed(bad).unwrap_err().to_string();
+        assert!(
+            e.contains("SmokeTask::smoothed") && e.contains("12 cells"),
+            "{e}"
+        );
+        let e = task().with_coarse_loss(bad).unwrap_err().to_string();
+        assert!(e.contains("SmokeTask::with_coarse_loss"), "{e}");
     }
 }
 

@@ -37,20 +37,22 @@ pub fn filter_axis<R: Real>(
     out[t] = s;
 }
 
-/// Smoke control: find the initial velocity `(u0, v0)` (the gradient targets) that carries a
-/// disc of smoke to a target density after `steps` steps. The density starts as a disc of
-/// radius `0.15` at `(0.5, 0.3)`; the target is two discs of radius `0.1` at `(0.3, 0.65)`
-/// and `(0.7, 0.65)`, so the smoke must rise and split. Unit square, `dt = dx` (a velocity of
-/// 1 moves one cell per step). The loss is the squared distance of the final density to the
-/// target, summed over the cells ([`SmokeTask::distance`]), plus, with
-/// [`SmokeTask::with_coarse_loss`], the same distance between both densities filtered.
+/// Smoke control: find the initial velocity (given by the parameters `u0`, `v0`, the gradient
+/// targets; see [`SmokeTask::initial_velocity`]) that carries a disc of smoke to a target
+/// density after `steps` steps. The density starts as a disc of radius `0.15` at
+/// `(0.5, 0.3)`; the target is two discs of radius `0.1` at `(0.3, 0.65)` and `(0.7, 0.65)`,
+/// so the smoke must rise and split. Unit square, `dt = dx` (a velocity of 1 moves one cell
+/// per step). The loss is the squared distance of the final density to the target, summed
+/// over the cells ([`SmokeTask::distance`]), plus, with [`SmokeTask::with_coarse_loss`], the
+/// same distance between both densities filtered.
 #[derive(Clone, Debug)]
 pub struct SmokeTask {
     /// The grid.
     pub grid: FluidGrid,
-    /// Initial velocity, `x` component.
+    /// The parameters of the initial velocity's `x` component: the velocity itself when
+    /// `smoothing_sigma` is 0, else what the filter smooths into it.
     pub u0: Array<f64>,
-    /// Initial velocity, `y` component.
+    /// The same for the `y` component.
     pub v0: Array<f64>,
     /// Initial density.
     pub density0: Array<f64>,
@@ -63,11 +65,11 @@ pub struct SmokeTask {
     /// The standard deviation, in cells, of the Gaussian filter from the parameters `u0`,
     /// `v0` to the initial velocity (0: none, the parameters are the velocity; see
     /// [`SmokeTask::smoothed`]).
-    pub smoothing: f64,
+    pub smoothing_sigma: f64,
     /// The standard deviation, in cells, of the Gaussian filter applied to the final and the
     /// target density for the loss's coarse term (0: none; see
     /// [`SmokeTask::with_coarse_loss`]).
-    pub coarse_loss: f64,
+    pub coarse_sigma: f64,
 }
 
 impl SmokeTask {
@@ -98,8 +100,8 @@ impl SmokeTask {
             target: Array::from_vec(field(&|i, j| b(i, j) + c(i, j))).named("target"),
             steps,
             pressure,
-            smoothing: 0.0,
-            coarse_loss: 0.0,
+            smoothing_sigma: 0.0,
+            coarse_sigma: 0.0,
         })
     }
 
@@ -109,9 +111,10 @@ impl SmokeTask {
     /// velocity (`sigma = 0`, DiffTaichi's parameterization) lets the optimizer carve the
     /// smoke into filaments; a smooth field carries it as a whole.
     ///
-    /// Errors: [`Error::InvalidInput`] if `sigma` is negative or not finite.
+    /// Errors: [`Error::InvalidInput`] naming `SmokeTask::smoothed` if `sigma` is negative,
+    /// not finite or more than the grid's `n` cells.
     pub fn smoothed(mut self, sigma: f64) -> Result<Self, Error> {
-        self.smoothing = width("SmokeTask::smoothed: sigma", sigma)?;
+        self.smoothing_sigma = width("SmokeTask::smoothed: sigma", sigma, self.grid.n())?;
         Ok(self)
     }
 
@@ -121,21 +124,22 @@ impl SmokeTask {
     /// not touch (here the smoke starts below both target discs); the filtered one does.
     /// [`SmokeTask::distance`] still measures the plain distance.
     ///
-    /// Errors: [`Error::InvalidInput`] if `sigma` is negative or not finite.
+    /// Errors: [`Error::InvalidInput`] naming `SmokeTask::with_coarse_loss` if `sigma` is
+    /// negative, not finite or more than the grid's `n` cells.
     pub fn with_coarse_loss(mut self, sigma: f64) -> Result<Self, Error> {
-        self.coarse_loss = width("SmokeTask::with_coarse_loss: sigma", sigma)?;
+        self.coarse_sigma = width("SmokeTask::with_coarse_loss: sigma", sigma, self.grid.n())?;
         Ok(self)
     }
 
     /// The initial velocity the parameters give (recorded on `tape`): `(u0, v0)` themselves,
     /// or filtered (see [`SmokeTask::smoothed`]).
     pub fn initial_velocity(&self, tape: &mut Tape) -> (Array<f64>, Array<f64>) {
-        if self.smoothing == 0.0 {
+        if self.smoothing_sigma == 0.0 {
             return (self.u0.clone(), self.v0.clone());
         }
         (
-            self.gaussian(tape, &self.u0, self.smoothing),
-            self.gaussian(tape, &self.v0, self.smoothing),
+            self.gaussian(tape, &self.u0, self.smoothing_sigma),
+            self.gaussian(tape, &self.v0, self.smoothing_sigma),
         )
     }
 
@@ -202,10 +206,10 @@ impl SmokeTask {
         let (_, _, d) = self.rollout(tape)?;
         let loss = Array::zeros(1).named("loss");
         tape.launch(squared_error, self.grid.cells(), (&d, &self.target, &loss));
-        if self.coarse_loss > 0.0 {
+        if self.coarse_sigma > 0.0 {
             let (coarse, target) = (
-                self.gaussian(tape, &d, self.coarse_loss),
-                self.gaussian(tape, &self.target, self.coarse_loss),
+                self.gaussian(tape, &d, self.coarse_sigma),
+                self.gaussian(tape, &self.target, self.coarse_sigma),
             );
             tape.launch(squared_error, self.grid.cells(), (&coarse, &target, &loss));
         }
@@ -230,14 +234,17 @@ impl SmokeTask {
     }
 }
 
-/// A filter width: finite and at least 0.
-fn width(what: &str, sigma: f64) -> Result<f64, Error> {
-    if sigma.is_finite() && sigma >= 0.0 {
+/// A filter width: finite, at least 0 and at most the grid's `n` cells (wider, the filter is
+/// flat over the grid and only costs time).
+fn width(what: &str, sigma: f64, n: usize) -> Result<f64, Error> {
+    if sigma.is_finite() && (0.0..=n as f64).contains(&sigma) {
         Ok(sigma)
     } else {
         Err(super::invalid(
             what,
-            format!("{sigma} cells; give a finite width >= 0 (0: no filter)"),
+            format!(
+                "{sigma} cells; give a finite width from 0 (no filter) to the grid's {n} cells"
+            ),
         ))
     }
 }
