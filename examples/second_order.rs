@@ -14,7 +14,10 @@
 //! Then the inverse-design demo's cable (`examples/inverse_design.rs`: rest lengths for which
 //! the equilibrium is a target parabola) by the same four methods; its products go through the
 //! equilibrium solve by the implicit function theorem (a Gauss-Newton product is a tangent and
-//! an adjoint linear solve; a Hessian-vector product adds the theorem's second-order term).
+//! an adjoint linear solve; a Hessian-vector product adds the theorem's second-order term),
+//! and by a fifth: Gauss-Newton by the KKT system (`Optimizer::least_squares_kkt`, the
+//! formulation of sparse Gauss-Newton), which solves for the step, the positions' change and
+//! the equilibrium's multipliers at once, on the constraint `statics::net_force`.
 //!
 //! The charts are the loss against passes over the simulation (forward, backward or tangent
 //! sweeps; for the cable, equilibrium solves and linear solves), the cost measure the methods
@@ -23,7 +26,7 @@
 //! Run: `cargo run --release --example second_order`
 
 use adflex::kernels::losses;
-use adflex::kernels::statics::Equilibrium;
+use adflex::kernels::statics::{self, Equilibrium};
 use adflex::optim::{Bounds, Optimizer, Params, Report};
 use adflex::prelude::*;
 
@@ -337,6 +340,32 @@ pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Er
             report,
         });
     }
+    // Gauss-Newton by the KKT system over the positions, the rest lengths and the
+    // equilibrium's multipliers (sparse Gauss-Newton's formulation), on the constraint
+    // `statics::net_force`.
+    sc.rest.assign(&rest0);
+    let mut guess = sc.first.deep_clone();
+    let report = optimizer(opt, Optimizer::kkt_gauss_newton()).least_squares_kkt(
+        &Params::new().with(&sc.rest),
+        |tape| {
+            let eq = solver.solve(&sc.model, tape, &guess)?;
+            guess = eq.deep_clone();
+            let r = Array::<Vec3<f64>>::zeros(n);
+            tape.launch(difference, n, (&eq.x, &sc.recorded, &r));
+            Ok((eq.x, r))
+        },
+        |tape, x| {
+            let c = statics::net_force(&sc.model, tape, x)?;
+            let r = Array::<Vec3<f64>>::zeros(n);
+            tape.launch(difference, n, (x, &sc.recorded, &r));
+            Ok((c, r))
+        },
+    )?;
+    runs.push(Run {
+        name: "Gauss-Newton (KKT)",
+        worst_relative_error: miss(&guess)?,
+        report,
+    });
     // Newton-CG on the cable in `Dual`, warm started the same way.
     let sd = inverse_design::scene::<Dual>(cfg)?;
     let mut guess = sd.first.deep_clone();
@@ -374,7 +403,17 @@ pub fn passes_to(report: &Report, level: f64) -> Option<usize> {
         .map(|i| i.passes)
 }
 
-/// Prints the runs' passes to `level` and writes their chart as `dir/name.{svg,png}`.
+/// Seconds of `report` until its loss first falls to `level` (`None`: never).
+pub fn seconds_to(report: &Report, level: f64) -> Option<f64> {
+    report
+        .history
+        .iter()
+        .find(|i| i.loss <= level)
+        .map(|i| i.elapsed.as_secs_f64())
+}
+
+/// Prints the runs' passes and time to `level` and writes their charts, loss against passes
+/// and against time, as `dir/name.{svg,png}` and `dir/name_time.{svg,png}`.
 fn report(
     runs: &[Run],
     level: f64,
@@ -383,11 +422,16 @@ fn report(
     title: &str,
 ) -> Result<(), Box<dyn std::error::Error>> {
     for r in runs {
+        let sweeps = match r.report.sweeps {
+            0 => String::new(),
+            n => format!(" (+{n} constraint sweeps)"),
+        };
         println!(
-            "  {:<20} {:>6} passes, {:>4} iterations, {:>7.2} s; final loss {:.2e}, worst \
-             error {:.1e}; {}",
+            "  {:<20} {:>6} passes{sweeps}, {} s to the level; {:>4} iterations, {:>7.2} s; \
+             final loss {:.2e}, worst error {:.1e}; {}",
             r.name,
             passes_to(&r.report, level).map_or("never".into(), |p| p.to_string()),
+            seconds_to(&r.report, level).map_or("never".into(), |t| format!("{t:.3}")),
             r.report.iterations,
             r.report.elapsed.as_secs_f64(),
             r.report.loss,
@@ -407,7 +451,20 @@ fn report(
             (r.name, pts)
         })
         .collect();
+    let timed: Vec<(&str, Vec<(f64, f64)>)> = runs
+        .iter()
+        .map(|r| {
+            let pts = r
+                .report
+                .history
+                .iter()
+                .map(|i| (i.elapsed.as_secs_f64(), i.loss))
+                .collect();
+            (r.name, pts)
+        })
+        .collect();
     let refs: Vec<(&str, &[(f64, f64)])> = series.iter().map(|(n, p)| (*n, &p[..])).collect();
+    let timed: Vec<(&str, &[(f64, f64)])> = timed.iter().map(|(n, p)| (*n, &p[..])).collect();
     for ext in ["svg", "png"] {
         adflex::viz::plot::curves(
             dir.join(format!("{name}.{ext}")),
@@ -415,6 +472,13 @@ fn report(
             "passes over the simulation",
             "loss",
             &refs,
+        )?;
+        adflex::viz::plot::curves(
+            dir.join(format!("{name}_time.{ext}")),
+            &title.replace("passes", "time"),
+            "seconds",
+            "loss",
+            &timed,
         )?;
     }
     Ok(())
@@ -459,7 +523,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "inverse design: loss against passes",
     )?;
     println!(
-        "charts: {}/{{identification,design}}.{{svg,png}}",
+        "charts: {}/{{identification,design}}{{,_time}}.{{svg,png}}",
         dir.display()
     );
     Ok(())

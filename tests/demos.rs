@@ -166,7 +166,7 @@ mod second_order;
 
 /// Gauss-Newton, Levenberg-Marquardt and Newton-CG identify the net's stiffnesses and design
 /// the cable in a handful of iterations, where L-BFGS takes many, and in fewer passes over
-/// the simulation.
+/// the simulation (Gauss-Newton by the KKT system, on the cable, in 3x fewer).
 #[test]
 fn second_order_methods_take_fewer_iterations_and_passes_than_lbfgs() {
     let cfg = second_order::Config::small();
@@ -212,6 +212,15 @@ fn second_order_methods_take_fewer_iterations_and_passes_than_lbfgs() {
                 "{problem}, {}: {passes} passes against L-BFGS's {base}",
                 r.name
             );
+            // The KKT form needs no linear solve through the equilibrium per product: at
+            // least 3x fewer passes than L-BFGS (the target), and the exact fit.
+            if r.name == "Gauss-Newton (KKT)" {
+                assert!(
+                    3 * passes <= base,
+                    "{problem}: {passes} passes against L-BFGS's {base}"
+                );
+                assert!(r.report.sweeps > 0, "{}", r.report);
+            }
         }
     }
 }

@@ -476,6 +476,79 @@ impl Equilibrium {
     }
 }
 
+/// `out[i] = a[i] / w[i]` (the net force `f + m g`) on free particles, `x[i] - pin[i]` on
+/// pinned ones.
+#[adflex_macros::diff_kernel]
+fn net_force_kernel<R: Real>(
+    a: &Array<Vec3<R>>,
+    inv_mass: &Array<R>,
+    x: &Array<Vec3<R>>,
+    pin: &Array<Vec3<R>>,
+    out: &Array<Vec3<R>>,
+) {
+    let i = tid();
+    let w = inv_mass[i];
+    if w > 0.0 {
+        out[i] = a[i] / w;
+    } else {
+        out[i] = x[i] - pin[i];
+    }
+}
+
+/// Records the equilibrium's constraint `c(x, p) = 0` at the positions `x` (zero velocities)
+/// on `tape` and returns it: the net force `f(x; p) + m g` (N) on each free particle, and
+/// `x - pin` (m) on each pinned one, `pin` the positions `x` holds now (held constant). Its
+/// Jacobian with respect to `x` is `-K` on the free rows and the identity on the pinned ones,
+/// nonsingular wherever [`Equilibrium::solve`]'s gradient exists.
+///
+/// This is the constraint of Gauss-Newton by the KKT system
+/// (`adflex_optim::Optimizer::least_squares_kkt`): with `x` a leaf (a copy of a solved
+/// equilibrium), one tangent pass over the tape gives `dc/dx u + dc/dp v` and one adjoint pass
+/// `(dc/dx)^T w`, `(dc/dp)^T w`, for every parameter array the forces read (rest lengths,
+/// stiffnesses, inverse masses, gravity).
+///
+/// Errors: [`Error::InvalidInput`] if `x` does not have one position per particle, or the
+/// model has rigid bodies (as for [`Equilibrium::solve`]).
+pub fn net_force<R: Real>(
+    model: &Model<R>,
+    tape: &mut Tape,
+    x: &Array<Vec3<R>>,
+) -> Result<Array<Vec3<R>>, Error> {
+    let n = model.particle_count;
+    if model.bodies.is_some() {
+        return Err(Error::InvalidInput {
+            what: "model.bodies".into(),
+            message: "statics::net_force: the model has rigid bodies, which the static \
+                      constraint does not cover (it is over the particles only)"
+                .into(),
+        });
+    }
+    if x.len() != n {
+        return Err(Error::InvalidInput {
+            what: "x".into(),
+            message: format!(
+                "statics::net_force: {} positions for a model of {n} particles",
+                x.len()
+            ),
+        });
+    }
+    let v = Array::zeros(n).named("v_equilibrium");
+    let state = State {
+        x: x.clone(),
+        v,
+        bodies: None,
+    };
+    let a = model.eval_accelerations(tape, &state, None);
+    let pin = Array::from_vec(x.to_vec()).named("pins");
+    let out = Array::zeros(n).named("net_force");
+    tape.launch(
+        net_force_kernel,
+        n,
+        (&a, &model.particle_inv_mass, x, &pin, &out),
+    );
+    Ok(out)
+}
+
 /// What the backward needs.
 struct Shared<R: Real> {
     solver: Equilibrium,

@@ -428,3 +428,131 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
         );
     }
 }
+
+/// `statics::net_force`, the constraint of Gauss-Newton by the KKT system: zero at the
+/// solved equilibrium, its derivatives in the positions (free and pinned), the rest lengths,
+/// the stiffnesses and the inverse masses against central differences, forward mode against
+/// reverse mode, and its errors.
+#[test]
+fn the_net_force_constraint_vanishes_at_equilibrium_and_differentiates() {
+    use adflex_kernels::statics::net_force;
+    use adflex_runtime::gradcheck::GradCheck;
+
+    let model = net(4);
+    let eq = Equilibrium::default()
+        .solve(&model, &mut Tape::new(), &model.state())
+        .unwrap();
+    let c = net_force(&model, &mut Tape::new(), &eq.x).unwrap().to_vec();
+    let worst = c.iter().map(|c| c.norm()).fold(0.0, f64::max);
+    assert!(worst < 1e-9, "net force {worst:e} N at the equilibrium");
+    // Away from it: the pinned rows are x - pin (zero where x is), the free ones the net force.
+    let x = Array::from_vec(
+        eq.x.to_vec()
+            .iter()
+            .enumerate()
+            .map(|(i, p)| p + Vec3::new(0.01 * (i % 3) as f64, -0.02, 0.005 * (i % 2) as f64))
+            .collect(),
+    )
+    .named("x");
+    let c = net_force(&model, &mut Tape::new(), &x).unwrap().to_vec();
+    let f = model
+        .eval_forces(
+            &mut Tape::new(),
+            &State {
+                x: x.clone(),
+                v: Array::zeros(16),
+                bodies: None,
+            },
+            None,
+        )
+        .to_vec();
+    for (i, w) in model.particle_inv_mass.to_vec().iter().enumerate() {
+        let expected = match *w > 0.0 {
+            true => f[i] + model.gravity.get(0) / *w,
+            false => Vec3::zeros(),
+        };
+        assert!((c[i] - expected).norm() < 1e-9, "particle {i}: {:?}", c[i]);
+    }
+    // Derivatives: a weighted sum of the constraint against central differences, in every
+    // input the KKT system differentiates.
+    let rest = model.param::<f64>("springs", "rest").unwrap();
+    let ke = model.param::<f64>("springs", "ke").unwrap();
+    let inv_mass = &model.particle_inv_mass;
+    // Zero weight on the pinned rows: their `pin` is the value `x` holds when recorded, held
+    // constant by the derivatives (the identity row, checked below) but moved by a
+    // difference of `x`.
+    let free = inv_mass.to_vec();
+    let w = Array::from_vec(
+        weights(16)
+            .to_vec()
+            .iter()
+            .zip(&free)
+            .map(|(w, f)| if *f > 0.0 { *w } else { Vec3::zeros() })
+            .collect(),
+    );
+    let report = GradCheck::new()
+        .step(1e-6)
+        .run(
+            |tape| {
+                let c = net_force(&model, tape, &x).unwrap();
+                let out = Array::zeros(1);
+                tape.launch(weighted, 16, (&c, &w, &out));
+                out
+            },
+            &[&x, &rest, &ke],
+        )
+        .unwrap();
+    report.assert_within(1e-6);
+    // The inverse mass of a free particle (a pinned one's 0 is where the row changes kind,
+    // so central differences there mean nothing).
+    let mut tape = Tape::new();
+    let c = net_force(&model, &mut tape, &x).unwrap();
+    let flat_w: Vec<f64> = w.to_vec().iter().flat_map(|v| [v.x, v.y, v.z]).collect();
+    let g = tape.vjp(&[&c], &flat_w, &[inv_mass]).unwrap();
+    let w0 = inv_mass.get(5);
+    let at = |wi: f64| {
+        inv_mass.set(5, wi);
+        let c = net_force(&model, &mut Tape::new(), &x).unwrap().to_vec();
+        inv_mass.set(5, w0);
+        c.iter()
+            .zip(w.to_vec())
+            .map(|(c, w)| c.dot(&w))
+            .sum::<f64>()
+    };
+    let h = 1e-6 * w0;
+    let fd = (at(w0 + h) - at(w0 - h)) / (2.0 * h);
+    assert!(
+        (g[5] - fd).abs() <= 1e-6 * fd.abs(),
+        "d/dw5: {} against {fd}",
+        g[5]
+    );
+    // <J v, u> = <v, J^T u> over the positions and the rest lengths.
+    let mut tape = Tape::new();
+    let c = net_force(&model, &mut tape, &x).unwrap();
+    let nv = 3 * 16 + rest.len();
+    let v: Vec<f64> = (0..nv)
+        .map(|k| ((k * 37) % 11) as f64 / 11.0 - 0.4)
+        .collect();
+    let u: Vec<f64> = (0..48).map(|k| ((k * 53) % 7) as f64 / 7.0 - 0.5).collect();
+    let jv = tape.jvp(&[&x, &rest], &v, &[&c]).unwrap();
+    let jtu = tape.vjp(&[&c], &u, &[&x, &rest]).unwrap();
+    let (a, b): (f64, f64) = (
+        jv.iter().zip(&u).map(|(a, b)| a * b).sum(),
+        v.iter().zip(&jtu).map(|(a, b)| a * b).sum(),
+    );
+    assert!(
+        (a - b).abs() <= 1e-12 * a.abs().max(b.abs()),
+        "{a} against {b}"
+    );
+    // A pinned particle's row is the identity in its own position.
+    let mut e = vec![0.0; nv];
+    e[0] = 1.0; // particle 0 (a corner, pinned), x component
+    let col = tape.jvp(&[&x, &rest], &e, &[&c]).unwrap();
+    assert_eq!(col[0], 1.0);
+    assert!(col[1..3].iter().all(|v| *v == 0.0));
+    // Errors: a wrong number of positions, named.
+    let e = net_force(&model, &mut Tape::new(), &Array::zeros(3))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("3 positions for a model of 16 particles"), "{e}");
+}

@@ -195,6 +195,7 @@ pub(crate) fn run(
             grad_norm,
             evaluations: *record.evaluations.borrow(),
             passes: 2 * *record.evaluations.borrow(),
+            sweeps: 0,
             elapsed: start.elapsed(),
         };
         (it, stationarity)

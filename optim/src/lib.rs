@@ -47,6 +47,7 @@ use std::time::{Duration, Instant};
 
 use adflex_runtime::{Array, Element, Error, Tape};
 
+mod kkt;
 mod lbfgs;
 mod newton;
 mod params;
@@ -105,6 +106,18 @@ pub enum Method {
         /// Conjugate-gradient iterations per step at most (20).
         cg_iters: usize,
     },
+    /// Gauss-Newton for a least-squares loss whose state solves a constraint, e.g. a static
+    /// equilibrium ([`Optimizer::least_squares_kkt`]): each step solves the KKT system over
+    /// the state, the parameters and the constraint's multipliers at once (the formulation
+    /// of Zehnder et al.'s sparse Gauss-Newton, 2021), assembled from tangent passes over one
+    /// evaluation of the constraint and the residuals and factorized densely, instead of
+    /// conjugate gradients whose every product is a linear solve through the constraint;
+    /// then backtracks along the step (Armijo).
+    KktGaussNewton {
+        /// The largest KKT system assembled (rows: twice the state's scalars plus the
+        /// parameters; 6000); a larger one is an error.
+        largest: usize,
+    },
 }
 
 /// One iteration, as the callback and [`Report::history`] see it (iteration 0 is the
@@ -123,6 +136,10 @@ pub struct Iteration {
     /// each counted once (a gradient evaluation is 2; a Gauss-Newton product 2; a
     /// Hessian-vector product 2 sweeps in `Dual`). The cost axis for comparing methods.
     pub passes: usize,
+    /// Sweeps over one evaluation of a constraint so far (not the simulation: the tangent
+    /// passes [`Optimizer::least_squares_kkt`] assembles its KKT system from, one per
+    /// unknown; 0 for the other methods). Counted apart from `passes`, being far cheaper.
+    pub sweeps: usize,
     /// Time since the start.
     pub elapsed: Duration,
 }
@@ -248,6 +265,8 @@ pub struct Report {
     pub evaluations: usize,
     /// Passes over the simulation (see [`Iteration::passes`]).
     pub passes: usize,
+    /// Sweeps over one evaluation of a constraint (see [`Iteration::sweeps`]).
+    pub sweeps: usize,
     /// Every iteration, the starting point first.
     pub history: Vec<Iteration>,
     /// Why it stopped.
@@ -538,11 +557,13 @@ impl<'a> Optimizer<'a> {
             ),
             Method::GaussNewton { .. }
             | Method::LevenbergMarquardt { .. }
-            | Method::NewtonCg { .. } => Err(Error::InvalidInput {
+            | Method::NewtonCg { .. }
+            | Method::KktGaussNewton { .. } => Err(Error::InvalidInput {
                 what: format!("{method:?}"),
                 message: "this method needs more than a gradient: run it with \
-                          `Optimizer::least_squares` (Gauss-Newton, Levenberg-Marquardt) or \
-                          `Optimizer::minimize_newton` (Newton-CG)"
+                          `Optimizer::least_squares` (Gauss-Newton, Levenberg-Marquardt), \
+                          `Optimizer::minimize_newton` (Newton-CG) or \
+                          `Optimizer::least_squares_kkt` (Gauss-Newton by the KKT system)"
                     .into(),
             }),
         })
@@ -683,7 +704,8 @@ impl<'a> Optimizer<'a> {
                     match self.method {
                         Method::GaussNewton { .. }
                         | Method::LevenbergMarquardt { .. }
-                        | Method::NewtonCg { .. } => Stop::StepFailed(m),
+                        | Method::NewtonCg { .. }
+                        | Method::KktGaussNewton { .. } => Stop::StepFailed(m),
                         _ => Stop::LineSearchFailed(m),
                     }
                 }
@@ -697,6 +719,7 @@ impl<'a> Optimizer<'a> {
             iterations: history.len().saturating_sub(1),
             evaluations: counts.evaluations.get(),
             passes: counts.passes.get(),
+            sweeps: counts.sweeps.get(),
             history,
             stop,
             elapsed: start.elapsed(),
@@ -710,6 +733,7 @@ impl<'a> Optimizer<'a> {
 pub(crate) struct Counts {
     pub evaluations: Cell<usize>,
     pub passes: Cell<usize>,
+    pub sweeps: Cell<usize>,
     pub lowest: RefCell<Option<(f64, Vec<f64>)>>,
 }
 
@@ -733,6 +757,7 @@ impl Counts {
             grad_norm,
             evaluations: self.evaluations.get(),
             passes: self.passes.get(),
+            sweeps: self.sweeps.get(),
             elapsed: start.elapsed(),
         }
     }
@@ -852,6 +877,7 @@ fn first_order_run(
             grad_norm: norm(&g),
             evaluations,
             passes: 2 * evaluations,
+            sweeps: 0,
             elapsed: start.elapsed(),
         };
         if let Some(stop) = observe(it, params.projected_grad_norm(&x, &g)) {

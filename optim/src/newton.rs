@@ -93,6 +93,30 @@ impl Optimizer<'_> {
             }
         };
         params.check_unbounded("Gauss-Newton and Levenberg-Marquardt")?;
+        let config = LeastSquares {
+            cg_iters,
+            lambda,
+            max_iters: self.max_iters,
+            max_evals: self.max_evals,
+        };
+        self.run_least_squares(
+            params,
+            config,
+            |tape| Ok((None, residuals(tape)?.into_arrays())),
+            None,
+        )
+    }
+
+    /// The loop of [`Optimizer::least_squares`] and [`Optimizer::least_squares_kkt`]:
+    /// `residuals` records the simulation (and returns the solved state, if any, for
+    /// `direction`); `direction` replaces the conjugate gradients on Gauss-Newton products.
+    pub(crate) fn run_least_squares(
+        self,
+        params: &Params,
+        config: LeastSquares,
+        mut residuals: impl FnMut(&mut Tape) -> Result<Solved, Error>,
+        mut direction: Option<&mut Direction<'_>>,
+    ) -> Result<Report, Error> {
         let start = Instant::now();
         let counts = Counts::default();
         let mut first = true;
@@ -100,7 +124,7 @@ impl Optimizer<'_> {
             params.set_values(x);
             params.zero_grads();
             let mut tape = Tape::new();
-            let r = residuals(&mut tape)?.into_arrays();
+            let (state, r) = residuals(&mut tape)?;
             counts.evaluated(1);
             let outputs: Vec<&dyn AnyArray> = r.iter().map(|a| &**a).collect();
             if std::mem::take(&mut first) {
@@ -127,17 +151,24 @@ impl Optimizer<'_> {
             }
             let loss = 0.5 * rv.iter().map(|x| x * x).sum::<f64>();
             counts.offer(loss, x);
-            Ok(Recorded { tape, r, rv, loss })
-        };
-        let max_iters = self.max_iters;
-        let config = LeastSquares {
-            cg_iters,
-            lambda,
-            max_iters,
-            max_evals: self.max_evals,
+            Ok(Recorded {
+                tape,
+                r,
+                rv,
+                loss,
+                state,
+            })
         };
         self.drive(params, start, &counts, &mut |observe| {
-            least_squares_run(params, &config, start, &counts, &mut record, observe)
+            least_squares_run(
+                params,
+                &config,
+                start,
+                &counts,
+                &mut record,
+                direction.as_deref_mut(),
+                observe,
+            )
         })
     }
 
@@ -254,19 +285,29 @@ type Apply<'a> = dyn FnMut(&[f64]) -> Result<Vec<f64>, Error> + 'a;
 /// `(x, v, is an evaluation)` -> the loss, gradient and `H v` at `x`.
 type Product<'a> = dyn FnMut(&[f64], &[f64], bool) -> Result<Hvp, Error> + 'a;
 
-/// A recorded residual: the tape, the residual arrays, their values and `½ |r|²`.
-struct Recorded {
-    tape: Tape,
-    r: Vec<Box<dyn AnyArray>>,
-    rv: Vec<f64>,
-    loss: f64,
+/// A recorded residual: the tape, the residual arrays, their values and `½ |r|²`, and the
+/// solved state the residuals were taken at (for [`Optimizer::least_squares_kkt`]).
+pub(crate) struct Recorded {
+    pub tape: Tape,
+    pub r: Vec<Box<dyn AnyArray>>,
+    pub rv: Vec<f64>,
+    pub loss: f64,
+    pub state: Option<Box<dyn AnyArray>>,
 }
 
-struct LeastSquares {
-    cg_iters: usize,
-    lambda: Option<f64>,
-    max_iters: usize,
-    max_evals: usize,
+/// What a least-squares closure recorded: the solved state (if any) and the residual arrays.
+pub(crate) type Solved = (Option<Box<dyn AnyArray>>, Vec<Box<dyn AnyArray>>);
+
+/// A step's direction at a recorded point, given the gradient and the forcing term's relative
+/// tolerance (for [`Optimizer::least_squares_kkt`]).
+pub(crate) type Direction<'a> =
+    dyn FnMut(&Recorded, &[f64], f64, &Counts) -> Result<Vec<f64>, Error> + 'a;
+
+pub(crate) struct LeastSquares {
+    pub cg_iters: usize,
+    pub lambda: Option<f64>,
+    pub max_iters: usize,
+    pub max_evals: usize,
 }
 
 /// Whether the evaluation budget is spent: the inner loops (backtracking, damping, a trust
@@ -363,6 +404,7 @@ fn least_squares_run(
     start: Instant,
     counts: &Counts,
     record: &mut dyn FnMut(&[f64]) -> Result<Recorded, Error>,
+    mut direction: Option<&mut Direction<'_>>,
     observe: &mut Observe<'_>,
 ) -> Result<(Best, End), Error> {
     let arrays = params.arrays();
@@ -407,7 +449,10 @@ fn least_squares_run(
         };
         match config.lambda {
             None => {
-                let d = cg(&g, config.cg_iters, tol, &mut |v| gn(&mut cur, v))?;
+                let d = match direction.as_deref_mut() {
+                    Some(direction) => direction(&cur, &g, tol, counts)?,
+                    None => cg(&g, config.cg_iters, tol, &mut |v| gn(&mut cur, v))?,
+                };
                 let slope = dot(&g, &d);
                 // Backtracking (Armijo) along d.
                 let mut t = 1.0;

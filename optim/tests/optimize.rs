@@ -643,3 +643,210 @@ fn gauss_newton_and_levenberg_marquardt_keep_their_budget() {
         }
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// Gauss-Newton by the KKT system: a state x_i that solves x_i³ + x_i = p0 + i p1 (i = 0..4),
+// residuals x - target (more residuals than parameters, so the step is a least-squares one).
+
+/// `c_i = x_i³ + x_i - p0 - w_i p1`.
+#[diff_kernel]
+fn cubic_constraint<R: Real>(x: &Array<R>, p: &Array<R>, w: &Array<R>, c: &Array<R>) {
+    let i = tid();
+    c[i] = x[i] * x[i] * x[i] + x[i] - p[0] - w[i] * p[1];
+}
+
+/// The root `s` of the constraint as a constant, and one Newton step from it: the value stays
+/// the root, the derivative is the implicit function theorem's `(1, w_i) / (3 s² + 1)`.
+#[diff_kernel]
+fn cubic_solved<R: Real>(s: &Array<R>, p: &Array<R>, w: &Array<R>, x: &Array<R>) {
+    let i = tid();
+    let r = s[i];
+    x[i] = r - (r * r * r + r - p[0] - w[i] * p[1]) / (3.0 * r * r + 1.0);
+}
+
+#[diff_kernel]
+fn miss<R: Real>(x: &Array<R>, target: &Array<R>, r: &Array<R>) {
+    let i = tid();
+    r[i] = x[i] - target[i];
+}
+
+fn cubic_root(q: f64) -> f64 {
+    let mut x = 0.0f64;
+    for _ in 0..80 {
+        x -= (x * x * x + x - q) / (3.0 * x * x + 1.0);
+    }
+    x
+}
+
+const N: usize = 4;
+
+struct Cubic {
+    p: Array<f64>,
+    w: Array<f64>,
+    target: Array<f64>,
+}
+
+impl Cubic {
+    fn new(weights: Vec<f64>) -> Self {
+        Cubic {
+            p: Array::from_vec(vec![0.2, 0.1]).named("p"),
+            w: Array::from_vec(weights),
+            target: Array::from_vec(vec![0.3, 0.5, 0.55, 0.9]),
+        }
+    }
+    fn roots(&self) -> Vec<f64> {
+        let (p, w) = (self.p.to_vec(), self.w.to_vec());
+        w.iter().map(|w| cubic_root(p[0] + w * p[1])).collect()
+    }
+    fn residuals(&self, tape: &mut Tape, x: &Array<f64>) -> Array<f64> {
+        let r = Array::zeros(N).named("miss");
+        tape.launch(miss, N, (x, &self.target, &r));
+        r
+    }
+    fn solve(&self, tape: &mut Tape) -> Result<(Array<f64>, Array<f64>), Error> {
+        let s = Array::from_vec(self.roots());
+        let x = Array::zeros(N).named("x");
+        tape.launch(cubic_solved, N, (&s, &self.p, &self.w, &x));
+        Ok((x.clone(), self.residuals(tape, &x)))
+    }
+    fn constraint(&self, tape: &mut Tape, x: &Array<f64>) -> Array<f64> {
+        let c = Array::zeros(N).named("c");
+        tape.launch(cubic_constraint, N, (x, &self.p, &self.w, &c));
+        c
+    }
+    fn run(&self, opt: Optimizer<'_>) -> Result<adflex_optim::Report, Error> {
+        opt.progress(false).least_squares_kkt(
+            &Params::new().with(&self.p),
+            |tape| self.solve(tape),
+            |tape, x| Ok((self.constraint(tape, x), self.residuals(tape, x))),
+        )
+    }
+}
+
+#[test]
+fn the_kkt_step_is_the_gauss_newton_step_and_converges() {
+    let cubic = Cubic::new(vec![0.0, 1.0, 2.0, 3.0]);
+    // The Gauss-Newton step at the start, by hand: J_ij = dx_i/dp_j = (1, w_i) / (3 x_i² + 1),
+    // dp = -(JᵀJ)⁻¹ Jᵀ r.
+    let x = cubic.roots();
+    let (w, t) = (cubic.w.to_vec(), cubic.target.to_vec());
+    let (mut a, mut b) = ([[0.0; 2]; 2], [0.0; 2]);
+    for i in 0..N {
+        let d = 1.0 / (3.0 * x[i] * x[i] + 1.0);
+        let j = [d, w[i] * d];
+        for r in 0..2 {
+            b[r] -= j[r] * (x[i] - t[i]);
+            for c in 0..2 {
+                a[r][c] += j[r] * j[c];
+            }
+        }
+    }
+    let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+    let dp = [
+        (a[1][1] * b[0] - a[0][1] * b[1]) / det,
+        (a[0][0] * b[1] - a[1][0] * b[0]) / det,
+    ];
+    let p0 = cubic.p.to_vec();
+    let one = cubic
+        .run(Optimizer::kkt_gauss_newton().max_iters(1))
+        .unwrap();
+    assert_eq!(one.iterations, 1);
+    // The full step was taken (one evaluation at the start, one at the trial point).
+    assert_eq!(one.evaluations, 2, "{one}");
+    // 6 unknowns (4 states, 2 parameters): 6 tangent sweeps and one recording.
+    assert_eq!(one.sweeps, 7, "{one}");
+    let p1 = cubic.p.to_vec();
+    for k in 0..2 {
+        assert!(
+            (p1[k] - (p0[k] + dp[k])).abs() < 1e-12,
+            "p{k}: {} against the Gauss-Newton step's {}",
+            p1[k],
+            p0[k] + dp[k]
+        );
+    }
+    // From there it converges to the least-squares fit (a nonzero residual): the gradient
+    // vanishes.
+    cubic.p.assign(&p0);
+    let report = cubic
+        .run(Optimizer::kkt_gauss_newton().grad_tol(1e-8).max_iters(30))
+        .unwrap();
+    assert!(report.converged(), "{report}");
+    assert!(report.iterations <= 10, "{report}");
+    assert!(report.loss > 1e-4, "a fit with a residual: {report}");
+}
+
+#[test]
+fn the_kkt_method_refuses_what_it_cannot_solve() {
+    let cubic = Cubic::new(vec![0.0, 1.0, 2.0, 3.0]);
+    let err = |e: Error| e.to_string();
+    // Residuals that differ between the two closures.
+    let e = Optimizer::kkt_gauss_newton()
+        .progress(false)
+        .least_squares_kkt(
+            &Params::new().with(&cubic.p),
+            |tape| cubic.solve(tape),
+            |tape, x| {
+                let r = cubic.residuals(tape, x);
+                let shifted = Array::zeros(N).named("shifted");
+                tape.launch(
+                    miss,
+                    N,
+                    (&r, &Array::from_vec(vec![0.0, 0.0, 1e-3, 0.0]), &shifted),
+                );
+                Ok((cubic.constraint(tape, x), shifted))
+            },
+        )
+        .map(|_| ())
+        .map_err(err)
+        .unwrap_err();
+    assert!(
+        e.contains("`shifted` component 2") && e.contains("same residuals"),
+        "{e}"
+    );
+    // A constraint with fewer equations than the state has unknowns.
+    let e = Optimizer::kkt_gauss_newton()
+        .progress(false)
+        .least_squares_kkt(
+            &Params::new().with(&cubic.p),
+            |tape| cubic.solve(tape),
+            |tape, x| {
+                let c = Array::zeros(N - 1).named("short");
+                tape.launch(cubic_constraint, N - 1, (x, &cubic.p, &cubic.w, &c));
+                Ok((c, cubic.residuals(tape, x)))
+            },
+        )
+        .map(|_| ())
+        .map_err(err)
+        .unwrap_err();
+    assert!(
+        e.contains("`short`") && e.contains("3 scalars and the state 4"),
+        "{e}"
+    );
+    // Parameters the residuals cannot tell apart (every w_i = 1: p0 and p1 act alike).
+    let twins = Cubic::new(vec![1.0; N]);
+    let e = twins
+        .run(Optimizer::kkt_gauss_newton())
+        .map(|_| ())
+        .map_err(err)
+        .unwrap_err();
+    assert!(e.contains("singular"), "{e}");
+    // Another method, and a system above the size limit.
+    let e = Optimizer::gauss_newton()
+        .least_squares_kkt(
+            &Params::new().with(&cubic.p),
+            |tape| cubic.solve(tape),
+            |tape, x| Ok((cubic.constraint(tape, x), cubic.residuals(tape, x))),
+        )
+        .map(|_| ())
+        .map_err(err)
+        .unwrap_err();
+    assert!(e.contains("kkt_gauss_newton"), "{e}");
+    let e = cubic
+        .run(Optimizer::new(adflex_optim::Method::KktGaussNewton {
+            largest: 9,
+        }))
+        .map(|_| ())
+        .map_err(err)
+        .unwrap_err();
+    assert!(e.contains("10 rows") && e.contains("`largest` (9)"), "{e}");
+}

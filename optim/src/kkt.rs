@@ -1,0 +1,380 @@
+//! Gauss-Newton through a constraint by its KKT system ([`Optimizer::least_squares_kkt`]).
+
+use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
+
+use crate::newton::{Direction, LeastSquares, Recorded};
+use crate::{Counts, Method, Optimizer, Params, Report, Residuals};
+
+impl Optimizer<'_> {
+    /// Gauss-Newton by the KKT system ([`Method::KktGaussNewton`]), for systems of up to 6000
+    /// rows; run it with [`Optimizer::least_squares_kkt`].
+    pub fn kkt_gauss_newton() -> Self {
+        Self::new(Method::KktGaussNewton { largest: 6000 })
+    }
+
+    /// Gauss-Newton through a constraint by its KKT system, the formulation of sparse Gauss-Newton
+    /// (Zehnder, Coros and Thomaszewski, "SGN: Sparse Gauss-Newton for Accelerated Sensitivity
+    /// Analysis", 2021), for a least-squares loss `½ |r(x, p)|²` whose state `x` solves a
+    /// constraint `c(x, p) = 0` (a static equilibrium).
+    ///
+    /// Gauss-Newton through the constraint needs the sensitivity `S = dx/dp = -c_x⁻¹ c_p`: done
+    /// matrix free ([`Optimizer::least_squares`] on a tape through the solve), each Gauss-Newton
+    /// product `Jᵀ J v` is a linear solve with `c_x` forward and one backward, and a step takes
+    /// several. Instead, the step `(dx, dp)` and the multipliers `λ` of the linearized constraint
+    /// solve one symmetric, indefinite KKT system,
+    ///
+    /// ```text
+    /// [ Jᵀ J    s Cᵀ ] [ (dx, dp) ]   [ -Jᵀ r ]
+    /// [ s C     0    ] [    λ     ] = [ -s c  ]
+    /// ```
+    ///
+    /// `J = [r_x r_p]`, `C = [c_x c_p]`, `s` a scale that balances the blocks; its `dp` is the
+    /// Gauss-Newton step (eliminate `dx = S dp`), found without forming `S` and without an inner
+    /// iterative solve, so its cost does not grow with the stiffness's condition number. `J` and
+    /// `C` come column by column from tangent passes over a tape that holds one evaluation of the
+    /// constraint and the residuals at `x` (one pass per unknown of the state and per parameter),
+    /// and the system is factorized by LU.
+    ///
+    /// What is not the paper's: the system is assembled and factorized **densely**, so the cost is
+    /// `n + m` tangent passes and `O((2n + m)³)` per step (`n` state scalars, `m` parameters):
+    /// right for a few thousand unknowns (the inverse-design cable: 183 and 60), not for a cloth of
+    /// 10,000 particles, which needs the sparse assembly (compressed columns by a colouring of the
+    /// force graph) and a sparse factorization.
+    ///
+    /// # The closures
+    ///
+    /// - `residuals(tape)` solves for the state and records the residuals on a fresh tape,
+    ///   differentiably (the constraint's solve recorded with its implicit-function-theorem
+    ///   gradient, e.g. `Equilibrium::solve`), and returns the state and the residuals: it
+    ///   gives the loss and its gradient, as in [`Optimizer::least_squares`].
+    /// - `constrained(tape, x)` records, at the state `x` (a leaf: a copy of the state that
+    ///   `residuals` returned), the constraint `c(x, p)` (one scalar per scalar of `x`, e.g.
+    ///   `statics::net_force`) and the same residuals, now as functions of `x` and `p`. The
+    ///   KKT products run over this tape.
+    ///
+    /// An iteration is the `residuals` evaluation, its gradient (an adjoint pass through the
+    /// solve), one recording of `constrained` and one tangent pass of that small tape per
+    /// unknown of the state and per parameter (sweeps over one evaluation of the constraint,
+    /// far cheaper than a pass through the solve: counted in [`Report::sweeps`], not in
+    /// `passes`), the LU solve, and an Armijo backtracking along the step (one `residuals`
+    /// evaluation per trial).
+    ///
+    /// Errors: as [`Optimizer::least_squares`]; [`Error::InvalidInput`] if the constraint's
+    /// scalars are not the state's, if the residuals of `constrained` differ from those of
+    /// `residuals` at the same point (relative 1e-6: the two closures must compute the same
+    /// residuals; naming the array and component), if the KKT system is singular (a state
+    /// the constraint does not determine, or parameters the residuals do not), or if it has
+    /// more rows than [`Method::KktGaussNewton`]'s `largest`.
+    ///
+    /// ```
+    /// use adflex_optim::{Optimizer, Params};
+    /// use adflex_runtime::prelude::*;
+    ///
+    /// // The state x solves c(x, p) = x³ + x - p = 0 (per component); fit p so that x
+    /// // matches a target.
+    /// #[adflex_macros::diff_kernel]
+    /// fn constraint<R: Real>(x: &Array<R>, p: &Array<R>, c: &Array<R>) {
+    ///     let i = tid();
+    ///     c[i] = x[i] * x[i] * x[i] + x[i] - p[i];
+    /// }
+    /// #[adflex_macros::diff_kernel]
+    /// fn miss<R: Real>(x: &Array<R>, target: &Array<R>, r: &Array<R>) {
+    ///     let i = tid();
+    ///     r[i] = x[i] - target[i];
+    /// }
+    /// // x(p) by Newton, recorded with its gradient dx/dp = 1 / (3 x² + 1).
+    /// #[adflex_macros::diff_kernel]
+    /// fn solved<R: Real>(p: &Array<R>, x0: &Array<R>, x: &Array<R>) {
+    ///     let i = tid();
+    ///     let s = x0[i]; // the root, a constant
+    ///     // one Newton step from the root: the value stays the root, the derivative is exact
+    ///     x[i] = s - (s * s * s + s - p[i]) / (3.0 * s * s + 1.0);
+    /// }
+    /// fn root(p: f64) -> f64 {
+    ///     let mut x = 0.0f64;
+    ///     for _ in 0..60 {
+    ///         x -= (x * x * x + x - p) / (3.0 * x * x + 1.0);
+    ///     }
+    ///     x
+    /// }
+    ///
+    /// let n = 4;
+    /// let p = Array::from_vec(vec![0.0f64; n]);
+    /// let target = Array::from_vec(vec![0.5, -1.0, 1.5, 2.0]);
+    /// let residuals = |tape: &mut Tape, x: &Array<f64>| {
+    ///     let r = Array::zeros(n);
+    ///     tape.launch(miss, n, (x, &target, &r));
+    ///     r
+    /// };
+    /// let report = Optimizer::kkt_gauss_newton()
+    ///     .grad_tol(1e-12)
+    ///     .progress(false)
+    ///     .least_squares_kkt(
+    ///         &Params::new().with(&p),
+    ///         |tape| {
+    ///             let x0 = Array::from_vec(p.to_vec().into_iter().map(root).collect());
+    ///             let x = Array::zeros(n);
+    ///             tape.launch(solved, n, (&p, &x0, &x));
+    ///             let r = residuals(tape, &x);
+    ///             Ok((x, r))
+    ///         },
+    ///         |tape, x| {
+    ///             let c = Array::zeros(n);
+    ///             tape.launch(constraint, n, (x, &p, &c));
+    ///             Ok((c, residuals(tape, x)))
+    ///         },
+    ///     )
+    ///     .unwrap();
+    /// assert!(report.converged(), "{report}");
+    /// // p = x³ + x at the target.
+    /// for (p, t) in p.to_vec().iter().zip(target.to_vec()) {
+    ///     assert!((p - (t * t * t + t)).abs() < 1e-8);
+    /// }
+    /// ```
+    pub fn least_squares_kkt<X: Element, C: Element, Rs: Residuals, Rc: Residuals>(
+        self,
+        params: &Params,
+        mut residuals: impl FnMut(&mut Tape) -> Result<(Array<X>, Rs), Error>,
+        mut constrained: impl FnMut(&mut Tape, &Array<X>) -> Result<(Array<C>, Rc), Error>,
+    ) -> Result<Report, Error> {
+        let Method::KktGaussNewton { largest } = self.method else {
+            return Err(Error::InvalidInput {
+                what: format!("{:?}", self.method),
+                message: "`least_squares_kkt` runs Gauss-Newton by the KKT system \
+                          (`Optimizer::kkt_gauss_newton`); without a constraint use \
+                          `Optimizer::least_squares`"
+                    .into(),
+            });
+        };
+        params.check_unbounded("Gauss-Newton by the KKT system")?;
+        let config = LeastSquares {
+            cg_iters: 0,
+            lambda: None,
+            max_iters: self.max_iters,
+            max_evals: self.max_evals,
+        };
+        let arrays = params.arrays();
+        let mut direction = |cur: &Recorded, g: &[f64], _tol: f64, counts: &Counts| {
+            let state = cur
+                .state
+                .as_deref()
+                .expect("least_squares_kkt's records keep the state");
+            let x = Array::<X>::zeros(state.len()).named("state (KKT)");
+            for k in 0..scalars(state) {
+                x.set_scalar(k, state.scalar(k));
+            }
+            let mut tape = Tape::new();
+            let (c, rc) = constrained(&mut tape, &x)?;
+            counts.sweeps.set(counts.sweeps.get() + 1);
+            let rc = rc.into_arrays();
+            let kkt = Kkt::new(&mut tape, &x, &c, &rc, &arrays, cur)?;
+            let d = kkt.step(largest, counts)?;
+            // A descent direction of the loss unless the step is zero; the line search
+            // guards the rest.
+            Ok(if dot(g, &d) < 0.0 {
+                d
+            } else {
+                g.iter().map(|g| -g).collect()
+            })
+        };
+        let direction: &mut Direction<'_> = &mut direction;
+        self.run_least_squares(
+            params,
+            config,
+            |tape| {
+                let (x, r) = residuals(tape)?;
+                Ok((Some(Box::new(x) as Box<dyn AnyArray>), r.into_arrays()))
+            },
+            Some(direction),
+        )
+    }
+}
+
+fn scalars(a: &dyn AnyArray) -> usize {
+    a.len() * a.element_dim()
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// The scalars of `arrays`, in order.
+fn values(arrays: &[&dyn AnyArray]) -> Vec<f64> {
+    arrays
+        .iter()
+        .flat_map(|a| (0..scalars(*a)).map(|k| a.scalar(k)))
+        .collect()
+}
+
+/// The KKT system of one step, over the tape of `constrained` at the state `x`.
+struct Kkt<'t, 'a> {
+    tape: &'t mut Tape,
+    /// The state, then the parameters.
+    inputs: Vec<&'a dyn AnyArray>,
+    /// The residuals, then the constraint.
+    outputs: Vec<&'a dyn AnyArray>,
+    /// Scalars of the state, of the parameters, of the residuals.
+    n: usize,
+    m: usize,
+    nr: usize,
+    /// The residuals' and the constraint's values at `x`.
+    r: Vec<f64>,
+    c: Vec<f64>,
+}
+
+impl<'t, 'a> Kkt<'t, 'a> {
+    /// Checks the constraint's size and that the residuals are those of the recorded point.
+    fn new<X: Element, C: Element>(
+        tape: &'t mut Tape,
+        x: &'a Array<X>,
+        c: &'a Array<C>,
+        rc: &'a [Box<dyn AnyArray>],
+        params: &[&'a dyn AnyArray],
+        cur: &Recorded,
+    ) -> Result<Self, Error> {
+        let n = scalars(x);
+        if scalars(c) != n {
+            return Err(Error::InvalidInput {
+                what: format!("least_squares_kkt: constraint `{}`", c.label()),
+                message: format!(
+                    "has {} scalars and the state {n}: the KKT system needs one equation of the \
+                     constraint per unknown of the state",
+                    scalars(c)
+                ),
+            });
+        }
+        let mut outputs: Vec<&dyn AnyArray> = rc.iter().map(|a| &**a).collect();
+        let r = values(&outputs);
+        if r.len() != cur.rv.len() {
+            return Err(Error::InvalidInput {
+                what: "least_squares_kkt: the residuals of `constrained`".into(),
+                message: format!(
+                    "have {} scalars and those of `residuals` {}: both closures must return \
+                     the same residuals",
+                    r.len(),
+                    cur.rv.len()
+                ),
+            });
+        }
+        let scale = cur.rv.iter().fold(f64::MIN_POSITIVE, |s, v| s.max(v.abs()));
+        if let Some(k) = (0..r.len()).find(|&k| (r[k] - cur.rv[k]).abs() > 1e-6 * scale) {
+            let (array, index) = locate(&outputs, k);
+            return Err(Error::InvalidInput {
+                what: format!(
+                    "least_squares_kkt: residual `{}` component {index} of `constrained`",
+                    array.label()
+                ),
+                message: format!(
+                    "is {:e} at the state `residuals` returned, where `residuals` gave {:e}: \
+                     both closures must compute the same residuals (at that state, from the \
+                     same parameters)",
+                    r[k], cur.rv[k]
+                ),
+            });
+        }
+        outputs.push(c);
+        let mut inputs: Vec<&dyn AnyArray> = vec![x];
+        inputs.extend(params.iter().copied());
+        let m = inputs[1..].iter().map(|a| scalars(*a)).sum();
+        Ok(Kkt {
+            c: values(&[c]),
+            tape,
+            inputs,
+            outputs,
+            n,
+            m,
+            nr: r.len(),
+            r,
+        })
+    }
+
+    /// `(J v, C v)` for `v` over the state and the parameters: one tangent pass.
+    fn forward(&mut self, v: &[f64]) -> Result<Vec<f64>, Error> {
+        self.tape.jvp(&self.inputs, v, &self.outputs)
+    }
+
+    /// The Gauss-Newton step over the parameters: the KKT system assembled from one tangent
+    /// pass per unknown of the state and per parameter (the columns of `J` and `C`) and
+    /// solved by LU with partial pivoting. An error if the system has more than `largest`
+    /// rows or is singular (no unique Gauss-Newton step).
+    fn step(mut self, largest: usize, counts: &Counts) -> Result<Vec<f64>, Error> {
+        let (n, m, nr) = (self.n, self.m, self.nr);
+        let k = n + m;
+        let dim = 2 * n + m;
+        if dim > largest {
+            return Err(Error::InvalidInput {
+                what: "least_squares_kkt: the KKT system".into(),
+                message: format!(
+                    "has {dim} rows (2 x {n} state scalars + {m} parameters), above \
+                     `Method::KktGaussNewton`'s `largest` ({largest}): it is assembled \
+                     densely; raise `largest` if the memory ({:.0} MB) is there, or use \
+                     `Optimizer::gauss_newton` with `least_squares`",
+                    (dim * dim * 8) as f64 / 1e6
+                ),
+            });
+        }
+        // Column j of J (nr rows) and of C (n rows): one tangent pass each.
+        let mut jc = nalgebra::DMatrix::<f64>::zeros(nr, k);
+        let mut cc = nalgebra::DMatrix::<f64>::zeros(n, k);
+        let mut e = vec![0.0; k];
+        for j in 0..k {
+            e[j] = 1.0;
+            let t = self.forward(&e)?;
+            e[j] = 0.0;
+            jc.column_mut(j).copy_from_slice(&t[..nr]);
+            cc.column_mut(j).copy_from_slice(&t[nr..]);
+        }
+        counts.sweeps.set(counts.sweeps.get() + k);
+        let h = jc.transpose() * &jc;
+        // The scale s brings the constraint's block to the curvature's size, so that the
+        // pivoting compares like with like.
+        let (hmax, cmax) = (h.amax(), cc.amax());
+        let s = if hmax > 0.0 && cmax > 0.0 {
+            hmax / cmax
+        } else {
+            1.0
+        };
+        let mut a = nalgebra::DMatrix::<f64>::zeros(dim, dim);
+        a.view_mut((0, 0), (k, k)).copy_from(&h);
+        a.view_mut((k, 0), (n, k)).copy_from(&(&cc * s));
+        a.view_mut((0, k), (k, n)).copy_from(&(cc.transpose() * s));
+        let r = nalgebra::DVector::from_column_slice(&self.r);
+        let mut b = nalgebra::DVector::<f64>::zeros(dim);
+        b.rows_mut(0, k).copy_from(&(-(jc.transpose() * r)));
+        for i in 0..n {
+            b[k + i] = -s * self.c[i];
+        }
+        let lu = a.lu();
+        // A pivot below rounding of the largest one: singular to working precision.
+        let pivots = lu.u().diagonal().map(f64::abs);
+        let tiny = pivots.max() * 1e-13 * dim as f64;
+        let sol = match pivots.min() > tiny {
+            true => lu.solve(&b).filter(|x| x.iter().all(|v| v.is_finite())),
+            false => None,
+        };
+        let Some(sol) = sol else {
+            return Err(Error::InvalidInput {
+                what: "least_squares_kkt: the KKT system".into(),
+                message: format!(
+                    "is singular to working precision ({n} state scalars, {m} parameters, {nr} \
+                     residuals): the \
+                     constraint's Jacobian in the state is singular (the state is not \
+                     determined, e.g. a free mechanism), or the residuals do not determine \
+                     the parameters (fewer independent residuals than parameters)"
+                ),
+            });
+        };
+        Ok(sol.as_slice()[n..k].to_vec())
+    }
+}
+
+/// The array and component of flat index `k` over `arrays`.
+fn locate<'a>(arrays: &[&'a dyn AnyArray], mut k: usize) -> (&'a dyn AnyArray, usize) {
+    for &a in arrays {
+        if k < scalars(a) {
+            return (a, k);
+        }
+        k -= scalars(a);
+    }
+    unreachable!("k is within the arrays' scalars")
+}
