@@ -2,7 +2,7 @@
 
 use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
-use crate::newton::{Direction, LeastSquares, Recorded};
+use crate::newton::{dot, Direction, LeastSquares, Recorded};
 use crate::{Counts, Method, Optimizer, Params, Report, Residuals};
 
 impl Optimizer<'_> {
@@ -25,7 +25,7 @@ impl Optimizer<'_> {
     ///
     /// ```text
     /// [ Jᵀ J    s Cᵀ ] [ (dx, dp) ]   [ -Jᵀ r ]
-    /// [ s C     0    ] [    λ     ] = [ -s c  ]
+    /// [ s C     0    ] [    λ     ] = [   0   ]
     /// ```
     ///
     /// `J = [r_x r_p]`, `C = [c_x c_p]`, `s` a scale that balances the blocks; its `dp` is the
@@ -59,12 +59,22 @@ impl Optimizer<'_> {
     /// `passes`), the LU solve, and an Armijo backtracking along the step (one `residuals`
     /// evaluation per trial).
     ///
-    /// Errors: as [`Optimizer::least_squares`]; [`Error::InvalidInput`] if the constraint's
-    /// scalars are not the state's, if the residuals of `constrained` differ from those of
-    /// `residuals` at the same point (relative 1e-6: the two closures must compute the same
-    /// residuals; naming the array and component), if the KKT system is singular (a state
-    /// the constraint does not determine, or parameters the residuals do not), or if it has
-    /// more rows than [`Method::KktGaussNewton`]'s `largest`.
+    /// Errors: as [`Optimizer::least_squares`] (an error at a later step ends the run with it,
+    /// the parameters holding the lowest-loss values); [`Error::InvalidInput`] naming what is
+    /// wrong if the constraint's scalars are not the state's; at the first step, if the
+    /// residuals of `constrained` differ from those of `residuals` (relative 1e-6; the array
+    /// and component) or their derivatives disagree with the gradient through the solve
+    /// (`gᵀdp = -|J d|²` to 1e-3: the closures read the parameters differently); if a
+    /// parameter moves neither the constraint nor the residuals of `constrained` (named); if
+    /// the KKT system is singular to working precision (a pivot below `1e-13 · rows` of the
+    /// largest, `1e-6 · rows` when the state or the constraint is in f32: a state the
+    /// constraint does not determine, or parameters the residuals cannot tell apart; the
+    /// system is not equilibrated, so parameters of very different units can look singular:
+    /// scale them); if it has more rows than [`Method::KktGaussNewton`]'s `largest`; or if a
+    /// derivative is not finite (naming its input).
+    ///
+    /// The constraint holds the parameters the tape of `constrained` reads; with
+    /// `statics::net_force`, the pins are held where they are (not parameters here).
     ///
     /// ```
     /// use adflex_optim::{Optimizer, Params};
@@ -154,6 +164,9 @@ impl Optimizer<'_> {
             max_evals: self.max_evals,
         };
         let arrays = params.arrays();
+        // The closures' agreement is checked at the first step (later, near a zero-residual
+        // fit, rounding would dominate the comparison).
+        let mut first = true;
         let mut direction = |cur: &Recorded, g: &[f64], _tol: f64, counts: &Counts| {
             let state = cur
                 .state
@@ -167,15 +180,10 @@ impl Optimizer<'_> {
             let (c, rc) = constrained(&mut tape, &x)?;
             counts.sweeps.set(counts.sweeps.get() + 1);
             let rc = rc.into_arrays();
-            let kkt = Kkt::new(&mut tape, &x, &c, &rc, &arrays, cur)?;
-            let d = kkt.step(largest, counts)?;
-            // A descent direction of the loss unless the step is zero; the line search
-            // guards the rest.
-            Ok(if dot(g, &d) < 0.0 {
-                d
-            } else {
-                g.iter().map(|g| -g).collect()
-            })
+            let kkt = Kkt::new(&mut tape, &x, &c, &rc, &arrays, cur, first)?;
+            let d = kkt.step(largest, counts, g, first, params)?;
+            first = false;
+            Ok(d)
         };
         let direction: &mut Direction<'_> = &mut direction;
         self.run_least_squares(
@@ -192,10 +200,6 @@ impl Optimizer<'_> {
 
 fn scalars(a: &dyn AnyArray) -> usize {
     a.len() * a.element_dim()
-}
-
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 /// The scalars of `arrays`, in order.
@@ -217,9 +221,11 @@ struct Kkt<'t, 'a> {
     n: usize,
     m: usize,
     nr: usize,
-    /// The residuals' and the constraint's values at `x`.
+    /// The residuals' values at `x`.
     r: Vec<f64>,
-    c: Vec<f64>,
+    /// The relative rounding of the derivatives: f32's if the state or the constraint is in
+    /// f32.
+    epsilon: f64,
 }
 
 impl<'t, 'a> Kkt<'t, 'a> {
@@ -231,6 +237,7 @@ impl<'t, 'a> Kkt<'t, 'a> {
         rc: &'a [Box<dyn AnyArray>],
         params: &[&'a dyn AnyArray],
         cur: &Recorded,
+        first: bool,
     ) -> Result<Self, Error> {
         let n = scalars(x);
         if scalars(c) != n {
@@ -257,7 +264,8 @@ impl<'t, 'a> Kkt<'t, 'a> {
             });
         }
         let scale = cur.rv.iter().fold(f64::MIN_POSITIVE, |s, v| s.max(v.abs()));
-        if let Some(k) = (0..r.len()).find(|&k| (r[k] - cur.rv[k]).abs() > 1e-6 * scale) {
+        let differs = |k: &usize| (r[*k] - cur.rv[*k]).abs() > 1e-6 * scale;
+        if let Some(k) = (0..r.len()).filter(|_| first).find(differs) {
             let (array, index) = locate(&outputs, k);
             return Err(Error::InvalidInput {
                 what: format!(
@@ -276,8 +284,11 @@ impl<'t, 'a> Kkt<'t, 'a> {
         let mut inputs: Vec<&dyn AnyArray> = vec![x];
         inputs.extend(params.iter().copied());
         let m = inputs[1..].iter().map(|a| scalars(*a)).sum();
+        let f32s = [std::any::type_name::<X>(), std::any::type_name::<C>()]
+            .iter()
+            .any(|t| t.contains("f32"));
         Ok(Kkt {
-            c: values(&[c]),
+            epsilon: if f32s { 1e-6 } else { 1e-13 },
             tape,
             inputs,
             outputs,
@@ -297,7 +308,14 @@ impl<'t, 'a> Kkt<'t, 'a> {
     /// pass per unknown of the state and per parameter (the columns of `J` and `C`) and
     /// solved by LU with partial pivoting. An error if the system has more than `largest`
     /// rows or is singular (no unique Gauss-Newton step).
-    fn step(mut self, largest: usize, counts: &Counts) -> Result<Vec<f64>, Error> {
+    fn step(
+        mut self,
+        largest: usize,
+        counts: &Counts,
+        g: &[f64],
+        first: bool,
+        params: &Params,
+    ) -> Result<Vec<f64>, Error> {
         let (n, m, nr) = (self.n, self.m, self.nr);
         let k = n + m;
         let dim = 2 * n + m;
@@ -325,6 +343,35 @@ impl<'t, 'a> Kkt<'t, 'a> {
             cc.column_mut(j).copy_from_slice(&t[nr..]);
         }
         counts.sweeps.set(counts.sweeps.get() + k);
+        let bad = (0..k).find(|&j| {
+            let finite = |m: &nalgebra::DMatrix<f64>| m.column(j).iter().all(|v| v.is_finite());
+            !finite(&jc) || !finite(&cc)
+        });
+        if let Some(j) = bad {
+            let (array, index) = locate(&self.inputs, j);
+            return Err(Error::InvalidInput {
+                what: format!("least_squares_kkt: `{}` component {index}", array.label()),
+                message: "the derivative of the constraint or the residuals of `constrained` \
+                          with respect to it is not finite (at the solved state)"
+                    .into(),
+            });
+        }
+        // A parameter neither the constraint nor the residuals of `constrained` read.
+        let unread = (n..k).find(|&j| {
+            jc.column(j).iter().all(|v| *v == 0.0) && cc.column(j).iter().all(|v| *v == 0.0)
+        });
+        if let Some(j) = unread {
+            return Err(Error::InvalidInput {
+                what: format!(
+                    "least_squares_kkt: parameter {}",
+                    params.component_name(j - n)
+                ),
+                message: "moves neither the constraint nor the residuals `constrained` \
+                          records (its column of the KKT system is zero): record what depends \
+                          on it on `constrained`'s tape too"
+                    .into(),
+            });
+        }
         let h = jc.transpose() * &jc;
         // The scale s brings the constraint's block to the curvature's size, so that the
         // pivoting compares like with like.
@@ -338,16 +385,16 @@ impl<'t, 'a> Kkt<'t, 'a> {
         a.view_mut((0, 0), (k, k)).copy_from(&h);
         a.view_mut((k, 0), (n, k)).copy_from(&(&cc * s));
         a.view_mut((0, k), (k, n)).copy_from(&(cc.transpose() * s));
+        // The constraint's rows of the right-hand side are 0: the step linearizes at the solved
+        // state, where the gradient (through the solve) takes the constraint as met.
         let r = nalgebra::DVector::from_column_slice(&self.r);
         let mut b = nalgebra::DVector::<f64>::zeros(dim);
         b.rows_mut(0, k).copy_from(&(-(jc.transpose() * r)));
-        for i in 0..n {
-            b[k + i] = -s * self.c[i];
-        }
         let lu = a.lu();
-        // A pivot below rounding of the largest one: singular to working precision.
+        // A pivot below rounding of the largest one: singular to working precision (that of
+        // f32 if the state or the constraint is in f32, their derivatives being no better).
         let pivots = lu.u().diagonal().map(f64::abs);
-        let tiny = pivots.max() * 1e-13 * dim as f64;
+        let tiny = pivots.max() * self.epsilon * dim as f64;
         let sol = match pivots.min() > tiny {
             true => lu.solve(&b).filter(|x| x.iter().all(|v| v.is_finite())),
             false => None,
@@ -364,7 +411,28 @@ impl<'t, 'a> Kkt<'t, 'a> {
                 ),
             });
         };
-        Ok(sol.as_slice()[n..k].to_vec())
+        let d = sol.as_slice()[..k].to_vec();
+        let dp = d[n..].to_vec();
+        // At the solution, gᵀdp = -|J d|² (C d = 0): a gradient through `residuals` that
+        // disagrees says the two closures differentiate differently.
+        let (slope, model) = (
+            dot(g, &dp),
+            (&jc * nalgebra::DVector::from_vec(d)).norm_squared(),
+        );
+        if first && (slope + model).abs() > 1e-3 * slope.abs().max(model) {
+            return Err(Error::InvalidInput {
+                what: "least_squares_kkt: the derivatives of `constrained`".into(),
+                message: format!(
+                    "disagree with the gradient of `residuals`: along the first step the \
+                     gradient gives a slope {slope:.6e}, the KKT system's model {:.6e}; both \
+                     closures must depend on the parameters alike (a parameter the solve in \
+                     `residuals` reads must be read by the constraint in `constrained`, and \
+                     the constraint must be the one the solve meets)",
+                    -model
+                ),
+            });
+        }
+        Ok(dp)
     }
 }
 

@@ -136,9 +136,10 @@ pub struct Iteration {
     /// each counted once (a gradient evaluation is 2; a Gauss-Newton product 2; a
     /// Hessian-vector product 2 sweeps in `Dual`). The cost axis for comparing methods.
     pub passes: usize,
-    /// Sweeps over one evaluation of a constraint so far (not the simulation: the tangent
-    /// passes [`Optimizer::least_squares_kkt`] assembles its KKT system from, one per
-    /// unknown; 0 for the other methods). Counted apart from `passes`, being far cheaper.
+    /// Sweeps over one evaluation of a constraint so far (not the simulation: per step of
+    /// [`Optimizer::least_squares_kkt`], the recording of `constrained` and one tangent pass
+    /// per unknown, the columns of its KKT system; 0 for the other methods). Counted apart
+    /// from `passes`, being far cheaper.
     pub sweeps: usize,
     /// Time since the start.
     pub elapsed: Duration,

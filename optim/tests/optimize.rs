@@ -850,3 +850,39 @@ fn the_kkt_method_refuses_what_it_cannot_solve() {
         .unwrap_err();
     assert!(e.contains("10 rows") && e.contains("`largest` (9)"), "{e}");
 }
+
+#[test]
+fn closures_that_differentiate_differently_are_refused_at_the_first_step() {
+    // `constrained`'s constraint weighs p1 twice as much as the solve in `residuals` does:
+    // the same values at the solved state (p1's term is not zero, but the test only needs the
+    // derivatives to differ), different derivatives.
+    let cubic = Cubic::new(vec![0.0, 1.0, 2.0, 3.0]);
+    let doubled = Array::from_vec(vec![0.0, 2.0, 4.0, 6.0]);
+    let e = Optimizer::kkt_gauss_newton()
+        .progress(false)
+        .least_squares_kkt(
+            &Params::new().with(&cubic.p),
+            |tape| cubic.solve(tape),
+            |tape, x| {
+                // c_i = x³ + x - p0 - 2 w_i p1 + w_i p1 (held constant): the value of the
+                // solve's constraint (zero), the derivative in p1 doubled.
+                let c = Array::zeros(N).named("c");
+                tape.launch(cubic_constraint, N, (x, &cubic.p, &doubled, &c));
+                let shift = Array::from_vec(
+                    cubic
+                        .w
+                        .to_vec()
+                        .iter()
+                        .map(|w| -w * cubic.p.get(1))
+                        .collect(),
+                );
+                let c2 = Array::zeros(N).named("c2");
+                tape.launch(miss, N, (&c, &shift, &c2));
+                Ok((c2, cubic.residuals(tape, x)))
+            },
+        )
+        .map(|_| ())
+        .map_err(|e| e.to_string())
+        .unwrap_err();
+    assert!(e.contains("disagree with the gradient"), "{e}");
+}
