@@ -394,22 +394,19 @@ pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Er
     Ok(runs)
 }
 
+/// The first iteration of `report` whose loss is at most `level` (`None`: never).
+fn first_at(report: &Report, level: f64) -> Option<&adflex::optim::Iteration> {
+    report.history.iter().find(|i| i.loss <= level)
+}
+
 /// Passes of `report` until its loss first falls to `level` (`None`: never).
 pub fn passes_to(report: &Report, level: f64) -> Option<usize> {
-    report
-        .history
-        .iter()
-        .find(|i| i.loss <= level)
-        .map(|i| i.passes)
+    first_at(report, level).map(|i| i.passes)
 }
 
 /// Seconds of `report` until its loss first falls to `level` (`None`: never).
 pub fn seconds_to(report: &Report, level: f64) -> Option<f64> {
-    report
-        .history
-        .iter()
-        .find(|i| i.loss <= level)
-        .map(|i| i.elapsed.as_secs_f64())
+    first_at(report, level).map(|i| i.elapsed.as_secs_f64())
 }
 
 /// Prints the runs' passes and time to `level` and writes their charts, loss against passes
@@ -439,30 +436,19 @@ fn report(
             r.report.stop
         );
     }
-    let series: Vec<(&str, Vec<(f64, f64)>)> = runs
-        .iter()
-        .map(|r| {
-            let pts = r
-                .report
-                .history
-                .iter()
-                .map(|i| (i.passes as f64, i.loss))
-                .collect();
-            (r.name, pts)
-        })
-        .collect();
-    let timed: Vec<(&str, Vec<(f64, f64)>)> = runs
-        .iter()
-        .map(|r| {
-            let pts = r
-                .report
-                .history
-                .iter()
-                .map(|i| (i.elapsed.as_secs_f64(), i.loss))
-                .collect();
-            (r.name, pts)
-        })
-        .collect();
+    // Each run's loss against `x` of its iterations.
+    let curves = |x: fn(&adflex::optim::Iteration) -> f64| -> Vec<(&str, Vec<(f64, f64)>)> {
+        runs.iter()
+            .map(|r| {
+                (
+                    r.name,
+                    r.report.history.iter().map(|i| (x(i), i.loss)).collect(),
+                )
+            })
+            .collect()
+    };
+    let series = curves(|i| i.passes as f64);
+    let timed = curves(|i| i.elapsed.as_secs_f64());
     let refs: Vec<(&str, &[(f64, f64)])> = series.iter().map(|(n, p)| (*n, &p[..])).collect();
     let timed: Vec<(&str, &[(f64, f64)])> = timed.iter().map(|(n, p)| (*n, &p[..])).collect();
     for ext in ["svg", "png"] {
