@@ -1,6 +1,7 @@
 //! The algorithms on a tape: kinematics, inverse dynamics (RNEA), the mass matrix (CRBA),
 //! forward dynamics (a Cholesky solve recorded as one custom step with its adjoint and
-//! tangent), the step by MuJoCo's integrators, and the derivatives of the forward dynamics.
+//! tangent) and the step by MuJoCo's integrators (the derivatives of the forward dynamics in
+//! closed form are in `derivatives.rs`).
 
 use std::sync::Arc;
 
@@ -88,7 +89,7 @@ impl<'a, R: Real> PassInput<'a, R> {
 
 /// Cholesky factors of the mass-matrix blocks, and each block's `(first velocity, size,
 /// offset)`.
-type Factors = (Vec<Vec<f64>>, Vec<(usize, usize, usize)>);
+pub(super) type Factors = (Vec<Vec<f64>>, Vec<(usize, usize, usize)>);
 
 /// What it gives: inverse-dynamics forces, the mass matrix, the right-hand side.
 struct Pass<R: Real> {
@@ -1015,8 +1016,12 @@ impl<R: Real> Articulations<R> {
     /// [`Error::InvalidInput`] naming the articulation, the joint and why (an input that
     /// cannot be computed with: an optimizer's line search backs off from it).
     fn factor(&self, m: &Array<R>) -> Result<Factors, Error> {
-        let mv: Vec<R> = m.to_vec();
-        let factors = factor_all(self, &mv).map_err(|(art, d)| {
+        self.factor_values(&m.to_vec())
+    }
+
+    /// [`Articulations::factor`] for the values of a mass-matrix array (in `R` or `f64`).
+    pub(super) fn factor_values<T: Real>(&self, mv: &[T]) -> Result<Factors, Error> {
+        let factors = factor_all(self, mv).map_err(|(art, d)| {
             let l = self.links[self.dof_link.get(self.articulations[art].dofs.start + d) as usize]
                 .joint
                 .clone();
@@ -1111,70 +1116,6 @@ impl<R: Real> Articulations<R> {
         }
         out
     }
-
-    /// The derivatives of the forward dynamics at `(q, qd, tau)` (as Pinocchio's
-    /// `computeABADerivatives`): `d qdd / d q` and `d qdd / d qd` by one tangent pass over the
-    /// recorded dynamics per column, `d qdd / d tau = M^-1` from the mass matrix's factors.
-    pub fn forward_dynamics_derivatives(
-        &self,
-        q: &[R],
-        qd: &[R],
-        tau: &[R],
-    ) -> Result<QddDerivatives, Error> {
-        for (v, n, what) in [
-            (q, self.n_q, "q"),
-            (qd, self.n_dof, "qd"),
-            (tau, self.n_dof, "tau"),
-        ] {
-            if v.len() != n {
-                return Err(Error::InvalidInput {
-                    what: format!("forward_dynamics_derivatives: {what}"),
-                    message: format!("has {} elements, the model needs {n}", v.len()),
-                });
-            }
-        }
-        let mut tape = Tape::new();
-        let (qa, qda, ta) = (
-            Array::from_vec(q.to_vec()),
-            Array::from_vec(qd.to_vec()),
-            Array::from_vec(tau.to_vec()),
-        );
-        // The forward dynamics' pass, kept for its mass matrix (`d qdd / d tau = M^-1`).
-        let p = self.pass(&mut tape, PassInput::new(&qa, &qda, &ta));
-        let qdd = self.solve(&mut tape, &p.m, &p.rhs)?;
-        let n = self.n_dof;
-        let qf: Vec<f64> = q.iter().map(|x| x.to_f64()).collect();
-        let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &ta];
-        // d qdd / d q and d qdd / d qd by tangent passes, a column each.
-        let mut cols = [vec![], vec![]];
-        for j in 0..n {
-            let mut e = vec![0.0; n];
-            e[j] = 1.0;
-            for (which, col) in cols.iter_mut().enumerate() {
-                let mut v = vec![0.0; self.n_q + 2 * n];
-                match which {
-                    0 => v[..self.n_q].copy_from_slice(&self.tangent_to_coords(&qf, &e)),
-                    _ => v[self.n_q + j] = 1.0,
-                }
-                col.push(tape.jvp(&inputs, &v, &[&qdd])?);
-            }
-        }
-        let rows = |c: &Vec<Vec<f64>>| (0..n).map(|i| (0..n).map(|j| c[j][i]).collect()).collect();
-        // d qdd / d tau = M^-1, block by block, from the mass matrix's factors.
-        let (factors, blocks) = self.factor(&p.m)?;
-        let dtau: Vec<Vec<f64>> = (0..n)
-            .map(|j| {
-                let mut e = vec![0.0; n];
-                e[j] = 1.0;
-                solve_all(&factors, &blocks, &e)
-            })
-            .collect();
-        Ok(QddDerivatives {
-            dq: rows(&cols[0]),
-            dqd: rows(&cols[1]),
-            dtau: rows(&dtau),
-        })
-    }
 }
 
 /// `r (v/2, 0)` for `r = (x, y, z, w)`.
@@ -1223,9 +1164,9 @@ const BLOCKS_PER_TASK: usize = 256;
 /// Cholesky factors (lower, row-major) of every articulation's block; on failure the
 /// articulation and the pivot (the first failing one). Blocks are independent: in parallel
 /// over many worlds, the same bits.
-pub(crate) fn factor_all<R: Real>(
+pub(crate) fn factor_all<R: Real, T: Real>(
     model: &Articulations<R>,
-    m: &[R],
+    m: &[T],
 ) -> Result<Vec<Vec<f64>>, (usize, usize)> {
     use rayon::prelude::*;
     let one = |(ai, a): (usize, &super::model::ArticulationInfo)| {
@@ -1299,27 +1240,34 @@ fn dual_values<R: Real>(p: &Parts) -> Vec<R> {
         .collect()
 }
 
+/// `y <- M^-1 y` for one block from its row-major Cholesky factor `l` (`M = L L^T`).
+pub(super) fn cholesky_solve(l: &[f64], y: &mut [f64]) {
+    let n = y.len();
+    for i in 0..n {
+        let mut s = y[i];
+        for k in 0..i {
+            s -= l[i * n + k] * y[k];
+        }
+        y[i] = s / l[i * n + i];
+    }
+    for i in (0..n).rev() {
+        let mut s = y[i];
+        for k in i + 1..n {
+            s -= l[k * n + i] * y[k];
+        }
+        y[i] = s / l[i * n + i];
+    }
+}
+
 /// `M^-1 b` per block from the factors.
-fn solve_all(factors: &[Vec<f64>], blocks: &[(usize, usize, usize)], b: &[f64]) -> Vec<f64> {
+pub(super) fn solve_all(
+    factors: &[Vec<f64>],
+    blocks: &[(usize, usize, usize)],
+    b: &[f64],
+) -> Vec<f64> {
     use rayon::prelude::*;
     let mut x = b.to_vec();
-    let one = |(l, y): (&Vec<f64>, &mut [f64])| {
-        let n = y.len();
-        for i in 0..n {
-            let mut s = y[i];
-            for k in 0..i {
-                s -= l[i * n + k] * y[k];
-            }
-            y[i] = s / l[i * n + i];
-        }
-        for i in (0..n).rev() {
-            let mut s = y[i];
-            for k in i + 1..n {
-                s -= l[k * n + i] * y[k];
-            }
-            y[i] = s / l[i * n + i];
-        }
-    };
+    let one = |(l, y): (&Vec<f64>, &mut [f64])| cholesky_solve(l, y);
     // The blocks' slices of x (blocks are contiguous and in order).
     let mut slices = Vec::with_capacity(blocks.len());
     let mut rest = &mut x[..];

@@ -44,6 +44,7 @@
 pub mod actuator;
 mod build;
 pub mod contact;
+mod derivatives;
 mod dynamics;
 pub mod fluid;
 pub mod kernels;

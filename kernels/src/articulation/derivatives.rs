@@ -1,0 +1,405 @@
+//! The derivatives of the forward dynamics `qdd(q, qd, tau)` in closed form (as Pinocchio's
+//! `computeABADerivatives`): `d qdd / d x = -M^-1 d tau_id / d x` with the inverse dynamics'
+//! derivatives taken at the solution's `qdd`, and `d qdd / d tau = M^-1`.
+//!
+//! The inverse dynamics' derivatives follow Carpentier and Mansard's analytical RNEA
+//! derivatives, written in this module's world frame (spatial vectors at the origin, as the
+//! kernels'). Moving along tangent direction `k` (the motion vector `S_k` of a joint on link
+//! `b`, parent `p`) moves everything at or below `b` rigidly by `S_k`, except that the
+//! velocity and acceleration below `b` also lose what `p`'s own motion contributed:
+//! `u_k = S_k x v_p` and `w_k = S_k x a_p - u_k x v_p`. With `Ic`, `Bc` and `F` the subtree
+//! sums of the links' inertias, of `B(x) = I (x x v) + x x* (I v) + v x* (I x)` and of the
+//! wrenches, for velocities `j` at or below `b`:
+//!
+//! - `d tau_j / d q_k = -S_j . (Ic w_k + Bc u_k)` and
+//!   `d tau_j / d qd_k = S_j . (Ic (v_b x S_k - u_k) + Bc S_k)` (sums over `j`'s subtree);
+//!
+//! and for `j` strictly above `b`, the same brackets over `b`'s subtree, with `S_k x* F_b`
+//! added to the first. Every pair of velocities on one chain costs a few dot products; the
+//! vectors are formed once per velocity. The kernels' recorded dynamics are the reference
+//! (`kernels/tests/articulation.rs` compares the two to 1e-10, and both with Pinocchio).
+
+use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3, Vector6};
+
+use adflex_runtime::prelude::*;
+
+use super::dynamics::{cholesky_solve, solve_all, QddDerivatives};
+use super::model::{Articulations, JointType};
+
+type V3 = Vector3<f64>;
+type V6 = Vector6<f64>;
+type M6 = Matrix6<f64>;
+
+fn join(a: V3, b: V3) -> V6 {
+    V6::new(a.x, a.y, a.z, b.x, b.y, b.z)
+}
+
+fn top(m: &V6) -> V3 {
+    V3::new(m[0], m[1], m[2])
+}
+
+fn bottom(m: &V6) -> V3 {
+    V3::new(m[3], m[4], m[5])
+}
+
+/// The 6 x 6 matrix of blocks `[a b; c d]`.
+fn blocks(a: Matrix3<f64>, b: Matrix3<f64>, c: Matrix3<f64>, d: Matrix3<f64>) -> M6 {
+    let mut m = M6::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&a);
+    m.fixed_view_mut::<3, 3>(0, 3).copy_from(&b);
+    m.fixed_view_mut::<3, 3>(3, 0).copy_from(&c);
+    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&d);
+    m
+}
+
+/// Motion cross product `(w1, v1) x (w2, v2) = (w1 x w2, w1 x v2 + v1 x w2)`.
+fn cross_m(a: &V6, b: &V6) -> V6 {
+    let (aw, av, bw, bv) = (top(a), bottom(a), top(b), bottom(b));
+    join(aw.cross(&bw), aw.cross(&bv) + av.cross(&bw))
+}
+
+/// Force cross product `(w, v) x* (n, f) = (w x n + v x f, w x f)`.
+fn cross_f(a: &V6, f: &V6) -> V6 {
+    let (aw, av, n, ff) = (top(a), bottom(a), top(f), bottom(f));
+    join(aw.cross(&n) + av.cross(&ff), aw.cross(&ff))
+}
+
+/// What one evaluation of the dynamics leaves for the derivatives: per link its spatial
+/// inertia, twist, acceleration, and the subtree sums; per velocity its motion vector.
+struct Rnea {
+    /// Each velocity's link.
+    link_of: Vec<usize>,
+    /// Motion vectors, one per velocity.
+    s: Vec<V6>,
+    /// Each link's world's acceleration: `(0, -g)` (gravity as an upward acceleration).
+    world_a: Vec<V6>,
+    /// Link inertias (world frame, at the origin), then their subtree sums.
+    inertia: Vec<M6>,
+    composite: Vec<M6>,
+    /// Twists and accelerations (gravity as the world's upward acceleration).
+    v: Vec<V6>,
+    a: Vec<V6>,
+    /// Wrenches, summed over subtrees.
+    f: Vec<V6>,
+}
+
+impl<R: Real> Articulations<R> {
+    /// The derivatives of the forward dynamics at `(q, qd, tau)` (as Pinocchio's
+    /// `computeABADerivatives`; the model's plain dynamics, as [`Articulations::forward_dynamics`]:
+    /// no damping, limits, PD or contact): `d qdd / d q` (along the tangent directions),
+    /// `d qdd / d qd` and `d qdd / d tau = M^-1`, in closed form (the inverse dynamics'
+    /// analytical derivatives and the mass matrix's Cholesky factors), without a tape.
+    ///
+    /// Errors: an input of the wrong length or not finite, or a mass matrix that is not
+    /// positive definite, as [`Error::InvalidInput`] naming it.
+    ///
+    /// ```
+    /// use adflex_kernels::articulation::*;
+    /// use adflex_runtime::Vec3;
+    ///
+    /// let mut b = ArticulationBuilder::new();
+    /// b.add_link("pendulum", None, Joint::revolute(Vec3::y()),
+    ///     Inertial::point(2.0, Vec3::new(0.0, 0.0, -0.5)));
+    /// let model = b.finalize::<f64>().unwrap();
+    /// let d = model.forward_dynamics_derivatives(&[0.3], &[0.0], &[0.0]).unwrap();
+    /// // qdd = -(g / l) sin q, so d qdd / d q = -(g / l) cos q and d qdd / d tau = 1 / (m l^2).
+    /// let g = model.gravity.get(0).norm();
+    /// assert!((d.dq[0][0] + g / 0.5 * 0.3f64.cos()).abs() < 1e-12);
+    /// assert!((d.dtau[0][0] - 1.0 / (2.0 * 0.25)).abs() < 1e-12);
+    /// ```
+    pub fn forward_dynamics_derivatives(
+        &self,
+        q: &[R],
+        qd: &[R],
+        tau: &[R],
+    ) -> Result<QddDerivatives, Error> {
+        let mut inputs = [
+            (q, self.n_q, "q"),
+            (qd, self.n_dof, "qd"),
+            (tau, self.n_dof, "tau"),
+        ]
+        .into_iter()
+        .map(|(v, n, what)| {
+            let what = format!("forward_dynamics_derivatives: {what}");
+            if v.len() != n {
+                return Err(Error::InvalidInput {
+                    what,
+                    message: format!("has {} elements, the model needs {n}", v.len()),
+                });
+            }
+            let v: Vec<f64> = v.iter().map(|x| x.to_f64()).collect();
+            match v.iter().position(|x| !x.is_finite()) {
+                Some(i) => Err(Error::InvalidInput {
+                    what: format!("{what}[{i}]"),
+                    message: format!("is {}: every input must be finite", v[i]),
+                }),
+                None => Ok(v),
+            }
+        });
+        let mut next = || inputs.next().expect("three inputs");
+        let (q, qd, tau) = (next()?, next()?, next()?);
+        let n = self.n_dof;
+        let mut rnea = self.rnea_bias(&q, &qd);
+        // The mass matrix (CRBA: M[j][k] = S_k . Ic S_j, k at or above j) and `Ic S_j`.
+        let ic_s: Vec<V6> = (0..n)
+            .map(|j| rnea.composite[rnea.link_of[j]] * rnea.s[j])
+            .collect();
+        let armature = self.armature.to_vec();
+        let mut m = vec![0.0; self.m_len];
+        for art in &self.articulations {
+            let (first, len) = (art.dofs.start, art.dofs.len());
+            for j in art.dofs.clone() {
+                self.for_dofs_above(&rnea, j, |k| {
+                    let e = rnea.s[k].dot(&ic_s[j]);
+                    m[art.m_offset + (j - first) * len + (k - first)] = e;
+                    m[art.m_offset + (k - first) * len + (j - first)] = e;
+                });
+                m[art.m_offset + (j - first) * (len + 1)] += armature[j].to_f64();
+            }
+        }
+        let (factors, blocks) = self.factor_values(&m)?;
+        // qdd = M^-1 (tau - c), then the inverse dynamics at that qdd.
+        let rhs: Vec<f64> = (0..n)
+            .map(|j| tau[j] - rnea.s[j].dot(&rnea.f[rnea.link_of[j]]))
+            .collect();
+        let qdd = solve_all(&factors, &blocks, &rhs);
+        self.rnea_accelerate(&mut rnea, &qdd);
+        let (dtau_dq, dtau_dqd) = self.inverse_dynamics_derivatives(&rnea, &ic_s);
+        // Per block: columns of -M^-1 d tau_id and of M^-1.
+        let mut out = QddDerivatives {
+            dq: vec![vec![0.0; n]; n],
+            dqd: vec![vec![0.0; n]; n],
+            dtau: vec![vec![0.0; n]; n],
+        };
+        for (art, l) in self.articulations.iter().zip(&factors) {
+            let d = art.dofs.clone();
+            let mut y = vec![0.0; d.len()];
+            for k in d.clone() {
+                for (src, dst, sign) in [
+                    (Some(&dtau_dq), &mut out.dq, -1.0),
+                    (Some(&dtau_dqd), &mut out.dqd, -1.0),
+                    (None, &mut out.dtau, 1.0),
+                ] {
+                    for (i, yi) in d.clone().zip(y.iter_mut()) {
+                        *yi = match src {
+                            Some(s) => sign * s[i][k],
+                            None => f64::from(u8::from(i == k)),
+                        };
+                    }
+                    cholesky_solve(l, &mut y);
+                    for (i, yi) in d.clone().zip(&y) {
+                        dst[i][k] = *yi;
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Calls `f(k)` for every velocity `k` of `j`'s link and of its ancestors' joints.
+    fn for_dofs_above(&self, rnea: &Rnea, j: usize, mut f: impl FnMut(usize)) {
+        let mut link = Some(rnea.link_of[j]);
+        while let Some(l) = link {
+            self.links[l].dofs.clone().for_each(&mut f);
+            link = self.links[l].parent;
+        }
+    }
+
+    /// Kinematics, inertias, twists, the bias accelerations (`qdd = 0`) and their wrenches,
+    /// summed over subtrees, in the kernels' conventions
+    /// ([`articulation_kinematics`](super::kernels::articulation_kinematics),
+    /// [`articulation_link_dynamics`](super::kernels::articulation_link_dynamics)).
+    fn rnea_bias(&self, q: &[f64], qd: &[f64]) -> Rnea {
+        let f3 = |v: &Vector3<R>| v.map(|x| x.to_f64());
+        let unit = |x: f64, y: f64, z: f64, w: f64| {
+            UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z))
+        };
+        let (jp, jr, ja) = (
+            self.joint_pos.to_vec(),
+            self.joint_rot.to_vec(),
+            self.joint_axis.to_vec(),
+        );
+        let (mass, com, inertia) = (self.mass.to_vec(), self.com.to_vec(), self.inertia.to_vec());
+        let (gravity, world) = (self.gravity.to_vec(), self.link_world.to_vec());
+        let nl = self.links.len();
+        let mut rnea = Rnea {
+            link_of: vec![0; self.n_dof],
+            s: vec![V6::zeros(); self.n_dof],
+            world_a: Vec::with_capacity(nl),
+            inertia: Vec::with_capacity(nl),
+            composite: Vec::with_capacity(nl),
+            v: Vec::with_capacity(nl),
+            a: Vec::with_capacity(nl),
+            f: Vec::with_capacity(nl),
+        };
+        let mut pose = Vec::with_capacity(nl);
+        for (l, link) in self.links.iter().enumerate() {
+            rnea.world_a
+                .push(join(V3::zeros(), -f3(&gravity[world[l] as usize])));
+            let (p0, r0, v0, a0) = match link.parent {
+                Some(p) => {
+                    let (pp, rp): &(V3, UnitQuaternion<f64>) = &pose[p];
+                    (*pp, *rp, rnea.v[p], rnea.a[p])
+                }
+                None => (
+                    V3::zeros(),
+                    UnitQuaternion::identity(),
+                    V6::zeros(),
+                    rnea.world_a[l],
+                ),
+            };
+            let jq = nalgebra::Quaternion::from(jr[l].coords.map(|x| x.to_f64()));
+            let mut p = p0 + r0 * f3(&jp[l]);
+            let mut r = r0 * UnitQuaternion::from_quaternion(jq);
+            let axis = f3(&ja[l]).normalize();
+            let s = link.q.start;
+            match link.kind {
+                JointType::Fixed => {}
+                JointType::Revolute => {
+                    r *=
+                        UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_unchecked(axis), q[s]);
+                }
+                JointType::Prismatic => p += r * (axis * q[s]),
+                JointType::Ball => r *= unit(q[s], q[s + 1], q[s + 2], q[s + 3]),
+                JointType::Free => {
+                    p += r * V3::new(q[s], q[s + 1], q[s + 2]);
+                    r *= unit(q[s + 3], q[s + 4], q[s + 5], q[s + 6]);
+                }
+            }
+            // Motion vectors: about an axis u through p, (u, p x u); along u, (0, u).
+            let d0 = link.dofs.start;
+            for d in link.dofs.clone() {
+                rnea.link_of[d] = l;
+                let k = d - d0;
+                let (e, angular) = match link.kind {
+                    JointType::Revolute => (axis, true),
+                    JointType::Prismatic => (axis, false),
+                    JointType::Ball => (V3::ith(k, 1.0), true),
+                    _ => (V3::ith(k % 3, 1.0), k >= 3),
+                };
+                let u = r * e;
+                rnea.s[d] = match angular {
+                    true => join(u, p.cross(&u)),
+                    false => join(V3::zeros(), u),
+                };
+            }
+            // Spatial inertia [J h~; h~^T m] at the origin.
+            let rm = r.to_rotation_matrix().into_inner();
+            let c = p + rm * f3(&com[l]);
+            let m = mass[l].to_f64();
+            let i3 = inertia[l].map(|x| x.to_f64());
+            let j = rm * ((i3 + i3.transpose()) * 0.5) * rm.transpose()
+                + (Matrix3::identity() * c.dot(&c) - c * c.transpose()) * m;
+            let h = (c * m).cross_matrix();
+            let im = blocks(j, h, h.transpose(), Matrix3::identity() * m);
+            // Twist and bias acceleration: v = v_p + S qd, a = a_p + v_p x S qd.
+            let mut dv = V6::zeros();
+            for d in link.dofs.clone() {
+                dv += rnea.s[d] * qd[d];
+            }
+            let v = v0 + dv;
+            let a = a0 + cross_m(&v0, &dv);
+            rnea.f.push(im * a + cross_f(&v, &(im * v)));
+            rnea.v.push(v);
+            rnea.a.push(a);
+            rnea.inertia.push(im);
+            pose.push((p, r));
+        }
+        rnea.composite = rnea.inertia.clone();
+        for l in (0..nl).rev() {
+            if let Some(p) = self.links[l].parent {
+                let (ic, f) = (rnea.composite[l], rnea.f[l]);
+                rnea.composite[p] += ic;
+                rnea.f[p] += f;
+            }
+        }
+        rnea
+    }
+
+    /// Adds the accelerations of `qdd` to `rnea`'s (each link's `S qdd` down its subtree), and
+    /// their wrenches `I S qdd` to the subtree sums.
+    fn rnea_accelerate(&self, rnea: &mut Rnea, qdd: &[f64]) {
+        let nl = self.links.len();
+        let mut da = vec![V6::zeros(); nl];
+        for (l, link) in self.links.iter().enumerate() {
+            let mut d = link.parent.map_or(V6::zeros(), |p| da[p]);
+            for k in link.dofs.clone() {
+                d += rnea.s[k] * qdd[k];
+            }
+            da[l] = d;
+            rnea.a[l] += d;
+        }
+        let mut df: Vec<V6> = (0..nl).map(|l| rnea.inertia[l] * da[l]).collect();
+        for l in (0..nl).rev() {
+            rnea.f[l] += df[l];
+            if let Some(p) = self.links[l].parent {
+                let x = df[l];
+                df[p] += x;
+            }
+        }
+    }
+
+    /// `d tau_id / d q` (tangent directions) and `d tau_id / d qd` at `rnea`'s state, as
+    /// `n_dof x n_dof` rows (zero between articulations); `ic_s[j] = Ic S_j`.
+    fn inverse_dynamics_derivatives(
+        &self,
+        rnea: &Rnea,
+        ic_s: &[V6],
+    ) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+        let nl = self.links.len();
+        // B = -I v~ + (I v)^x + v~* I, as a matrix of its argument, summed over subtrees.
+        let mut bc: Vec<M6> = (0..nl)
+            .map(|l| {
+                let (im, v) = (&rnea.inertia[l], &rnea.v[l]);
+                let (w, lv) = (top(v).cross_matrix(), bottom(v).cross_matrix());
+                let crm = blocks(w, Matrix3::zeros(), lv, w);
+                let crf = blocks(w, lv, Matrix3::zeros(), w);
+                let p = im * v;
+                let (pn, pf) = (-top(&p).cross_matrix(), -bottom(&p).cross_matrix());
+                crf * im - im * crm + blocks(pn, pf, pf, Matrix3::zeros())
+            })
+            .collect();
+        for l in (0..nl).rev() {
+            if let Some(p) = self.links[l].parent {
+                let x = bc[l];
+                bc[p] += x;
+            }
+        }
+        let n = self.n_dof;
+        let (mut dq, mut dqd) = (vec![vec![0.0; n]; n], vec![vec![0.0; n]; n]);
+        // Per velocity k: u_k, w_k, v_b x S_k - u_k, and the brackets over b's subtree.
+        let per_dof: Vec<[V6; 5]> = (0..n)
+            .map(|k| {
+                let b = rnea.link_of[k];
+                let (vp, ap) = match self.links[b].parent {
+                    Some(p) => (rnea.v[p], rnea.a[p]),
+                    None => (V6::zeros(), rnea.world_a[b]),
+                };
+                let sk = rnea.s[k];
+                let u = cross_m(&sk, &vp);
+                let w = cross_m(&sk, &ap) - cross_m(&u, &vp);
+                let sdot = cross_m(&rnea.v[b], &sk) - u;
+                let g = cross_f(&sk, &rnea.f[b]) - rnea.composite[b] * w - bc[b] * u;
+                let h = rnea.composite[b] * sdot + bc[b] * sk;
+                [u, w, sdot, g, h]
+            })
+            .collect();
+        for j in 0..n {
+            let bj = rnea.link_of[j];
+            let z = bc[bj].transpose() * rnea.s[j];
+            let [_, _, _, gj, hj] = &per_dof[j];
+            self.for_dofs_above(rnea, j, |k| {
+                let [u, w, sdot, ..] = &per_dof[k];
+                // j at or below k's link.
+                dq[j][k] = -(ic_s[j].dot(w) + z.dot(u));
+                dqd[j][k] = ic_s[j].dot(sdot) + z.dot(&rnea.s[k]);
+                // k's link strictly above j's: the transposed pair.
+                if rnea.link_of[k] != bj {
+                    dq[k][j] = rnea.s[k].dot(gj);
+                    dqd[k][j] = rnea.s[k].dot(hj);
+                }
+            });
+        }
+        (dq, dqd)
+    }
+}
