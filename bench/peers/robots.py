@@ -56,6 +56,9 @@ def main():
     us = per_call(lambda: pin.computeABADerivatives(model, data, q, v, tau), a.iters, a.reps)
     print(json.dumps({"peer": f"pinocchio {pin.__version__}", "model": "arm7",
                       "what": "computeABADerivatives", "us": us}), flush=True)
+    us = per_call(lambda: pin.computeRNEADerivatives(model, data, q, v, tau), a.iters, a.reps)
+    print(json.dumps({"peer": f"pinocchio {pin.__version__}", "model": "arm7",
+                      "what": "computeRNEADerivatives", "us": us}), flush=True)
     us = per_call(lambda: pin.aba(model, data, q, v, tau), a.iters, a.reps)
     print(json.dumps({"peer": f"pinocchio {pin.__version__}", "model": "arm7",
                       "what": "aba", "us": us}), flush=True)

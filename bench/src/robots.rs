@@ -1,9 +1,10 @@
 //! `robots [--python PATH] [--steps 200] [--reps 5]`: the articulation family on the
 //! repository's robots (`kernels/robots/`): the time of a semi-implicit step recorded on a tape
-//! (forward), of a step's forward and backward, and of the full `d qdd / d(q, qd, tau)`, for
-//! the 7-DoF arm and the quadruped (`ant.xml`, free base and ground contact), on 1 and 2
-//! threads; with `--python`, the peers' script `bench/peers/robots.py` (MuJoCo's `mj_step`,
-//! Pinocchio's `computeABADerivatives`) in the same run, and the ratios. One JSON line each.
+//! (forward), of a step's forward and backward, and of the full `d qdd / d(q, qd, tau)` and
+//! `d tau / d(q, qd, qdd)`, for the 7-DoF arm and the quadruped (`ant.xml`, free base and
+//! ground contact), on 1 and 2 threads; with `--python`, the peers' script
+//! `bench/peers/robots.py` (MuJoCo's `mj_step`, Pinocchio's `computeABADerivatives` and
+//! `computeRNEADerivatives`) in the same run, and the ratios. One JSON line each.
 
 use std::process::Command;
 use std::time::Instant;
@@ -49,8 +50,9 @@ fn per_step(model: &Articulations<f64>, steps: usize, reps: usize, backward: boo
     1e6 * best / steps as f64
 }
 
-/// Microseconds per `forward_dynamics_derivatives` call.
-fn derivatives(model: &Articulations<f64>, reps: usize) -> f64 {
+/// Microseconds per `forward_dynamics_derivatives` call (`inverse`: per
+/// `inverse_dynamics_derivatives` call).
+fn derivatives(model: &Articulations<f64>, reps: usize, inverse: bool) -> f64 {
     let q = model.q0.clone();
     let qd = vec![0.1; model.n_dof];
     let tau = vec![0.2; model.n_dof];
@@ -58,9 +60,15 @@ fn derivatives(model: &Articulations<f64>, reps: usize) -> f64 {
     for _ in 0..reps {
         let t0 = Instant::now();
         for _ in 0..20 {
-            model
-                .forward_dynamics_derivatives(&q, &qd, &tau)
-                .expect("derivatives");
+            if inverse {
+                model
+                    .inverse_dynamics_derivatives(&q, &qd, &tau)
+                    .expect("derivatives");
+            } else {
+                model
+                    .forward_dynamics_derivatives(&q, &qd, &tau)
+                    .expect("derivatives");
+            }
         }
         best = best.min(t0.elapsed().as_secs_f64() / 20.0);
     }
@@ -93,11 +101,14 @@ pub fn main(rest: &[String]) {
             );
         }
         if name == "arm7" {
-            let d = adflex_runtime::with_threads(1, || derivatives(&model, reps));
+            let d = adflex_runtime::with_threads(1, || derivatives(&model, reps, false));
+            let di = adflex_runtime::with_threads(1, || derivatives(&model, reps, true));
             ours.insert((name, 1, "derivatives"), d);
+            ours.insert((name, 1, "inverse derivatives"), di);
             println!(
                 "{{\"system\": \"adflex\", \"model\": \"arm7\", \"threads\": 1, \
-                 \"forward_dynamics_derivatives_us\": {d:.2}}}"
+                 \"forward_dynamics_derivatives_us\": {d:.2}, \
+                 \"inverse_dynamics_derivatives_us\": {di:.2}}}"
             );
         }
     }
@@ -123,6 +134,7 @@ pub fn main(rest: &[String]) {
         let key = match what {
             "mj_step" => ("step", if model == "arm7" { "arm7" } else { "quadruped" }),
             "computeABADerivatives" => ("derivatives", "arm7"),
+            "computeRNEADerivatives" => ("inverse derivatives", "arm7"),
             _ => continue,
         };
         if let Some(o) = ours.get(&(key.1, 1, key.0)) {

@@ -125,7 +125,7 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
                 idle.then(|| b.finalize::<f64>().unwrap())
             })
             .flatten();
-        let mut worst = [0.0f64; 7];
+        let mut worst = [0.0f64; 9];
         for s in m["states"].as_array().unwrap() {
             let (rq, rqd, rtau) = (vecf(&s["q"]), vecf(&s["qd"]), vecf(&s["tau"]));
             let (mut q, mut qd, mut tau) = (vec![0.0; model.n_q], vec![0.0; nv], vec![0.0; nv]);
@@ -187,11 +187,18 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
                 worst[4] = worst[4].max(rel_err(&permute(&d.dqd), &matf(&s["dqdd_dqd"])));
                 worst[5] = worst[5].max(rel_err(&permute(&d.dtau), &matf(&s["dqdd_dtau"])));
             }
+            if s.get("dtau_dq").is_some() {
+                // Pinocchio's computeRNEADerivatives at its own qdd (ours agrees with it).
+                let t = model.inverse_dynamics_derivatives(&q, &qd, &qdd).unwrap();
+                worst[7] = worst[7].max(rel_err(&permute(&t.dq), &matf(&s["dtau_dq"])));
+                worst[8] = worst[8].max(rel_err(&permute(&t.dqd), &matf(&s["dtau_dqd"])));
+                assert!(rel_err(&t.dqdd, &mm) < 1e-14, "{file}: d tau / d qdd is M");
+            }
         }
         report.push(format!(
-            "{file} ({}): M {:.1e}, bias {:.1e}, qdd {:.1e}, dqdd/dq {:.1e}, dqdd/dqd {:.1e}, dqdd/dtau {:.1e}, qdd with springs and damping {:.1e}",
+            "{file} ({}): M {:.1e}, bias {:.1e}, qdd {:.1e}, dqdd/dq {:.1e}, dqdd/dqd {:.1e}, dqdd/dtau {:.1e}, qdd with springs and damping {:.1e}, dtau/dq {:.1e}, dtau/dqd {:.1e}",
             m["reference"].as_str().unwrap(),
-            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5], worst[6]
+            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5], worst[6], worst[7], worst[8]
         ));
         assert!(
             worst.iter().all(|&w| w < 1e-9),
@@ -437,11 +444,12 @@ fn every_joint_kind() -> Articulations<f64> {
     b.finalize().unwrap()
 }
 
-/// The closed-form derivatives of the forward dynamics against the recorded dynamics' tangent
-/// passes (one per tangent direction, velocity and torque) on every robot and on a tree of
-/// every joint kind in two worlds: the same to 1e-10 of each matrix's size.
+/// The closed-form derivatives of the forward and inverse dynamics against the recorded
+/// dynamics' tangent passes (one per tangent direction, velocity and torque or acceleration)
+/// on every robot and on a tree of every joint kind in two worlds: the same to 1e-10 of each
+/// matrix's size.
 #[test]
-fn forward_dynamics_derivatives_match_the_recorded_dynamics() {
+fn dynamics_derivatives_match_the_recorded_dynamics() {
     use adflex_runtime::AnyArray;
     let mut rng = adflex_testkit::Rng(11);
     let mut models: Vec<(String, Articulations<f64>)> = [
@@ -463,38 +471,56 @@ fn forward_dynamics_derivatives_match_the_recorded_dynamics() {
         let n = model.n_dof;
         let mut random = |k: f64| (0..n).map(|_| rng.uniform(-k, k)).collect::<Vec<_>>();
         let q = model.integrate(&model.q0, &random(1.0));
-        let (qd, tau) = (random(2.0), random(3.0));
-        let d = model.forward_dynamics_derivatives(&q, &qd, &tau).unwrap();
+        let (qd, x) = (random(2.0), random(3.0));
+        // Forward dynamics at (q, qd, tau = x), inverse dynamics at (q, qd, qdd = x).
+        let d = model.forward_dynamics_derivatives(&q, &qd, &x).unwrap();
+        let t = model.inverse_dynamics_derivatives(&q, &qd, &x).unwrap();
         let mut tape = Tape::new();
-        let (qa, qda, ta) = (
+        let (qa, qda, xa) = (
             Array::from_vec(q.clone()),
             Array::from_vec(qd.clone()),
-            Array::from_vec(tau.clone()),
+            Array::from_vec(x.clone()),
         );
-        let qdd = model.forward_dynamics(&mut tape, &qa, &qda, &ta).unwrap();
-        let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &ta];
-        let mut worst = [0.0f64; 3];
-        for (k, ours) in [&d.dq, &d.dqd, &d.dtau].into_iter().enumerate() {
+        let qdd = model.forward_dynamics(&mut tape, &qa, &qda, &xa).unwrap();
+        let tau = model.inverse_dynamics(&mut tape, &qa, &qda, &xa);
+        // The inverse dynamics undo the forward (the armature's force included).
+        let back = model
+            .inverse_dynamics(&mut Tape::new(), &qa, &qda, &qdd)
+            .to_vec();
+        let err = back
+            .iter()
+            .zip(&x)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            err < 1e-10,
+            "{name}: inverse dynamics of qdd(tau) is tau to {err:e}"
+        );
+        let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &xa];
+        let mut worst = [0.0f64; 6];
+        let derivatives = [&d.dq, &d.dqd, &d.dtau, &t.dq, &t.dqd, &t.dqdd];
+        for (k, ours) in derivatives.into_iter().enumerate() {
             let scale = ours.iter().flatten().fold(1e-300f64, |a, x| a.max(x.abs()));
             for j in 0..n {
                 let mut v = vec![0.0; model.n_q + 2 * n];
-                match k {
+                match k % 3 {
                     0 => {
                         let mut e = vec![0.0; n];
                         e[j] = 1.0;
                         v[..model.n_q].copy_from_slice(&model.tangent_to_coords(&q, &e));
                     }
-                    _ => v[model.n_q + (k - 1) * n + j] = 1.0,
+                    w => v[model.n_q + (w - 1) * n + j] = 1.0,
                 }
-                let col = tape.jvp(&inputs, &v, &[&qdd]).unwrap();
+                let out = if k < 3 { &qdd } else { &tau };
+                let col = tape.jvp(&inputs, &v, &[out]).unwrap();
                 for i in 0..n {
                     worst[k] = worst[k].max((col[i] - ours[i][j]).abs() / scale);
                 }
             }
         }
         println!(
-            "{name}: closed form vs tangent passes: dq {:.1e}, dqd {:.1e}, dtau {:.1e}",
-            worst[0], worst[1], worst[2]
+            "{name}: closed form vs tangent passes: dqdd/dq {:.1e}, dqdd/dqd {:.1e}, \
+             dqdd/dtau {:.1e}, dtau/dq {:.1e}, dtau/dqd {:.1e}, dtau/dqdd {:.1e}",
+            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5]
         );
         assert!(worst.iter().all(|&w| w < 1e-10), "{name}: {worst:?}");
     }
@@ -502,7 +528,7 @@ fn forward_dynamics_derivatives_match_the_recorded_dynamics() {
 
 /// Bad inputs to the derivatives are named, not NaN.
 #[test]
-fn forward_dynamics_derivatives_refuse_bad_inputs_by_name() {
+fn dynamics_derivatives_refuse_bad_inputs_by_name() {
     let model = load("arm7.urdf", false);
     let n = model.n_dof;
     let (q, z) = (model.q0.clone(), vec![0.0; n]);
@@ -521,6 +547,16 @@ fn forward_dynamics_derivatives_refuse_bad_inputs_by_name() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("qd[3]") && e.contains("NaN"), "{e}");
+    let mut qdd = z.clone();
+    qdd[1] = f64::INFINITY;
+    let e = model
+        .inverse_dynamics_derivatives(&q, &z, &qdd)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("inverse_dynamics_derivatives: qdd[1]") && e.contains("inf"),
+        "{e}"
+    );
 }
 
 /// A free box, spinning and falling: one link on a free joint.

@@ -23,7 +23,7 @@ use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3, Vector6};
 
 use adflex_runtime::prelude::*;
 
-use super::dynamics::{cholesky_solve, solve_all, QddDerivatives};
+use super::dynamics::{cholesky_solve, solve_all};
 use super::model::{Articulations, JointType};
 
 type V3 = Vector3<f64>;
@@ -62,6 +62,32 @@ fn cross_m(a: &V6, b: &V6) -> V6 {
 fn cross_f(a: &V6, f: &V6) -> V6 {
     let (aw, av, n, ff) = (top(a), bottom(a), top(f), bottom(f));
     join(aw.cross(&n) + av.cross(&ff), aw.cross(&ff))
+}
+
+/// The derivatives of the forward dynamics `qdd(q, qd, tau)`, as Pinocchio's
+/// `computeABADerivatives` gives them: `dq[i][j]` is the derivative of `qdd[i]` along the
+/// `j`-th tangent direction of the configuration (see [`Articulations::tangent_to_coords`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct QddDerivatives {
+    /// `d qdd / d q` (tangent space), `n_dof x n_dof`.
+    pub dq: Vec<Vec<f64>>,
+    /// `d qdd / d qd`.
+    pub dqd: Vec<Vec<f64>>,
+    /// `d qdd / d tau` (the inverse mass matrix).
+    pub dtau: Vec<Vec<f64>>,
+}
+
+/// The derivatives of the inverse dynamics `tau(q, qd, qdd)`, as Pinocchio's
+/// `computeRNEADerivatives` gives them (`dq` along the tangent directions, as
+/// [`QddDerivatives::dq`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TauDerivatives {
+    /// `d tau / d q` (tangent space), `n_dof x n_dof`.
+    pub dq: Vec<Vec<f64>>,
+    /// `d tau / d qd`.
+    pub dqd: Vec<Vec<f64>>,
+    /// `d tau / d qdd`: the mass matrix (zero between articulations).
+    pub dqdd: Vec<Vec<f64>>,
 }
 
 /// What one evaluation of the dynamics leaves for the derivatives: per link its spatial
@@ -113,50 +139,10 @@ impl<R: Real> Articulations<R> {
         qd: &[R],
         tau: &[R],
     ) -> Result<QddDerivatives, Error> {
-        let mut inputs = [
-            (q, self.n_q, "q"),
-            (qd, self.n_dof, "qd"),
-            (tau, self.n_dof, "tau"),
-        ]
-        .into_iter()
-        .map(|(v, n, what)| {
-            let what = format!("forward_dynamics_derivatives: {what}");
-            if v.len() != n {
-                return Err(Error::InvalidInput {
-                    what,
-                    message: format!("has {} elements, the model needs {n}", v.len()),
-                });
-            }
-            let v: Vec<f64> = v.iter().map(|x| x.to_f64()).collect();
-            match v.iter().position(|x| !x.is_finite()) {
-                Some(i) => Err(Error::InvalidInput {
-                    what: format!("{what}[{i}]"),
-                    message: format!("is {}: every input must be finite", v[i]),
-                }),
-                None => Ok(v),
-            }
-        });
-        let mut next = || inputs.next().expect("three inputs");
-        let (q, qd, tau) = (next()?, next()?, next()?);
+        let [q, qd, tau] = self.plain_inputs("forward_dynamics_derivatives", [q, qd, tau])?;
         let n = self.n_dof;
         let mut rnea = self.rnea_bias(&q, &qd);
-        // The mass matrix (CRBA: M[j][k] = S_k . Ic S_j, k at or above j) and `Ic S_j`.
-        let ic_s: Vec<V6> = (0..n)
-            .map(|j| rnea.composite[rnea.link_of[j]] * rnea.s[j])
-            .collect();
-        let armature = self.armature.to_vec();
-        let mut m = vec![0.0; self.m_len];
-        for art in &self.articulations {
-            let (first, len) = (art.dofs.start, art.dofs.len());
-            for j in art.dofs.clone() {
-                self.for_dofs_above(&rnea, j, |k| {
-                    let e = rnea.s[k].dot(&ic_s[j]);
-                    m[art.m_offset + (j - first) * len + (k - first)] = e;
-                    m[art.m_offset + (k - first) * len + (j - first)] = e;
-                });
-                m[art.m_offset + (j - first) * (len + 1)] += armature[j].to_f64();
-            }
-        }
+        let (m, ic_s) = self.mass_matrix_values(&rnea);
         let (factors, blocks) = self.factor_values(&m)?;
         // qdd = M^-1 (tau - c), then the inverse dynamics at that qdd.
         let rhs: Vec<f64> = (0..n)
@@ -164,7 +150,7 @@ impl<R: Real> Articulations<R> {
             .collect();
         let qdd = solve_all(&factors, &blocks, &rhs);
         self.rnea_accelerate(&mut rnea, &qdd);
-        let (dtau_dq, dtau_dqd) = self.inverse_dynamics_derivatives(&rnea, &ic_s);
+        let (dtau_dq, dtau_dqd) = self.tau_derivatives(&rnea, &ic_s);
         // Per block: columns of -M^-1 d tau_id and of M^-1.
         let mut out = QddDerivatives {
             dq: vec![vec![0.0; n]; n],
@@ -194,6 +180,105 @@ impl<R: Real> Articulations<R> {
             }
         }
         Ok(out)
+    }
+
+    /// The derivatives of the inverse dynamics `tau = M(q) qdd + c(q, qd)` at `(q, qd, qdd)`
+    /// (as Pinocchio's `computeRNEADerivatives`, armature included): `d tau / d q` (along the
+    /// tangent directions, see [`Articulations::tangent_to_coords`]), `d tau / d qd` and
+    /// `d tau / d qdd = M(q)`, in closed form, without a tape. As for
+    /// [`Articulations::inverse_dynamics`], the model's plain dynamics (no damping, limits,
+    /// PD or contact).
+    ///
+    /// Errors: an input of the wrong length or not finite, as [`Error::InvalidInput`] naming
+    /// it.
+    ///
+    /// ```
+    /// use adflex_kernels::articulation::*;
+    /// use adflex_runtime::Vec3;
+    ///
+    /// let mut b = ArticulationBuilder::new();
+    /// b.add_link("pendulum", None, Joint::revolute(Vec3::y()),
+    ///     Inertial::point(2.0, Vec3::new(0.0, 0.0, -0.5)));
+    /// let model = b.finalize::<f64>().unwrap();
+    /// let d = model.inverse_dynamics_derivatives(&[0.3], &[1.0], &[0.0]).unwrap();
+    /// // tau = m l^2 qdd + m g l sin q: d tau / d q = m g l cos q, d tau / d qdd = m l^2.
+    /// let g = model.gravity.get(0).norm();
+    /// assert!((d.dq[0][0] - 2.0 * g * 0.5 * 0.3f64.cos()).abs() < 1e-12);
+    /// assert!(d.dqd[0][0].abs() < 1e-12);
+    /// assert!((d.dqdd[0][0] - 2.0 * 0.25).abs() < 1e-12);
+    /// ```
+    pub fn inverse_dynamics_derivatives(
+        &self,
+        q: &[R],
+        qd: &[R],
+        qdd: &[R],
+    ) -> Result<TauDerivatives, Error> {
+        let [q, qd, qdd] = self.plain_inputs("inverse_dynamics_derivatives", [q, qd, qdd])?;
+        let mut rnea = self.rnea_bias(&q, &qd);
+        let (m, ic_s) = self.mass_matrix_values(&rnea);
+        self.rnea_accelerate(&mut rnea, &qdd);
+        let (dq, dqd) = self.tau_derivatives(&rnea, &ic_s);
+        let mut dqdd = vec![vec![0.0; self.n_dof]; self.n_dof];
+        for art in &self.articulations {
+            let (first, len) = (art.dofs.start, art.dofs.len());
+            for i in art.dofs.clone() {
+                for j in art.dofs.clone() {
+                    dqdd[i][j] = m[art.m_offset + (i - first) * len + (j - first)];
+                }
+            }
+        }
+        Ok(TauDerivatives { dq, dqd, dqdd })
+    }
+
+    /// The three inputs `(q, velocities, velocities)` in `f64`, or an error naming `method`'s
+    /// input that has the wrong length or is not finite.
+    fn plain_inputs(&self, method: &str, inputs: [&[R]; 3]) -> Result<[Vec<f64>; 3], Error> {
+        let names = match method {
+            "forward_dynamics_derivatives" => ["q", "qd", "tau"],
+            _ => ["q", "qd", "qdd"],
+        };
+        let mut out: [Vec<f64>; 3] = Default::default();
+        for (k, v) in inputs.into_iter().enumerate() {
+            let what = format!("{method}: {}", names[k]);
+            let n = if k == 0 { self.n_q } else { self.n_dof };
+            if v.len() != n {
+                return Err(Error::InvalidInput {
+                    what,
+                    message: format!("has {} elements, the model needs {n}", v.len()),
+                });
+            }
+            out[k] = v.iter().map(|x| x.to_f64()).collect();
+            if let Some(i) = out[k].iter().position(|x| !x.is_finite()) {
+                return Err(Error::InvalidInput {
+                    what: format!("{what}[{i}]"),
+                    message: format!("is {}: every input must be finite", out[k][i]),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    /// The mass matrix's blocks (CRBA: `M[j][k] = S_k . Ic S_j` for `k` at or above `j`,
+    /// armature on the diagonal) in the layout of [`Articulations::mass_matrix`], and `Ic S_j`
+    /// per velocity.
+    fn mass_matrix_values(&self, rnea: &Rnea) -> (Vec<f64>, Vec<V6>) {
+        let ic_s: Vec<V6> = (0..self.n_dof)
+            .map(|j| rnea.composite[rnea.link_of[j]] * rnea.s[j])
+            .collect();
+        let armature = self.armature.to_vec();
+        let mut m = vec![0.0; self.m_len];
+        for art in &self.articulations {
+            let (first, len) = (art.dofs.start, art.dofs.len());
+            for j in art.dofs.clone() {
+                self.for_dofs_above(rnea, j, |k| {
+                    let e = rnea.s[k].dot(&ic_s[j]);
+                    m[art.m_offset + (j - first) * len + (k - first)] = e;
+                    m[art.m_offset + (k - first) * len + (j - first)] = e;
+                });
+                m[art.m_offset + (j - first) * (len + 1)] += armature[j].to_f64();
+            }
+        }
+        (m, ic_s)
     }
 
     /// Calls `f(k)` for every velocity `k` of `j`'s link and of its ancestors' joints.
@@ -341,11 +426,7 @@ impl<R: Real> Articulations<R> {
 
     /// `d tau_id / d q` (tangent directions) and `d tau_id / d qd` at `rnea`'s state, as
     /// `n_dof x n_dof` rows (zero between articulations); `ic_s[j] = Ic S_j`.
-    fn inverse_dynamics_derivatives(
-        &self,
-        rnea: &Rnea,
-        ic_s: &[V6],
-    ) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+    fn tau_derivatives(&self, rnea: &Rnea, ic_s: &[V6]) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
         let nl = self.links.len();
         // B = -I v~ + (I v)^x + v~* I, as a matrix of its argument, summed over subtrees.
         let mut bc: Vec<M6> = (0..nl)

@@ -111,19 +111,6 @@ pub struct Kinematics<R: Real> {
     pub s_v: Array<Vec3<R>>,
 }
 
-/// The derivatives of the forward dynamics `qdd(q, qd, tau)`, as Pinocchio's
-/// `computeABADerivatives` gives them: `dq[i][j]` is the derivative of `qdd[i]` along the
-/// `j`-th tangent direction of the configuration (see [`Articulations::tangent_to_coords`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct QddDerivatives {
-    /// `d qdd / d q` (tangent space), `n_dof x n_dof`.
-    pub dq: Vec<Vec<f64>>,
-    /// `d qdd / d qd`.
-    pub dqd: Vec<Vec<f64>>,
-    /// `d qdd / d tau` (the inverse mass matrix).
-    pub dtau: Vec<Vec<f64>>,
-}
-
 impl<R: Real> Articulations<R> {
     /// The initial state: [`Articulations::q0`], at rest.
     pub fn state(&self) -> ArticulationState<R> {
@@ -537,7 +524,8 @@ impl<R: Real> Articulations<R> {
         self.pass(tape, PassInput::new(q, qd, &z)).tau_id
     }
 
-    /// Inverse dynamics (RNEA): `tau = M(q) qdd + c(q, qd)`.
+    /// Inverse dynamics (RNEA): `tau = M(q) qdd + c(q, qd)`, the armature's `armature qdd`
+    /// included (so that it undoes [`Articulations::forward_dynamics`]), as Pinocchio's `rnea`.
     pub fn inverse_dynamics(
         &self,
         tape: &mut Tape,
@@ -548,7 +536,14 @@ impl<R: Real> Articulations<R> {
         let z = Array::zeros(self.n_dof);
         let mut input = PassInput::new(q, qd, &z);
         input.qdd = Some(qdd);
-        self.pass(tape, input).tau_id
+        let tau_id = self.pass(tape, input).tau_id;
+        let tau = Array::zeros(self.n_dof);
+        tape.launch(
+            articulation_armature_force,
+            self.n_dof,
+            (&self.armature, qdd, &tau_id, &tau),
+        );
+        tau
     }
 
     /// Forward dynamics: `qdd = M(q)^-1 (tau - c(q, qd))` (no damping, limits, PD or contact;

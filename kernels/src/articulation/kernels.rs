@@ -367,6 +367,19 @@ pub fn articulation_joint_space<R: Real>(
     rhs[a] = f;
 }
 
+/// The inverse dynamics' force of velocity `tid`: the links' `tau_id` plus the armature's
+/// `armature qdd` (the armature is on the mass matrix's diagonal, not on a link).
+#[diff_kernel]
+pub fn articulation_armature_force<R: Real>(
+    armature: &Array<R>,
+    qdd: &Array<R>,
+    tau_id: &Array<R>,
+    tau: &Array<R>,
+) {
+    let a = tid();
+    tau[a] = tau_id[a] + armature[a] * qdd[a];
+}
+
 /// Semi-implicit Euler step of the joint of link `tid`: `qd' = qd + qdd dt`, then
 /// revolute/prismatic `q' = q + qd' dt`; ball `quat' = normalize(quat exp(w' dt))` with the
 /// angular velocity `w'` in the link frame. A free joint's linear velocity is stepped in the

@@ -11,7 +11,8 @@
 //! - [`Articulations::mass_matrix`], [`Articulations::bias_forces`],
 //!   [`Articulations::inverse_dynamics`], [`Articulations::forward_dynamics`] and
 //!   [`Articulations::step`] record their launches on a tape;
-//!   [`Articulations::forward_dynamics_derivatives`] gives `d qdd / d (q, qd, tau)`.
+//!   [`Articulations::forward_dynamics_derivatives`] gives `d qdd / d (q, qd, tau)` and
+//!   [`Articulations::inverse_dynamics_derivatives`] `d tau / d (q, qd, qdd)`, in closed form.
 //!
 //! **Conventions** (Pinocchio's): quaternions are stored `x, y, z, w`; a ball joint's
 //! velocity is the angular velocity in the child link's frame; a free joint's coordinates are
@@ -57,7 +58,8 @@ mod xml;
 
 pub use actuator::{Actuator, TendonSpring};
 pub use contact::{ContactFilter, ContactShape, GroundContact, LinkShapes};
-pub use dynamics::{ArticulationControl, ArticulationState, Kinematics, QddDerivatives};
+pub use derivatives::{QddDerivatives, TauDerivatives};
+pub use dynamics::{ArticulationControl, ArticulationState, Kinematics};
 pub use fluid::Fluid;
 pub use model::{
     ArticulationBuilder, ArticulationError, ArticulationInfo, ArticulationIntegrator,

@@ -95,13 +95,14 @@ def pinocchio_reference(file, floating, n_random=4):
         bias = pin.rnea(model, data, qp, v, np.zeros(model.nv))
         qdd = pin.aba(model, data, qp, v, tau)
         pin.computeABADerivatives(model, data, qp, v, tau)
-        states.append({
+        state = {
             "q": q.tolist(), "qd": v.tolist(), "tau": tau.tolist(),
             "mass_matrix": m.tolist(), "bias": bias.tolist(), "qdd": qdd.tolist(),
             "dqdd_dq": np.array(data.ddq_dq).tolist(),
             "dqdd_dqd": np.array(data.ddq_dv).tolist(),
             "dqdd_dtau": (np.triu(data.Minv) + np.triu(data.Minv, 1).T).tolist(),
-        })
+        }
+        states.append(rnea_derivatives(model, qp, v, qdd, state))
     return {
         "file": file, "floating_base": floating, "reference": f"pinocchio {pin.__version__}",
         "joints": [{"name": n, "kind": k} for n, k in zip(names, kinds)],
@@ -124,6 +125,15 @@ def pinocchio_derivatives_agree(pm, q, v, tau, dq, dv, h=1e-6):
         worst = max(worst, np.abs(fv - dv[:, j]).max() / max(1, np.abs(dv).max()),
                     np.abs(fq - dq[:, j]).max() / max(1, np.abs(dq).max()))
     return worst < 1e-5
+
+
+def rnea_derivatives(pm, q, v, qdd, state):
+    """`state` with Pinocchio's `d tau / d q` and `d tau / d v` at `(q, v, qdd)`."""
+    pd = pm.createData()  # alive while the results, views of it, are copied
+    dq, dv, _ = pin.computeRNEADerivatives(pm, pd, q, v, qdd)
+    state["dtau_dq"] = np.array(dq).tolist()
+    state["dtau_dqd"] = np.array(dv).tolist()
+    return state
 
 
 def aba_derivatives(pm, pd, q, v, tau):
@@ -253,6 +263,7 @@ def mujoco_reference(file, n_random=4):
             state["dqdd_dq"] = dq.tolist()
             state["dqdd_dqd"] = dv.tolist()
             state["dqdd_dtau"] = (np.triu(pd.Minv) + np.triu(pd.Minv, 1).T).tolist()
+            rnea_derivatives(pm, q, v, qdd, state)
         states.append(state)
     return {
         "file": file, "floating_base": False,
