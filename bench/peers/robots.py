@@ -1,5 +1,6 @@
-"""Peers for the articulation benchmark: MuJoCo's mj_step and Pinocchio's
-computeABADerivatives on the repository's robots (kernels/robots/), one thread.
+"""Peers for the articulation benchmark: MuJoCo's mj_step, Pinocchio's
+computeABADerivatives and computeRNEADerivatives on the repository's robots
+(kernels/robots/), one thread. Timed from Python: the binding's call overhead is included.
 
 Prints one JSON line per measurement:
 {"peer", "model", "what", "us"}  (median of `--reps` runs of `--iters` calls, microseconds per call)

@@ -8,7 +8,26 @@ use serde_json::Value;
 
 const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/robots");
 
+/// The team's robots with analytical derivatives to check: file, and whether a URDF's base
+/// floats.
+const DERIVATIVE_ROBOTS: [(&str, bool); 9] = [
+    ("cartpole.urdf", false),
+    ("arm7.urdf", false),
+    ("quadruped.urdf", true),
+    ("ant.xml", false),
+    ("hopper.xml", false),
+    ("humanoid.xml", false),
+    ("walker.xml", false),
+    ("swimmer.xml", false),
+    ("servo_arm.xml", false),
+];
+
 fn load(file: &str, floating: bool) -> Articulations<f64> {
+    load_as(file, floating)
+}
+
+/// [`load`] in any precision.
+fn load_as<R: adflex_runtime::Real>(file: &str, floating: bool) -> Articulations<R> {
     let path = format!("{ROBOTS}/{file}");
     let b = if file.ends_with(".urdf") {
         urdf::load(
@@ -334,15 +353,7 @@ fn qdd_at(model: &Articulations<f64>, q: &[f64], qd: &[f64], tau: &[f64]) -> Vec
 #[test]
 fn forward_dynamics_derivatives_match_central_differences() {
     let mut rng = adflex_testkit::Rng(7);
-    for (file, floating) in [
-        ("cartpole.urdf", false),
-        ("arm7.urdf", false),
-        ("quadruped.urdf", true),
-        ("ant.xml", false),
-        ("hopper.xml", false),
-        ("humanoid.xml", false),
-        ("walker.xml", false),
-    ] {
+    for (file, floating) in DERIVATIVE_ROBOTS {
         let model = load(file, floating);
         let n = model.n_dof;
         // A random state: random tangent displacement of the initial configuration.
@@ -450,79 +461,165 @@ fn every_joint_kind() -> Articulations<f64> {
 /// matrix's size.
 #[test]
 fn dynamics_derivatives_match_the_recorded_dynamics() {
-    use adflex_runtime::AnyArray;
     let mut rng = adflex_testkit::Rng(11);
-    let mut models: Vec<(String, Articulations<f64>)> = [
-        ("cartpole.urdf", false),
-        ("arm7.urdf", false),
-        ("quadruped.urdf", true),
-        ("ant.xml", false),
-        ("hopper.xml", false),
-        ("humanoid.xml", false),
-        ("walker.xml", false),
-        ("swimmer.xml", false),
-        ("servo_arm.xml", false),
-    ]
-    .into_iter()
-    .map(|(f, floating)| (f.to_string(), load(f, floating)))
-    .collect();
+    let mut models: Vec<(String, Articulations<f64>)> = DERIVATIVE_ROBOTS
+        .into_iter()
+        .map(|(f, floating)| (f.to_string(), load(f, floating)))
+        .collect();
     models.push(("every joint kind".into(), every_joint_kind()));
     for (name, model) in &models {
         let n = model.n_dof;
         let mut random = |k: f64| (0..n).map(|_| rng.uniform(-k, k)).collect::<Vec<_>>();
         let q = model.integrate(&model.q0, &random(1.0));
         let (qd, x) = (random(2.0), random(3.0));
-        // Forward dynamics at (q, qd, tau = x), inverse dynamics at (q, qd, qdd = x).
-        let d = model.forward_dynamics_derivatives(&q, &qd, &x).unwrap();
-        let t = model.inverse_dynamics_derivatives(&q, &qd, &x).unwrap();
-        let mut tape = Tape::new();
-        let (qa, qda, xa) = (
-            Array::from_vec(q.clone()),
-            Array::from_vec(qd.clone()),
-            Array::from_vec(x.clone()),
-        );
-        let qdd = model.forward_dynamics(&mut tape, &qa, &qda, &xa).unwrap();
-        let tau = model.inverse_dynamics(&mut tape, &qa, &qda, &xa);
-        // The inverse dynamics undo the forward (the armature's force included).
-        let back = model
-            .inverse_dynamics(&mut Tape::new(), &qa, &qda, &qdd)
-            .to_vec();
-        let err = back
-            .iter()
-            .zip(&x)
-            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-        assert!(
-            err < 1e-10,
-            "{name}: inverse dynamics of qdd(tau) is tau to {err:e}"
-        );
-        let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &xa];
-        let mut worst = [0.0f64; 6];
-        let derivatives = [&d.dq, &d.dqd, &d.dtau, &t.dq, &t.dqd, &t.dqdd];
-        for (k, ours) in derivatives.into_iter().enumerate() {
-            let scale = ours.iter().flatten().fold(1e-300f64, |a, x| a.max(x.abs()));
-            for j in 0..n {
-                let mut v = vec![0.0; model.n_q + 2 * n];
-                match k % 3 {
-                    0 => {
-                        let mut e = vec![0.0; n];
-                        e[j] = 1.0;
-                        v[..model.n_q].copy_from_slice(&model.tangent_to_coords(&q, &e));
-                    }
-                    w => v[model.n_q + (w - 1) * n + j] = 1.0,
-                }
-                let out = if k < 3 { &qdd } else { &tau };
-                let col = tape.jvp(&inputs, &v, &[out]).unwrap();
-                for i in 0..n {
-                    worst[k] = worst[k].max((col[i] - ours[i][j]).abs() / scale);
-                }
-            }
-        }
+        let worst = derivatives_against_tangents(model, &q, &qd, &x);
         println!(
             "{name}: closed form vs tangent passes: dqdd/dq {:.1e}, dqdd/dqd {:.1e}, \
              dqdd/dtau {:.1e}, dtau/dq {:.1e}, dtau/dqd {:.1e}, dtau/dqdd {:.1e}",
             worst[0], worst[1], worst[2], worst[3], worst[4], worst[5]
         );
         assert!(worst.iter().all(|&w| w < 1e-10), "{name}: {worst:?}");
+    }
+}
+
+/// The largest differences, relative to each matrix's largest entry, between the closed-form
+/// derivatives (forward dynamics at `tau = x`, inverse at `qdd = x`) and the recorded
+/// dynamics' tangent passes; asserts on the way that the inverse dynamics undo the forward.
+fn derivatives_against_tangents(
+    model: &Articulations<f64>,
+    q: &[f64],
+    qd: &[f64],
+    x: &[f64],
+) -> [f64; 6] {
+    use adflex_runtime::AnyArray;
+    let n = model.n_dof;
+    let d = model.forward_dynamics_derivatives(q, qd, x).unwrap();
+    let t = model.inverse_dynamics_derivatives(q, qd, x).unwrap();
+    let mut tape = Tape::new();
+    let (qa, qda, xa) = (
+        Array::from_vec(q.to_vec()),
+        Array::from_vec(qd.to_vec()),
+        Array::from_vec(x.to_vec()),
+    );
+    let qdd = model.forward_dynamics(&mut tape, &qa, &qda, &xa).unwrap();
+    let tau = model.inverse_dynamics(&mut tape, &qa, &qda, &xa);
+    // The inverse dynamics undo the forward (the armature's force included).
+    let back = model
+        .inverse_dynamics(&mut Tape::new(), &qa, &qda, &qdd)
+        .to_vec();
+    let err = back
+        .iter()
+        .zip(x)
+        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        err < 1e-10,
+        "inverse dynamics of qdd(tau) is tau to {err:e}"
+    );
+    let inputs: [&dyn AnyArray; 3] = [&qa, &qda, &xa];
+    let mut worst = [0.0f64; 6];
+    let derivatives = [&d.dq, &d.dqd, &d.dtau, &t.dq, &t.dqd, &t.dqdd];
+    for (k, ours) in derivatives.into_iter().enumerate() {
+        let scale = ours.iter().flatten().fold(1e-300f64, |a, x| a.max(x.abs()));
+        for j in 0..n {
+            let mut v = vec![0.0; model.n_q + 2 * n];
+            match k % 3 {
+                0 => {
+                    let mut e = vec![0.0; n];
+                    e[j] = 1.0;
+                    v[..model.n_q].copy_from_slice(&model.tangent_to_coords(q, &e));
+                }
+                w => v[model.n_q + (w - 1) * n + j] = 1.0,
+            }
+            let out = if k < 3 { &qdd } else { &tau };
+            let col = tape.jvp(&inputs, &v, &[out]).unwrap();
+            for i in 0..n {
+                worst[k] = worst[k].max((col[i] - ours[i][j]).abs() / scale);
+            }
+        }
+    }
+    worst
+}
+
+/// The closed forms read a model's fields as the kernels do, also when a user edited them:
+/// a joint axis and a joint rotation that are not unit, an inertia that is not symmetric (its
+/// symmetric part counts), a free joint below the root, and a ball joint's quaternion in `q`
+/// that is not unit (both normalize it).
+#[test]
+fn dynamics_derivatives_read_edited_models_as_the_kernels_do() {
+    use adflex_kernels::articulation::{ArticulationBuilder, Inertial, Joint, Pose};
+    use adflex_runtime::Vec3;
+    let mut b = ArticulationBuilder::new();
+    let body = |m: f64| Inertial::cuboid(m, Vec3::new(0.2, 0.1, 0.3), Vec3::new(0.1, 0.0, -0.1));
+    let base = b.add_link("base", None, Joint::revolute(Vec3::x()), body(2.0));
+    // A free joint below the root: a body attached to a moving link only by its coordinates.
+    let free = b.add_link(
+        "floating",
+        Some(base),
+        Joint::free().origin(Pose::at(Vec3::new(0.0, 0.3, 0.0))),
+        body(1.0),
+    );
+    b.add_link("ball", Some(free), Joint::ball(), body(0.5));
+    b.add_link(
+        "slide",
+        Some(base),
+        Joint::prismatic(Vec3::y()).origin(Pose::at(Vec3::new(0.2, 0.0, 0.1))),
+        body(0.8),
+    );
+    let model = b.finalize::<f64>().unwrap();
+    model.joint_axis.set(0, Vec3::new(0.0, 2.0, 1.0));
+    model.joint_axis.set(3, Vec3::new(-3.0, 0.5, 0.0));
+    model.joint_rot.set(3, Quat::new(0.2, 0.0, 0.4, 1.5));
+    let mut i = model.inertia.get(1);
+    i[(0, 1)] += 0.02;
+    i[(2, 0)] -= 0.01;
+    model.inertia.set(1, i);
+    let mut rng = adflex_testkit::Rng(5);
+    let n = model.n_dof;
+    let mut random = |k: f64| (0..n).map(|_| rng.uniform(-k, k)).collect::<Vec<_>>();
+    let mut q = model.integrate(&model.q0, &random(1.0));
+    let ball = model.links.iter().find(|l| l.name == "ball").unwrap();
+    for c in &mut q[ball.q.clone()] {
+        *c *= 2.0;
+    }
+    let (qd, x) = (random(2.0), random(3.0));
+    let worst = derivatives_against_tangents(&model, &q, &qd, &x);
+    println!(
+        "edited model: closed form vs tangent passes {:?}",
+        worst.map(|w| format!("{w:.1e}"))
+    );
+    assert!(worst.iter().all(|&w| w < 1e-10), "{worst:?}");
+}
+
+/// An `f32` model's derivatives are its `f64` twin's at the same (rounded) values.
+#[test]
+fn dynamics_derivatives_of_an_f32_model() {
+    let (narrow, wide) = (
+        load_as::<f32>("quadruped.urdf", true),
+        load("quadruped.urdf", true),
+    );
+    let n = wide.n_dof;
+    let mut rng = adflex_testkit::Rng(3);
+    let q = wide.integrate(
+        &wide.q0,
+        &(0..n).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>(),
+    );
+    let qd: Vec<f64> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let narrow_of = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
+    let wide_of = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<_>>();
+    let (q, qd) = (wide_of(&narrow_of(&q)), wide_of(&narrow_of(&qd)));
+    let a = narrow
+        .forward_dynamics_derivatives(&narrow_of(&q), &narrow_of(&qd), &narrow_of(&qd))
+        .unwrap();
+    let b = wide.forward_dynamics_derivatives(&q, &qd, &qd).unwrap();
+    for (x, y) in [(&a.dq, &b.dq), (&a.dqd, &b.dqd), (&a.dtau, &b.dtau)] {
+        let scale = y.iter().flatten().fold(1e-300f64, |m, v| m.max(v.abs()));
+        let diff = x
+            .iter()
+            .flatten()
+            .zip(y.iter().flatten())
+            .fold(0.0f64, |m, (u, v)| m.max((u - v).abs()));
+        // The model's parameters are rounded to f32: differences of that order.
+        assert!(diff / scale < 1e-5, "f32 vs f64: {:e}", diff / scale);
     }
 }
 
@@ -557,6 +654,50 @@ fn dynamics_derivatives_refuse_bad_inputs_by_name() {
         e.contains("inverse_dynamics_derivatives: qdd[1]") && e.contains("inf"),
         "{e}"
     );
+    // A quaternion of norm 0 in q, and bad model values: named, never NaN.
+    let quadruped = load("quadruped.urdf", true);
+    let (n, mut q) = (quadruped.n_dof, quadruped.q0.clone());
+    let z = vec![0.0; n];
+    q[3..7].fill(0.0);
+    let e = quadruped
+        .inverse_dynamics_derivatives(&q, &z, &z)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("q[3..7]") && e.contains("norm 0"), "{e}");
+    let q = quadruped.q0.clone();
+    type Edit = fn(&mut Articulations<f64>);
+    let edits: [(Edit, &str); 6] = [
+        (
+            |m| m.joint_rot.set(2, Quat::new(0.0, 0.0, 0.0, 0.0)),
+            "model.joint_rot[2]",
+        ),
+        (
+            |m| m.joint_axis.set(2, adflex_runtime::Vec3::zeros()),
+            "model.joint_axis[2]",
+        ),
+        (
+            |m| {
+                m.gravity
+                    .set(0, adflex_runtime::Vec3::new(0.0, f64::NAN, 0.0))
+            },
+            "model.gravity[0]",
+        ),
+        (|m| m.gravity = Array::zeros(0), "model.gravity"),
+        (|m| m.mass.set(1, f64::INFINITY), "model.mass[1]"),
+        (|m| m.armature = Array::zeros(1), "model.armature"),
+    ];
+    for (edit, named) in edits {
+        // A fresh model each time: a clone shares its arrays.
+        let mut m = load("quadruped.urdf", true);
+        edit(&mut m);
+        for e in [
+            m.inverse_dynamics_derivatives(&q, &z, &z).unwrap_err(),
+            m.forward_dynamics_derivatives(&q, &z, &z).unwrap_err(),
+        ] {
+            let e = e.to_string();
+            assert!(e.contains(named), "{named}: {e}");
+        }
+    }
 }
 
 /// A free box, spinning and falling: one link on a free joint.

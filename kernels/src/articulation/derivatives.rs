@@ -109,6 +109,24 @@ struct Rnea {
     f: Vec<V6>,
 }
 
+/// The model's parameters in `f64`, checked once per call (finite, quaternions and axes
+/// that can be normalized, one gravity per world).
+struct PlainModel {
+    joint_pos: Vec<V3>,
+    joint_rot: Vec<UnitQuaternion<f64>>,
+    joint_axis: Vec<V3>,
+    mass: Vec<f64>,
+    com: Vec<V3>,
+    /// The inertias' symmetric parts (as the kernels read them).
+    inertia: Vec<Matrix3<f64>>,
+    /// Per link, its world's gravity.
+    gravity: Vec<V3>,
+    armature: Vec<f64>,
+}
+
+/// A norm below which a quaternion or an axis has no direction to normalize to.
+const TINY_NORM: f64 = 1e-12;
+
 impl<R: Real> Articulations<R> {
     /// The derivatives of the forward dynamics at `(q, qd, tau)` (as Pinocchio's
     /// `computeABADerivatives`; the model's plain dynamics, as [`Articulations::forward_dynamics`]:
@@ -116,8 +134,10 @@ impl<R: Real> Articulations<R> {
     /// `d qdd / d qd` and `d qdd / d tau = M^-1`, in closed form (the inverse dynamics'
     /// analytical derivatives and the mass matrix's Cholesky factors), without a tape.
     ///
-    /// Errors: an input of the wrong length or not finite, or a mass matrix that is not
-    /// positive definite, as [`Error::InvalidInput`] naming it.
+    /// Errors, as [`Error::InvalidInput`] naming the input, the model field or the
+    /// articulation: an input of the wrong length or not finite, a ball or free joint's
+    /// quaternion in `q` of norm (near) 0, a model parameter that is not finite (or a zero
+    /// `joint_rot` or `joint_axis`), a mass matrix that is not positive definite.
     ///
     /// ```
     /// use adflex_kernels::articulation::*;
@@ -139,10 +159,12 @@ impl<R: Real> Articulations<R> {
         qd: &[R],
         tau: &[R],
     ) -> Result<QddDerivatives, Error> {
-        let [q, qd, tau] = self.plain_inputs("forward_dynamics_derivatives", [q, qd, tau])?;
+        let method = "forward_dynamics_derivatives";
+        let [q, qd, tau] = self.plain_inputs(method, [q, qd, tau])?;
+        let model = self.plain_model(method)?;
         let n = self.n_dof;
-        let mut rnea = self.rnea_bias(&q, &qd);
-        let (m, ic_s) = self.mass_matrix_values(&rnea);
+        let mut rnea = self.rnea_bias(&model, &q, &qd);
+        let (m, ic_s) = self.mass_matrix_values(&model, &rnea);
         let (factors, blocks) = self.factor_values(&m)?;
         // qdd = M^-1 (tau - c), then the inverse dynamics at that qdd.
         let rhs: Vec<f64> = (0..n)
@@ -150,35 +172,29 @@ impl<R: Real> Articulations<R> {
             .collect();
         let qdd = solve_all(&factors, &blocks, &rhs);
         self.rnea_accelerate(&mut rnea, &qdd);
-        let (dtau_dq, dtau_dqd) = self.tau_derivatives(&rnea, &ic_s);
-        // Per block: columns of -M^-1 d tau_id and of M^-1.
-        let mut out = QddDerivatives {
-            dq: vec![vec![0.0; n]; n],
-            dqd: vec![vec![0.0; n]; n],
-            dtau: vec![vec![0.0; n]; n],
-        };
+        let (mut dq, mut dqd) = self.tau_derivatives(&rnea, &ic_s);
+        // Per block, in place: the columns of -M^-1 d tau_id, and M^-1's.
+        let mut dtau = vec![vec![0.0; n]; n];
         for (art, l) in self.articulations.iter().zip(&factors) {
             let d = art.dofs.clone();
             let mut y = vec![0.0; d.len()];
             for k in d.clone() {
-                for (src, dst, sign) in [
-                    (Some(&dtau_dq), &mut out.dq, -1.0),
-                    (Some(&dtau_dqd), &mut out.dqd, -1.0),
-                    (None, &mut out.dtau, 1.0),
-                ] {
+                for (mat, identity) in [(&mut dq, false), (&mut dqd, false), (&mut dtau, true)] {
                     for (i, yi) in d.clone().zip(y.iter_mut()) {
-                        *yi = match src {
-                            Some(s) => sign * s[i][k],
-                            None => f64::from(u8::from(i == k)),
+                        *yi = match identity {
+                            false => -mat[i][k],
+                            true => f64::from(u8::from(i == k)),
                         };
                     }
                     cholesky_solve(l, &mut y);
                     for (i, yi) in d.clone().zip(&y) {
-                        dst[i][k] = *yi;
+                        mat[i][k] = *yi;
                     }
                 }
             }
         }
+        let out = QddDerivatives { dq, dqd, dtau };
+        check_finite(method, [&out.dq, &out.dqd, &out.dtau])?;
         Ok(out)
     }
 
@@ -189,8 +205,9 @@ impl<R: Real> Articulations<R> {
     /// [`Articulations::inverse_dynamics`], the model's plain dynamics (no damping, limits,
     /// PD or contact).
     ///
-    /// Errors: an input of the wrong length or not finite, as [`Error::InvalidInput`] naming
-    /// it.
+    /// Errors, as [`Error::InvalidInput`] naming the input or the model field: an input of
+    /// the wrong length or not finite, a ball or free joint's quaternion in `q` of norm (near)
+    /// 0, a model parameter that is not finite (or a zero `joint_rot` or `joint_axis`).
     ///
     /// ```
     /// use adflex_kernels::articulation::*;
@@ -213,9 +230,11 @@ impl<R: Real> Articulations<R> {
         qd: &[R],
         qdd: &[R],
     ) -> Result<TauDerivatives, Error> {
-        let [q, qd, qdd] = self.plain_inputs("inverse_dynamics_derivatives", [q, qd, qdd])?;
-        let mut rnea = self.rnea_bias(&q, &qd);
-        let (m, ic_s) = self.mass_matrix_values(&rnea);
+        let method = "inverse_dynamics_derivatives";
+        let [q, qd, qdd] = self.plain_inputs(method, [q, qd, qdd])?;
+        let model = self.plain_model(method)?;
+        let mut rnea = self.rnea_bias(&model, &q, &qd);
+        let (m, ic_s) = self.mass_matrix_values(&model, &rnea);
         self.rnea_accelerate(&mut rnea, &qdd);
         let (dq, dqd) = self.tau_derivatives(&rnea, &ic_s);
         let mut dqdd = vec![vec![0.0; self.n_dof]; self.n_dof];
@@ -227,7 +246,9 @@ impl<R: Real> Articulations<R> {
                 }
             }
         }
-        Ok(TauDerivatives { dq, dqd, dqdd })
+        let out = TauDerivatives { dq, dqd, dqdd };
+        check_finite(method, [&out.dq, &out.dqd, &out.dqdd])?;
+        Ok(out)
     }
 
     /// The three inputs `(q, velocities, velocities)` in `f64`, or an error naming `method`'s
@@ -255,17 +276,131 @@ impl<R: Real> Articulations<R> {
                 });
             }
         }
+        for link in &self.links {
+            let r = match link.kind {
+                JointType::Ball => link.q.start..link.q.start + 4,
+                JointType::Free => link.q.start + 3..link.q.start + 7,
+                _ => continue,
+            };
+            let norm = out[0][r.clone()].iter().map(|x| x * x).sum::<f64>().sqrt();
+            if norm < TINY_NORM {
+                return Err(Error::InvalidInput {
+                    what: format!("{method}: q[{}..{}]", r.start, r.end),
+                    message: format!(
+                        "(the quaternion of joint \"{}\") has norm {norm:e}: a rotation needs a \
+                         unit quaternion (x, y, z, w), e.g. (0, 0, 0, 1)",
+                        link.joint
+                    ),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    /// The model's parameters in `f64`, or an error naming the field (and link) that has the
+    /// wrong length or is not finite, a `joint_rot` or `joint_axis` that cannot be normalized,
+    /// or a `gravity` array without one value per world.
+    fn plain_model(&self, method: &str) -> Result<PlainModel, Error> {
+        let n = self.links.len();
+        let error = |what: String, message: String| Error::InvalidInput {
+            what: format!("{method}: model.{what}"),
+            message,
+        };
+        let at = |field: &str, l: usize| format!("{field}[{l}] (link \"{}\")", self.links[l].name);
+        let not_finite = || "is not finite: every model parameter must be finite".to_string();
+        let world = self.link_world.to_vec();
+        let worlds = world.iter().map(|&w| w as usize + 1).max().unwrap_or(0);
+        for (field, len, want) in [
+            ("joint_pos", self.joint_pos.len(), n),
+            ("joint_rot", self.joint_rot.len(), n),
+            ("joint_axis", self.joint_axis.len(), n),
+            ("mass", self.mass.len(), n),
+            ("com", self.com.len(), n),
+            ("inertia", self.inertia.len(), n),
+            ("armature", self.armature.len(), self.n_dof),
+            ("gravity", self.gravity.len(), worlds),
+        ] {
+            if len < want {
+                let per = if field == "gravity" { "world" } else { "link" };
+                let per = if field == "armature" { "velocity" } else { per };
+                return Err(error(
+                    field.into(),
+                    format!("has {len} elements, the model needs {want} (one per {per})"),
+                ));
+            }
+        }
+        let f3 = |v: &Vector3<R>| v.map(|x| x.to_f64());
+        let finite3 = |v: &V3| v.iter().all(|x| x.is_finite());
+        let gravity: Vec<V3> = self.gravity.to_vec().iter().map(f3).collect();
+        if let Some(w) = gravity.iter().position(|g| !finite3(g)) {
+            return Err(error(format!("gravity[{w}]"), not_finite()));
+        }
+        let mut out = PlainModel {
+            joint_pos: self.joint_pos.to_vec().iter().map(f3).collect(),
+            joint_rot: Vec::with_capacity(n),
+            joint_axis: Vec::with_capacity(n),
+            mass: self.mass.to_vec().iter().map(|x| x.to_f64()).collect(),
+            com: self.com.to_vec().iter().map(f3).collect(),
+            inertia: Vec::with_capacity(n),
+            gravity: world.iter().map(|&w| gravity[w as usize]).collect(),
+            armature: self.armature.to_vec().iter().map(|x| x.to_f64()).collect(),
+        };
+        let (rot, axis, inertia) = (
+            self.joint_rot.to_vec(),
+            self.joint_axis.to_vec(),
+            self.inertia.to_vec(),
+        );
+        for l in 0..n {
+            let r = nalgebra::Quaternion::from(rot[l].coords.map(|x| x.to_f64()));
+            let a = f3(&axis[l]);
+            let i3 = inertia[l].map(|x| x.to_f64());
+            let finite = [
+                ("joint_pos", finite3(&out.joint_pos[l])),
+                ("joint_rot", r.coords.iter().all(|x| x.is_finite())),
+                ("joint_axis", finite3(&a)),
+                ("mass", out.mass[l].is_finite()),
+                ("com", finite3(&out.com[l])),
+                ("inertia", i3.iter().all(|x| x.is_finite())),
+            ];
+            if let Some((field, _)) = finite.iter().find(|(_, ok)| !ok) {
+                return Err(error(at(field, l), not_finite()));
+            }
+            // The kernels normalize both; a zero one has no direction (an axis only matters
+            // for a revolute or prismatic joint).
+            let uses_axis = matches!(
+                self.links[l].kind,
+                JointType::Revolute | JointType::Prismatic
+            );
+            for (field, norm, used) in [
+                ("joint_rot", r.norm(), true),
+                ("joint_axis", a.norm(), uses_axis),
+            ] {
+                if used && norm < TINY_NORM {
+                    return Err(error(
+                        at(field, l),
+                        format!("has norm {norm:e}: it has no direction to normalize to"),
+                    ));
+                }
+            }
+            out.joint_rot.push(UnitQuaternion::from_quaternion(r));
+            out.joint_axis
+                .push(if uses_axis { a.normalize() } else { a });
+            out.inertia.push((i3 + i3.transpose()) * 0.5);
+        }
+        if let Some(j) = out.armature.iter().position(|x| !x.is_finite()) {
+            return Err(error(format!("armature[{j}]"), not_finite()));
+        }
         Ok(out)
     }
 
     /// The mass matrix's blocks (CRBA: `M[j][k] = S_k . Ic S_j` for `k` at or above `j`,
     /// armature on the diagonal) in the layout of [`Articulations::mass_matrix`], and `Ic S_j`
     /// per velocity.
-    fn mass_matrix_values(&self, rnea: &Rnea) -> (Vec<f64>, Vec<V6>) {
+    fn mass_matrix_values(&self, model: &PlainModel, rnea: &Rnea) -> (Vec<f64>, Vec<V6>) {
         let ic_s: Vec<V6> = (0..self.n_dof)
             .map(|j| rnea.composite[rnea.link_of[j]] * rnea.s[j])
             .collect();
-        let armature = self.armature.to_vec();
+        let armature = &model.armature;
         let mut m = vec![0.0; self.m_len];
         for art in &self.articulations {
             let (first, len) = (art.dofs.start, art.dofs.len());
@@ -275,7 +410,7 @@ impl<R: Real> Articulations<R> {
                     m[art.m_offset + (j - first) * len + (k - first)] = e;
                     m[art.m_offset + (k - first) * len + (j - first)] = e;
                 });
-                m[art.m_offset + (j - first) * (len + 1)] += armature[j].to_f64();
+                m[art.m_offset + (j - first) * (len + 1)] += armature[j];
             }
         }
         (m, ic_s)
@@ -294,18 +429,10 @@ impl<R: Real> Articulations<R> {
     /// summed over subtrees, in the kernels' conventions
     /// ([`articulation_kinematics`](super::kernels::articulation_kinematics),
     /// [`articulation_link_dynamics`](super::kernels::articulation_link_dynamics)).
-    fn rnea_bias(&self, q: &[f64], qd: &[f64]) -> Rnea {
-        let f3 = |v: &Vector3<R>| v.map(|x| x.to_f64());
+    fn rnea_bias(&self, model: &PlainModel, q: &[f64], qd: &[f64]) -> Rnea {
         let unit = |x: f64, y: f64, z: f64, w: f64| {
             UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z))
         };
-        let (jp, jr, ja) = (
-            self.joint_pos.to_vec(),
-            self.joint_rot.to_vec(),
-            self.joint_axis.to_vec(),
-        );
-        let (mass, com, inertia) = (self.mass.to_vec(), self.com.to_vec(), self.inertia.to_vec());
-        let (gravity, world) = (self.gravity.to_vec(), self.link_world.to_vec());
         let nl = self.links.len();
         let mut rnea = Rnea {
             link_of: vec![0; self.n_dof],
@@ -319,8 +446,7 @@ impl<R: Real> Articulations<R> {
         };
         let mut pose = Vec::with_capacity(nl);
         for (l, link) in self.links.iter().enumerate() {
-            rnea.world_a
-                .push(join(V3::zeros(), -f3(&gravity[world[l] as usize])));
+            rnea.world_a.push(join(V3::zeros(), -model.gravity[l]));
             let (p0, r0, v0, a0) = match link.parent {
                 Some(p) => {
                     let (pp, rp): &(V3, UnitQuaternion<f64>) = &pose[p];
@@ -333,10 +459,9 @@ impl<R: Real> Articulations<R> {
                     rnea.world_a[l],
                 ),
             };
-            let jq = nalgebra::Quaternion::from(jr[l].coords.map(|x| x.to_f64()));
-            let mut p = p0 + r0 * f3(&jp[l]);
-            let mut r = r0 * UnitQuaternion::from_quaternion(jq);
-            let axis = f3(&ja[l]).normalize();
+            let mut p = p0 + r0 * model.joint_pos[l];
+            let mut r = r0 * model.joint_rot[l];
+            let axis = model.joint_axis[l];
             let s = link.q.start;
             match link.kind {
                 JointType::Fixed => {}
@@ -370,10 +495,9 @@ impl<R: Real> Articulations<R> {
             }
             // Spatial inertia [J h~; h~^T m] at the origin.
             let rm = r.to_rotation_matrix().into_inner();
-            let c = p + rm * f3(&com[l]);
-            let m = mass[l].to_f64();
-            let i3 = inertia[l].map(|x| x.to_f64());
-            let j = rm * ((i3 + i3.transpose()) * 0.5) * rm.transpose()
+            let c = p + rm * model.com[l];
+            let m = model.mass[l];
+            let j = rm * model.inertia[l] * rm.transpose()
                 + (Matrix3::identity() * c.dot(&c) - c * c.transpose()) * m;
             let h = (c * m).cross_matrix();
             let im = blocks(j, h, h.transpose(), Matrix3::identity() * m);
@@ -483,4 +607,31 @@ impl<R: Real> Articulations<R> {
         }
         (dq, dqd)
     }
+}
+
+/// An error naming `method`'s result that is not finite (a state or parameters at which the
+/// dynamics overflow).
+fn check_finite(method: &str, outputs: [&Vec<Vec<f64>>; 3]) -> Result<(), Error> {
+    let names = [
+        "dq",
+        "dqd",
+        if method.starts_with("forward") {
+            "dtau"
+        } else {
+            "dqdd"
+        },
+    ];
+    for (name, m) in names.iter().zip(outputs) {
+        for (i, row) in m.iter().enumerate() {
+            if let Some(j) = row.iter().position(|x| !x.is_finite()) {
+                return Err(Error::InvalidInput {
+                    what: format!("{method}: the result's {name}[{i}][{j}]"),
+                    message: "is not finite: the state or the model's parameters overflow the \
+                              dynamics (every input was finite)"
+                        .into(),
+                });
+            }
+        }
+    }
+    Ok(())
 }

@@ -989,6 +989,10 @@ pub struct LinkInfo {
 ///
 /// The links are ordered parents first. Every array the kernels read is a field, so a
 /// parameter (a mass, an inertia, a joint placement) can require grad and be optimized.
+///
+/// Arrays are handles: a `clone()` of the model shares its parameter arrays with the original
+/// (an edit through one shows in both, as an optimizer's parameters should). For an independent
+/// model, finalize the builder again.
 #[derive(Clone, Debug)]
 pub struct Articulations<R: Real> {
     /// The links.
