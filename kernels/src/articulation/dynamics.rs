@@ -10,7 +10,22 @@ use adflex_runtime::{AnyArray, Element};
 
 use super::kernels::*;
 use super::model::{ArticulationIntegrator, Articulations, JointType};
+use crate::precompiled::precompiled;
 use crate::solver::parts::Parts;
+
+precompiled! {
+    /// [`Articulations::step`] by code compiled in this crate for `f32` and `f64`: examples,
+    /// tests and user crates link to it instead of compiling the step's kernels again.
+    fn articulation_step(
+        model: &Articulations<R>,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        control: Option<&ArticulationControl<R>>,
+        dt: R,
+    ) -> Result<ArticulationState<R>, Error> {
+        model.step_generic(tape, state, control, dt)
+    }
+}
 
 /// Coordinates and velocities of every articulation of a model.
 #[derive(Clone, Debug)]
@@ -574,6 +589,18 @@ impl<R: Real> Articulations<R> {
     /// violated limits; the other forces are explicit. Returns the new state; every launch is
     /// on `tape`.
     pub fn step(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        control: Option<&ArticulationControl<R>>,
+        dt: R,
+    ) -> Result<ArticulationState<R>, Error> {
+        articulation_step(self, tape, state, control, dt)
+    }
+
+    /// [`Articulations::step`]'s body (compiled once here for `f32` and `f64`, see
+    /// `crate::precompiled`).
+    fn step_generic(
         &self,
         tape: &mut Tape,
         state: &ArticulationState<R>,
