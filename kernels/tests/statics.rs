@@ -350,7 +350,7 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
     let w = model.particle_inv_mass.clone();
     let guess = model.state();
     let inputs: [&dyn AnyArray; 4] = [&rest, &ke, &w, &guess.x];
-    let n_in: usize = inputs.iter().map(|a| a.len() * a.element_dim()).sum();
+    let n_in: usize = inputs.iter().map(|a| a.n_scalars()).sum();
     let mut v: Vec<f64> = (0..n_in)
         .map(|k| ((k * 37 % 11) as f64 - 5.0) / 5.0)
         .collect();
@@ -389,11 +389,7 @@ fn tangent_agrees_with_the_adjoint_and_with_differences() {
     // J v against central differences of the re-solved equilibrium along v.
     let base: Vec<Vec<f64>> = inputs
         .iter()
-        .map(|a| {
-            (0..a.len() * a.element_dim())
-                .map(|k| a.scalar(k))
-                .collect()
-        })
+        .map(|a| (0..a.n_scalars()).map(|k| a.scalar(k)).collect())
         .collect();
     let solve_at = |s: f64| -> Vec<f64> {
         let mut k = 0;

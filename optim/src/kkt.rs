@@ -24,16 +24,18 @@ impl Optimizer<'_> {
     /// solve one symmetric, indefinite KKT system,
     ///
     /// ```text
-    /// [ Jᵀ J    s Cᵀ ] [ (dx, dp) ]   [ -Jᵀ r ]
-    /// [ s C     0    ] [    λ     ] = [   0   ]
+    /// [ Jᵀ J    Cᵀ ] [ (dx, dp) ]   [ -Jᵀ r ]
+    /// [ C      0  ] [    λ     ] = [   0   ]
     /// ```
     ///
-    /// `J = [r_x r_p]`, `C = [c_x c_p]`, `s` a scale that balances the blocks; its `dp` is the
+    /// `J = [r_x r_p]`, `C = [c_x c_p]`; its `dp` is the
     /// Gauss-Newton step (eliminate `dx = S dp`), found without forming `S` and without an inner
     /// iterative solve, so its cost does not grow with the stiffness's condition number. `J` and
     /// `C` come column by column from tangent passes over a tape that holds one evaluation of the
     /// constraint and the residuals at `x` (one pass per unknown of the state and per parameter),
-    /// and the system is factorized by LU.
+    /// and the system is equilibrated (Ruiz's symmetric scaling: every row and column of the
+    /// scaled system has its largest entry near 1, whatever the units of the state, the
+    /// parameters and the constraint) and factorized by LU with partial pivoting.
     ///
     /// What is not the paper's: the system is assembled and factorized **densely**, so the cost is
     /// `n + m` tangent passes and `O((2n + m)³)` per step (`n` state scalars, `m` parameters):
@@ -69,8 +71,8 @@ impl Optimizer<'_> {
     /// the KKT system is singular to working precision (a pivot below `1e-13 · rows` of the
     /// largest, `1e-6 · rows` when the state or the constraint is in f32: a state the
     /// constraint does not determine, or parameters the residuals cannot tell apart; the
-    /// system is not equilibrated, so parameters of very different units can look singular:
-    /// scale them); if it has more rows than [`Method::KktGaussNewton`]'s `largest`; or if a
+    /// threshold applies to the equilibrated system, so parameters of very different units do
+    /// not look singular); if it has more rows than [`Method::KktGaussNewton`]'s `largest`; or if a
     /// derivative is not finite (naming its input).
     ///
     /// The constraint holds the parameters the tape of `constrained` reads; with
@@ -173,7 +175,7 @@ impl Optimizer<'_> {
                 .as_deref()
                 .expect("least_squares_kkt's records keep the state");
             let x = Array::<X>::zeros(state.len()).named("state (KKT)");
-            for k in 0..scalars(state) {
+            for k in 0..state.n_scalars() {
                 x.set_scalar(k, state.scalar(k));
             }
             let mut tape = Tape::new();
@@ -198,15 +200,11 @@ impl Optimizer<'_> {
     }
 }
 
-fn scalars(a: &dyn AnyArray) -> usize {
-    a.len() * a.element_dim()
-}
-
 /// The scalars of `arrays`, in order.
 fn values(arrays: &[&dyn AnyArray]) -> Vec<f64> {
     arrays
         .iter()
-        .flat_map(|a| (0..scalars(*a)).map(|k| a.scalar(k)))
+        .flat_map(|a| (0..a.n_scalars()).map(|k| a.scalar(k)))
         .collect()
 }
 
@@ -239,14 +237,14 @@ impl<'t, 'a> Kkt<'t, 'a> {
         cur: &Recorded,
         first: bool,
     ) -> Result<Self, Error> {
-        let n = scalars(x);
-        if scalars(c) != n {
+        let n = x.n_scalars();
+        if c.n_scalars() != n {
             return Err(Error::InvalidInput {
                 what: format!("least_squares_kkt: constraint `{}`", c.label()),
                 message: format!(
                     "has {} scalars and the state {n}: the KKT system needs one equation of the \
                      constraint per unknown of the state",
-                    scalars(c)
+                    c.n_scalars()
                 ),
             });
         }
@@ -283,7 +281,7 @@ impl<'t, 'a> Kkt<'t, 'a> {
         outputs.push(c);
         let mut inputs: Vec<&dyn AnyArray> = vec![x];
         inputs.extend(params.iter().copied());
-        let m = inputs[1..].iter().map(|a| scalars(*a)).sum();
+        let m = inputs[1..].iter().map(|a| a.n_scalars()).sum();
         let f32s = [std::any::type_name::<X>(), std::any::type_name::<C>()]
             .iter()
             .any(|t| t.contains("f32"));
@@ -373,23 +371,24 @@ impl<'t, 'a> Kkt<'t, 'a> {
             });
         }
         let h = jc.transpose() * &jc;
-        // The scale s brings the constraint's block to the curvature's size, so that the
-        // pivoting compares like with like.
-        let (hmax, cmax) = (h.amax(), cc.amax());
-        let s = if hmax > 0.0 && cmax > 0.0 {
-            hmax / cmax
-        } else {
-            1.0
-        };
         let mut a = nalgebra::DMatrix::<f64>::zeros(dim, dim);
         a.view_mut((0, 0), (k, k)).copy_from(&h);
-        a.view_mut((k, 0), (n, k)).copy_from(&(&cc * s));
-        a.view_mut((0, k), (k, n)).copy_from(&(cc.transpose() * s));
+        a.view_mut((k, 0), (n, k)).copy_from(&cc);
+        a.view_mut((0, k), (k, n)).copy_from(&cc.transpose());
         // The constraint's rows of the right-hand side are 0: the step linearizes at the solved
         // state, where the gradient (through the solve) takes the constraint as met.
         let r = nalgebra::DVector::from_column_slice(&self.r);
         let mut b = nalgebra::DVector::<f64>::zeros(dim);
         b.rows_mut(0, k).copy_from(&(-(jc.transpose() * r)));
+        // Solve (D A D) y = D b, then x = D y: the pivoting and the singularity test compare
+        // like with like whatever the units.
+        let scale = equilibrate(&a);
+        for i in 0..dim {
+            for j in 0..dim {
+                a[(i, j)] *= scale[i] * scale[j];
+            }
+            b[i] *= scale[i];
+        }
         let lu = a.lu();
         // A pivot below rounding of the largest one: singular to working precision (that of
         // f32 if the state or the constraint is in f32, their derivatives being no better).
@@ -399,7 +398,7 @@ impl<'t, 'a> Kkt<'t, 'a> {
             true => lu.solve(&b).filter(|x| x.iter().all(|v| v.is_finite())),
             false => None,
         };
-        let Some(sol) = sol else {
+        let Some(mut sol) = sol else {
             return Err(Error::InvalidInput {
                 what: "least_squares_kkt: the KKT system".into(),
                 message: format!(
@@ -411,6 +410,7 @@ impl<'t, 'a> Kkt<'t, 'a> {
                 ),
             });
         };
+        sol.component_mul_assign(&scale);
         let d = sol.as_slice()[..k].to_vec();
         let dp = d[n..].to_vec();
         // At the solution, gᵀdp = -|J d|² (C d = 0): a gradient through `residuals` that
@@ -436,13 +436,37 @@ impl<'t, 'a> Kkt<'t, 'a> {
     }
 }
 
+/// Ruiz's symmetric equilibration of the symmetric matrix `a`: the scales `D` such that every
+/// row and column of `D a D` has its largest magnitude within 10% of 1 (a zero row keeps
+/// scale 1), after at most 20 sweeps.
+fn equilibrate(a: &nalgebra::DMatrix<f64>) -> nalgebra::DVector<f64> {
+    let dim = a.nrows();
+    let mut d = nalgebra::DVector::from_element(dim, 1.0);
+    for _ in 0..20 {
+        let largest: Vec<f64> = (0..dim)
+            .map(|i| (0..dim).fold(0.0f64, |m, j| m.max((d[i] * a[(i, j)] * d[j]).abs())))
+            .collect();
+        let mut balanced = true;
+        for (i, &r) in largest.iter().enumerate() {
+            if r > 0.0 {
+                d[i] /= r.sqrt();
+                balanced &= (r - 1.0).abs() <= 0.1;
+            }
+        }
+        if balanced {
+            break;
+        }
+    }
+    d
+}
+
 /// The array and component of flat index `k` over `arrays`.
 fn locate<'a>(arrays: &[&'a dyn AnyArray], mut k: usize) -> (&'a dyn AnyArray, usize) {
     for &a in arrays {
-        if k < scalars(a) {
+        if k < a.n_scalars() {
             return (a, k);
         }
-        k -= scalars(a);
+        k -= a.n_scalars();
     }
     unreachable!("k is within the arrays' scalars")
 }

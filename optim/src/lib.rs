@@ -294,7 +294,7 @@ impl fmt::Display for Report {
         write!(
             f,
             "{}; loss {:.6e} -> {:.6e}, gradient norm {:.3e} -> {:.3e}, in {} iterations ({} \
-             evaluations, {} passes, {:.2} s)",
+             evaluations, {} passes{}, {:.2} s)",
             self.stop,
             self.initial_loss,
             self.loss,
@@ -303,6 +303,10 @@ impl fmt::Display for Report {
             self.iterations,
             self.evaluations,
             self.passes,
+            match self.sweeps {
+                0 => String::new(),
+                s => format!(", {s} sweeps of a constraint"),
+            },
             self.elapsed.as_secs_f64(),
         )
     }

@@ -132,7 +132,7 @@ impl Optimizer<'_> {
             }
             let mut rv = Vec::new();
             for a in &r {
-                for k in 0..a.len() * a.element_dim() {
+                for k in 0..a.n_scalars() {
                     let v = a.scalar(k);
                     if !v.is_finite() {
                         return Err(Error::InvalidInput {

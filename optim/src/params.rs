@@ -154,10 +154,7 @@ impl Params {
 
     /// Number of scalar components.
     pub fn len(&self) -> usize {
-        self.entries
-            .iter()
-            .map(|e| e.array.len() * e.array.element_dim())
-            .sum()
+        self.entries.iter().map(|e| e.array.n_scalars()).sum()
     }
 
     /// True if there are no components.
@@ -168,7 +165,7 @@ impl Params {
     fn components(&self) -> impl Iterator<Item = (&Entry, usize)> {
         self.entries
             .iter()
-            .flat_map(|e| (0..e.array.len() * e.array.element_dim()).map(move |k| (e, k)))
+            .flat_map(|e| (0..e.array.n_scalars()).map(move |k| (e, k)))
     }
 
     /// The current values, flattened.
@@ -199,7 +196,7 @@ impl Params {
             let g = e.array.grad_any().ok_or_else(|| Error::NoGrad {
                 array: e.array.label(),
             })?;
-            out.extend((0..g.len() * g.element_dim()).map(|k| g.scalar(k)));
+            out.extend((0..g.n_scalars()).map(|k| g.scalar(k)));
         }
         Ok(out)
     }

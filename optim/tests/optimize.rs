@@ -775,6 +775,26 @@ fn the_kkt_step_is_the_gauss_newton_step_and_converges() {
     assert!(report.loss > 1e-4, "a fit with a residual: {report}");
 }
 
+/// The step does not depend on the parameters' units: with `p1` in units a billion times
+/// smaller (its weights a billion times larger), the KKT system's entries span 18 orders of
+/// magnitude, which unequilibrated pivots would call singular; the step is the same.
+#[test]
+fn the_kkt_step_does_not_depend_on_the_parameters_units() {
+    let plain = Cubic::new(vec![0.0, 1.0, 2.0, 3.0]);
+    let scaled = Cubic::new(vec![0.0, 1e9, 2e9, 3e9]);
+    scaled.p.set(1, 0.1e-9);
+    for cubic in [&plain, &scaled] {
+        let report = cubic
+            .run(Optimizer::kkt_gauss_newton().max_iters(1))
+            .unwrap();
+        assert_eq!(report.evaluations, 2, "the full step: {report}");
+        assert!(report.to_string().contains("7 sweeps"), "{report}");
+    }
+    let (a, b) = (plain.p.to_vec(), scaled.p.to_vec());
+    assert!((a[0] - b[0]).abs() < 1e-12, "{a:?} {b:?}");
+    assert!((a[1] - b[1] * 1e9).abs() < 1e-12, "{a:?} {b:?}");
+}
+
 #[test]
 fn the_kkt_method_refuses_what_it_cannot_solve() {
     let cubic = Cubic::new(vec![0.0, 1.0, 2.0, 3.0]);

@@ -449,6 +449,11 @@ pub trait AnyArray: Send + Sync {
     fn boxed(&self) -> Box<dyn AnyArray>;
     /// The gradient buffer, boxed, if present.
     fn grad_any(&self) -> Option<Box<dyn AnyArray>>;
+    /// Number of differentiable scalars in the whole array, `len * element_dim`: the length
+    /// of the flat vectors that [`AnyArray::scalar`], `Tape::jvp` and the optimizers read.
+    fn n_scalars(&self) -> usize {
+        self.len() * self.element_dim()
+    }
     /// Scalar component `k` of the whole array, `k < len * element_dim`.
     fn scalar(&self, k: usize) -> f64;
     /// Sets scalar component `k` (bumps the version).

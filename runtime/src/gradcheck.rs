@@ -198,18 +198,14 @@ impl Rng {
     }
 }
 
-fn scalars(a: &dyn AnyArray) -> usize {
-    a.len() * a.element_dim()
-}
-
 fn values(a: &dyn AnyArray) -> Vec<f64> {
-    (0..scalars(a)).map(|k| a.scalar(k)).collect()
+    (0..a.n_scalars()).map(|k| a.scalar(k)).collect()
 }
 
 fn grads(a: &dyn AnyArray) -> Vec<f64> {
     match a.grad_any() {
         Some(g) => values(&*g),
-        None => vec![0.0; scalars(a)],
+        None => vec![0.0; a.n_scalars()],
     }
 }
 
@@ -255,7 +251,7 @@ fn each_scalar<T>(
 ) -> Vec<T> {
     let mut out = Vec::new();
     for &a in inputs {
-        for k in 0..scalars(a) {
+        for k in 0..a.n_scalars() {
             let x0 = a.scalar(k);
             let guard = Restore {
                 array: a,
@@ -413,7 +409,7 @@ impl GradCheck {
         for &a in inputs {
             let dim = a.element_dim();
             let label = a.label();
-            for k in 0..scalars(a) {
+            for k in 0..a.n_scalars() {
                 let (an, fd) = (analytic[at], numeric[at]);
                 let nu = fd.value;
                 let beyond = ((an - nu).abs() - fd.uncertainty).max(0.0);
@@ -558,7 +554,7 @@ impl GradCheck {
         let mut rng = Rng(self.seed);
         let weights: Vec<Vec<f64>> = outputs
             .iter()
-            .map(|&o| (0..scalars(o)).map(|_| rng.next()).collect())
+            .map(|&o| (0..o.n_scalars()).map(|_| rng.next()).collect())
             .collect();
         let restore = || {
             for (o, v) in outputs.iter().zip(&saved) {
@@ -700,15 +696,15 @@ pub fn jacobian_adjoint(
     let outs = f(&mut tape);
     let outs = outputs_of(&outs);
     let sources = ids(inputs);
-    let rows = outs.iter().map(|&o| scalars(o)).sum();
-    let cols = inputs.iter().map(|&a| scalars(a)).sum();
+    let rows = outs.iter().map(|&o| o.n_scalars()).sum();
+    let cols = inputs.iter().map(|&a| a.n_scalars()).sum();
     let mut j = Jacobian::zeros(rows, cols);
     for o in &outs {
         o.ensure_grad();
     }
     let mut row = 0;
     for o in &outs {
-        for k in 0..scalars(*o) {
+        for k in 0..o.n_scalars() {
             tape.zero();
             for a in inputs.iter().chain(&outs) {
                 a.zero_grad();
@@ -726,7 +722,7 @@ pub fn jacobian_adjoint(
 fn tangents(a: &dyn AnyArray) -> Vec<f64> {
     match a.tangent_any() {
         Some(t) => values(&*t),
-        None => vec![0.0; scalars(a)],
+        None => vec![0.0; a.n_scalars()],
     }
 }
 
@@ -740,12 +736,12 @@ pub fn jacobian_tangent(
     let mut tape = Tape::new();
     let outs = f(&mut tape);
     let outs = outputs_of(&outs);
-    let rows = outs.iter().map(|&o| scalars(o)).sum();
-    let cols = inputs.iter().map(|&a| scalars(a)).sum();
+    let rows = outs.iter().map(|&o| o.n_scalars()).sum();
+    let cols = inputs.iter().map(|&a| a.n_scalars()).sum();
     let mut j = Jacobian::zeros(rows, cols);
     let mut col = 0;
     for a in inputs {
-        for k in 0..scalars(*a) {
+        for k in 0..a.n_scalars() {
             for b in inputs {
                 b.reset_tangent();
             }
@@ -781,7 +777,7 @@ pub fn jacobian_fd(
     let rows = cols_data.first().map_or_else(
         || {
             let mut tape = Tape::new();
-            f(&mut tape).iter().map(|o| scalars(&**o)).sum()
+            f(&mut tape).iter().map(|o| o.n_scalars()).sum()
         },
         Vec::len,
     );
@@ -836,11 +832,11 @@ pub fn dot_test(
     let mut rng = Rng(seed);
     let v: Vec<Vec<f64>> = inputs
         .iter()
-        .map(|&a| (0..scalars(a)).map(|_| rng.next()).collect())
+        .map(|&a| (0..a.n_scalars()).map(|_| rng.next()).collect())
         .collect();
     let w: Vec<Vec<f64>> = outs
         .iter()
-        .map(|&o| (0..scalars(o)).map(|_| rng.next()).collect())
+        .map(|&o| (0..o.n_scalars()).map(|_| rng.next()).collect())
         .collect();
     for (a, v) in inputs.iter().zip(&v) {
         a.reset_tangent();

@@ -46,19 +46,15 @@ use crate::checkpoint::Checkpoint;
 use crate::error::Error;
 use crate::tape::Tape;
 
-fn scalars(a: &dyn AnyArray) -> usize {
-    a.len() * a.element_dim()
-}
-
 /// `v`'s length against the arrays' scalars, or an error naming `what` and the arrays.
 fn check_len(what: &str, arrays: &[&dyn AnyArray], v: &[f64]) -> Result<(), Error> {
-    let n: usize = arrays.iter().map(|&a| scalars(a)).sum();
+    let n: usize = arrays.iter().map(|&a| a.n_scalars()).sum();
     if v.len() == n {
         return Ok(());
     }
     let names: Vec<String> = arrays
         .iter()
-        .map(|a| format!("{} ({} scalars)", a.label(), scalars(*a)))
+        .map(|a| format!("{} ({} scalars)", a.label(), a.n_scalars()))
         .collect();
     Err(Error::InvalidInput {
         what: what.to_string(),
@@ -78,8 +74,8 @@ fn flat(
     let mut out = Vec::new();
     for &a in arrays {
         match buffer(a) {
-            Some(b) => out.extend((0..scalars(a)).map(|k| b.scalar(k))),
-            None => out.resize(out.len() + scalars(a), 0.0),
+            Some(b) => out.extend((0..a.n_scalars()).map(|k| b.scalar(k))),
+            None => out.resize(out.len() + a.n_scalars(), 0.0),
         }
     }
     out
@@ -153,7 +149,7 @@ impl Tape {
         for &a in inputs {
             a.reset_tangent();
             let t = a.tangent_any().expect("reset_tangent allocates it");
-            for i in 0..scalars(a) {
+            for i in 0..a.n_scalars() {
                 t.set_scalar(i, v[k]);
                 k += 1;
             }
@@ -184,7 +180,7 @@ impl Tape {
         for &o in outputs {
             o.ensure_grad();
             let g = o.grad_any().expect("ensure_grad allocates it");
-            for i in 0..scalars(o) {
+            for i in 0..o.n_scalars() {
                 g.set_scalar(i, w[k]);
                 k += 1;
             }

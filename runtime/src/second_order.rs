@@ -134,7 +134,7 @@ pub fn hvp_with(
     let (mut grad, mut hv) = (Vec::with_capacity(n), Vec::with_capacity(n));
     for p in params {
         let g = p.grad_any().expect("reset_grad allocated it");
-        for k in 0..g.len() * g.element_dim() {
+        for k in 0..g.n_scalars() {
             let (x, h) = (g.scalar(k), g.eps_scalar(k));
             if !x.is_finite() || !h.is_finite() {
                 return Err(Error::NonFinite {
@@ -193,7 +193,7 @@ fn check_params(params: &[&dyn AnyArray]) -> Result<usize, Error> {
                 message: "it does not require grad: call `.requires_grad()` on it".into(),
             });
         }
-        n += p.len() * p.element_dim();
+        n += p.n_scalars();
     }
     Ok(n)
 }
@@ -202,7 +202,7 @@ fn check_params(params: &[&dyn AnyArray]) -> Result<usize, Error> {
 fn set_direction(params: &[&dyn AnyArray], v: Option<&[f64]>) {
     let mut k = 0;
     for p in params {
-        for j in 0..p.len() * p.element_dim() {
+        for j in 0..p.n_scalars() {
             p.set_eps_scalar(j, v.map_or(0.0, |v| v[k]));
             k += 1;
         }
