@@ -193,9 +193,8 @@ impl<R: Real> Articulations<R> {
                 }
             }
         }
-        let out = QddDerivatives { dq, dqd, dtau };
-        check_finite(method, [&out.dq, &out.dqd, &out.dtau])?;
-        Ok(out)
+        check_finite(method, [("dq", &dq), ("dqd", &dqd), ("dtau", &dtau)])?;
+        Ok(QddDerivatives { dq, dqd, dtau })
     }
 
     /// The derivatives of the inverse dynamics `tau = M(q) qdd + c(q, qd)` at `(q, qd, qdd)`
@@ -246,9 +245,8 @@ impl<R: Real> Articulations<R> {
                 }
             }
         }
-        let out = TauDerivatives { dq, dqd, dqdd };
-        check_finite(method, [&out.dq, &out.dqd, &out.dqdd])?;
-        Ok(out)
+        check_finite(method, [("dq", &dq), ("dqd", &dqd), ("dqdd", &dqdd)])?;
+        Ok(TauDerivatives { dq, dqd, dqdd })
     }
 
     /// The three inputs `(q, velocities, velocities)` in `f64`, or an error naming `method`'s
@@ -309,20 +307,17 @@ impl<R: Real> Articulations<R> {
         let at = |field: &str, l: usize| format!("{field}[{l}] (link \"{}\")", self.links[l].name);
         let not_finite = || "is not finite: every model parameter must be finite".to_string();
         let world = self.link_world.to_vec();
-        let worlds = world.iter().map(|&w| w as usize + 1).max().unwrap_or(0);
-        for (field, len, want) in [
-            ("joint_pos", self.joint_pos.len(), n),
-            ("joint_rot", self.joint_rot.len(), n),
-            ("joint_axis", self.joint_axis.len(), n),
-            ("mass", self.mass.len(), n),
-            ("com", self.com.len(), n),
-            ("inertia", self.inertia.len(), n),
-            ("armature", self.armature.len(), self.n_dof),
-            ("gravity", self.gravity.len(), worlds),
+        for (field, len, want, per) in [
+            ("joint_pos", self.joint_pos.len(), n, "link"),
+            ("joint_rot", self.joint_rot.len(), n, "link"),
+            ("joint_axis", self.joint_axis.len(), n, "link"),
+            ("mass", self.mass.len(), n, "link"),
+            ("com", self.com.len(), n, "link"),
+            ("inertia", self.inertia.len(), n, "link"),
+            ("armature", self.armature.len(), self.n_dof, "velocity"),
+            ("gravity", self.gravity.len(), self.n_worlds(), "world"),
         ] {
             if len < want {
-                let per = if field == "gravity" { "world" } else { "link" };
-                let per = if field == "armature" { "velocity" } else { per };
                 return Err(error(
                     field.into(),
                     format!("has {len} elements, the model needs {want} (one per {per})"),
@@ -609,19 +604,10 @@ impl<R: Real> Articulations<R> {
     }
 }
 
-/// An error naming `method`'s result that is not finite (a state or parameters at which the
-/// dynamics overflow).
-fn check_finite(method: &str, outputs: [&Vec<Vec<f64>>; 3]) -> Result<(), Error> {
-    let names = [
-        "dq",
-        "dqd",
-        if method.starts_with("forward") {
-            "dtau"
-        } else {
-            "dqdd"
-        },
-    ];
-    for (name, m) in names.iter().zip(outputs) {
+/// An error naming `method`'s result (a named matrix) that is not finite (a state or
+/// parameters at which the dynamics overflow).
+fn check_finite(method: &str, outputs: [(&str, &[Vec<f64>]); 3]) -> Result<(), Error> {
+    for (name, m) in outputs {
         for (i, row) in m.iter().enumerate() {
             if let Some(j) = row.iter().position(|x| !x.is_finite()) {
                 return Err(Error::InvalidInput {
