@@ -287,6 +287,21 @@ impl<R: Real> LinkParticleContact<R> {
                 ));
             }
         }
+        let s = &arts.shapes;
+        let kinds = s.kind.to_vec();
+        if let Some(k) = (0..s.len()).find(|&k| kinds[k] == 4 && s.filter[k].touches(&self.filter))
+        {
+            return Err(invalid(
+                &format!(
+                    "LinkParticleContact shape {k} (an ellipsoid on link \"{}\")",
+                    arts.links[s.link.get(k) as usize].name
+                ),
+                "particles do not touch ellipsoids; give it a filter that does not touch \
+                 `LinkParticleContact::filter` (ContactFilter::NONE), or use a sphere, capsule, \
+                 box or cylinder"
+                    .into(),
+            ));
+        }
         let (wp, wa) = (model.worlds.len(), arts.n_worlds());
         if wp != wa {
             return Err(invalid(

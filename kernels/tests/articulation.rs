@@ -1220,9 +1220,9 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         ),
         (
             "<worldbody>",
-            "<worldbody><geom type=\"cylinder\" size=\"0.1 0.1\"/>",
+            "<worldbody><geom type=\"ellipsoid\" size=\"0.1 0.1 0.1\"/>",
             2,
-            "cylinder or ellipsoid",
+            "an ellipsoid of the worldbody",
         ),
         (
             "</worldbody>",
@@ -1335,11 +1335,11 @@ fn bad_mjcf_is_refused_naming_the_element_and_line() {
         "<actuator><motor joint=\"k\"/></actuator></mujoco>",
     ));
     assert!(e.to_string().contains("joint \"k\" is not defined"), "{e}");
-    // With contact switched off (dm_control's reacher), a worldbody cylinder touches nothing.
+    // With contact switched off (dm_control's reacher), a worldbody ellipsoid touches nothing.
     let off = MJCF.replace(
         "<worldbody>",
         "<option><flag contact=\"disable\"/></option>\
-         <worldbody><geom type=\"cylinder\" size=\"0.1 0.1\"/>",
+         <worldbody><geom type=\"ellipsoid\" size=\"0.1 0.1 0.1\"/>",
     );
     assert!(mjcf::parse(&off).unwrap().builder.finalize::<f64>().is_ok());
 }

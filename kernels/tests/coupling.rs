@@ -13,6 +13,11 @@ use adflex_runtime::{Array, Quat, Tape, Vec3};
 
 /// Three free bodies without gravity: a ball, a box turned about z, a capsule along y.
 fn three_bodies() -> ArticulationBuilder {
+    bodies_with_rod(false)
+}
+
+/// [`three_bodies`], the rod a cylinder along y when `cylinder` is set.
+fn bodies_with_rod(cylinder: bool) -> ArticulationBuilder {
     let mut b = ArticulationBuilder::new();
     b.gravity = Vec3::zeros();
     let at = |x: f64| Joint::free().initial(&[x, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]);
@@ -41,12 +46,23 @@ fn three_bodies() -> ArticulationBuilder {
         at(2.0),
         Inertial::cuboid(0.5, Vec3::new(0.05, 0.3, 0.05), Vec3::zeros()),
     );
-    b.add_contact_capsule(
-        rod,
-        Vec3::new(0.0, -0.25, 0.0),
-        Vec3::new(0.0, 0.25, 0.0),
-        0.05,
-    );
+    if cylinder {
+        let along_y =
+            nalgebra::UnitQuaternion::from_axis_angle(&Vec3::x_axis(), std::f64::consts::FRAC_PI_2);
+        let shape = adflex_kernels::articulation::contact::GeomShape::Cylinder(0.05, 0.25);
+        b.add_contact_shape(
+            rod,
+            &Pose::new(Vec3::zeros(), *along_y.quaternion()),
+            &shape,
+        );
+    } else {
+        b.add_contact_capsule(
+            rod,
+            Vec3::new(0.0, -0.25, 0.0),
+            Vec3::new(0.0, 0.25, 0.0),
+            0.05,
+        );
+    }
     b
 }
 
@@ -520,4 +536,84 @@ fn shapes_that_touch_nothing_let_particles_through() {
     };
     assert_eq!(run(ContactFilter::NONE), -1.0);
     assert!(run(ContactFilter::default()) > 0.0);
+}
+
+/// Particles hit a cylinder (the third body, along y) on its side from above and from the
+/// side: momentum is kept, the cylinder moves, and `d(its z)/d(the particle from above's
+/// initial vz)` agrees with central differences; an ellipsoid that would touch particles is
+/// refused by name.
+#[test]
+fn particles_touch_cylinders_and_ellipsoids_are_refused() {
+    let arts = bodies_with_rod(true).finalize::<f64>().unwrap();
+    let model = shot_particles().finalize();
+    let coupling = LinkParticleContact {
+        ke: 2000.0,
+        kd: 2.0,
+        mu: 0.4,
+        ..Default::default()
+    };
+    let roll = |dv: f64, tape: &mut Tape| {
+        let mut s = model.state();
+        let mut v: Vec<Vec3<f64>> = s.v.to_vec();
+        v[4].z += dv;
+        s.v = Array::from_vec(v).requires_grad();
+        let v0 = s.v.clone();
+        let mut a = arts.state();
+        for _ in 0..300 {
+            (s, a) = coupling
+                .step(
+                    tape,
+                    (&model, &SemiImplicitEuler),
+                    &s,
+                    None,
+                    &arts,
+                    &a,
+                    None,
+                    1e-3,
+                )
+                .unwrap();
+        }
+        (v0, s, a)
+    };
+    let start = momentum(&model, &model.state(), &arts, &arts.state());
+    let mut tape = Tape::new();
+    let (v0, s, a) = roll(0.0, &mut tape);
+    let end = momentum(&model, &s, &arts, &a);
+    assert!(
+        (end - start).norm() < 1e-9 * start.norm(),
+        "momentum {start:?} -> {end:?}"
+    );
+    let v = world_velocity(&a.q.to_vec(), &a.qd.to_vec(), 2);
+    assert!(v.x > 0.02 && v.z < -0.02, "the cylinder moves at {v:?}");
+    let mut w = vec![0.0; arts.n_q];
+    w[16] = 1.0;
+    let g = tape.vjp(&[&a.q], &w, &[&v0]).unwrap()[3 * 4 + 2];
+    let z = |dv: f64| roll(dv, &mut Tape::new()).2.q.get(16);
+    let fd = (z(1e-6) - z(-1e-6)) / 2e-6;
+    assert!(
+        g != 0.0 && (g - fd).abs() < 1e-6 * fd.abs().max(1e-3),
+        "reverse {g} vs differences {fd}"
+    );
+
+    let mut b = three_bodies();
+    let egg = b.find("rod").unwrap();
+    let shape =
+        adflex_kernels::articulation::contact::GeomShape::Ellipsoid(Vec3::new(0.1, 0.1, 0.2));
+    b.add_contact_shape(egg, &Pose::identity(), &shape);
+    let arts = b.finalize::<f64>().unwrap();
+    let e = coupling
+        .step(
+            &mut Tape::new(),
+            (&model, &SemiImplicitEuler),
+            &model.state(),
+            None,
+            &arts,
+            &arts.state(),
+            None,
+            1e-3,
+        )
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+    assert!(e.contains("ellipsoid on link \"rod\""), "{e}");
 }

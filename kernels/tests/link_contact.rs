@@ -230,6 +230,11 @@ fn free_body(b: &mut ArticulationBuilder, name: &str, x: Vec3<f64>, shape: &str)
         "box" => {
             b.add_contact_box(l, &Pose::identity(), Vec3::new(0.1, 0.1, 0.1));
         }
+        // Along z.
+        "cylinder" => {
+            let shape = adflex_kernels::articulation::contact::GeomShape::Cylinder(0.1, 0.1);
+            b.add_contact_shape(l, &Pose::identity(), &shape);
+        }
         // A cube turned 45 degrees about z (an edge along z leads along x), or about y (an
         // edge along y faces -x).
         "box_edge_z" | "box_edge_y" => {
@@ -347,6 +352,11 @@ fn capsules_spheres_and_boxes_collide_with_right_gradients() {
     // Two cubes meeting edge on edge, the edges crossing at right angles: no corner of either
     // enters the other.
     check_collision("box_edge_z", "box_edge_y", Vec3::new(0.0, 0.01, 0.02));
+    // A sphere into a cylinder's side, off its axis; a capsule along its axis into its side;
+    // a capsule crossing it.
+    check_collision("sphere", "cylinder", Vec3::new(0.0, 0.04, 0.03));
+    check_collision("capsule_z", "cylinder", Vec3::new(0.0, 0.03, 0.2));
+    check_collision("capsule_y", "cylinder", Vec3::new(0.0, 0.0, 0.05));
 }
 
 #[test]
@@ -753,4 +763,470 @@ fn friction_is_per_shape_and_the_larger_of_a_contacts_two_as_in_mujoco() {
         "forward {} vs reverse {g}",
         jv[0]
     );
+}
+
+/// A random unit quaternion.
+fn rand_quat(rng: &mut Rng) -> Quat<f64> {
+    let q = Quat::new(
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+    );
+    q / q.norm()
+}
+
+/// The exact depth along `n` of the deepest point of an ellipsoid (semi-axes `a`, frame `q`)
+/// or of cylinder contact `variant`'s cap rim (radius `size.x`, half-length `size.y`), below
+/// the shape's centre: `min over the surface (or rim) of n . x`.
+fn exact_depth(variant: u32, q: Quat<f64>, size: Vec3<f64>, n: Vec3<f64>) -> f64 {
+    let m = (q.conjugate() * Quat::new(0.0, n.x, n.y, n.z) * q).imag();
+    if variant == 0 {
+        -size.component_mul(&m).norm()
+    } else {
+        let z = if variant > 4 { -size.y } else { size.y };
+        z * m.z - size.x * (m.x * m.x + m.y * m.y).sqrt()
+    }
+}
+
+#[test]
+fn cylinder_and_ellipsoid_contact_points_are_deepest_with_right_derivatives() {
+    use adflex_kernels::articulation::contact::support_offset;
+    use adflex_kernels::contact::shapes::sdf_cylinder;
+    use adflex_runtime::DiffFunc;
+    let mut rng = Rng(11);
+    let h = 1e-6;
+    let mut bad = Vec::new();
+    for case in 0..300 {
+        let q = rand_quat(&mut rng);
+        let size = Vec3::new(
+            rng.uniform(0.05, 0.5),
+            rng.uniform(0.05, 0.5),
+            rng.uniform(0.05, 0.5),
+        );
+        let mut n = rand3(&mut rng, 1.0).normalize();
+        if case % 5 == 0 {
+            // Within 5 degrees of the cylinder's axis (either way), where the weights blend.
+            let axis = Vec3::new(0.0, 0.0, if case % 10 == 0 { 1.0 } else { -1.0 });
+            let near = axis + rand3(&mut rng, 0.06);
+            n = (q * Quat::new(0.0, near.x, near.y, near.z) * q.conjugate())
+                .imag()
+                .normalize();
+        }
+        for variant in 0..9u32 {
+            let o = support_offset::call(variant, q, size, n);
+            let x = o.xyz();
+            let m = (q.conjugate() * Quat::new(0.0, n.x, n.y, n.z) * q).imag();
+            let tilt = (m.x * m.x + m.y * m.y).sqrt();
+            // The deepest points, to within the easing near upright, weighing 1 - u (the
+            // ellipsoid's 1); the others fixed on the rim, weighing u.
+            let u = (1.0 - 130.0 * tilt * tilt).max(0.0).powi(2);
+            if matches!(variant, 0 | 1 | 5) {
+                let weight = if variant == 0 { 1.0 } else { 1.0 - u };
+                assert!((o.w - weight).abs() < 1e-12, "case {case}: weight {}", o.w);
+                let err = n.dot(&x) - exact_depth(variant, q, size, n);
+                let bound = if variant == 0 {
+                    1e-12
+                } else {
+                    size.x * 2.1e-6 / tilt
+                };
+                assert!(
+                    (-1e-12..=bound).contains(&err),
+                    "case {case} variant {variant}: {err} above the deepest (tilt {tilt})"
+                );
+            } else {
+                let local = (q.conjugate() * Quat::new(0.0, x.x, x.y, x.z) * q).imag();
+                let angle = [0.0f64, 120.0, 240.0][(variant as usize - 2) % 4].to_radians();
+                let z = if variant > 4 { -size.y } else { size.y };
+                let fixed = Vec3::new(size.x * angle.cos(), size.x * angle.sin(), z);
+                assert!(
+                    (local - fixed).norm() < 1e-12 && (o.w - u).abs() < 1e-12,
+                    "case {case} variant {variant}: {local:?} weighing {}",
+                    o.w
+                );
+            }
+            // Reverse mode against central differences, forward against reverse, along a
+            // random direction of (q, size, n).
+            let (dq, ds, dn) = (
+                rand_quat(&mut rng),
+                rand3(&mut rng, 0.1),
+                rand3(&mut rng, 1.0),
+            );
+            let w = rand3(&mut rng, 1.0).push(rng.uniform(-1.0, 1.0));
+            let f = |e: f64| {
+                w.dot(&support_offset::call(
+                    variant,
+                    q + dq * e,
+                    size + ds * e,
+                    n + dn * e,
+                ))
+            };
+            let fd = (f(h) - f(-h)) / (2.0 * h);
+            let (_, gq, gs, gn) = DiffFunc::adjoint(&support_offset, (variant, q, size, n), w);
+            let reverse = gq.coords.dot(&dq.coords) + gs.dot(&ds) + gn.dot(&dn);
+            if (reverse - fd).abs() > 1e-6 * fd.abs().max(1.0) {
+                bad.push(format!(
+                    "case {case} variant {variant}: reverse {reverse} vs {fd}"
+                ));
+            }
+            let (_, t) = DiffFunc::tangent(&support_offset, (variant, q, size, n), (0, dq, ds, dn));
+            assert!(
+                (w.dot(&t) - reverse).abs() < 1e-10 * reverse.abs().max(1.0),
+                "case {case} variant {variant}: forward {} vs reverse {reverse}",
+                w.dot(&t)
+            );
+        }
+        // The particles' cylinder SDF (along x): the distance against dense sampling of the
+        // surface outside, its normal against the SDF's differences.
+        let p = rand3(&mut rng, 0.8);
+        let g = sdf_cylinder::call(p, size);
+        let (r, l) = (size.x, size.y);
+        let rho = (p.y * p.y + p.z * p.z).sqrt();
+        let outside = Vec3::new((p.x.abs() - l).max(0.0), 0.0, (rho - r).max(0.0)).norm();
+        let inside = (p.x.abs() - l).max(rho - r).min(0.0);
+        assert!(
+            (g.w - (outside + inside)).abs() < 1e-12,
+            "case {case}: sdf {} vs {}",
+            g.w,
+            outside + inside
+        );
+        let grad = Vec3::from_fn(|k, _| {
+            let e = Vec3::from_fn(|j, _| if j == k { h } else { 0.0 });
+            (sdf_cylinder::call(p + e, size).w - sdf_cylinder::call(p - e, size).w) / (2.0 * h)
+        });
+        assert!(
+            (grad - g.xyz()).norm() < 1e-6,
+            "case {case}: normal {:?} vs the SDF's slope {grad:?}",
+            g.xyz()
+        );
+    }
+    // Upright (the deepest direction undefined): finite, and every rim point equally deep.
+    let up: Vec3<f64> = Vec3::new(0.2, 0.3, 0.0);
+    for variant in 1..9u32 {
+        let x = support_offset::call(variant, Quat::identity(), up, Vec3::z());
+        let (_, gq, gs, gn) = DiffFunc::adjoint(
+            &support_offset,
+            (variant, Quat::identity(), up, Vec3::z()),
+            adflex_runtime::Vec4::new(1.0, 1.0, 1.0, 1.0),
+        );
+        assert!(
+            x.iter()
+                .chain(gq.coords.iter())
+                .chain(gs.iter())
+                .chain(gn.iter())
+                .all(|v| v.is_finite()),
+            "upright variant {variant}: {x:?} {gq:?} {gs:?} {gn:?}"
+        );
+        // Upright the deepest point is at the cap's centre and weighs nothing.
+        let z = if variant > 4 { -0.3 } else { 0.3 };
+        let (rim, weight) = match variant {
+            1 | 5 => (0.0, 0.0),
+            _ => (0.2, 1.0),
+        };
+        assert!(
+            (x.z - z).abs() < 1e-15 && (x.xy().norm() - rim).abs() < 1e-12 && x.w == weight,
+            "upright variant {variant}: {x:?}"
+        );
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// A 1 kg free body at `x` turned by `rot`, with one contact shape (a cylinder of radius 0.1
+/// and half-length 0.15, or an ellipsoid of semi-axes 0.1, 0.15, 0.2) and its inertia, over
+/// the default ground; contact between links off.
+fn round_body(shape: &str, x: Vec3<f64>, rot: Quat<f64>) -> Articulations<f64> {
+    use adflex_kernels::articulation::contact::GeomShape;
+    let (geom, inertia) = match shape {
+        "cylinder" => {
+            let (r, h): (f64, f64) = (0.1, 0.15);
+            let side = (3.0 * r * r + 4.0 * h * h) / 12.0;
+            (
+                GeomShape::Cylinder(r, h),
+                Vec3::new(side, side, r * r / 2.0),
+            )
+        }
+        _ => {
+            let a = Vec3::new(0.1, 0.15, 0.2);
+            let i = |p: f64, q: f64| (p * p + q * q) / 5.0;
+            (
+                GeomShape::Ellipsoid(a),
+                Vec3::new(i(a.y, a.z), i(a.x, a.z), i(a.x, a.y)),
+            )
+        }
+    };
+    let mut b = ArticulationBuilder::new();
+    b.ground = Some(GroundContact::default());
+    let l = b.add_link(
+        shape,
+        None,
+        Joint::free().initial(&[x.x, x.y, x.z, rot.i, rot.j, rot.k, rot.w]),
+        Inertial::new(
+            1.0,
+            Vec3::zeros(),
+            nalgebra::Matrix3::from_diagonal(&inertia),
+        ),
+    );
+    b.add_contact_shape(l, &Pose::identity(), &geom).unwrap();
+    b.finalize().unwrap()
+}
+
+fn turn(axis: Vec3<f64>, angle: f64) -> Quat<f64> {
+    *nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle)
+        .quaternion()
+}
+
+/// Steps `model` from `q` with velocities `qd` for `steps` steps of 1 ms; the heights of the
+/// body's centre at every step and the last state.
+fn roll(model: &Articulations<f64>, qd: &[f64], steps: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let mut s = model.state();
+    s.qd = Array::from_vec(qd.to_vec());
+    let mut heights = Vec::new();
+    for _ in 0..steps {
+        s = model.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
+        heights.push(s.q.get(2));
+    }
+    (heights, s.q.to_vec(), s.qd.to_vec())
+}
+
+#[test]
+fn cylinders_and_ellipsoids_rest_and_roll_on_the_ground() {
+    let weight = 9.81 / 1e4; // the sinking of one contact under the body's weight
+                             // (shape, orientation, resting height of the centre with its contacts sharing the weight)
+    let cases = [
+        // Upright on a cap: three rim points.
+        ("cylinder", Quat::identity(), 0.15 - weight / 3.0),
+        // On its side: the two caps' deepest points.
+        (
+            "cylinder",
+            turn(Vec3::x(), std::f64::consts::FRAC_PI_2),
+            0.1 - weight / 2.0,
+        ),
+        // An ellipsoid on its shortest semi-axis (x turned down), by one point.
+        (
+            "ellipsoid",
+            turn(Vec3::y(), std::f64::consts::FRAC_PI_2),
+            0.1 - weight,
+        ),
+    ];
+    for (shape, rot, height) in cases {
+        let model = round_body(shape, Vec3::new(0.3, -0.2, height + 0.02), rot);
+        let (h, q, qd) = roll(&model, &[0.0; 6], 2000);
+        assert!(
+            (h[1999] - height).abs() < 5e-5,
+            "{shape} {rot:?}: rests at {} instead of {height}",
+            h[1999]
+        );
+        // Still, and as it was turned. (The smoothed friction's steep slope at rest makes
+        // the velocities of a tall body alternate in sign from step to step, by about 1e-3:
+        // the position does not move.)
+        let r = Quat::new(q[6], q[3], q[4], q[5]);
+        let (_, later, _) = roll(&model, &[0.0; 6], 2500);
+        let drift = q
+            .iter()
+            .zip(&later)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            drift < 2e-5,
+            "{shape}: moved by {drift} in 0.5 s; at {qd:?}"
+        );
+        assert!(
+            (r.coords - rot.coords).norm() < 1e-3,
+            "{shape}: turned to {r:?}"
+        );
+    }
+    // A cylinder on its side rolls along x at 1 m/s without bumps (its contacts at 120
+    // degrees from the deepest never reach the ground) and without slipping.
+    let side = turn(Vec3::x(), std::f64::consts::FRAC_PI_2);
+    let rest = 0.1 - weight / 2.0;
+    let model = round_body("cylinder", Vec3::new(0.0, 0.0, rest), side);
+    // The body's z axis is the world's -y: spinning at -10 rad/s about it rolls along +x.
+    let (h, q, qd) = roll(&model, &[1.0, 0.0, 0.0, 0.0, 0.0, -10.0], 1000);
+    let wobble = h.iter().fold(0.0f64, |m, z| m.max((z - rest).abs()));
+    // (The free joint's linear velocity is in the body's frame.)
+    let speed = world_velocity(&q, &qd, 0).x;
+    assert!(
+        wobble < 2e-5,
+        "the rolling cylinder's height wanders by {wobble}"
+    );
+    assert!(
+        (q[0] - 1.0).abs() < 0.02 && (speed - 1.0).abs() < 0.02 && (qd[5] + 10.0).abs() < 0.2,
+        "rolled to x = {} at {} m/s, spinning at {}",
+        q[0],
+        speed,
+        qd[5]
+    );
+}
+
+/// Drops a tilted, spinning cylinder or ellipsoid on the ground; returns the initial
+/// velocities (requiring gradients) and the last state.
+fn tumble(
+    model: &Articulations<f64>,
+    spin: f64,
+    tape: &mut Tape,
+) -> (Array<f64>, Array<f64>, Array<f64>) {
+    let qd = Array::from_vec(vec![0.3, 0.1, -0.2, spin, -0.5, 1.0]).requires_grad();
+    let mut s = ArticulationState {
+        q: Array::from_vec(model.q0.clone()),
+        qd: qd.clone(),
+    };
+    for _ in 0..300 {
+        s = model.step(tape, &s, None, 1e-3).unwrap();
+    }
+    (qd, s.q, s.qd)
+}
+
+#[test]
+fn cylinder_and_ellipsoid_ground_contact_gradients_match_differences() {
+    let tilt = turn(Vec3::new(1.0, 0.4, 0.0), 0.6);
+    for shape in ["cylinder", "ellipsoid"] {
+        // Its lowest point 1.23 cm above the ground: in contact from about step 50.
+        let model = round_body(shape, Vec3::new(0.0, 0.0, 0.2), tilt);
+        let mut tape = Tape::new();
+        let (qd0, q, qd) = tumble(&model, 2.0, &mut tape);
+        let low = q.get(2);
+        assert!(low < 0.19, "{shape}: never fell ({low})");
+        let w: Vec<f64> = (0..13).map(|k| ((k as f64) * 0.7 + 0.3).sin()).collect();
+        let g = tape.vjp(&[&q, &qd], &w, &[&qd0]).unwrap();
+        let loss = |spin: f64| {
+            let (_, q, qd) = tumble(&model, spin, &mut Tape::new());
+            let x: Vec<f64> = q.to_vec().into_iter().chain(qd.to_vec()).collect();
+            x.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let fd = (loss(2.0 + 1e-6) - loss(2.0 - 1e-6)) / 2e-6;
+        assert!(
+            (g[3] - fd).abs() < 1e-4 * fd.abs().max(1e-2),
+            "{shape}: reverse {} vs differences {fd}",
+            g[3]
+        );
+        let mut dir = vec![0.0; 6];
+        dir[3] = 1.0;
+        let jv = tape.jvp(&[&qd0], &dir, &[&q, &qd]).unwrap();
+        let forward: f64 = jv.iter().zip(&w).map(|(a, b)| a * b).sum();
+        assert!(
+            (forward - g[3]).abs() < 1e-9 * fd.abs().max(1e-2),
+            "{shape}: forward {forward} vs reverse {}",
+            g[3]
+        );
+    }
+}
+
+#[test]
+fn cylinders_and_ellipsoids_touching_other_links_are_refused_by_name() {
+    use adflex_kernels::articulation::{contact::GeomShape, urdf};
+    let mut b = ArticulationBuilder::new();
+    space(&mut b);
+    free_body(&mut b, "a", Vec3::zeros(), "box");
+    let wheel = b.add_link(
+        "wheel",
+        None,
+        Joint::free(),
+        Inertial::sphere(1.0, 0.1, Vec3::zeros()),
+    );
+    b.add_contact_shape(wheel, &Pose::identity(), &GeomShape::Cylinder(0.1, 0.05));
+    let e = b.clone().finalize::<f64>().unwrap_err().to_string();
+    assert!(
+        e.contains("Cylinder")
+            && e.contains("\"wheel\"")
+            && e.contains("\"a\"")
+            && e.contains("exclude"),
+        "{e}"
+    );
+    // Excluded, or with link contact off, it touches the ground only.
+    let mut ok = b.clone();
+    ok.exclude_contact(b.find("a").unwrap(), wheel);
+    let m: Articulations<f64> = ok.finalize().unwrap();
+    assert_eq!((m.support_link.len(), m.capsule_pairs.len()), (8, 0));
+    // Bad sizes name the shape.
+    let mut bad = ArticulationBuilder::new();
+    let l = bad.add_link(
+        "egg",
+        None,
+        Joint::free(),
+        Inertial::sphere(1.0, 0.1, Vec3::zeros()),
+    );
+    bad.add_contact_shape(
+        l,
+        &Pose::identity(),
+        &GeomShape::Ellipsoid(Vec3::new(0.1, 0.0, 0.1)),
+    );
+    let e = bad.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("contact shape 0") && e.contains("egg"), "{e}");
+
+    // MJCF: a cylinder on the floor stands on it; one that would touch another body's geom
+    // is refused, and excluded it loads.
+    let xml = |other: &str, contact: &str| {
+        format!(
+            r#"<mujoco><worldbody><geom type="plane" size="5 5 0.1"/>
+            <body name="can" pos="0 0 0.2"><freejoint/>
+              <geom type="cylinder" size="0.05 0.1" mass="1"/></body>
+            {other}</worldbody>{contact}</mujoco>"#
+        )
+    };
+    let m: Articulations<f64> = mjcf::parse(&xml("", ""))
+        .unwrap()
+        .builder
+        .finalize()
+        .unwrap();
+    let (h, _, _) = roll(&m, &[0.0; 6], 1500);
+    // (MJCF's ground lets the robot's weight sink one contact by 5 mm; three share it.)
+    let stands = 0.1 - 0.005 / 3.0;
+    assert!(
+        (h[1499] - stands).abs() < 5e-5,
+        "the can stands at {}",
+        h[1499]
+    );
+    // (A sphere touches it.)
+    let sphere =
+        r#"<body name="ball" pos="0.5 0 0.2"><freejoint/><geom type="sphere" size="0.05"/></body>"#;
+    let m: Articulations<f64> = mjcf::parse(&xml(sphere, ""))
+        .unwrap()
+        .builder
+        .finalize()
+        .unwrap();
+    assert_eq!(m.cylinder_pairs.len(), 1);
+    let ball = r#"<body name="ball" pos="0.5 0 0.2"><freejoint/>
+        <geom type="box" size="0.05 0.05 0.05"/></body>"#;
+    let e = mjcf::parse(&xml(ball, ""))
+        .unwrap()
+        .builder
+        .finalize::<f64>()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("\"can\"") && e.contains("\"ball\""), "{e}");
+    let excluded = xml(
+        ball,
+        r#"<contact><exclude body1="can" body2="ball"/></contact>"#,
+    );
+    assert!(mjcf::parse(&excluded)
+        .unwrap()
+        .builder
+        .finalize::<f64>()
+        .is_ok());
+
+    // A ball dropped off-centre on a worldbody post rests on its cap (MJCF's ground sinks the
+    // robot's weight by 5 mm).
+    let post = r#"<mujoco><worldbody><geom type="plane" size="5 5 0.1"/>
+        <geom type="cylinder" pos="0 0 0.25" size="0.1 0.25"/>
+        <body name="ball" pos="0.03 0.01 0.6"><freejoint/><geom type="sphere" size="0.05"/></body>
+        </worldbody></mujoco>"#;
+    let m: Articulations<f64> = mjcf::parse(post).unwrap().builder.finalize().unwrap();
+    let (h, q, _) = roll(&m, &[0.0; 6], 1500);
+    assert!(
+        (h[1499] - 0.545).abs() < 1e-4 && (q[0] - 0.03).abs() < 1e-3,
+        "the ball rests at {:?}",
+        &q[..3]
+    );
+
+    // URDF: a cylinder collision is a contact shape.
+    let urdf_text = r#"<robot name="r"><link name="base"><inertial><mass value="1"/>
+        <inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>
+        <collision><geometry><cylinder radius="0.1" length="0.3"/></geometry></collision>
+        </link></robot>"#;
+    let opts = urdf::UrdfOptions {
+        collisions: true,
+        floating_base: true,
+        ..Default::default()
+    };
+    let b = urdf::parse(urdf_text, &opts).unwrap();
+    assert_eq!(b.contact_shapes()[0].shape, GeomShape::Cylinder(0.1, 0.15));
 }

@@ -242,8 +242,11 @@ pub(crate) fn finalize<R: Real>(
         let sizes_ok = match c.shape {
             GeomShape::Sphere(r) => r.is_finite() && r >= 0.0,
             GeomShape::Capsule(r, h) => r.is_finite() && r >= 0.0 && h.is_finite() && h >= 0.0,
-            GeomShape::Box(half) => finite3(&half) && half.iter().all(|&x| x > 0.0),
-            GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => false,
+            GeomShape::Box(half) | GeomShape::Ellipsoid(half) => {
+                finite3(&half) && half.iter().all(|&x| x > 0.0)
+            }
+            GeomShape::Cylinder(r, h) => r.is_finite() && r > 0.0 && h.is_finite() && h > 0.0,
+            GeomShape::Plane => false,
         };
         if let Some(mu) = c.friction.filter(|mu| !(mu.is_finite() && *mu >= 0.0)) {
             return Err(err(
@@ -255,8 +258,9 @@ pub(crate) fn finalize<R: Real>(
         if !(finite3(&c.pose.pos) && sizes_ok && (rot - 1.0).abs() < 1e-6) {
             return Err(err(
                 format!("contact shape {k} ({:?}) on {}", c.shape, name(c.link.0)),
-                "its pose must be finite with a unit quaternion, a radius or half-length \
-                 finite and non-negative, a box's half extents finite and positive",
+                "its pose must be finite with a unit quaternion, a sphere's or capsule's \
+                 radius and half-length finite and non-negative, a cylinder's positive, a \
+                 box's half extents and an ellipsoid's semi-axes finite and positive",
             ));
         }
     }
@@ -458,6 +462,7 @@ pub(crate) fn finalize<R: Real>(
 
     let contact = link_contact_pairs(b, (&order, &new_index), &parent, &world_of)?;
     let ground_spheres = b.contacts();
+    let supports = b.support_contacts();
     let r = |x: f64| R::lit(x);
     let v3 = |v: &Vec3<f64>| Vec3::new(r(v.x), r(v.y), r(v.z));
     let rs = |xs: &[f64]| Array::from_vec(xs.iter().map(|&x| r(x)).collect::<Vec<R>>());
@@ -661,6 +666,12 @@ pub(crate) fn finalize<R: Real>(
         contact_pos: Array::from_vec(ground_spheres.iter().map(|c| v3(&c.1)).collect()),
         contact_radius: rs(&ground_spheres.iter().map(|c| c.2).collect::<Vec<_>>()),
         contact_mu: rs(&ground_spheres.iter().map(|c| c.3).collect::<Vec<_>>()),
+        support_link: Array::from_vec(supports.iter().map(|c| new_index[c.0 .0] as u32).collect()),
+        support_variant: Array::from_vec(supports.iter().map(|c| c.2).collect()),
+        support_pos: Array::from_vec(supports.iter().map(|c| v3(&c.1.pose.pos)).collect()),
+        support_rot: Array::from_vec(supports.iter().map(|c| quat(&c.1.pose.rot)).collect()),
+        support_size: Array::from_vec(supports.iter().map(|c| v3(&c.1.support_size())).collect()),
+        support_mu: rs(&supports.iter().map(|c| c.3).collect::<Vec<_>>()),
         ground: b.ground.map(|g| g.to()),
         muscle_origin_link: Array::from_vec(
             b.muscles()
@@ -768,6 +779,12 @@ pub(crate) fn finalize<R: Real>(
         capsule_pair_mu: rs(&contact.capsule_pair_mu),
         box_pairs: Array::from_vec(contact.box_pairs),
         box_pair_mu: rs(&contact.box_pair_mu),
+        cylinder_link: Array::from_vec(contact.cylinders.iter().map(|c| c.0).collect()),
+        cylinder_pos: Array::from_vec(contact.cylinders.iter().map(|c| v3(&c.1.pos)).collect()),
+        cylinder_rot: Array::from_vec(contact.cylinders.iter().map(|c| quat(&c.1.rot)).collect()),
+        cylinder_size: Array::from_vec(contact.cylinders.iter().map(|c| v3(&c.2)).collect()),
+        cylinder_pairs: Array::from_vec(contact.cylinder_pairs),
+        cylinder_pair_mu: rs(&contact.cylinder_pair_mu),
     };
     if model.integrator == ArticulationIntegrator::ImplicitFast {
         model
@@ -955,7 +972,8 @@ fn check_mass_matrix<R: Real>(model: &Articulations<R>) -> Result<Vec<R>, Articu
 }
 
 /// The links' contact geometry: segments (link, ends, radius), boxes (link, pose, half
-/// extents) and the pairs that touch with their friction, in the model's link order.
+/// extents), cylinders (link, pose, radius and half-length) and the pairs that touch with
+/// their friction, in the model's link order.
 #[derive(Default)]
 struct LinkContacts {
     segs: Vec<(u32, Vec3<f64>, Vec3<f64>, f64)>,
@@ -964,6 +982,9 @@ struct LinkContacts {
     capsule_pair_mu: Vec<f64>,
     box_pairs: Vec<[u32; 2]>,
     box_pair_mu: Vec<f64>,
+    cylinders: Vec<(u32, Pose, Vec3<f64>)>,
+    cylinder_pairs: Vec<[u32; 2]>,
+    cylinder_pair_mu: Vec<f64>,
 }
 
 /// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
@@ -1027,6 +1048,7 @@ fn link_contact_pairs(
     let mut seg_of = vec![None; shapes.len()];
     let mut box_of = vec![None; shapes.len()];
     let mut edges_of: Vec<Option<usize>> = vec![None; shapes.len()];
+    let mut cyl_of = vec![None; shapes.len()];
     let link_of = |c: &ContactShape| new_index[c.link.0] as u32;
     // Shapes of different worlds never touch: pairs are searched for world by world.
     let mut by_world = vec![Vec::new(); world_of.iter().max().map_or(0, |w| w + 1)];
@@ -1059,7 +1081,42 @@ fn link_contact_pairs(
                     out.boxes.len() - 1
                 }) as u32
             };
+            let cylinder = |c: &ContactShape| matches!(c.shape, GeomShape::Cylinder(..));
+            let with_segment =
+                |c: &ContactShape, o: &ContactShape| cylinder(c) && o.segment().is_some();
+            let round = |c: &ContactShape| !c.ground_supports().is_empty();
+            if (round(x) || round(y)) && !with_segment(x, y) && !with_segment(y, x) {
+                let shape = |k: usize| {
+                    let c = &shapes[k];
+                    format!(
+                        "contact shape {k} ({:?}) on \"{}\"",
+                        c.shape, links[c.link.0].name
+                    )
+                };
+                return Err(err(
+                    format!("{} and {}", shape(i), shape(j)),
+                    "would touch, and a cylinder touches only the ground, particles, spheres \
+                     and capsules, an ellipsoid only the ground; exclude the pair \
+                     (ArticulationBuilder::exclude_contact, MJCF <exclude>), give the shapes \
+                     filters that do not touch (MJCF contype and conaffinity), set \
+                     link_contact to false, or use a capsule or box",
+                ));
+            }
             let mu = b.contact_friction(x, Some(y));
+            let mut cyl = |k: usize, out: &mut LinkContacts| -> u32 {
+                *cyl_of[k].get_or_insert_with(|| {
+                    let c = &shapes[k];
+                    out.cylinders.push((link_of(c), c.pose, c.support_size()));
+                    out.cylinders.len() - 1
+                }) as u32
+            };
+            if cylinder(x) || cylinder(y) {
+                let (s, c) = if cylinder(x) { (j, i) } else { (i, j) };
+                let pair = [seg(s, &mut out), cyl(c, &mut out)];
+                out.cylinder_pairs.push(pair);
+                out.cylinder_pair_mu.push(mu);
+                continue;
+            }
             match (x.segment().is_some(), y.segment().is_some()) {
                 (true, true) => {
                     let pair = [seg(i, &mut out), seg(j, &mut out)];

@@ -1,9 +1,15 @@
-//! Contact of links: spheres, capsules and boxes on links pressed into a ground plane and
-//! into each other, with the library's contact law (penalty, damping ramped in over
+//! Contact of links: spheres, capsules, boxes, cylinders and ellipsoids on links pressed into
+//! a ground plane and into each other, with the library's contact law (penalty, damping ramped in over
 //! `damping_depth`, smoothed Coulomb friction, optional leaky gradient).
 //!
 //! Against the ground a shape touches by its lowest points, which is exact for a plane: a
-//! sphere by its own, a capsule by its end spheres, a box by its corners. Between links:
+//! sphere by its own, a capsule by its end spheres, a box by its corners, an ellipsoid by its
+//! point whose normal is the plane's; a cylinder, tilted or on its side, by its caps' deepest
+//! rim points, and upright (within 5 degrees, blended) by three rim points of each cap fixed
+//! in the cylinder (see [`support_offset`]). An ellipsoid touches nothing else; a cylinder
+//! touches spheres and capsules as [`articulation_cylinder_contact`] says, and nothing else:
+//! a model in which one of them would touch a shape it cannot is refused when it is built
+//! (exclude the pair, change the filters, or set `link_contact` to false). Between links:
 //! - sphere and capsule pairs by the closest points of their axes (a sphere's is a point):
 //!   exact, at any angle (capsules crossing in their middles touch);
 //! - a sphere or a capsule and a box by the closest points of the axis and the box: exact
@@ -33,6 +39,7 @@ use adflex_runtime::prelude::*;
 
 use super::pose::{LinkId, Pose};
 use crate::contact::law::{contact_damping, contact_depth, contact_force};
+use crate::contact::shapes::sdf_cylinder;
 
 /// Which shapes touch which (MuJoCo's `contype` and `conaffinity` bit masks): `a` and `b`
 /// touch when `a.contype & b.conaffinity != 0` or `b.contype & a.conaffinity != 0`. The
@@ -68,8 +75,10 @@ impl ContactFilter {
 }
 
 /// A contact shape on a link: a [`GeomShape::Sphere`] (centred at `pose.pos`), a
-/// [`GeomShape::Capsule`] (along `pose`'s z) or a [`GeomShape::Box`], at `pose` in the link's
-/// frame.
+/// [`GeomShape::Capsule`] or [`GeomShape::Cylinder`] (along `pose`'s z), a [`GeomShape::Box`]
+/// or a [`GeomShape::Ellipsoid`], at `pose` in the link's frame. Cylinders touch the ground,
+/// particles, spheres and capsules; ellipsoids the ground only: a model in which one would
+/// touch another shape is refused when it is built.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ContactShape {
     /// The link it is on.
@@ -95,6 +104,27 @@ impl ContactShape {
             GeomShape::Capsule(r, h) => vec![(self.end(-h), r), (self.end(h), r)],
             GeomShape::Box(half) => self.corners(&half).into_iter().map(|c| (c, 0.0)).collect(),
             GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => Vec::new(),
+        }
+    }
+
+    /// The contact points by which a cylinder or an ellipsoid touches a plane, which move on
+    /// it as it turns: [`support_offset`]'s variants (an ellipsoid's one, a cylinder's eight);
+    /// none for the other shapes.
+    pub fn ground_supports(&self) -> &'static [u32] {
+        match self.shape {
+            GeomShape::Ellipsoid(..) => &[0],
+            GeomShape::Cylinder(..) => &[1, 2, 3, 4, 5, 6, 7, 8],
+            _ => &[],
+        }
+    }
+
+    /// The size vector [`support_offset`] takes: an ellipsoid's semi-axes, a cylinder's
+    /// radius and half-length (then 0).
+    pub(crate) fn support_size(&self) -> Vec3<f64> {
+        match self.shape {
+            GeomShape::Ellipsoid(a) => a,
+            GeomShape::Cylinder(r, h) => Vec3::new(r, h, 0.0),
+            _ => Vec3::zeros(),
         }
     }
 
@@ -145,7 +175,7 @@ pub enum GeomShape {
     Cylinder(f64, f64),
     /// A box of these half extents.
     Box(Vec3<f64>),
-    /// An ellipsoid of these semi-axes (mass only: it touches nothing).
+    /// An ellipsoid of these semi-axes.
     Ellipsoid(Vec3<f64>),
     /// A plane through the origin with normal z.
     Plane,
@@ -154,14 +184,16 @@ pub enum GeomShape {
 /// Every contact shape of the links (spheres, capsules, boxes) as particles touch them
 /// ([`crate::coupling::LinkParticleContact`]), in the form of the particles' shape SDFs
 /// ([`shape_sdf`](crate::contact::shapes::shape_sdf)): `kind` 0 a sphere of radius `size.x`,
-/// 1 a box of half extents `size`, 2 a capsule of radius `size.x` and half length `size.y`
-/// along its frame's x axis (a [`GeomShape::Capsule`] is along its z axis: its rotation here
-/// includes the turn from x to z). Positions and rotations are in the link's frame.
+/// 1 a box of half extents `size`, 2 a capsule and 3 a cylinder of radius `size.x` and half
+/// length `size.y` along its frame's x axis (a [`GeomShape::Capsule`] or
+/// [`GeomShape::Cylinder`] is along its z axis: its rotation here includes the turn from x to
+/// z), 4 an ellipsoid of semi-axes `size` (particles do not touch ellipsoids: coupling refuses
+/// one). Positions and rotations are in the link's frame.
 #[derive(Clone, Debug)]
 pub struct LinkShapes<R: Real> {
     /// Per shape: its link (the model's link order).
     pub link: Array<u32>,
-    /// Per shape: 0 sphere, 1 box, 2 capsule.
+    /// Per shape: 0 sphere, 1 box, 2 capsule, 3 cylinder, 4 ellipsoid.
     pub kind: Array<u32>,
     /// Per shape: its centre in the link frame (m).
     pub pos: Array<Vec3<R>>,
@@ -191,8 +223,12 @@ impl<R: Real> LinkShapes<R> {
                 GeomShape::Sphere(radius) => (0, c.pose.rot, v3(radius, 0.0, 0.0)),
                 GeomShape::Box(half) => (1, c.pose.rot, v3(half.x, half.y, half.z)),
                 GeomShape::Capsule(radius, half) => (2, c.pose.rot * x_to_z, v3(radius, half, 0.0)),
+                GeomShape::Cylinder(radius, half) => {
+                    (3, c.pose.rot * x_to_z, v3(radius, half, 0.0))
+                }
+                GeomShape::Ellipsoid(a) => (4, c.pose.rot, v3(a.x, a.y, a.z)),
                 // Refused by the builder's checks.
-                GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => continue,
+                GeomShape::Plane => continue,
             };
             link.push(link_of(c.link.0) as u32);
             kind.push(k);
@@ -240,7 +276,8 @@ pub struct GroundContact<R: Real> {
     pub kd: R,
     /// Friction coefficient (default 0.8): the ground's, and that of every shape without its
     /// own ([`ContactShape::friction`]). Read when the model is built, into the per-contact
-    /// arrays `contact_mu`, `capsule_pair_mu` and `box_pair_mu` of
+    /// arrays `contact_mu`, `support_mu`, `capsule_pair_mu`, `box_pair_mu` and
+    /// `cylinder_pair_mu` of
     /// [`Articulations`](super::Articulations); edit those (or make them require gradients)
     /// afterwards.
     pub mu: R,
@@ -336,6 +373,109 @@ pub fn articulation_ground_contact<R: Real>(
     let c = contact_depth(dot(normal, x) - offset, leak);
     let kdc = contact_damping(c, kd, 0.0, damping_depth);
     let f = contact_force(normal, c, v, ke, kdc, contact_mu[t]);
+    ext_n.atomic_add(l, cross(x, f));
+    ext_f.atomic_add(l, f);
+}
+
+/// The offset, in the world frame, from the centre of an ellipsoid or a cylinder (its frame
+/// `q` in the world, its `size`) to its contact point `variant` against a plane of unit
+/// normal `n` (out of the plane), and the point's weight (`w`: the share of the contact law
+/// it gets):
+/// - `0`, an ellipsoid of semi-axes `size`: the point whose outward normal is `-n` (the
+///   deepest, exactly), weight 1;
+/// - `1` to `8`, a cylinder along z of radius `size.x` and half-length `size.y`, on the cap at
+///   `+size.y` (`1..=4`) or `-size.y` (`5..=8`): the rim point deepest along `-n` (`1`, `5`),
+///   and three rim points fixed in the cylinder at 0, 120 and 240 degrees from its x axis
+///   (the others). A cylinder stands on its fixed points and rolls or tips on its deepest:
+///   with `s` the square of the sine of its axis' tilt from `n`, the fixed points weigh
+///   `u = max(1 - 130 s, 0)^2` (1 upright, 0 past a tilt of 5 degrees) and the deepest
+///   `1 - u`. On its side it rests on its two caps' deepest points, and it rolls without
+///   bumps; upright on its cap's three fixed points, a support that does not turn as it
+///   rocks (MuJoCo places three points there too, turned with the deepest's direction).
+///   Upright the deepest direction is undefined (and turns at `radius / sin(tilt)` per radian
+///   of tilt): the deepest point is the rim point's direction normalized smoothly, so that it
+///   moves to the cap's centre within a tilt of about 0.1 degrees, turns at most about
+///   `radius / 2e-3` per radian, and is at most `radius * 2e-6 / sin(tilt)` above the exact
+///   deepest depth (in the direction of the exact deepest point, so that a cylinder on its
+///   side feels no torque from it).
+#[diff_func]
+pub fn support_offset<R: Real>(variant: u32, q: Quat<R>, size: Vec3<R>, n: Vec3<R>) -> Vec4<R> {
+    let m = quat_rotate_inv(q, n);
+    let mut local = vec3(0.0, 0.0, 0.0);
+    let mut weight = 1.0;
+    if variant == 0 {
+        let w = vec3(size.x * m.x, size.y * m.y, size.z * m.z);
+        local = vec3(size.x * w.x, size.y * w.y, size.z * w.z) * (-1.0 / length(w));
+    } else {
+        let upright = max(1.0 - 130.0 * (m.x * m.x + m.y * m.y), 0.0);
+        // The deepest rim point's direction in the cap's plane, -(m.x, m.y), normalized
+        // smoothly (by 2e-3): defined upright, where the point is at the cap's centre and
+        // weighs nothing; never longer than 1; and along the exact direction at every tilt.
+        let vx = -m.x;
+        let vy = -m.y;
+        let a = 1.0 / sqrt(vx * vx + vy * vy + 4e-6);
+        let mut ux = vx * a;
+        let mut uy = vy * a;
+        weight = 1.0 - upright * upright;
+        if variant != 1 && variant != 5 {
+            weight = upright * upright;
+            ux = 1.0;
+            uy = 0.0;
+            if variant == 3 || variant == 7 {
+                ux = -0.5;
+                uy = 0.8660254037844386;
+            } else if variant == 4 || variant == 8 {
+                ux = -0.5;
+                uy = -0.8660254037844386;
+            }
+        }
+        let mut z = size.y;
+        if variant > 4 {
+            z = -size.y;
+        }
+        local = vec3(size.x * ux, size.x * uy, z);
+    }
+    let x = quat_rotate(q, local);
+    vec4(x.x, x.y, x.z, weight)
+}
+
+/// Ground contact of the cylinders' and ellipsoids' contact points: point `tid` of the shape
+/// at `support_pos`, rotated by `support_rot`, in the frame of link `support_link`, of size
+/// `support_size`, is [`support_offset`]'s point `support_variant` from the shape's centre;
+/// it touches the ground as a contact sphere of radius 0 does in
+/// [`articulation_ground_contact`], with the friction `support_mu`, its force times the
+/// point's weight.
+#[diff_kernel]
+pub fn articulation_support_contact<R: Real>(
+    support_link: &Array<u32>,
+    support_variant: &Array<u32>,
+    support_pos: &Array<Vec3<R>>,
+    support_rot: &Array<Quat<R>>,
+    support_size: &Array<Vec3<R>>,
+    support_mu: &Array<R>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    normal: Vec3<R>,
+    offset: R,
+    ke: R,
+    kd: R,
+    leak: R,
+    damping_depth: R,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let l = support_link[t] as usize;
+    let q = quat_mul(link_r[l], support_rot[t]);
+    let centre = link_p[l] + quat_rotate(link_r[l], support_pos[t]);
+    let o = support_offset(support_variant[t], q, support_size[t], normal);
+    let x = centre + vec3(o.x, o.y, o.z);
+    let v = link_v[l] + cross(link_w[l], x);
+    let c = contact_depth(dot(normal, x) - offset, leak);
+    let kdc = contact_damping(c, kd, 0.0, damping_depth);
+    let f = contact_force(normal, c, v, ke, kdc, support_mu[t]) * o.w;
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
 }
@@ -649,6 +789,74 @@ pub fn articulation_box_contact<R: Real>(
         m[(0, 2)],
         rel,
         vec3(ke, kd, box_pair_mu[t]),
+        vec2(leak, damping_depth),
+    );
+    ext_n.atomic_add(la, cross(x, f));
+    ext_f.atomic_add(la, f);
+    ext_n.atomic_sub(lb, cross(x, f));
+    ext_f.atomic_sub(lb, f);
+}
+
+/// Contact of a sphere or capsule (segment `cylinder_pairs[tid][0]`, as in
+/// [`articulation_capsule_contact`]) with a cylinder (`cylinder_pairs[tid][1]`: its link,
+/// centre and rotation in the link frame, radius and half-length): the segment's point `p`
+/// closest to the cylinder's axis ([`closest_on_segments`]) is pushed out along the
+/// cylinder's SDF ([`sdf_cylinder`]): at signed distance
+/// `d = sdf(p) - radius` along its normal `n`, the point `x` midway between the surfaces gets
+/// `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_cyl(x), ...)` with the pair's
+/// friction `cylinder_pair_mu[tid]`; `f` pushes the segment's link and `-f` the cylinder's.
+/// Exact for a sphere, for a capsule parallel to the axis or crossing it; otherwise the
+/// segment's point nearest the axis stands for its nearest point to the cylinder.
+#[diff_kernel]
+pub fn articulation_cylinder_contact<R: Real>(
+    cylinder_pairs: &Array<[u32; 2]>,
+    cylinder_pair_mu: &Array<R>,
+    seg_link: &Array<u32>,
+    seg_a: &Array<Vec3<R>>,
+    seg_b: &Array<Vec3<R>>,
+    seg_radius: &Array<R>,
+    cylinder_link: &Array<u32>,
+    cylinder_pos: &Array<Vec3<R>>,
+    cylinder_rot: &Array<Quat<R>>,
+    cylinder_size: &Array<Vec3<R>>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    ke: R,
+    kd: R,
+    leak: R,
+    damping_depth: R,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let t = tid();
+    let [i, k] = cylinder_pairs[t];
+    let la = seg_link[i as usize] as usize;
+    let lb = cylinder_link[k as usize] as usize;
+    // The cylinder's frame in the world, and its axis.
+    let rb = quat_mul(link_r[lb], cylinder_rot[k]);
+    let ob = link_p[lb] + quat_rotate(link_r[lb], cylinder_pos[k]);
+    let size = cylinder_size[k];
+    let c0 = ob - quat_rotate(rb, vec3(0.0, 0.0, size.y));
+    let c1 = ob + quat_rotate(rb, vec3(0.0, 0.0, size.y));
+    let a0 = link_p[la] + quat_rotate(link_r[la], seg_a[i]);
+    let a1 = link_p[la] + quat_rotate(link_r[la], seg_b[i]);
+    let st = closest_on_segments(a0, a1, c0, c1);
+    let p = a0 + (a1 - a0) * st.x;
+    // The SDF is along x: the cylinder's (x, y, z) are its (y, z, x).
+    let pl = quat_rotate_inv(rb, p - ob);
+    let g = sdf_cylinder(vec3(pl.z, pl.x, pl.y), size);
+    let n = quat_rotate(rb, vec3(g.y, g.z, g.x));
+    let r = seg_radius[i];
+    let d = g.w - r;
+    let x = p - n * (r + 0.5 * d);
+    let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
+    let f = link_pair_force(
+        n,
+        d,
+        rel,
+        vec3(ke, kd, cylinder_pair_mu[t]),
         vec2(leak, damping_depth),
     );
     ext_n.atomic_add(la, cross(x, f));

@@ -283,6 +283,32 @@ impl<R: Real> Articulations<R> {
                 ),
             );
         }
+        if let (true, Some(g), false) = (contact, &self.ground, self.support_link.is_empty()) {
+            tape.launch(
+                super::contact::articulation_support_contact,
+                self.support_link.len(),
+                (
+                    &self.support_link,
+                    &self.support_variant,
+                    &self.support_pos,
+                    &self.support_rot,
+                    &self.support_size,
+                    &self.support_mu,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    g.normal,
+                    g.offset,
+                    g.ke,
+                    g.kd,
+                    g.leak,
+                    g.damping_depth,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
         if let (true, Some(g), false) = (contact, &self.ground, self.capsule_pairs.is_empty()) {
             tape.launch(
                 super::contact::articulation_capsule_contact,
@@ -322,6 +348,34 @@ impl<R: Real> Articulations<R> {
                     &self.box_pos,
                     &self.box_rot,
                     &self.box_half,
+                    &k.link_p,
+                    &k.link_r,
+                    &w,
+                    &v,
+                    g.ke,
+                    g.kd,
+                    g.leak,
+                    g.damping_depth,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
+        if let (true, Some(g), false) = (contact, &self.ground, self.cylinder_pairs.is_empty()) {
+            tape.launch(
+                super::contact::articulation_cylinder_contact,
+                self.cylinder_pairs.len(),
+                (
+                    &self.cylinder_pairs,
+                    &self.cylinder_pair_mu,
+                    &self.seg_link,
+                    &self.seg_a,
+                    &self.seg_b,
+                    &self.seg_radius,
+                    &self.cylinder_link,
+                    &self.cylinder_pos,
+                    &self.cylinder_rot,
+                    &self.cylinder_size,
                     &k.link_p,
                     &k.link_r,
                     &w,

@@ -35,11 +35,11 @@
 //! line: MuJoCo would simulate it, and silently dropping it would simulate a different robot.
 //!
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
-//! capsules and boxes are static shapes on a massless link named `world`, fixed to the world
-//! and added after the robot's links (a wall stands for its half-space as a box 200 m wide
+//! capsules, boxes and cylinders are static shapes on a massless link named `world`, fixed to
+//! the world and added after the robot's links (a wall stands for its half-space as a box 200 m wide
 //! whose face is the plane). Geoms that touch nothing (`contype` and `conaffinity` 0, or any
-//! geom under `<flag contact="disable">`) are decoration; a worldbody cylinder or ellipsoid that
-//! would touch is an error.
+//! geom under `<flag contact="disable">`) are decoration; a worldbody ellipsoid that would
+//! touch is an error (ellipsoids touch only the floor).
 //!
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
@@ -48,8 +48,9 @@
 //! fixed to the world), nor excluded, touch when their `contype` and
 //! `conaffinity` masks match ([`ContactFilter`]); a geom touches the floor, a `plane` geom of
 //! the worldbody, when its masks match the plane's. Spheres, capsules and boxes touch (see
-//! [`contact`](super::contact) for how exactly); a cylinder or an ellipsoid has mass but no
-//! contact. The law is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that
+//! [`contact`](super::contact) for how exactly); a cylinder touches the floor, spheres and capsules,
+//! an ellipsoid the floor only: a model in which one would touch another body's geom is
+//! refused when it is built (the error names both; `<exclude>` the pair or set their masks). The law is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that
 //! lets the robot's weight sink one contact by 5 mm, half the critical damping of a quarter of
 //! its mass, and
 //! MuJoCo's friction: a contact's is the larger of its two geoms' sliding `friction` (the
@@ -998,12 +999,12 @@ impl<'a> Reader<'a> {
                         });
                         self.builder.ground_filter = filter;
                     } else if filter != ContactFilter::NONE && !self.no_contact {
-                        if matches!(g.shape, GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..)) {
+                        if matches!(g.shape, GeomShape::Ellipsoid(..)) {
                             return Err(self.src.error(
                                 c,
-                                "a cylinder or ellipsoid of the worldbody that touches is not \
-                                 supported (they have no contact here); set contype and \
-                                 conaffinity to 0, or use a capsule or box",
+                                "an ellipsoid of the worldbody that touches is not supported \
+                                 (ellipsoids touch only the floor); set contype and \
+                                 conaffinity to 0, or use a sphere, capsule, box or cylinder",
                             ));
                         }
                         // A static shape (a wall, a rail), added once the bodies are.

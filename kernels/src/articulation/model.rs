@@ -485,9 +485,11 @@ impl ArticulationBuilder {
             .expect("a box is a contact shape")
     }
 
-    /// Adds `shape` at `pose` in `link`'s frame as a contact shape (a capsule along the
-    /// pose's z), with the default [`ContactFilter`]; returns its index. A cylinder or a plane
-    /// adds nothing (`None`).
+    /// Adds `shape` at `pose` in `link`'s frame as a contact shape (a capsule or cylinder
+    /// along the pose's z), with the default [`ContactFilter`]; returns its index. A plane adds
+    /// nothing (`None`). A cylinder touches the ground, particles, spheres and capsules, an
+    /// ellipsoid the ground only: building a model in which one would touch another link's
+    /// shape is an error.
     pub fn add_contact_shape(
         &mut self,
         link: LinkId,
@@ -495,7 +497,7 @@ impl ArticulationBuilder {
         shape: &GeomShape,
     ) -> Option<usize> {
         match shape {
-            GeomShape::Cylinder(..) | GeomShape::Ellipsoid(..) | GeomShape::Plane => None,
+            GeomShape::Plane => None,
             _ => {
                 self.shapes.push(ContactShape {
                     link,
@@ -621,6 +623,20 @@ impl ArticulationBuilder {
                 let mu = self.contact_friction(c, None);
                 let spheres = c.ground_spheres().into_iter();
                 spheres.map(move |(p, r)| (c.link, p, r, mu))
+            })
+            .collect()
+    }
+
+    /// The points by which the cylinders and ellipsoids touch the ground (link, the shape,
+    /// the point's [`support_offset`](super::contact::support_offset) variant, friction), of
+    /// the shapes whose filter touches [`ArticulationBuilder::ground_filter`].
+    pub fn support_contacts(&self) -> Vec<(LinkId, &ContactShape, u32, f64)> {
+        self.shapes
+            .iter()
+            .filter(|c| c.filter.touches(&self.ground_filter))
+            .flat_map(|c| {
+                let mu = self.contact_friction(c, None);
+                c.ground_supports().iter().map(move |&v| (c.link, c, v, mu))
             })
             .collect()
     }
@@ -1120,9 +1136,23 @@ pub struct Articulations<R: Real> {
     /// Per contact sphere: its friction coefficient (the larger of the ground's and its
     /// shape's; [`ContactShape::friction`]). Can require gradients.
     pub contact_mu: Array<R>,
+    /// Per ground contact point of a cylinder or an ellipsoid
+    /// ([`ArticulationBuilder::support_contacts`]): its link.
+    pub support_link: Array<u32>,
+    /// Per such point: its [`support_offset`](super::contact::support_offset) variant.
+    pub support_variant: Array<u32>,
+    /// Per such point: its shape's centre in the link frame (m).
+    pub support_pos: Array<Vec3<R>>,
+    /// Per such point: its shape's rotation in the link frame.
+    pub support_rot: Array<Quat<R>>,
+    /// Per such point: its shape's size (m; an ellipsoid's semi-axes, a cylinder's radius and
+    /// half-length).
+    pub support_size: Array<Vec3<R>>,
+    /// Per such point: its friction coefficient, as `contact_mu`. Can require gradients.
+    pub support_mu: Array<R>,
     /// The ground and its contact law (`None`: no contact). Its `mu` was read when the model
-    /// was built: the friction the kernels use is in `contact_mu`, `capsule_pair_mu` and
-    /// `box_pair_mu`.
+    /// was built: the friction the kernels use is in `contact_mu`, `support_mu`,
+    /// `capsule_pair_mu` and `box_pair_mu`.
     pub ground: Option<GroundContact<R>>,
     /// Per sphere or capsule that touches another link's shapes (and per edge of a box that
     /// touches another box, of radius 0): its link, the ends of its axis in the link frame
@@ -1152,6 +1182,20 @@ pub struct Articulations<R: Real> {
     pub box_pairs: Array<[u32; 2]>,
     /// Per pair in `box_pairs`: its friction coefficient, as `capsule_pair_mu`.
     pub box_pair_mu: Array<R>,
+    /// Per cylinder that touches another link's spheres or capsules: its link, centre and
+    /// rotation in the link frame, radius and half-length (m; then 0).
+    pub cylinder_link: Array<u32>,
+    /// See `cylinder_link`.
+    pub cylinder_pos: Array<Vec3<R>>,
+    /// See `cylinder_link`.
+    pub cylinder_rot: Array<Quat<R>>,
+    /// See `cylinder_link`.
+    pub cylinder_size: Array<Vec3<R>>,
+    /// Pairs of a segment (a sphere or capsule) and a cylinder that touch (indices into
+    /// `seg_*` and `cylinder_*`).
+    pub cylinder_pairs: Array<[u32; 2]>,
+    /// Per pair in `cylinder_pairs`: its friction coefficient, as `capsule_pair_mu`.
+    pub cylinder_pair_mu: Array<R>,
     /// Per muscle: origin link and point, insertion link and point, `f_max`, `l_opt`,
     /// `tendon_slack`, `v_max` (see [`Muscle`]).
     pub muscle_origin_link: Array<u32>,

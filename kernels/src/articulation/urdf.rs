@@ -55,8 +55,9 @@ use super::xml::{self, children, Source};
 pub struct UrdfOptions {
     /// Put the root link on a free joint (a floating base) instead of welding it to the world.
     pub floating_base: bool,
-    /// Read `<collision>` geometry as contact shapes: `<sphere>`, `<box>` and `<capsule radius
-    /// length>` (along z); a `<cylinder>` or `<mesh>` is then an error naming it. Default
+    /// Read `<collision>` geometry as contact shapes: `<sphere>`, `<box>`, `<capsule radius
+    /// length>` and `<cylinder radius length>` (along z; a cylinder touches the ground,
+    /// particles, spheres and capsules); a `<mesh>` is then an error naming it. Default
     /// false: no contact shapes (most robots' collision geometry is meshes). Set the
     /// builder's `ground` for them to touch, and `link_contact` for links to touch each other
     /// by MuJoCo's rules (see [`contact`](super::contact): a link touches a parent fixed to
@@ -274,12 +275,14 @@ fn collision(
             GeomShape::Box(size * 0.5)
         }
         "capsule" => GeomShape::Capsule(positive("radius")?, 0.5 * positive("length")?),
+        "cylinder" => GeomShape::Cylinder(positive("radius")?, 0.5 * positive("length")?),
         other => {
             return Err(src.error(
                 shape,
                 format!(
-                    "<{other}> is not supported as a contact shape (sphere, box, capsule); read \
-                     the robot with UrdfOptions::collisions = false for no contact shapes"
+                    "<{other}> is not supported as a contact shape (sphere, box, capsule, \
+                     cylinder); read the robot with UrdfOptions::collisions = false for no \
+                     contact shapes"
                 ),
             ))
         }

@@ -75,8 +75,30 @@ pub fn sdf_capsule<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
     vec4(n.x, n.y, n.z, length(dv) - size.x)
 }
 
-/// The SDF of a shape of kind `k` (0 sphere, 1 box, 2 capsule) at `pos`, rotated by `q`, of
-/// size `size`, at the point `x`: `(n, d)` as in [`sdf_sphere`], `n` in the shape's frame.
+/// SDF of a solid cylinder of radius `size.x` along the x axis from `-size.y` to `size.y`
+/// (m), packed like [`sdf_sphere`]. Outside, the normal points from the closest point;
+/// inside, out through the nearest of the side and the caps.
+#[diff_func]
+pub fn sdf_cylinder<R: Real>(p: Vec3<R>, size: Vec3<R>) -> Vec4<R> {
+    let radial = normalize(vec3(0.0, p.y, p.z));
+    let dr = length(vec3(0.0, p.y, p.z)) - size.x;
+    let dh = abs(p.x) - size.y;
+    let axial = vec3(sign(p.x), 0.0, 0.0);
+    let mut g = vec4(radial.x, radial.y, radial.z, dr);
+    if dr > 0.0 || dh > 0.0 {
+        let out = axial * max(dh, 0.0) + radial * max(dr, 0.0);
+        let n = normalize(out);
+        g = vec4(n.x, n.y, n.z, length(out));
+    } else if dh > dr {
+        g = vec4(axial.x, 0.0, 0.0, dh);
+    }
+    g
+}
+
+/// The SDF of a shape of kind `k` (0 sphere, 1 box, 2 capsule, 3 cylinder: the last only for
+/// articulations' shapes, [`LinkShapes`](crate::articulation::LinkShapes)) at `pos`, rotated
+/// by `q`, of size `size`, at the point `x`: `(n, d)` as in [`sdf_sphere`], `n` in the shape's
+/// frame.
 #[diff_func]
 pub fn shape_sdf<R: Real>(x: Vec3<R>, k: u32, pos: Vec3<R>, q: Quat<R>, size: Vec3<R>) -> Vec4<R> {
     let pl = quat_rotate_inv(q, x - pos);
@@ -85,6 +107,8 @@ pub fn shape_sdf<R: Real>(x: Vec3<R>, k: u32, pos: Vec3<R>, q: Quat<R>, size: Ve
         g = sdf_box(pl, size);
     } else if k == 2 {
         g = sdf_capsule(pl, size);
+    } else if k == 3 {
+        g = sdf_cylinder(pl, size);
     }
     g
 }
