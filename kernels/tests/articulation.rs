@@ -144,7 +144,7 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
                 idle.then(|| b.finalize::<f64>().unwrap())
             })
             .flatten();
-        let mut worst = [0.0f64; 9];
+        let mut worst = [0.0f64; 10];
         for s in m["states"].as_array().unwrap() {
             let (rq, rqd, rtau) = (vecf(&s["q"]), vecf(&s["qd"]), vecf(&s["tau"]));
             let (mut q, mut qd, mut tau) = (vec![0.0; model.n_q], vec![0.0; nv], vec![0.0; nv]);
@@ -180,6 +180,7 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             if let (Some(p), Some(stepper)) = (s.get("passive"), &stepper) {
                 // With dt = 1, qd' - qd is the acceleration.
                 use adflex_kernels::articulation::{ArticulationControl, ArticulationState};
+                use adflex_runtime::Vec3;
                 let state = ArticulationState {
                     q: qa.clone(),
                     qd: qda.clone(),
@@ -199,6 +200,30 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
                 let ours = pv(&ours).remove(0);
                 let expected: Vec<f64> = expected.iter().copied().collect();
                 worst[6] = worst[6].max(rel_err(&[ours], &[expected]));
+                // A wrench on each body (MuJoCo's xfrc_applied: at the centre of mass, world
+                // frame) through the control's link_f and link_t, without joint torques.
+                if let Some(wr) = s.get("link_wrench") {
+                    let nl = stepper.n_links();
+                    let (mut f, mut t) = (vec![Vec3::zeros(); nl], vec![Vec3::zeros(); nl]);
+                    let names = wr["bodies"].as_array().unwrap();
+                    for (name, w) in names.iter().zip(matf(&wr["wrench"])) {
+                        let name = name.as_str().unwrap();
+                        let l = stepper.links.iter().position(|x| x.name == name);
+                        let l = l.unwrap_or_else(|| panic!("{file}: no link \"{name}\""));
+                        f[l] = Vec3::new(w[0], w[1], w[2]);
+                        t[l] = Vec3::new(w[3], w[4], w[5]);
+                    }
+                    let control = ArticulationControl {
+                        link_f: Some(Array::from_vec(f)),
+                        link_t: Some(Array::from_vec(t)),
+                        ..stepper.control()
+                    };
+                    let next = stepper
+                        .step(&mut tape, &state, Some(&control), 1.0)
+                        .unwrap();
+                    let ours: Vec<f64> = (0..nv).map(|i| next.qd.get(i) - qd[i]).collect();
+                    worst[9] = worst[9].max(rel_err(&pv(&ours), &[vecf(&wr["qdd"])]));
+                }
             }
             if s.get("dqdd_dq").is_some() {
                 let d = model.forward_dynamics_derivatives(&q, &qd, &tau).unwrap();
@@ -215,9 +240,9 @@ fn dynamics_agree_with_pinocchio_and_mujoco() {
             }
         }
         report.push(format!(
-            "{file} ({}): M {:.1e}, bias {:.1e}, qdd {:.1e}, dqdd/dq {:.1e}, dqdd/dqd {:.1e}, dqdd/dtau {:.1e}, qdd with springs and damping {:.1e}, dtau/dq {:.1e}, dtau/dqd {:.1e}",
+            "{file} ({}): M {:.1e}, bias {:.1e}, qdd {:.1e}, dqdd/dq {:.1e}, dqdd/dqd {:.1e}, dqdd/dtau {:.1e}, qdd with springs and damping {:.1e}, dtau/dq {:.1e}, dtau/dqd {:.1e}, qdd with link wrenches {:.1e}",
             m["reference"].as_str().unwrap(),
-            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5], worst[6], worst[7], worst[8]
+            worst[0], worst[1], worst[2], worst[3], worst[4], worst[5], worst[6], worst[7], worst[8], worst[9]
         ));
         assert!(
             worst.iter().all(|&w| w < 1e-9),

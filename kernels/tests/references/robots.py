@@ -19,6 +19,8 @@ import mujoco
 HERE = pathlib.Path(__file__).resolve().parent
 ROBOTS = HERE.parent.parent / "robots"
 RNG = np.random.default_rng(20261126)
+# The external wrenches' draws, apart so that the other references keep their states.
+WRENCH_RNG = np.random.default_rng(20261129)
 
 
 def quat_xyzw(rng):
@@ -205,6 +207,28 @@ def mujoco_rollout(model, data, kinds, integrator, steps=200):
     return out
 
 
+def wrench_reference(model, data, T, tdot):
+    """MuJoCo's acceleration (in adflex's velocities) at the state in `data` with no joint
+    torque, no control, contact, limits and equality constraints off, and a random wrench
+    (xfrc_applied: a force at the centre of mass and a torque, world frame) on every named
+    body that has a joint: with qvel = T qd, qacc = T qdd + Tdot qd."""
+    bodies = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0
+              and mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)]
+    wrench = WRENCH_RNG.normal(size=(len(bodies), 6))
+    flags = model.opt.disableflags
+    for bit in ["mjDSBL_CONTACT", "mjDSBL_LIMIT", "mjDSBL_EQUALITY"]:
+        model.opt.disableflags |= int(getattr(mujoco.mjtDisableBit, bit))
+    data.xfrc_applied[:] = 0
+    for b, w in zip(bodies, wrench):
+        data.xfrc_applied[b] = w
+    mujoco.mj_forward(model, data)
+    qdd = np.linalg.solve(T, data.qacc - tdot)
+    data.xfrc_applied[:] = 0
+    model.opt.disableflags = flags
+    return {"bodies": [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in bodies],
+            "wrench": wrench.tolist(), "qdd": qdd.tolist()}
+
+
 def mujoco_reference(file, n_random=4):
     """M, bias and qacc from MuJoCo (no contact), converted to adflex's conventions."""
     model = mujoco.MjModel.from_xml_path(str(ROBOTS / file))
@@ -243,6 +267,8 @@ def mujoco_reference(file, n_random=4):
                  "mass_matrix": ma.tolist(), "bias": ca.tolist(), "qdd": qdd.tolist(),
                  # Joint springs and damping (MuJoCo's qfrc_passive), in adflex's velocities.
                  "passive": (T.T @ data.qfrc_passive).tolist()}
+        if s > 0:
+            state["link_wrench"] = wrench_reference(model, data, T, tdot)
         # The derivatives from Pinocchio's reading of the same file, once its dynamics are
         # checked against MuJoCo's at this state. Pinocchio's MJCF reader does not read
         # everything MuJoCo's does (e.g. `ref`, `settotalmass`): a file it reads otherwise
