@@ -340,6 +340,24 @@ impl GroundContact<f64> {
     }
 }
 
+/// The ground's law at a link's point `x` moving at `v`, against the plane `plane` (its unit
+/// normal `n` and offset: `n.x = offset`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth`):
+/// `contact_force(n, contact_depth(d, leak), v, ke, kd', mu)` at the signed distance
+/// `d = n.x - offset`, the damping `kd'` ramped in.
+#[diff_func]
+fn ground_force<R: Real>(
+    x: Vec3<R>,
+    v: Vec3<R>,
+    plane: Vec4<R>,
+    law: Vec3<R>,
+    ramp: Vec2<R>,
+) -> Vec3<R> {
+    let n = vec3(plane.x, plane.y, plane.z);
+    let c = contact_depth(dot(n, x) - plane.w, ramp.x);
+    let kdc = contact_damping(c, law.y, 0.0, ramp.y);
+    contact_force(n, c, v, law.x, kdc, law.z)
+}
+
 /// Ground contact of contact sphere `tid` (centre `contact_pos` in the frame of link
 /// `contact_link`, radius `contact_radius`): its lowest point `x` at signed distance
 /// `d = n.x - offset` gets `f = contact_force(n, contact_depth(d, leak), v, ke, kd', mu)`,
@@ -370,9 +388,14 @@ pub fn articulation_ground_contact<R: Real>(
     let centre = link_p[l] + quat_rotate(link_r[l], contact_pos[t]);
     let x = centre - normal * contact_radius[t];
     let v = link_v[l] + cross(link_w[l], x);
-    let c = contact_depth(dot(normal, x) - offset, leak);
-    let kdc = contact_damping(c, kd, 0.0, damping_depth);
-    let f = contact_force(normal, c, v, ke, kdc, contact_mu[t]);
+    let law = vec3(ke, kd, contact_mu[t]);
+    let f = ground_force(
+        x,
+        v,
+        vec4(normal.x, normal.y, normal.z, offset),
+        law,
+        vec2(leak, damping_depth),
+    );
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
 }
@@ -473,9 +496,14 @@ pub fn articulation_support_contact<R: Real>(
     let o = support_offset(support_variant[t], q, support_size[t], normal);
     let x = centre + vec3(o.x, o.y, o.z);
     let v = link_v[l] + cross(link_w[l], x);
-    let c = contact_depth(dot(normal, x) - offset, leak);
-    let kdc = contact_damping(c, kd, 0.0, damping_depth);
-    let f = contact_force(normal, c, v, ke, kdc, support_mu[t]) * o.w;
+    let law = vec3(ke, kd, support_mu[t]);
+    let f = ground_force(
+        x,
+        v,
+        vec4(normal.x, normal.y, normal.z, offset),
+        law,
+        vec2(leak, damping_depth),
+    ) * o.w;
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
 }
