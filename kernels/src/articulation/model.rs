@@ -1152,7 +1152,7 @@ pub struct Articulations<R: Real> {
     pub support_mu: Array<R>,
     /// The ground and its contact law (`None`: no contact). Its `mu` was read when the model
     /// was built: the friction the kernels use is in `contact_mu`, `support_mu`,
-    /// `capsule_pair_mu` and `box_pair_mu`.
+    /// `capsule_pair_mu`, `box_pair_mu` and `cylinder_pair_mu`.
     pub ground: Option<GroundContact<R>>,
     /// Per sphere or capsule that touches another link's shapes (and per edge of a box that
     /// touches another box, of radius 0): its link, the ends of its axis in the link frame
