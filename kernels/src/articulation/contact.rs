@@ -1,6 +1,6 @@
 //! Contact of links: spheres, capsules, boxes, cylinders and ellipsoids on links pressed into
-//! a ground plane and into each other, with the library's contact law (penalty, damping ramped in over
-//! `damping_depth`, smoothed Coulomb friction, optional leaky gradient).
+//! a ground plane and into each other, with the library's contact law (penalty, damping
+//! ramped in over `damping_depth`, smoothed Coulomb friction, optional leaky gradient).
 //!
 //! Against the ground a shape touches by its lowest points, which is exact for a plane: a
 //! sphere by its own, a capsule by its end spheres, a box by its corners, an ellipsoid by its
