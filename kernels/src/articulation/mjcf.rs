@@ -37,9 +37,9 @@
 //! The worldbody's first plane is the ground; its other planes (walls) and its spheres,
 //! capsules, boxes and cylinders are static shapes on a massless link named `world`, fixed to
 //! the world and added after the robot's links (a wall stands for its half-space as a box
-//! 200 m wide whose face is the plane). Geoms that touch nothing (`contype` and `conaffinity` 0, or any
-//! geom under `<flag contact="disable">`) are decoration; a worldbody ellipsoid that would
-//! touch is an error (ellipsoids touch only the floor).
+//! 200 m wide whose face is the plane). Geoms that touch nothing (`contype` and
+//! `conaffinity` 0, or any geom under `<flag contact="disable">`) are decoration; a worldbody
+//! ellipsoid that would touch is an error (ellipsoids touch only the floor).
 //!
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
@@ -53,8 +53,8 @@
 //! geom is refused when it is built (the error names both; `<exclude>` the pair or set their
 //! masks). The law is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that
 //! lets the robot's weight sink one contact by 5 mm, half the critical damping of a quarter
-//! of its mass, and MuJoCo's friction: a contact's is the larger of its two geoms' sliding `friction` (the
-//! plane's against the floor; 1 by default), as MuJoCo combines geoms of equal `priority`
+//! of its mass, and MuJoCo's friction: a contact's is the larger of its two geoms' sliding
+//! `friction` (the plane's against the floor; 1 by default), as MuJoCo combines geoms of equal `priority`
 //! (`priority` is refused). Set `builder.ground` to tune the law. Without a plane there is no
 //! floor (`ground_filter` [`ContactFilter::NONE`]; set `builder.ground_filter` too when you add
 //! one) but geoms still touch each other; set `builder.link_contact = false` to keep only the
