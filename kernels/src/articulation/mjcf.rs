@@ -54,8 +54,8 @@
 //! masks). The law is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that
 //! lets the robot's weight sink one contact by 5 mm, half the critical damping of a quarter
 //! of its mass, and MuJoCo's friction: a contact's is the larger of its two geoms' sliding
-//! `friction` (the plane's against the floor; 1 by default), as MuJoCo combines geoms of equal `priority`
-//! (`priority` is refused). Set `builder.ground` to tune the law. Without a plane there is no
+//! `friction` (the plane's against the floor; 1 by default), as MuJoCo combines geoms of
+//! equal `priority` (`priority` is refused). Set `builder.ground` to tune the law. Without a plane there is no
 //! floor (`ground_filter` [`ContactFilter::NONE`]; set `builder.ground_filter` too when you add
 //! one) but geoms still touch each other; set `builder.link_contact = false` to keep only the
 //! floor. The torsional and rolling frictions are passed over, and so is `condim`: every
