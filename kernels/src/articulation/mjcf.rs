@@ -43,23 +43,23 @@
 //!
 //! `<contact>` with `<exclude body1 body2>` is read too (`<pair>` is an error).
 //!
-//! Geoms touch as in MuJoCo: two geoms on bodies that are neither the same, nor welded
-//! together, nor parent and child after welding (MuJoCo's filterparent: unless the parent is
-//! fixed to the world), nor excluded, touch when their `contype` and
-//! `conaffinity` masks match ([`ContactFilter`]); a geom touches the floor, a `plane` geom of
-//! the worldbody, when its masks match the plane's. Spheres, capsules and boxes touch (see
-//! [`contact`](super::contact) for how exactly); a cylinder touches the floor, spheres and
-//! capsules, an ellipsoid the floor only: a model in which one would touch another body's
-//! geom is refused when it is built (the error names both; `<exclude>` the pair or set their
-//! masks). The law is [`GroundContact`]'s, not MuJoCo's soft constraints: a stiffness that
-//! lets the robot's weight sink one contact by 5 mm, half the critical damping of a quarter
-//! of its mass, and MuJoCo's friction: a contact's is the larger of its two geoms' sliding
-//! `friction` (the plane's against the floor; 1 by default), as MuJoCo combines geoms of
-//! equal `priority` (`priority` is refused). Set `builder.ground` to tune the law. Without a plane there is no
-//! floor (`ground_filter` [`ContactFilter::NONE`]; set `builder.ground_filter` too when you add
-//! one) but geoms still touch each other; set `builder.link_contact = false` to keep only the
-//! floor. The torsional and rolling frictions are passed over, and so is `condim`: every
-//! contact has sliding friction (MuJoCo's `condim="1"` contacts have none).
+//! Geoms touch as in MuJoCo: two geoms on bodies that are neither the same, nor welded together,
+//! nor parent and child after welding (MuJoCo's filterparent: unless the parent is fixed to the
+//! world), nor excluded, touch when their `contype` and `conaffinity` masks match
+//! ([`ContactFilter`]); a geom touches the floor, a `plane` geom of the worldbody, when its masks
+//! match the plane's. Spheres, capsules and boxes touch (see [`contact`](super::contact) for how
+//! exactly); a cylinder touches the floor, spheres and capsules, an ellipsoid the floor only: a
+//! model in which one would touch another body's geom is refused when it is built (the error names
+//! both; `<exclude>` the pair or set their masks). The law is [`GroundContact`]'s, not MuJoCo's
+//! soft constraints: a stiffness that lets the robot's weight sink one contact by 5 mm, half the
+//! critical damping of a quarter of its mass, and MuJoCo's friction: a contact's is the larger of
+//! its two geoms' sliding `friction` (the plane's against the floor; 1 by default), as MuJoCo
+//! combines geoms of equal `priority` (`priority` is refused). Set `builder.ground` to tune the
+//! law. Without a plane there is no floor (`ground_filter` [`ContactFilter::NONE`]; set
+//! `builder.ground_filter` too when you add one) but geoms still touch each other; set
+//! `builder.link_contact = false` to keep only the floor. The torsional and rolling frictions are
+//! passed over, and so is `condim`: every contact has sliding friction (MuJoCo's `condim="1"`
+//! contacts have none).
 //!
 //! Where MuJoCo reads an attribute in a way of its own, so does this reader: `limited` and
 //! `ctrllimited` default to `"auto"`, which limits only a range with lower < upper (`range="0
