@@ -245,17 +245,31 @@ fn plus<R: Real>(
 }
 
 impl<R: Real> LinkParticleContact<R> {
-    /// The links' shapes that touch the particles, with each one's friction.
-    fn touching(&self, arts: &Articulations<R>) -> Touching<R> {
+    /// The links' shapes that touch the particles, with each one's friction. Errors: an
+    /// ellipsoid among them (kind 4: particles do not touch ellipsoids).
+    fn touching(&self, arts: &Articulations<R>) -> Result<Touching<R>, Error> {
         let s = &arts.shapes;
         let keep: Vec<usize> = (0..s.len())
             .filter(|&k| s.filter[k].touches(&self.filter))
             .collect();
+        let (links, kinds) = (s.link.to_vec(), s.kind.to_vec());
+        if let Some(&k) = keep.iter().find(|&&k| kinds[k] == 4) {
+            return Err(invalid(
+                &format!(
+                    "LinkParticleContact shape {k} (an ellipsoid on link \"{}\")",
+                    arts.links[links[k] as usize].name
+                ),
+                "particles do not touch ellipsoids; give it a filter that does not touch \
+                 `LinkParticleContact::filter` (ContactFilter::NONE), or use a sphere, capsule, \
+                 box or cylinder"
+                    .into(),
+            ));
+        }
         let pick = |a: &[u32]| Array::from_vec(keep.iter().map(|&k| a[k]).collect());
-        let (link, kind) = (pick(&s.link.to_vec()), pick(&s.kind.to_vec()));
+        let (link, kind) = (pick(&links), pick(&kinds));
         let (pos, rot, size) = (s.pos.to_vec(), s.rot.to_vec(), s.size.to_vec());
         let mu = self.mu.to_f64();
-        Touching {
+        Ok(Touching {
             link,
             kind,
             pos: Array::from_vec(keep.iter().map(|&k| pos[k]).collect()),
@@ -266,7 +280,7 @@ impl<R: Real> LinkParticleContact<R> {
                     .map(|&k| R::lit(s.friction[k].map_or(mu, |f| f.max(mu))))
                     .collect(),
             ),
-        }
+        })
     }
 
     /// The checks [`LinkParticleContact::forces`] makes: the law's parameters, the worlds and
@@ -286,21 +300,6 @@ impl<R: Real> LinkParticleContact<R> {
                     format!("{} must be finite and non-negative", x.to_f64()),
                 ));
             }
-        }
-        let s = &arts.shapes;
-        let kinds = s.kind.to_vec();
-        if let Some(k) = (0..s.len()).find(|&k| kinds[k] == 4 && s.filter[k].touches(&self.filter))
-        {
-            return Err(invalid(
-                &format!(
-                    "LinkParticleContact shape {k} (an ellipsoid on link \"{}\")",
-                    arts.links[s.link.get(k) as usize].name
-                ),
-                "particles do not touch ellipsoids; give it a filter that does not touch \
-                 `LinkParticleContact::filter` (ContactFilter::NONE), or use a sphere, capsule, \
-                 box or cylinder"
-                    .into(),
-            ));
         }
         let (wp, wa) = (model.worlds.len(), arts.n_worlds());
         if wp != wa {
@@ -336,7 +335,8 @@ impl<R: Real> LinkParticleContact<R> {
     /// at `astate`, recorded on `tape` (see the [module docs](self)).
     ///
     /// Errors: [`Error::InvalidInput`] for a negative or non-finite parameter of the law,
-    /// models with different numbers of worlds, or different gravities.
+    /// models with different numbers of worlds, different gravities, or an ellipsoid the
+    /// particles would touch.
     pub fn forces(
         &self,
         tape: &mut Tape,
@@ -370,7 +370,7 @@ impl<R: Real> LinkParticleContact<R> {
             link_f: Array::zeros(nl),
             link_t: Array::zeros(nl),
         };
-        let shapes = self.touching(arts);
+        let shapes = self.touching(arts)?;
         if np == 0 || shapes.is_empty() {
             return Ok(out);
         }

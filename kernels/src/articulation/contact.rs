@@ -212,6 +212,7 @@ impl<R: Real> LinkShapes<R> {
     pub(crate) fn new(shapes: &[ContactShape], link_of: impl Fn(usize) -> usize) -> Self {
         let r = |x: f64| R::lit(x);
         let v3 = |x: f64, y: f64, z: f64| Vec3::new(r(x), r(y), r(z));
+        let support = |s: Vec3<f64>| v3(s.x, s.y, s.z);
         // The turn by -90 degrees about y takes the SDF's x axis to the capsule's z axis.
         let h = std::f64::consts::FRAC_1_SQRT_2;
         let x_to_z = Quat::new(h, 0.0, -h, 0.0);
@@ -223,10 +224,8 @@ impl<R: Real> LinkShapes<R> {
                 GeomShape::Sphere(radius) => (0, c.pose.rot, v3(radius, 0.0, 0.0)),
                 GeomShape::Box(half) => (1, c.pose.rot, v3(half.x, half.y, half.z)),
                 GeomShape::Capsule(radius, half) => (2, c.pose.rot * x_to_z, v3(radius, half, 0.0)),
-                GeomShape::Cylinder(radius, half) => {
-                    (3, c.pose.rot * x_to_z, v3(radius, half, 0.0))
-                }
-                GeomShape::Ellipsoid(a) => (4, c.pose.rot, v3(a.x, a.y, a.z)),
+                GeomShape::Cylinder(..) => (3, c.pose.rot * x_to_z, support(c.support_size())),
+                GeomShape::Ellipsoid(..) => (4, c.pose.rot, support(c.support_size())),
                 // Refused by the builder's checks.
                 GeomShape::Plane => continue,
             };
