@@ -1,6 +1,7 @@
 //! `robots [--python PATH] [--steps 200] [--reps 5]`: the articulation family on the
 //! repository's robots (`kernels/robots/`): the time of a semi-implicit step recorded on a tape
-//! (forward), of a step's forward and backward, and of the full `d qdd / d(q, qd, tau)` and
+//! (forward), of one on a `Tape::no_grad` (a rollout without derivatives), of a step's forward
+//! and backward, and of the full `d qdd / d(q, qd, tau)` and
 //! `d tau / d(q, qd, qdd)`, for the 7-DoF arm and the quadruped (`ant.xml`, free base and
 //! ground contact), on 1 and 2 threads; with `--python`, the peers' script
 //! `bench/peers/robots.py` (MuJoCo's `mj_step`, Pinocchio's `computeABADerivatives` and
@@ -25,9 +26,19 @@ fn load(name: &str) -> Articulations<f64> {
     b.finalize().expect("a valid robot")
 }
 
-/// Microseconds per step: the best of `reps` rollouts of `steps` steps (forward only, or
-/// forward and backward).
-fn per_step(model: &Articulations<f64>, steps: usize, reps: usize, backward: bool) -> f64 {
+/// How a rollout is timed.
+#[derive(Clone, Copy, PartialEq)]
+enum Pass {
+    /// Steps recorded on a tape.
+    Recorded,
+    /// Steps on a `Tape::no_grad`.
+    NoGrad,
+    /// Steps recorded, then the tape's backward pass.
+    Backward,
+}
+
+/// Microseconds per step: the best of `reps` rollouts of `steps` steps.
+fn per_step(model: &Articulations<f64>, steps: usize, reps: usize, pass: Pass) -> f64 {
     let mut best = f64::INFINITY;
     let qd0: Vec<f64> = (0..model.n_dof)
         .map(|i| 0.1 * ((i % 5) as f64 - 2.0))
@@ -36,12 +47,15 @@ fn per_step(model: &Articulations<f64>, steps: usize, reps: usize, backward: boo
         let q = Array::from_vec(model.q0.clone());
         let qd = Array::from_vec(qd0.clone());
         let t0 = Instant::now();
-        let mut tape = Tape::new();
+        let mut tape = match pass {
+            Pass::NoGrad => Tape::no_grad(),
+            _ => Tape::new(),
+        };
         let mut s = adflex_kernels::articulation::ArticulationState { q: q.clone(), qd };
         for _ in 0..steps {
             s = model.step(&mut tape, &s, None, 1e-3).expect("a step");
         }
-        if backward {
+        if pass == Pass::Backward {
             let w = vec![1.0; model.n_q];
             tape.vjp(&[&s.q], &w, &[&q]).expect("a gradient");
         }
@@ -88,16 +102,19 @@ pub fn main(rest: &[String]) {
     for name in ["arm7", "quadruped"] {
         let model = load(name);
         for threads in [1, 2] {
-            let (fwd, both) = adflex_runtime::with_threads(threads, || {
+            let (fwd, free, both) = adflex_runtime::with_threads(threads, || {
                 (
-                    per_step(&model, steps, reps, false),
-                    per_step(&model, steps, reps, true),
+                    per_step(&model, steps, reps, Pass::Recorded),
+                    per_step(&model, steps, reps, Pass::NoGrad),
+                    per_step(&model, steps, reps, Pass::Backward),
                 )
             });
             ours.insert((name, threads, "step"), fwd);
+            ours.insert((name, threads, "no_grad step"), free);
             println!(
                 "{{\"system\": \"adflex\", \"model\": \"{name}\", \"threads\": {threads}, \
-                 \"step_us\": {fwd:.2}, \"step_forward_backward_us\": {both:.2}}}"
+                 \"step_us\": {fwd:.2}, \"no_grad_step_us\": {free:.2}, \
+                 \"step_forward_backward_us\": {both:.2}}}"
             );
         }
         if name == "arm7" {
@@ -131,19 +148,22 @@ pub fn main(rest: &[String]) {
             v["what"].as_str().unwrap_or(""),
             v["us"].as_f64().unwrap_or(f64::NAN),
         );
-        let key = match what {
-            "mj_step" => ("step", if model == "arm7" { "arm7" } else { "quadruped" }),
-            "computeABADerivatives" => ("derivatives", "arm7"),
-            "computeRNEADerivatives" => ("inverse derivatives", "arm7"),
+        let robot = if model == "arm7" { "arm7" } else { "quadruped" };
+        let keys: &[&str] = match what {
+            "mj_step" => &["step", "no_grad step"],
+            "computeABADerivatives" => &["derivatives"],
+            "computeRNEADerivatives" => &["inverse derivatives"],
             _ => continue,
         };
-        if let Some(o) = ours.get(&(key.1, 1, key.0)) {
-            println!(
-                "{{\"ratio\": \"adflex {} / {} {what}\", \"model\": \"{model}\", \"value\": {:.2}}}",
-                key.0,
-                v["peer"].as_str().unwrap_or(""),
-                o / us
-            );
+        for key in keys {
+            if let Some(o) = ours.get(&(robot, 1, *key)) {
+                println!(
+                    "{{\"ratio\": \"adflex {key} / {} {what}\", \"model\": \"{model}\", \
+                     \"value\": {:.2}}}",
+                    v["peer"].as_str().unwrap_or(""),
+                    o / us
+                );
+            }
         }
     }
 }

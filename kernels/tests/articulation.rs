@@ -2691,3 +2691,88 @@ fn mjcf_flags_switch_springs_dampers_and_actuation_off() {
         .to_string();
     assert!(e.contains("passive"), "{e}");
 }
+
+/// Mesh geoms that touch nothing on bodies with an `<inertial>` (how MuJoCo Menagerie's robots
+/// draw their links) are decoration: the model loads and its dynamics are the model's without
+/// them, bit for bit. A mesh that would touch, or whose mass would count, is refused by line.
+#[test]
+fn mjcf_passes_over_decoration_meshes_and_refuses_the_others() {
+    let text = r#"<mujoco>
+  <compiler meshdir="assets"/>
+  <asset><mesh name="link_vis" file="link.obj"/></asset>
+  <default>
+    <default class="visual"><geom type="mesh" contype="0" conaffinity="0" group="2"/></default>
+  </default>
+  <worldbody>
+    <geom type="plane" size="1 1 0.1"/>
+    <geom class="visual" mesh="link_vis"/>
+    <body name="a" pos="0 0 1">
+      <joint name="j" type="hinge" axis="0 1 0"/>
+      <inertial pos="0 0 -0.5" mass="1" diaginertia="0.1 0.1 0.1"/>
+      <geom class="visual" mesh="link_vis"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/>
+      <body name="b" pos="0 0 -0.5">
+        <joint name="k" type="hinge" axis="1 0 0"/>
+        <geom type="sphere" size="0.1" pos="0 0 -0.3"/>
+        <geom name="shell" type="mesh" mesh="link_vis" contype="0" conaffinity="0" mass="0"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>"#;
+    let plain = text
+        .lines()
+        .filter(|l| !l.contains("mesh=\"link_vis\""))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let with = mjcf::parse(text).unwrap();
+    let without = mjcf::parse(&plain).unwrap();
+    assert_eq!(with.geoms, without.geoms);
+    let (a, b) = (
+        with.builder.finalize::<f64>().unwrap(),
+        without.builder.finalize::<f64>().unwrap(),
+    );
+    let q = Array::from_vec(vec![0.3, -0.7]);
+    let qd = Array::from_vec(vec![1.1, 0.4]);
+    let mut tape = Tape::new();
+    let (ma, mb) = (a.mass_matrix(&mut tape, &q), b.mass_matrix(&mut tape, &q));
+    assert_eq!(ma.to_vec(), mb.to_vec());
+    let (ca, cb) = (
+        a.bias_forces(&mut tape, &q, &qd),
+        b.bias_forces(&mut tape, &q, &qd),
+    );
+    assert_eq!(ca.to_vec(), cb.to_vec());
+
+    // A mesh that would touch: refused at its line, saying how to make it decoration.
+    let touching = text.replace(
+        "<geom class=\"visual\" mesh=\"link_vis\"/>\n      <geom type=\"capsule\"",
+        "<geom type=\"mesh\" mesh=\"link_vis\"/>\n      <geom type=\"capsule\"",
+    );
+    let e = mjcf::parse(&touching).unwrap_err();
+    assert_eq!(e.line, Some(13), "{e}");
+    let msg = e.to_string();
+    assert!(
+        msg.contains("link_vis") && msg.contains("contype=\"0\"") && msg.contains("touch"),
+        "{msg}"
+    );
+    // Contacts off: it touches nothing, and loads.
+    let off = touching.replace(
+        "<default>",
+        "<option><flag contact=\"disable\"/></option><default>",
+    );
+    assert!(mjcf::parse(&off).is_ok());
+    // A mesh whose mass would count (its body has no <inertial>, and it is not `mass="0"`).
+    let e = mjcf::parse(&text.replace(" mass=\"0\"/>", "/>")).unwrap_err();
+    assert_eq!(e.line, Some(18), "{e}");
+    let msg = e.to_string();
+    assert!(
+        msg.contains("`shell`") && msg.contains("<inertial>"),
+        "{msg}"
+    );
+    // Out of the groups whose mass counts (MuJoCo's inertiagrouprange 0 to 5): decoration.
+    assert!(mjcf::parse(&text.replace(" mass=\"0\"/>", " group=\"6\"/>")).is_ok());
+    // A mesh in a class's defaults is read as the element's.
+    assert!(
+        mjcf::parse(&text.replace("<geom class=\"visual\" mesh", "<geom class=\"nope\" mesh"))
+            .is_err()
+    );
+}

@@ -386,21 +386,30 @@ pub struct ArrayLock<'a> {
     id: u64,
     version: &'a AtomicU64,
     guard: Guard<'a>,
+    /// Registered in [`HELD`] alone (a host access), not by a [`HeldGroup`].
+    tracked: bool,
 }
 
 impl<T> Inner<T> {
     fn acquire(&self, write: bool, label: impl FnOnce() -> String, what: &str) -> ArrayLock<'_> {
         check_not_held(self.id, label, write, what);
+        HELD.with(|h| h.borrow_mut().push((self.id, write)));
+        self.acquire_in_group(write, true)
+    }
+
+    /// The lock alone; `tracked`: the lock removes its own entry from [`HELD`] when dropped
+    /// (a launch's locks are registered and removed together, see [`HeldGroup`]).
+    fn acquire_in_group(&self, write: bool, tracked: bool) -> ArrayLock<'_> {
         let guard = if write {
             Guard::Write(self.access.write().unwrap_or_else(PoisonError::into_inner))
         } else {
             Guard::Read(self.access.read().unwrap_or_else(PoisonError::into_inner))
         };
-        HELD.with(|h| h.borrow_mut().push((self.id, write)));
         ArrayLock {
             id: self.id,
             version: &self.version,
             guard,
+            tracked,
         }
     }
 }
@@ -410,12 +419,50 @@ impl Drop for ArrayLock<'_> {
         if matches!(self.guard, Guard::Write(_)) && std::thread::panicking() {
             self.version.fetch_add(1, Ordering::AcqRel);
         }
+        if !self.tracked {
+            return;
+        }
         HELD.with(|h| {
             let mut h = h.borrow_mut();
             if let Some(k) = h.iter().rposition(|&(i, _)| i == self.id) {
                 h.remove(k);
             }
         });
+    }
+}
+
+/// A launch's distinct arrays registered with the thread at once (checked against what it
+/// already holds in one pass, removed together on drop): a kernel has tens of parameters, and
+/// registering each lock alone cost a search of the others.
+pub(crate) struct HeldGroup {
+    /// [`HELD`]'s length before the group.
+    base: usize,
+}
+
+impl HeldGroup {
+    /// Registers `targets` (distinct arrays, each for writing or reading), refusing (as a host
+    /// access does) an array this thread already holds in a way that would deadlock.
+    pub(crate) fn enter<'a, A>(targets: &[(A, bool)], what: &str) -> HeldGroup
+    where
+        A: std::ops::Deref<Target = dyn AnyArray + 'a>,
+    {
+        let base = HELD.with(|h| h.borrow().len());
+        if base > 0 {
+            for (a, w) in targets {
+                check_not_held(a.id(), || a.label(), *w, what);
+            }
+        }
+        HELD.with(|h| {
+            h.borrow_mut()
+                .extend(targets.iter().map(|(a, w)| (a.id(), *w)))
+        });
+        HeldGroup { base }
+    }
+}
+
+impl Drop for HeldGroup {
+    fn drop(&mut self) {
+        HELD.with(|h| h.borrow_mut().truncate(self.base));
     }
 }
 
@@ -468,7 +515,8 @@ pub trait AnyArray: Send + Sync {
     /// First index whose element has a NaN or infinite component.
     fn first_non_finite(&self) -> Option<usize>;
     /// Holds the access lock while a launch runs: for writing if the launch writes the array.
-    /// (Only the runtime can call it: `Token` cannot be named outside.)
+    /// (Only the runtime can call it: `Token` cannot be named outside.) The launch registers
+    /// its locks with the thread as one `HeldGroup` first.
     fn lock(&self, write: bool, _: Token) -> ArrayLock<'_>;
     /// Bumps the version (after a launch wrote the array).
     fn mark_written(&self, _: Token);
@@ -568,8 +616,7 @@ impl<T: Element> AnyArray for Array<T> {
             .position(|v| (0..T::DIM).any(|k| !v.component(k).is_finite()))
     }
     fn lock(&self, write: bool, _: Token) -> ArrayLock<'_> {
-        self.inner
-            .acquire(write, || self.label(), "launching a kernel on")
+        self.inner.acquire_in_group(write, false)
     }
     fn mark_written(&self, _: Token) {
         self.bump_version()

@@ -527,6 +527,7 @@ fn with_locks(
         .iter()
         .map(|(t, _)| stored.contains(&t.id()))
         .collect();
+    let _held = crate::array::HeldGroup::enter(&targets, "launching a kernel on");
     let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w, Token(()))).collect();
     let locked: Vec<(u64, bool)> = targets.iter().map(|(a, w)| (a.id(), *w)).collect();
     // Under the locks: the buffers the stores of this launch go to, as locked (a buffer

@@ -92,6 +92,7 @@ impl Tape {
         inputs: &[&dyn AnyArray],
         outputs: &[&dyn AnyArray],
     ) -> Result<(), Error> {
+        self.require_recording(what)?;
         let written = self.written_ids();
         if let Some(a) = inputs.iter().find(|a| written.contains(&a.id())) {
             return Err(Error::InvalidInput {

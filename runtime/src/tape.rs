@@ -193,6 +193,10 @@ pub struct Tape {
     /// Arrays whose gradient with respect to their final value is kept (see
     /// [`Tape::retain_grad`]).
     retained: HashSet<u64>,
+    /// False for a [`Tape::no_grad`] tape: steps run and nothing is kept.
+    recording: bool,
+    /// Steps a `no_grad` tape has run (their positions in its errors).
+    unrecorded: usize,
 }
 
 impl Default for Tape {
@@ -260,7 +264,60 @@ impl Tape {
             anomaly: None,
             last: BackwardStats::default(),
             retained: HashSet::new(),
+            recording: true,
+            unrecorded: 0,
         }
+    }
+
+    /// A tape that runs every launch and custom step at once and records nothing, for rollouts
+    /// that need no derivatives (evaluating a policy, generating data): the bookkeeping a
+    /// recorded step costs (its record, the handles of its arrays, their versions) is skipped,
+    /// and nothing is kept alive after the step, so memory stays flat over any number of
+    /// steps. Code written against `&mut Tape` runs unchanged. Forward values are bitwise
+    /// those of a recording tape.
+    ///
+    /// Asking it for derivatives ([`Tape::backward`], [`Tape::backward_with`],
+    /// [`Tape::tangent`], [`Tape::vjp`], [`Tape::jvp`], ...) is an error that says so, never a
+    /// silent zero. [`Tape::check_finite`] still checks each step's outputs.
+    ///
+    /// ```
+    /// use adflex_runtime::prelude::*;
+    /// use adflex_macros::diff_kernel;
+    /// #[diff_kernel]
+    /// fn double(x: &Array<f64>, y: &Array<f64>) {
+    ///     y[tid()] = 2.0 * x[tid()];
+    /// }
+    /// let x = Array::from_vec(vec![1.0, 2.0]).requires_grad();
+    /// let y = Array::zeros(2);
+    /// let mut tape = Tape::no_grad();
+    /// tape.launch(double, 2, (&x, &y));
+    /// assert_eq!(y.to_vec(), vec![2.0, 4.0]);
+    /// assert!(tape.is_empty());
+    /// assert!(tape.backward(&y).is_err()); // "... made by Tape::no_grad ..."
+    /// ```
+    pub fn no_grad() -> Self {
+        Tape {
+            recording: false,
+            ..Tape::new()
+        }
+    }
+
+    /// False for a tape made by [`Tape::no_grad`].
+    pub fn is_recording(&self) -> bool {
+        self.recording
+    }
+
+    /// The error of asking a [`Tape::no_grad`] tape for derivatives.
+    pub(crate) fn require_recording(&self, what: &str) -> Result<(), Error> {
+        if self.recording {
+            return Ok(());
+        }
+        Err(Error::InvalidInput {
+            what: what.into(),
+            message: "this tape was made by Tape::no_grad() and recorded nothing: record the \
+                      steps on a Tape::new() to take derivatives"
+                .into(),
+        })
     }
 
     /// Keeps, after each [`Tape::backward`], the gradient of the loss with respect to the
@@ -410,6 +467,10 @@ impl Tape {
     where
         K: Kernel<A> + KernelBody<<K as Kernel<A>>::Owned>,
     {
+        if !self.recording && !self.check_finite {
+            self.unrecorded += 1;
+            return crate::launch::launch(kernel, dim, args);
+        }
         let launch = bind(kernel, args);
         let (reads, writes) = uses(launch.params(), &launch.arrays());
         launch.run(Mode::Forward, dim);
@@ -448,6 +509,14 @@ impl Tape {
         forward: impl FnOnce(),
         backward: impl FnMut() -> Result<(), Error> + Send + Sync + 'static,
     ) -> CustomStep<'_> {
+        if !self.recording && !self.check_finite {
+            self.unrecorded += 1;
+            forward();
+            return CustomStep {
+                tape: self,
+                index: usize::MAX,
+            };
+        }
         let side = |arrays: &[&dyn AnyArray], what: &str| {
             arrays
                 .iter()
@@ -478,16 +547,22 @@ impl Tape {
         for u in &mut record.writes {
             u.after = u.array.version();
         }
-        let index = self.records.len();
+        let index = self.records.len() + self.unrecorded;
         self.records.push(record);
         if self.check_finite && self.anomaly.is_none() {
-            let r = &self.records[index];
+            let r = self.records.last().expect("just pushed");
             for u in &r.writes {
                 if let Some(i) = u.array.first_non_finite() {
                     self.anomaly = Some(r.non_finite(index, u, i, "forward"));
                     break;
                 }
             }
+        }
+        if !self.recording {
+            // Checked, not kept (`check_finite` on a `no_grad` tape).
+            self.records.pop();
+            self.unrecorded += 1;
+            return usize::MAX;
         }
         index
     }
@@ -863,6 +938,7 @@ impl Tape {
         loss: &Array<T>,
         sources: &HashSet<u64>,
     ) -> Result<(), Error> {
+        self.require_recording("Tape::backward")?;
         if !self.writes(loss.id()) {
             return Err(Error::NotOnTape {
                 array: loss.label(),
@@ -881,6 +957,7 @@ impl Tape {
     /// Errors: [`Error::NotOnTape`] if no recorded step wrote a seed, [`Error::NoGrad`] if a
     /// seed has no gradient buffer, and the errors of [`Tape::backward`].
     pub fn backward_with(&mut self, seeds: &[&dyn AnyArray]) -> Result<(), Error> {
+        self.require_recording("Tape::backward_with")?;
         for s in seeds {
             if !self.writes(s.id()) {
                 return Err(Error::NotOnTape { array: s.label() });
@@ -909,6 +986,7 @@ impl Tape {
         seeds: &[&dyn AnyArray],
         sources: &HashSet<u64>,
     ) -> Result<(), Error> {
+        self.require_recording("Tape::vjp")?;
         let seeds = seeds.iter().map(|s| s.id()).collect();
         let plan = self.plan(&seeds, sources, false)?;
         self.execute(&plan)
@@ -931,6 +1009,7 @@ impl Tape {
     /// recorded, [`Error::Other`] if a custom step has no tangent, [`Error::NonFinite`] in
     /// [`Tape::check_finite`] mode.
     pub fn tangent(&mut self) -> Result<(), Error> {
+        self.require_recording("Tape::tangent")?;
         self.no_anomaly()?;
         for i in 0..self.records.len() {
             self.check_versions(i)?;
@@ -992,6 +1071,7 @@ impl Tape {
         self.records.clear();
         self.anomaly = None;
         self.last = BackwardStats::default();
+        self.unrecorded = 0;
     }
 
     /// The tape as a Graphviz DOT graph: a box per step (`#index name`, `dim`, scope; steps of
@@ -1101,7 +1181,9 @@ impl CustomStep<'_> {
     /// ([`crate::second_order`]) may go through the step. Without it, a step on `Dual` arrays
     /// refuses to run backward or forward-mode.
     pub fn dual_safe(self) -> Self {
-        if let Step::Custom { dual_unsafe, .. } = &mut self.tape.records[self.index].step {
+        if let Some(Step::Custom { dual_unsafe, .. }) =
+            self.tape.records.get_mut(self.index).map(|r| &mut r.step)
+        {
             *dual_unsafe = false;
         }
         self
@@ -1129,7 +1211,9 @@ impl CustomStep<'_> {
         self,
         mut tangent: impl FnMut() -> O + Send + Sync + 'static,
     ) {
-        if let Step::Custom { tangent: t, .. } = &mut self.tape.records[self.index].step {
+        if let Some(Step::Custom { tangent: t, .. }) =
+            self.tape.records.get_mut(self.index).map(|r| &mut r.step)
+        {
             *t = Some(Box::new(move || tangent().into_result()));
         }
     }

@@ -546,3 +546,58 @@ fn custom_step_in_place() {
         Err(Error::ArrayChanged { .. })
     ));
 }
+
+/// A `no_grad` tape runs every step (launches and custom steps) with the recording tape's
+/// bits, keeps nothing, and refuses every derivative by name; `check_finite` still works, and
+/// names the step's position among those it ran.
+#[test]
+fn no_grad_tape_runs_keeps_nothing_and_refuses_derivatives() {
+    let run = |tape: &mut Tape| {
+        let x = Array::from_vec(xs()).requires_grad().named("x");
+        let (y, loss) = square_loss(tape, &x, 1.5);
+        let z = double_on_host(tape, &y);
+        (x, y, z, loss)
+    };
+    let mut recorded = Tape::new();
+    let (_, y0, z0, l0) = run(&mut recorded);
+    let mut tape = Tape::no_grad();
+    assert!(!tape.is_recording() && recorded.is_recording());
+    let (x, y, z, loss) = run(&mut tape);
+    assert_eq!(y.to_vec(), y0.to_vec());
+    assert_eq!(z.to_vec(), z0.to_vec());
+    assert_eq!(loss.to_vec(), l0.to_vec());
+    assert_eq!(recorded.len(), 3);
+    assert!(tape.is_empty());
+    let refused = |e: Error, what: &str| {
+        let msg = e.to_string();
+        assert!(
+            msg.contains(what) && msg.contains("Tape::no_grad()") && msg.contains("Tape::new()"),
+            "{msg}"
+        );
+    };
+    refused(tape.backward(&loss).unwrap_err(), "Tape::backward");
+    loss.ensure_grad();
+    refused(
+        tape.backward_with(&[&loss]).unwrap_err(),
+        "Tape::backward_with",
+    );
+    refused(tape.tangent().unwrap_err(), "Tape::tangent");
+    refused(tape.vjp(&[&loss], &[1.0], &[&x]).unwrap_err(), "Tape::vjp");
+    refused(tape.jvp(&[&x], &xs(), &[&loss]).unwrap_err(), "Tape::jvp");
+    // The recording tape's gradient is untouched by any of it.
+    recorded.backward(&l0).unwrap();
+
+    // check_finite: the first NaN, at its position among the steps this tape ran.
+    let mut tape = Tape::no_grad();
+    tape.check_finite(true);
+    let a = Array::from_vec(vec![1.0, -1.0]).named("a");
+    let (b, c) = (Array::<f64>::zeros(2).named("b"), Array::<f64>::zeros(2));
+    tape.launch(Square::<false>, 2, (&a, 1.0, &b));
+    tape.launch(Sqrt, 2, (&a, &c));
+    let msg = tape.anomaly().expect("a NaN").to_string();
+    assert!(
+        msg.contains("`sqrt`") && msg.contains("#1") && msg.contains("index 1"),
+        "{msg}"
+    );
+    assert!(tape.is_empty());
+}

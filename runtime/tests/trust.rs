@@ -262,6 +262,25 @@ fn reentrant_access_inside_modify_is_an_error_not_a_deadlock() {
     assert_eq!(y.to_vec(), vec![5.0, 2.0]);
 }
 
+#[test]
+fn a_launch_inside_modify_of_its_array_is_an_error_and_leaves_the_thread_clean() {
+    let x = Array::from_vec(vec![1.0f64, 2.0]).named("x");
+    let idx = Array::from_vec(vec![1u32, 0]).named("idx");
+    let y = Array::<f64>::zeros(2).named("y");
+    // Reading `x` in a launch while this thread writes it in `modify`: refused by name.
+    let msg = panic_message(catch_unwind(AssertUnwindSafe(|| {
+        x.modify(|_| launch(gather, 2, (&x, &idx, &y)));
+    })));
+    assert!(msg.contains("`x`") && msg.contains("deadlock"), "{msg}");
+    // A launch on other arrays inside `modify` runs; afterwards every lock is released.
+    let other = Array::from_vec(vec![0.0f64; 2]);
+    other.modify(|_| launch(gather, 2, (&x, &idx, &y)));
+    assert_eq!(y.to_vec(), vec![2.0, 1.0]);
+    x.modify(|d| d[0] = 3.0);
+    launch(gather, 2, (&x, &idx, &y));
+    assert_eq!(y.to_vec(), vec![2.0, 3.0]);
+}
+
 // ---- a kernel that panics leaves usable arrays --------------------------------------------
 
 #[diff_kernel]

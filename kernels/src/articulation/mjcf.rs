@@ -18,7 +18,9 @@
 //! `margin` moves a limit that far inside the range, where MuJoCo's limit pushes back to),
 //! `<freejoint>`, `<geom type="sphere|capsule|box|cylinder|ellipsoid|plane" size fromto pos quat
 //! mass density contype conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as
-//! MuJoCo's default `inertiagrouprange`), `<inertial pos quat mass diaginertia|fullinertia>`,
+//! MuJoCo's default `inertiagrouprange`), `type="mesh"` geoms as decoration only (passed over,
+//! not in [`Mjcf::geoms`]: one that would touch, or whose mass would count because its body has
+//! no `<inertial>`, is an error saying what to change), `<inertial pos quat mass diaginertia|fullinertia>`,
 //! `<actuator>` with `<motor>`, `<position kp kv>`, `<velocity kv>`, `<damper kv>` and `<general
 //! gaintype biastype gainprm biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint
 //! or a fixed tendon, with `gear`, `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`:
@@ -257,6 +259,8 @@ const GEOM_ATTRS: &[&str] = &[
     "solimp",
     "margin",
     "user",
+    // The asset a mesh geom draws (mesh geoms are decoration, see `Reader::decoration_mesh`).
+    "mesh",
 ];
 
 /// The actuator elements read: MuJoCo's general actuator and its shortcuts without
@@ -973,6 +977,9 @@ impl<'a> Reader<'a> {
             match c.tag_name().name() {
                 "body" => self.body(c, None, Vec3::zeros(), &class)?,
                 _ => {
+                    if self.decoration_mesh(c, &class, false)? {
+                        continue;
+                    }
                     let (g, _) = self.geom(c, &class, None)?;
                     let filter = self.filter(c, &class)?;
                     if g.shape == GeomShape::Plane && filter == ContactFilter::NONE {
@@ -1085,9 +1092,16 @@ impl<'a> Reader<'a> {
         }
         // Mass properties in the body frame.
         let inertial_node = kids.iter().find(|k| k.has_tag_name("inertial"));
+        let use_geoms = match self.from_geoms {
+            Some(b) => b,
+            None => inertial_node.is_none(),
+        };
         let mut geoms = Vec::new();
         let mut from_geoms = Inertial::massless();
         for g in kids.iter().filter(|k| k.has_tag_name("geom")) {
+            if self.decoration_mesh(*g, &class, use_geoms)? {
+                continue;
+            }
             let (geom, inertial) = self.geom(*g, &class, Some(LinkId(0)))?;
             if let Some(i) = inertial {
                 from_geoms = from_geoms.combine(&i);
@@ -1095,10 +1109,6 @@ impl<'a> Reader<'a> {
             let filter = self.filter(*g, &class)?;
             geoms.push((geom, filter));
         }
-        let use_geoms = match self.from_geoms {
-            Some(b) => b,
-            None => inertial_node.is_none(),
-        };
         let inertial = if use_geoms {
             from_geoms
         } else if let Some(i) = inertial_node {
@@ -1214,6 +1224,54 @@ impl<'a> Reader<'a> {
         for (a, b) in pairs {
             self.builder.exclude_contact(a, b);
         }
+    }
+
+    /// Whether `n` is a mesh geom, passed over as decoration (the robots of MuJoCo Menagerie
+    /// draw their links with meshes that touch nothing and have an `<inertial>`). A mesh must
+    /// change nothing simulated: one that would touch (its `contype` or `conaffinity` not 0,
+    /// with contacts on), or whose mass would count (`mass_from_geoms`: the body has no
+    /// `<inertial>`, or `inertiafromgeom="true"`; in the geom groups 0 to 5, without
+    /// `mass="0"`), is an error naming it and what to change.
+    fn decoration_mesh(
+        &self,
+        n: Node,
+        class: &str,
+        mass_from_geoms: bool,
+    ) -> Result<bool, ArticulationError> {
+        if self.attr(n, class, "type") != Some("mesh") {
+            return Ok(false);
+        }
+        self.src.only_attributes(n, GEOM_ATTRS)?;
+        self.check_class(n)?;
+        let what = match n.attribute("name").or(self.attr(n, class, "mesh")) {
+            Some(name) => format!("mesh geom `{name}`"),
+            None => "a mesh geom".to_string(),
+        };
+        if self.filter(n, class)? != ContactFilter::NONE && !self.no_contact {
+            return Err(self.src.error(
+                n,
+                format!(
+                    "{what} would touch other geoms, and meshes are not contact shapes here: \
+                     set contype=\"0\" conaffinity=\"0\" (it is then decoration), or put a \
+                     sphere, capsule, box or cylinder in its place"
+                ),
+            ));
+        }
+        let group = self.nums(n, class, "group", &[1])?.map_or(0.0, |g| g[0]);
+        let massless = self
+            .nums(n, class, "mass", &[1])?
+            .is_some_and(|m| m[0] == 0.0);
+        if mass_from_geoms && (0.0..=5.0).contains(&group) && !massless {
+            return Err(self.src.error(
+                n,
+                format!(
+                    "the body's mass would come from {what}, whose volume is not computed here: \
+                     give the body an <inertial> (MuJoCo then ignores its geoms' mass, unless \
+                     <compiler inertiafromgeom=\"true\">), or set mass=\"0\" on the mesh"
+                ),
+            ));
+        }
+        Ok(true)
     }
 
     /// A geom's `contype` and `conaffinity` (own or default; 1 when not given).
