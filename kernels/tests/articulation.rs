@@ -2776,3 +2776,110 @@ fn mjcf_passes_over_decoration_meshes_and_refuses_the_others() {
             .is_err()
     );
 }
+
+/// Gravity compensation (MuJoCo's `gravcomp`, checked against MuJoCo's passive forces and
+/// rollouts on `servo_arm.xml` in `dynamics_agree_with_pinocchio_and_mujoco`): links fully
+/// compensated are weightless; gradients in the fractions and the masses agree with central
+/// differences, forward mode with reverse; a NaN is refused by name; with springs and dampers
+/// both switched off it goes, as MuJoCo's passive forces do.
+#[test]
+fn gravity_compensation_makes_links_weightless_with_right_gradients() {
+    use adflex_kernels::articulation::{ArticulationBuilder, ArticulationState};
+    let xml = |g1: &str, g2: &str| {
+        format!(
+            r#"<mujoco><worldbody>
+  <body name="a" pos="0 0 1" gravcomp="{g1}"><joint name="j" type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03"/>
+    <body name="b" pos="0.4 0 0" gravcomp="{g2}"><joint name="k" type="hinge" axis="1 0 0"/>
+      <geom type="sphere" size="0.05" pos="0.3 0 0.1"/></body></body></worldbody></mujoco>"#
+        )
+    };
+    let build = |b: ArticulationBuilder| b.finalize::<f64>().unwrap();
+    let roll = |model: &Articulations<f64>, tape: &mut Tape, q0: &Array<f64>, steps: usize| {
+        let mut s = ArticulationState {
+            q: q0.clone(),
+            qd: Array::from_vec(vec![0.2, -0.1]),
+        };
+        for _ in 0..steps {
+            s = model.step(tape, &s, None, 2e-3).unwrap();
+        }
+        s
+    };
+    let q0 = Array::from_vec(vec![0.3, -0.5]);
+    // Weightless: the same motion as without gravity.
+    let full = build(mjcf::parse(&xml("1", "1")).unwrap().builder);
+    let mut b = mjcf::parse(&xml("0", "0")).unwrap().builder;
+    b.gravity = adflex_runtime::Vec3::zeros();
+    let no_gravity = build(b);
+    let falls = build(mjcf::parse(&xml("0", "0")).unwrap().builder);
+    let (a, z, f) = (
+        roll(&full, &mut Tape::new(), &q0, 300),
+        roll(&no_gravity, &mut Tape::new(), &q0, 300),
+        roll(&falls, &mut Tape::new(), &q0, 300),
+    );
+    for (x, y) in a.q.to_vec().iter().zip(z.q.to_vec()) {
+        assert!((x - y).abs() < 1e-12, "{:?} vs {:?}", a.q, z.q);
+    }
+    assert!(
+        (a.q.get(0) - f.q.get(0)).abs() > 0.05,
+        "gravity does nothing?"
+    );
+
+    // Gradients in the two fractions and the two masses.
+    let model = build(mjcf::parse(&xml("0.4", "0.7")).unwrap().builder);
+    assert_eq!(model.gravcomp_link.to_vec(), vec![0, 1]);
+    let w = [0.7, -1.3, 0.4, 0.9];
+    let loss = |gc: [f64; 2], m: [f64; 2]| -> f64 {
+        let model = Articulations {
+            gravcomp: Array::from_vec(gc.to_vec()),
+            mass: Array::from_vec(m.to_vec()),
+            ..model.clone()
+        };
+        let s = roll(&model, &mut Tape::new(), &q0, 100);
+        let x: Vec<f64> = s.q.to_vec().into_iter().chain(s.qd.to_vec()).collect();
+        x.iter().zip(w).map(|(a, b)| a * b).sum()
+    };
+    let (gc0, m0) = ([0.4, 0.7], [model.mass.get(0), model.mass.get(1)]);
+    let mut tape = Tape::new();
+    let s = roll(&model, &mut tape, &q0, 100);
+    let g = tape
+        .vjp(&[&s.q, &s.qd], &w, &[&model.gravcomp, &model.mass])
+        .unwrap();
+    let h = 1e-6;
+    for k in 0..4 {
+        let (mut gp, mut gm, mut mp, mut mm) = (gc0, gc0, m0, m0);
+        if k < 2 {
+            (gp[k], gm[k]) = (gc0[k] + h, gc0[k] - h);
+        } else {
+            (mp[k - 2], mm[k - 2]) = (m0[k - 2] + h, m0[k - 2] - h);
+        }
+        let fd = (loss(gp, mp) - loss(gm, mm)) / (2.0 * h);
+        assert!(
+            (g[k] - fd).abs() < 1e-6 * fd.abs().max(1e-3),
+            "input {k}: {g:?}, central difference {fd}"
+        );
+    }
+    assert!(g[0].abs() > 1e-3 && g[1].abs() > 1e-3, "{g:?}");
+    let v = [0.3, -0.8, 0.5, 0.2];
+    let jv = tape
+        .jvp(&[&model.gravcomp, &model.mass], &v, &[&s.q, &s.qd])
+        .unwrap();
+    let lhs: f64 = jv.iter().zip(w).map(|(a, b)| a * b).sum();
+    let rhs: f64 = g.iter().zip(v).map(|(a, b)| a * b).sum();
+    assert!(
+        (lhs - rhs).abs() < 1e-9 * rhs.abs().max(1.0),
+        "{lhs} vs {rhs}"
+    );
+
+    // A NaN is refused by name; springs and dampers off take it away, as in MuJoCo.
+    let mut b = mjcf::parse(&xml("0.4", "0.7")).unwrap().builder;
+    b.links_mut()[1].gravcomp = f64::NAN;
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("\"b\"") && e.contains("gravcomp"), "{e}");
+    let off = xml("1", "1").replace(
+        "<worldbody>",
+        "<option><flag spring=\"disable\" damper=\"disable\"/></option><worldbody>",
+    );
+    let off = build(mjcf::parse(&off).unwrap().builder);
+    assert!(off.gravcomp_link.is_empty());
+}

@@ -125,6 +125,12 @@ pub(crate) fn finalize<R: Real>(
             }
         }
         check_inertial(&d.inertial).map_err(|m| err(name(l), m))?;
+        if !d.gravcomp.is_finite() {
+            return Err(err(
+                name(l),
+                format!("gravcomp {} must be finite", d.gravcomp),
+            ));
+        }
         let j = &d.joint;
         let je = || format!("joint \"{}\"", joint_name(l));
         let q = j.origin.rot;
@@ -591,6 +597,17 @@ pub(crate) fn finalize<R: Real>(
         fluid_com: Array::from_vec(boxes.iter().map(|x| v3(&x.com)).collect()),
         fluid_rot: Array::from_vec(boxes.iter().map(|x| quat(&x.rot)).collect()),
         fluid_box: Array::from_vec(boxes.iter().map(|x| v3(&x.sides)).collect()),
+        gravcomp_link: Array::from_vec(
+            (0..n)
+                .filter(|&i| links[order[i]].gravcomp != 0.0)
+                .map(|i| i as u32)
+                .collect(),
+        ),
+        gravcomp: rs(&order
+            .iter()
+            .map(|&l| links[l].gravcomp)
+            .filter(|&g| g != 0.0)
+            .collect::<Vec<_>>()),
         q0: neutral.iter().map(|&x| r(x)).collect(),
         chain_start: Array::from_vec(chain_start),
         chain: Array::from_vec(chain),

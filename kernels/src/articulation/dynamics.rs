@@ -416,6 +416,24 @@ impl<R: Real> Articulations<R> {
         if let Some(c) = control {
             self.applied_wrenches(tape, c, &k, (&en, &ef));
         }
+        if let (Some(_), false) = (control, self.gravcomp_link.is_empty()) {
+            tape.launch(
+                super::kernels::articulation_gravcomp,
+                self.gravcomp_link.len(),
+                (
+                    &self.gravcomp_link,
+                    &self.gravcomp,
+                    &self.link_world,
+                    &self.gravity,
+                    &self.mass,
+                    &k.link_p,
+                    &k.link_r,
+                    &self.com,
+                    &en,
+                    &ef,
+                ),
+            );
+        }
         if let (Some(_), true, false) = (control, self.fluid_on, self.fluid_link.is_empty()) {
             tape.launch(
                 super::fluid::articulation_fluid,

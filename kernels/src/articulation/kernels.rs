@@ -655,6 +655,30 @@ pub fn articulation_applied_wrench<R: Real>(
     ext_f.atomic_add(l, f);
 }
 
+/// Gravity compensation ([`LinkDesc::gravcomp`](super::LinkDesc)): an upward force of
+/// `gravcomp[tid]` times the weight of link `gravcomp_link[tid]` (its world's gravity) at its
+/// centre of mass, as a wrench about the world origin added into the link's `(ext_n, ext_f)`.
+#[diff_kernel]
+pub fn articulation_gravcomp<R: Real>(
+    gravcomp_link: &Array<u32>,
+    gravcomp: &Array<R>,
+    link_world: &Array<u32>,
+    gravity: &Array<Vec3<R>>,
+    mass: &Array<R>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    com: &Array<Vec3<R>>,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let k = tid();
+    let l = gravcomp_link[k] as usize;
+    let f = gravity[link_world[l] as usize] * (-(gravcomp[k] * mass[l]));
+    let c = link_p[l] + quat_rotate(link_r[l], com[l]);
+    ext_n.atomic_add(l, cross(c, f));
+    ext_f.atomic_add(l, f);
+}
+
 /// The twist of link `tid`, world frame: its angular velocity `link_w` and the velocity
 /// `link_v` of the body point at the world origin (a point `x` of the link moves at `link_v +
 /// link_w x x`), the sum of `S_j qd_j` over the joints of its chain.

@@ -11,7 +11,8 @@
 //! [`ArticulationBuilder::implicit_damping`] and `clampctrl` the clamping of controls; flags about
 //! MuJoCo's solver, sensors or checks are passed over; others that change the default are refused),
 //! `<default>` classes (nested, with `joint`, `geom`, actuator and `tendon` defaults),
-//! `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis childclass>`, `<joint
+//! `<worldbody>` with nested `<body pos quat|euler|axisangle|xyaxes|zaxis childclass gravcomp>`
+//! (`gravcomp`: [`LinkDesc::gravcomp`](super::LinkDesc)), `<joint
 //! type="hinge|slide|ball|free" pos axis range limited margin ref damping armature stiffness
 //! springref>` (a spring on hinges and slides; `springref` and `ref` in the file's angle unit;
 //! `ref` is the coordinate at which the body is where the file puts it, and the initial one; a
@@ -594,7 +595,7 @@ impl<'a> Reader<'a> {
                 "coordinate",
                 "settotalmass",
                 // Where meshes and textures are, and how the compiler runs: nothing simulated
-                // here depends on them (mesh geoms are refused).
+                // here depends on them (mesh geoms are decoration, or refused).
                 "meshdir",
                 "texturedir",
                 "assetdir",
@@ -667,8 +668,8 @@ impl<'a> Reader<'a> {
     }
 
     /// The forces `<flag>` switched off, on the model read: MuJoCo's `spring` (joint and tendon
-    /// springs), `damper` (joint and tendon damping) and, with both, the fluid (MuJoCo's other
-    /// passive forces); `actuation` (the actuators' gains and biases become 0 and their force
+    /// springs), `damper` (joint and tendon damping) and, with both, the fluid and gravity
+    /// compensation (MuJoCo's other passive forces); `actuation` (the actuators' gains and biases become 0 and their force
     /// ranges go: their controls remain, exerting nothing, as MuJoCo's).
     fn switch_off_forces(&mut self) {
         let (spring, damper) = (self.no_spring, self.no_damper);
@@ -690,6 +691,9 @@ impl<'a> Reader<'a> {
         }
         if spring && damper {
             self.builder.fluid = None;
+            for l in self.builder.links_mut() {
+                l.gravcomp = 0.0;
+            }
         }
         if self.no_actuation {
             for a in self.builder.actuators_mut() {
@@ -1047,9 +1051,8 @@ impl<'a> Reader<'a> {
                 "gravcomp",
             ],
         )?;
-        if self.attr(n, class, "gravcomp").is_some() {
-            return Err(self.src.error(n, "gravcomp is not supported"));
-        }
+        // MuJoCo's gravity compensation, a fraction of the body's weight (a passive force).
+        let gravcomp = self.src.number(n, "gravcomp")?.unwrap_or(0.0);
         if let Some(c) = n.attribute("childclass") {
             if !self.classes.contains_key(c) {
                 return Err(self
@@ -1173,6 +1176,9 @@ impl<'a> Reader<'a> {
                 self.builder
                     .add_link(link_name, link, joint.origin(origin), mass),
             );
+        }
+        if let Some(l) = link.filter(|_| gravcomp != 0.0) {
+            self.builder.links_mut()[l.0].gravcomp = gravcomp;
         }
         for (mut g, filter) in geoms {
             g.link = link;

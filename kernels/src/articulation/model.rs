@@ -305,6 +305,11 @@ pub struct LinkDesc {
     pub joint: Joint,
     /// Mass properties.
     pub inertial: Inertial,
+    /// Gravity compensation (default 0), MuJoCo's `gravcomp`: an upward force of this fraction
+    /// of the link's weight at its centre of mass (1 cancels gravity on the link; any finite
+    /// value, e.g. buoyancy). A passive force: it joins the step's forces with a control, as
+    /// MuJoCo adds it to `qfrc_passive`, not the bias forces.
+    pub gravcomp: f64,
 }
 
 /// What is wrong with a described articulation (or robot file): the element, where it is,
@@ -464,6 +469,7 @@ impl ArticulationBuilder {
             parent,
             joint,
             inertial,
+            gravcomp: 0.0,
         });
         LinkId(self.links.len() - 1)
     }
@@ -1058,6 +1064,11 @@ pub struct Articulations<R: Real> {
     pub fluid_rot: Array<Quat<R>>,
     /// See [`fluid_link`](Self::fluid_link).
     pub fluid_box: Array<Vec3<R>>,
+    /// Per link with gravity compensation ([`LinkDesc::gravcomp`]): the link.
+    pub gravcomp_link: Array<u32>,
+    /// See [`gravcomp_link`](Self::gravcomp_link): the fraction of the link's weight (its
+    /// `mass` entry, read at each step) compensated. Can require gradients.
+    pub gravcomp: Array<R>,
     /// The initial configuration ([`Articulations::state`] starts there): each joint's
     /// [`Joint::initial`], or zeros and identity quaternions.
     pub q0: Vec<R>,
