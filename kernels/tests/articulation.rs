@@ -2770,7 +2770,7 @@ fn mjcf_passes_over_decoration_meshes_and_refuses_the_others() {
     );
     // Out of the groups whose mass counts (MuJoCo's inertiagrouprange 0 to 5): decoration.
     assert!(mjcf::parse(&text.replace(" mass=\"0\"/>", " group=\"6\"/>")).is_ok());
-    // A mesh in a class's defaults is read as the element's.
+    // A mesh geom naming a class that does not exist is refused (its defaults would be lost).
     assert!(
         mjcf::parse(&text.replace("<geom class=\"visual\" mesh", "<geom class=\"nope\" mesh"))
             .is_err()

@@ -21,7 +21,8 @@
 //! mass density contype conaffinity friction group>` (a geom outside groups 0 to 5 has no mass, as
 //! MuJoCo's default `inertiagrouprange`), `type="mesh"` geoms as decoration only (passed over,
 //! not in [`Mjcf::geoms`]: one that would touch, or whose mass would count because its body has
-//! no `<inertial>`, is an error saying what to change), `<inertial pos quat mass diaginertia|fullinertia>`,
+//! no `<inertial>`, is an error saying what to change), `<inertial pos quat mass
+//! diaginertia|fullinertia>`,
 //! `<actuator>` with `<motor>`, `<position kp kv>`, `<velocity kv>`, `<damper kv>` and `<general
 //! gaintype biastype gainprm biasprm>` (`dyntype="none"`, fixed or affine gain and bias) on a joint
 //! or a fixed tendon, with `gear`, `ctrlrange`, `ctrllimited`, `forcerange` and `forcelimited`:
@@ -669,8 +670,9 @@ impl<'a> Reader<'a> {
 
     /// The forces `<flag>` switched off, on the model read: MuJoCo's `spring` (joint and tendon
     /// springs), `damper` (joint and tendon damping) and, with both, the fluid and gravity
-    /// compensation (MuJoCo's other passive forces); `actuation` (the actuators' gains and biases become 0 and their force
-    /// ranges go: their controls remain, exerting nothing, as MuJoCo's).
+    /// compensation (MuJoCo's other passive forces); `actuation` (the actuators' gains and
+    /// biases become 0 and their force ranges go: their controls remain, exerting nothing, as
+    /// MuJoCo's).
     fn switch_off_forces(&mut self) {
         let (spring, damper) = (self.no_spring, self.no_damper);
         for l in self.builder.links_mut() {
