@@ -906,3 +906,196 @@ fn closures_that_differentiate_differently_are_refused_at_the_first_step() {
         .unwrap_err();
     assert!(e.contains("disagree with the gradient"), "{e}");
 }
+
+/// `x_i = s_i - (s_i³ + s_i - q_i) / (3 s_i² + 1)` per component, `q_i = a_i p0 + b_i p1`, from
+/// the root `s_i`: the value is the root, the derivative the implicit function theorem's.
+#[diff_kernel]
+fn cubic_solved_vec3(
+    s: &Array<Vec3<f64>>,
+    p: &Array<f64>,
+    a: &Array<Vec3<f64>>,
+    b: &Array<Vec3<f64>>,
+    x: &Array<Vec3<f64>>,
+) {
+    let i = tid();
+    let r = s[i];
+    let q = a[i] * p[0] + b[i] * p[1];
+    let num = cw_mul(cw_mul(r, r), r) + r - q;
+    let den = cw_mul(r, r) * 3.0 + vec3(1.0, 1.0, 1.0);
+    x[i] = r - cw_div(num, den);
+}
+
+/// `c_i = x_i³ + x_i - a_i p0 - b_i p1`, per component.
+#[diff_kernel]
+fn cubic_constraint_vec3(
+    x: &Array<Vec3<f64>>,
+    p: &Array<f64>,
+    a: &Array<Vec3<f64>>,
+    b: &Array<Vec3<f64>>,
+    c: &Array<Vec3<f64>>,
+) {
+    let i = tid();
+    let y = x[i];
+    c[i] = cw_mul(cw_mul(y, y), y) + y - a[i] * p[0] - b[i] * p[1];
+}
+
+#[diff_kernel]
+fn miss_vec3(x: &Array<Vec3<f64>>, target: &Array<Vec3<f64>>, r: &Array<Vec3<f64>>) {
+    let i = tid();
+    r[i] = x[i] - target[i];
+}
+
+/// The KKT step with a state of `Vec3` (12 scalars in 4 elements) is the scalar problem's: the
+/// same 12 cubics, as scalars, take the same first step and reach the same fit.
+#[test]
+fn the_kkt_step_with_a_vec3_state_is_the_scalar_one() {
+    let n = 4;
+    let a: Vec<Vec3<f64>> = (0..n)
+        .map(|i| Vec3::new(1.0, 0.5 + 0.1 * i as f64, 0.2))
+        .collect();
+    let b: Vec<Vec3<f64>> = (0..n)
+        .map(|i| Vec3::new(i as f64, 0.3, 1.0 - 0.2 * i as f64))
+        .collect();
+    let target: Vec<Vec3<f64>> = (0..n)
+        .map(|i| Vec3::new(0.3 + 0.1 * i as f64, 0.5, 0.2 * i as f64))
+        .collect();
+    let p = Array::from_vec(vec![0.2, 0.1]).named("p");
+    let (aa, ba, ta) = (
+        Array::from_vec(a.clone()),
+        Array::from_vec(b.clone()),
+        Array::from_vec(target.clone()),
+    );
+    let roots = |p: &[f64]| -> Vec<Vec3<f64>> {
+        (0..n)
+            .map(|i| (a[i] * p[0] + b[i] * p[1]).map(cubic_root))
+            .collect()
+    };
+    let residuals = |tape: &mut Tape, x: &Array<Vec3<f64>>| {
+        let r = Array::zeros(n).named("miss");
+        tape.launch(miss_vec3, n, (x, &ta, &r));
+        r
+    };
+    let run = |opt: Optimizer<'_>| {
+        opt.progress(false)
+            .least_squares_kkt(
+                &Params::new().with(&p),
+                |tape| {
+                    let s = Array::from_vec(roots(&p.to_vec()));
+                    let x = Array::zeros(n).named("x");
+                    tape.launch(cubic_solved_vec3, n, (&s, &p, &aa, &ba, &x));
+                    Ok((x.clone(), residuals(tape, &x)))
+                },
+                |tape, x| {
+                    let c = Array::zeros(n).named("c");
+                    tape.launch(cubic_constraint_vec3, n, (x, &p, &aa, &ba, &c));
+                    Ok((c, residuals(tape, x)))
+                },
+            )
+            .unwrap()
+    };
+    // The scalar problem: the 12 components as the `Cubic` test's scalars (weights per
+    // component: q = a p0 + b p1, so two weight arrays).
+    let flat = |v: &[Vec3<f64>]| -> Vec<f64> { v.iter().flat_map(|u| [u.x, u.y, u.z]).collect() };
+    let (fa, fb, ft) = (flat(&a), flat(&b), flat(&target));
+    let by_hand = |p: [f64; 2]| -> [f64; 2] {
+        // dp = -(JᵀJ)⁻¹ Jᵀ r, J_kj = (a_k, b_k) / (3 x_k² + 1).
+        let (mut m, mut g) = ([[0.0; 2]; 2], [0.0; 2]);
+        for k in 0..3 * n {
+            let x = cubic_root(fa[k] * p[0] + fb[k] * p[1]);
+            let d = 1.0 / (3.0 * x * x + 1.0);
+            let j = [fa[k] * d, fb[k] * d];
+            for r in 0..2 {
+                g[r] -= j[r] * (x - ft[k]);
+                for c in 0..2 {
+                    m[r][c] += j[r] * j[c];
+                }
+            }
+        }
+        let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+        [
+            p[0] + (m[1][1] * g[0] - m[0][1] * g[1]) / det,
+            p[1] + (m[0][0] * g[1] - m[1][0] * g[0]) / det,
+        ]
+    };
+    let expected = by_hand([0.2, 0.1]);
+    let one = run(Optimizer::kkt_gauss_newton().max_iters(1));
+    // 14 unknowns (12 state scalars, 2 parameters): 14 tangent sweeps and one recording.
+    assert_eq!(one.sweeps, 15, "{one}");
+    assert_eq!(one.evaluations, 2, "the full step: {one}");
+    let got = p.to_vec();
+    for k in 0..2 {
+        assert!(
+            (got[k] - expected[k]).abs() < 1e-12,
+            "p{k}: {got:?} against the Gauss-Newton step {expected:?}"
+        );
+    }
+    p.assign(&[0.2, 0.1]);
+    let report = run(Optimizer::kkt_gauss_newton().grad_tol(1e-9).max_iters(30));
+    assert!(report.converged(), "{report}");
+    assert!(report.loss > 1e-4, "a fit with a residual: {report}");
+}
+
+/// The KKT step in `f32` (state, constraint and residuals): the `f64` problem's step to f32's
+/// precision, and a fit to the `f64` fit's parameters within 1e-4.
+#[test]
+fn the_kkt_step_in_f32_is_the_f64_one_to_f32_precision() {
+    let w = vec![0.0, 1.0, 2.0, 3.0];
+    let target = [0.3f32, 0.5, 0.55, 0.9];
+    let (wa, ta) = (
+        Array::from_vec(w.iter().map(|&v| v as f32).collect::<Vec<f32>>()),
+        Array::from_vec(target.to_vec()),
+    );
+    let p = Array::from_vec(vec![0.2f32, 0.1]).named("p");
+    let residuals = |tape: &mut Tape, x: &Array<f32>| {
+        let r = Array::zeros(N).named("miss");
+        tape.launch(miss, N, (x, &ta, &r));
+        r
+    };
+    let run = |opt: Optimizer<'_>| {
+        opt.progress(false).least_squares_kkt(
+            &Params::new().with(&p),
+            |tape| {
+                let pv = p.to_vec();
+                let s: Vec<f32> = w
+                    .iter()
+                    .map(|wi| cubic_root(pv[0] as f64 + wi * pv[1] as f64) as f32)
+                    .collect();
+                let s = Array::from_vec(s);
+                let x = Array::zeros(N).named("x");
+                tape.launch(cubic_solved, N, (&s, &p, &wa, &x));
+                Ok((x.clone(), residuals(tape, &x)))
+            },
+            |tape, x| {
+                let c = Array::zeros(N).named("c");
+                tape.launch(cubic_constraint, N, (x, &p, &wa, &c));
+                Ok((c, residuals(tape, x)))
+            },
+        )
+    };
+    let exact = Cubic::new(w.clone());
+    let one = run(Optimizer::kkt_gauss_newton().max_iters(1)).unwrap();
+    assert_eq!(one.sweeps, 7, "{one}");
+    exact
+        .run(Optimizer::kkt_gauss_newton().max_iters(1))
+        .unwrap();
+    let (got, want) = (p.to_vec(), exact.p.to_vec());
+    for k in 0..2 {
+        assert!(
+            (got[k] as f64 - want[k]).abs() < 1e-5,
+            "p{k}: f32 {got:?}, f64 {want:?}"
+        );
+    }
+    p.assign(&[0.2, 0.1]);
+    exact.p.assign(&[0.2, 0.1]);
+    let fit = run(Optimizer::kkt_gauss_newton().grad_tol(1e-6).max_iters(30)).unwrap();
+    exact
+        .run(Optimizer::kkt_gauss_newton().grad_tol(1e-8).max_iters(30))
+        .unwrap();
+    let (got, want) = (p.to_vec(), exact.p.to_vec());
+    for k in 0..2 {
+        assert!(
+            (got[k] as f64 - want[k]).abs() < 1e-4 * want[k].abs().max(1.0),
+            "p{k}: f32 {got:?}, f64 {want:?} ({fit})"
+        );
+    }
+}
