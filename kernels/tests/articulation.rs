@@ -10,7 +10,7 @@ const ROBOTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/robots");
 
 /// The team's robots with analytical derivatives to check: file, and whether a URDF's base
 /// floats.
-const DERIVATIVE_ROBOTS: [(&str, bool); 9] = [
+const DERIVATIVE_ROBOTS: [(&str, bool); 10] = [
     ("cartpole.urdf", false),
     ("arm7.urdf", false),
     ("quadruped.urdf", true),
@@ -20,6 +20,7 @@ const DERIVATIVE_ROBOTS: [(&str, bool); 9] = [
     ("walker.xml", false),
     ("swimmer.xml", false),
     ("servo_arm.xml", false),
+    ("weightless_arm.xml", false),
 ];
 
 fn load(file: &str, floating: bool) -> Articulations<f64> {
