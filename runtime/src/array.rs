@@ -52,6 +52,23 @@ fn relock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
+/// Where an array's name is: held by a launch's views, which live inside the launch while its
+/// arguments keep the array alive.
+#[derive(Clone, Copy)]
+pub(crate) struct NameRef(*const Mutex<Option<Arc<str>>>);
+
+// SAFETY: a pointer to a `Mutex` (which is `Sync`), read only while the array is alive.
+unsafe impl Send for NameRef {}
+unsafe impl Sync for NameRef {}
+
+impl NameRef {
+    /// The name now.
+    pub(crate) fn get(&self) -> Option<Arc<str>> {
+        // SAFETY: a view holding this lives inside the launch, whose arguments hold the array.
+        relock(unsafe { &*self.0 }).clone()
+    }
+}
+
 thread_local! {
     /// The arrays whose access lock this thread holds: (id, for writing).
     static HELD: RefCell<Vec<(u64, bool)>> = const { RefCell::new(Vec::new()) };
@@ -177,6 +194,11 @@ impl<T: Element> Array<T> {
     /// The name given by [`Array::named`], if any.
     pub fn name(&self) -> Option<Arc<str>> {
         relock(&self.inner.name).clone()
+    }
+
+    /// Where the name is, for a view to read it only when an error names the array.
+    pub(crate) fn name_ref(&self) -> NameRef {
+        NameRef(&self.inner.name)
     }
 
     /// Marks the array as a gradient target and allocates its (zeroed) gradient buffer.
@@ -440,22 +462,22 @@ pub(crate) struct HeldGroup {
 }
 
 impl HeldGroup {
-    /// Registers `targets` (distinct arrays, each for writing or reading), refusing (as a host
+    /// Registers `targets` (distinct arrays: id, for writing, the array), refusing (as a host
     /// access does) an array this thread already holds in a way that would deadlock.
-    pub(crate) fn enter<'a, A>(targets: &[(A, bool)], what: &str) -> HeldGroup
+    pub(crate) fn enter<'a, 'b>(
+        targets: impl Iterator<Item = (u64, bool, &'b (dyn AnyArray + 'a))> + Clone,
+        what: &str,
+    ) -> HeldGroup
     where
-        A: std::ops::Deref<Target = dyn AnyArray + 'a>,
+        'a: 'b,
     {
         let base = HELD.with(|h| h.borrow().len());
         if base > 0 {
-            for (a, w) in targets {
-                check_not_held(a.id(), || a.label(), *w, what);
+            for (id, w, a) in targets.clone() {
+                check_not_held(id, || a.label(), w, what);
             }
         }
-        HELD.with(|h| {
-            h.borrow_mut()
-                .extend(targets.iter().map(|(a, w)| (a.id(), *w)))
-        });
+        HELD.with(|h| h.borrow_mut().extend(targets.map(|(id, w, _)| (id, w))));
         HeldGroup { base }
     }
 }

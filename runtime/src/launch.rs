@@ -190,7 +190,8 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
                 None => true,
             };
         let serial = !timed || choice::serial(key);
-        let start = std::time::Instant::now();
+        // (Read only when the launch is timed: a one-thread pool's launches are not.)
+        let start = (timed || small.is_some()).then(std::time::Instant::now);
         let mut built = false;
         let split = match serial || dim >= u32::MAX as usize {
             true => None,
@@ -218,9 +219,10 @@ fn run_bound<K: KernelBody<O>, O: Sync>(kernel: &K, args: &O, mode: Mode, dim: u
         // (a plan is made once per index arrays' version); later ones that plan again are.
         if timed {
             if !(built && choice::first_build(key)) {
-                choice::record(key, serial, start.elapsed().as_secs_f64());
+                let seconds = start.map_or(0.0, |s| s.elapsed().as_secs_f64());
+                choice::record(key, serial, seconds);
             }
-        } else if let Some(slot) = small {
+        } else if let (Some(slot), Some(start)) = (small, start) {
             slow::record(slot, start.elapsed());
         }
     });
@@ -522,40 +524,22 @@ fn with_locks(
     run: &mut LockedRun,
 ) {
     let targets = lock_targets(kernel, params, arrays, mode);
-    let stored = store_buffers(params, arrays, mode);
-    let claim: Vec<bool> = targets
+    let _held = crate::array::HeldGroup::enter(
+        targets.iter().map(|t| (t.id, t.write, &*t.target)),
+        "launching a kernel on",
+    );
+    let _locks: Vec<_> = targets
         .iter()
-        .map(|(t, _)| stored.contains(&t.id()))
+        .map(|t| t.target.lock(t.write, Token(())))
         .collect();
-    let _held = crate::array::HeldGroup::enter(&targets, "launching a kernel on");
-    let _locks: Vec<_> = targets.iter().map(|(a, w)| a.lock(*w, Token(()))).collect();
-    let locked: Vec<(u64, bool)> = targets.iter().map(|(a, w)| (a.id(), *w)).collect();
+    let locked: Vec<(u64, bool)> = targets.iter().map(|t| (t.id, t.write)).collect();
     // Under the locks: the buffers the stores of this launch go to, as locked (a buffer
     // swapped in meanwhile is refused by the views' lock check).
-    for ((t, _), p) in targets.iter().zip(&claim) {
-        if *p {
-            t.new_claim_epoch(Token(()));
-        }
+    for t in targets.iter().filter(|t| t.claim) {
+        t.target.new_claim_epoch(Token(()));
     }
     run(&locked, &shared_scatters(params, arrays, mode));
     mark_written(params, arrays, mode);
-}
-
-/// The ids of the buffers the `Store` parameters of the launch write in `mode` (the array in
-/// forward mode, its gradient in the adjoint, its tangent in tangent mode).
-fn store_buffers(params: &[ParamInfo], arrays: &[Option<&dyn AnyArray>], mode: Mode) -> Vec<u64> {
-    params
-        .iter()
-        .zip(arrays)
-        .filter_map(|(p, a)| match (p.access, a) {
-            (Access::Store, Some(a)) => match mode {
-                Mode::Forward => Some(a.id()),
-                Mode::Adjoint => a.grad_any().map(|g| g.id()),
-                Mode::Tangent => a.tangent_any().map(|t| t.id()),
-            },
-            _ => None,
-        })
-        .collect()
 }
 
 /// The buffers that two or more parameters scatter into in `mode`: only gradients in the
@@ -599,8 +583,17 @@ impl<'a> std::ops::Deref for Target<'a> {
     }
 }
 
-/// Buffers a launch locks, each with whether for writing.
-type LockTargets<'a> = Vec<(Target<'a>, bool)>;
+/// A buffer a launch locks.
+struct LockTarget<'a> {
+    id: u64,
+    /// The parameter passing the array, or `usize::MAX` for its gradient or tangent.
+    param: usize,
+    target: Target<'a>,
+    /// Locked for writing (some use of it writes).
+    write: bool,
+    /// A `Store` parameter writes it in this mode: its store claims start a new epoch.
+    claim: bool,
+}
 
 /// What a launch must lock, sorted by id, each once (for writing if any use writes it): the
 /// arrays (written only in forward mode) and the gradient or tangent buffers the mode reads or
@@ -611,62 +604,64 @@ fn lock_targets<'a>(
     params: &[ParamInfo],
     arrays: &[Option<&'a dyn AnyArray>],
     mode: Mode,
-) -> LockTargets<'a> {
+) -> Vec<LockTarget<'a>> {
     debug_assert_eq!(params.len(), arrays.len());
-    // Every use's array id, sorted: an alias is two neighbours (a kernel has tens of
-    // parameters, so sorting beats comparing every pair).
-    let mut uses: Vec<(u64, usize)> = arrays
-        .iter()
-        .enumerate()
-        .filter_map(|(i, a)| a.map(|a| (a.id(), i)))
-        .collect();
-    uses.sort_unstable();
+    // Every use, with its parameter (an array) or `usize::MAX` (a gradient or tangent
+    // buffer), sorted by id: an alias is two neighbours (a kernel has tens of parameters, so
+    // sorting beats comparing every pair).
+    let mut uses = Vec::with_capacity(2 * arrays.len());
+    let forward = mode == Mode::Forward;
+    for (i, (p, a)) in params.iter().zip(arrays).enumerate() {
+        let Some(a) = *a else { continue };
+        let (writes, store) = (p.access.writes(), p.access == Access::Store);
+        uses.push(LockTarget {
+            id: a.id(),
+            param: i,
+            target: Target::Array(a),
+            write: writes && forward,
+            claim: store && forward,
+        });
+        let buffer = match mode {
+            Mode::Forward => None,
+            // Reads scatter into their gradients, stores take theirs, atomics read theirs.
+            Mode::Adjoint => a.grad_any().map(|g| (g, p.access != Access::Atomic)),
+            // Reads read their tangents, stores and atomics write theirs.
+            Mode::Tangent => a.tangent_any().map(|t| (t, writes)),
+        };
+        if let Some((b, write)) = buffer {
+            uses.push(LockTarget {
+                id: b.id(),
+                param: usize::MAX,
+                target: Target::Buffer(b),
+                write,
+                claim: store,
+            });
+        }
+    }
+    uses.sort_unstable_by_key(|t| (t.id, t.param));
+    let writes = |k: usize| params.get(k).is_some_and(|p| p.access.writes());
     for w in uses.windows(2) {
-        let ((a, q), (b, p)) = (w[0], w[1]);
-        if a == b && (params[q].access.writes() || params[p].access.writes()) {
+        let (a, b) = (&w[0], &w[1]);
+        if a.id == b.id && b.param != usize::MAX && (writes(a.param) || writes(b.param)) {
             panic!(
                 "kernel `{kernel}`: array `{}` is passed as both `{}` and `{}`, and the kernel \
                  writes one of them; pass distinct arrays",
-                arrays[q].map(|a| a.label()).unwrap_or_default(),
-                params[q].name,
-                params[p].name
+                a.target.label(),
+                params[a.param].name,
+                params[b.param].name
             );
         }
     }
-    let mut targets: Vec<(u64, Target<'a>, bool)> = Vec::with_capacity(2 * arrays.len());
-    for &(id, i) in &uses {
-        let (p, a) = (&params[i], arrays[i].expect("only present arrays are used"));
-        let writes = p.access.writes();
-        targets.push((id, Target::Array(a), writes && mode == Mode::Forward));
-        match mode {
-            Mode::Forward => {}
-            // Reads scatter into their gradients, stores take theirs, atomics read theirs.
-            Mode::Adjoint => {
-                if let Some(g) = a.grad_any() {
-                    targets.push((g.id(), Target::Buffer(g), p.access != Access::Atomic));
-                }
-            }
-            // Reads read their tangents, stores and atomics write theirs.
-            Mode::Tangent => {
-                if let Some(t) = a.tangent_any() {
-                    targets.push((t.id(), Target::Buffer(t), writes));
-                }
-            }
+    // Each once, for writing if any use writes it.
+    uses.dedup_by(|later, kept| {
+        let same = later.id == kept.id;
+        if same {
+            kept.write |= later.write;
+            kept.claim |= later.claim;
         }
-    }
-    // Sorted by id, each once, for writing if any use writes it.
-    targets.sort_by_key(|t| t.0);
-    let mut out: LockTargets = Vec::with_capacity(targets.len());
-    let mut last = None;
-    for (id, t, write) in targets {
-        if last == Some(id) {
-            out.last_mut().expect("a previous target").1 |= write;
-        } else {
-            out.push((t, write));
-            last = Some(id);
-        }
-    }
-    out
+        same
+    });
+    uses
 }
 
 /// Bumps the versions of what the launch wrote: the arrays it writes in forward mode; in the

@@ -4,7 +4,7 @@
 use std::ops::Range;
 use std::sync::Arc;
 
-use crate::array::{Array, Element};
+use crate::array::{Array, Element, NameRef};
 
 /// Where a kernel reads and writes an array: named in bounds errors.
 #[derive(Debug)]
@@ -40,19 +40,26 @@ macro_rules! to_index {
 }
 to_index!(u8, u16, u32, u64, usize, i8, i16, i32, i64, isize);
 
-/// Where a view reads or writes: the kernel, the parameter and the array's name, for errors.
+/// Where a view reads or writes: the kernel, the parameter and the array, for errors.
 #[derive(Clone)]
 pub(super) struct Place {
     pub(super) site: &'static Site,
-    pub(super) name: Option<Arc<str>>,
+    /// The array's name, read only when an error names it: reading it as each view is made
+    /// took a mutex per parameter per launch.
+    name: NameRef,
 }
 
 impl Place {
     pub(super) fn of<T: Element>(a: &Array<T>, site: &'static Site) -> Self {
         Place {
             site,
-            name: a.name(),
+            name: a.name_ref(),
         }
+    }
+
+    /// The array's name (see [`Array::named`]).
+    pub(super) fn name(&self) -> Option<Arc<str>> {
+        self.name.get()
     }
 }
 
@@ -60,7 +67,7 @@ impl Place {
 pub(super) fn checked<I: ToIndex>(i: I, len: usize, place: &Place) -> usize {
     let w = i.to_i128();
     if w < 0 || w >= len as i128 {
-        out_of_bounds(place.site, &place.name, w, len)
+        out_of_bounds(place.site, &place.name(), w, len)
     }
     w as usize
 }
@@ -87,7 +94,7 @@ pub(super) fn checked_in<I: ToIndex>(
 #[inline(never)]
 fn outside_range(place: &Place, index: i128, own: Range<usize>, len: usize) -> ! {
     if index < 0 || index >= len as i128 {
-        out_of_bounds(place.site, &place.name, index, len)
+        out_of_bounds(place.site, &place.name(), index, len)
     }
     panic!(
         "kernel `{}`: a scatter into parameter `{}` at index {index}, outside the thread ids \

@@ -202,7 +202,7 @@ const MAX_LOGGED_LEN: u64 = 1 << 32;
 #[cold]
 #[inline(never)]
 fn too_long_to_log(place: &Place, len: usize) -> ! {
-    let array = match &place.name {
+    let array = match place.name() {
         Some(n) => format!("array `{n}` (parameter `{}`)", place.site.param),
         None => format!("parameter `{}`", place.site.param),
     };

@@ -90,7 +90,7 @@ impl Claims {
 #[inline(never)]
 fn store_conflict(place: &Place, i: usize, a: usize, b: usize) -> ! {
     let (a, b) = (a.min(b), a.max(b));
-    let array = match &place.name {
+    let array = match place.name() {
         Some(n) => format!("array `{n}` (parameter `{}`)", place.site.param),
         None => format!("parameter `{}`", place.site.param),
     };
