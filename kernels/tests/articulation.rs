@@ -2,7 +2,7 @@
 //! (references in `references/robots.json`, from `references/robots.py`), derivatives against
 //! Pinocchio's and central differences, rollouts' gradients, and bad robot files.
 
-use adflex_kernels::articulation::{mjcf, urdf, Articulations, JointType};
+use adflex_kernels::articulation::{mjcf, urdf, ArticulationState, Articulations, JointType};
 use adflex_runtime::{Array, Quat, Tape};
 use serde_json::Value;
 
@@ -1118,6 +1118,45 @@ const URDF: &str = r#"<robot name="r">
     <origin xyz="0 0 0.1" rpy="0 0 0"/>
   </joint>
 </robot>"#;
+
+#[test]
+fn urdf_joint_friction_is_refused_unless_left_out_as_pinocchio_does() {
+    let with = URDF.replace(
+        "<origin xyz=\"0 0 0.1\" rpy=\"0 0 0\"/>",
+        "<origin xyz=\"0 0 0.1\" rpy=\"0 0 0\"/>\n    <dynamics damping=\"0.5\" friction=\"0.3\"/>",
+    );
+    let e = urdf::parse(&with, &Default::default()).unwrap_err();
+    assert_eq!(e.line, Some(9), "{e}");
+    assert!(e.to_string().contains("ignore_friction"), "{e}");
+    let negative = with.replace("friction=\"0.3\"", "friction=\"-1\"");
+    let ignore = urdf::UrdfOptions {
+        ignore_friction: true,
+        ..Default::default()
+    };
+    let e = urdf::parse(&negative, &ignore).unwrap_err();
+    assert!(e.to_string().contains("negative"), "{e}");
+    // Left out: the model is the one without friction (damping kept), bit for bit.
+    let without = with.replace(" friction=\"0.3\"", "");
+    let a = urdf::parse(&with, &ignore)
+        .unwrap()
+        .finalize::<f64>()
+        .unwrap();
+    let b = urdf::parse(&without, &Default::default())
+        .unwrap()
+        .finalize::<f64>()
+        .unwrap();
+    assert_eq!(a.damping.to_vec(), vec![0.5]);
+    let mut tape = Tape::new();
+    let s = |m: &Articulations<f64>, tape: &mut Tape| {
+        let state = ArticulationState {
+            q: Array::from_vec(vec![0.4]),
+            qd: Array::from_vec(vec![1.5]),
+        };
+        let next = m.step(tape, &state, None, 1e-3).unwrap();
+        (next.q.to_vec(), next.qd.to_vec())
+    };
+    assert_eq!(s(&a, &mut tape), s(&b, &mut tape));
+}
 
 #[test]
 fn bad_urdf_is_refused_naming_the_element_and_line() {

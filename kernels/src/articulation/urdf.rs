@@ -3,7 +3,8 @@
 //! The physics of URDF is read: `<link>` with `<inertial>` (`<origin xyz rpy>`, `<mass>`,
 //! `<inertia>`); `<joint>` of type `revolute`, `continuous`, `prismatic`, `fixed` and
 //! `floating`, with `<origin>`, `<parent>`, `<child>`, `<axis>`, `<limit lower upper>` (equal
-//! bounds leave the joint free, as MuJoCo reads them) and `<dynamics damping>`. `<visual>`,
+//! bounds leave the joint free, as MuJoCo reads them) and `<dynamics damping>` (a non-zero
+//! `friction` is an error unless [`UrdfOptions::ignore_friction`] leaves it out). `<visual>`,
 //! `<collision>`, `<material>`, `<gazebo>` and `<transmission>` carry nothing the dynamics
 //! uses and are passed over. Anything else (a
 //! `planar` joint, `<mimic>`, an unknown element or attribute) is an error naming the element
@@ -68,6 +69,12 @@ pub struct UrdfOptions {
     /// does. The order is that of the links, joints and so of `q` and `qd`; it matters only for
     /// a link with several children. Default false (document order).
     pub pinocchio_order: bool,
+    /// Leave out a joint's Coulomb friction (`<dynamics friction>`), as Pinocchio's dynamics
+    /// do (it stores the value; `aba` and `rnea` do not apply it). adflex does not simulate
+    /// joint friction (MuJoCo reads it as `frictionloss`, a constraint of its solver), so by
+    /// default (false) a non-zero `friction` is an error naming the joint's line: a robot
+    /// would silently move without it.
+    pub ignore_friction: bool,
 }
 
 /// Reads the URDF file at `path` into a builder (add more, set gravity, then finalize).
@@ -133,7 +140,7 @@ fn parse_named(
     let mut by_child: HashMap<usize, UrdfJoint> = HashMap::new();
     let mut names: HashMap<String, ()> = HashMap::new();
     for n in items.iter().filter(|n| n.tag_name().name() == "joint") {
-        let uj = joint(&src, *n)?;
+        let uj = joint(&src, *n, options.ignore_friction)?;
         if names.insert(uj.joint.name.clone(), ()).is_some() {
             return Err(src.error(*n, "a second joint with this name"));
         }
@@ -343,7 +350,11 @@ fn link_inertial(src: &Source, link: Node) -> Result<Inertial, ArticulationError
     Ok(inertial)
 }
 
-fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, ArticulationError> {
+fn joint<'a, 'i>(
+    src: &Source,
+    n: Node<'a, 'i>,
+    ignore_friction: bool,
+) -> Result<UrdfJoint<'a, 'i>, ArticulationError> {
     src.only_attributes(n, &["name", "type"])?;
     let name = src.required(n, "name")?.to_string();
     children(
@@ -404,8 +415,16 @@ fn joint<'a, 'i>(src: &Source, n: Node<'a, 'i>) -> Result<UrdfJoint<'a, 'i>, Art
         if damping < 0.0 {
             return Err(src.error(d, format!("damping {damping} is negative")));
         }
-        if src.number(d, "friction")?.unwrap_or(0.0) != 0.0 {
-            return Err(src.error(d, "joint friction is not supported; remove `friction`"));
+        let friction = src.number(d, "friction")?.unwrap_or(0.0);
+        if friction < 0.0 {
+            return Err(src.error(d, format!("friction {friction} is negative")));
+        }
+        if friction != 0.0 && !ignore_friction {
+            return Err(src.error(
+                d,
+                "joint friction is not simulated; remove `friction`, or read the robot with \
+                 UrdfOptions::ignore_friction to leave it out (as Pinocchio's dynamics do)",
+            ));
         }
         j = j.damping(damping);
     }
