@@ -17,8 +17,9 @@ pub struct Site {
 
 #[cold]
 #[inline(never)]
-pub(super) fn out_of_bounds(site: &Site, name: &Option<Arc<str>>, index: i128, len: usize) -> ! {
-    match name {
+pub(super) fn out_of_bounds(place: &Place, index: i128, len: usize) -> ! {
+    let site = place.site;
+    match place.name() {
         Some(n) => panic!(
             "kernel `{}`: index {index} out of bounds for array `{n}` (parameter `{}`) of length {len}",
             site.kernel, site.param
@@ -67,7 +68,7 @@ impl Place {
 pub(super) fn checked<I: ToIndex>(i: I, len: usize, place: &Place) -> usize {
     let w = i.to_i128();
     if w < 0 || w >= len as i128 {
-        out_of_bounds(place.site, &place.name(), w, len)
+        out_of_bounds(place, w, len)
     }
     w as usize
 }
@@ -94,7 +95,7 @@ pub(super) fn checked_in<I: ToIndex>(
 #[inline(never)]
 fn outside_range(place: &Place, index: i128, own: Range<usize>, len: usize) -> ! {
     if index < 0 || index >= len as i128 {
-        out_of_bounds(place.site, &place.name(), index, len)
+        out_of_bounds(place, index, len)
     }
     panic!(
         "kernel `{}`: a scatter into parameter `{}` at index {index}, outside the thread ids \
