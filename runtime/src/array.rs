@@ -162,8 +162,19 @@ impl<T: Element> Array<T> {
         // Fresh pages from the kernel are mapped on first touch. Touched first by a read (a
         // scatter's or a gradient's `+=`), a page maps the shared zero page and faults again
         // on the write, which also flushes the TLB of every core running the process: a
-        // backward faulted twice per page of its new gradients. One write per page here
-        // faults each page once (docs/performance.md).
+        // backward faulted twice per page of its new gradients. Mapping each page for writing
+        // here faults it once (docs/performance.md): in one system call where the kernel
+        // offers it, else by one write per page.
+        let bytes = len * std::mem::size_of::<T>();
+        if populate_for_writing(v.as_mut_ptr().cast(), bytes) {
+            // The pages wholly inside were mapped; those at either end, by a write.
+            // SAFETY: `len > 0` (at least 4 pages), initialized elements.
+            unsafe {
+                std::ptr::write_volatile(v.as_mut_ptr(), T::zeroed());
+                std::ptr::write_volatile(v.as_mut_ptr().add(len - 1), T::zeroed());
+            }
+            return Self::from_vec(v);
+        }
         let step = (4096 / std::mem::size_of::<T>().max(1)).max(1);
         for k in (0..len).step_by(step) {
             // SAFETY: `k < len`, an initialized element. Volatile: the compiler knows the
@@ -692,5 +703,61 @@ impl<T: Element> AnyArray for Array<T> {
             })
             .to_vec();
         self.assign(&src)
+    }
+}
+
+/// Maps for writing the pages wholly inside the `bytes` bytes at `start`, in one call
+/// (`madvise(MADV_POPULATE_WRITE)`, Linux 5.14 and later): from 4 pages on, a third cheaper
+/// than faulting page by page (1.1 against 1.8 us a page at 54 pages, docs/performance.md).
+/// False where the call is not offered or the buffer is too small to gain: the caller then
+/// touches the pages itself.
+#[cfg(target_os = "linux")]
+fn populate_for_writing(start: *mut u8, bytes: usize) -> bool {
+    const PAGE: usize = 4096;
+    if bytes < 4 * PAGE {
+        return false;
+    }
+    let first = (start as usize).next_multiple_of(PAGE);
+    let end = (start as usize + bytes) & !(PAGE - 1);
+    // SAFETY: `first..end` lies inside the caller's buffer; populating maps pages and leaves
+    // their contents as they are.
+    unsafe {
+        libc::madvise(
+            first as *mut libc::c_void,
+            end - first,
+            libc::MADV_POPULATE_WRITE,
+        ) == 0
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn populate_for_writing(_: *mut u8, _: usize) -> bool {
+    false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::real::Vec3;
+
+    /// Zeros of every size class (under the page-population threshold, over it, lengths that
+    /// end inside a page, an element size that does not divide a page) read zero everywhere
+    /// and keep what is written, also in memory freed by an earlier array.
+    #[test]
+    fn zeros_are_zero_and_writable_at_every_size() {
+        for round in 0..2 {
+            for len in [0, 1, 100, 682, 683, 700, 10_001, 100_003] {
+                let a = Array::<Vec3<f64>>::zeros(len);
+                let v = a.to_vec();
+                assert_eq!(v.len(), len);
+                assert!(
+                    v.iter().all(|x| *x == Vec3::zeros()),
+                    "round {round}, {len} elements"
+                );
+                let filled: Vec<_> = (0..len).map(|k| Vec3::new(k as f64, 1.0, -1.0)).collect();
+                a.assign(&filled);
+                assert_eq!(a.to_vec(), filled);
+            }
+        }
     }
 }

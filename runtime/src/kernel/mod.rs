@@ -97,6 +97,9 @@ pub trait Kernel<Args>: Copy + Send + Sync + 'static {
 ///   call returns, on the thread that made it: none is stored (in a static, a thread-local,
 ///   the kernel value, the arguments) or sent to another thread. A view points into buffers
 ///   that the launch holds locked only for the duration of the call.
+/// - Views are made over the arrays of `args` (those [`arrays`](Self::arrays) lists), never
+///   over another array: a view keeps a pointer to its array's name, which the arguments
+///   keep alive for the call.
 /// - The logs [`run`](Self::run) returns are those of the scatters it made from `exec`
 ///   ([`Scatter::finish`]).
 /// - If [`static_scatters`](Self::static_scatters) returns `Some`, then
