@@ -12,7 +12,8 @@
 //!
 //! The macro is invoked next to the entry point it serves (`model.rs`: the model's build;
 //! `integrators/common.rs`: the rigid bodies' step; `integrators/implicit.rs`: implicit Euler's
-//! step; `articulation/dynamics.rs`: the robots' step), so this module depends on none of them.
+//! step; `articulation/dynamics.rs`: the robots' step; `mpm/step.rs`: the MPM step in 2D and
+//! 3D), so this module depends on none of them.
 //! Test, example and debug builds share generic instantiations with their dependencies, but
 //! only those a dependency made itself: the robots' step, generic in every caller, was compiled
 //! again by every example and test crate that stepped a robot (about 2 minutes each).

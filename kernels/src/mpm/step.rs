@@ -6,6 +6,7 @@ use adflex_runtime::prelude::*;
 use super::dim::{Dim, D2, D3};
 use super::kernels::{mpm3_g2p, mpm3_grid_update, mpm3_p2g, mpm_g2p, mpm_grid_update, mpm_p2g};
 use super::model::{invalid, Mpm, MpmState};
+use crate::precompiled::precompiled;
 
 /// The launches of one step in a dimension ([`D2`], [`D3`]): the same three kernels, each
 /// written per dimension.
@@ -44,45 +45,80 @@ fn fresh<R: Real, D: Dim>(n: usize, ng: usize) -> (MpmState<R, D>, Grid<R, D>) {
 }
 
 /// [`Launches::launch_step`] of a dimension: the same three launches in 2D and 3D but for the
-/// kernels, and the 3D kernels' `stencil` bound.
+/// kernels, and the 3D kernels' `stencil` bound. Compiled in this crate for `f32` and `f64`
+/// (`crate::precompiled`): examples, tests and user crates link to it instead of compiling
+/// the three kernels' forward, adjoint and tangent again.
 macro_rules! launch_step {
-    ($d:ty, $p2g:ident, $grid:ident, $g2p:ident $(, $stencil:expr)?) => {
-        fn launch_step<R: Real>(
-            mpm: &Mpm<R, $d>,
-            tape: &mut Tape,
-            s: &MpmState<R, $d>,
-            actuation: &Array<R>,
-            dt: f64,
-        ) -> MpmState<R, $d> {
-            let (n, ng) = (mpm.particle_count(), mpm.n_grid);
-            let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
-            let (next, (mv, m, gv)) = fresh::<R, $d>(n, ng);
-            let p = (&mpm.mass, &mpm.volume, &mpm.mu, &mpm.lambda, &mpm.kind);
-            let y = (&mpm.compression, &mpm.stretch, &mpm.hardening);
-            let a = (&mpm.actuator, &mpm.act_gain, &mpm.fiber);
-            tape.launch(
-                $p2g,
-                n,
-                (
-                    &s.x, &s.v, &s.c, &s.f, &s.jp, p.0, p.1, p.2, p.3, p.4, y.0, y.1, y.2, a.0,
-                    a.1, a.2, actuation, ng, $($stencil,)? dx, dtr, &next.f, &next.jp, &mv, &m,
-                ),
-            );
-            let (cells, friction) = (ng.pow(<$d as Dim>::D as u32), R::lit(mpm.friction));
-            let grid = (&mv, &m, &mpm.gravity, ng, mpm.bound, friction, dtr, &gv);
-            tape.launch($grid, cells, grid);
-            tape.launch($g2p, n, (&s.x, &gv, ng, $($stencil,)? dx, dtr, &next.x, &next.v, &next.c));
-            next
+    ($name:ident, $d:ty, $p2g:ident, $grid:ident, $g2p:ident $(, $stencil:expr)?) => {
+        precompiled! {
+            fn $name(
+                mpm: &Mpm<R, $d>,
+                tape: &mut Tape,
+                s: &MpmState<R, $d>,
+                actuation: &Array<R>,
+                dt: f64,
+            ) -> MpmState<R, $d> {
+                let (n, ng) = (mpm.particle_count(), mpm.n_grid);
+                let (dx, dtr) = (R::lit(mpm.dx), R::lit(dt));
+                let (next, (mv, m, gv)) = fresh::<R, $d>(n, ng);
+                let p = (&mpm.mass, &mpm.volume, &mpm.mu, &mpm.lambda, &mpm.kind);
+                let y = (&mpm.compression, &mpm.stretch, &mpm.hardening);
+                let a = (&mpm.actuator, &mpm.act_gain, &mpm.fiber);
+                tape.launch(
+                    $p2g,
+                    n,
+                    (
+                        &s.x, &s.v, &s.c, &s.f, &s.jp, p.0, p.1, p.2, p.3, p.4, y.0, y.1, y.2,
+                        a.0, a.1, a.2, actuation, ng, $($stencil,)? dx, dtr, &next.f, &next.jp,
+                        &mv, &m,
+                    ),
+                );
+                let (cells, friction) = (ng.pow(<$d as Dim>::D as u32), R::lit(mpm.friction));
+                let grid = (&mv, &m, &mpm.gravity, ng, mpm.bound, friction, dtr, &gv);
+                tape.launch($grid, cells, grid);
+                tape.launch(
+                    $g2p,
+                    n,
+                    (&s.x, &gv, ng, $($stencil,)? dx, dtr, &next.x, &next.v, &next.c),
+                );
+                next
+            }
         }
     };
 }
 
+launch_step!(launch_step2, D2, mpm_p2g, mpm_grid_update, mpm_g2p);
+launch_step!(
+    launch_step3,
+    D3,
+    mpm3_p2g,
+    mpm3_grid_update,
+    mpm3_g2p,
+    3usize
+);
+
 impl Launches for D2 {
-    launch_step!(D2, mpm_p2g, mpm_grid_update, mpm_g2p);
+    fn launch_step<R: Real>(
+        mpm: &Mpm<R, Self>,
+        tape: &mut Tape,
+        state: &MpmState<R, Self>,
+        actuation: &Array<R>,
+        dt: f64,
+    ) -> MpmState<R, Self> {
+        launch_step2(mpm, tape, state, actuation, dt)
+    }
 }
 
 impl Launches for D3 {
-    launch_step!(D3, mpm3_p2g, mpm3_grid_update, mpm3_g2p, 3usize);
+    fn launch_step<R: Real>(
+        mpm: &Mpm<R, Self>,
+        tape: &mut Tape,
+        state: &MpmState<R, Self>,
+        actuation: &Array<R>,
+        dt: f64,
+    ) -> MpmState<R, Self> {
+        launch_step3(mpm, tape, state, actuation, dt)
+    }
 }
 
 impl<R: Real, D: Launches> Mpm<R, D> {
