@@ -44,10 +44,10 @@ fn fresh<R: Real, D: Dim>(n: usize, ng: usize) -> (MpmState<R, D>, Grid<R, D>) {
     )
 }
 
-/// [`Launches::launch_step`] of a dimension: the same three launches in 2D and 3D but for the
-/// kernels, and the 3D kernels' `stencil` bound. Compiled in this crate for `f32` and `f64`
-/// (`crate::precompiled`): examples, tests and user crates link to it instead of compiling
-/// the three kernels' forward, adjoint and tangent again.
+/// [`Launches`] for a dimension, through the function `$name`: the same three launches in 2D
+/// and 3D but for the kernels, and the 3D kernels' `stencil` bound. Compiled in this crate for
+/// `f32` and `f64` (`crate::precompiled`): examples, tests and user crates link to it instead
+/// of compiling the three kernels' forward, adjoint and tangent again.
 macro_rules! launch_step {
     ($name:ident, $d:ty, $p2g:ident, $grid:ident, $g2p:ident $(, $stencil:expr)?) => {
         precompiled! {
@@ -84,6 +84,18 @@ macro_rules! launch_step {
                 next
             }
         }
+
+        impl Launches for $d {
+            fn launch_step<R: Real>(
+                mpm: &Mpm<R, Self>,
+                tape: &mut Tape,
+                state: &MpmState<R, Self>,
+                actuation: &Array<R>,
+                dt: f64,
+            ) -> MpmState<R, Self> {
+                $name(mpm, tape, state, actuation, dt)
+            }
+        }
     };
 }
 
@@ -96,30 +108,6 @@ launch_step!(
     mpm3_g2p,
     3usize
 );
-
-impl Launches for D2 {
-    fn launch_step<R: Real>(
-        mpm: &Mpm<R, Self>,
-        tape: &mut Tape,
-        state: &MpmState<R, Self>,
-        actuation: &Array<R>,
-        dt: f64,
-    ) -> MpmState<R, Self> {
-        launch_step2(mpm, tape, state, actuation, dt)
-    }
-}
-
-impl Launches for D3 {
-    fn launch_step<R: Real>(
-        mpm: &Mpm<R, Self>,
-        tape: &mut Tape,
-        state: &MpmState<R, Self>,
-        actuation: &Array<R>,
-        dt: f64,
-    ) -> MpmState<R, Self> {
-        launch_step3(mpm, tape, state, actuation, dt)
-    }
-}
 
 impl<R: Real, D: Launches> Mpm<R, D> {
     /// One MLS-MPM step of `dt`: particle to grid ([`mpm_p2g`](super::kernels::mpm_p2g)),
