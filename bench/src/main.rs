@@ -13,9 +13,10 @@
 //!   JSON line
 //! - `peers [--out FILE] [--sizes 32,64,128,256] [--steps 100] [--rounds R] [--no-python]
 //!   [--wait-each L]`: adflex and the peer scripts, as JSONL
-//! - `robots [--python PATH] [--steps 200] [--reps 5]`: articulated robots (arm, quadruped)
-//!   per step, forward and backward, and `d qdd / d(q, qd, tau)`; with `--python`, MuJoCo and
-//!   Pinocchio in the same run, and the ratios
+//! - `robots [--python PATH] [--newton PATH] [--steps 200] [--reps 5]`: articulated robots
+//!   (arm, quadruped) per step, forward and backward, and `d qdd / d(q, qd, tau)`; with
+//!   `--python`, MuJoCo and Pinocchio, with `--newton`, Newton's Featherstone solver, in the
+//!   same run, and the ratios
 //! - `worlds [--worlds 1024] [--frames 240] [--substeps 4] [--reps 2] [--python PATH]
 //!   [--newton PATH]`: many worlds in one model (256 cloths against one; cartpoles), forward
 //!   and backward: time per world-step at W = 1 and W = 1024, on 1 and 2 threads, peak

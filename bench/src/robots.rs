@@ -1,12 +1,15 @@
-//! `robots [--python PATH] [--steps 200] [--reps 5]`: the articulation family on the
-//! repository's robots (`kernels/robots/`): the time of a semi-implicit step recorded on a tape
-//! (forward), of one on a `Tape::no_grad` (a rollout without derivatives), of a step's forward
-//! and backward, and of the full `d qdd / d(q, qd, tau)` and
-//! `d tau / d(q, qd, qdd)`, for the 7-DoF arm and the quadruped (`ant.xml`, free base and
-//! ground contact), on 1 and 2 threads; with `--python`, the peers' script
-//! `bench/peers/robots.py` (MuJoCo's `mj_step`, Pinocchio's `computeABADerivatives` and
-//! `computeRNEADerivatives`) in the same run, and the ratios. One JSON line each.
+//! `robots [--python PATH] [--newton PATH] [--steps 200] [--reps 5]`: the articulation family
+//! on the repository's robots (`kernels/robots/`): the time of a semi-implicit step recorded on
+//! a tape (forward), of one on a `Tape::no_grad` (a rollout without derivatives), of a step's
+//! forward and backward, and of the full `d qdd / d(q, qd, tau)` and `d tau / d(q, qd, qdd)`,
+//! for the 7-DoF arm and the quadruped (`ant.xml`, free base and ground contact), on 1 and 2
+//! threads. In the same run, with `--python`, the peers' script `bench/peers/robots.py`
+//! (MuJoCo's `mj_step`, Pinocchio's `computeABADerivatives` and `computeRNEADerivatives`); with
+//! `--newton` (a venv's python with `bench/peers/requirements-newton.txt`),
+//! `bench/peers/newton_robots.py` (Newton's `SolverFeatherstone` on the CPU: a step on a tape,
+//! and forward and backward); and the ratios. One JSON line each.
 
+use std::collections::HashMap;
 use std::process::Command;
 use std::time::Instant;
 
@@ -98,7 +101,7 @@ pub fn main(rest: &[String]) {
     };
     let steps: usize = arg("--steps").and_then(|v| v.parse().ok()).unwrap_or(200);
     let reps: usize = arg("--reps").and_then(|v| v.parse().ok()).unwrap_or(5);
-    let mut ours = std::collections::HashMap::new();
+    let mut ours = HashMap::new();
     for name in ["arm7", "quadruped"] {
         let model = load(name);
         for threads in [1, 2] {
@@ -111,6 +114,7 @@ pub fn main(rest: &[String]) {
             });
             ours.insert((name, threads, "step"), fwd);
             ours.insert((name, threads, "no_grad step"), free);
+            ours.insert((name, threads, "forward_backward"), both);
             println!(
                 "{{\"system\": \"adflex\", \"model\": \"{name}\", \"threads\": {threads}, \
                  \"step_us\": {fwd:.2}, \"no_grad_step_us\": {free:.2}, \
@@ -129,16 +133,27 @@ pub fn main(rest: &[String]) {
             );
         }
     }
-    let Some(python) = arg("--python") else {
-        return;
-    };
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/peers/robots.py");
-    let out = Command::new(&python)
-        .arg(script)
+    if let Some(python) = arg("--python") {
+        peer_ratios(&python, "robots.py", &ours);
+    }
+    if let Some(python) = arg("--newton") {
+        peer_ratios(&python, "newton_robots.py", &ours);
+    }
+}
+
+/// Runs the peers' script `bench/peers/{script}` with `python`, prints its lines and the ratio
+/// of adflex's time (one thread) to each peer measurement it has a counterpart for.
+fn peer_ratios(python: &str, script: &str, ours: &HashMap<(&str, usize, &str), f64>) {
+    let script = format!("{}/peers/{script}", env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(python)
+        .arg(&script)
         .output()
-        .expect("the peers' python runs");
+        .unwrap_or_else(|e| panic!("{python} {script}: {e}"));
     let text = String::from_utf8_lossy(&out.stdout);
     print!("{text}");
+    if !out.status.success() {
+        eprintln!("{script} failed: {}", String::from_utf8_lossy(&out.stderr));
+    }
     for line in text.lines() {
         let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else {
             continue;
@@ -151,6 +166,9 @@ pub fn main(rest: &[String]) {
         let robot = if model == "arm7" { "arm7" } else { "quadruped" };
         let keys: &[&str] = match what {
             "mj_step" => &["step", "no_grad step"],
+            // Newton's step is recorded on a tape, as adflex's "step".
+            "step" => &["step"],
+            "forward_backward" => &["forward_backward"],
             "computeABADerivatives" => &["derivatives"],
             "computeRNEADerivatives" => &["inverse derivatives"],
             _ => continue,
@@ -159,7 +177,7 @@ pub fn main(rest: &[String]) {
             if let Some(o) = ours.get(&(robot, 1, *key)) {
                 println!(
                     "{{\"ratio\": \"adflex {key} / {} {what}\", \"model\": \"{model}\", \
-                     \"value\": {:.2}}}",
+                     \"value\": {:.3}}}",
                     v["peer"].as_str().unwrap_or(""),
                     o / us
                 );

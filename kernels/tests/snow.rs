@@ -2,8 +2,9 @@
 //! differences (also where eigenvalues coincide) and forward mode against reverse mode;
 //! Taichi's `mpm99` (fluid, jelly and snow in one scene) reproduced from its f64 run
 //! (`references/taichi_mpm99.py`); rollouts through plasticity in 2D and 3D against central
-//! differences; snow keeps a dent where jelly springs back; bad parameters and second-order
-//! passes refused by name.
+//! differences; snow keeps a dent where jelly springs back; bad parameters refused by name;
+//! the clamp's second-order rules (in `Dual`) against differences of its first-order ones, and
+//! Hessian-vector products of a snow rollout against central differences of its gradients.
 
 use adflex_kernels::mpm::plastic::{clamp_spectrum2, clamp_spectrum3};
 use adflex_kernels::mpm::*;
@@ -11,6 +12,7 @@ use adflex_macros::diff_kernel;
 use adflex_runtime::gradcheck::{dot_test, GradCheck};
 use adflex_runtime::prelude::*;
 use adflex_runtime::second_order::hvp;
+use nalgebra::SMatrix;
 use serde_json::Value;
 
 /// A rotation by angles `a` about x, `b` about y, `c` about z.
@@ -103,6 +105,158 @@ fn the_spectral_clamp_differentiates_also_at_repeated_eigenvalues() {
     // the repeated eigenvalue).
     let (g, _, _) = clamp_spectrum2.adjoint((Mat22::identity(), lo, hi), w);
     assert!((g - (w + w.transpose()) * 0.5).norm() < 1e-15, "{g}");
+}
+
+/// `value + eps ε`, entry by entry.
+fn dual<const N: usize>(
+    value: &SMatrix<f64, N, N>,
+    eps: &SMatrix<f64, N, N>,
+) -> SMatrix<Dual, N, N> {
+    SMatrix::from_fn(|i, j| Dual::new(value[(i, j)], eps[(i, j)]))
+}
+
+/// The `Dual` parts.
+fn eps<const N: usize>(m: &SMatrix<Dual, N, N>) -> SMatrix<f64, N, N> {
+    m.map(|v| v.eps)
+}
+
+/// The clamp's rules run in `Dual` along `(ds, dlo, dhi)` (and `dadj`, `dt` for the adjoint's
+/// and the tangent's own inputs) against central differences of the `f64` rules along the
+/// same direction, to `1e-7` of the largest entry; the value's `Dual` part against the tangent.
+#[allow(clippy::too_many_arguments)]
+fn check_second_order<const N: usize>(
+    s: SMatrix<f64, N, N>,
+    (lo, hi): (f64, f64),
+    ds: SMatrix<f64, N, N>,
+    (dlo, dhi): (f64, f64),
+    (adj, dadj): (SMatrix<f64, N, N>, SMatrix<f64, N, N>),
+    (t, dt): (SMatrix<f64, N, N>, SMatrix<f64, N, N>),
+    value: impl Fn(SMatrix<Dual, N, N>, Dual, Dual) -> SMatrix<Dual, N, N>,
+    adjoint: impl Fn(
+        SMatrix<Dual, N, N>,
+        Dual,
+        Dual,
+        SMatrix<Dual, N, N>,
+    ) -> (SMatrix<Dual, N, N>, Dual, Dual),
+    tangent: impl Fn(
+        SMatrix<Dual, N, N>,
+        Dual,
+        Dual,
+        SMatrix<Dual, N, N>,
+        Dual,
+        Dual,
+    ) -> SMatrix<Dual, N, N>,
+    what: &str,
+) {
+    let h = 1e-6;
+    let c = Dual::constant;
+    let sd = dual(&s, &ds);
+    let (lod, hid) = (Dual::new(lo, dlo), Dual::new(hi, dhi));
+    // An f64 rule at the point moved by `e` along the direction.
+    let at = |e: f64| {
+        let (s, lo, hi) = (s + ds * e, c(lo + dlo * e), c(hi + dhi * e));
+        let sc = dual(&s, &SMatrix::zeros());
+        let (ga, gl, gh) = adjoint(sc, lo, hi, dual(&(adj + dadj * e), &SMatrix::zeros()));
+        let tt = tangent(
+            sc,
+            lo,
+            hi,
+            dual(&(t + dt * e), &SMatrix::zeros()),
+            c(0.3),
+            c(-0.8),
+        );
+        (
+            ga.map(|v| v.re),
+            gl.re,
+            gh.re,
+            tt.map(|v| v.re),
+            value(sc, lo, hi).map(|v| v.re),
+        )
+    };
+    let (p, m) = (at(h), at(-h));
+    let fd = |a: f64, b: f64| (a - b) / (2.0 * h);
+    // The value's Dual part is its first derivative.
+    let v_eps = eps(&value(sd, lod, hid));
+    let v_fd = (p.4 - m.4) / (2.0 * h);
+    assert!(
+        (v_eps - v_fd).norm() < 1e-7,
+        "{what}: value {v_eps} vs {v_fd}"
+    );
+    // The adjoint's Dual parts: its derivative along (ds, dlo, dhi, dadj).
+    let (ga, gl, gh) = adjoint(sd, lod, hid, dual(&adj, &dadj));
+    let ga_fd = (p.0 - m.0) / (2.0 * h);
+    let scale = ga_fd.amax().max(1.0);
+    assert!(
+        (eps(&ga) - ga_fd).amax() < 1e-7 * scale,
+        "{what}: adjoint {} vs {ga_fd}",
+        eps(&ga)
+    );
+    assert!(
+        (gl.eps - fd(p.1, m.1)).abs() < 1e-7 * scale,
+        "{what}: d lo {} vs {}",
+        gl.eps,
+        fd(p.1, m.1)
+    );
+    assert!(
+        (gh.eps - fd(p.2, m.2)).abs() < 1e-7 * scale,
+        "{what}: d hi {} vs {}",
+        gh.eps,
+        fd(p.2, m.2)
+    );
+    // The tangent's Dual parts: its derivative along (ds, dlo, dhi, dt).
+    let tt = tangent(sd, lod, hid, dual(&t, &dt), c(0.3), c(-0.8));
+    let tt_fd = (p.3 - m.3) / (2.0 * h);
+    assert!(
+        (eps(&tt) - tt_fd).amax() < 1e-7 * tt_fd.amax().max(1.0),
+        "{what}: tangent {} vs {tt_fd}",
+        eps(&tt)
+    );
+    // The check can fail: the second-order part is not zero everywhere.
+    assert!(
+        what.contains("inside") || ga_fd.amax() > 1e-3 || tt_fd.amax() > 1e-3,
+        "{what}: no second-order part to check"
+    );
+}
+
+#[test]
+fn the_spectral_clamps_second_order_rules_match_differences_of_its_first_order_ones() {
+    let q = rotation(0.3, -1.1, 0.7);
+    let spd = |l: [f64; 3]| q * Mat33::from_diagonal(&Vec3::new(l[0], l[1], l[2])) * q.transpose();
+    let m3 = |a: f64, b: f64| Mat33::from_fn(|i, j| ((3 * i + j) as f64 * a + b).sin());
+    for (l, what) in [
+        ([1.2, 0.9, 1.0], "one eigenvalue per region"),
+        ([1.2, 1.0, 1.0], "a repeated eigenvalue inside"),
+        ([1.2, 0.9, 0.9], "a repeated eigenvalue below"),
+        ([1.1, 1.1, 0.98], "a repeated eigenvalue above"),
+        ([1.01, 0.99, 0.97], "all inside"),
+        ([1.3, 1.2, 0.8], "two above, one below"),
+    ] {
+        check_second_order(
+            spd(l),
+            (0.95, 1.05),
+            m3(1.3, 0.4) * 0.1,
+            (0.02, -0.03),
+            (m3(0.7, 0.2), m3(0.9, -0.5)),
+            (m3(1.9, 0.1), m3(0.4, 1.2)),
+            |s, lo, hi| clamp_spectrum3.forward((s, lo, hi)),
+            |s, lo, hi, w| clamp_spectrum3.adjoint((s, lo, hi), w),
+            |s, lo, hi, d, dlo, dhi| clamp_spectrum3.tangent((s, lo, hi), (d, dlo, dhi)).1,
+            what,
+        );
+    }
+    let m2 = |a: f64, b: f64| Mat22::from_fn(|i, j| ((2 * i + j) as f64 * a + b).cos());
+    check_second_order(
+        Mat22::new(1.1, 0.07, 0.02, 0.93),
+        (0.95, 1.05),
+        m2(1.1, 0.3) * 0.1,
+        (0.01, 0.02),
+        (m2(0.6, -0.2), m2(1.4, 0.8)),
+        (m2(0.3, 0.9), m2(2.1, -0.4)),
+        |s, lo, hi| clamp_spectrum2.forward((s, lo, hi)),
+        |s, lo, hi, w| clamp_spectrum2.adjoint((s, lo, hi), w),
+        |s, lo, hi, d, dlo, dhi| clamp_spectrum2.tangent((s, lo, hi), (d, dlo, dhi)).1,
+        "2D, one eigenvalue above, one below",
+    );
 }
 
 /// The reference file.
@@ -521,7 +675,7 @@ fn snow_within_its_limits_is_the_corotated_material() {
 }
 
 #[test]
-fn bad_plasticity_and_second_order_passes_are_refused_by_name() {
+fn bad_plasticity_is_refused_by_name() {
     let mut b = MpmBuilder::new(16, 1.0 / 16.0);
     b.add_rect(
         Vec2::new(0.4, 0.4),
@@ -589,25 +743,106 @@ fn bad_plasticity_and_second_order_passes_are_refused_by_name() {
             && e.contains("the step's result"),
         "{e}"
     );
+}
 
-    // Hessian-vector products: the clamp's rules run in f64, so the pass refuses, naming it.
-    let mpm = thrown_snow::<Dual>(Floor::Sticky);
-    let mu = mpm.mu.clone().requires_grad();
-    let v = vec![1.0; mpm.particle_count()];
-    let e = hvp(&[&mu], &v, |tape| {
-        let mut s = mpm.state();
-        for _ in 0..3 {
-            s = mpm.step(tape, &s, None, 2e-3)?;
+/// `H v` of a snow rollout through plasticity (30 steps; the moduli, yield strains and
+/// hardening, `v` relative to each value) against central differences of its `f64` gradient
+/// along `v` (the closest of relative steps 1e-4, 3e-5 and 1e-5, as the loss has kinks; see
+/// [`along`]), to 1e-6 of the largest entry; `w^T H v = v^T H w` to 1e-10.
+#[test]
+fn snow_hessian_vector_products_match_differences_of_gradients() {
+    let steps = 30;
+    let md = thrown_snow::<Dual>(Floor::Sticky);
+    let mf = thrown_snow::<f64>(Floor::Sticky);
+    let pd = [
+        &md.mu,
+        &md.lambda,
+        &md.compression,
+        &md.stretch,
+        &md.hardening,
+    ];
+    let pf = [
+        &mf.mu,
+        &mf.lambda,
+        &mf.compression,
+        &mf.stretch,
+        &mf.hardening,
+    ];
+    let base: Vec<f64> = pf.iter().flat_map(|a| a.to_vec()).collect();
+    let direction = |phase: f64| -> Vec<f64> {
+        base.iter()
+            .enumerate()
+            .map(|(k, p)| p * (1.7 * k as f64 + phase).sin())
+            .collect()
+    };
+    let (v, w) = (direction(0.3), direction(1.1));
+    let params: Vec<&dyn AnyArray> = pd
+        .iter()
+        .map(|a| {
+            let _ = (*a).clone().requires_grad();
+            *a as &dyn AnyArray
+        })
+        .collect();
+    let loss_d = |tape: &mut Tape| -> Result<Array<Dual>, Error> {
+        let mut s = md.state();
+        for _ in 0..steps {
+            s = md.step(tape, &s, None, 2e-3)?;
         }
-        let c = mpm.mean_position(tape, &s);
+        let c = md.mean_position(tape, &s);
         let out = Array::zeros(1);
         tape.launch(mean_loss, 1, (&c, &out));
         Ok(out)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(
-        e.contains("clamp_spectrum2") && e.contains("dual_safe"),
-        "{e}"
+    };
+    let hv = hvp(&params, &v, loss_d).unwrap();
+    let hw = hvp(&params, &w, loss_d).unwrap();
+    let (whv, vhw): (f64, f64) = (
+        w.iter().zip(&hv.hv).map(|(a, b)| a * b).sum(),
+        v.iter().zip(&hw.hv).map(|(a, b)| a * b).sum(),
     );
+    assert!(
+        (whv - vhw).abs() <= 1e-10 * whv.abs().max(vhw.abs()),
+        "w^T H v = {whv}, v^T H w = {vhw}"
+    );
+    // The f64 gradient at base + t v.
+    for a in pf {
+        let _ = (*a).clone().requires_grad();
+    }
+    let gradient = |t: f64| -> Vec<f64> {
+        let mut k = 0;
+        for a in pf {
+            for i in 0..a.len() {
+                a.set(i, base[k] + t * v[k]);
+                k += 1;
+            }
+            a.zero_grad();
+        }
+        let mut tape = Tape::new();
+        let l = snow_loss(&mf, &mut tape, steps);
+        tape.backward(&l).unwrap();
+        pf.iter().flat_map(|a| a.grad().unwrap().to_vec()).collect()
+    };
+    let scale = hv.hv.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(scale > 1e-6, "H v vanishes: {scale}");
+    let error = [1e-4, 3e-5, 1e-5]
+        .iter()
+        .map(|&h| {
+            let (p, m) = (gradient(h), gradient(-h));
+            hv.hv
+                .iter()
+                .zip(p.iter().zip(&m))
+                .map(|(a, (p, m))| (a - (p - m) / (2.0 * h)).abs())
+                .fold(0.0f64, f64::max)
+                / scale
+        })
+        .fold(f64::INFINITY, f64::min);
+    eprintln!("snow H v: largest entry {scale:e}, {error:.1e} from differences of gradients");
+    assert!(
+        error <= 1e-6,
+        "H v is {error:e} (of its largest entry) from the differences"
+    );
+    // The gradient the product carries is the f64 one.
+    let g = gradient(0.0);
+    for (a, b) in hv.grad.iter().zip(&g) {
+        assert!((a - b).abs() <= 1e-12 * (1.0 + b.abs()), "{a} vs {b}");
+    }
 }
