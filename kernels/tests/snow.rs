@@ -122,7 +122,8 @@ fn eps<const N: usize>(m: &SMatrix<Dual, N, N>) -> SMatrix<f64, N, N> {
 
 /// The clamp's rules run in `Dual` along `(ds, dlo, dhi)` (and `dadj`, `dt` for the adjoint's
 /// and the tangent's own inputs) against central differences of the `f64` rules along the
-/// same direction, to `1e-7` of the largest entry; the value's `Dual` part against the tangent.
+/// same direction, to `1e-7` of the largest entry; the value's `Dual` part against central
+/// differences of the value.
 #[allow(clippy::too_many_arguments)]
 fn check_second_order<const N: usize>(
     s: SMatrix<f64, N, N>,
