@@ -1147,6 +1147,7 @@ impl<R: Real> Model<R> {
             particle_radius: self.particle_radius,
             particle_radii: self.particle_radii.as_ref(),
             particle_world: (self.worlds.len() > 1).then_some(&self.particle_world),
+            particle_world_ids: &self.particle_world,
         }
     }
 

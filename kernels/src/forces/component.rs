@@ -63,16 +63,16 @@ pub struct ForceContext<'a, R: Real> {
     /// Per particle: its world ([`crate::Model::particle_world`]), if the model has several
     /// worlds. A force between particles touches only particles of one world.
     pub particle_world: Option<&'a Array<u32>>,
+    /// Per particle: its world, zeros in a model of one world ([`crate::Model::particle_world`]
+    /// whatever the number of worlds; read it through [`ForceContext::particle_worlds`]).
+    pub particle_world_ids: &'a Array<u32>,
 }
 
 impl<R: Real> ForceContext<'_, R> {
     /// Per particle: its world, zeros in a model of one world (where an element's energy goes,
-    /// [`Force::energy`]).
+    /// [`Force::energy`]): a handle to the model's array, not a copy.
     pub fn particle_worlds(&self) -> Array<u32> {
-        match self.particle_world {
-            Some(w) => w.clone(),
-            None => Array::zeros(self.x.len()),
-        }
+        self.particle_world_ids.clone()
     }
 }
 
