@@ -345,7 +345,9 @@ pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Er
     // `statics::net_force`.
     sc.rest.assign(&rest0);
     let mut guess = sc.first.deep_clone();
-    let report = optimizer(opt, Optimizer::kkt_gauss_newton()).least_squares_kkt(
+    // The fit has a residual (the pull): converged once the gradient is 1e-9 of the first.
+    let kkt = optimizer(opt, Optimizer::kkt_gauss_newton()).grad_tol_rel(1e-9);
+    let report = kkt.least_squares_kkt(
         &Params::new().with(&sc.rest),
         |tape| {
             let eq = solver.solve(&sc.model, tape, &guess)?;
@@ -392,6 +394,144 @@ pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Er
         report,
     });
     Ok(runs)
+}
+
+/// `out[i] = weight (p[i] - p0[i])`: a pull towards the nominal design.
+#[diff_kernel]
+fn regularization<R: Real>(p: &Array<R>, p0: &Array<R>, weight: R, out: &Array<R>) {
+    let i = tid();
+    out[i] = weight * (p[i] - p0[i]);
+}
+
+/// What the sheet's inverse design found ([`sheet`]).
+pub struct Sheet {
+    pub report: Report,
+    /// Free particles and rest lengths (the design variables).
+    pub free: usize,
+    pub springs: usize,
+    /// Unknowns of the KKT system's columns (state scalars and parameters) and its rows.
+    pub unknowns: usize,
+    pub rows: usize,
+    /// Tangent sweeps of the first step (one per unknown: the pattern) and of a later one
+    /// (one per colour, one check).
+    pub first_sweeps: usize,
+    pub later_sweeps: usize,
+    /// Largest distance from the target shape (m) relative to the sag, before and after.
+    pub initial_error: f64,
+    pub final_error: f64,
+}
+
+/// Inverse design at a size the dense KKT system could not take: a square net of
+/// `side + 1` x `side + 1` point masses (the border pinned; structural and shear springs)
+/// hangs under gravity, and Gauss-Newton by the KKT system finds the springs' rest lengths for
+/// which its equilibrium is a target shape (the equilibrium of hidden rest lengths: a sag
+/// deeper on one side). The residuals are the free particles' distances from the target and a
+/// weak pull (weight `1e-2`) of each rest length towards its start: there are more springs
+/// than free coordinates.
+pub fn sheet(side: usize, opt: &Config) -> Result<Sheet, Error> {
+    let h = 1.0 / side as f64;
+    let nodes = side + 1;
+    let at = |i: usize, j: usize| (i * nodes + j) as u32;
+    let build = |stretch: &dyn Fn(f64, f64) -> f64| -> Model<f64> {
+        let mut b = ModelBuilder::<f64>::new();
+        for i in 0..nodes {
+            for j in 0..nodes {
+                let border = i == 0 || j == 0 || i == side || j == side;
+                let (u, v) = (i as f64 * h, j as f64 * h);
+                // A shallow dome below the pins: the side the net hangs to.
+                let y = -0.05 * (std::f64::consts::PI * u).sin() * (std::f64::consts::PI * v).sin();
+                b.add_particle(
+                    Vec3::new(u, y, v),
+                    Vec3::zeros(),
+                    if border { 0.0 } else { 0.01 },
+                );
+            }
+        }
+        let mut spring = |a: (usize, usize), c: (usize, usize)| {
+            let length = h
+                * (((a.0 as f64 - c.0 as f64).powi(2) + (a.1 as f64 - c.1 as f64).powi(2)).sqrt());
+            let mid = ((a.0 + c.0) as f64 * h / 2.0, (a.1 + c.1) as f64 * h / 2.0);
+            b.add_spring_with_rest(
+                at(a.0, a.1),
+                at(c.0, c.1),
+                length * stretch(mid.0, mid.1),
+                50.0,
+                0.0,
+            );
+        };
+        for i in 0..nodes {
+            for j in 0..nodes {
+                if i < side {
+                    spring((i, j), (i + 1, j));
+                }
+                if j < side {
+                    spring((i, j), (i, j + 1));
+                }
+                if i < side && j < side {
+                    spring((i, j), (i + 1, j + 1));
+                    spring((i + 1, j), (i, j + 1));
+                }
+            }
+        }
+        b.finalize()
+    };
+    let solver = Equilibrium::default();
+    // The hidden design: rest lengths up to 4% longer, more so towards one side.
+    let truth = build(&|u, v| 1.0 + 0.04 * (std::f64::consts::PI * u).sin() * v);
+    let target = solver.solve(&truth, &mut Tape::new(), &truth.state())?.x;
+    let model = build(&|_, _| 0.99);
+    let rest = model.param::<f64>("springs", "rest")?;
+    let rest0 = Array::from_vec(rest.to_vec());
+    let (n, springs) = (model.particle_count, rest.len());
+    let free = (side - 1) * (side - 1);
+    let first = solver.solve(&model, &mut Tape::new(), &model.state())?;
+    let sag = target.to_vec().iter().fold(0.0f64, |m, p| m.max(-p.y));
+    let error = |x: &Array<Vec3<f64>>| -> f64 {
+        x.to_vec()
+            .iter()
+            .zip(target.to_vec())
+            .map(|(a, b)| (*a - b).norm())
+            .fold(0.0, f64::max)
+            / sag
+    };
+    let initial_error = error(&first.x);
+    let residuals = |tape: &mut Tape, x: &Array<Vec3<f64>>| {
+        let r = Array::<Vec3<f64>>::zeros(n).named("miss");
+        tape.launch(difference, n, (x, &target, &r));
+        let pull = Array::<f64>::zeros(springs).named("pull");
+        tape.launch(regularization, springs, (&rest, &rest0, 1e-2, &pull));
+        (r, pull)
+    };
+    let mut guess = first.deep_clone();
+    // The fit has a residual (the pull): converged once the gradient is 1e-9 of the first.
+    let kkt = optimizer(opt, Optimizer::kkt_gauss_newton()).grad_tol_rel(1e-9);
+    let report = kkt.least_squares_kkt(
+        &Params::new().with(&rest),
+        |tape| {
+            let eq = solver.solve(&model, tape, &guess)?;
+            guess = eq.deep_clone();
+            let r = residuals(tape, &eq.x);
+            Ok((eq.x, r))
+        },
+        |tape, x| Ok((statics::net_force(&model, tape, x)?, residuals(tape, x))),
+    )?;
+    let final_error = error(&guess.x);
+    let unknowns = 3 * n + springs;
+    let sweeps: Vec<usize> = report.history.iter().map(|i| i.sweeps).collect();
+    Ok(Sheet {
+        report,
+        free,
+        springs,
+        unknowns,
+        rows: 3 * n + unknowns + springs,
+        first_sweeps: sweeps.get(1).copied().unwrap_or(0),
+        later_sweeps: match sweeps.len() {
+            0..=2 => 0,
+            _ => sweeps[2] - sweeps[1],
+        },
+        initial_error,
+        final_error,
+    })
 }
 
 /// The first iteration of `report` whose loss is at most `level` (`None`: never).
@@ -508,6 +648,27 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "design",
         "inverse design: loss against passes",
     )?;
+    let side = 30;
+    let sh = sheet(side, &cfg)?;
+    println!(
+        "inverse design of a sheet by the KKT system: {} x {} net, {} free particles, {} rest \
+         lengths; the KKT system has {} rows and {} unknowns' columns; sweeps of the first step \
+         {} (one per unknown), of a later one {} (one per colour and a check); {} iterations in \
+         {:.2} s; worst distance from the target / sag {:.1e} -> {:.1e}; {}",
+        side + 1,
+        side + 1,
+        sh.free,
+        sh.springs,
+        sh.rows,
+        sh.unknowns,
+        sh.first_sweeps,
+        sh.later_sweeps,
+        sh.report.iterations,
+        sh.report.elapsed.as_secs_f64(),
+        sh.initial_error,
+        sh.final_error,
+        sh.report.stop
+    );
     println!(
         "charts: {}/{{identification,design}}{{,_time}}.{{svg,png}}",
         dir.display()

@@ -225,6 +225,46 @@ fn second_order_methods_take_fewer_iterations_and_passes_than_lbfgs() {
     }
 }
 
+/// Gauss-Newton by the KKT system designs a sheet (rest lengths for a target equilibrium) at
+/// a size where the system is assembled sparse: after the first step (one tangent sweep per
+/// unknown, which finds the pattern), one sweep per colour of the columns and one check; the
+/// equilibrium takes the target shape.
+#[test]
+fn the_kkt_method_designs_a_sheet_with_coloured_sweeps() {
+    let cfg = second_order::Config {
+        max_iters: 30,
+        ..second_order::Config::small()
+    };
+    let sh = second_order::sheet(12, &cfg).unwrap();
+    println!(
+        "sheet: {} free particles, {} springs, {} rows, {} unknowns; sweeps {} then {} per \
+         step; error {:.2e} -> {:.2e}; {}",
+        sh.free,
+        sh.springs,
+        sh.rows,
+        sh.unknowns,
+        sh.first_sweeps,
+        sh.later_sweeps,
+        sh.initial_error,
+        sh.final_error,
+        sh.report
+    );
+    assert!(sh.report.converged(), "{}", sh.report);
+    assert_eq!(sh.first_sweeps, sh.unknowns + 1, "{}", sh.report);
+    assert!(
+        sh.later_sweeps > 2 && 10 * sh.later_sweeps < sh.unknowns,
+        "{} sweeps per later step for {} unknowns",
+        sh.later_sweeps,
+        sh.unknowns
+    );
+    assert!(
+        sh.final_error < 1e-3 && sh.final_error < 1e-2 * sh.initial_error,
+        "{:e} -> {:e}",
+        sh.initial_error,
+        sh.final_error
+    );
+}
+
 #[path = "../examples/soft_body.rs"]
 #[allow(dead_code)]
 mod soft_body;

@@ -109,13 +109,14 @@ pub enum Method {
     /// Gauss-Newton for a least-squares loss whose state solves a constraint, e.g. a static
     /// equilibrium ([`Optimizer::least_squares_kkt`]): each step solves the KKT system over
     /// the state, the parameters and the constraint's multipliers at once (the formulation
-    /// of Zehnder et al.'s sparse Gauss-Newton, 2021), assembled from tangent passes over one
-    /// evaluation of the constraint and the residuals and factorized densely, instead of
-    /// conjugate gradients whose every product is a linear solve through the constraint;
-    /// then backtracks along the step (Armijo).
+    /// of Zehnder et al.'s sparse Gauss-Newton, 2021), assembled sparse from tangent passes
+    /// over one evaluation of the constraint and the residuals (compressed by a colouring of
+    /// the columns) and factorized by sparse LU, instead of conjugate gradients whose every
+    /// product is a linear solve through the constraint; then backtracks along the step
+    /// (Armijo).
     KktGaussNewton {
-        /// The largest KKT system assembled (rows: twice the state's scalars plus the
-        /// parameters; 6000); a larger one is an error.
+        /// The largest KKT system assembled (rows: the residuals, twice the state's scalars
+        /// and the parameters; 2,000,000); a larger one is an error.
         largest: usize,
     },
 }
@@ -137,8 +138,9 @@ pub struct Iteration {
     /// Hessian-vector product 2 sweeps in `Dual`). The cost axis for comparing methods.
     pub passes: usize,
     /// Sweeps over one evaluation of a constraint so far (not the simulation: per step of
-    /// [`Optimizer::least_squares_kkt`], the recording of `constrained` and one tangent pass
-    /// per unknown, the columns of its KKT system; 0 for the other methods). Counted apart
+    /// [`Optimizer::least_squares_kkt`], the recording of `constrained` and the tangent
+    /// passes that give the columns of its KKT system: one per unknown at the first step, one
+    /// per colour of the columns and a check later; 0 for the other methods). Counted apart
     /// from `passes`, being far cheaper.
     pub sweeps: usize,
     /// Time since the start.

@@ -279,8 +279,17 @@ impl<T: Element> Residuals for Vec<Array<T>> {
     }
 }
 
+/// Residuals of two kinds, e.g. positions (`Vec3`) and a regularization of scalar parameters.
+impl<A: Residuals, B: Residuals> Residuals for (A, B) {
+    fn into_arrays(self) -> Vec<Box<dyn AnyArray>> {
+        let mut arrays = self.0.into_arrays();
+        arrays.extend(self.1.into_arrays());
+        arrays
+    }
+}
+
 /// A linear operator on flat vectors (a product that can fail).
-type Apply<'a> = dyn FnMut(&[f64]) -> Result<Vec<f64>, Error> + 'a;
+pub(crate) type Apply<'a> = dyn FnMut(&[f64]) -> Result<Vec<f64>, Error> + 'a;
 
 /// `(x, v, is an evaluation)` -> the loss, gradient and `H v` at `x`.
 type Product<'a> = dyn FnMut(&[f64], &[f64], bool) -> Result<Hvp, Error> + 'a;

@@ -773,6 +773,11 @@ fn the_kkt_step_is_the_gauss_newton_step_and_converges() {
     assert!(report.converged(), "{report}");
     assert!(report.iterations <= 10, "{report}");
     assert!(report.loss > 1e-4, "a fit with a residual: {report}");
+    // After the first step, the columns come in three colours (the states touch disjoint
+    // rows; p0 every constraint row; p1 all but the first): a recording, three sweeps and
+    // the check per step.
+    assert!(report.iterations >= 2, "{report}");
+    assert_eq!(report.sweeps, 7 + 5 * (report.iterations - 1), "{report}");
 }
 
 /// The step does not depend on the parameters' units: with `p1` in units a billion times
@@ -863,12 +868,16 @@ fn the_kkt_method_refuses_what_it_cannot_solve() {
     assert!(e.contains("kkt_gauss_newton"), "{e}");
     let e = cubic
         .run(Optimizer::new(adflex_optim::Method::KktGaussNewton {
-            largest: 9,
+            largest: 13,
         }))
         .map(|_| ())
         .map_err(err)
         .unwrap_err();
-    assert!(e.contains("10 rows") && e.contains("`largest` (9)"), "{e}");
+    assert!(
+        e.contains("14 rows (4 residuals + 2 x 4 state scalars + 2 parameters)")
+            && e.contains("`largest` (13)"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -1,15 +1,18 @@
 //! Gauss-Newton through a constraint by its KKT system ([`Optimizer::least_squares_kkt`]).
 
+mod jacobian;
+mod system;
+
 use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
 use crate::newton::{dot, Direction, LeastSquares, Recorded};
 use crate::{Counts, Method, Optimizer, Params, Report, Residuals};
 
 impl Optimizer<'_> {
-    /// Gauss-Newton by the KKT system ([`Method::KktGaussNewton`]), for systems of up to 6000
-    /// rows; run it with [`Optimizer::least_squares_kkt`].
+    /// Gauss-Newton by the KKT system ([`Method::KktGaussNewton`]), for systems of up to
+    /// 2,000,000 rows; run it with [`Optimizer::least_squares_kkt`].
     pub fn kkt_gauss_newton() -> Self {
-        Self::new(Method::KktGaussNewton { largest: 6000 })
+        Self::new(Method::KktGaussNewton { largest: 2_000_000 })
     }
 
     /// Gauss-Newton through a constraint by its KKT system, the formulation of sparse Gauss-Newton
@@ -30,18 +33,22 @@ impl Optimizer<'_> {
     ///
     /// `J = [r_x r_p]`, `C = [c_x c_p]`; its `dp` is the
     /// Gauss-Newton step (eliminate `dx = S dp`), found without forming `S` and without an inner
-    /// iterative solve, so its cost does not grow with the stiffness's condition number. `J` and
-    /// `C` come column by column from tangent passes over a tape that holds one evaluation of the
-    /// constraint and the residuals at `x` (one pass per unknown of the state and per parameter),
-    /// and the system is equilibrated (Ruiz's symmetric scaling: every row and column of the
-    /// scaled system has its largest entry near 1, whatever the units of the state, the
-    /// parameters and the constraint) and factorized by LU with partial pivoting.
+    /// iterative solve, so its cost does not grow with the stiffness's condition number.
     ///
-    /// What is not the paper's: the system is assembled and factorized **densely**, so the cost is
-    /// `n + m` tangent passes and `O((2n + m)³)` per step (`n` state scalars, `m` parameters):
-    /// right for a few thousand unknowns (the inverse-design cable: 183 and 60), not for a cloth of
-    /// 10,000 particles, which needs the sparse assembly (compressed columns by a colouring of the
-    /// force graph) and a sparse factorization.
+    /// The system is sparse, and so is its solve: it is assembled with the linearized residuals
+    /// `s = J d + r` as unknowns too (`[-I J 0; Jᵀ 0 Cᵀ; 0 C 0]`, so `Jᵀ J` is never formed and
+    /// a residual that reads many unknowns fills nothing in), equilibrated (Ruiz's symmetric
+    /// scaling: every row and column of the scaled system has its largest entry near 1,
+    /// whatever the units of the state, the parameters and the constraint) and factorized by
+    /// faer's sparse LU with partial pivoting, with one step of iterative refinement. `J` and
+    /// `C` come from tangent passes over a tape that holds one evaluation of the constraint and
+    /// the residuals at `x`: at the first step one pass per unknown of the state and per
+    /// parameter, which also finds their sparsity pattern; at the later steps one pass per
+    /// colour of the columns (columns that share no row are seeded together: a few dozen for a
+    /// cloth, whatever its size), checked by one more pass along a random direction. If the
+    /// check fails (the pattern changed: a contact started touching), the step takes the
+    /// columns one by one again and the pattern grows. A residual or constraint equation that
+    /// reads every unknown makes every column its own colour.
     ///
     /// # The closures
     ///
@@ -55,11 +62,10 @@ impl Optimizer<'_> {
     ///   KKT products run over this tape.
     ///
     /// An iteration is the `residuals` evaluation, its gradient (an adjoint pass through the
-    /// solve), one recording of `constrained` and one tangent pass of that small tape per
-    /// unknown of the state and per parameter (sweeps over one evaluation of the constraint,
-    /// far cheaper than a pass through the solve: counted in [`Report::sweeps`], not in
-    /// `passes`), the LU solve, and an Armijo backtracking along the step (one `residuals`
-    /// evaluation per trial).
+    /// solve), one recording of `constrained` and the tangent passes of that small tape (sweeps
+    /// over one evaluation of the constraint, far cheaper than a pass through the solve:
+    /// counted in [`Report::sweeps`], not in `passes`), the sparse LU solve, and an Armijo
+    /// backtracking along the step (one `residuals` evaluation per trial).
     ///
     /// Errors: as [`Optimizer::least_squares`] (an error at a later step ends the run with it,
     /// the parameters holding the lowest-loss values); [`Error::InvalidInput`] naming what is
@@ -68,12 +74,13 @@ impl Optimizer<'_> {
     /// and component) or their derivatives disagree with the gradient through the solve
     /// (`gᵀdp = -|J d|²` to 1e-3: the closures read the parameters differently); if a
     /// parameter moves neither the constraint nor the residuals of `constrained` (named); if
-    /// the KKT system is singular to working precision (a pivot below `1e-13 · rows` of the
-    /// largest, `1e-6 · rows` when the state or the constraint is in f32: a state the
-    /// constraint does not determine, or parameters the residuals cannot tell apart; the
-    /// threshold applies to the equilibrated system, so parameters of very different units do
-    /// not look singular); if it has more rows than [`Method::KktGaussNewton`]'s `largest`; or if a
-    /// derivative is not finite (naming its input).
+    /// the KKT system is singular to working precision (its estimated condition number, by the
+    /// power method on the system and on its factorization, above `1e13`, `1e6` when the
+    /// state or the constraint is in f32: a state the constraint does not determine, or
+    /// parameters the residuals cannot tell apart; the estimate is of the equilibrated system,
+    /// so parameters of very different units do not look singular); if it has more rows than
+    /// [`Method::KktGaussNewton`]'s `largest`; or if a derivative is not finite (naming its
+    /// input).
     ///
     /// The constraint holds the parameters the tape of `constrained` reads; with
     /// `statics::net_force`, the pins are held where they are (not parameters here).
@@ -169,6 +176,8 @@ impl Optimizer<'_> {
         // The closures' agreement is checked at the first step (later, near a zero-residual
         // fit, rounding would dominate the comparison).
         let mut first = true;
+        // The Jacobian's sparsity pattern and colouring, kept from step to step.
+        let mut pattern = None;
         let mut direction = |cur: &Recorded, g: &[f64], _tol: f64, counts: &Counts| {
             let state = cur
                 .state
@@ -183,7 +192,7 @@ impl Optimizer<'_> {
             counts.sweeps.set(counts.sweeps.get() + 1);
             let rc = rc.into_arrays();
             let kkt = Kkt::new(&mut tape, &x, &c, &rc, &arrays, cur, first)?;
-            let d = kkt.step(largest, counts, g, first, params)?;
+            let d = kkt.step(largest, counts, &mut pattern, g, first, params)?;
             first = false;
             Ok(d)
         };
@@ -302,50 +311,59 @@ impl<'t, 'a> Kkt<'t, 'a> {
         self.tape.jvp(&self.inputs, v, &self.outputs)
     }
 
-    /// The Gauss-Newton step over the parameters: the KKT system assembled from one tangent
-    /// pass per unknown of the state and per parameter (the columns of `J` and `C`) and
-    /// solved by LU with partial pivoting. An error if the system has more than `largest`
-    /// rows or is singular (no unique Gauss-Newton step).
+    /// The Gauss-Newton step over the parameters: the KKT system assembled sparse from tangent
+    /// passes (the columns of `J` and `C`, coloured once their pattern is known:
+    /// [`jacobian`]) and solved by sparse LU ([`system`]). An error if the system has more
+    /// than `largest` rows or is singular (no unique Gauss-Newton step).
     fn step(
         mut self,
         largest: usize,
         counts: &Counts,
+        pattern: &mut Option<jacobian::Pattern>,
         g: &[f64],
         first: bool,
         params: &Params,
     ) -> Result<Vec<f64>, Error> {
         let (n, m, nr) = (self.n, self.m, self.nr);
         let k = n + m;
-        let dim = 2 * n + m;
+        let dim = nr + 2 * n + m;
         if dim > largest {
             return Err(Error::InvalidInput {
                 what: "least_squares_kkt: the KKT system".into(),
                 message: format!(
-                    "has {dim} rows (2 x {n} state scalars + {m} parameters), above \
-                     `Method::KktGaussNewton`'s `largest` ({largest}): it is assembled \
-                     densely; raise `largest` if the memory ({:.0} MB) is there, or use \
-                     `Optimizer::gauss_newton` with `least_squares`",
-                    (dim * dim * 8) as f64 / 1e6
+                    "has {dim} rows ({nr} residuals + 2 x {n} state scalars + {m} parameters), \
+                     above `Method::KktGaussNewton`'s `largest` ({largest}): raise `largest` if \
+                     the memory is there (the factors of a sparse LU), or use \
+                     `Optimizer::gauss_newton` with `least_squares`"
                 ),
             });
         }
-        // Column j of J (nr rows) and of C (n rows): one tangent pass each.
-        let mut jc = nalgebra::DMatrix::<f64>::zeros(nr, k);
-        let mut cc = nalgebra::DMatrix::<f64>::zeros(n, k);
-        let mut e = vec![0.0; k];
-        for j in 0..k {
-            e[j] = 1.0;
-            let t = self.forward(&e)?;
-            e[j] = 0.0;
-            jc.column_mut(j).copy_from_slice(&t[..nr]);
-            cc.column_mut(j).copy_from_slice(&t[nr..]);
-        }
-        counts.sweeps.set(counts.sweeps.get() + k);
-        let bad = (0..k).find(|&j| {
-            let finite = |m: &nalgebra::DMatrix<f64>| m.column(j).iter().all(|v| v.is_finite());
-            !finite(&jc) || !finite(&cc)
-        });
-        if let Some(j) = bad {
+        let mut passes = 0;
+        let tol = 100.0 * self.epsilon;
+        let starts = |arrays: &[&dyn AnyArray]| -> Vec<usize> {
+            let mut starts = vec![0];
+            for a in arrays {
+                let (len, at) = (a.len().max(1), starts[starts.len() - 1]);
+                let per = a.n_scalars() / len;
+                starts.extend((1..=len).map(|e| at + e * per));
+            }
+            starts
+        };
+        let (cols, rows) = (starts(&self.inputs), starts(&self.outputs));
+        let elements = jacobian::Elements {
+            cols: &cols,
+            rows: &rows,
+        };
+        let jc = jacobian::jacobian(
+            &mut |v| self.forward(v),
+            &elements,
+            pattern,
+            tol,
+            &mut passes,
+        );
+        counts.sweeps.set(counts.sweeps.get() + passes);
+        let jc = jc?;
+        if let Some(j) = (0..k).find(|&j| !jc.col(j).1.iter().all(|v| v.is_finite())) {
             let (array, index) = locate(&self.inputs, j);
             return Err(Error::InvalidInput {
                 what: format!("least_squares_kkt: `{}` component {index}", array.label()),
@@ -355,10 +373,7 @@ impl<'t, 'a> Kkt<'t, 'a> {
             });
         }
         // A parameter neither the constraint nor the residuals of `constrained` read.
-        let unread = (n..k).find(|&j| {
-            jc.column(j).iter().all(|v| *v == 0.0) && cc.column(j).iter().all(|v| *v == 0.0)
-        });
-        if let Some(j) = unread {
+        if let Some(j) = (n..k).find(|&j| jc.col(j).1.iter().all(|v| *v == 0.0)) {
             return Err(Error::InvalidInput {
                 what: format!(
                     "least_squares_kkt: parameter {}",
@@ -370,35 +385,7 @@ impl<'t, 'a> Kkt<'t, 'a> {
                     .into(),
             });
         }
-        let h = jc.transpose() * &jc;
-        let mut a = nalgebra::DMatrix::<f64>::zeros(dim, dim);
-        a.view_mut((0, 0), (k, k)).copy_from(&h);
-        a.view_mut((k, 0), (n, k)).copy_from(&cc);
-        a.view_mut((0, k), (k, n)).copy_from(&cc.transpose());
-        // The constraint's rows of the right-hand side are 0: the step linearizes at the solved
-        // state, where the gradient (through the solve) takes the constraint as met.
-        let r = nalgebra::DVector::from_column_slice(&self.r);
-        let mut b = nalgebra::DVector::<f64>::zeros(dim);
-        b.rows_mut(0, k).copy_from(&(-(jc.transpose() * r)));
-        // Solve (D A D) y = D b, then x = D y: the pivoting and the singularity test compare
-        // like with like whatever the units.
-        let scale = equilibrate(&a);
-        for i in 0..dim {
-            for j in 0..dim {
-                a[(i, j)] *= scale[i] * scale[j];
-            }
-            b[i] *= scale[i];
-        }
-        let lu = a.lu();
-        // A pivot below rounding of the largest one: singular to working precision (that of
-        // f32 if the state or the constraint is in f32, their derivatives being no better).
-        let pivots = lu.u().diagonal().map(f64::abs);
-        let tiny = pivots.max() * self.epsilon * dim as f64;
-        let sol = match pivots.min() > tiny {
-            true => lu.solve(&b).filter(|x| x.iter().all(|v| v.is_finite())),
-            false => None,
-        };
-        let Some(mut sol) = sol else {
+        let Ok(d) = system::step(&jc, nr, &self.r, self.epsilon) else {
             return Err(Error::InvalidInput {
                 what: "least_squares_kkt: the KKT system".into(),
                 message: format!(
@@ -410,15 +397,11 @@ impl<'t, 'a> Kkt<'t, 'a> {
                 ),
             });
         };
-        sol.component_mul_assign(&scale);
-        let d = sol.as_slice()[..k].to_vec();
         let dp = d[n..].to_vec();
         // At the solution, gᵀdp = -|J d|² (C d = 0): a gradient through `residuals` that
         // disagrees says the two closures differentiate differently.
-        let (slope, model) = (
-            dot(g, &dp),
-            (&jc * nalgebra::DVector::from_vec(d)).norm_squared(),
-        );
+        let jd = jc.mul(&d);
+        let (slope, model) = (dot(g, &dp), jd[..nr].iter().map(|v| v * v).sum::<f64>());
         if first && (slope + model).abs() > 1e-3 * slope.abs().max(model) {
             return Err(Error::InvalidInput {
                 what: "least_squares_kkt: the derivatives of `constrained`".into(),
@@ -434,30 +417,6 @@ impl<'t, 'a> Kkt<'t, 'a> {
         }
         Ok(dp)
     }
-}
-
-/// Ruiz's symmetric equilibration of the symmetric matrix `a`: the scales `D` such that every
-/// row and column of `D a D` has its largest magnitude within 10% of 1 (a zero row keeps
-/// scale 1), after at most 20 sweeps.
-fn equilibrate(a: &nalgebra::DMatrix<f64>) -> nalgebra::DVector<f64> {
-    let dim = a.nrows();
-    let mut d = nalgebra::DVector::from_element(dim, 1.0);
-    for _ in 0..20 {
-        let largest: Vec<f64> = (0..dim)
-            .map(|i| (0..dim).fold(0.0f64, |m, j| m.max((d[i] * a[(i, j)] * d[j]).abs())))
-            .collect();
-        let mut balanced = true;
-        for (i, &r) in largest.iter().enumerate() {
-            if r > 0.0 {
-                d[i] /= r.sqrt();
-                balanced &= (r - 1.0).abs() <= 0.1;
-            }
-        }
-        if balanced {
-            break;
-        }
-    }
-    d
 }
 
 /// The array and component of flat index `k` over `arrays`.

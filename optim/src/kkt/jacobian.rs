@@ -1,0 +1,364 @@
+//! The sparse Jacobian of a tape's outputs in its inputs, from tangent passes.
+//!
+//! The first time, one pass per column (a unit seed) gives the values and the sparsity
+//! pattern. After that the columns are coloured so that no two of one colour share a row
+//! (Curtis, Powell and Reid's compression), and one pass per colour, seeded on all of its
+//! columns, gives every column of that colour at once: a cloth's stiffness takes a few dozen
+//! passes instead of three per particle. The pattern is the values' at the point it was found
+//! (a contact may start touching later), so each compressed Jacobian is checked by one more pass
+//! along a random direction; if it disagrees, the columns are taken one by one again and the
+//! pattern grows.
+
+use adflex_runtime::Error;
+
+use crate::newton::Apply;
+
+/// A matrix in compressed columns.
+pub(super) struct Sparse {
+    pub rows: usize,
+    /// Column `j` holds the entries `ptr[j]..ptr[j + 1]` of `idx` (rows, ascending) and `val`.
+    pub ptr: Vec<usize>,
+    pub idx: Vec<usize>,
+    pub val: Vec<f64>,
+}
+
+impl Sparse {
+    pub fn cols(&self) -> usize {
+        self.ptr.len() - 1
+    }
+
+    /// Rows and values of column `j`.
+    pub fn col(&self, j: usize) -> (&[usize], &[f64]) {
+        let r = self.ptr[j]..self.ptr[j + 1];
+        (&self.idx[r.clone()], &self.val[r])
+    }
+
+    /// `A v`.
+    pub fn mul(&self, v: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; self.rows];
+        for (j, vj) in v.iter().enumerate() {
+            let (rows, vals) = self.col(j);
+            for (i, a) in rows.iter().zip(vals) {
+                out[*i] += a * vj;
+            }
+        }
+        out
+    }
+
+    /// The sum over each row of `|A_ij v_j|`: the size of `A v`'s rounding.
+    fn abs_mul(&self, v: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; self.rows];
+        for (j, vj) in v.iter().enumerate() {
+            let (rows, vals) = self.col(j);
+            for (i, a) in rows.iter().zip(vals) {
+                out[*i] += (a * vj).abs();
+            }
+        }
+        out
+    }
+}
+
+/// Where a Jacobian's entries may be nonzero, and the columns' colours.
+pub(super) struct Pattern {
+    rows: usize,
+    ptr: Vec<usize>,
+    idx: Vec<usize>,
+    colour: Vec<usize>,
+    colours: usize,
+}
+
+/// The elements of the arrays behind the columns and the rows: `starts[e]..starts[e + 1]`
+/// are element `e`'s scalars (a `Vec3` is three).
+pub(super) struct Elements<'a> {
+    pub cols: &'a [usize],
+    pub rows: &'a [usize],
+}
+
+impl Pattern {
+    /// The pattern of `a`'s nonzeros, closed over elements (if one scalar of an input element
+    /// moves one scalar of an output element, every scalar of the one may move every scalar of
+    /// the other: a spring along an axis has exact zeros in its stiffness that are not zero
+    /// once it turns) and joined with `old`'s entries (a contact that let go may touch again),
+    /// coloured greedily in column order.
+    fn of(a: &Sparse, old: Option<&Pattern>, elements: &Elements<'_>) -> Self {
+        let (rows, cols) = (a.rows, a.cols());
+        let mut row_element = vec![0; rows];
+        for (e, w) in elements.rows.windows(2).enumerate() {
+            row_element[w[0]..w[1]].iter_mut().for_each(|r| *r = e);
+        }
+        let mut ptr = vec![0];
+        let mut idx = Vec::new();
+        let mut mark = vec![usize::MAX; elements.rows.len()];
+        for (e, w) in elements.cols.windows(2).enumerate() {
+            // The output elements this input element moves.
+            let mut touched = Vec::new();
+            for j in w[0]..w[1] {
+                let (r, v) = a.col(j);
+                let nonzero = r.iter().zip(v).filter(|(_, v)| **v != 0.0).map(|(i, _)| *i);
+                let kept = old.map(|o| &o.idx[o.ptr[j]..o.ptr[j + 1]]).unwrap_or(&[]);
+                for i in nonzero.chain(kept.iter().copied()) {
+                    let out = row_element[i];
+                    if mark[out] != e {
+                        mark[out] = e;
+                        touched.push(out);
+                    }
+                }
+            }
+            touched.sort_unstable();
+            for _ in w[0]..w[1] {
+                for &out in &touched {
+                    idx.extend(elements.rows[out]..elements.rows[out + 1]);
+                }
+                ptr.push(idx.len());
+            }
+        }
+        // Rows to columns, to find each column's neighbours (columns sharing a row).
+        let mut row_ptr = vec![0usize; rows + 1];
+        for &i in &idx {
+            row_ptr[i + 1] += 1;
+        }
+        for i in 0..rows {
+            row_ptr[i + 1] += row_ptr[i];
+        }
+        let mut fill = row_ptr.clone();
+        let mut row_cols = vec![0usize; idx.len()];
+        for j in 0..cols {
+            for &i in &idx[ptr[j]..ptr[j + 1]] {
+                row_cols[fill[i]] = j;
+                fill[i] += 1;
+            }
+        }
+        let mut colour = vec![usize::MAX; cols];
+        let mut taken = Vec::<usize>::new(); // taken[c] == j: colour c is a neighbour's of j
+        let mut colours = 0;
+        for j in 0..cols {
+            for &i in &idx[ptr[j]..ptr[j + 1]] {
+                for &n in &row_cols[row_ptr[i]..row_ptr[i + 1]] {
+                    if colour[n] != usize::MAX {
+                        taken[colour[n]] = j;
+                    }
+                }
+            }
+            let c = (0..colours).find(|&c| taken[c] != j).unwrap_or(colours);
+            if c == colours {
+                colours += 1;
+                taken.push(usize::MAX);
+            }
+            colour[j] = c;
+        }
+        Pattern {
+            rows,
+            ptr,
+            idx,
+            colour,
+            colours,
+        }
+    }
+
+    /// Passes a compressed Jacobian takes.
+    #[cfg(test)]
+    pub fn colours(&self) -> usize {
+        self.colours
+    }
+}
+
+/// The Jacobian of `forward`, a tangent pass (its rows and columns in `elements`). With a pattern
+/// from an earlier call, one pass per colour and one check along a random direction (relative
+/// `tol` per row); without one, or if the check fails, one pass per column, and `pattern`
+/// becomes (or grows to) that Jacobian's. `passes` counts the tangent passes.
+pub(super) fn jacobian(
+    forward: &mut Apply<'_>,
+    elements: &Elements<'_>,
+    pattern: &mut Option<Pattern>,
+    tol: f64,
+    passes: &mut usize,
+) -> Result<Sparse, Error> {
+    let last = |starts: &[usize]| starts[starts.len() - 1];
+    let (rows, cols) = (last(elements.rows), last(elements.cols));
+    if let Some(p) = pattern
+        .as_ref()
+        .filter(|p| p.rows == rows && p.ptr.len() == cols + 1)
+    {
+        let a = compressed(forward, p, passes)?;
+        if agrees(forward, &a, tol, passes)? {
+            return Ok(a);
+        }
+    }
+    let a = by_columns(forward, rows, cols, passes)?;
+    *pattern = Some(Pattern::of(&a, pattern.as_ref(), elements));
+    Ok(a)
+}
+
+/// One pass per column; the exact zeros are left out.
+fn by_columns(
+    forward: &mut Apply<'_>,
+    rows: usize,
+    cols: usize,
+    passes: &mut usize,
+) -> Result<Sparse, Error> {
+    let mut a = Sparse {
+        rows,
+        ptr: vec![0],
+        idx: Vec::new(),
+        val: Vec::new(),
+    };
+    let mut e = vec![0.0; cols];
+    for j in 0..cols {
+        e[j] = 1.0;
+        let t = forward(&e)?;
+        e[j] = 0.0;
+        *passes += 1;
+        for (i, v) in t.into_iter().enumerate() {
+            // A NaN is kept: the caller names its column.
+            if v != 0.0 {
+                a.idx.push(i);
+                a.val.push(v);
+            }
+        }
+        a.ptr.push(a.idx.len());
+    }
+    Ok(a)
+}
+
+/// One pass per colour, seeded with 1 on the colour's columns: row `i` of the result is the
+/// entry `(i, j)` of the one column `j` of that colour whose pattern has row `i`.
+fn compressed(forward: &mut Apply<'_>, p: &Pattern, passes: &mut usize) -> Result<Sparse, Error> {
+    let cols = p.ptr.len() - 1;
+    let mut val = vec![0.0; p.idx.len()];
+    let mut by_colour = vec![Vec::new(); p.colours];
+    for j in 0..cols {
+        by_colour[p.colour[j]].push(j);
+    }
+    let mut seed = vec![0.0; cols];
+    for members in &by_colour {
+        for &j in members {
+            seed[j] = 1.0;
+        }
+        let t = forward(&seed)?;
+        *passes += 1;
+        for &j in members {
+            seed[j] = 0.0;
+            for k in p.ptr[j]..p.ptr[j + 1] {
+                val[k] = t[p.idx[k]];
+            }
+        }
+    }
+    Ok(Sparse {
+        rows: p.rows,
+        ptr: p.ptr.clone(),
+        idx: p.idx.clone(),
+        val,
+    })
+}
+
+/// Whether `a v` matches a tangent pass along `v`, a random direction scaled by each column's
+/// largest entry (so that every column weighs alike whatever its units), to `tol` of each
+/// row's `Σ |a_ij v_j|` (NaN disagrees).
+fn agrees(
+    forward: &mut Apply<'_>,
+    a: &Sparse,
+    tol: f64,
+    passes: &mut usize,
+) -> Result<bool, Error> {
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let v: Vec<f64> = (0..a.cols())
+        .map(|j| {
+            // xorshift64*: a fixed sequence, so runs repeat exactly.
+            state ^= state >> 12;
+            state ^= state << 25;
+            state ^= state >> 27;
+            let u = (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64;
+            let largest = a.col(j).1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let size = if largest > 0.0 { 1.0 / largest } else { 1.0 };
+            (0.5 + u) * size * if state & 1 == 0 { 1.0 } else { -1.0 }
+        })
+        .collect();
+    let t = forward(&v)?;
+    *passes += 1;
+    let (av, bound) = (a.mul(&v), a.abs_mul(&v));
+    Ok(t.iter()
+        .zip(av.iter().zip(&bound))
+        .all(|(t, (av, b))| (t - av).abs() <= tol * (b + t.abs())))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A tridiagonal Jacobian with a dense last column: three colours for the band, one more
+    /// for the dense column.
+    fn band(n: usize, extra: Option<(usize, usize)>) -> impl Fn(&[f64]) -> Vec<f64> {
+        move |v: &[f64]| {
+            let mut out: Vec<f64> = (0..n)
+                .map(|i| {
+                    let band = i.saturating_sub(1)..(i + 2).min(n);
+                    let entry = |j: usize| (1.0 + i as f64 + 0.5 * j as f64) * v[j];
+                    band.map(entry).sum::<f64>() + 0.25 * v[n]
+                })
+                .collect();
+            if let Some((i, j)) = extra {
+                out[i] += 3.0 * v[j];
+            }
+            out
+        }
+    }
+
+    #[test]
+    fn coloured_passes_give_the_columns_and_a_new_entry_is_found() {
+        let n = 30;
+        let f = band(n, None);
+        let mut forward = |v: &[f64]| Ok(f(v));
+        let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
+        let scalars = Elements {
+            cols: &cols,
+            rows: &rows,
+        };
+        let (mut pattern, mut passes) = (None, 0);
+        let first = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        assert_eq!(passes, n + 1);
+        assert_eq!(pattern.as_ref().unwrap().colours(), 4);
+        passes = 0;
+        let again = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        assert_eq!(passes, 5, "four colours and the check");
+        assert_eq!((&first.idx, &first.val), (&again.idx, &again.val));
+        // An entry outside the pattern: the check fails, the columns are taken one by one,
+        // and the pattern grows.
+        let g = band(n, Some((0, 10)));
+        let mut forward = |v: &[f64]| Ok(g(v));
+        passes = 0;
+        let grown = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        assert_eq!(passes, 5 + n + 1);
+        let e10: Vec<f64> = (0..=n).map(|j| (j == 10) as u8 as f64).collect();
+        assert_eq!(grown.mul(&e10), g(&e10));
+        assert_eq!(pattern.as_ref().unwrap().colours(), 5);
+    }
+    /// An element's scalars share their pattern: a coupling that is exactly zero where the
+    /// pattern is found (a spring along an axis) is in it, and no pass is taken again when it
+    /// is not zero.
+    #[test]
+    fn the_pattern_covers_whole_elements() {
+        let s = std::cell::Cell::new(0.0);
+        // Two 3-scalar input elements, one output element: out = (I + s 1) x[0..3].
+        let f = |v: &[f64]| -> Vec<f64> {
+            let sum: f64 = v[..3].iter().sum();
+            (0..3).map(|i| v[i] + s.get() * sum).collect()
+        };
+        let mut forward = |v: &[f64]| Ok(f(v));
+        let elements = Elements {
+            cols: &[0, 3, 6],
+            rows: &[0, 3],
+        };
+        let (mut pattern, mut passes) = (None, 0);
+        jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
+        assert_eq!(passes, 6);
+        assert_eq!(pattern.as_ref().unwrap().colours(), 3);
+        s.set(0.5);
+        passes = 0;
+        let a = jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
+        assert_eq!(passes, 4, "three colours and the check, no pass per column");
+        for j in 0..6 {
+            let e: Vec<f64> = (0..6).map(|k| (k == j) as u8 as f64).collect();
+            assert_eq!(a.mul(&e), f(&e), "column {j}");
+        }
+    }
+}
