@@ -523,7 +523,8 @@ pub fn sheet(side: usize, opt: &Config) -> Result<Sheet, Error> {
         free,
         springs,
         unknowns,
-        rows: 3 * n + unknowns + springs,
+        // The residuals (3n + springs), the unknowns, the constraint's equations (3n).
+        rows: 2 * unknowns + 3 * n,
         first_sweeps: sweeps.get(1).copied().unwrap_or(0),
         later_sweeps: match sweeps.len() {
             0..=2 => 0,

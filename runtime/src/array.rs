@@ -525,6 +525,8 @@ pub trait AnyArray: Send + Sync {
     fn reset_grad(&self);
     /// Number of differentiable scalars per element (0 for index arrays).
     fn element_dim(&self) -> usize;
+    /// The relative rounding of the scalars ([`crate::Value::EPSILON`]: `f32`'s or `f64`'s).
+    fn scalar_epsilon(&self) -> f64;
     /// A clone of the handle, boxed.
     fn boxed(&self) -> Box<dyn AnyArray>;
     /// The gradient buffer, boxed, if present.
@@ -601,6 +603,9 @@ impl<T: Element> AnyArray for Array<T> {
     }
     fn element_dim(&self) -> usize {
         T::DIM
+    }
+    fn scalar_epsilon(&self) -> f64 {
+        T::EPSILON
     }
     fn boxed(&self) -> Box<dyn AnyArray> {
         Box::new(self.clone())

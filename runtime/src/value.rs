@@ -33,6 +33,9 @@ pub trait Value: Copy + Send + Sync + 'static {
     /// host code that computes in `f64`, which would drop their derivative parts, refuses
     /// them with an error instead of a silently wrong second derivative.
     const DUAL: bool = false;
+    /// The relative rounding of the components: `f32::EPSILON` for values in `f32`,
+    /// `f64::EPSILON` otherwise (what a tolerance on their derivatives must allow).
+    const EPSILON: f64 = f64::EPSILON;
     /// The derivative part of component `k` of a dual value (0 otherwise).
     fn eps_component(&self, _k: usize) -> f64 {
         0.0
@@ -125,6 +128,7 @@ impl<T: Value + Default, const N: usize> Value for [T; N] {
         self[k / T::DIM].set_component(k % T::DIM, x)
     }
     const DUAL: bool = T::DUAL;
+    const EPSILON: f64 = T::EPSILON;
     fn eps_component(&self, k: usize) -> f64 {
         self[k / T::DIM].eps_component(k % T::DIM)
     }
@@ -143,6 +147,7 @@ macro_rules! real_value {
             #[inline(always)] fn acc_neg(&mut self, other: Self) { *self -= other }
             fn component(&self, _: usize) -> f64 { *self as f64 }
             fn set_component(&mut self, _: usize, x: f64) { *self = x as $t }
+            const EPSILON: f64 = <$t>::EPSILON as f64;
         }
     )*};
 }
@@ -159,6 +164,7 @@ macro_rules! matrix_value {
             fn component(&self, k: usize) -> f64 { self[k].to_f64() }
             fn set_component(&mut self, k: usize, x: f64) { self[k] = R::lit(x).with_eps(self[k].eps()) }
             const DUAL: bool = R::DUAL;
+            const EPSILON: f64 = <R as Value>::EPSILON;
             fn eps_component(&self, k: usize) -> f64 { self[k].eps() }
             fn set_eps_component(&mut self, k: usize, x: f64) { self[k] = self[k].with_eps(x) }
             fn zeroed_vec(len: usize) -> Vec<Self> { bytemuck::zeroed_vec(len) }
@@ -192,6 +198,7 @@ impl<R: Real> Value for Quaternion<R> {
         self.coords[k] = R::lit(x).with_eps(self.coords[k].eps())
     }
     const DUAL: bool = R::DUAL;
+    const EPSILON: f64 = <R as Value>::EPSILON;
     fn eps_component(&self, k: usize) -> f64 {
         self.coords[k].eps()
     }

@@ -5,9 +5,9 @@
 //! (Curtis, Powell and Reid's compression), and one pass per colour, seeded on all of its
 //! columns, gives every column of that colour at once: a cloth's stiffness takes a few dozen
 //! passes instead of three per particle. The pattern is the values' at the point it was found
-//! (a contact may start touching later), so each compressed Jacobian is checked by one more pass
-//! along a random direction; if it disagrees, the columns are taken one by one again and the
-//! pattern grows.
+//! (a contact may start touching later), so each compressed Jacobian is checked by two more
+//! passes along random directions; if it disagrees, the columns are taken one by one again and
+//! the pattern grows.
 
 use adflex_runtime::Error;
 
@@ -65,6 +65,8 @@ pub(super) struct Pattern {
     idx: Vec<usize>,
     colour: Vec<usize>,
     colours: usize,
+    /// Checks made with this pattern (each takes new random directions).
+    probes: std::cell::Cell<u64>,
 }
 
 /// The elements of the arrays behind the columns and the rows: `starts[e]..starts[e + 1]`
@@ -152,6 +154,7 @@ impl Pattern {
             idx,
             colour,
             colours,
+            probes: std::cell::Cell::new(0),
         }
     }
 
@@ -163,9 +166,9 @@ impl Pattern {
 }
 
 /// The Jacobian of `forward`, a tangent pass (its rows and columns in `elements`). With a pattern
-/// from an earlier call, one pass per colour and one check along a random direction (relative
-/// `tol` per row); without one, or if the check fails, one pass per column, and `pattern`
-/// becomes (or grows to) that Jacobian's. `passes` counts the tangent passes.
+/// from an earlier call, one pass per colour and a check along two random directions
+/// (relative `tol` per row); without one, or if the check fails, one pass per column, and
+/// `pattern` becomes (or grows to) that Jacobian's. `passes` counts the tangent passes.
 pub(super) fn jacobian(
     forward: &mut Apply<'_>,
     elements: &Elements<'_>,
@@ -180,12 +183,16 @@ pub(super) fn jacobian(
         .filter(|p| p.rows == rows && p.ptr.len() == cols + 1)
     {
         let a = compressed(forward, p, passes)?;
-        if agrees(forward, &a, tol, passes)? {
+        if agrees(forward, &a, p, tol, passes)? {
             return Ok(a);
         }
     }
     let a = by_columns(forward, rows, cols, passes)?;
-    *pattern = Some(Pattern::of(&a, pattern.as_ref(), elements));
+    // An old pattern of other sizes (the residuals changed in number) is dropped.
+    let old = pattern
+        .take()
+        .filter(|p| p.rows == rows && p.ptr.len() == cols + 1);
+    *pattern = Some(Pattern::of(&a, old.as_ref(), elements));
     Ok(a)
 }
 
@@ -251,34 +258,54 @@ fn compressed(forward: &mut Apply<'_>, p: &Pattern, passes: &mut usize) -> Resul
     })
 }
 
-/// Whether `a v` matches a tangent pass along `v`, a random direction scaled by each column's
-/// largest entry (so that every column weighs alike whatever its units), to `tol` of each
-/// row's `Σ |a_ij v_j|` (NaN disagrees).
+/// Whether `a v` matches a tangent pass along `v` for two random directions: one scaled by
+/// each column's largest entry (every column weighs alike whatever its units), one not (an
+/// entry missing from a row of small entries, beside a column of large ones, shows there).
+/// Each row must agree to `tol` of its `Σ |a_ij v_j|` (NaN disagrees). The directions'
+/// entries are exact in `f32`, so an `f32` input takes them unrounded; they change from call
+/// to call (`p.probes`), from a fixed sequence, so runs repeat exactly.
 fn agrees(
     forward: &mut Apply<'_>,
     a: &Sparse,
+    p: &Pattern,
     tol: f64,
     passes: &mut usize,
 ) -> Result<bool, Error> {
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let v: Vec<f64> = (0..a.cols())
-        .map(|j| {
-            // xorshift64*: a fixed sequence, so runs repeat exactly.
-            state ^= state >> 12;
-            state ^= state << 25;
-            state ^= state >> 27;
-            let u = (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64;
-            let largest = a.col(j).1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            let size = if largest > 0.0 { 1.0 / largest } else { 1.0 };
-            (0.5 + u) * size * if state & 1 == 0 { 1.0 } else { -1.0 }
-        })
-        .collect();
-    let t = forward(&v)?;
-    *passes += 1;
-    let (av, bound) = (a.mul(&v), a.abs_mul(&v));
-    Ok(t.iter()
-        .zip(av.iter().zip(&bound))
-        .all(|(t, (av, b))| (t - av).abs() <= tol * (b + t.abs())))
+    let probes = p.probes.get();
+    p.probes.set(probes + 1);
+    let mut state = 0x9e37_79b9_7f4a_7c15u64 ^ probes.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    let mut random = || {
+        // xorshift64*
+        state ^= state >> 12;
+        state ^= state << 25;
+        state ^= state >> 27;
+        let u = (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f64 / (1u64 << 24) as f64;
+        (0.5 + u) * if state & 1 == 0 { 1.0 } else { -1.0 }
+    };
+    for scaled in [true, false] {
+        let v: Vec<f64> = (0..a.cols())
+            .map(|j| {
+                let largest = a.col(j).1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let size = match scaled && largest > 0.0 {
+                    // A power of two: the entry stays exact in f32.
+                    true => (1.0 / largest).log2().round().exp2(),
+                    false => 1.0,
+                };
+                random() * size
+            })
+            .collect();
+        let t = forward(&v)?;
+        *passes += 1;
+        let (av, bound) = (a.mul(&v), a.abs_mul(&v));
+        let agree = t
+            .iter()
+            .zip(av.iter().zip(&bound))
+            .all(|(t, (av, b))| (t - av).abs() <= tol * (b + t.abs()));
+        if !agree {
+            return Ok(false);
+        }
+    }
+    Ok(true)
 }
 
 #[cfg(test)]
@@ -319,7 +346,7 @@ mod tests {
         assert_eq!(pattern.as_ref().unwrap().colours(), 4);
         passes = 0;
         let again = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
-        assert_eq!(passes, 5, "four colours and the check");
+        assert_eq!(passes, 6, "four colours and the check's two passes");
         assert_eq!((&first.idx, &first.val), (&again.idx, &again.val));
         // An entry outside the pattern: the check fails, the columns are taken one by one,
         // and the pattern grows.
@@ -327,7 +354,7 @@ mod tests {
         let mut forward = |v: &[f64]| Ok(g(v));
         passes = 0;
         let grown = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
-        assert_eq!(passes, 5 + n + 1);
+        assert_eq!(passes, 4 + 1 + n + 1, "the check fails at its first pass");
         let e10: Vec<f64> = (0..=n).map(|j| (j == 10) as u8 as f64).collect();
         assert_eq!(grown.mul(&e10), g(&e10));
         assert_eq!(pattern.as_ref().unwrap().colours(), 5);
@@ -355,10 +382,30 @@ mod tests {
         s.set(0.5);
         passes = 0;
         let a = jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
-        assert_eq!(passes, 4, "three colours and the check, no pass per column");
+        assert_eq!(passes, 5, "three colours and the check, no pass per column");
         for j in 0..6 {
             let e: Vec<f64> = (0..6).map(|k| (k == j) as u8 as f64).collect();
             assert_eq!(a.mul(&e), f(&e), "column {j}");
+        }
+    }
+    /// A Jacobian of other sizes than the pattern's (residuals that change in number) is
+    /// taken column by column, and its pattern replaces the old one.
+    #[test]
+    fn other_sizes_drop_the_pattern() {
+        let mut pattern = None;
+        for n in [4usize, 6, 3] {
+            let f = band(n, None);
+            let mut forward = |v: &[f64]| Ok(f(v));
+            let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
+            let elements = Elements {
+                cols: &cols,
+                rows: &rows,
+            };
+            let mut passes = 0;
+            let a = jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
+            assert_eq!(passes, n + 1, "n = {n}");
+            let ones = vec![1.0; n + 1];
+            assert_eq!(a.mul(&ones), f(&ones), "n = {n}");
         }
     }
 }

@@ -10,7 +10,9 @@ use crate::{Counts, Method, Optimizer, Params, Report, Residuals};
 
 impl Optimizer<'_> {
     /// Gauss-Newton by the KKT system ([`Method::KktGaussNewton`]), for systems of up to
-    /// 2,000,000 rows; run it with [`Optimizer::least_squares_kkt`].
+    /// 2,000,000 rows (the residuals, twice the state's scalars and the parameters); run it
+    /// with [`Optimizer::least_squares_kkt`]. Its first step takes one tangent sweep per
+    /// unknown (state scalars and parameters), the later ones one per colour of the columns.
     pub fn kkt_gauss_newton() -> Self {
         Self::new(Method::KktGaussNewton { largest: 2_000_000 })
     }
@@ -45,7 +47,7 @@ impl Optimizer<'_> {
     /// the residuals at `x`: at the first step one pass per unknown of the state and per
     /// parameter, which also finds their sparsity pattern; at the later steps one pass per
     /// colour of the columns (columns that share no row are seeded together: a few dozen for a
-    /// cloth, whatever its size), checked by one more pass along a random direction. If the
+    /// cloth, whatever its size), checked by two more passes along random directions. If the
     /// check fails (the pattern changed: a contact started touching), the step takes the
     /// columns one by one again and the pattern grows. A residual or constraint equation that
     /// reads every unknown makes every column its own colour.
@@ -74,9 +76,10 @@ impl Optimizer<'_> {
     /// and component) or their derivatives disagree with the gradient through the solve
     /// (`gᵀdp = -|J d|²` to 1e-3: the closures read the parameters differently); if a
     /// parameter moves neither the constraint nor the residuals of `constrained` (named); if
-    /// the KKT system is singular to working precision (its estimated condition number, by the
-    /// power method on the system and on its factorization, above `1e13`, `1e6` when the
-    /// state or the constraint is in f32: a state the constraint does not determine, or
+    /// the KKT system is singular to working precision (its estimated condition number, by
+    /// three steps of the power method on the system and on its factorization, above `1e13`,
+    /// `1e6` when an input or output is in f32; an estimate from below, so a system just short
+    /// of singular can pass: a state the constraint does not determine, or
     /// parameters the residuals cannot tell apart; the estimate is of the equilibrated system,
     /// so parameters of very different units do not look singular); if it has more rows than
     /// [`Method::KktGaussNewton`]'s `largest`; or if a derivative is not finite (naming its
@@ -230,8 +233,8 @@ struct Kkt<'t, 'a> {
     nr: usize,
     /// The residuals' values at `x`.
     r: Vec<f64>,
-    /// The relative rounding of the derivatives: f32's if the state or the constraint is in
-    /// f32.
+    /// The relative rounding of the derivatives: f32's if any input or output (state,
+    /// parameters, constraint, residuals) is in f32.
     epsilon: f64,
 }
 
@@ -271,8 +274,11 @@ impl<'t, 'a> Kkt<'t, 'a> {
             });
         }
         let scale = cur.rv.iter().fold(f64::MIN_POSITIVE, |s, v| s.max(v.abs()));
-        let differs = |k: &usize| (r[*k] - cur.rv[*k]).abs() > 1e-6 * scale;
-        if let Some(k) = (0..r.len()).filter(|_| first).find(differs) {
+        // At the first step any difference; at every step a value that is not finite (NaN
+        // never compares equal).
+        let differs =
+            |k: &usize| !r[*k].is_finite() || (first && (r[*k] - cur.rv[*k]).abs() > 1e-6 * scale);
+        if let Some(k) = (0..r.len()).find(differs) {
             let (array, index) = locate(&outputs, k);
             return Err(Error::InvalidInput {
                 what: format!(
@@ -291,9 +297,10 @@ impl<'t, 'a> Kkt<'t, 'a> {
         let mut inputs: Vec<&dyn AnyArray> = vec![x];
         inputs.extend(params.iter().copied());
         let m = inputs[1..].iter().map(|a| a.n_scalars()).sum();
-        let f32s = [std::any::type_name::<X>(), std::any::type_name::<C>()]
+        let f32s = inputs
             .iter()
-            .any(|t| t.contains("f32"));
+            .chain(&outputs)
+            .any(|a| a.scalar_epsilon() > f64::EPSILON);
         Ok(Kkt {
             epsilon: if f32s { 1e-6 } else { 1e-13 },
             tape,
@@ -385,17 +392,29 @@ impl<'t, 'a> Kkt<'t, 'a> {
                     .into(),
             });
         }
-        let Ok(d) = system::step(&jc, nr, &self.r, self.epsilon) else {
-            return Err(Error::InvalidInput {
-                what: "least_squares_kkt: the KKT system".into(),
-                message: format!(
+        let d = match system::step(&jc, nr, &self.r, self.epsilon) {
+            Ok(d) => d,
+            Err(system::Failure::Factorization(why)) => {
+                return Err(Error::InvalidInput {
+                    what: "least_squares_kkt: the KKT system".into(),
+                    message: format!(
+                        "could not be factorized ({dim} rows, {} entries): {why}",
+                        2 * jc.val.len() + nr
+                    ),
+                })
+            }
+            Err(system::Failure::Singular) => {
+                return Err(Error::InvalidInput {
+                    what: "least_squares_kkt: the KKT system".into(),
+                    message: format!(
                     "is singular to working precision ({n} state scalars, {m} parameters, {nr} \
                      residuals): the \
                      constraint's Jacobian in the state is singular (the state is not \
                      determined, e.g. a free mechanism), or the residuals do not determine \
                      the parameters (fewer independent residuals than parameters)"
                 ),
-            });
+                })
+            }
         };
         let dp = d[n..].to_vec();
         // At the solution, gᵀdp = -|J d|² (C d = 0): a gradient through `residuals` that

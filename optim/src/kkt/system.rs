@@ -12,7 +12,7 @@
 //!
 //! Eliminating `s = J d + r` leaves `Jᵀ J d + Cᵀ λ = -Jᵀ r`, `C d = 0`: the Gauss-Newton step
 //! through the constraint. Keeping `s` leaves `J` as sparse as it is (`Jᵀ J` fills in where a
-//! residual reads many unknowns) and the conditioning that of `J`, not its square.
+//! residual reads many unknowns).
 
 use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
@@ -20,14 +20,19 @@ use faer::sparse::{SparseColMat, Triplet};
 use super::jacobian::Sparse;
 
 /// Why the system has no solution.
-pub(super) struct Singular;
+pub(super) enum Failure {
+    /// Singular to working precision.
+    Singular,
+    /// The factorization itself failed (memory, index overflow): faer's reason.
+    Factorization(String),
+}
 
 /// The step `d` (state, then parameters) for the Jacobian `jc` (rows: the `nr` residuals,
 /// then the `n` constraint equations; columns: the `n` state scalars, then the parameters) and
 /// the residuals `r`. The system is equilibrated first (every row and column's largest entry
 /// near 1, whatever the units); it is singular to working precision if its condition number
 /// exceeds `1 / epsilon`.
-pub(super) fn step(jc: &Sparse, nr: usize, r: &[f64], epsilon: f64) -> Result<Vec<f64>, Singular> {
+pub(super) fn step(jc: &Sparse, nr: usize, r: &[f64], epsilon: f64) -> Result<Vec<f64>, Failure> {
     let k = jc.cols();
     let n = jc.rows - nr;
     let dim = nr + k + n;
@@ -52,8 +57,11 @@ pub(super) fn step(jc: &Sparse, nr: usize, r: &[f64], epsilon: f64) -> Result<Ve
         .map(|&(i, j, v)| Triplet::new(i, j, v * scale[i] * scale[j]))
         .collect();
     let a = SparseColMat::<usize, f64>::try_new_from_triplets(dim, dim, &triplets)
-        .map_err(|_| Singular)?;
-    let lu = a.sp_lu().map_err(|_| Singular)?;
+        .map_err(|e| Failure::Factorization(format!("{e:?}")))?;
+    let lu = a.sp_lu().map_err(|e| match e {
+        faer::sparse::linalg::LuError::SymbolicSingular { .. } => Failure::Singular,
+        e => Failure::Factorization(format!("{e:?}")),
+    })?;
     let solve = |rhs: &[f64]| -> Vec<f64> {
         let x = lu.solve(faer::Col::<f64>::from_fn(dim, |i| rhs[i]));
         (0..dim).map(|i| x[i]).collect()
@@ -74,7 +82,7 @@ pub(super) fn step(jc: &Sparse, nr: usize, r: &[f64], epsilon: f64) -> Result<Ve
         *y += c;
     }
     if !y.iter().all(|v| v.is_finite()) || condition(dim, &product, &solve) * epsilon > 1.0 {
-        return Err(Singular);
+        return Err(Failure::Singular);
     }
     Ok((0..k).map(|j| y[nr + j] * scale[nr + j]).collect())
 }
