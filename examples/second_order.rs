@@ -421,6 +421,27 @@ pub struct Sheet {
     pub final_error: f64,
 }
 
+impl std::fmt::Display for Sheet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} free particles, {} rest lengths; the KKT system has {} rows and {} unknowns' \
+             columns; sweeps of the first step {} (one per unknown), of a later one {} (one per \
+             colour, the check's two and the recording); worst distance from the target / sag \
+             {:.1e} -> {:.1e}; {}",
+            self.free,
+            self.springs,
+            self.rows,
+            self.unknowns,
+            self.first_sweeps,
+            self.later_sweeps,
+            self.initial_error,
+            self.final_error,
+            self.report
+        )
+    }
+}
+
 /// Inverse design at a size the dense KKT system could not take: a square net of
 /// `side + 1` x `side + 1` point masses (the border pinned; structural and shear springs)
 /// hangs under gravity, and Gauss-Newton by the KKT system finds the springs' rest lengths for
@@ -650,25 +671,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "inverse design: loss against passes",
     )?;
     let side = 30;
-    let sh = sheet(side, &cfg)?;
     println!(
-        "inverse design of a sheet by the KKT system: {} x {} net, {} free particles, {} rest \
-         lengths; the KKT system has {} rows and {} unknowns' columns; sweeps of the first step \
-         {} (one per unknown), of a later one {} (one per colour and a check); {} iterations in \
-         {:.2} s; worst distance from the target / sag {:.1e} -> {:.1e}; {}",
-        side + 1,
-        side + 1,
-        sh.free,
-        sh.springs,
-        sh.rows,
-        sh.unknowns,
-        sh.first_sweeps,
-        sh.later_sweeps,
-        sh.report.iterations,
-        sh.report.elapsed.as_secs_f64(),
-        sh.initial_error,
-        sh.final_error,
-        sh.report.stop
+        "inverse design of a sheet by the KKT system: {}",
+        sheet(side, &cfg)?
     );
     println!(
         "charts: {}/{{identification,design}}{{,_time}}.{{svg,png}}",

@@ -236,19 +236,7 @@ fn the_kkt_method_designs_a_sheet_with_coloured_sweeps() {
         ..second_order::Config::small()
     };
     let sh = second_order::sheet(12, &cfg).unwrap();
-    println!(
-        "sheet: {} free particles, {} springs, {} rows, {} unknowns; sweeps {} then {} per \
-         step; error {:.2e} -> {:.2e}; {}",
-        sh.free,
-        sh.springs,
-        sh.rows,
-        sh.unknowns,
-        sh.first_sweeps,
-        sh.later_sweeps,
-        sh.initial_error,
-        sh.final_error,
-        sh.report
-    );
+    println!("sheet: {sh}");
     assert!(sh.report.converged(), "{}", sh.report);
     assert_eq!(sh.first_sweeps, sh.unknowns + 1, "{}", sh.report);
     assert!(
