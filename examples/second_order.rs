@@ -419,6 +419,9 @@ pub struct Sheet {
     /// Largest distance from the target shape (m) relative to the sag, before and after.
     pub initial_error: f64,
     pub final_error: f64,
+    /// The net's height along its middle line `u = 0.5` (points `(v, y)`, m): the target
+    /// shape, the first guess's equilibrium and the design's.
+    pub profiles: [Vec<(f64, f64)>; 3],
 }
 
 impl std::fmt::Display for Sheet {
@@ -516,6 +519,11 @@ pub fn sheet(side: usize, opt: &Config) -> Result<Sheet, Error> {
             / sag
     };
     let initial_error = error(&first.x);
+    let profile = |x: &Array<Vec3<f64>>| -> Vec<(f64, f64)> {
+        (0..nodes)
+            .map(|j| (j as f64 * h, x.get(at(side / 2, j) as usize).y))
+            .collect()
+    };
     let residuals = |tape: &mut Tape, x: &Array<Vec3<f64>>| {
         let r = Array::<Vec3<f64>>::zeros(n).named("miss");
         tape.launch(difference, n, (x, &target, &r));
@@ -553,6 +561,7 @@ pub fn sheet(side: usize, opt: &Config) -> Result<Sheet, Error> {
         },
         initial_error,
         final_error,
+        profiles: [profile(&target), profile(&first.x), profile(&guess.x)],
     })
 }
 
@@ -670,13 +679,34 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "design",
         "inverse design: loss against passes",
     )?;
-    let side = 30;
+    let sheet = sheet(30, &cfg)?;
+    println!("inverse design of a sheet by the KKT system: {sheet}");
+    let [target, first, found] = &sheet.profiles;
+    let sweeps: Vec<(f64, f64)> = (sheet.report.history.iter())
+        .map(|i| (i.sweeps as f64, i.loss))
+        .collect();
+    for ext in ["svg", "png"] {
+        adflex::viz::plot::curves(
+            dir.join(format!("sheet.{ext}")),
+            "sheet: height along the middle line u = 0.5",
+            "v (m)",
+            "height (m)",
+            &[
+                ("target", &target[..]),
+                ("first guess", &first[..]),
+                ("designed", &found[..]),
+            ],
+        )?;
+        adflex::viz::plot::curves(
+            dir.join(format!("sheet_loss.{ext}")),
+            "sheet: Gauss-Newton by the KKT system, loss against tangent sweeps",
+            "tangent sweeps",
+            "loss",
+            &[("KKT Gauss-Newton", &sweeps[..])],
+        )?;
+    }
     println!(
-        "inverse design of a sheet by the KKT system: {}",
-        sheet(side, &cfg)?
-    );
-    println!(
-        "charts: {}/{{identification,design}}{{,_time}}.{{svg,png}}",
+        "charts: {}/{{identification,design}}{{,_time}}.{{svg,png}}, sheet{{,_loss}}.{{svg,png}}",
         dir.display()
     );
     Ok(())

@@ -1,10 +1,11 @@
 //! Contact between the links of articulations: the closest-point rules against dense
-//! sampling, collisions of capsules, spheres and boxes (momentum, resting heights) with
+//! sampling, collisions of capsules, spheres and boxes (momentum, resting heights, a capsule
+//! resting level on a box's face, across a beam and over an edge) with
 //! rollout gradients against central differences and forward mode against reverse mode, and
 //! MuJoCo's contact filters read from MJCF.
 
 use adflex_kernels::articulation::contact::{
-    closest_on_segment_to_box, closest_on_segments, segment_box_contact,
+    capsule_box_point, closest_on_segment_to_box, closest_on_segments, segment_box_contact,
 };
 use adflex_kernels::articulation::{
     mjcf, ArticulationBuilder, ArticulationState, Articulations, ContactFilter, GroundContact,
@@ -115,6 +116,7 @@ fn contact_rules_derivatives_match_differences_and_forward_mode() {
     use adflex_runtime::DiffFunc;
     let mut rng = Rng(4);
     let mut bad = Vec::new();
+    let mut fading = 0;
     for case in 0..200 {
         let a0 = rand3(&mut rng, 1.0);
         let a1 = a0 + rand3(&mut rng, 1.0);
@@ -195,7 +197,49 @@ fn contact_rules_derivatives_match_differences_and_forward_mode() {
             (forward - reverse).abs() < 1e-10 * reverse.abs().max(1.0),
             "segment and box {case}: forward {forward} vs reverse {reverse}"
         );
+        // A capsule's extra contact points: w . (point + normal) + depth, times the weight.
+        for c in 0..8u32 {
+            let k = |p0: Vec3<f64>, d: Vec3<f64>| {
+                let e = capsule_box_point::call(p0, d, 0.05, half, c);
+                (w.dot(&e.column(0).into_owned()) + w.dot(&e.column(1).into_owned()) + e[(0, 2)])
+                    * e[(1, 2)]
+            };
+            let fd = (k(p0 + dp * h, d + dd * h) - k(p0 - dp * h, d - dd * h)) / (2.0 * h);
+            let e = capsule_box_point::call(p0, d, 0.05, half, c);
+            let value =
+                w.dot(&e.column(0).into_owned()) + w.dot(&e.column(1).into_owned()) + e[(0, 2)];
+            let seed = adflex_runtime::Mat33::from_columns(&[
+                w * e[(1, 2)],
+                w * e[(1, 2)],
+                Vec3::new(e[(1, 2)], value, 0.0),
+            ]);
+            let (gp, gd, _, _, _) =
+                DiffFunc::adjoint(&capsule_box_point, (p0, d, 0.05, half, c), seed);
+            let reverse = gp.dot(&dp) + gd.dot(&dd);
+            if (reverse - fd).abs() > 1e-6 * fd.abs().max(1.0) {
+                bad.push(format!(
+                    "capsule point {c}, case {case}: reverse {reverse} vs differences {fd}"
+                ));
+            }
+            let (_, t) = DiffFunc::tangent(
+                &capsule_box_point,
+                (p0, d, 0.05, half, c),
+                (dp, dd, 0.0, Vec3::zeros(), 0),
+            );
+            let forward = (t.component_mul(&seed)).sum();
+            assert!(
+                (forward - reverse).abs() < 1e-10 * reverse.abs().max(1.0),
+                "capsule point {c}, case {case}: forward {forward} vs reverse {reverse}"
+            );
+            if e[(1, 2)] > 0.0 && e[(1, 2)] < 1.0 {
+                fading += 1;
+            }
+        }
     }
+    assert!(
+        fading > 0,
+        "no crossing fading in: the weight's slope is not checked"
+    );
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
@@ -389,10 +433,14 @@ fn shapes_rest_on_a_fixed_box() {
             s = model.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
         }
         let (q, v) = (s.q.to_vec(), s.qd.to_vec());
-        // Sunk by its weight over the contacts' stiffness: one contact for the ball and the
-        // capsule (the middle of its line of contact); for the box its four lower edges at
+        // Sunk by its weight over the contacts' stiffness: one contact for the ball, two for
+        // the capsule (its end spheres, as on the ground); for the box its four lower edges at
         // full depth and its four side edges at half.
-        let contacts = if shape == "box" { 6.0 } else { 1.0 };
+        let contacts = match shape {
+            "box" => 6.0,
+            "capsule_y" => 2.0,
+            _ => 1.0,
+        };
         let expected = top + height - 9.81 / (contacts * 1e4);
         assert!(
             (q[2] - expected).abs() < 2e-4,
@@ -402,6 +450,77 @@ fn shapes_rest_on_a_fixed_box() {
         // At rest but for a slow creep: smoothed Coulomb friction has no static friction.
         let speed = v[..3].iter().fold(0.0f64, |m, x| m.max(x.abs()));
         assert!(speed < 5e-3, "{shape}: still moving at {speed}");
+    }
+}
+
+/// A 1 kg capsule along y (half-length 0.4, radius 0.05) centred at `y` above a table (a
+/// fixed box of half extents `half` whose top is at 0.5), tilted by `tilt` about x (its +y end
+/// higher), released, and stepped 4 s: its height and its axis' tilt from level at the end.
+fn capsule_on_table(half: Vec3<f64>, y: f64, tilt: f64) -> (f64, f64) {
+    let top = 0.5;
+    let mut b = ArticulationBuilder::new();
+    b.ground = Some(GroundContact {
+        offset: -10.0,
+        ..GroundContact::default()
+    });
+    b.link_contact = true;
+    let table = b.add_link(
+        "table",
+        None,
+        Joint::fixed().origin(Pose::at(Vec3::new(0.0, 0.0, top - half.z))),
+        Inertial::cuboid(10.0, half, Vec3::zeros()),
+    );
+    b.add_contact_box(table, &Pose::identity(), half);
+    let (s, c) = (0.5 * tilt).sin_cos();
+    let l = b.add_link(
+        "capsule",
+        None,
+        Joint::free().initial(&[0.1, y, top + 0.05 + 0.4 * tilt.abs() + 0.01, s, 0.0, 0.0, c]),
+        Inertial::cuboid(1.0, Vec3::new(0.05, 0.45, 0.05), Vec3::zeros()),
+    );
+    b.add_contact_capsule(l, Vec3::new(0.0, -0.4, 0.0), Vec3::new(0.0, 0.4, 0.0), 0.05);
+    let model = b.finalize::<f64>().unwrap();
+    let mut st = model.state();
+    // (Across a beam it rocks on a lever of 0.1 m, damped 16 times less than on its ends:
+    // 1.2e-3 rad from level after 2 s.)
+    for _ in 0..4000 {
+        st = model.step(&mut Tape::new(), &st, None, 1e-3).unwrap();
+    }
+    let q = st.q.to_vec();
+    let axis = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        q[6], q[3], q[4], q[5],
+    )) * Vec3::y();
+    (q[2], axis.z.asin().abs())
+}
+
+#[test]
+fn capsules_rest_level_on_boxes_on_their_ends_and_the_boxs_edges() {
+    // Released tilted by 0.05 rad, a capsule settles level on two contacts (sunk by its
+    // weight over twice the stiffness): on a wide table its end spheres; across a beam
+    // narrower than it, the beam's two edges; half over a table's edge (its centre of mass
+    // over the table), its end and the table's edge. On one contact at its middle, or at its
+    // lower end once tilted, it would rock.
+    let expected = 0.5 + 0.05 - 9.81 / 2e4;
+    for (what, half, y) in [
+        ("on a wide table", Vec3::new(1.0, 1.0, 0.25), 0.0),
+        ("across a narrow beam", Vec3::new(1.0, 0.1, 0.25), 0.0),
+        (
+            "half over the table's edge",
+            Vec3::new(1.0, 1.0, 0.25),
+            0.85,
+        ),
+    ] {
+        for tilt in [0.05, -0.05] {
+            let (height, level) = capsule_on_table(half, y, tilt);
+            assert!(
+                (height - expected).abs() < 2e-4,
+                "{what}, tilt {tilt}: height {height} vs {expected}"
+            );
+            assert!(
+                level < 1e-3,
+                "{what}, tilt {tilt}: still {level} rad from level"
+            );
+        }
     }
 }
 

@@ -12,20 +12,29 @@
 //! (exclude the pair, change the filters, or set `link_contact` to false). Between links:
 //! - sphere and capsule pairs by the closest points of their axes (a sphere's is a point):
 //!   exact, at any angle (capsules crossing in their middles touch);
-//! - a sphere or a capsule and a box by the closest points of the axis and the box: exact
-//!   while the axis stays outside the box (a penetration shallower than the radius); an axis
-//!   inside the box is pushed out through the face nearest the axis point found;
+//! - a sphere or a capsule and a box by the closest points of the axis and the box (and a
+//!   capsule by more points, below): exact while the axis stays outside the box (a
+//!   penetration shallower than the radius); an axis inside the box is pushed out through the
+//!   face nearest the axis point found;
 //! - two boxes by each one's twelve edges against the other box, as segments of radius 0: the
 //!   middle of an edge's part inside the other box is pushed out through the face nearest it
 //!   (edges crossing touch; a corner inside sinks the three edges that meet there, each by
 //!   about half the corner's depth, and a face resting on a face rests on its four edges at
 //!   full depth and the four side edges at half).
 //!
-//! When the closest points are not unique (parallel axes, an axis parallel to a box face) the
-//! contact is one point, at the middle of the range where they are closest: a capsule lying
-//! flat on a box rests on one contact under its middle, and when it tilts the contact moves
-//! to its lower end, so the torque about that point changes abruptly there (MuJoCo makes two
-//! contacts in this case).
+//! A capsule (not a sphere) against a box touches by more than its closest point, so that it
+//! rests on a box as on the ground ([`capsule_box_point`]): its two end spheres, and its axis'
+//! points over the box's edges (where the axis crosses the planes of the box's faces), each a
+//! sphere-box contact, and the closest point where it is on an edge or a corner of the box
+//! ([`articulation_box_contact`]; over a face, the depth along the axis is linear, deepest at
+//! the other points). A capsule
+//! lying on a face rests on its two ends; half over the edge, on its end and the edge; across
+//! a narrow box, on the box's two edges; and the contacts move continuously as it tilts.
+//!
+//! When the closest points of two capsules are not unique (parallel axes) the contact is one
+//! point, at the middle of the range where they are closest: two capsules lying side by side
+//! touch under the middle of their overlap, and when one tilts the contact moves to the lower
+//! end, so the torque about that point changes abruptly there (MuJoCo makes two contacts).
 //!
 //! Which shapes touch follows MuJoCo's rule: shapes `a` and `b` touch when `a.contype &
 //! b.conaffinity` or `b.contype & a.conaffinity` is non-zero ([`ContactFilter`]; the ground has
@@ -697,6 +706,62 @@ pub fn segment_box_contact<R: Real>(
     mat33_cols(at, n, vec3(depth, 0.0, 0.0))
 }
 
+/// `t` clamped to `[0, 1]` and smoothed (`3t² - 2t³`): a weight that rises from 0 to 1 with a
+/// continuous slope.
+#[diff_func]
+fn smooth_ramp<R: Real>(t: R) -> R {
+    let u = clamp(t, 0.0, 1.0);
+    u * u * (3.0 - 2.0 * u)
+}
+
+/// Contact point `c` of a capsule (axis `p0 + s d`, `s` in `[0, 1]`, radius `r > 0`,
+/// `|d| > 0`) against a box of half extents `half`, in the box's frame, besides the closest
+/// point: `c = 0`, `1` its end spheres (`s = 0`, `1`); `c = 2..8` the axis' crossing of the
+/// plane `x_k = ±half_k` (`k = (c - 2) / 2`, `-` for even `c`), where the axis passes over an
+/// edge of the face beside that plane. Each is a sphere-box contact ([`segment_box_contact`] of a point). Returns the contact point (`xyz`), the normal out of the box and
+/// `(depth, weight, 0)`: the ends weigh 1; a crossing outside the axis weighs 0, and one
+/// within `r` of an end fades in with its distance from the end (`smooth_ramp`), where it
+/// merges with the end sphere, so that the contacts change continuously with the pose.
+#[diff_func]
+pub fn capsule_box_point<R: Real>(
+    p0: Vec3<R>,
+    d: Vec3<R>,
+    r: R,
+    half: Vec3<R>,
+    c: u32,
+) -> Mat33<R> {
+    let mut p = p0;
+    let mut w = 1.0;
+    if c == 1 {
+        p = p0 + d;
+    } else if c >= 2 {
+        let k = ((c - 2) / 2) as usize;
+        let mut plane = half[k];
+        if c % 2 == 0 {
+            plane = -half[k];
+        }
+        w = 0.0;
+        if abs(d[k]) > 0.0 {
+            let s = (plane - p0[k]) / d[k];
+            if s > 0.0 && s < 1.0 {
+                w = smooth_ramp(min(s, 1.0 - s) * length(d) / r);
+                p = p0 + d * s;
+                // On the plane exactly (not to rounding): where the axis pierces the face, the
+                // point is then on the box's surface with a constant normal, instead of a
+                // normal `e / |e|` of an `e` of rounding's size, whose derivatives are noise.
+                p[k] = plane;
+            }
+        }
+    }
+    // A sphere: the segment of length 0 at `p`.
+    let m = segment_box_contact(p, vec3(0.0, 0.0, 0.0), r, half, vec2(0.0, 0.0));
+    mat33_cols(
+        vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]),
+        vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]),
+        vec3(m[(0, 2)], w, 0.0),
+    )
+}
+
 /// The contact law between two links (normal `n` from `a` to `b`, signed distance `d`, `rel`
 /// the velocity of `b`'s point at the contact relative to `a`'s; `law`: `ke, kd, mu`; `ramp`:
 /// `leak, damping_depth`): the force on `b`.
@@ -764,13 +829,45 @@ pub fn articulation_capsule_contact<R: Real>(
     ext_f.atomic_sub(la, f);
 }
 
+/// The wrench on the segment's link of a contact with a box, `weight` times the contact law:
+/// `e` the contact in the box's frame (point, normal out of the box, `(depth, ..)`), the box's
+/// frame `ob`, `rb` in the world, the velocities `(v, w)` of the segment's link `a` and the
+/// box's `b`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth`. Returns `(x x f, f, 0)`.
+#[diff_func]
+#[allow(clippy::too_many_arguments)]
+fn box_contact_wrench<R: Real>(
+    e: Mat33<R>,
+    ob: Vec3<R>,
+    rb: Quat<R>,
+    va: Mat33<R>,
+    vb: Mat33<R>,
+    law: Vec3<R>,
+    ramp: Vec2<R>,
+    weight: R,
+) -> Mat33<R> {
+    let x = ob + quat_rotate(rb, vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]));
+    let n = quat_rotate(rb, vec3(e[(0, 1)], e[(1, 1)], e[(2, 1)]));
+    let vla = vec3(va[(0, 0)], va[(1, 0)], va[(2, 0)]);
+    let wla = vec3(va[(0, 1)], va[(1, 1)], va[(2, 1)]);
+    let vlb = vec3(vb[(0, 0)], vb[(1, 0)], vb[(2, 0)]);
+    let wlb = vec3(vb[(0, 1)], vb[(1, 1)], vb[(2, 1)]);
+    let rel = (vla + cross(wla, x)) - (vlb + cross(wlb, x));
+    let f = link_pair_force(n, e[(0, 2)], rel, law, ramp) * weight;
+    mat33_cols(cross(x, f), f, vec3(0.0, 0.0, 0.0))
+}
+
 /// Contact of a sphere or capsule (segment `box_pairs[tid][0]`, as in
 /// [`articulation_capsule_contact`]) with a box (`box_pairs[tid][1]`: its link, centre and
 /// rotation in the link frame, half extents): [`segment_box_contact`] in the box's frame
 /// gives the point `x` midway between the surfaces, the normal `n` out of the box and the
 /// signed distance `d`; `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_box(x),
 /// ...)`, with the pair's friction `box_pair_mu[tid]`, pushes the segment's link and `-f` the
-/// box's.
+/// box's. For a capsule (radius and length above 0; a box's edge has radius 0) the force is
+/// times `1 - smooth_ramp((a - 0.9) / 0.1)`, `a` the largest component of `n` in the box's
+/// frame: the closest point acts where it is on an edge or a corner of the box (`a` below
+/// 0.9), not where it is over a face (`a = 1`), where the depth along the axis is linear and
+/// deepest at the points of [`articulation_capsule_box_points`] (the capsule's ends and its
+/// axis' points over the face's edges).
 #[diff_kernel]
 pub fn articulation_box_contact<R: Real>(
     box_pairs: &Array<[u32; 2]>,
@@ -806,22 +903,84 @@ pub fn articulation_box_contact<R: Real>(
     let p0 = quat_rotate_inv(rb, a0 - ob);
     let d = quat_rotate_inv(rb, a1 - a0);
     let half = box_half[k];
+    let r = seg_radius[i];
     let range = no_grad(closest_on_segment_to_box(p0, d, half));
-    let m = segment_box_contact(p0, d, seg_radius[i], half, range);
-    let x = ob + quat_rotate(rb, vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]));
-    let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
-    let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
-    let f = link_pair_force(
-        n,
-        m[(0, 2)],
-        rel,
-        vec3(ke, kd, box_pair_mu[t]),
-        vec2(leak, damping_depth),
-    );
-    ext_n.atomic_add(la, cross(x, f));
-    ext_f.atomic_add(la, f);
-    ext_n.atomic_sub(lb, cross(x, f));
-    ext_f.atomic_sub(lb, f);
+    let m = segment_box_contact(p0, d, r, half, range);
+    let mut weight = 1.0;
+    if r > 0.0 && dot(d, d) > 0.0 {
+        let a = max(max(abs(m[(0, 1)]), abs(m[(1, 1)])), abs(m[(2, 1)]));
+        weight = 1.0 - smooth_ramp((a - 0.9) / 0.1);
+    }
+    if weight > 0.0 {
+        let x = ob + quat_rotate(rb, vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]));
+        let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
+        let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
+        let law = vec3(ke, kd, box_pair_mu[t]);
+        let f = link_pair_force(n, m[(0, 2)], rel, law, vec2(leak, damping_depth)) * weight;
+        ext_n.atomic_add(la, cross(x, f));
+        ext_f.atomic_add(la, f);
+        ext_n.atomic_sub(lb, cross(x, f));
+        ext_f.atomic_sub(lb, f);
+    }
+}
+
+/// The further contacts of a capsule with a box (a pair of `box_pairs` whose segment has a
+/// radius and a length above 0; other pairs have none), thread `tid` = 8 x pair + point:
+/// point `c` of [`capsule_box_point`] (its end spheres, its axis over the face's edges), with
+/// the law and friction of [`articulation_box_contact`], times the point's weight.
+#[diff_kernel]
+pub fn articulation_capsule_box_points<R: Real>(
+    box_pairs: &Array<[u32; 2]>,
+    box_pair_mu: &Array<R>,
+    seg_link: &Array<u32>,
+    seg_a: &Array<Vec3<R>>,
+    seg_b: &Array<Vec3<R>>,
+    seg_radius: &Array<R>,
+    box_link: &Array<u32>,
+    box_pos: &Array<Vec3<R>>,
+    box_rot: &Array<Quat<R>>,
+    box_half: &Array<Vec3<R>>,
+    link_p: &Array<Vec3<R>>,
+    link_r: &Array<Quat<R>>,
+    link_w: &Array<Vec3<R>>,
+    link_v: &Array<Vec3<R>>,
+    ke: R,
+    kd: R,
+    leak: R,
+    damping_depth: R,
+    ext_n: &Array<Vec3<R>>,
+    ext_f: &Array<Vec3<R>>,
+) {
+    let t = tid() / 8;
+    let c = (tid() % 8) as u32;
+    let [i, k] = box_pairs[t];
+    let r = seg_radius[i];
+    if r > 0.0 {
+        let la = seg_link[i as usize] as usize;
+        let lb = box_link[k as usize] as usize;
+        let rb = quat_mul(link_r[lb], box_rot[k]);
+        let ob = link_p[lb] + quat_rotate(link_r[lb], box_pos[k]);
+        let a0 = link_p[la] + quat_rotate(link_r[la], seg_a[i]);
+        let a1 = link_p[la] + quat_rotate(link_r[la], seg_b[i]);
+        let p0 = quat_rotate_inv(rb, a0 - ob);
+        let d = quat_rotate_inv(rb, a1 - a0);
+        if dot(d, d) > 0.0 {
+            let e = capsule_box_point(p0, d, r, box_half[k], c);
+            if e[(1, 2)] > 0.0 {
+                let va = mat33_cols(link_v[la], link_w[la], vec3(0.0, 0.0, 0.0));
+                let vb = mat33_cols(link_v[lb], link_w[lb], vec3(0.0, 0.0, 0.0));
+                let law = vec3(ke, kd, box_pair_mu[t]);
+                let ramp = vec2(leak, damping_depth);
+                let wr = box_contact_wrench(e, ob, rb, va, vb, law, ramp, e[(1, 2)]);
+                let tn = vec3(wr[(0, 0)], wr[(1, 0)], wr[(2, 0)]);
+                let f = vec3(wr[(0, 1)], wr[(1, 1)], wr[(2, 1)]);
+                ext_n.atomic_add(la, tn);
+                ext_f.atomic_add(la, f);
+                ext_n.atomic_sub(lb, tn);
+                ext_f.atomic_sub(lb, f);
+            }
+        }
+    }
 }
 
 /// Contact of a sphere or capsule (segment `cylinder_pairs[tid][0]`, as in

@@ -334,32 +334,32 @@ impl<R: Real> Articulations<R> {
             );
         }
         if let (true, Some(g), false) = (contact, &self.ground, self.box_pairs.is_empty()) {
-            tape.launch(
-                super::contact::articulation_box_contact,
-                self.box_pairs.len(),
-                (
-                    &self.box_pairs,
-                    &self.box_pair_mu,
-                    &self.seg_link,
-                    &self.seg_a,
-                    &self.seg_b,
-                    &self.seg_radius,
-                    &self.box_link,
-                    &self.box_pos,
-                    &self.box_rot,
-                    &self.box_half,
-                    &k.link_p,
-                    &k.link_r,
-                    &w,
-                    &v,
-                    g.ke,
-                    g.kd,
-                    g.leak,
-                    g.damping_depth,
-                    &en,
-                    &ef,
-                ),
+            let args = (
+                &self.box_pairs,
+                &self.box_pair_mu,
+                &self.seg_link,
+                &self.seg_a,
+                &self.seg_b,
+                &self.seg_radius,
+                &self.box_link,
+                &self.box_pos,
+                &self.box_rot,
+                &self.box_half,
+                &k.link_p,
+                &k.link_r,
+                &w,
+                &v,
+                g.ke,
+                g.kd,
+                g.leak,
+                g.damping_depth,
+                &en,
+                &ef,
             );
+            let n = self.box_pairs.len();
+            tape.launch(super::contact::articulation_box_contact, n, args);
+            // (A box's edges against another box are pairs too: their threads return at once.)
+            tape.launch(super::contact::articulation_capsule_box_points, 8 * n, args);
         }
         if let (true, Some(g), false) = (contact, &self.ground, self.cylinder_pairs.is_empty()) {
             tape.launch(
