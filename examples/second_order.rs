@@ -682,8 +682,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let sheet = sheet(30, &cfg)?;
     println!("inverse design of a sheet by the KKT system: {sheet}");
     let [target, first, found] = &sheet.profiles;
-    let sweeps: Vec<(f64, f64)> = (sheet.report.history.iter())
-        .map(|i| (i.sweeps as f64, i.loss))
+    // Steps: an iteration's loss is known once its sweeps are done.
+    let history = &sheet.report.history;
+    let sweeps: Vec<(f64, f64)> = std::iter::once((0.0, history[0].loss))
+        .chain(history.windows(2).flat_map(|w| {
+            let x = w[1].sweeps as f64;
+            [(x, w[0].loss), (x, w[1].loss)]
+        }))
         .collect();
     for ext in ["svg", "png"] {
         adflex::viz::plot::curves(
@@ -692,9 +697,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "v (m)",
             "height (m)",
             &[
-                ("target", &target[..]),
                 ("first guess", &first[..]),
-                ("designed", &found[..]),
+                ("designed (under the target)", &found[..]),
+                ("target", &target[..]),
             ],
         )?;
         adflex::viz::plot::curves(

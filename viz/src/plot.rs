@@ -211,10 +211,21 @@ fn on<DB: DrawingBackend>(
     if log {
         let (lo, hi) = (y0 / 1.5, y1 * 1.5);
         let yr = (lo..hi).log_scale().with_key_points(decades(lo, hi));
-        draw(root, title, x_label, y_label, xr, yr, series, legend)
+        draw(root, title, x_label, y_label, xr, (yr, 0.0), series, legend)
     } else {
         let yr = padded(y0, y1);
-        draw(root, title, x_label, y_label, xr, yr, series, legend)
+        // A tick within rounding of zero (e.g. -5.6e-17) is zero, on either linear axis.
+        let zero = 1e-9 * (yr.end - yr.start);
+        draw(
+            root,
+            title,
+            x_label,
+            y_label,
+            xr,
+            (yr, zero),
+            series,
+            legend,
+        )
     }
 }
 
@@ -225,7 +236,7 @@ fn draw<DB: DrawingBackend, Y>(
     x_label: &str,
     y_label: &str,
     xr: Range<f64>,
-    yr: Y,
+    (yr, y_zero): (Y, f64),
     series: &[Series],
     legend: bool,
 ) -> std::result::Result<(), String>
@@ -250,7 +261,7 @@ where
         .y_desc(y_label)
         .light_line_style(RGBColor(235, 235, 235))
         .x_label_formatter(&|x| tick(if x.abs() < x_zero { 0.0 } else { *x }))
-        .y_label_formatter(&|y| tick(*y))
+        .y_label_formatter(&|y| tick(if y.abs() < y_zero { 0.0 } else { *y }))
         .draw()
         .map_err(|x| e(&x))?;
     for (k, (name, pts)) in series.iter().enumerate() {
@@ -290,6 +301,31 @@ mod tests {
         assert_eq!(tick(0.001), "0.001");
         assert_eq!(tick(2.5e-5), "2.5e-5");
         assert_eq!(tick(-1.25), "-1.25");
+    }
+
+    #[test]
+    fn a_tick_within_rounding_of_zero_reads_zero_on_either_axis() {
+        // A sag profile from 0 (up to sin(pi)'s rounding) down to -0.316, against -0.3..0.
+        let pts: Vec<(f64, f64)> = (0..=30)
+            .map(|j| {
+                let v = j as f64 / 30.0;
+                (v - 0.3, -0.316 * (std::f64::consts::PI * v).sin())
+            })
+            .collect();
+        let path = std::env::temp_dir().join(format!("adflex-viz-zero-{}.svg", std::process::id()));
+        super::curves(&path, "sag", "v", "height", &[("sag", &pts[..])]).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        std::fs::remove_file(&path).ok();
+        let labels: Vec<&str> = svg
+            .split("</text>")
+            .filter_map(|t| t.rsplit('>').next().map(str::trim))
+            .collect();
+        assert!(!labels.iter().any(|l| l.contains("e-1")), "{labels:?}");
+        assert_eq!(
+            labels.iter().filter(|l| **l == "0").count(),
+            2,
+            "{labels:?}"
+        );
     }
 
     #[test]

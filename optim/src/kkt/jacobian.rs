@@ -35,23 +35,21 @@ impl Sparse {
 
     /// `A v`.
     pub fn mul(&self, v: &[f64]) -> Vec<f64> {
-        let mut out = vec![0.0; self.rows];
-        for (j, vj) in v.iter().enumerate() {
-            let (rows, vals) = self.col(j);
-            for (i, a) in rows.iter().zip(vals) {
-                out[*i] += a * vj;
-            }
-        }
-        out
+        self.sum_by_row(v, |x| x)
     }
 
     /// The sum over each row of `|A_ij v_j|`: the size of `A v`'s rounding.
     fn abs_mul(&self, v: &[f64]) -> Vec<f64> {
+        self.sum_by_row(v, f64::abs)
+    }
+
+    /// `sum_j f(A_ij v_j)` for each row `i`.
+    fn sum_by_row(&self, v: &[f64], f: impl Fn(f64) -> f64) -> Vec<f64> {
         let mut out = vec![0.0; self.rows];
         for (j, vj) in v.iter().enumerate() {
             let (rows, vals) = self.col(j);
             for (i, a) in rows.iter().zip(vals) {
-                out[*i] += (a * vj).abs();
+                out[*i] += f(a * vj);
             }
         }
         out

@@ -350,9 +350,8 @@ impl<'t, 'a> Kkt<'t, 'a> {
         let starts = |arrays: &[&dyn AnyArray]| -> Vec<usize> {
             let mut starts = vec![0];
             for a in arrays {
-                let (len, at) = (a.len().max(1), starts[starts.len() - 1]);
-                let per = a.n_scalars() / len;
-                starts.extend((1..=len).map(|e| at + e * per));
+                let (dim, at) = (a.element_dim(), starts[starts.len() - 1]);
+                starts.extend((1..=a.len()).map(|e| at + e * dim));
             }
             starts
         };
