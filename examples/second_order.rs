@@ -684,7 +684,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let [target, first, found] = &sheet.profiles;
     // Steps: an iteration's loss is known once its sweeps are done.
     let history = &sheet.report.history;
-    let sweeps: Vec<(f64, f64)> = std::iter::once((0.0, history[0].loss))
+    let sweeps: Vec<(f64, f64)> = (history.first().map(|i| (0.0, i.loss)).into_iter())
         .chain(history.windows(2).flat_map(|w| {
             let x = w[1].sweeps as f64;
             [(x, w[0].loss), (x, w[1].loss)]

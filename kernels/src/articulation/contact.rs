@@ -27,9 +27,14 @@
 //! points over the box's edges (where the axis crosses the planes of the box's faces), each a
 //! sphere-box contact, and the closest point where it is on an edge or a corner of the box
 //! ([`articulation_box_contact`]; over a face, the depth along the axis is linear, deepest at
-//! the other points). A capsule
-//! lying on a face rests on its two ends; half over the edge, on its end and the edge; across
-//! a narrow box, on the box's two edges; and the contacts move continuously as it tilts.
+//! the other points), away from the capsule's ends. A capsule lying on a face rests on its two
+//! ends; half over the edge, on its end and the edge; across a narrow box, on the box's two
+//! edges; and the contacts move continuously as it tilts. Pressed deeper than its radius (its
+//! axis inside the box), it is pushed out by its closest point through the nearest face, as
+//! before, and by its ends: the points over the edges, then on the box's side faces, fade out.
+//! Then a capsule half over an edge is held by its end on the box and the middle of its part
+//! inside, no longer by the edge, and tips towards the edge if its centre of mass is beyond
+//! that middle.
 //!
 //! When the closest points of two capsules are not unique (parallel axes) the contact is one
 //! point, at the middle of the range where they are closest: two capsules lying side by side
@@ -276,9 +281,10 @@ pub struct GroundContact<R: Real> {
     /// The plane is `dot(normal, x) = offset` (m).
     pub offset: R,
     /// Stiffness per contact (N/m; default 1e4): per sphere, capsule end or box corner on
-    /// the ground; between links, per pair of spheres or capsules, per sphere or capsule and
-    /// box, and per edge of a box inside another. Contacts between links use this law
-    /// too, with the shapes' own friction.
+    /// the ground; between links, per pair of spheres or capsules, per sphere and box, per
+    /// capsule end and point over a box's edge on a box (a capsule lying on a box's face rests
+    /// on its two ends, as on the ground), and per edge of a box inside another. Contacts
+    /// between links use this law too, with the shapes' own friction.
     pub ke: R,
     /// Damping in contact (N s/m; default 100), ramped in over `damping_depth`.
     pub kd: R,
@@ -639,8 +645,9 @@ fn face_crossing<R: Real>(p0: Vec3<R>, d: Vec3<R>, half: Vec3<R>, e: R) -> R {
 
 /// Contact of a sphere or capsule with a box, in the box's frame: `p0`, `d` the axis
 /// (`p0 + s d`, `s` in `[0, 1]`), `r` its radius, `half` the box's half extents. Returns the
-/// contact point midway between the surfaces (`xyz`) and the signed distance (`w`); `n` gets
-/// the unit normal out of the box. `range` is [`closest_on_segment_to_box`]'s answer.
+/// contact point midway between the surfaces, the unit normal out of the box and
+/// `(signed distance, s, 0)` as its columns. `range` is [`closest_on_segment_to_box`]'s
+/// answer.
 #[diff_func]
 pub fn segment_box_contact<R: Real>(
     p0: Vec3<R>,
@@ -703,7 +710,7 @@ pub fn segment_box_contact<R: Real>(
         depth = -gap[k] - r;
         at = p + n * (0.5 * (gap[k] - r));
     }
-    mat33_cols(at, n, vec3(depth, 0.0, 0.0))
+    mat33_cols(at, n, vec3(depth, s, 0.0))
 }
 
 /// `t` clamped to `[0, 1]` and smoothed (`3t² - 2t³`): a weight that rises from 0 to 1 with a
@@ -717,11 +724,16 @@ fn smooth_ramp<R: Real>(t: R) -> R {
 /// Contact point `c` of a capsule (axis `p0 + s d`, `s` in `[0, 1]`, radius `r > 0`,
 /// `|d| > 0`) against a box of half extents `half`, in the box's frame, besides the closest
 /// point: `c = 0`, `1` its end spheres (`s = 0`, `1`); `c = 2..8` the axis' crossing of the
-/// plane `x_k = ±half_k` (`k = (c - 2) / 2`, `-` for even `c`), where the axis passes over an
-/// edge of the face beside that plane. Each is a sphere-box contact ([`segment_box_contact`] of a point). Returns the contact point (`xyz`), the normal out of the box and
-/// `(depth, weight, 0)`: the ends weigh 1; a crossing outside the axis weighs 0, and one
-/// within `r` of an end fades in with its distance from the end (`smooth_ramp`), where it
-/// merges with the end sphere, so that the contacts change continuously with the pose.
+/// plane `x_k = ±half_k` (`k = (c - 2) / 2`, `-` for even `c`), which supports the capsule
+/// where the axis passes over an edge of the box. Each is a sphere-box contact
+/// ([`segment_box_contact`] of a point). Returns the contact point (`xyz`), the normal out of
+/// the box and `(depth, weight, 0)`: the ends weigh 1; a crossing outside the axis weighs 0,
+/// one within `r` of an end fades in with its distance from the end (`smooth_ramp`), where it
+/// merges with the end sphere, and one inside the face's rectangle (the axis pierces the box:
+/// deeper than `r`, where the closest point pushes out) fades out over `0.1 r` inside it,
+/// pushed out meanwhile through the nearest of the box's other faces, so that the contacts
+/// change continuously with the pose. An axis within `1e-9 |d|` of parallel
+/// to the plane does not cross it.
 #[diff_func]
 pub fn capsule_box_point<R: Real>(
     p0: Vec3<R>,
@@ -732,6 +744,7 @@ pub fn capsule_box_point<R: Real>(
 ) -> Mat33<R> {
     let mut p = p0;
     let mut w = 1.0;
+    let mut outer = half;
     if c == 1 {
         p = p0 + d;
     } else if c >= 2 {
@@ -741,20 +754,29 @@ pub fn capsule_box_point<R: Real>(
             plane = -half[k];
         }
         w = 0.0;
-        if abs(d[k]) > 0.0 {
+        if abs(d[k]) > 1e-9 * length(d) {
             let s = (plane - p0[k]) / d[k];
             if s > 0.0 && s < 1.0 {
-                w = smooth_ramp(min(s, 1.0 - s) * length(d) / r);
                 p = p0 + d * s;
                 // On the plane exactly (not to rounding): where the axis pierces the face, the
                 // point is then on the box's surface with a constant normal, instead of a
                 // normal `e / |e|` of an `e` of rounding's size, whose derivatives are noise.
                 p[k] = plane;
+                // How far inside the face's rectangle the point is (< 0: over an edge).
+                let j = (k + 1) % 3;
+                let l = (k + 2) % 3;
+                let inside = min(half[j] - abs(p[j]), half[l] - abs(p[l]));
+                w = smooth_ramp(min(s, 1.0 - s) * length(d) / r)
+                    * (1.0 - smooth_ramp(inside / (0.1 * r)));
+                // Inside (while it fades) out through the nearest of the other faces, as over
+                // the edge beside it, not through its own plane (sideways for a capsule sunk
+                // across a beam): the box is `r` longer on this axis.
+                outer[k] = half[k] + r;
             }
         }
     }
     // A sphere: the segment of length 0 at `p`.
-    let m = segment_box_contact(p, vec3(0.0, 0.0, 0.0), r, half, vec2(0.0, 0.0));
+    let m = segment_box_contact(p, vec3(0.0, 0.0, 0.0), r, outer, vec2(0.0, 0.0));
     mat33_cols(
         vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]),
         vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]),
@@ -863,11 +885,14 @@ fn box_contact_wrench<R: Real>(
 /// signed distance `d`; `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_box(x),
 /// ...)`, with the pair's friction `box_pair_mu[tid]`, pushes the segment's link and `-f` the
 /// box's. For a capsule (radius and length above 0; a box's edge has radius 0) the force is
-/// times `1 - smooth_ramp((a - 0.9) / 0.1)`, `a` the largest component of `n` in the box's
-/// frame: the closest point acts where it is on an edge or a corner of the box (`a` below
-/// 0.9), not where it is over a face (`a = 1`), where the depth along the axis is linear and
-/// deepest at the points of [`articulation_capsule_box_points`] (the capsule's ends and its
-/// axis' points over the face's edges).
+/// times `max(1 - smooth_ramp((a - 0.9) / 0.1), smooth_ramp((-d - r) / (0.1 r)))` times
+/// `smooth_ramp(min(s, 1 - s) |axis| / r)`, `a` the largest component of `n` in the box's
+/// frame, `s` the point's place on the axis: the closest point acts where it is on an edge or
+/// a corner of the box (`a` below 0.9), not where it is over a face (`a = 1`), where the depth
+/// along the axis is linear and deepest at the points of [`articulation_capsule_box_points`]
+/// (the capsule's ends and its axis' points over the box's edges); it acts again where the
+/// axis is inside the box (deeper than `r`), and not at an end, where the end sphere is the
+/// same contact.
 #[diff_kernel]
 pub fn articulation_box_contact<R: Real>(
     box_pairs: &Array<[u32; 2]>,
@@ -908,8 +933,16 @@ pub fn articulation_box_contact<R: Real>(
     let m = segment_box_contact(p0, d, r, half, range);
     let mut weight = 1.0;
     if r > 0.0 && dot(d, d) > 0.0 {
+        // A capsule: the points of `articulation_capsule_box_points` carry it over a face.
         let a = max(max(abs(m[(0, 1)]), abs(m[(1, 1)])), abs(m[(2, 1)]));
-        weight = 1.0 - smooth_ramp((a - 0.9) / 0.1);
+        let face = smooth_ramp((a - 0.9) / 0.1);
+        // An axis inside the box (deeper than `r`) is pushed out through the nearest face,
+        // fully once `0.1 r` inside, as the crossing points fade out.
+        let deep = smooth_ramp((-m[(0, 2)] - r) / (0.1 * r));
+        // At an end the end sphere is the same contact.
+        let s = m[(1, 2)];
+        let end = smooth_ramp(min(s, 1.0 - s) * length(d) / r);
+        weight = max(1.0 - face, deep) * end;
     }
     if weight > 0.0 {
         let x = ob + quat_rotate(rb, vec3(m[(0, 0)], m[(1, 0)], m[(2, 0)]));
