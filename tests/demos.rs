@@ -376,15 +376,22 @@ fn arm_masses_are_identified_from_a_trajectory() {
 /// 6 cm of a target it first missed by over 50 cm; the ball left the cup during the swing.
 #[test]
 fn arm_throws_the_ball_to_the_target() {
-    let cfg = arm_throw::Config::small();
-    let out = arm_throw::run(&cfg).unwrap();
-    assert!(out.miss.0 > 0.5, "first guess {}", out.miss.0);
-    assert!(out.miss.1 < 0.06, "miss {} m: {}", out.miss.1, out.report);
-    assert!(
-        out.release > cfg.settle && out.release < cfg.settle + cfg.swing + 0.1,
-        "released at {} s",
-        out.release
-    );
+    // From the demo's first guess and from one changed in its last digits (which, before the
+    // cup's contact had an onset, decided between 1 and 36 cm).
+    for perturb in [0.0, -1e-9] {
+        let cfg = arm_throw::Config {
+            perturb,
+            ..arm_throw::Config::small()
+        };
+        let out = arm_throw::run(&cfg).unwrap();
+        assert!(out.miss.0 > 0.5, "first guess {}", out.miss.0);
+        assert!(out.miss.1 < 1e-3, "miss {} m: {}", out.miss.1, out.report);
+        assert!(
+            out.release > cfg.settle && out.release < cfg.settle + cfg.swing + 0.1,
+            "released at {} s",
+            out.release
+        );
+    }
 }
 
 /// The quadruped's open-loop gait, tuned through ground contact, carries the torso forward

@@ -52,7 +52,7 @@ use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
 use super::pose::{LinkId, Pose};
-use crate::contact::law::{contact_damping, contact_depth, contact_force};
+use crate::contact::law::{contact_damping, contact_depth, contact_force, contact_onset};
 use crate::contact::shapes::sdf_cylinder;
 
 /// Which shapes touch which (MuJoCo's `contype` and `conaffinity` bit masks): `a` and `b`
@@ -300,6 +300,12 @@ pub struct GroundContact<R: Real> {
     pub leak: R,
     /// Depth over which the damping rises to `kd` (m; default 1e-3).
     pub damping_depth: R,
+    /// Depth over which the penalty force rises from 0 with zero slope (m; default 0, the
+    /// plain law: [`contact_onset`]). A few millimetres smooth the gradients of rollouts
+    /// whose contacts begin and end often (an object rolling in and out of a cup), which the
+    /// plain law makes rough at the scale of a time step; it also lowers the force of a
+    /// shallow contact, so the resting depth grows by `onset / 2`.
+    pub onset: R,
 }
 
 impl Default for GroundContact<f64> {
@@ -312,6 +318,7 @@ impl Default for GroundContact<f64> {
             mu: 0.8,
             leak: 0.0,
             damping_depth: 1e-3,
+            onset: 0.0,
         }
     }
 }
@@ -332,6 +339,7 @@ impl GroundContact<f64> {
             (self.mu, "mu"),
             (self.leak, "leak"),
             (self.damping_depth, "damping_depth"),
+            (self.onset, "onset"),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{what} {v} must be finite and non-negative"));
@@ -350,24 +358,25 @@ impl GroundContact<f64> {
             mu: r(self.mu),
             leak: r(self.leak),
             damping_depth: r(self.damping_depth),
+            onset: r(self.onset),
         }
     }
 }
 
 /// The ground's law at a link's point `x` moving at `v`, against the plane `plane` (its unit
-/// normal `n` and offset: `n.x = offset`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth`):
-/// `contact_force(n, contact_depth(d, leak), v, ke, kd', mu)` at the signed distance
-/// `d = n.x - offset`, the damping `kd'` ramped in.
+/// normal `n` and offset: `n.x = offset`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth,
+/// onset`): `contact_force(n, c, v, ke, kd', mu)` at the signed distance `d = n.x - offset`,
+/// `c = contact_onset(contact_depth(d, leak), onset)`, the damping `kd'` ramped in.
 #[diff_func]
 fn ground_force<R: Real>(
     x: Vec3<R>,
     v: Vec3<R>,
     plane: Vec4<R>,
     law: Vec3<R>,
-    ramp: Vec2<R>,
+    ramp: Vec3<R>,
 ) -> Vec3<R> {
     let n = vec3(plane.x, plane.y, plane.z);
-    let c = contact_depth(dot(n, x) - plane.w, ramp.x);
+    let c = contact_onset(contact_depth(dot(n, x) - plane.w, ramp.x), ramp.z);
     let kdc = contact_damping(c, law.y, 0.0, ramp.y);
     contact_force(n, c, v, law.x, kdc, law.z)
 }
@@ -394,6 +403,7 @@ pub fn articulation_ground_contact<R: Real>(
     kd: R,
     leak: R,
     damping_depth: R,
+    onset: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -408,7 +418,7 @@ pub fn articulation_ground_contact<R: Real>(
         v,
         vec4(normal.x, normal.y, normal.z, offset),
         law,
-        vec2(leak, damping_depth),
+        vec3(leak, damping_depth, onset),
     );
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
@@ -500,6 +510,7 @@ pub fn articulation_support_contact<R: Real>(
     kd: R,
     leak: R,
     damping_depth: R,
+    onset: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -516,7 +527,7 @@ pub fn articulation_support_contact<R: Real>(
         v,
         vec4(normal.x, normal.y, normal.z, offset),
         law,
-        vec2(leak, damping_depth),
+        vec3(leak, damping_depth, onset),
     ) * o.w;
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
@@ -793,9 +804,9 @@ fn link_pair_force<R: Real>(
     d: R,
     rel: Vec3<R>,
     law: Vec3<R>,
-    ramp: Vec2<R>,
+    ramp: Vec3<R>,
 ) -> Vec3<R> {
-    let c = contact_depth(d, ramp.x);
+    let c = contact_onset(contact_depth(d, ramp.x), ramp.z);
     let kdc = contact_damping(c, law.y, 0.0, ramp.y);
     contact_force(n, c, rel, law.x, kdc, law.z)
 }
@@ -823,6 +834,7 @@ pub fn articulation_capsule_contact<R: Real>(
     kd: R,
     leak: R,
     damping_depth: R,
+    onset: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -844,7 +856,7 @@ pub fn articulation_capsule_contact<R: Real>(
     let x = ca + n * (ra + 0.5 * d);
     let rel = (link_v[lb] + cross(link_w[lb], x)) - (link_v[la] + cross(link_w[la], x));
     let law = vec3(ke, kd, capsule_pair_mu[t]);
-    let f = link_pair_force(n, d, rel, law, vec2(leak, damping_depth));
+    let f = link_pair_force(n, d, rel, law, vec3(leak, damping_depth, onset));
     ext_n.atomic_add(lb, cross(x, f));
     ext_f.atomic_add(lb, f);
     ext_n.atomic_sub(la, cross(x, f));
@@ -854,7 +866,8 @@ pub fn articulation_capsule_contact<R: Real>(
 /// The wrench on the segment's link of a contact with a box, `weight` times the contact law:
 /// `e` the contact in the box's frame (point, normal out of the box, `(depth, ..)`), the box's
 /// frame `ob`, `rb` in the world, the velocities `(v, w)` of the segment's link `a` and the
-/// box's `b`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth`. Returns `(x x f, f, 0)`.
+/// box's `b`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth, onset`. Returns
+/// `(x x f, f, 0)`.
 #[diff_func]
 #[allow(clippy::too_many_arguments)]
 fn box_contact_wrench<R: Real>(
@@ -864,7 +877,7 @@ fn box_contact_wrench<R: Real>(
     va: Mat33<R>,
     vb: Mat33<R>,
     law: Vec3<R>,
-    ramp: Vec2<R>,
+    ramp: Vec3<R>,
     weight: R,
 ) -> Mat33<R> {
     let x = ob + quat_rotate(rb, vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]));
@@ -913,6 +926,7 @@ pub fn articulation_box_contact<R: Real>(
     kd: R,
     leak: R,
     damping_depth: R,
+    onset: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -949,7 +963,7 @@ pub fn articulation_box_contact<R: Real>(
         let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
         let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
         let law = vec3(ke, kd, box_pair_mu[t]);
-        let f = link_pair_force(n, m[(0, 2)], rel, law, vec2(leak, damping_depth)) * weight;
+        let f = link_pair_force(n, m[(0, 2)], rel, law, vec3(leak, damping_depth, onset)) * weight;
         ext_n.atomic_add(la, cross(x, f));
         ext_f.atomic_add(la, f);
         ext_n.atomic_sub(lb, cross(x, f));
@@ -981,6 +995,7 @@ pub fn articulation_capsule_box_points<R: Real>(
     kd: R,
     leak: R,
     damping_depth: R,
+    onset: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -1003,7 +1018,7 @@ pub fn articulation_capsule_box_points<R: Real>(
                 let va = mat33_cols(link_v[la], link_w[la], vec3(0.0, 0.0, 0.0));
                 let vb = mat33_cols(link_v[lb], link_w[lb], vec3(0.0, 0.0, 0.0));
                 let law = vec3(ke, kd, box_pair_mu[t]);
-                let ramp = vec2(leak, damping_depth);
+                let ramp = vec3(leak, damping_depth, onset);
                 let wr = box_contact_wrench(e, ob, rb, va, vb, law, ramp, e[(1, 2)]);
                 let tn = vec3(wr[(0, 0)], wr[(1, 0)], wr[(2, 0)]);
                 let f = vec3(wr[(0, 1)], wr[(1, 1)], wr[(2, 1)]);
@@ -1046,6 +1061,7 @@ pub fn articulation_cylinder_contact<R: Real>(
     kd: R,
     leak: R,
     damping_depth: R,
+    onset: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -1076,7 +1092,7 @@ pub fn articulation_cylinder_contact<R: Real>(
         d,
         rel,
         vec3(ke, kd, cylinder_pair_mu[t]),
-        vec2(leak, damping_depth),
+        vec3(leak, damping_depth, onset),
     );
     ext_n.atomic_add(la, cross(x, f));
     ext_f.atomic_add(la, f);

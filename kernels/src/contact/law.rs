@@ -70,6 +70,29 @@ pub fn penalty_energy<R: Real>(d: R, ke: R) -> R {
     0.5 * ke * c * c
 }
 
+/// The penetration `c <= 0` (m, from [`contact_depth`]) softened over its first `onset`
+/// metres: `-c^2 / (2 onset)` down to `c = -onset`, `c + onset / 2` deeper. The penalty force
+/// `ke c` then rises from 0 with zero slope (continuous with its derivative), where the plain
+/// law has a kink: a contact that begins or ends between two time steps changes a rollout's
+/// result by a kink per step, and a loss through many such steps (a ball rolling out of a cup)
+/// is rough at the scale of a step, its gradient dominated by the steps and not by the trend.
+/// With `onset = 0` the result is `c`, exactly.
+///
+/// ```
+/// use adflex_kernels::contact::law::contact_onset;
+/// assert_eq!(contact_onset::call(-0.3, 0.0), -0.3);
+/// assert_eq!(contact_onset::call(-1e-3, 2e-3), -0.25e-3); // quadratic within the onset
+/// assert_eq!(contact_onset::call(-3e-3, 2e-3), -2e-3); // then shifted by onset / 2
+/// ```
+#[diff_func]
+pub fn contact_onset<R: Real>(c: R, onset: R) -> R {
+    // Both branches of a select are differentiated: no division by a zero onset.
+    let safe = select(onset > 0.0, onset, 1.0);
+    let b = max(c, onset * -1.0);
+    let soft = b * b * (-0.5 / safe) + (c - b);
+    select(onset > 0.0, soft, c)
+}
+
 /// The damping of a contact at depth `c <= 0` (m): `kd_free` out of contact, rising linearly
 /// to `kd` over the first `depth` metres of penetration (`depth = 0`: a switch at contact), so
 /// that the force is continuous where the damping differs in and out of contact (implicit
