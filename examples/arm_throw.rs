@@ -163,7 +163,7 @@ pub fn scene() -> Scene {
     // The cup's law; no floor (the ball is caught in the air). The ball's release is a
     // contact ending, and its rolling over the cup's floor many contacts beginning and ending:
     // with the plain law each is a kink of the throw's result per time step, and the loss is
-    // rough at the scale of a step (its gradient led L-BFGS astray: misses of 1 to 36 cm after
+    // rough at the scale of a step (its gradient led L-BFGS astray: misses of 3.5 to 36 cm after
     // 40 iterations, depending on the first guess's last digits). The force's onset over 2 mm
     // smooths those kinks; a slick cup (`mu` 0.1) keeps the smoothed friction's slope at rest,
     // `mu |f| / (0.01 m/s)`, within what the time step integrates, and the little damping

@@ -373,11 +373,11 @@ fn arm_masses_are_identified_from_a_trajectory() {
 }
 
 /// The arm's throw, tuned through the cup's contacts and the release, lands the ball within
-/// 6 cm of a target it first missed by over 50 cm; the ball left the cup during the swing.
+/// 1 mm of a target it first missed by over 50 cm; the ball left the cup during the swing.
 #[test]
 fn arm_throws_the_ball_to_the_target() {
     // From the demo's first guess and from one changed in its last digits (which, before the
-    // cup's contact had an onset, decided between 1 and 36 cm).
+    // cup's contact had an onset, decided between 3.5 and 36 cm).
     for perturb in [0.0, -1e-9] {
         let cfg = arm_throw::Config {
             perturb,

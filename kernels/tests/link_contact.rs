@@ -4,6 +4,7 @@
 //! rollout gradients against central differences and forward mode against reverse mode, and
 //! MuJoCo's contact filters read from MJCF.
 
+use adflex_kernels::articulation::contact::GeomShape;
 use adflex_kernels::articulation::contact::{
     capsule_box_point, closest_on_segment_to_box, closest_on_segments, segment_box_contact,
 };
@@ -636,6 +637,103 @@ fn a_contact_onset_makes_a_rollouts_gradient_smooth_across_time_steps() {
             "on box {on_box}: {g} vs {fd}"
         );
     }
+}
+
+/// Every articulation contact gets the onset: a 1 kg body resting (on soft contacts, so that
+/// each is deeper than the onset) sinks deeper by exactly `onset / 2`, on the ground (a
+/// sphere, a capsule's end spheres, a box's corners, a cylinder's rim points) and on fixed
+/// shapes (a sphere, a capsule and a box on a box, a sphere on a capsule and on a cylinder).
+/// The onset (1.5 mm) differs from `damping_depth` (1 mm): an argument swapped shows.
+#[test]
+fn every_contact_rests_deeper_by_half_the_onset() {
+    let rest = |base: &str, shape: &str, onset: f64| -> f64 {
+        let mut b = ArticulationBuilder::new();
+        b.ground = Some(GroundContact {
+            offset: if base == "ground" { 0.0 } else { -10.0 },
+            // (A box on a box: its side edges touch at half the depth of its lower edges,
+            // 2.7 mm at this stiffness, beyond the onset.)
+            ke: 3e2,
+            onset,
+            ..GroundContact::default()
+        });
+        b.link_contact = true;
+        // The top of the base at z = 0.
+        let (pose, inertial) = (
+            Pose::at(Vec3::new(0.0, 0.0, -0.25)),
+            Inertial::cuboid(10.0, Vec3::new(1.0, 1.0, 0.25), Vec3::zeros()),
+        );
+        if base != "ground" {
+            let l = b.add_link("base", None, Joint::fixed().origin(pose), inertial);
+            let shape = match base {
+                "box" => GeomShape::Box(Vec3::new(1.0, 1.0, 0.25)),
+                "capsule" => GeomShape::Capsule(0.25, 0.5),
+                _ => GeomShape::Cylinder(0.25, 0.25),
+            };
+            // A capsule lying along x (its axis at the base's centre), the others upright.
+            let turn = match base {
+                "capsule" => nalgebra::UnitQuaternion::from_axis_angle(
+                    &Vec3::y_axis(),
+                    std::f64::consts::FRAC_PI_2,
+                ),
+                _ => nalgebra::UnitQuaternion::identity(),
+            };
+            b.add_contact_shape(l, &Pose::new(Vec3::zeros(), *turn.quaternion()), &shape)
+                .unwrap();
+        }
+        let half_height = match shape {
+            "capsule_y" => 0.05,
+            _ => 0.1,
+        };
+        free_body(
+            &mut b,
+            "body",
+            Vec3::new(0.0, 0.0, half_height + 0.01),
+            shape,
+        );
+        let model = b.finalize::<f64>().unwrap();
+        let mut s = model.state();
+        for _ in 0..3000 {
+            s = model.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
+        }
+        s.q.get(2)
+    };
+    let onset = 1.5e-3;
+    let mut bad = Vec::new();
+    for (base, shape) in [
+        ("ground", "sphere"),
+        ("ground", "capsule_y"),
+        ("ground", "box"),
+        ("ground", "cylinder"),
+        ("box", "sphere"),
+        ("box", "capsule_y"),
+        ("box", "box"),
+        ("capsule", "sphere"),
+        ("cylinder", "sphere"),
+    ] {
+        let drop = rest(base, shape, 0.0) - rest(base, shape, onset);
+        // A box on a box rests on its 4 lower edges at the depth `p` and its 4 side edges at
+        // `p / 2` (the middle of their part inside): `4 (p - o/2) + 4 (p/2 - o/2) = const`
+        // moves `p` by `(8 / 6) o / 2`.
+        let expected = match (base, shape) {
+            ("box", "box") => 4.0 / 3.0 * 0.5 * onset,
+            _ => 0.5 * onset,
+        };
+        if (drop - expected).abs() > 0.05 * onset {
+            bad.push(format!(
+                "{shape} on {base}: sinks {drop} deeper, not {expected}"
+            ));
+        }
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+    // An onset too small to divide by is refused, by name.
+    let mut b = ArticulationBuilder::new();
+    b.ground = Some(GroundContact {
+        onset: 1e-312,
+        ..GroundContact::default()
+    });
+    free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
+    let e = b.finalize::<f64>().unwrap_err().to_string();
+    assert!(e.contains("onset"), "{e}");
 }
 
 const TWO_BALLS: &str = r#"<mujoco>

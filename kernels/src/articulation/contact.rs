@@ -1,6 +1,7 @@
 //! Contact of links: spheres, capsules, boxes, cylinders and ellipsoids on links pressed into
 //! a ground plane and into each other, with the library's contact law (penalty, damping
-//! ramped in over `damping_depth`, smoothed Coulomb friction, optional leaky gradient).
+//! ramped in over `damping_depth`, smoothed Coulomb friction, optional leaky gradient, optional
+//! onset).
 //!
 //! Against the ground a shape touches by its lowest points, which is exact for a plane: a
 //! sphere by its own, a capsule by its end spheres, a box by its corners, an ellipsoid by its
@@ -298,13 +299,19 @@ pub struct GroundContact<R: Real> {
     /// Gradient leak out of contact (default 0: exact gradients; see
     /// [`contact_depth`]).
     pub leak: R,
-    /// Depth over which the damping rises to `kd` (m; default 1e-3).
+    /// Depth over which the damping rises to `kd` (m; default 1e-3; with an [`onset`], the
+    /// depth after the onset's softening, so the damping is full at about `damping_depth +
+    /// onset / 2`).
+    ///
+    /// [`onset`]: GroundContact::onset
     pub damping_depth: R,
     /// Depth over which the penalty force rises from 0 with zero slope (m; default 0, the
     /// plain law: [`contact_onset`]). A few millimetres smooth the gradients of rollouts
     /// whose contacts begin and end often (an object rolling in and out of a cup), which the
     /// plain law makes rough at the scale of a time step; it also lowers the force of a
-    /// shallow contact, so the resting depth grows by `onset / 2`.
+    /// shallow contact, so the resting depth grows by up to `onset / 2` (exactly that when
+    /// the plain depth exceeds `onset / 2`). Its slope at first contact is 0, so with an
+    /// onset the `leak` has no effect. 0, or at least 1e-9.
     pub onset: R,
 }
 
@@ -324,7 +331,8 @@ impl Default for GroundContact<f64> {
 }
 
 impl GroundContact<f64> {
-    /// Checks: a unit normal, everything finite, coefficients non-negative.
+    /// Checks: a unit normal, everything finite, coefficients non-negative, an onset of 0 or at
+    /// least 1e-9 m.
     pub(crate) fn check(&self) -> Result<(), String> {
         let n = self.normal.norm();
         if !(n.is_finite() && (n - 1.0).abs() < 1e-3) {
@@ -344,6 +352,11 @@ impl GroundContact<f64> {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{what} {v} must be finite and non-negative"));
             }
+        }
+        // (An onset of 1e-310 would divide 0 by an infinite slope at first contact: NaN.)
+        if self.onset > 0.0 && self.onset < 1e-9 {
+            let o = self.onset;
+            return Err(format!("onset {o} m must be 0 (none) or at least 1e-9 m"));
         }
         Ok(())
     }
@@ -383,10 +396,10 @@ fn ground_force<R: Real>(
 
 /// Ground contact of contact sphere `tid` (centre `contact_pos` in the frame of link
 /// `contact_link`, radius `contact_radius`): its lowest point `x` at signed distance
-/// `d = n.x - offset` gets `f = contact_force(n, contact_depth(d, leak), v, ke, kd', mu)`,
-/// `v` the velocity of the link's point at `x`, `kd'` the ramped damping and `mu` the
-/// sphere's `contact_mu`; the link
-/// receives the wrench `(x x f, f)` (world frame, at the origin).
+/// `d = n.x - offset` gets `f = contact_force(n, c, v, ke, kd', mu)` with
+/// `c = contact_onset(contact_depth(d, leak), onset)`, `v` the velocity of the link's point at
+/// `x`, `kd'` the ramped damping and `mu` the sphere's `contact_mu`; the link receives the
+/// wrench `(x x f, f)` (world frame, at the origin).
 #[diff_kernel]
 pub fn articulation_ground_contact<R: Real>(
     contact_link: &Array<u32>,
@@ -816,8 +829,9 @@ fn link_pair_force<R: Real>(
 /// of their axes ([`closest_on_segments`]), at signed distance `d = |cb - ca| - ra - rb`
 /// along `n = (cb - ca) / |cb - ca|`, the point `x` midway between the surfaces gets the
 /// ground's law with the relative velocity `v_b(x) - v_a(x)` and the pair's friction
-/// `capsule_pair_mu[tid]`: `f = contact_force(n, contact_depth(d, leak), ...)` pushes `b`
-/// (wrench `(x x f, f)`) and `-f` pushes `a`.
+/// `capsule_pair_mu[tid]`: `f = contact_force(n, c, ...)` with
+/// `c = contact_onset(contact_depth(d, leak), onset)` pushes `b` (wrench `(x x f, f)`) and
+/// `-f` pushes `a`.
 #[diff_kernel]
 pub fn articulation_capsule_contact<R: Real>(
     capsule_pairs: &Array<[u32; 2]>,
@@ -895,7 +909,7 @@ fn box_contact_wrench<R: Real>(
 /// [`articulation_capsule_contact`]) with a box (`box_pairs[tid][1]`: its link, centre and
 /// rotation in the link frame, half extents): [`segment_box_contact`] in the box's frame
 /// gives the point `x` midway between the surfaces, the normal `n` out of the box and the
-/// signed distance `d`; `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_box(x),
+/// signed distance `d`; `f = contact_force(n, c, v_seg(x) - v_box(x),
 /// ...)`, with the pair's friction `box_pair_mu[tid]`, pushes the segment's link and `-f` the
 /// box's. For a capsule (radius and length above 0; a box's edge has radius 0) the force is
 /// times `max(1 - smooth_ramp((a - 0.9) / 0.1), smooth_ramp((-d - r) / (0.1 r)))` times
@@ -1037,8 +1051,9 @@ pub fn articulation_capsule_box_points<R: Real>(
 /// closest to the cylinder's axis ([`closest_on_segments`]) is pushed out along the
 /// cylinder's SDF ([`sdf_cylinder`]): at signed distance
 /// `d = sdf(p) - radius` along its normal `n`, the point `x` midway between the surfaces gets
-/// `f = contact_force(n, contact_depth(d, leak), v_seg(x) - v_cyl(x), ...)` with the pair's
-/// friction `cylinder_pair_mu[tid]`; `f` pushes the segment's link and `-f` the cylinder's.
+/// `f = contact_force(n, c, v_seg(x) - v_cyl(x), ...)` (`c` as in
+/// [`articulation_capsule_contact`]) with the pair's friction `cylinder_pair_mu[tid]`; `f`
+/// pushes the segment's link and `-f` the cylinder's.
 /// Exact for a sphere, for a capsule parallel to the axis or crossing it; otherwise the
 /// segment's point nearest the axis stands for its nearest point to the cylinder.
 #[diff_kernel]

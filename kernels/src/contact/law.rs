@@ -1,7 +1,8 @@
 //! The contact law every contact of the library uses (particles against the ground, each
 //! other and shapes; rigid bodies' points against the ground): the penetration depth with its
 //! optional leaky gradient, the penalty force with damping and dFlex's smoothed Coulomb
-//! friction, its potential, and the damping ramp at first contact.
+//! friction, its potential, the damping ramp at first contact, and the onset that softens the
+//! depth at first contact.
 
 use adflex_macros::diff_func;
 use adflex_runtime::prelude::*;
