@@ -4,9 +4,9 @@
 //! rollout gradients against central differences and forward mode against reverse mode, and
 //! MuJoCo's contact filters read from MJCF.
 
-use adflex_kernels::articulation::contact::GeomShape;
 use adflex_kernels::articulation::contact::{
     capsule_box_point, closest_on_segment_to_box, closest_on_segments, segment_box_contact,
+    GeomShape,
 };
 use adflex_kernels::articulation::{
     mjcf, ArticulationBuilder, ArticulationState, Articulations, ContactFilter, GroundContact,
@@ -415,13 +415,7 @@ fn shapes_rest_on_a_fixed_box() {
             ..GroundContact::default()
         });
         b.link_contact = true;
-        let table = b.add_link(
-            "table",
-            None,
-            Joint::fixed().origin(Pose::at(Vec3::new(0.0, 0.0, top - 0.25))),
-            Inertial::cuboid(10.0, Vec3::new(1.0, 1.0, 0.25), Vec3::zeros()),
-        );
-        b.add_contact_box(table, &Pose::identity(), Vec3::new(1.0, 1.0, 0.25));
+        fixed_table(&mut b, top, Vec3::new(1.0, 1.0, 0.25));
         free_body(
             &mut b,
             "thing",
@@ -454,6 +448,17 @@ fn shapes_rest_on_a_fixed_box() {
     }
 }
 
+/// A table: a 10 kg box of half extents `half`, welded to the world with its top at `top`.
+fn fixed_table(b: &mut ArticulationBuilder, top: f64, half: Vec3<f64>) {
+    let table = b.add_link(
+        "table",
+        None,
+        Joint::fixed().origin(Pose::at(Vec3::new(0.0, 0.0, top - half.z))),
+        Inertial::cuboid(10.0, half, Vec3::zeros()),
+    );
+    b.add_contact_box(table, &Pose::identity(), half);
+}
+
 /// A 1 kg capsule along y (half-length 0.4, radius 0.05) centred at `y` above a table (a
 /// fixed box of half extents `half` whose top is at 0.5), tilted by `tilt` about x (its +y end
 /// higher), released, and stepped 4 s: its height and its axis' tilt from level at the end.
@@ -471,13 +476,7 @@ fn heavy_capsule_on_table(half: Vec3<f64>, y: f64, tilt: f64, mass: f64) -> (f64
         ..GroundContact::default()
     });
     b.link_contact = true;
-    let table = b.add_link(
-        "table",
-        None,
-        Joint::fixed().origin(Pose::at(Vec3::new(0.0, 0.0, top - half.z))),
-        Inertial::cuboid(10.0, half, Vec3::zeros()),
-    );
-    b.add_contact_box(table, &Pose::identity(), half);
+    fixed_table(&mut b, top, half);
     let (s, c) = (0.5 * tilt).sin_cos();
     let l = b.add_link(
         "capsule",
@@ -560,13 +559,7 @@ fn bounce(onset: f64, on_box: bool, h: f64) -> (f64, f64) {
     });
     b.link_contact = true;
     if on_box {
-        let table = b.add_link(
-            "table",
-            None,
-            Joint::fixed().origin(Pose::at(Vec3::new(0.0, 0.0, -0.25))),
-            Inertial::cuboid(10.0, Vec3::new(1.0, 1.0, 0.25), Vec3::zeros()),
-        );
-        b.add_contact_box(table, &Pose::identity(), Vec3::new(1.0, 1.0, 0.25));
+        fixed_table(&mut b, 0.0, Vec3::new(1.0, 1.0, 0.25));
     }
     free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.1 + h), "sphere");
     let model = b.finalize::<f64>().unwrap();
