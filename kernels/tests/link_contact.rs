@@ -632,6 +632,67 @@ fn a_contact_onset_makes_a_rollouts_gradient_smooth_across_time_steps() {
     }
 }
 
+/// A 1 kg body of `shape` (as [`free_body`]) `gap` above a base whose top is at `z = 0`:
+/// the `ground` itself, or (the ground then far below) a fixed `box`, a `capsule` lying along
+/// x or an upright `cylinder`; every contact with the law of `ground`.
+fn body_on(base: &str, shape: &str, ground: GroundContact<f64>, gap: f64) -> Articulations<f64> {
+    let mut b = ArticulationBuilder::new();
+    b.ground = Some(GroundContact {
+        offset: if base == "ground" { 0.0 } else { -10.0 },
+        ..ground
+    });
+    b.link_contact = true;
+    // The top of the base at z = 0.
+    let (pose, inertial) = (
+        Pose::at(Vec3::new(0.0, 0.0, -0.25)),
+        Inertial::cuboid(10.0, Vec3::new(1.0, 1.0, 0.25), Vec3::zeros()),
+    );
+    if base != "ground" {
+        let l = b.add_link("base", None, Joint::fixed().origin(pose), inertial);
+        let shape = match base {
+            "box" => GeomShape::Box(Vec3::new(1.0, 1.0, 0.25)),
+            "capsule" => GeomShape::Capsule(0.25, 0.5),
+            _ => GeomShape::Cylinder(0.25, 0.25),
+        };
+        // A capsule lying along x (its axis at the base's centre), the others upright.
+        let turn = match base {
+            "capsule" => nalgebra::UnitQuaternion::from_axis_angle(
+                &Vec3::y_axis(),
+                std::f64::consts::FRAC_PI_2,
+            ),
+            _ => nalgebra::UnitQuaternion::identity(),
+        };
+        b.add_contact_shape(l, &Pose::new(Vec3::zeros(), *turn.quaternion()), &shape)
+            .unwrap();
+    }
+    let half_height = match shape {
+        "capsule_y" => 0.05,
+        _ => 0.1,
+    };
+    free_body(
+        &mut b,
+        "body",
+        Vec3::new(0.0, 0.0, half_height + gap),
+        shape,
+    );
+    b.finalize::<f64>().unwrap()
+}
+
+/// The shapes resting on bases that the tests of every contact kernel use: on the ground (a
+/// sphere, a capsule's end spheres, a box's corners, a cylinder's rim points) and on fixed
+/// shapes (a sphere, a capsule and a box on a box, a sphere on a capsule and on a cylinder).
+const EVERY_CONTACT: [(&str, &str); 9] = [
+    ("ground", "sphere"),
+    ("ground", "capsule_y"),
+    ("ground", "box"),
+    ("ground", "cylinder"),
+    ("box", "sphere"),
+    ("box", "capsule_y"),
+    ("box", "box"),
+    ("capsule", "sphere"),
+    ("cylinder", "sphere"),
+];
+
 /// Every articulation contact gets the onset: a 1 kg body resting (on soft contacts, so that
 /// each is deeper than the onset) sinks deeper by exactly `onset / 2`, on the ground (a
 /// sphere, a capsule's end spheres, a box's corners, a cylinder's rim points) and on fixed
@@ -640,50 +701,14 @@ fn a_contact_onset_makes_a_rollouts_gradient_smooth_across_time_steps() {
 #[test]
 fn every_contact_rests_deeper_by_half_the_onset() {
     let rest = |base: &str, shape: &str, onset: f64| -> f64 {
-        let mut b = ArticulationBuilder::new();
-        b.ground = Some(GroundContact {
-            offset: if base == "ground" { 0.0 } else { -10.0 },
+        let ground = GroundContact {
             // (A box on a box: its side edges touch at half the depth of its lower edges,
             // 2.7 mm at this stiffness, beyond the onset.)
             ke: 3e2,
             onset,
             ..GroundContact::default()
-        });
-        b.link_contact = true;
-        // The top of the base at z = 0.
-        let (pose, inertial) = (
-            Pose::at(Vec3::new(0.0, 0.0, -0.25)),
-            Inertial::cuboid(10.0, Vec3::new(1.0, 1.0, 0.25), Vec3::zeros()),
-        );
-        if base != "ground" {
-            let l = b.add_link("base", None, Joint::fixed().origin(pose), inertial);
-            let shape = match base {
-                "box" => GeomShape::Box(Vec3::new(1.0, 1.0, 0.25)),
-                "capsule" => GeomShape::Capsule(0.25, 0.5),
-                _ => GeomShape::Cylinder(0.25, 0.25),
-            };
-            // A capsule lying along x (its axis at the base's centre), the others upright.
-            let turn = match base {
-                "capsule" => nalgebra::UnitQuaternion::from_axis_angle(
-                    &Vec3::y_axis(),
-                    std::f64::consts::FRAC_PI_2,
-                ),
-                _ => nalgebra::UnitQuaternion::identity(),
-            };
-            b.add_contact_shape(l, &Pose::new(Vec3::zeros(), *turn.quaternion()), &shape)
-                .unwrap();
-        }
-        let half_height = match shape {
-            "capsule_y" => 0.05,
-            _ => 0.1,
         };
-        free_body(
-            &mut b,
-            "body",
-            Vec3::new(0.0, 0.0, half_height + 0.01),
-            shape,
-        );
-        let model = b.finalize::<f64>().unwrap();
+        let model = body_on(base, shape, ground, 0.01);
         let mut s = model.state();
         for _ in 0..3000 {
             s = model.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
@@ -692,17 +717,7 @@ fn every_contact_rests_deeper_by_half_the_onset() {
     };
     let onset = 1.5e-3;
     let mut bad = Vec::new();
-    for (base, shape) in [
-        ("ground", "sphere"),
-        ("ground", "capsule_y"),
-        ("ground", "box"),
-        ("ground", "cylinder"),
-        ("box", "sphere"),
-        ("box", "capsule_y"),
-        ("box", "box"),
-        ("capsule", "sphere"),
-        ("cylinder", "sphere"),
-    ] {
+    for (base, shape) in EVERY_CONTACT {
         let drop = rest(base, shape, 0.0) - rest(base, shape, onset);
         // A box on a box rests on its 4 lower edges at the depth `p` and its 4 side edges at
         // `p / 2` (the middle of their part inside): `4 (p - o/2) + 4 (p/2 - o/2) = const`
@@ -727,6 +742,101 @@ fn every_contact_rests_deeper_by_half_the_onset() {
     free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
     let e = b.finalize::<f64>().unwrap_err().to_string();
     assert!(e.contains("onset"), "{e}");
+}
+
+/// The stiction tolerance `vs`: its rule against central differences and forward mode, and
+/// every articulation contact kernel receives it: a body pressed 1 mm into its base and
+/// sliding at 2 mm/s (so that the friction is in its smoothed range) is slowed by a
+/// friction `mu |f| v / (v + vs)`, which scales by `(v + vs) / (v + vs')` from `vs` to `vs'`
+/// at every contact point alike. A tolerance of 0 (friction 0 / 0 at rest) is refused.
+#[test]
+fn every_contact_slides_with_the_stiction_tolerance() {
+    use adflex_kernels::contact::law::{contact_force, contact_force_with_stiction};
+    use adflex_runtime::DiffFunc;
+    // The rule, in all seven arguments (the friction's smoothed range and beyond it).
+    let n = Vec3::new(0.6, 0.0, 0.8);
+    for v in [Vec3::new(3e-3, -4e-3, 1e-3), Vec3::new(0.4, 0.3, -0.2)] {
+        let args = (n, -2e-3, v, 1e4, 50.0, 0.7, 0.02);
+        let w = Vec3::new(0.3, -0.5, 0.9);
+        let wv = |a: (Vec3<f64>, f64, Vec3<f64>, f64, f64, f64, f64)| {
+            w.dot(&contact_force_with_stiction::call(
+                a.0, a.1, a.2, a.3, a.4, a.5, a.6,
+            ))
+        };
+        let g: (Vec3<f64>, f64, Vec3<f64>, f64, f64, f64, f64) =
+            DiffFunc::adjoint(&contact_force_with_stiction, args, w);
+        let h = 1e-7;
+        // Directional: along the velocity's x, the depth and the tolerance.
+        let dir = (
+            Vec3::zeros(),
+            0.3,
+            Vec3::new(1.0, 0.0, 0.0),
+            0.0,
+            0.0,
+            0.0,
+            0.5,
+        );
+        let at = |t: f64| {
+            (
+                args.0,
+                args.1 + t * dir.1,
+                args.2 + t * dir.2,
+                args.3,
+                args.4,
+                args.5,
+                args.6 + t * dir.6,
+            )
+        };
+        let fd = (wv(at(h)) - wv(at(-h))) / (2.0 * h);
+        let rev = g.1 * dir.1 + g.2.dot(&dir.2) + g.6 * dir.6;
+        let tan = w.dot(&DiffFunc::tangent(&contact_force_with_stiction, args, dir).1);
+        assert!(
+            (rev - fd).abs() < 1e-6 * fd.abs().max(1.0) && (tan - rev).abs() < 1e-9 * rev.abs(),
+            "v {v:?}: reverse {rev}, forward {tan}, central differences {fd}"
+        );
+        // `contact_force` is the law at the default tolerance.
+        let plain = contact_force::call(n, -2e-3, v, 1e4, 50.0, 0.7);
+        let with = contact_force_with_stiction::call(n, -2e-3, v, 1e4, 50.0, 0.7, 0.01);
+        assert_eq!(plain, with);
+    }
+    assert_eq!(GroundContact::default().stiction_tolerance, 0.01);
+    // Every kernel: the change of the sliding velocity in one short step.
+    let (v, vs, vs2) = (2e-3, 0.01, 0.03);
+    let mut bad = Vec::new();
+    for (base, shape) in EVERY_CONTACT {
+        let slowed = |stiction_tolerance: f64| {
+            let ground = GroundContact {
+                stiction_tolerance,
+                mu: 0.5,
+                ..GroundContact::default()
+            };
+            let model = body_on(base, shape, ground, -1e-3);
+            let s = model.state();
+            s.qd.set(0, v);
+            // (A short step: the body's turn by the friction's torque is negligible.)
+            let next = model.step(&mut Tape::new(), &s, None, 1e-6).unwrap();
+            v - next.qd.get(0)
+        };
+        let (a, b) = (slowed(vs), slowed(vs2));
+        let expected = (v + vs2) / (v + vs);
+        if !(a > 0.0 && (a / b - expected).abs() < 1e-6 * expected) {
+            bad.push(format!(
+                "{shape} on {base}: slowed by {a} and {b}, ratio {} not {expected}",
+                a / b
+            ));
+        }
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+    for vs in [0.0, -0.01, f64::NAN, 1e-12] {
+        let mut b = ArticulationBuilder::new();
+        b.ground = Some(GroundContact {
+            stiction_tolerance: vs,
+            ..GroundContact::default()
+        });
+        free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
+        let e = b.finalize::<f64>().unwrap_err().to_string();
+        assert!(e.contains("stiction_tolerance"), "{vs}: {e}");
+    }
 }
 
 const TWO_BALLS: &str = r#"<mujoco>

@@ -1,7 +1,7 @@
 //! Contact of links: spheres, capsules, boxes, cylinders and ellipsoids on links pressed into
 //! a ground plane and into each other, with the library's contact law (penalty, damping
-//! ramped in over `damping_depth`, smoothed Coulomb friction, optional leaky gradient, optional
-//! onset).
+//! ramped in over `damping_depth`, Coulomb friction smoothed below the stiction tolerance,
+//! optional leaky gradient, optional onset).
 //!
 //! Against the ground a shape touches by its lowest points, which is exact for a plane: a
 //! sphere by its own, a capsule by its end spheres, a box by its corners, an ellipsoid by its
@@ -53,7 +53,9 @@ use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
 use super::pose::{LinkId, Pose};
-use crate::contact::law::{contact_damping, contact_depth, contact_force, contact_onset};
+use crate::contact::law::{
+    contact_damping, contact_depth, contact_force_with_stiction, contact_onset, STICTION_TOLERANCE,
+};
 use crate::contact::shapes::sdf_cylinder;
 
 /// Which shapes touch which (MuJoCo's `contype` and `conaffinity` bit masks): `a` and `b`
@@ -313,6 +315,13 @@ pub struct GroundContact<R: Real> {
     /// the plain depth exceeds `onset / 2`). Its slope at first contact is 0, so with an
     /// onset the `leak` has no effect. 0, or at least 1e-9.
     pub onset: R,
+    /// The sliding speed below which friction grows linearly with the speed (m/s; default
+    /// [`STICTION_TOLERANCE`], 0.01; positive; see [`contact_force_with_stiction`]). At rest
+    /// the friction is a damper of slope `mu |f| / stiction_tolerance`: a light link under a
+    /// heavy load (a leg's foot) needs `mu |f| dt / (stiction_tolerance m) < 2`, `m` the
+    /// mass the contact moves, or the rollout's gradient grows exponentially with its steps
+    /// (the quadruped's gait takes 0.1). A larger value lets a body creep on a slope.
+    pub stiction_tolerance: R,
 }
 
 impl Default for GroundContact<f64> {
@@ -326,13 +335,14 @@ impl Default for GroundContact<f64> {
             leak: 0.0,
             damping_depth: 1e-3,
             onset: 0.0,
+            stiction_tolerance: STICTION_TOLERANCE,
         }
     }
 }
 
 impl GroundContact<f64> {
     /// Checks: a unit normal, everything finite, coefficients non-negative, an onset of 0 or at
-    /// least 1e-9 m.
+    /// least 1e-9 m, a stiction tolerance of at least 1e-9 m/s.
     pub(crate) fn check(&self) -> Result<(), String> {
         let n = self.normal.norm();
         if !(n.is_finite() && (n - 1.0).abs() < 1e-3) {
@@ -358,6 +368,13 @@ impl GroundContact<f64> {
             let o = self.onset;
             return Err(format!("onset {o} m must be 0 (none) or at least 1e-9 m"));
         }
+        // (0 would divide 0 by 0 at rest.)
+        let vs = self.stiction_tolerance;
+        if !(vs.is_finite() && vs >= 1e-9) {
+            return Err(format!(
+                "stiction_tolerance {vs} m/s must be finite and at least 1e-9 m/s (default 0.01)"
+            ));
+        }
         Ok(())
     }
 
@@ -372,31 +389,33 @@ impl GroundContact<f64> {
             leak: r(self.leak),
             damping_depth: r(self.damping_depth),
             onset: r(self.onset),
+            stiction_tolerance: r(self.stiction_tolerance),
         }
     }
 }
 
 /// The ground's law at a link's point `x` moving at `v`, against the plane `plane` (its unit
 /// normal `n` and offset: `n.x = offset`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth,
-/// onset`): `contact_force(n, c, v, ke, kd', mu)` at the signed distance `d = n.x - offset`,
-/// `c = contact_onset(contact_depth(d, leak), onset)`, the damping `kd'` ramped in.
+/// onset, stiction_tolerance`): `contact_force_with_stiction(n, c, v, ke, kd', mu, vs)` at the
+/// signed distance `d = n.x - offset`, `c = contact_onset(contact_depth(d, leak), onset)`, the
+/// damping `kd'` ramped in.
 #[diff_func]
 fn ground_force<R: Real>(
     x: Vec3<R>,
     v: Vec3<R>,
     plane: Vec4<R>,
     law: Vec3<R>,
-    ramp: Vec3<R>,
+    ramp: Vec4<R>,
 ) -> Vec3<R> {
     let n = vec3(plane.x, plane.y, plane.z);
     let c = contact_onset(contact_depth(dot(n, x) - plane.w, ramp.x), ramp.z);
     let kdc = contact_damping(c, law.y, 0.0, ramp.y);
-    contact_force(n, c, v, law.x, kdc, law.z)
+    contact_force_with_stiction(n, c, v, law.x, kdc, law.z, ramp.w)
 }
 
 /// Ground contact of contact sphere `tid` (centre `contact_pos` in the frame of link
 /// `contact_link`, radius `contact_radius`): its lowest point `x` at signed distance
-/// `d = n.x - offset` gets `f = contact_force(n, c, v, ke, kd', mu)` with
+/// `d = n.x - offset` gets `f = contact_force_with_stiction(n, c, v, ke, kd', mu, vs)` with
 /// `c = contact_onset(contact_depth(d, leak), onset)`, `v` the velocity of the link's point at
 /// `x`, `kd'` the ramped damping and `mu` the sphere's `contact_mu`; the link receives the
 /// wrench `(x x f, f)` (world frame, at the origin).
@@ -417,6 +436,7 @@ pub fn articulation_ground_contact<R: Real>(
     leak: R,
     damping_depth: R,
     onset: R,
+    stiction: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -431,7 +451,7 @@ pub fn articulation_ground_contact<R: Real>(
         v,
         vec4(normal.x, normal.y, normal.z, offset),
         law,
-        vec3(leak, damping_depth, onset),
+        vec4(leak, damping_depth, onset, stiction),
     );
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
@@ -524,6 +544,7 @@ pub fn articulation_support_contact<R: Real>(
     leak: R,
     damping_depth: R,
     onset: R,
+    stiction: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -540,7 +561,7 @@ pub fn articulation_support_contact<R: Real>(
         v,
         vec4(normal.x, normal.y, normal.z, offset),
         law,
-        vec3(leak, damping_depth, onset),
+        vec4(leak, damping_depth, onset, stiction),
     ) * o.w;
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
@@ -810,18 +831,18 @@ pub fn capsule_box_point<R: Real>(
 
 /// The contact law between two links (normal `n` from `a` to `b`, signed distance `d`, `rel`
 /// the velocity of `b`'s point at the contact relative to `a`'s; `law`: `ke, kd, mu`; `ramp`:
-/// `leak, damping_depth`): the force on `b`.
+/// `leak, damping_depth, onset, stiction_tolerance`): the force on `b`.
 #[diff_func]
 fn link_pair_force<R: Real>(
     n: Vec3<R>,
     d: R,
     rel: Vec3<R>,
     law: Vec3<R>,
-    ramp: Vec3<R>,
+    ramp: Vec4<R>,
 ) -> Vec3<R> {
     let c = contact_onset(contact_depth(d, ramp.x), ramp.z);
     let kdc = contact_damping(c, law.y, 0.0, ramp.y);
-    contact_force(n, c, rel, law.x, kdc, law.z)
+    contact_force_with_stiction(n, c, rel, law.x, kdc, law.z, ramp.w)
 }
 
 /// Contact of pairs of spheres or capsules on two links (`capsule_pairs[tid]`,
@@ -829,7 +850,7 @@ fn link_pair_force<R: Real>(
 /// of their axes ([`closest_on_segments`]), at signed distance `d = |cb - ca| - ra - rb`
 /// along `n = (cb - ca) / |cb - ca|`, the point `x` midway between the surfaces gets the
 /// ground's law with the relative velocity `v_b(x) - v_a(x)` and the pair's friction
-/// `capsule_pair_mu[tid]`: `f = contact_force(n, c, ...)` with
+/// `capsule_pair_mu[tid]`: `f = contact_force_with_stiction(n, c, ...)` with
 /// `c = contact_onset(contact_depth(d, leak), onset)` pushes `b` (wrench `(x x f, f)`) and
 /// `-f` pushes `a`.
 #[diff_kernel]
@@ -849,6 +870,7 @@ pub fn articulation_capsule_contact<R: Real>(
     leak: R,
     damping_depth: R,
     onset: R,
+    stiction: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -870,7 +892,7 @@ pub fn articulation_capsule_contact<R: Real>(
     let x = ca + n * (ra + 0.5 * d);
     let rel = (link_v[lb] + cross(link_w[lb], x)) - (link_v[la] + cross(link_w[la], x));
     let law = vec3(ke, kd, capsule_pair_mu[t]);
-    let f = link_pair_force(n, d, rel, law, vec3(leak, damping_depth, onset));
+    let f = link_pair_force(n, d, rel, law, vec4(leak, damping_depth, onset, stiction));
     ext_n.atomic_add(lb, cross(x, f));
     ext_f.atomic_add(lb, f);
     ext_n.atomic_sub(la, cross(x, f));
@@ -880,7 +902,8 @@ pub fn articulation_capsule_contact<R: Real>(
 /// The wrench on the segment's link of a contact with a box, `weight` times the contact law:
 /// `e` the contact in the box's frame (point, normal out of the box, `(depth, ..)`), the box's
 /// frame `ob`, `rb` in the world, the velocities `(v, w)` of the segment's link `a` and the
-/// box's `b`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth, onset`. Returns
+/// box's `b`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth, onset,
+/// stiction_tolerance`. Returns
 /// `(x x f, f, 0)`.
 #[diff_func]
 #[allow(clippy::too_many_arguments)]
@@ -891,7 +914,7 @@ fn box_contact_wrench<R: Real>(
     va: Mat33<R>,
     vb: Mat33<R>,
     law: Vec3<R>,
-    ramp: Vec3<R>,
+    ramp: Vec4<R>,
     weight: R,
 ) -> Mat33<R> {
     let x = ob + quat_rotate(rb, vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]));
@@ -909,7 +932,7 @@ fn box_contact_wrench<R: Real>(
 /// [`articulation_capsule_contact`]) with a box (`box_pairs[tid][1]`: its link, centre and
 /// rotation in the link frame, half extents): [`segment_box_contact`] in the box's frame
 /// gives the point `x` midway between the surfaces, the normal `n` out of the box and the
-/// signed distance `d`; `f = contact_force(n, c, v_seg(x) - v_box(x),
+/// signed distance `d`; `f = contact_force_with_stiction(n, c, v_seg(x) - v_box(x),
 /// ...)`, with the pair's friction `box_pair_mu[tid]`, pushes the segment's link and `-f` the
 /// box's. For a capsule (radius and length above 0; a box's edge has radius 0) the force is
 /// times `max(1 - smooth_ramp((a - 0.9) / 0.1), smooth_ramp((-d - r) / (0.1 r)))` times
@@ -941,6 +964,7 @@ pub fn articulation_box_contact<R: Real>(
     leak: R,
     damping_depth: R,
     onset: R,
+    stiction: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -977,7 +1001,13 @@ pub fn articulation_box_contact<R: Real>(
         let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
         let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
         let law = vec3(ke, kd, box_pair_mu[t]);
-        let f = link_pair_force(n, m[(0, 2)], rel, law, vec3(leak, damping_depth, onset)) * weight;
+        let f = link_pair_force(
+            n,
+            m[(0, 2)],
+            rel,
+            law,
+            vec4(leak, damping_depth, onset, stiction),
+        ) * weight;
         ext_n.atomic_add(la, cross(x, f));
         ext_f.atomic_add(la, f);
         ext_n.atomic_sub(lb, cross(x, f));
@@ -1010,6 +1040,7 @@ pub fn articulation_capsule_box_points<R: Real>(
     leak: R,
     damping_depth: R,
     onset: R,
+    stiction: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -1032,7 +1063,7 @@ pub fn articulation_capsule_box_points<R: Real>(
                 let va = mat33_cols(link_v[la], link_w[la], vec3(0.0, 0.0, 0.0));
                 let vb = mat33_cols(link_v[lb], link_w[lb], vec3(0.0, 0.0, 0.0));
                 let law = vec3(ke, kd, box_pair_mu[t]);
-                let ramp = vec3(leak, damping_depth, onset);
+                let ramp = vec4(leak, damping_depth, onset, stiction);
                 let wr = box_contact_wrench(e, ob, rb, va, vb, law, ramp, e[(1, 2)]);
                 let tn = vec3(wr[(0, 0)], wr[(1, 0)], wr[(2, 0)]);
                 let f = vec3(wr[(0, 1)], wr[(1, 1)], wr[(2, 1)]);
@@ -1051,7 +1082,7 @@ pub fn articulation_capsule_box_points<R: Real>(
 /// closest to the cylinder's axis ([`closest_on_segments`]) is pushed out along the
 /// cylinder's SDF ([`sdf_cylinder`]): at signed distance
 /// `d = sdf(p) - radius` along its normal `n`, the point `x` midway between the surfaces gets
-/// `f = contact_force(n, c, v_seg(x) - v_cyl(x), ...)` (`c` as in
+/// `f = contact_force_with_stiction(n, c, v_seg(x) - v_cyl(x), ...)` (`c` as in
 /// [`articulation_capsule_contact`]) with the pair's friction `cylinder_pair_mu[tid]`; `f`
 /// pushes the segment's link and `-f` the cylinder's.
 /// Exact for a sphere, for a capsule parallel to the axis or crossing it; otherwise the
@@ -1077,6 +1108,7 @@ pub fn articulation_cylinder_contact<R: Real>(
     leak: R,
     damping_depth: R,
     onset: R,
+    stiction: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
 ) {
@@ -1107,7 +1139,7 @@ pub fn articulation_cylinder_contact<R: Real>(
         d,
         rel,
         vec3(ke, kd, cylinder_pair_mu[t]),
-        vec3(leak, damping_depth, onset),
+        vec4(leak, damping_depth, onset, stiction),
     );
     ext_n.atomic_add(la, cross(x, f));
     ext_f.atomic_add(la, f);

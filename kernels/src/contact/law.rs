@@ -46,18 +46,58 @@ pub fn contact_depth_tangent<R: Real>(d: R, leak: R, dd: R, _dleak: R) -> R {
 /// receives, `-(fn + fd - ft)` with `c` the (non-positive) penetration depth (m), `v` the
 /// point's velocity relative to the surface (m/s):
 /// `fn = n c ke`, `fd = n min(v.n, 0) kd`, `ft = vt (mu c ke / (|vt| + 0.01))` with
-/// `vt = v - n (v.n)`; `ke` (N/m), `kd` (N s/m), `mu` (friction coefficient).
+/// `vt = v - n (v.n)`; `ke` (N/m), `kd` (N s/m), `mu` (friction coefficient). It is
+/// [`contact_force_with_stiction`] with the stiction tolerance
+/// [`STICTION_TOLERANCE`] (0.01 m/s).
 ///
 /// As in dFlex, the damping `fd` acts whenever the point approaches the surface, even out of
 /// contact; the friction is Coulomb's `mu |fn|` smoothed near `vt = 0` (so `|vt| = 0` is
 /// regular: `length`'s gradient there is 0).
 #[diff_func]
 pub fn contact_force<R: Real>(n: Vec3<R>, c: R, v: Vec3<R>, ke: R, kd: R, mu: R) -> Vec3<R> {
+    contact_force_with_stiction(n, c, v, ke, kd, mu, 0.01)
+}
+
+/// The stiction tolerance of [`contact_force`] (m/s): the sliding speed below which its
+/// friction grows linearly with the speed (the default of
+/// [`GroundContact::stiction_tolerance`](crate::articulation::GroundContact::stiction_tolerance)).
+pub const STICTION_TOLERANCE: f64 = 0.01;
+
+/// [`contact_force`] with the friction smoothed over the sliding speed `vs` (m/s, > 0, the
+/// stiction tolerance, Drake's name): `ft = vt (mu c ke / (|vt| + vs))`.
+///
+/// At rest the friction is a damper of slope `mu |fn| / vs` (N s/m). An explicit step of
+/// length `dt` integrates it stably where `mu |fn| dt / (vs m) < 2`, `m` the mass the contact
+/// moves (a light shin under a heavy torso: small `m`, large `|fn|`); beyond, a rollout's
+/// motion stays bounded (the friction saturates at `mu |fn|`) but its gradient grows
+/// exponentially with the steps. A larger `vs` keeps the gradient bounded; the price is a
+/// creep of up to `vs tan(a) / (mu - tan(a))` on a slope `a` where Coulomb's law holds still.
+///
+/// ```
+/// use adflex_kernels::contact::law::{contact_force_with_stiction, STICTION_TOLERANCE};
+/// use adflex_runtime::prelude::Vec3;
+/// let (n, v) = (Vec3::z(), Vec3::new(2e-3, 0.0, 0.0)); // sliding at 2 mm/s along x
+/// let f = |vs: f64| contact_force_with_stiction::call(n, -1e-3, v, 1e4, 0.0, 0.5, vs);
+/// // 10 N pressing; the friction is 0.5 x 10 N x 2 / (2 + 10) mm/s or x 2 / (2 + 100).
+/// assert!((f(STICTION_TOLERANCE).x + 5.0 / 6.0).abs() < 1e-12);
+/// assert!((f(0.1).x + 5.0 / 51.0).abs() < 1e-12);
+/// assert!((f(0.1).z - 10.0).abs() < 1e-12);
+/// ```
+#[diff_func]
+pub fn contact_force_with_stiction<R: Real>(
+    n: Vec3<R>,
+    c: R,
+    v: Vec3<R>,
+    ke: R,
+    kd: R,
+    mu: R,
+    vs: R,
+) -> Vec3<R> {
     let vn = dot(n, v);
     let vt = v - n * vn;
     let fnormal = n * c * ke;
     let fd = n * min(vn, 0.0) * kd;
-    let ft = vt * (mu * c * ke / (length(vt) + 0.01));
+    let ft = vt * (mu * c * ke / (length(vt) + vs));
     (fnormal + fd - ft) * -1.0
 }
 
