@@ -634,7 +634,7 @@ fn a_contact_onset_makes_a_rollouts_gradient_smooth_across_time_steps() {
 
 /// A 1 kg body of `shape` (as [`free_body`]) `gap` above a base whose top is at `z = 0`:
 /// the `ground` itself, or (the ground then far below) a fixed `box`, a `capsule` lying along
-/// x or an upright `cylinder`; every contact with the law of `ground`.
+/// x (`capsule_y`: along y) or an upright `cylinder`; every contact with the law of `ground`.
 fn body_on(base: &str, shape: &str, ground: GroundContact<f64>, gap: f64) -> Articulations<f64> {
     let mut b = ArticulationBuilder::new();
     b.ground = Some(GroundContact {
@@ -651,13 +651,17 @@ fn body_on(base: &str, shape: &str, ground: GroundContact<f64>, gap: f64) -> Art
         let l = b.add_link("base", None, Joint::fixed().origin(pose), inertial);
         let shape = match base {
             "box" => GeomShape::Box(Vec3::new(1.0, 1.0, 0.25)),
-            "capsule" => GeomShape::Capsule(0.25, 0.5),
+            "capsule" | "capsule_y" => GeomShape::Capsule(0.25, 0.5),
             _ => GeomShape::Cylinder(0.25, 0.25),
         };
-        // A capsule lying along x (its axis at the base's centre), the others upright.
+        // A capsule lying along x or y (its axis at the base's centre), the others upright.
         let turn = match base {
             "capsule" => nalgebra::UnitQuaternion::from_axis_angle(
                 &Vec3::y_axis(),
+                std::f64::consts::FRAC_PI_2,
+            ),
+            "capsule_y" => nalgebra::UnitQuaternion::from_axis_angle(
+                &Vec3::x_axis(),
                 std::f64::consts::FRAC_PI_2,
             ),
             _ => nalgebra::UnitQuaternion::identity(),
@@ -680,8 +684,9 @@ fn body_on(base: &str, shape: &str, ground: GroundContact<f64>, gap: f64) -> Art
 
 /// The shapes resting on bases that the tests of every contact kernel use: on the ground (a
 /// sphere, a capsule's end spheres, a box's corners, a cylinder's rim points) and on fixed
-/// shapes (a sphere, a capsule and a box on a box, a sphere on a capsule and on a cylinder).
-const EVERY_CONTACT: [(&str, &str); 9] = [
+/// shapes (a sphere, a capsule and a box on a box, a sphere on a capsule and on a cylinder, a
+/// capsule lying parallel on a capsule).
+const EVERY_CONTACT: [(&str, &str); 10] = [
     ("ground", "sphere"),
     ("ground", "capsule_y"),
     ("ground", "box"),
@@ -691,6 +696,7 @@ const EVERY_CONTACT: [(&str, &str); 9] = [
     ("box", "box"),
     ("capsule", "sphere"),
     ("cylinder", "sphere"),
+    ("capsule_y", "capsule_y"),
 ];
 
 /// Every articulation contact gets the onset: a 1 kg body resting (on soft contacts, so that
@@ -836,6 +842,97 @@ fn every_contact_slides_with_the_stiction_tolerance() {
         free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
         let e = b.finalize::<f64>().unwrap_err().to_string();
         assert!(e.contains("stiction_tolerance"), "{vs}: {e}");
+    }
+}
+
+/// A capsule lying on another, parallel, touches it at the two ends of their overlap (as a
+/// capsule on the ground rests on its ends), not at one point under its middle: tilted by
+/// up to 0.2 degrees about the horizontal normal to both axes, it is pushed back by a torque
+/// proportional to the tilt, `2 ke (l/2)^2` per radian for an overlap of length `l` (one point
+/// would jump to the lower end: a torque of `ke depth l/2` at any tilt), and borne by both
+/// ends. Crossed at right angles, one contact as before; and a rollout of the capsule rocking
+/// on the other, with its derivative against central differences and forward mode.
+#[test]
+fn parallel_capsules_touch_at_both_ends_of_their_overlap() {
+    let ke = GroundContact::default().ke;
+    let depth = 2e-3;
+    // The body's (`capsule_y`: 0.8 m long, on a fixed capsule 1 m long) acceleration about x
+    // and along z in one short step from rest, pressed `depth` into the base, tilted `tilt`.
+    let push = |base: &str, tilt: f64| -> (f64, f64) {
+        let model = body_on(base, "capsule_y", GroundContact::default(), -depth);
+        let s = model.state();
+        s.q.set(3, (0.5 * tilt).sin());
+        s.q.set(6, (0.5 * tilt).cos());
+        let dt = 1e-7;
+        let next = model.step(&mut Tape::new(), &s, None, dt).unwrap();
+        (next.qd.get(3) / dt, next.qd.get(2) / dt + 9.81)
+    };
+    // The capsule's inertia about x (a 1 kg box of half extents 0.05, 0.45, 0.05).
+    let ixx = (0.45f64.powi(2) + 0.05f64.powi(2)) / 3.0;
+    let stiffness = 2.0 * ke * 0.4f64.powi(2);
+    let (level_torque, level_force) = push("capsule_y", 0.0);
+    assert!(level_torque.abs() < 1e-6, "level: {level_torque}");
+    assert!(
+        (level_force - 2.0 * ke * depth).abs() < 1e-3 * ke * depth,
+        "borne by {level_force} N, not two contacts' {}",
+        2.0 * ke * depth
+    );
+    for deg in [-0.2, -0.1, -0.05, 0.05, 0.1, 0.2] {
+        let tilt = deg * std::f64::consts::PI / 180.0;
+        let (torque, force) = push("capsule_y", tilt);
+        let expected = -stiffness * tilt.sin() * tilt.cos() / ixx;
+        assert!(
+            (torque - expected).abs() < 0.02 * expected.abs(),
+            "tilted {deg} degrees: {torque} rad/s^2, expected {expected}"
+        );
+        assert!(
+            (force - level_force).abs() < 1e-3 * level_force,
+            "{deg}: {force}"
+        );
+    }
+    // Crossed at right angles (the base along x): one contact.
+    let (_, crossed) = push("capsule", 0.0);
+    assert!(
+        (crossed - ke * depth).abs() < 1e-3 * ke * depth,
+        "crossed: {crossed} N"
+    );
+    // Rocking: the tilt after 0.3 s against the initial angular velocity about x.
+    let rock = |w0: f64| -> (f64, f64) {
+        let model = body_on("capsule_y", "capsule_y", GroundContact::default(), -5e-4);
+        let qd = Array::from_vec({
+            let mut qd = vec![0.0; model.n_dof];
+            qd[3] = w0;
+            qd
+        })
+        .requires_grad();
+        let mut s = ArticulationState {
+            q: Array::from_vec(model.q0.clone()),
+            qd: qd.clone(),
+        };
+        let tape = &mut Tape::new();
+        for _ in 0..300 {
+            s = model.step(tape, &s, None, 1e-3).unwrap();
+        }
+        let mut w = vec![0.0; model.n_q];
+        w[3] = 1.0;
+        let g = tape.vjp(&[&s.q], &w, &[&qd]).unwrap()[3];
+        let mut dir = vec![0.0; model.n_dof];
+        dir[3] = 1.0;
+        let jv = tape.jvp(&[&qd], &dir, &[&s.q]).unwrap()[3];
+        assert!(
+            (jv - g).abs() < 1e-9 * g.abs().max(1e-3),
+            "forward {jv} vs reverse {g}"
+        );
+        (s.q.get(3), g)
+    };
+    for w0 in [0.05, 1.0, 3.0] {
+        let h = 1e-6;
+        let fd = (rock(w0 + h).0 - rock(w0 - h).0) / (2.0 * h);
+        let (_, g) = rock(w0);
+        assert!(
+            (g - fd).abs() < 1e-5 * fd.abs().max(1e-3),
+            "w0 {w0}: {g} vs central differences {fd}"
+        );
     }
 }
 

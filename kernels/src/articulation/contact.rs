@@ -37,10 +37,11 @@
 //! inside, no longer by the edge, and tips towards the edge if its centre of mass is beyond
 //! that middle.
 //!
-//! When the closest points of two capsules are not unique (parallel axes) the contact is one
-//! point, at the middle of the range where they are closest: two capsules lying side by side
-//! touch under the middle of their overlap, and when one tilts the contact moves to the lower
-//! end, so the torque about that point changes abruptly there (MuJoCo makes two contacts).
+//! Two capsules whose axes are parallel within 0.3 degrees touch at the two ends of their
+//! overlap (as a capsule rests on the ground on its two ends; MuJoCo too makes two contacts),
+//! blended with the one contact of their closest points up to 1.7 degrees
+//! ([`articulation_capsule_contact`]): a capsule lying on another resists tilting smoothly
+//! and stably, where one point under the middle of the overlap would jump to the lower end.
 //!
 //! Which shapes touch follows MuJoCo's rule: shapes `a` and `b` touch when `a.contype &
 //! b.conaffinity` or `b.contype & a.conaffinity` is non-zero ([`ContactFilter`]; the ground has
@@ -395,10 +396,9 @@ impl GroundContact<f64> {
 }
 
 /// The ground's law at a link's point `x` moving at `v`, against the plane `plane` (its unit
-/// normal `n` and offset: `n.x = offset`; `law`: `ke, kd, mu`; `ramp`: `leak, damping_depth,
-/// onset, stiction_tolerance`): `contact_force_with_stiction(n, c, v, ke, kd', mu, vs)` at the
-/// signed distance `d = n.x - offset`, `c = contact_onset(contact_depth(d, leak), onset)`, the
-/// damping `kd'` ramped in.
+/// normal `n` and offset: `n.x = offset`; `law` and `ramp` as `link_pair_force`'s): the law
+/// between links, the ground as the link `a` at rest, at the signed distance
+/// `d = n.x - offset`.
 #[diff_func]
 fn ground_force<R: Real>(
     x: Vec3<R>,
@@ -408,9 +408,7 @@ fn ground_force<R: Real>(
     ramp: Vec4<R>,
 ) -> Vec3<R> {
     let n = vec3(plane.x, plane.y, plane.z);
-    let c = contact_onset(contact_depth(dot(n, x) - plane.w, ramp.x), ramp.z);
-    let kdc = contact_damping(c, law.y, 0.0, ramp.y);
-    contact_force_with_stiction(n, c, v, law.x, kdc, law.z, ramp.w)
+    link_pair_force(n, dot(n, x) - plane.w, v, law, ramp)
 }
 
 /// Ground contact of contact sphere `tid` (centre `contact_pos` in the frame of link
@@ -831,7 +829,9 @@ pub fn capsule_box_point<R: Real>(
 
 /// The contact law between two links (normal `n` from `a` to `b`, signed distance `d`, `rel`
 /// the velocity of `b`'s point at the contact relative to `a`'s; `law`: `ke, kd, mu`; `ramp`:
-/// `leak, damping_depth, onset, stiction_tolerance`): the force on `b`.
+/// `leak, damping_depth, onset, stiction_tolerance`): the force on `b`,
+/// `contact_force_with_stiction(n, c, rel, ke, kd', mu, vs)` with
+/// `c = contact_onset(contact_depth(d, leak), onset)` and the damping `kd'` ramped in.
 #[diff_func]
 fn link_pair_force<R: Real>(
     n: Vec3<R>,
@@ -845,6 +845,49 @@ fn link_pair_force<R: Real>(
     contact_force_with_stiction(n, c, rel, law.x, kdc, law.z, ramp.w)
 }
 
+/// The contact of the points `ca` of link `a`'s axis and `cb` of link `b`'s (radii `ra`,
+/// `rb`; velocities `va`, `vb`: the links' linear velocities in column 0, angular in column
+/// 1), at signed distance `d = |cb - ca| - ra - rb` along `n = (cb - ca) / |cb - ca|`, at the
+/// point `x` midway between the surfaces: `weight` times the wrench `(x x f, f)` on `b`
+/// (columns 0 and 1).
+#[diff_func]
+#[allow(clippy::too_many_arguments)]
+fn axis_points_wrench<R: Real>(
+    ca: Vec3<R>,
+    cb: Vec3<R>,
+    ra: R,
+    rb: R,
+    va: Mat33<R>,
+    vb: Mat33<R>,
+    law: Vec3<R>,
+    ramp: Vec4<R>,
+    weight: R,
+) -> Mat33<R> {
+    let n = normalize(cb - ca);
+    let d = length(cb - ca) - ra - rb;
+    let x = ca + n * (ra + 0.5 * d);
+    let vla = vec3(va[(0, 0)], va[(1, 0)], va[(2, 0)]);
+    let wla = vec3(va[(0, 1)], va[(1, 1)], va[(2, 1)]);
+    let vlb = vec3(vb[(0, 0)], vb[(1, 0)], vb[(2, 0)]);
+    let wlb = vec3(vb[(0, 1)], vb[(1, 1)], vb[(2, 1)]);
+    let rel = (vlb + cross(wlb, x)) - (vla + cross(wla, x));
+    let f = link_pair_force(n, d, rel, law, ramp) * weight;
+    mat33_cols(cross(x, f), f, vec3(0.0, 0.0, 0.0))
+}
+
+/// How much two axes `d1`, `d2` touch along a line rather than at a point: 1 where the sine
+/// of their angle is below 0.005 (0.3 degrees), 0 above 0.03 (1.7 degrees), smoothly between;
+/// 0 if either is a point (a sphere).
+#[diff_func]
+fn parallel_weight<R: Real>(d1: Vec3<R>, d2: Vec3<R>) -> R {
+    let aa = dot(d1, d1);
+    let ee = dot(d2, d2);
+    let both = aa * ee;
+    let safe = select(both > 0.0, both, 1.0);
+    let sine = length(cross(d1, d2)) / sqrt(safe);
+    select(both > 0.0, 1.0 - smooth_ramp((sine - 0.005) / 0.025), 0.0)
+}
+
 /// Contact of pairs of spheres or capsules on two links (`capsule_pairs[tid]`,
 /// indices of segments `seg_*`: ends in the link frame, radius): with the closest points `ca`, `cb`
 /// of their axes ([`closest_on_segments`]), at signed distance `d = |cb - ca| - ra - rb`
@@ -853,6 +896,12 @@ fn link_pair_force<R: Real>(
 /// `capsule_pair_mu[tid]`: `f = contact_force_with_stiction(n, c, ...)` with
 /// `c = contact_onset(contact_depth(d, leak), onset)` pushes `b` (wrench `(x x f, f)`) and
 /// `-f` pushes `a`.
+///
+/// Two capsules whose axes are parallel within 0.3 degrees touch along a line: they get, in
+/// place of the closest points, the contacts at the two ends of the range of `a`'s axis that
+/// `b`'s shadows (each with its closest point on `b`'s axis), as a capsule on the ground rests
+/// on its two ends; between 0.3 and 1.7 degrees the two blend smoothly
+/// (`parallel_weight`), so the torque about the contact changes continuously as one tilts.
 #[diff_kernel]
 pub fn articulation_capsule_contact<R: Real>(
     capsule_pairs: &Array<[u32; 2]>,
@@ -882,21 +931,39 @@ pub fn articulation_capsule_contact<R: Real>(
     let a1 = link_p[la] + quat_rotate(link_r[la], seg_b[i]);
     let b0 = link_p[lb] + quat_rotate(link_r[lb], seg_a[j]);
     let b1 = link_p[lb] + quat_rotate(link_r[lb], seg_b[j]);
-    let st = closest_on_segments(a0, a1, b0, b1);
-    let ca = a0 + (a1 - a0) * st.x;
-    let cb = b0 + (b1 - b0) * st.y;
-    let n = normalize(cb - ca);
     let ra = seg_radius[i];
     let rb = seg_radius[j];
-    let d = length(cb - ca) - ra - rb;
-    let x = ca + n * (ra + 0.5 * d);
-    let rel = (link_v[lb] + cross(link_w[lb], x)) - (link_v[la] + cross(link_w[la], x));
+    let va = mat33_cols(link_v[la], link_w[la], vec3(0.0, 0.0, 0.0));
+    let vb = mat33_cols(link_v[lb], link_w[lb], vec3(0.0, 0.0, 0.0));
     let law = vec3(ke, kd, capsule_pair_mu[t]);
-    let f = link_pair_force(n, d, rel, law, vec4(leak, damping_depth, onset, stiction));
-    ext_n.atomic_add(lb, cross(x, f));
-    ext_f.atomic_add(lb, f);
-    ext_n.atomic_sub(la, cross(x, f));
-    ext_f.atomic_sub(la, f);
+    let ramp = vec4(leak, damping_depth, onset, stiction);
+    let d1 = a1 - a0;
+    let d2 = b1 - b0;
+    let w = parallel_weight(d1, d2);
+    let st = closest_on_segments(a0, a1, b0, b1);
+    let ca = a0 + d1 * st.x;
+    let cb = b0 + d2 * st.y;
+    let mut e = axis_points_wrench(ca, cb, ra, rb, va, vb, law, ramp, 1.0 - w);
+    if w > 0.0 {
+        // The ends of the range of `a`'s axis in `b`'s shadow, and their closest points on
+        // `b`'s axis.
+        let aa = dot(d1, d1);
+        let ee = dot(d2, d2);
+        let s0 = dot(d1, b0 - a0) / aa;
+        let s1 = dot(d1, b1 - a0) / aa;
+        let lo = a0 + d1 * clamp(min(s0, s1), 0.0, 1.0);
+        let hi = a0 + d1 * clamp(max(s0, s1), 0.0, 1.0);
+        let on_b_lo = b0 + d2 * clamp(dot(lo - b0, d2) / ee, 0.0, 1.0);
+        let on_b_hi = b0 + d2 * clamp(dot(hi - b0, d2) / ee, 0.0, 1.0);
+        e = e + axis_points_wrench(lo, on_b_lo, ra, rb, va, vb, law, ramp, w);
+        e = e + axis_points_wrench(hi, on_b_hi, ra, rb, va, vb, law, ramp, w);
+    }
+    let nb = vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]);
+    let fb = vec3(e[(0, 1)], e[(1, 1)], e[(2, 1)]);
+    ext_n.atomic_add(lb, nb);
+    ext_f.atomic_add(lb, fb);
+    ext_n.atomic_sub(la, nb);
+    ext_f.atomic_sub(la, fb);
 }
 
 /// The wrench on the segment's link of a contact with a box, `weight` times the contact law:
