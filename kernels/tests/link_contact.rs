@@ -700,9 +700,8 @@ const EVERY_CONTACT: [(&str, &str); 10] = [
 ];
 
 /// Every articulation contact gets the onset: a 1 kg body resting (on soft contacts, so that
-/// each is deeper than the onset) sinks deeper by exactly `onset / 2`, on the ground (a
-/// sphere, a capsule's end spheres, a box's corners, a cylinder's rim points) and on fixed
-/// shapes (a sphere, a capsule and a box on a box, a sphere on a capsule and on a cylinder).
+/// each is deeper than the onset) sinks deeper by exactly `onset / 2`, on every base of
+/// [`EVERY_CONTACT`].
 /// The onset (1.5 mm) differs from `damping_depth` (1 mm): an argument swapped shows.
 #[test]
 fn every_contact_rests_deeper_by_half_the_onset() {
@@ -757,7 +756,9 @@ fn every_contact_rests_deeper_by_half_the_onset() {
 /// at every contact point alike. A tolerance of 0 (friction 0 / 0 at rest) is refused.
 #[test]
 fn every_contact_slides_with_the_stiction_tolerance() {
-    use adflex_kernels::contact::law::{contact_force, contact_force_with_stiction};
+    use adflex_kernels::contact::law::{
+        contact_force, contact_force_with_stiction, STICTION_TOLERANCE,
+    };
     use adflex_runtime::DiffFunc;
     // The rule, in all seven arguments (the friction's smoothed range and beyond it).
     let n = Vec3::new(0.6, 0.0, 0.8);
@@ -802,10 +803,14 @@ fn every_contact_slides_with_the_stiction_tolerance() {
         );
         // `contact_force` is the law at the default tolerance.
         let plain = contact_force::call(n, -2e-3, v, 1e4, 50.0, 0.7);
-        let with = contact_force_with_stiction::call(n, -2e-3, v, 1e4, 50.0, 0.7, 0.01);
+        let with =
+            contact_force_with_stiction::call(n, -2e-3, v, 1e4, 50.0, 0.7, STICTION_TOLERANCE);
         assert_eq!(plain, with);
     }
-    assert_eq!(GroundContact::default().stiction_tolerance, 0.01);
+    assert_eq!(
+        GroundContact::default().stiction_tolerance,
+        STICTION_TOLERANCE
+    );
     // Every kernel: the change of the sliding velocity in one short step.
     let (v, vs, vs2) = (2e-3, 0.01, 0.03);
     let mut bad = Vec::new();
@@ -857,20 +862,25 @@ fn parallel_capsules_touch_at_both_ends_of_their_overlap() {
     let ke = GroundContact::default().ke;
     let depth = 2e-3;
     // The body's (`capsule_y`: 0.8 m long, on a fixed capsule 1 m long) acceleration about x
-    // and along z in one short step from rest, pressed `depth` into the base, tilted `tilt`.
-    let push = |base: &str, tilt: f64| -> (f64, f64) {
+    // and along z (the force on it, m = 1 kg) in one short step from rest, pressed `depth`
+    // into the base, turned by `angle` about `axis`.
+    let push = |base: &str, axis: Vec3<f64>, angle: f64| -> (f64, f64) {
         let model = body_on(base, "capsule_y", GroundContact::default(), -depth);
         let s = model.state();
-        s.q.set(3, (0.5 * tilt).sin());
-        s.q.set(6, (0.5 * tilt).cos());
+        for k in 0..3 {
+            s.q.set(3 + k, axis[k] * (0.5 * angle).sin());
+        }
+        s.q.set(6, (0.5 * angle).cos());
         let dt = 1e-7;
         let next = model.step(&mut Tape::new(), &s, None, dt).unwrap();
         (next.qd.get(3) / dt, next.qd.get(2) / dt + 9.81)
     };
+    let (pitch, yaw) = (Vec3::x(), Vec3::z());
+    let degree = std::f64::consts::PI / 180.0;
     // The capsule's inertia about x (a 1 kg box of half extents 0.05, 0.45, 0.05).
     let ixx = (0.45f64.powi(2) + 0.05f64.powi(2)) / 3.0;
     let stiffness = 2.0 * ke * 0.4f64.powi(2);
-    let (level_torque, level_force) = push("capsule_y", 0.0);
+    let (level_torque, level_force) = push("capsule_y", pitch, 0.0);
     assert!(level_torque.abs() < 1e-6, "level: {level_torque}");
     assert!(
         (level_force - 2.0 * ke * depth).abs() < 1e-3 * ke * depth,
@@ -878,8 +888,8 @@ fn parallel_capsules_touch_at_both_ends_of_their_overlap() {
         2.0 * ke * depth
     );
     for deg in [-0.2, -0.1, -0.05, 0.05, 0.1, 0.2] {
-        let tilt = deg * std::f64::consts::PI / 180.0;
-        let (torque, force) = push("capsule_y", tilt);
+        let tilt = deg * degree;
+        let (torque, force) = push("capsule_y", pitch, tilt);
         let expected = -stiffness * tilt.sin() * tilt.cos() / ixx;
         assert!(
             (torque - expected).abs() < 0.02 * expected.abs(),
@@ -890,11 +900,60 @@ fn parallel_capsules_touch_at_both_ends_of_their_overlap() {
             "{deg}: {force}"
         );
     }
+    // Through the blend (0.3 to 1.7 degrees) and past it, every 0.05 degrees: pitched, the
+    // torque grows in size without a jump (one end lifts off at 0.29 degrees, and the lower
+    // end is also the closest point); turned about the vertical (the axes crossing), the force
+    // falls smoothly from the two ends' to the one contact's of the crossing.
+    let sweep = |axis: Vec3<f64>| -> Vec<(f64, f64)> {
+        (0..=50)
+            .map(|k| push("capsule_y", axis, 0.05 * k as f64 * degree))
+            .collect()
+    };
+    let pitched = sweep(pitch);
+    let largest = pitched.iter().map(|p| p.0.abs()).fold(0.0, f64::max);
+    for (k, w) in pitched.windows(2).enumerate() {
+        let (a, b) = (w[0].0.abs(), w[1].0.abs());
+        assert!(
+            b >= a && b - a < 0.1 * largest,
+            "pitched {} degrees: torque {a} then {b} (largest {largest})",
+            0.05 * k as f64
+        );
+    }
+    let turned = sweep(yaw);
+    for (k, w) in turned.windows(2).enumerate() {
+        assert!(
+            (w[1].1 - w[0].1).abs() < 0.1 * level_force && w[1].1 <= w[0].1 + 1e-9,
+            "turned {} degrees: force {} then {}",
+            0.05 * k as f64,
+            w[0].1,
+            w[1].1
+        );
+    }
+    let crossing = turned.last().unwrap().1;
+    assert!(
+        (crossing - ke * depth).abs() < 0.02 * ke * depth,
+        "turned 2.5 degrees: {crossing} N, not one contact's {}",
+        ke * depth
+    );
     // Crossed at right angles (the base along x): one contact.
-    let (_, crossed) = push("capsule", 0.0);
+    let (_, crossed) = push("capsule", pitch, 0.0);
     assert!(
         (crossed - ke * depth).abs() < 1e-3 * ke * depth,
         "crossed: {crossed} N"
+    );
+    // End to end on one line (the body beyond the base's end along y, its axis on the base's):
+    // one contact, though the axes are parallel.
+    let model = body_on("capsule_y", "capsule_y", GroundContact::default(), 0.0);
+    let s = model.state();
+    s.q.set(1, 0.5 + 0.25 + 0.4 + 0.05 - depth);
+    s.q.set(2, -0.25);
+    let dt = 1e-7;
+    let next = model.step(&mut Tape::new(), &s, None, dt).unwrap();
+    let along = next.qd.get(1) / dt;
+    assert!(
+        (along - ke * depth).abs() < 1e-3 * ke * depth,
+        "end to end: pushed by {along} N, not one contact's {}",
+        ke * depth
     );
     // Rocking: the tilt after 0.3 s against the initial angular velocity about x.
     let rock = |w0: f64| -> (f64, f64) {

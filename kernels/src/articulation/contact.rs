@@ -285,7 +285,8 @@ pub struct GroundContact<R: Real> {
     /// The plane is `dot(normal, x) = offset` (m).
     pub offset: R,
     /// Stiffness per contact (N/m; default 1e4): per sphere, capsule end or box corner on
-    /// the ground; between links, per pair of spheres or capsules, per sphere and box, per
+    /// the ground; between links, per pair of spheres or capsules (two capsules lying
+    /// parallel: per end of their overlap), per sphere and box, per
     /// capsule end and point over a box's edge on a box (a capsule lying on a box's face rests
     /// on its two ends, as on the ground), and per edge of a box inside another. Contacts
     /// between links use this law too, with the shapes' own friction.
@@ -373,7 +374,8 @@ impl GroundContact<f64> {
         let vs = self.stiction_tolerance;
         if !(vs.is_finite() && vs >= 1e-9) {
             return Err(format!(
-                "stiction_tolerance {vs} m/s must be finite and at least 1e-9 m/s (default 0.01)"
+                "stiction_tolerance {vs} m/s must be finite and at least 1e-9 m/s (default \
+                 {STICTION_TOLERANCE})"
             ));
         }
         Ok(())
@@ -901,7 +903,9 @@ fn parallel_weight<R: Real>(d1: Vec3<R>, d2: Vec3<R>) -> R {
 /// place of the closest points, the contacts at the two ends of the range of `a`'s axis that
 /// `b`'s shadows (each with its closest point on `b`'s axis), as a capsule on the ground rests
 /// on its two ends; between 0.3 and 1.7 degrees the two blend smoothly
-/// (`parallel_weight`), so the torque about the contact changes continuously as one tilts.
+/// (`parallel_weight`), so the torque about the contact changes continuously as one tilts. An
+/// overlap shorter than the sum of the radii (capsules end to end) weighs the two ends half
+/// each at length 0 (one contact), rising smoothly to full weight.
 #[diff_kernel]
 pub fn articulation_capsule_contact<R: Real>(
     capsule_pairs: &Array<[u32; 2]>,
@@ -951,12 +955,18 @@ pub fn articulation_capsule_contact<R: Real>(
         let ee = dot(d2, d2);
         let s0 = dot(d1, b0 - a0) / aa;
         let s1 = dot(d1, b1 - a0) / aa;
-        let lo = a0 + d1 * clamp(min(s0, s1), 0.0, 1.0);
-        let hi = a0 + d1 * clamp(max(s0, s1), 0.0, 1.0);
+        let s_lo = clamp(min(s0, s1), 0.0, 1.0);
+        let s_hi = clamp(max(s0, s1), 0.0, 1.0);
+        let lo = a0 + d1 * s_lo;
+        let hi = a0 + d1 * s_hi;
         let on_b_lo = b0 + d2 * clamp(dot(lo - b0, d2) / ee, 0.0, 1.0);
         let on_b_hi = b0 + d2 * clamp(dot(hi - b0, d2) / ee, 0.0, 1.0);
-        e = e + axis_points_wrench(lo, on_b_lo, ra, rb, va, vb, law, ramp, w);
-        e = e + axis_points_wrench(hi, on_b_hi, ra, rb, va, vb, law, ramp, w);
+        // Two ends of an overlap shorter than the radii (capsules end to end, or touching by
+        // their rounded ends) are one contact: half each.
+        let overlap = (s_hi - s_lo) * sqrt(aa) / max(ra + rb, 1e-12);
+        let we = w * (0.5 + 0.5 * smooth_ramp(overlap));
+        e = e + axis_points_wrench(lo, on_b_lo, ra, rb, va, vb, law, ramp, we);
+        e = e + axis_points_wrench(hi, on_b_hi, ra, rb, va, vb, law, ramp, we);
     }
     let nb = vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]);
     let fb = vec3(e[(0, 1)], e[(1, 1)], e[(2, 1)]);
