@@ -868,6 +868,24 @@ fn axis_points_wrench<R: Real>(
     let n = normalize(cb - ca);
     let d = length(cb - ca) - ra - rb;
     let x = ca + n * (ra + 0.5 * d);
+    point_wrench(x, n, d, va, vb, law, ramp, weight)
+}
+
+/// The wrench `weight (x x f, f, 0)` on link `b` of the contact law at the point `x` (normal
+/// `n` from `a` to `b`, signed distance `d`; `va`, `vb` the links' linear velocities in column
+/// 0, angular in column 1; `law`, `ramp` as [`link_pair_force`]'s).
+#[diff_func]
+#[allow(clippy::too_many_arguments)]
+fn point_wrench<R: Real>(
+    x: Vec3<R>,
+    n: Vec3<R>,
+    d: R,
+    va: Mat33<R>,
+    vb: Mat33<R>,
+    law: Vec3<R>,
+    ramp: Vec4<R>,
+    weight: R,
+) -> Mat33<R> {
     let vla = vec3(va[(0, 0)], va[(1, 0)], va[(2, 0)]);
     let wla = vec3(va[(0, 1)], va[(1, 1)], va[(2, 1)]);
     let vlb = vec3(vb[(0, 0)], vb[(1, 0)], vb[(2, 0)]);
@@ -996,13 +1014,8 @@ fn box_contact_wrench<R: Real>(
 ) -> Mat33<R> {
     let x = ob + quat_rotate(rb, vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]));
     let n = quat_rotate(rb, vec3(e[(0, 1)], e[(1, 1)], e[(2, 1)]));
-    let vla = vec3(va[(0, 0)], va[(1, 0)], va[(2, 0)]);
-    let wla = vec3(va[(0, 1)], va[(1, 1)], va[(2, 1)]);
-    let vlb = vec3(vb[(0, 0)], vb[(1, 0)], vb[(2, 0)]);
-    let wlb = vec3(vb[(0, 1)], vb[(1, 1)], vb[(2, 1)]);
-    let rel = (vla + cross(wla, x)) - (vlb + cross(wlb, x));
-    let f = link_pair_force(n, e[(0, 2)], rel, law, ramp) * weight;
-    mat33_cols(cross(x, f), f, vec3(0.0, 0.0, 0.0))
+    // The normal points out of the box `b`, onto the segment's link `a`.
+    point_wrench(x, n, e[(0, 2)], vb, va, law, ramp, weight)
 }
 
 /// Contact of a sphere or capsule (segment `box_pairs[tid][0]`, as in
