@@ -739,14 +739,19 @@ fn every_contact_rests_deeper_by_half_the_onset() {
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
     // An onset too small to divide by is refused, by name.
-    let mut b = ArticulationBuilder::new();
-    b.ground = Some(GroundContact {
+    let e = ground_refused(GroundContact {
         onset: 1e-312,
         ..GroundContact::default()
     });
-    free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
-    let e = b.finalize::<f64>().unwrap_err().to_string();
     assert!(e.contains("onset"), "{e}");
+}
+
+/// The error of a model whose ball touches `ground` (the test asks that it be refused).
+fn ground_refused(ground: GroundContact<f64>) -> String {
+    let mut b = ArticulationBuilder::new();
+    b.ground = Some(ground);
+    free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
+    b.finalize::<f64>().unwrap_err().to_string()
 }
 
 /// The stiction tolerance `vs`: its rule against central differences and forward mode, and
@@ -839,13 +844,10 @@ fn every_contact_slides_with_the_stiction_tolerance() {
     }
     assert!(bad.is_empty(), "{}", bad.join("\n"));
     for vs in [0.0, -0.01, f64::NAN, 1e-12] {
-        let mut b = ArticulationBuilder::new();
-        b.ground = Some(GroundContact {
+        let e = ground_refused(GroundContact {
             stiction_tolerance: vs,
             ..GroundContact::default()
         });
-        free_body(&mut b, "ball", Vec3::new(0.0, 0.0, 0.2), "sphere");
-        let e = b.finalize::<f64>().unwrap_err().to_string();
         assert!(e.contains("stiction_tolerance"), "{vs}: {e}");
     }
 }
