@@ -595,11 +595,12 @@ fn report(
             n => format!(" (+{n} constraint sweeps)"),
         };
         println!(
-            "  {:<20} {:>6} passes{sweeps}, {} s to the level; {:>4} iterations, {:>7.2} s; \
-             final loss {:.2e}, worst error {:.1e}; {}",
+            "  {:<20} {:>6} passes{sweeps}, {} s to the level ({} passes to a millionth of it); \
+             {:>4} iterations, {:>7.2} s; final loss {:.2e}, worst error {:.1e}; {}",
             r.name,
             passes_to(&r.report, level).map_or("never".into(), |p| p.to_string()),
             seconds_to(&r.report, level).map_or("never".into(), |t| format!("{t:.3}")),
+            passes_to(&r.report, 1e-6 * level).map_or("never".into(), |p| p.to_string()),
             r.report.iterations,
             r.report.elapsed.as_secs_f64(),
             r.report.loss,

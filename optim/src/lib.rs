@@ -47,6 +47,7 @@ use std::time::{Duration, Instant};
 
 use adflex_runtime::{Array, Element, Error, Tape};
 
+mod cg;
 mod kkt;
 mod lbfgs;
 mod newton;
@@ -81,8 +82,8 @@ pub enum Method {
     },
     /// Gauss-Newton for a least-squares loss `½|r|²` ([`Optimizer::least_squares`]): each
     /// step solves `JᵀJ d = -Jᵀr` by conjugate gradients on Gauss-Newton products (matrix
-    /// free: a tangent and an adjoint pass each), then backtracks along `d` until the loss
-    /// falls enough (Armijo).
+    /// free: a tangent and an adjoint pass each), preconditioned by the products of the
+    /// earlier steps, then backtracks along `d` until the loss falls enough (Armijo).
     GaussNewton {
         /// Conjugate-gradient iterations per step at most (20).
         cg_iters: usize,

@@ -9,6 +9,7 @@ use std::time::Instant;
 use adflex_runtime::second_order::{hvp, Hvp};
 use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
+use crate::cg::{cg, Curvature, Forcing, LEAST_SQUARES_FORCING, NEWTON_FORCING};
 use crate::{norm, Best, Counts, End, Method, Observe, Optimizer, Params, Stop};
 
 impl Optimizer<'_> {
@@ -42,8 +43,11 @@ impl Optimizer<'_> {
     /// One iteration records the residuals once (a forward pass), takes the gradient `Jᵀr`
     /// (an adjoint pass), and runs conjugate gradients on `JᵀJ (+ λ I)` with one
     /// Gauss-Newton product (a tangent and an adjoint pass) per CG iteration, to a relative
-    /// residual set by Eisenstat and Walker's forcing term; then one forward pass per trial
-    /// point.
+    /// residual set by Eisenstat and Walker's forcing term (at most 0.1); then one forward
+    /// pass per trial point. The CG is preconditioned by the products of the earlier steps'
+    /// (the last 20, kept as a limited-memory BFGS inverse: Morales and Nocedal's automatic
+    /// preconditioning), so that a later step takes a few products where the first takes up
+    /// to one per parameter.
     ///
     /// Errors: as [`Optimizer::minimize`]; [`Error::InvalidInput`] for another method, or
     /// for a bounded parameter (these methods take unbounded parameters: bound by a change
@@ -338,75 +342,6 @@ pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-/// The relative tolerance of the inner conjugate gradients (Eisenstat and Walker's second
-/// forcing term): 0.5 at the first step, then `0.9 (|g_k| / |g_{k-1}|)²`, so loose while the
-/// outer iteration converges slowly and tight once it converges fast; safeguarded against
-/// falling too quickly, and at most 0.5.
-struct Forcing {
-    eta: f64,
-    last: Option<f64>,
-}
-
-impl Forcing {
-    fn new() -> Self {
-        Forcing {
-            eta: 0.5,
-            last: None,
-        }
-    }
-
-    /// The tolerance for the step at gradient norm `g`.
-    fn next(&mut self, g: f64) -> f64 {
-        if let Some(prev) = self.last.filter(|p| *p > 0.0) {
-            let mut eta = 0.9 * (g / prev).powi(2);
-            let floor = 0.9 * self.eta * self.eta;
-            if floor > 0.1 {
-                eta = eta.max(floor);
-            }
-            self.eta = eta.min(0.5);
-        }
-        self.last = Some(g);
-        self.eta
-    }
-}
-
-/// Conjugate gradients on `A d = -g` from `d = 0`, `A` given by `apply`: at most `iters`
-/// iterations, to `|A d + g| <= tol |g|`; stops early at a direction of non-positive
-/// curvature (keeping the iterate). Returns `d` (`-g` if no iteration could run).
-fn cg(g: &[f64], iters: usize, tol: f64, apply: &mut Apply<'_>) -> Result<Vec<f64>, Error> {
-    let n = g.len();
-    let mut d = vec![0.0; n];
-    let mut r: Vec<f64> = g.iter().map(|x| -x).collect();
-    let mut p = r.clone();
-    let mut rr = dot(&r, &r);
-    let stop = tol * tol * rr;
-    for _ in 0..iters.max(1) {
-        let ap = apply(&p)?;
-        let pap = dot(&p, &ap);
-        if pap.is_nan() || pap <= 0.0 {
-            break;
-        }
-        let alpha = rr / pap;
-        for k in 0..n {
-            d[k] += alpha * p[k];
-            r[k] -= alpha * ap[k];
-        }
-        let rr1 = dot(&r, &r);
-        if rr1 <= stop {
-            break;
-        }
-        let beta = rr1 / rr;
-        rr = rr1;
-        for k in 0..n {
-            p[k] = r[k] + beta * p[k];
-        }
-    }
-    if d.iter().all(|x| *x == 0.0) {
-        d = g.iter().map(|x| -x).collect();
-    }
-    Ok(d)
-}
-
 fn least_squares_run(
     params: &Params,
     config: &LeastSquares,
@@ -435,7 +370,8 @@ fn least_squares_run(
         stationarity: norm(g),
     };
     let mut best = point(cur.loss, &x, &g);
-    let mut forcing = Forcing::new();
+    let mut forcing = Forcing::new(LEAST_SQUARES_FORCING);
+    let mut memory = Curvature::new(x.len());
     // Levenberg-Marquardt's damping (set from the curvature at the first step) and Nielsen's
     // growth factor.
     let mut lambda: Option<f64> = None;
@@ -460,7 +396,9 @@ fn least_squares_run(
             None => {
                 let d = match direction.as_deref_mut() {
                     Some(direction) => direction(&cur, &g, tol, counts)?,
-                    None => cg(&g, config.cg_iters, tol, &mut |v| gn(&mut cur, v))?,
+                    None => cg(&g, 0.0, config.cg_iters, tol, &mut memory, &mut |v| {
+                        gn(&mut cur, v)
+                    })?,
                 };
                 let slope = dot(&g, &d);
                 // Backtracking (Armijo) along d.
@@ -506,16 +444,13 @@ fn least_squares_run(
                     None => {
                         // The curvature along the gradient sets the damping's scale.
                         let jg = gn(&mut cur, &g)?;
+                        memory.push(&g, &jg);
                         let q = dot(&g, &jg) / dot(&g, &g).max(f64::MIN_POSITIVE);
                         (rel * q).max(f64::MIN_POSITIVE)
                     }
                 };
-                let d = cg(&g, config.cg_iters, tol, &mut |v| {
-                    let mut p = gn(&mut cur, v)?;
-                    for (p, v) in p.iter_mut().zip(v) {
-                        *p += lam * v;
-                    }
-                    Ok(p)
+                let d = cg(&g, lam, config.cg_iters, tol, &mut memory, &mut |v| {
+                    gn(&mut cur, v)
                 })?;
                 // The Gauss-Newton model's decrease: CG's iterate is A-conjugate to its
                 // residual, so dᵀ(JᵀJ + λI)d = -gᵀd.
@@ -625,7 +560,7 @@ fn newton_cg_run(
         stationarity: norm(&h.grad),
     };
     let mut best = point(&cur, &x);
-    let mut forcing = Forcing::new();
+    let mut forcing = Forcing::new(NEWTON_FORCING);
     let mut radius: Option<f64> = None;
     for iter in 0.. {
         let g = cur.grad.clone();
