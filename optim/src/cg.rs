@@ -134,19 +134,28 @@ impl Curvature {
 /// Preconditioned conjugate gradients on `(A + shift I) d = -g`, `A v` given by `apply`
 /// (symmetric positive semidefinite), preconditioned by `memory` and adding the products it
 /// computes to it: at most `iters` iterations, to `|(A + shift I) d + g| <= tol |g|`; stops
-/// early at a direction of non-positive curvature (keeping the iterate). Returns `d` (`-g` if
-/// no iteration could run).
+/// early at a direction of non-positive curvature (keeping the iterate). Components marked in
+/// `pinned` (parameters held at a bound) are left out: `d` is 0 there and the system is the
+/// others' rows and columns. Returns `d` (`-g` if no iteration could run).
 pub(crate) fn cg(
     g: &[f64],
     shift: f64,
     iters: usize,
     tol: f64,
+    pinned: Option<&[bool]>,
     memory: &mut Curvature,
     apply: &mut Apply<'_>,
 ) -> Result<Vec<f64>, Error> {
     let n = g.len();
+    let mask = |v: &mut [f64]| {
+        for (v, _) in v.iter_mut().zip(pinned.unwrap_or(&[])).filter(|(_, p)| **p) {
+            *v = 0.0;
+        }
+    };
     let mut d = vec![0.0; n];
     let mut r: Vec<f64> = g.iter().map(|x| -x).collect();
+    mask(&mut r);
+    let steepest = r.clone();
     let stop = tol * tol * dot(&r, &r);
     // The preconditioner of this solve is the memory as it was before it (fixed, as PCG needs).
     let before = Curvature {
@@ -154,10 +163,12 @@ pub(crate) fn cg(
         capacity: memory.capacity,
     };
     let mut z = before.apply(&r, shift);
+    mask(&mut z);
     let mut p = z.clone();
     let mut rz = dot(&r, &z);
     for _ in 0..iters.max(1) {
-        let ap = apply(&p)?;
+        let mut ap = apply(&p)?;
+        mask(&mut ap);
         memory.push(&p, &ap);
         let ap: Vec<f64> = ap.iter().zip(&p).map(|(a, p)| a + shift * p).collect();
         let pap = dot(&p, &ap);
@@ -173,6 +184,7 @@ pub(crate) fn cg(
             break;
         }
         z = before.apply(&r, shift);
+        mask(&mut z);
         let rz1 = dot(&r, &z);
         let beta = rz1 / rz;
         rz = rz1;
@@ -181,7 +193,7 @@ pub(crate) fn cg(
         }
     }
     if d.iter().all(|x| *x == 0.0) {
-        d = g.iter().map(|x| -x).collect();
+        d = steepest;
     }
     Ok(d)
 }
@@ -223,7 +235,7 @@ mod tests {
         memory: &mut Curvature,
     ) -> (Vec<f64>, usize) {
         let mut products = 0;
-        let d = cg(g, shift, 100, tol, memory, &mut |v| {
+        let d = cg(g, shift, 100, tol, None, memory, &mut |v| {
             products += 1;
             Ok(a.iter().map(|row| dot(row, v)).collect())
         })

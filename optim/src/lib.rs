@@ -416,7 +416,8 @@ impl<'a> Optimizer<'a> {
     }
     /// Converged when the gradient norm is at most `rel` times the initial one (default 0:
     /// never). For bounded parameters the norm is that of the projected gradient (gradient
-    /// descent, Adam) or of the gradient in L-BFGS's free variables.
+    /// descent, Adam, Gauss-Newton, Levenberg-Marquardt) or of the gradient in L-BFGS's free
+    /// variables.
     pub fn grad_tol_rel(mut self, rel: f64) -> Self {
         self.grad_tol_rel = rel;
         self

@@ -49,9 +49,15 @@ impl Optimizer<'_> {
     /// preconditioning), so that a later step takes a few products where the first takes up
     /// to one per parameter.
     ///
+    /// Bounds ([`Params::bounded`]) are kept by projection: a parameter at a bound whose
+    /// gradient pushes it out stays there for the step, which solves for the others, and each
+    /// trial point is projected into the bounds (Armijo's test along the projected path;
+    /// Levenberg-Marquardt's predicted decrease is the model's along the projected step, one
+    /// more product when the projection cuts it). Convergence is measured by the projected
+    /// gradient. A parameter may start on its bound, not outside it.
+    ///
     /// Errors: as [`Optimizer::minimize`]; [`Error::InvalidInput`] for another method, or
-    /// for a bounded parameter (these methods take unbounded parameters: bound by a change
-    /// of variables, or use L-BFGS).
+    /// naming a parameter that starts outside its bounds.
     ///
     /// ```
     /// use adflex_optim::{Optimizer, Params};
@@ -96,7 +102,6 @@ impl Optimizer<'_> {
                 })
             }
         };
-        params.check_unbounded("Gauss-Newton and Levenberg-Marquardt")?;
         let config = LeastSquares {
             cg_iters,
             lambda,
@@ -353,6 +358,28 @@ fn least_squares_run(
 ) -> Result<(Best, End), Error> {
     let arrays = params.arrays();
     let mut x = params.values();
+    // Bounds are kept by projection: a step leaves the parameters pinned at a bound (see
+    // `Params::pinned`) where they are and solves for the others, and the trial points are
+    // projected into the bounds. Without bounds every step is the unbounded method's.
+    let bounded = params.is_bounded();
+    if bounded {
+        params.check_inside(&x, "Gauss-Newton or Levenberg-Marquardt")?;
+    }
+    let stationarity = |x: &[f64], g: &[f64]| match bounded {
+        true => params.projected_grad_norm(x, g),
+        false => norm(g),
+    };
+    // The point `t` along `d` from `x`, projected, and its first-order change of the loss.
+    let along = |x: &[f64], g: &[f64], d: &[f64], t: f64| -> (Vec<f64>, f64) {
+        let mut y: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + t * b).collect();
+        if !bounded {
+            return (y, t * dot(g, d));
+        }
+        params.project(&mut y);
+        let s: Vec<f64> = y.iter().zip(x).map(|(y, x)| y - x).collect();
+        let change = dot(g, &s);
+        (y, change)
+    };
     let mut cur = record(&x)?;
     let gradient = |cur: &mut Recorded| -> Result<Vec<f64>, Error> {
         let Recorded { tape, r, rv, .. } = cur;
@@ -367,7 +394,7 @@ fn least_squares_run(
         loss,
         values: x.to_vec(),
         grad_norm: norm(g),
-        stationarity: norm(g),
+        stationarity: stationarity(x, g),
     };
     let mut best = point(cur.loss, &x, &g);
     let mut forcing = Forcing::new(LEAST_SQUARES_FORCING);
@@ -378,13 +405,14 @@ fn least_squares_run(
     let mut nu = 2.0;
     for iter in 0.. {
         let it = counts.iteration(iter, cur.loss, norm(&g), start);
-        if let Some(stop) = observe(it, norm(&g)) {
+        if let Some(stop) = observe(it, stationarity(&x, &g)) {
             return Ok((best, End::Stop(stop)));
         }
         if iter == config.max_iters {
             return Ok((best, End::Stop(Stop::MaxIterations)));
         }
-        let tol = forcing.next(norm(&g));
+        let tol = forcing.next(stationarity(&x, &g));
+        let pinned = bounded.then(|| params.pinned(&x, &g));
         let gn = |rec: &mut Recorded, v: &[f64]| -> Result<Vec<f64>, Error> {
             let Recorded { tape, r, .. } = rec;
             let out: Vec<&dyn AnyArray> = r.iter().map(|a| &**a).collect();
@@ -396,9 +424,18 @@ fn least_squares_run(
             None => {
                 let d = match direction.as_deref_mut() {
                     Some(direction) => direction(&cur, &g, tol, counts)?,
-                    None => cg(&g, 0.0, config.cg_iters, tol, &mut memory, &mut |v| {
-                        gn(&mut cur, v)
-                    })?,
+                    None => {
+                        let pinned = pinned.as_deref();
+                        cg(
+                            &g,
+                            0.0,
+                            config.cg_iters,
+                            tol,
+                            pinned,
+                            &mut memory,
+                            &mut |v| gn(&mut cur, v),
+                        )?
+                    }
                 };
                 let slope = dot(&g, &d);
                 // Backtracking (Armijo) along d.
@@ -408,9 +445,9 @@ fn least_squares_run(
                     if spent(counts, config.max_evals) {
                         return Ok((best, End::Stop(Stop::MaxEvaluations)));
                     }
-                    let trial: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
+                    let (trial, change) = along(&x, &g, &d, t);
                     match record(&trial) {
-                        Ok(rec) if rec.loss <= cur.loss + 1e-4 * t * slope => {
+                        Ok(rec) if rec.loss <= cur.loss + 1e-4 * change => {
                             break Some((trial, rec))
                         }
                         Ok(_) => {}
@@ -442,24 +479,40 @@ fn least_squares_run(
                 let lam = match lambda {
                     Some(l) => l,
                     None => {
-                        // The curvature along the gradient sets the damping's scale.
+                        // The curvature along the gradient (of the parameters not pinned at a
+                        // bound) sets the damping's scale.
+                        let mut g = g.clone();
+                        for (g, _) in g.iter_mut().zip(pinned.iter().flatten()).filter(|p| *p.1) {
+                            *g = 0.0;
+                        }
                         let jg = gn(&mut cur, &g)?;
-                        memory.push(&g, &jg);
+                        if !bounded {
+                            memory.push(&g, &jg);
+                        }
                         let q = dot(&g, &jg) / dot(&g, &g).max(f64::MIN_POSITIVE);
                         (rel * q).max(f64::MIN_POSITIVE)
                     }
                 };
-                let d = cg(&g, lam, config.cg_iters, tol, &mut memory, &mut |v| {
+                let pin = pinned.as_deref();
+                let d = cg(&g, lam, config.cg_iters, tol, pin, &mut memory, &mut |v| {
                     gn(&mut cur, v)
                 })?;
                 // The Gauss-Newton model's decrease: CG's iterate is A-conjugate to its
                 // residual, so dᵀ(JᵀJ + λI)d = -gᵀd.
-                let predicted = -0.5 * dot(&g, &d) + 0.5 * lam * dot(&d, &d);
-                let trial: Vec<f64> = x.iter().zip(&d).map(|(a, b)| a + b).collect();
+                let mut predicted = -0.5 * dot(&g, &d) + 0.5 * lam * dot(&d, &d);
+                let (trial, _) = along(&x, &g, &d, 1.0);
+                if bounded && trial.iter().zip(&x).zip(&d).any(|((y, x), d)| *y != x + d) {
+                    // The projection cut the step `s`: the model's decrease along it, by one
+                    // more product.
+                    let s: Vec<f64> = trial.iter().zip(&x).map(|(y, x)| y - x).collect();
+                    let js = gn(&mut cur, &s)?;
+                    predicted = -dot(&g, &s) - 0.5 * dot(&s, &js);
+                }
                 if spent(counts, config.max_evals) {
                     return Ok((best, End::Stop(Stop::MaxEvaluations)));
                 }
                 let (rho, rec) = match record(&trial) {
+                    Ok(_) if predicted <= 0.0 => (f64::NEG_INFINITY, None),
                     Ok(rec) => ((cur.loss - rec.loss) / predicted, Some(rec)),
                     Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
                     Err(e) => return Err(e),
@@ -482,10 +535,9 @@ fn least_squares_run(
                             if spent(counts, config.max_evals) {
                                 return Ok((best, End::Stop(Stop::MaxEvaluations)));
                             }
-                            let trial: Vec<f64> =
-                                x.iter().zip(&d).map(|(a, b)| a + t * b).collect();
+                            let (trial, change) = along(&x, &g, &d, t);
                             match record(&trial) {
-                                Ok(rec) if rec.loss <= cur.loss + 1e-4 * t * slope => {
+                                Ok(rec) if rec.loss <= cur.loss + 1e-4 * change => {
                                     taken = Some((trial, rec));
                                     break;
                                 }

@@ -5,9 +5,11 @@ use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
 /// Bounds on every scalar component of a parameter array.
 ///
-/// Gradient descent and Adam keep a bounded parameter inside by projection (clamping after
-/// each update); L-BFGS by a change of variables (`p = lo + e^u`, `p = hi - e^u`, or
+/// Gradient descent, Adam, Gauss-Newton and Levenberg-Marquardt keep a bounded parameter
+/// inside by projection (clamping each update or trial point), so it may start on its bound;
+/// L-BFGS by a change of variables (`p = lo + e^u`, `p = hi - e^u`, or
 /// `p = lo + (hi - lo) sigmoid(u)`), so a bounded parameter must start strictly inside.
+/// Newton-CG and Gauss-Newton by the KKT system take unbounded parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Bounds {
     /// Lower bound (`-inf`: none).
@@ -267,18 +269,45 @@ impl Params {
     /// The norm of the projected gradient: components at a bound whose descent direction
     /// leaves the bounds count as 0 (a minimum on a bound is stationary for projection).
     pub(crate) fn projected_grad_norm(&self, values: &[f64], grad: &[f64]) -> f64 {
+        self.pinned(values, grad)
+            .iter()
+            .zip(grad)
+            .map(|(&out, &g)| if out { 0.0 } else { g * g })
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// Per component, whether it is at a bound with its descent direction leaving the bounds
+    /// (a projected step leaves it where it is).
+    pub(crate) fn pinned(&self, values: &[f64], grad: &[f64]) -> Vec<bool> {
         self.components()
             .zip(values.iter().zip(grad))
             .map(|((e, _), (&p, &g))| {
-                let out = (p <= e.bounds.lower && g > 0.0) || (p >= e.bounds.upper && g < 0.0);
-                if out {
-                    0.0
-                } else {
-                    g * g
-                }
+                (p <= e.bounds.lower && g > 0.0) || (p >= e.bounds.upper && g < 0.0)
             })
-            .sum::<f64>()
-            .sqrt()
+            .collect()
+    }
+
+    /// Whether any parameter has bounds.
+    pub(crate) fn is_bounded(&self) -> bool {
+        self.entries.iter().any(|e| e.bounds != Bounds::NONE)
+    }
+
+    /// [`Error::InvalidInput`] naming the first component outside its bounds (or NaN):
+    /// `method` keeps bounds by projection, from a start inside them or on them.
+    pub(crate) fn check_inside(&self, values: &[f64], method: &str) -> Result<(), Error> {
+        for (i, ((e, _), &p)) in self.components().zip(values).enumerate() {
+            if !(p >= e.bounds.lower && p <= e.bounds.upper) {
+                return Err(Error::InvalidInput {
+                    what: self.component_name(i),
+                    message: format!(
+                        "starts at {p}, outside its bounds [{}, {}]; {method} keeps bounds by                          projection: start inside them or on them",
+                        e.bounds.lower, e.bounds.upper
+                    ),
+                });
+            }
+        }
+        Ok(())
     }
 
     /// Clamps `values` into the bounds (projection).
