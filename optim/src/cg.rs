@@ -21,8 +21,8 @@ pub(crate) const LEAST_SQUARES_FORCING: f64 = 0.1;
 
 /// The relative tolerance of the inner conjugate gradients (Eisenstat and Walker's second
 /// forcing term): `max` at the first step, then `0.9 (|g_k| / |g_{k-1}|)²`, so loose while the
-/// outer iteration converges slowly and tight once it converges fast; safeguarded against
-/// falling too quickly, and at most `max`.
+/// outer iteration converges slowly and tight once it converges fast; at most `max`, and
+/// safeguarded against falling too quickly (while `0.9 η²` is above 0.1: with `max` 0.5).
 pub(crate) struct Forcing {
     eta: f64,
     max: f64,
@@ -57,7 +57,8 @@ impl Forcing {
 /// the CG iterations they took; the oldest are dropped).
 const MEMORY: usize = 20;
 
-/// The most numbers the pairs hold together (64 MB): fewer pairs for millions of parameters.
+/// The most numbers the pairs hold together (64 MB): fewer pairs for millions of parameters,
+/// none (plain CG) past 4 million.
 const MEMORY_FLOATS: usize = 8 << 20;
 
 /// Curvature pairs `(p, JᵀJ p)` measured by the conjugate gradients of earlier steps (every
@@ -70,8 +71,18 @@ const MEMORY_FLOATS: usize = 8 << 20;
 /// over the simulation, so this is the methods' cost. The pairs are stored without the
 /// damping `λ`, which Levenberg-Marquardt changes between solves.
 pub(crate) struct Curvature {
-    pairs: VecDeque<(Vec<f64>, Vec<f64>)>,
+    pairs: VecDeque<Pair>,
     capacity: usize,
+}
+
+/// `(s, y = JᵀJ s)` and their products `sᵀy`, `sᵀs`, `yᵀy` (for any damping, `y + λ s`'s
+/// follow without a pass over the vectors).
+struct Pair {
+    s: Vec<f64>,
+    y: Vec<f64>,
+    sy: f64,
+    ss: f64,
+    yy: f64,
 }
 
 impl Curvature {
@@ -79,51 +90,56 @@ impl Curvature {
     pub(crate) fn new(n: usize) -> Self {
         Curvature {
             pairs: VecDeque::new(),
-            capacity: (MEMORY_FLOATS / (2 * n.max(1))).clamp(1, MEMORY),
+            capacity: (MEMORY_FLOATS / (2 * n.max(1))).min(MEMORY),
         }
     }
 
-    /// Keeps `(s, JᵀJ s)` (without the damping), dropping the oldest pair when full.
+    /// Keeps `(s, JᵀJ s)` (without the damping), dropping the oldest pair when full. A pair
+    /// of no clear positive curvature (`sᵀy <= 1e-12 |s| |y|`: a direction `JᵀJ` nearly
+    /// annuls) or not finite is not kept, so the preconditioner stays finite and positive
+    /// definite.
     pub(crate) fn push(&mut self, s: &[f64], y: &[f64]) {
+        let (sy, ss, yy) = (dot(s, y), dot(s, s), dot(y, y));
+        let kept = sy.is_finite() && ss.is_finite() && yy.is_finite();
+        if self.capacity == 0 || !kept || sy <= 1e-12 * (ss * yy).sqrt() {
+            return;
+        }
         if self.pairs.len() == self.capacity {
             self.pairs.pop_front();
         }
-        self.pairs.push_back((s.to_vec(), y.to_vec()));
+        let (s, y) = (s.to_vec(), y.to_vec());
+        self.pairs.push_back(Pair { s, y, sy, ss, yy });
     }
 
     /// `H r`, `H` the L-BFGS inverse of the pairs `(s, y + shift s)` (two-loop recursion,
-    /// scaled by the newest pair); the identity while there are none. Pairs of no positive
-    /// curvature are skipped, so `H` is symmetric positive definite.
+    /// scaled by the newest pair); the identity while there are none. Every pair has
+    /// `sᵀy > 0`, and `shift >= 0`, so `H` is symmetric positive definite.
     fn apply(&self, r: &[f64], shift: f64) -> Vec<f64> {
-        let shifted = |s: &[f64], y: &[f64]| -> Vec<f64> {
-            y.iter().zip(s).map(|(y, s)| y + shift * s).collect()
-        };
-        let used: Vec<(&[f64], Vec<f64>, f64)> = self
+        // `rho = 1 / sᵀ(y + shift s)`; `(y + shift s)ᵀ q` without forming the vector.
+        let rho: Vec<f64> = self
             .pairs
             .iter()
-            .filter_map(|(s, y)| {
-                let y = shifted(s, y);
-                let sy = dot(s, &y);
-                (sy > 0.0 && sy.is_finite()).then_some((s.as_slice(), y, 1.0 / sy))
-            })
+            .map(|p| 1.0 / (p.sy + shift * p.ss))
             .collect();
+        let yq = |p: &Pair, q: &[f64]| dot(&p.y, q) + shift * dot(&p.s, q);
         let mut q = r.to_vec();
-        let mut alpha = vec![0.0; used.len()];
-        for (k, (s, y, rho)) in used.iter().enumerate().rev() {
-            alpha[k] = rho * dot(s, &q);
-            for (q, y) in q.iter_mut().zip(y) {
-                *q -= alpha[k] * y;
+        let mut alpha = vec![0.0; self.pairs.len()];
+        for (k, p) in self.pairs.iter().enumerate().rev() {
+            alpha[k] = rho[k] * dot(&p.s, &q);
+            for ((q, y), s) in q.iter_mut().zip(&p.y).zip(&p.s) {
+                *q -= alpha[k] * (y + shift * s);
             }
         }
-        if let Some((s, y, _)) = used.last() {
-            let gamma = dot(s, y) / dot(y, y);
+        if let Some(p) = self.pairs.back() {
+            let sy = p.sy + shift * p.ss;
+            let yy = p.yy + 2.0 * shift * p.sy + shift * shift * p.ss;
             for q in &mut q {
-                *q *= gamma;
+                *q *= sy / yy;
             }
         }
-        for (k, (s, y, rho)) in used.iter().enumerate() {
-            let beta = rho * dot(y, &q);
-            for (q, s) in q.iter_mut().zip(*s) {
+        for (k, p) in self.pairs.iter().enumerate() {
+            let beta = rho[k] * yq(p, &q);
+            for (q, s) in q.iter_mut().zip(&p.s) {
                 *q += (alpha[k] - beta) * s;
             }
         }
@@ -157,19 +173,29 @@ pub(crate) fn cg(
     mask(&mut r);
     let steepest = r.clone();
     let stop = tol * tol * dot(&r, &r);
-    // The preconditioner of this solve is the memory as it was before it (fixed, as PCG needs).
-    let before = Curvature {
-        pairs: memory.pairs.clone(),
-        capacity: memory.capacity,
-    };
-    let mut z = before.apply(&r, shift);
+    // The preconditioner of this solve is the memory as it was before it (fixed, as PCG
+    // needs): the solve's own products join it afterwards.
+    let mut fresh: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
+    let mut z = memory.apply(&r, shift);
     mask(&mut z);
-    let mut p = z.clone();
     let mut rz = dot(&r, &z);
+    // A preconditioner that does not give a finite, positive `rᵀz` (rounding in the pairs)
+    // is dropped for this solve: plain CG.
+    let plain = !(rz.is_finite() && rz > 0.0);
+    if plain {
+        z = r.clone();
+        rz = dot(&r, &z);
+    }
+    let mut p = z.clone();
     for _ in 0..iters.max(1) {
         let mut ap = apply(&p)?;
         mask(&mut ap);
-        memory.push(&p, &ap);
+        if memory.capacity > 0 {
+            if fresh.len() == memory.capacity {
+                fresh.remove(0);
+            }
+            fresh.push((p.clone(), ap.clone()));
+        }
         let ap: Vec<f64> = ap.iter().zip(&p).map(|(a, p)| a + shift * p).collect();
         let pap = dot(&p, &ap);
         if pap.is_nan() || pap <= 0.0 {
@@ -183,14 +209,23 @@ pub(crate) fn cg(
         if dot(&r, &r) <= stop {
             break;
         }
-        z = before.apply(&r, shift);
+        z = match plain {
+            true => r.clone(),
+            false => memory.apply(&r, shift),
+        };
         mask(&mut z);
         let rz1 = dot(&r, &z);
+        if !(rz1.is_finite() && rz1 > 0.0) {
+            break;
+        }
         let beta = rz1 / rz;
         rz = rz1;
         for k in 0..n {
             p[k] = z[k] + beta * p[k];
         }
+    }
+    for (s, y) in &fresh {
+        memory.push(s, y);
     }
     if d.iter().all(|x| *x == 0.0) {
         d = steepest;
@@ -234,8 +269,19 @@ mod tests {
         tol: f64,
         memory: &mut Curvature,
     ) -> (Vec<f64>, usize) {
+        solve_in(a, g, shift, tol, 100, memory)
+    }
+
+    fn solve_in(
+        a: &[Vec<f64>],
+        g: &[f64],
+        shift: f64,
+        tol: f64,
+        iters: usize,
+        memory: &mut Curvature,
+    ) -> (Vec<f64>, usize) {
         let mut products = 0;
-        let d = cg(g, shift, 100, tol, None, memory, &mut |v| {
+        let d = cg(g, shift, iters, tol, None, memory, &mut |v| {
             products += 1;
             Ok(a.iter().map(|row| dot(row, v)).collect())
         })
@@ -277,12 +323,64 @@ mod tests {
         }
     }
 
-    /// Without pairs the preconditioner is the identity: plain CG, to the bit.
+    /// Levenberg-Marquardt's predicted decrease relies on `dᵀ(A + λI)d = -gᵀd` for CG's
+    /// iterate: it holds at every exit (tolerance met, iterations spent), preconditioned or
+    /// not, for a damping small or large beside the matrix's eigenvalues (1 to 1e4 and more),
+    /// to the rounding of CG's conjugacy on a matrix of condition 1e4 (a few 1e-5 relative).
     #[test]
-    fn an_empty_memory_is_plain_conjugate_gradients() {
+    fn every_iterate_meets_the_model_identity() {
+        let n = 20;
+        let (a, next) = (matrix(n, 0.0), matrix(n, 0.05));
+        let g: Vec<f64> = (0..n).map(|i| (i as f64 * 1.3).cos()).collect();
+        for shift in [0.0, 0.3, 1e3, 1e6] {
+            for (tol, iters) in [(0.1, 100), (1e-8, 2), (1e-8, 100)] {
+                for warm in [false, true] {
+                    let mut memory = Curvature::new(n);
+                    if warm {
+                        solve(&a, &g, 0.0, 1e-8, &mut memory);
+                    }
+                    let (d, _) = solve_in(&next, &g, shift, tol, iters, &mut memory);
+                    let ad: Vec<f64> = next.iter().map(|row| dot(row, &d)).collect();
+                    let dad = dot(&d, &ad) + shift * dot(&d, &d);
+                    let gd = dot(&g, &d);
+                    assert!(
+                        (dad + gd).abs() <= 1e-3 * gd.abs(),
+                        "shift {shift}, tol {tol}, {iters} iterations, warm {warm}: \
+                         dᵀ(A + λI)d = {dad:e}, gᵀd = {gd:e}"
+                    );
+                    if tol == 1e-8 && iters == 100 {
+                        assert!(residual(&next, &g, shift, &d) <= 1e-8);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Without pairs the preconditioner is the identity (plain CG); pairs of no positive
+    /// curvature or not finite are not kept; millions of parameters keep fewer pairs, none
+    /// past the memory's cap.
+    #[test]
+    fn the_memory_keeps_only_finite_positive_pairs_within_its_cap() {
         let r = [1.0, -2.0, 0.5];
-        assert_eq!(Curvature::new(3).apply(&r, 0.7), r.to_vec());
-        assert_eq!(Curvature::new(10_000_000).capacity, 1);
+        let mut m = Curvature::new(3);
+        assert_eq!(m.apply(&r, 0.7), r.to_vec());
+        m.push(&[1.0, 0.0, 0.0], &[-1.0, 0.0, 0.0]);
+        m.push(&[1.0, 0.0, 0.0], &[0.0, 1.0, 0.0]);
+        m.push(&[1.0, 0.0, 0.0], &[f64::NAN, 0.0, 0.0]);
+        m.push(&[f64::INFINITY, 0.0, 0.0], &[1.0, 0.0, 0.0]);
+        m.push(&[1e-300, 0.0, 0.0], &[1e-300, 0.0, 0.0]);
+        assert_eq!(m.pairs.len(), 0);
+        assert_eq!(m.apply(&r, 0.7), r.to_vec());
+        m.push(&[1.0, 0.0, 0.0], &[2.0, 0.0, 0.0]);
+        let z = m.apply(&r, 0.0);
+        assert!(
+            z.iter().all(|z| z.is_finite()) && dot(&z, &r) > 0.0,
+            "{z:?}"
+        );
         assert_eq!(Curvature::new(1_000_000).capacity, 4);
+        assert_eq!(Curvature::new(10_000_000).capacity, 0);
+        let mut big = Curvature::new(10_000_000);
+        big.push(&[1.0], &[1.0]);
+        assert!(big.pairs.is_empty());
     }
 }

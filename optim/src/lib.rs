@@ -89,7 +89,8 @@ pub enum Method {
         cg_iters: usize,
     },
     /// Levenberg-Marquardt for a least-squares loss ([`Optimizer::least_squares`]): each step
-    /// solves `(JᵀJ + λ I) d = -Jᵀr` by conjugate gradients on Gauss-Newton products; a step
+    /// solves `(JᵀJ + λ I) d = -Jᵀr` by conjugate gradients on Gauss-Newton products
+    /// (preconditioned as Gauss-Newton's); a step
     /// whose decrease matches the model's is taken and `λ` shrinks (Nielsen's rule); one that
     /// overshoots is backtracked along `d` (Armijo, a forward pass per halving) and `λ` grows;
     /// if that fails too, the step is solved again with a larger `λ`.

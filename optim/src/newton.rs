@@ -44,10 +44,10 @@ impl Optimizer<'_> {
     /// (an adjoint pass), and runs conjugate gradients on `JᵀJ (+ λ I)` with one
     /// Gauss-Newton product (a tangent and an adjoint pass) per CG iteration, to a relative
     /// residual set by Eisenstat and Walker's forcing term (at most 0.1); then one forward
-    /// pass per trial point. The CG is preconditioned by the products of the earlier steps'
-    /// (the last 20, kept as a limited-memory BFGS inverse: Morales and Nocedal's automatic
-    /// preconditioning), so that a later step takes a few products where the first takes up
-    /// to one per parameter.
+    /// pass per trial point. The CG is preconditioned by the products of the earlier steps
+    /// (up to the last 20, kept as a limited-memory BFGS inverse: Morales and Nocedal's
+    /// automatic preconditioning), so that a later step takes a few products where the first
+    /// may take one per parameter (at most `cg_iters`).
     ///
     /// Bounds ([`Params::bounded`]) are kept by projection: a parameter at a bound whose
     /// gradient pushes it out stays there for the step, which solves for the others, and each
