@@ -321,13 +321,15 @@ pub fn design(cfg: &inverse_design::Config, opt: &Config) -> Result<Vec<Run>, Er
         worst_relative_error: miss(&guess)?,
         report,
     });
+    // The same bounds for Gauss-Newton and Levenberg-Marquardt (kept by projection).
     for (name, o) in [
         ("Gauss-Newton", Optimizer::gauss_newton()),
         ("Levenberg-Marquardt", Optimizer::levenberg_marquardt()),
     ] {
         sc.rest.assign(&rest0);
         let mut guess = sc.first.deep_clone();
-        let report = optimizer(opt, o).least_squares(&Params::new().with(&sc.rest), |tape| {
+        let bounded = Params::new().bounded(&sc.rest, Bounds::positive());
+        let report = optimizer(opt, o).least_squares(&bounded, |tape| {
             let eq = solver.solve(&sc.model, tape, &guess)?;
             guess = eq.deep_clone();
             let r = Array::<Vec3<f64>>::zeros(n);
