@@ -414,8 +414,8 @@ pub struct Sheet {
     /// Unknowns of the KKT system's columns (state scalars and parameters) and its rows.
     pub unknowns: usize,
     pub rows: usize,
-    /// Tangent sweeps of the first step (one per unknown: the pattern) and of a later one
-    /// (one per colour, one check).
+    /// Tangent sweeps of the first step (probing for the pattern, then one per colour and the
+    /// check) and of a later one (one per colour, the check).
     pub first_sweeps: usize,
     pub later_sweeps: usize,
     /// Largest distance from the target shape (m) relative to the sag, before and after.
@@ -431,7 +431,7 @@ impl std::fmt::Display for Sheet {
         write!(
             f,
             "{} free particles, {} rest lengths; the KKT system has {} rows and {} unknowns' \
-             columns; sweeps of the first step {} (one per unknown), of a later one {} (one per \
+             columns; sweeps of the first step {} (probing for the pattern), of a later one {} (one per \
              colour, the check's two and the recording); worst distance from the target / sag \
              {:.1e} -> {:.1e}; {}",
             self.free,

@@ -236,9 +236,9 @@ fn second_order_methods_take_fewer_iterations_and_passes_than_lbfgs() {
 }
 
 /// Gauss-Newton by the KKT system designs a sheet (rest lengths for a target equilibrium) at
-/// a size where the system is assembled sparse: after the first step (one tangent sweep per
-/// unknown, which finds the pattern), one sweep per colour of the columns and one check; the
-/// equilibrium takes the target shape.
+/// a size where the system is assembled sparse: the first step finds the pattern by probing
+/// (a few rounds of sweeps, far fewer than one per unknown), every step takes one sweep per
+/// colour of the columns and the check's two; the equilibrium takes the target shape.
 #[test]
 fn the_kkt_method_designs_a_sheet_with_coloured_sweeps() {
     let cfg = second_order::Config {
@@ -248,7 +248,12 @@ fn the_kkt_method_designs_a_sheet_with_coloured_sweeps() {
     let sh = second_order::sheet(12, &cfg).unwrap();
     println!("sheet: {sh}");
     assert!(sh.report.converged(), "{}", sh.report);
-    assert_eq!(sh.first_sweeps, sh.unknowns + 1, "{}", sh.report);
+    assert!(
+        sh.first_sweeps > sh.later_sweeps && 2 * sh.first_sweeps < sh.unknowns,
+        "{} sweeps in the first step for {} unknowns",
+        sh.first_sweeps,
+        sh.unknowns
+    );
     assert!(
         sh.later_sweeps > 2 && 10 * sh.later_sweeps < sh.unknowns,
         "{} sweeps per later step for {} unknowns",

@@ -141,9 +141,10 @@ pub struct Iteration {
     pub passes: usize,
     /// Sweeps over one evaluation of a constraint so far (not the simulation: per step of
     /// [`Optimizer::least_squares_kkt`], the recording of `constrained` and the tangent
-    /// passes that give the columns of its KKT system: one per unknown at the first step, one
-    /// per colour of the columns and two for the check later, and one per unknown again when
-    /// the check finds the pattern changed; 0 for the other methods). Counted apart from
+    /// passes that give the columns of its KKT system: at the first step, the probes that find
+    /// the pattern (or one per unknown for a small system); one per colour of the columns and
+    /// two for the check at every step, and one per unknown again when the check finds the
+    /// pattern changed; 0 for the other methods). Counted apart from
     /// `passes`, being far cheaper.
     pub sweeps: usize,
     /// Time since the start.

@@ -1,7 +1,10 @@
 //! The sparse Jacobian of a tape's outputs in its inputs, from tangent passes.
 //!
-//! The first time, one pass per column (a unit seed) gives the values and the sparsity
-//! pattern. After that the columns are coloured so that no two of one colour share a row
+//! The first time, the sparsity pattern is found by probing (group testing: random groups of
+//! the input elements seeded at once; an output element a probe leaves at zero is not touched
+//! by any element of the group), which takes a few rounds of [`GROUPS`] passes where one pass
+//! per column would take thousands; a small Jacobian, or one the probes find dense, is taken
+//! one pass per column instead (a unit seed). After that the columns are coloured so that no two of one colour share a row
 //! (Curtis, Powell and Reid's compression), and one pass per colour, seeded on all of its
 //! columns, gives every column of that colour at once: a cloth's stiffness takes a few dozen
 //! passes instead of three per particle. The pattern is the values' at the point it was found
@@ -185,13 +188,136 @@ pub(super) fn jacobian(
             return Ok(a);
         }
     }
-    let a = by_columns(forward, rows, cols, passes)?;
-    // An old pattern of other sizes (the residuals changed in number) is dropped.
     let old = pattern
         .take()
         .filter(|p| p.rows == rows && p.ptr.len() == cols + 1);
+    if old.is_none() {
+        // The first time: the pattern by probing, then the values by colours, checked.
+        if let Some(probed) = probe(forward, elements, passes)? {
+            let p = Pattern::of(&probed, None, elements);
+            let a = compressed(forward, &p, passes)?;
+            if agrees(forward, &a, &p, tol, passes)? {
+                *pattern = Some(p);
+                return Ok(a);
+            }
+        }
+    }
+    let a = by_columns(forward, rows, cols, passes)?;
+    // An old pattern of other sizes (the residuals changed in number) is dropped.
     *pattern = Some(Pattern::of(&a, old.as_ref(), elements));
     Ok(a)
+}
+
+/// Groups of input elements per round of probing.
+pub(super) const GROUPS: usize = 32;
+
+/// The pattern of the Jacobian at the level of elements, by probing (`None`: too few input
+/// elements for probing to save passes, or a pattern too dense). Each round partitions the
+/// input elements at random into [`GROUPS`] groups and seeds each group's scalars with random
+/// weights (exact in `f32`, from a fixed sequence: runs repeat exactly) in one pass; an input
+/// element's candidates are the output elements every probe of it moved. An output element
+/// moved by `k` input elements stays a false candidate of another with probability about
+/// `k / GROUPS` per round, so rounds go on until one removes no candidate; a false candidate
+/// left costs only colours, and a missed entry (weights that cancel exactly) is caught by the
+/// check that follows. Returns a matrix with a nonzero at every candidate's scalars.
+fn probe(
+    forward: &mut Apply<'_>,
+    elements: &Elements<'_>,
+    passes: &mut usize,
+) -> Result<Option<Sparse>, Error> {
+    let (col_el, row_el) = (elements.cols.len() - 1, elements.rows.len() - 1);
+    let cols = elements.cols[col_el];
+    let rows = elements.rows[row_el];
+    if col_el < 4 * GROUPS {
+        return Ok(None);
+    }
+    let mut row_element = vec![0; rows];
+    for (e, w) in elements.rows.windows(2).enumerate() {
+        row_element[w[0]..w[1]].iter_mut().for_each(|r| *r = e);
+    }
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut random = move || {
+        // xorshift64*
+        state ^= state >> 12;
+        state ^= state << 25;
+        state ^= state >> 27;
+        state.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    };
+    let weight = |r: u64| {
+        let u = (r >> 40) as f64 / (1u64 << 24) as f64;
+        (0.5 + u) * if r & 1 == 0 { 1.0 } else { -1.0 }
+    };
+    // Each input element's candidates (sorted), `None` before its first probe.
+    let mut candidates: Vec<Option<Vec<usize>>> = vec![None; col_el];
+    let mut mark = vec![usize::MAX; row_el];
+    let mut seed = vec![0.0; cols];
+    for round in 0.. {
+        let group: Vec<usize> = (0..col_el)
+            .map(|_| (random() % GROUPS as u64) as usize)
+            .collect();
+        let mut removed = 0usize;
+        for g in 0..GROUPS {
+            let members: Vec<usize> = (0..col_el).filter(|&e| group[e] == g).collect();
+            if members.is_empty() {
+                continue;
+            }
+            for &e in &members {
+                for s in &mut seed[elements.cols[e]..elements.cols[e + 1]] {
+                    *s = weight(random());
+                }
+            }
+            let t = forward(&seed)?;
+            *passes += 1;
+            seed.iter_mut().for_each(|s| *s = 0.0);
+            // The output elements this probe moved (a NaN moved it too).
+            let probe_id = round * GROUPS + g;
+            let mut moved = Vec::new();
+            for (i, v) in t.iter().enumerate() {
+                let o = row_element[i];
+                if *v != 0.0 && mark[o] != probe_id {
+                    mark[o] = probe_id;
+                    moved.push(o);
+                }
+            }
+            for &e in &members {
+                match &mut candidates[e] {
+                    Some(c) => {
+                        let before = c.len();
+                        c.retain(|o| mark[*o] == probe_id);
+                        removed += before - c.len();
+                    }
+                    None => candidates[e] = Some(moved.clone()),
+                }
+            }
+        }
+        if round == 0 {
+            // Dense (on average half the rows): probing saves nothing.
+            let total: usize = candidates.iter().flatten().map(Vec::len).sum();
+            if 2 * total > col_el * row_el {
+                return Ok(None);
+            }
+        } else if removed == 0 {
+            break;
+        }
+    }
+    let mut a = Sparse {
+        rows,
+        ptr: vec![0],
+        idx: Vec::new(),
+        val: Vec::new(),
+    };
+    for (e, c) in candidates.iter().enumerate() {
+        let mut c = c.clone().unwrap_or_default();
+        c.sort_unstable();
+        for _ in elements.cols[e]..elements.cols[e + 1] {
+            for &o in &c {
+                a.idx.extend(elements.rows[o]..elements.rows[o + 1]);
+            }
+            a.ptr.push(a.idx.len());
+        }
+    }
+    a.val = vec![1.0; a.idx.len()];
+    Ok(Some(a))
 }
 
 /// One pass per column; the exact zeros are left out.
@@ -357,6 +483,54 @@ mod tests {
         assert_eq!(grown.mul(&e10), g(&e10));
         assert_eq!(pattern.as_ref().unwrap().colours(), 5);
     }
+    /// A large Jacobian's pattern is found by probing: the band and the dense column exactly
+    /// (four colours), the values those of unit seeds, in a few rounds of passes instead of
+    /// one per column; a probe's entry outside the band is found too, and a dense Jacobian
+    /// falls back to one pass per column after one round.
+    #[test]
+    fn a_large_pattern_is_found_by_probing() {
+        let n = 2000;
+        for extra in [None, Some((3, 1500))] {
+            let f = band(n, extra);
+            let mut forward = |v: &[f64]| Ok(f(v));
+            let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
+            let scalars = Elements {
+                cols: &cols,
+                rows: &rows,
+            };
+            let (mut pattern, mut passes) = (None, 0);
+            let a = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+            let colours = pattern.as_ref().unwrap().colours();
+            println!(
+                "{extra:?}: {passes} passes for {} columns, {colours} colours",
+                n + 1
+            );
+            assert!(passes <= 16 * GROUPS, "{passes} passes");
+            assert_eq!(colours, if extra.is_some() { 5 } else { 4 });
+            for j in [0, 1, 2, 999, 1500, n - 1, n] {
+                let e: Vec<f64> = (0..=n).map(|k| (k == j) as u8 as f64).collect();
+                assert_eq!(a.mul(&e), f(&e), "column {j}");
+                // Only the true entries: no false candidate left.
+                assert!(a.col(j).0.len() <= if j == n { n } else { 4 }, "column {j}");
+            }
+        }
+        // Dense: every row reads every column.
+        let m = 400;
+        let dense = |v: &[f64]| -> Vec<f64> {
+            let s: f64 = v.iter().sum();
+            (0..m).map(|i| s + i as f64 * v[i]).collect()
+        };
+        let mut forward = |v: &[f64]| Ok(dense(v));
+        let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=m).collect(), (0..=m).collect());
+        let scalars = Elements {
+            cols: &cols,
+            rows: &rows,
+        };
+        let (mut pattern, mut passes) = (None, 0);
+        jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        assert_eq!(passes, GROUPS + m, "one round, then one pass per column");
+    }
+
     /// An element's scalars share their pattern: a coupling that is exactly zero where the
     /// pattern is found (a spring along an axis) is in it, and no pass is taken again when it
     /// is not zero.

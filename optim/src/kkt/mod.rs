@@ -44,10 +44,13 @@ impl Optimizer<'_> {
     /// whatever the units of the state, the parameters and the constraint) and factorized by
     /// faer's sparse LU with partial pivoting, with one step of iterative refinement. `J` and
     /// `C` come from tangent passes over a tape that holds one evaluation of the constraint and
-    /// the residuals at `x`: at the first step one pass per unknown of the state and per
-    /// parameter, which also finds their sparsity pattern; at the later steps one pass per
-    /// colour of the columns (columns that share no row are seeded together: a few dozen for a
-    /// cloth, whatever its size), checked by two more passes along random directions. If the
+    /// the residuals at `x`. At the first step the sparsity pattern is found by probing:
+    /// rounds of 32 passes, each seeded on a random group of the unknowns' elements (an
+    /// equation a probe leaves at zero reads none of them), until a round rules out nothing
+    /// (a system of fewer than 128 elements, or one the probes find dense, takes one pass per
+    /// unknown instead). Then one pass per colour of the columns (columns that share no row
+    /// are seeded together: a few dozen for a cloth, whatever its size), checked by two more
+    /// passes along random directions. If the
     /// check fails (the pattern changed: a contact started touching), the step takes the
     /// columns one by one again and the pattern grows. A residual or constraint equation that
     /// reads every unknown makes every column its own colour.
