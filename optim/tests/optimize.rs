@@ -859,6 +859,76 @@ fn the_kkt_step_is_the_gauss_newton_step_and_converges() {
     assert_eq!(report.sweeps, 7 + 6 * (report.iterations - 1), "{report}");
 }
 
+/// `r[0] += x_i - share_i`: a residual on the sum of the state (every unknown in one row).
+#[diff_kernel]
+fn sum_miss<R: Real>(x: &Array<R>, share: &Array<R>, r: &Array<R>) {
+    let i = tid();
+    r.atomic_add(0, x[i] - share[i]);
+}
+
+/// A residual that reads every unknown of the state (their sum) is one dense row of the KKT
+/// system: taken by a reverse pass, it leaves the colouring to the sparse rows, so a later
+/// step takes 7 sweeps (the recording, three colours: the states, `p0`, `p1`; the dense row;
+/// the check's two) where it would take one per unknown (302). The fit is Gauss-Newton's on
+/// the same residuals (matrix free, through the solve).
+#[test]
+fn a_residual_on_every_unknown_is_one_reverse_pass_of_the_kkt_method() {
+    let n = 300;
+    let w = Array::from_vec((0..n).map(|i| i as f64 / n as f64).collect());
+    let target = Array::from_vec((0..n).map(|i| 0.3 + 0.4 * i as f64 / n as f64).collect());
+    let share = Array::from_vec(vec![0.6; n]);
+    let p = Array::from_vec(vec![0.2, 0.1]).named("p");
+    let residuals = |tape: &mut Tape, x: &Array<f64>| {
+        let (r, total) = (Array::zeros(n).named("miss"), Array::zeros(1).named("sum"));
+        tape.launch(miss, n, (x, &target, &r));
+        tape.launch(sum_miss, n, (x, &share, &total));
+        vec![r, total]
+    };
+    let solve = |tape: &mut Tape| -> Result<(Array<f64>, Vec<Array<f64>>), Error> {
+        let (pv, wv) = (p.to_vec(), w.to_vec());
+        let s = Array::from_vec(wv.iter().map(|w| cubic_root(pv[0] + w * pv[1])).collect());
+        let x = Array::zeros(n).named("x");
+        tape.launch(cubic_solved, n, (&s, &p, &w, &x));
+        let r = residuals(tape, &x);
+        Ok((x, r))
+    };
+    let report = Optimizer::kkt_gauss_newton()
+        .grad_tol(1e-10)
+        .max_iters(30)
+        .progress(false)
+        .least_squares_kkt(&Params::new().with(&p), solve, |tape, x| {
+            let c = Array::zeros(n).named("c");
+            tape.launch(cubic_constraint, n, (x, &p, &w, &c));
+            Ok((c, residuals(tape, x)))
+        })
+        .unwrap();
+    assert!(report.converged(), "{report}");
+    assert!(report.iterations >= 2, "{report}");
+    // The first step finds the pattern by probing (302 elements), then 7 sweeps per step.
+    let first = report.history[1].sweeps;
+    assert_eq!(
+        report.sweeps - first,
+        7 * (report.iterations - 1),
+        "{first} sweeps in the first step; {report}"
+    );
+    assert!(first < 302, "{first} sweeps in the first step; {report}");
+    let found = p.to_vec();
+    p.assign(&[0.2, 0.1]);
+    let gn = Optimizer::gauss_newton()
+        .grad_tol(1e-10)
+        .progress(false)
+        .least_squares(&Params::new().with(&p), |tape| Ok(solve(tape)?.1))
+        .unwrap();
+    assert!(gn.converged(), "{gn}");
+    let reference = p.to_vec();
+    for k in 0..2 {
+        assert!(
+            (found[k] - reference[k]).abs() < 1e-8,
+            "{found:?} {reference:?}"
+        );
+    }
+}
+
 /// The step does not depend on the parameters' units: with `p1` in units a billion times
 /// smaller (its weights a billion times larger), the KKT system's entries span 18 orders of
 /// magnitude, which unequilibrated pivots would call singular; the step is the same.

@@ -68,7 +68,14 @@ pub(super) struct Pattern {
     colours: usize,
     /// Checks made with this pattern (each takes new random directions).
     probes: std::cell::Cell<u64>,
+    /// Rows that read so many columns (more than [`DENSE`] and an eighth of them) that
+    /// colouring them would give each column its own colour: left out of the colouring and
+    /// taken by one reverse (adjoint) pass each.
+    dense: Vec<usize>,
 }
+
+/// Columns a row reads at most and still takes part in the colouring (see [`Pattern::dense`]).
+pub(super) const DENSE: usize = 64;
 
 /// The elements of the arrays behind the columns and the rows: `starts[e]..starts[e + 1]`
 /// are element `e`'s scalars (a `Vec3` is three).
@@ -115,10 +122,19 @@ impl Pattern {
                 ptr.push(idx.len());
             }
         }
-        // Rows to columns, to find each column's neighbours (columns sharing a row).
+        // Rows to columns, to find each column's neighbours (columns sharing a row); a dense
+        // row has none (it is taken by a reverse pass).
+        let mut count = vec![0usize; rows];
+        for &i in &idx {
+            count[i] += 1;
+        }
+        let limit = DENSE.max(cols / 8);
+        let dense: Vec<usize> = (0..rows).filter(|&i| count[i] > limit).collect();
         let mut row_ptr = vec![0usize; rows + 1];
         for &i in &idx {
-            row_ptr[i + 1] += 1;
+            if count[i] <= limit {
+                row_ptr[i + 1] += 1;
+            }
         }
         for i in 0..rows {
             row_ptr[i + 1] += row_ptr[i];
@@ -126,7 +142,10 @@ impl Pattern {
         let mut fill = row_ptr.clone();
         let mut row_cols = vec![0usize; idx.len()];
         for j in 0..cols {
-            for &i in &idx[ptr[j]..ptr[j + 1]] {
+            for &i in idx[ptr[j]..ptr[j + 1]]
+                .iter()
+                .filter(|i| count[**i] <= limit)
+            {
                 row_cols[fill[i]] = j;
                 fill[i] += 1;
             }
@@ -156,6 +175,7 @@ impl Pattern {
             colour,
             colours,
             probes: std::cell::Cell::new(0),
+            dense,
         }
     }
 
@@ -166,12 +186,15 @@ impl Pattern {
     }
 }
 
-/// The Jacobian of `forward`, a tangent pass (its rows and columns in `elements`). With a pattern
-/// from an earlier call, one pass per colour and a check along two random directions
-/// (relative `tol` per row); without one, or if the check fails, one pass per column, and
-/// `pattern` becomes (or grows to) that Jacobian's. `passes` counts the tangent passes.
+/// The Jacobian of `forward`, a tangent pass (its rows and columns in `elements`; `reverse`
+/// the adjoint pass, for the dense rows). With a pattern from an earlier call, one pass per
+/// colour (and per dense row) and a check along two random directions (relative `tol` per
+/// row); without one, the pattern found by probing, then the same; for a small Jacobian, or
+/// if the check fails, one pass per column, and `pattern` becomes (or grows to) that
+/// Jacobian's. `passes` counts the passes.
 pub(super) fn jacobian(
     forward: &mut Apply<'_>,
+    reverse: &mut Apply<'_>,
     elements: &Elements<'_>,
     pattern: &mut Option<Pattern>,
     tol: f64,
@@ -183,7 +206,7 @@ pub(super) fn jacobian(
         .as_ref()
         .filter(|p| p.rows == rows && p.ptr.len() == cols + 1)
     {
-        let a = compressed(forward, p, passes)?;
+        let a = compressed(forward, reverse, p, passes)?;
         if agrees(forward, &a, p, tol, passes)? {
             return Ok(a);
         }
@@ -195,7 +218,7 @@ pub(super) fn jacobian(
         // The first time: the pattern by probing, then the values by colours, checked.
         if let Some(probed) = probe(forward, elements, passes)? {
             let p = Pattern::of(&probed, None, elements);
-            let a = compressed(forward, &p, passes)?;
+            let a = compressed(forward, reverse, &p, passes)?;
             if agrees(forward, &a, &p, tol, passes)? {
                 *pattern = Some(p);
                 return Ok(a);
@@ -352,10 +375,26 @@ fn by_columns(
 }
 
 /// One pass per colour, seeded with 1 on the colour's columns: row `i` of the result is the
-/// entry `(i, j)` of the one column `j` of that colour whose pattern has row `i`.
-fn compressed(forward: &mut Apply<'_>, p: &Pattern, passes: &mut usize) -> Result<Sparse, Error> {
+/// entry `(i, j)` of the one column `j` of that colour whose pattern has row `i`; and one
+/// reverse pass per dense row, seeded with 1 on it: the row's entries.
+fn compressed(
+    forward: &mut Apply<'_>,
+    reverse: &mut Apply<'_>,
+    p: &Pattern,
+    passes: &mut usize,
+) -> Result<Sparse, Error> {
     let cols = p.ptr.len() - 1;
     let mut val = vec![0.0; p.idx.len()];
+    let mut dense_at = vec![usize::MAX; p.rows];
+    let mut dense_rows = Vec::with_capacity(p.dense.len());
+    let mut w = vec![0.0; p.rows];
+    for (k, &i) in p.dense.iter().enumerate() {
+        dense_at[i] = k;
+        w[i] = 1.0;
+        dense_rows.push(reverse(&w)?);
+        w[i] = 0.0;
+        *passes += 1;
+    }
     let mut by_colour = vec![Vec::new(); p.colours];
     for j in 0..cols {
         by_colour[p.colour[j]].push(j);
@@ -369,8 +408,12 @@ fn compressed(forward: &mut Apply<'_>, p: &Pattern, passes: &mut usize) -> Resul
         *passes += 1;
         for &j in members {
             seed[j] = 0.0;
-            for k in p.ptr[j]..p.ptr[j + 1] {
-                val[k] = t[p.idx[k]];
+            let span = p.ptr[j]..p.ptr[j + 1];
+            for (v, &i) in val[span.clone()].iter_mut().zip(&p.idx[span]) {
+                *v = match dense_at[i] {
+                    usize::MAX => t[i],
+                    d => dense_rows[d][j],
+                };
             }
         }
     }
@@ -435,6 +478,27 @@ fn agrees(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::newton::dot;
+
+    /// [`jacobian`] of `f`, its reverse pass `Jᵀ w` from `f`'s columns.
+    fn jac(
+        f: &dyn Fn(&[f64]) -> Vec<f64>,
+        elements: &Elements<'_>,
+        pattern: &mut Option<Pattern>,
+        passes: &mut usize,
+    ) -> Sparse {
+        let cols = elements.cols[elements.cols.len() - 1];
+        let mut forward = |v: &[f64]| Ok(f(v));
+        let mut reverse = |w: &[f64]| {
+            Ok((0..cols)
+                .map(|j| {
+                    let e: Vec<f64> = (0..cols).map(|k| (k == j) as u8 as f64).collect();
+                    dot(&f(&e), w)
+                })
+                .collect())
+        };
+        jacobian(&mut forward, &mut reverse, elements, pattern, 1e-12, passes).unwrap()
+    }
 
     /// A tridiagonal Jacobian with a dense last column: three colours for the band, one more
     /// for the dense column.
@@ -458,26 +522,24 @@ mod tests {
     fn coloured_passes_give_the_columns_and_a_new_entry_is_found() {
         let n = 30;
         let f = band(n, None);
-        let mut forward = |v: &[f64]| Ok(f(v));
         let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
         let scalars = Elements {
             cols: &cols,
             rows: &rows,
         };
         let (mut pattern, mut passes) = (None, 0);
-        let first = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        let first = jac(&f, &scalars, &mut pattern, &mut passes);
         assert_eq!(passes, n + 1);
         assert_eq!(pattern.as_ref().unwrap().colours(), 4);
         passes = 0;
-        let again = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        let again = jac(&f, &scalars, &mut pattern, &mut passes);
         assert_eq!(passes, 6, "four colours and the check's two passes");
         assert_eq!((&first.idx, &first.val), (&again.idx, &again.val));
         // An entry outside the pattern: the check fails, the columns are taken one by one,
         // and the pattern grows.
         let g = band(n, Some((0, 10)));
-        let mut forward = |v: &[f64]| Ok(g(v));
         passes = 0;
-        let grown = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        let grown = jac(&g, &scalars, &mut pattern, &mut passes);
         assert_eq!(passes, 4 + 1 + n + 1, "the check fails at its first pass");
         let e10: Vec<f64> = (0..=n).map(|j| (j == 10) as u8 as f64).collect();
         assert_eq!(grown.mul(&e10), g(&e10));
@@ -492,14 +554,13 @@ mod tests {
         let n = 2000;
         for extra in [None, Some((3, 1500))] {
             let f = band(n, extra);
-            let mut forward = |v: &[f64]| Ok(f(v));
             let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
             let scalars = Elements {
                 cols: &cols,
                 rows: &rows,
             };
             let (mut pattern, mut passes) = (None, 0);
-            let a = jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+            let a = jac(&f, &scalars, &mut pattern, &mut passes);
             let colours = pattern.as_ref().unwrap().colours();
             println!(
                 "{extra:?}: {passes} passes for {} columns, {colours} colours",
@@ -520,15 +581,51 @@ mod tests {
             let s: f64 = v.iter().sum();
             (0..m).map(|i| s + i as f64 * v[i]).collect()
         };
-        let mut forward = |v: &[f64]| Ok(dense(v));
         let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=m).collect(), (0..=m).collect());
         let scalars = Elements {
             cols: &cols,
             rows: &rows,
         };
         let (mut pattern, mut passes) = (None, 0);
-        jacobian(&mut forward, &scalars, &mut pattern, 1e-12, &mut passes).unwrap();
+        jac(&dense, &scalars, &mut pattern, &mut passes);
         assert_eq!(passes, GROUPS + m, "one round, then one pass per column");
+    }
+
+    /// A row that reads every column (a residual on a sum) is left out of the colouring and
+    /// taken by one reverse pass: four colours for the rest, not one per column; the values
+    /// are the columns' to the bit, at the first step and the next.
+    #[test]
+    fn a_dense_row_is_taken_by_a_reverse_pass() {
+        let n = 2000;
+        let f = band(n, None);
+        let g = |v: &[f64]| {
+            let mut out = f(v);
+            out[0] += v
+                .iter()
+                .enumerate()
+                .map(|(j, x)| (1.0 + j as f64) * x)
+                .sum::<f64>();
+            out
+        };
+        let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
+        let scalars = Elements {
+            cols: &cols,
+            rows: &rows,
+        };
+        let mut pattern = None;
+        for step in 0..2 {
+            let mut passes = 0;
+            let a = jac(&g, &scalars, &mut pattern, &mut passes);
+            let p = pattern.as_ref().unwrap();
+            assert_eq!((p.colours(), &p.dense[..]), (4, &[0][..]), "step {step}");
+            if step == 1 {
+                assert_eq!(passes, 4 + 1 + 2, "colours, the dense row, the check");
+            }
+            for j in [0, 1, 2, 999, n - 1, n] {
+                let e: Vec<f64> = (0..=n).map(|k| (k == j) as u8 as f64).collect();
+                assert_eq!(a.mul(&e), g(&e), "step {step}, column {j}");
+            }
+        }
     }
 
     /// An element's scalars share their pattern: a coupling that is exactly zero where the
@@ -542,18 +639,17 @@ mod tests {
             let sum: f64 = v[..3].iter().sum();
             (0..3).map(|i| v[i] + s.get() * sum).collect()
         };
-        let mut forward = |v: &[f64]| Ok(f(v));
         let elements = Elements {
             cols: &[0, 3, 6],
             rows: &[0, 3],
         };
         let (mut pattern, mut passes) = (None, 0);
-        jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
+        jac(&f, &elements, &mut pattern, &mut passes);
         assert_eq!(passes, 6);
         assert_eq!(pattern.as_ref().unwrap().colours(), 3);
         s.set(0.5);
         passes = 0;
-        let a = jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
+        let a = jac(&f, &elements, &mut pattern, &mut passes);
         assert_eq!(passes, 5, "three colours and the check, no pass per column");
         for j in 0..6 {
             let e: Vec<f64> = (0..6).map(|k| (k == j) as u8 as f64).collect();
@@ -567,14 +663,13 @@ mod tests {
         let mut pattern = None;
         for n in [4usize, 6, 3] {
             let f = band(n, None);
-            let mut forward = |v: &[f64]| Ok(f(v));
             let (cols, rows): (Vec<usize>, Vec<usize>) = ((0..=n + 1).collect(), (0..=n).collect());
             let elements = Elements {
                 cols: &cols,
                 rows: &rows,
             };
             let mut passes = 0;
-            let a = jacobian(&mut forward, &elements, &mut pattern, 1e-12, &mut passes).unwrap();
+            let a = jac(&f, &elements, &mut pattern, &mut passes);
             assert_eq!(passes, n + 1, "n = {n}");
             let ones = vec![1.0; n + 1];
             assert_eq!(a.mul(&ones), f(&ones), "n = {n}");

@@ -50,10 +50,11 @@ impl Optimizer<'_> {
     /// (a system of fewer than 128 elements, or one the probes find dense, takes one pass per
     /// unknown instead). Then one pass per colour of the columns (columns that share no row
     /// are seeded together: a few dozen for a cloth, whatever its size), checked by two more
-    /// passes along random directions. If the
-    /// check fails (the pattern changed: a contact started touching), the step takes the
-    /// columns one by one again and the pattern grows. A residual or constraint equation that
-    /// reads every unknown makes every column its own colour.
+    /// passes along random directions. If the check fails (the pattern changed: a contact
+    /// started touching), the step takes the columns one by one again and the pattern grows.
+    /// A residual or constraint scalar that reads many unknowns (more than 64 and an eighth of
+    /// them: a sum, a mean) is left out of the colouring, which it would make one colour per
+    /// column, and taken by one adjoint pass.
     ///
     /// # The closures
     ///
@@ -316,17 +317,12 @@ impl<'t, 'a> Kkt<'t, 'a> {
         })
     }
 
-    /// `(J v, C v)` for `v` over the state and the parameters: one tangent pass.
-    fn forward(&mut self, v: &[f64]) -> Result<Vec<f64>, Error> {
-        self.tape.jvp(&self.inputs, v, &self.outputs)
-    }
-
     /// The Gauss-Newton step over the parameters: the KKT system assembled sparse from tangent
     /// passes (the columns of `J` and `C`, coloured once their pattern is known:
     /// [`jacobian`]) and solved by sparse LU ([`system`]). An error if the system has more
     /// than `largest` rows or is singular (no unique Gauss-Newton step).
     fn step(
-        mut self,
+        self,
         largest: usize,
         counts: &Counts,
         pattern: &mut Option<jacobian::Pattern>,
@@ -363,8 +359,12 @@ impl<'t, 'a> Kkt<'t, 'a> {
             cols: &cols,
             rows: &rows,
         };
+        // Tangent passes for the columns, adjoint passes for the dense rows, on one tape.
+        let (inputs, outputs) = (&self.inputs, &self.outputs);
+        let tape = std::cell::RefCell::new(&mut *self.tape);
         let jc = jacobian::jacobian(
-            &mut |v| self.forward(v),
+            &mut |v| tape.borrow_mut().jvp(inputs, v, outputs),
+            &mut |w| tape.borrow_mut().vjp(outputs, w, inputs),
             &elements,
             pattern,
             tol,
