@@ -8,9 +8,8 @@ use adflex_runtime::Error;
 
 use crate::newton::{dot, Apply};
 
-/// The forcing term's largest value for Newton-CG (Steihaug's CG in a trust region; with a
-/// cap of 0.1 the demo's net and cable took 232 and 88 passes against 242 and 70, measured
-/// before the CG was preconditioned).
+/// The forcing term's largest value for Newton-CG (Steihaug's CG in a trust region, not
+/// preconditioned).
 pub(crate) const NEWTON_FORCING: f64 = 0.5;
 
 /// The forcing term's largest value for Gauss-Newton and Levenberg-Marquardt. Their solves are
@@ -87,20 +86,6 @@ struct Pair {
 }
 
 impl Curvature {
-    /// A copy (the tests compare solves from the same memory).
-    #[cfg(test)]
-    fn clone_for_test(&self) -> Self {
-        let pairs = self.pairs.iter().map(|p| Pair {
-            s: p.s.clone(),
-            y: p.y.clone(),
-            ..*p
-        });
-        Curvature {
-            pairs: pairs.collect(),
-            capacity: self.capacity,
-        }
-    }
-
     /// An empty memory for `n` parameters.
     pub(crate) fn new(n: usize) -> Self {
         Curvature {
@@ -248,108 +233,6 @@ pub(crate) fn cg(
     Ok(d)
 }
 
-/// A step of [`steihaug`]: `s`, `H s`, its length in the preconditioner's norm, and the
-/// trust region's radius (set from the first product if there was none).
-pub(crate) struct TrustStep {
-    pub s: Vec<f64>,
-    pub hs: Vec<f64>,
-    pub length: f64,
-    pub radius: f64,
-}
-
-/// Steihaug's truncated CG on `H s = -g` inside the region `|s|_M <= radius`, preconditioned
-/// by `memory` (`M⁻¹` its L-BFGS inverse, the identity while it is empty; the norms follow by
-/// Conn, Gould and Toint's recurrences, Trust-Region Methods, algorithm 7.5.1, without `M`):
-/// at most `iters` products, to `|H s + g| <= tol |g|`, stopping on the region's boundary or
-/// following a direction of non-positive curvature to it. `H v` is given by `apply`; its
-/// products of positive curvature join `memory` after the step. Without a radius, the first
-/// is ten Cauchy steps (the minimum along the preconditioned gradient), or `|g|_M⁻¹`.
-pub(crate) fn steihaug(
-    g: &[f64],
-    iters: usize,
-    tol: f64,
-    radius: Option<f64>,
-    memory: &mut Curvature,
-    apply: &mut Apply<'_>,
-) -> Result<TrustStep, Error> {
-    let n = g.len();
-    let (mut s, mut hs) = (vec![0.0; n], vec![0.0; n]);
-    let mut r = g.to_vec();
-    let stop = tol * tol * dot(&r, &r);
-    let mut z = memory.apply(&r, 0.0);
-    let mut rz = dot(&r, &z);
-    let plain = !(rz.is_finite() && rz > 0.0);
-    if plain {
-        z = r.clone();
-        rz = dot(&r, &z);
-    }
-    let mut d: Vec<f64> = z.iter().map(|x| -x).collect();
-    // `sᵀMs`, `sᵀMd`, `dᵀMd`.
-    let (mut ss, mut sd, mut dd) = (0.0, 0.0, rz);
-    let mut fresh: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
-    let mut delta = radius;
-    for _ in 0..iters.max(1) {
-        let hd = apply(&d)?;
-        if memory.capacity > 0 {
-            if fresh.len() == memory.capacity {
-                fresh.remove(0);
-            }
-            fresh.push((d.clone(), hd.clone()));
-        }
-        let dhd = dot(&d, &hd);
-        let delta = *delta.get_or_insert_with(|| match dhd > 0.0 {
-            true => 10.0 * rz / dhd * dd.sqrt(),
-            false => dd.sqrt(),
-        });
-        let alpha = rz / dhd;
-        let inside = dhd > 0.0 && ss + 2.0 * alpha * sd + alpha * alpha * dd < delta * delta;
-        if !inside {
-            // `|s + tau d|_M = delta`.
-            let (a, b, c) = (dd, 2.0 * sd, ss - delta * delta);
-            let tau = (-b + (b * b - 4.0 * a * c).max(0.0).sqrt()) / (2.0 * a);
-            for k in 0..n {
-                s[k] += tau * d[k];
-                hs[k] += tau * hd[k];
-            }
-            ss = delta * delta;
-            break;
-        }
-        for k in 0..n {
-            s[k] += alpha * d[k];
-            hs[k] += alpha * hd[k];
-            r[k] += alpha * hd[k];
-        }
-        ss += 2.0 * alpha * sd + alpha * alpha * dd;
-        if dot(&r, &r) <= stop {
-            break;
-        }
-        z = match plain {
-            true => r.clone(),
-            false => memory.apply(&r, 0.0),
-        };
-        let rz1 = dot(&r, &z);
-        if !(rz1.is_finite() && rz1 > 0.0) {
-            break;
-        }
-        let beta = rz1 / rz;
-        rz = rz1;
-        sd = beta * (sd + alpha * dd);
-        dd = rz + beta * beta * dd;
-        for k in 0..n {
-            d[k] = -z[k] + beta * d[k];
-        }
-    }
-    for (s, y) in &fresh {
-        memory.push(s, y);
-    }
-    Ok(TrustStep {
-        s,
-        hs,
-        length: ss.max(0.0).sqrt(),
-        radius: delta.expect("set by the first product"),
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -471,100 +354,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    /// `sᵀ M s`, `M` the inverse of the memory's `H` (formed column by column, then solved by
-    /// Gaussian elimination with partial pivoting).
-    fn m_norm2(memory: &Curvature, s: &[f64]) -> f64 {
-        let n = s.len();
-        let cols: Vec<Vec<f64>> = (0..n)
-            .map(|j| {
-                let e: Vec<f64> = (0..n).map(|i| if i == j { 1.0 } else { 0.0 }).collect();
-                memory.apply(&e, 0.0)
-            })
-            .collect();
-        let mut a: Vec<Vec<f64>> = (0..n)
-            .map(|i| {
-                let mut row: Vec<f64> = (0..n).map(|j| cols[j][i]).collect();
-                row.push(s[i]);
-                row
-            })
-            .collect();
-        for c in 0..n {
-            let p = (c..n)
-                .max_by(|&x, &y| a[x][c].abs().total_cmp(&a[y][c].abs()))
-                .unwrap();
-            a.swap(c, p);
-            let pivot = a[c].clone();
-            for row in a.iter_mut().skip(c + 1) {
-                let f = row[c] / pivot[c];
-                for (x, p) in row.iter_mut().zip(&pivot).skip(c) {
-                    *x -= f * p;
-                }
-            }
-        }
-        let mut u = vec![0.0; n];
-        for c in (0..n).rev() {
-            let t: f64 = (c + 1..n).map(|k| a[c][k] * u[k]).sum();
-            u[c] = (a[c][n] - t) / a[c][c];
-        }
-        dot(s, &u)
-    }
-
-    /// Steihaug's step: inside a large region it solves to the tolerance, in fewer products
-    /// once the memory holds an earlier step's; in a small one it ends on the boundary of the
-    /// preconditioner's norm (the recurrences' length against `sᵀ M s` formed densely); on
-    /// an indefinite matrix it follows negative curvature to the boundary.
-    #[test]
-    fn steihaug_steps_stay_in_the_preconditioned_region() {
-        let n = 20;
-        let (a, next) = (matrix(n, 0.0), matrix(n, 0.05));
-        let g: Vec<f64> = (0..n).map(|i| (i as f64 * 1.3).cos()).collect();
-        let step = |h: &[Vec<f64>], radius: f64, memory: &mut Curvature| {
-            let mut products = 0;
-            let t = steihaug(&g, 100, 1e-8, Some(radius), memory, &mut |v| {
-                products += 1;
-                Ok(h.iter().map(|row| dot(row, v)).collect())
-            })
-            .unwrap();
-            (t, products)
-        };
-        let mut memory = Curvature::new(n);
-        let (t, first) = step(&a, 1e6, &mut memory);
-        assert!(residual(&a, &g, 0.0, &t.s) <= 1e-8 && t.length < 1e6);
-        let (cold, cold_products) = step(&next, 1e6, &mut Curvature::new(n));
-        let (warm, warm_products) = step(&next, 1e6, &mut memory.clone_for_test());
-        assert!(residual(&next, &g, 0.0, &cold.s) <= 1e-8);
-        assert!(residual(&next, &g, 0.0, &warm.s) <= 1e-8);
-        assert!(
-            2 * warm_products <= cold_products,
-            "{warm_products} products preconditioned, {cold_products} without ({first} first)"
-        );
-        // The recurrences' length is the preconditioner's norm of the step.
-        let m = m_norm2(&memory, &warm.s).sqrt();
-        assert!((warm.length - m).abs() <= 1e-8 * m, "{} {m}", warm.length);
-        for radius in [1e-3, 1e-2] {
-            let (t, _) = step(&next, radius, &mut memory.clone_for_test());
-            let m = m_norm2(&memory, &t.s).sqrt();
-            assert!((t.length - radius).abs() <= 1e-9 * radius, "{}", t.length);
-            assert!((m - radius).abs() <= 1e-6 * radius, "{m} against {radius}");
-            let (t, _) = step(&next, radius, &mut Curvature::new(n));
-            assert!((dot(&t.s, &t.s).sqrt() - radius).abs() <= 1e-12);
-        }
-        // Indefinite: H = A - 1e3 I has negative eigenvalues.
-        let indefinite: Vec<Vec<f64>> = next
-            .iter()
-            .enumerate()
-            .map(|(i, row)| {
-                let mut row = row.clone();
-                row[i] -= 1e3;
-                row
-            })
-            .collect();
-        let (t, _) = step(&indefinite, 0.5, &mut Curvature::new(n));
-        assert!((dot(&t.s, &t.s).sqrt() - 0.5).abs() <= 1e-12);
-        let model = dot(&g, &t.s) + 0.5 * dot(&t.s, &t.hs);
-        assert!(model < 0.0, "{model}");
     }
 
     /// Without pairs the preconditioner is the identity (plain CG); pairs of no positive

@@ -9,9 +9,7 @@ use std::time::Instant;
 use adflex_runtime::second_order::{hvp, Hvp};
 use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
-use crate::cg::{
-    cg, steihaug, Curvature, Forcing, TrustStep, LEAST_SQUARES_FORCING, NEWTON_FORCING,
-};
+use crate::cg::{cg, Curvature, Forcing, LEAST_SQUARES_FORCING, NEWTON_FORCING};
 use crate::{norm, Best, Counts, End, Method, Observe, Optimizer, Params, Stop};
 
 impl Optimizer<'_> {
@@ -192,9 +190,7 @@ impl Optimizer<'_> {
     /// until a relative residual set by Eisenstat and Walker's forcing term (loose while the
     /// outer iteration converges slowly, tight once it converges fast), a negative curvature
     /// or the region's boundary; then it evaluates the trial point, and the ratio of actual to
-    /// predicted decrease accepts it and resizes the region. The CG is preconditioned by the
-    /// earlier products of positive curvature (as Gauss-Newton's), and the region is a ball of
-    /// the preconditioner's norm.
+    /// predicted decrease accepts it and resizes the region.
     ///
     /// Errors: as [`Optimizer::minimize_with`] (a parameter the loss does not read is not
     /// detected: it keeps its value); those of [`hvp`] (a parameter not `Dual`, a step that
@@ -617,7 +613,6 @@ fn newton_cg_run(
     };
     let mut best = point(&cur, &x);
     let mut forcing = Forcing::new(NEWTON_FORCING);
-    let mut memory = Curvature::new(n);
     let mut radius: Option<f64> = None;
     for iter in 0.. {
         let g = cur.grad.clone();
@@ -633,13 +628,55 @@ fn newton_cg_run(
         let tol = forcing.next(norm(&g));
         let mut rejected = 0;
         loop {
-            // Steihaug's truncated CG on H s = -g inside the region, preconditioned by the
-            // earlier products.
-            let step = steihaug(&g, cg_iters, tol, radius, &mut memory, &mut |v| {
-                Ok(product(&x, v, false)?.hv)
-            })?;
-            let TrustStep { s, hs, length, .. } = step;
-            let delta = step.radius;
+            // Steihaug's truncated CG on H s = -g inside |s| <= radius.
+            let (mut s, mut hs) = (vec![0.0; n], vec![0.0; n]);
+            let mut r = g.clone();
+            let mut d: Vec<f64> = g.iter().map(|x| -x).collect();
+            let stop = tol * tol * dot(&r, &r);
+            for _ in 0..cg_iters.max(1) {
+                let hd = product(&x, &d, false)?.hv;
+                let dhd = dot(&d, &hd);
+                let rr = dot(&r, &r);
+                let delta = *radius.get_or_insert_with(|| {
+                    // The first region: ten Cauchy steps (the minimum along -g), or |g|.
+                    if dhd > 0.0 {
+                        10.0 * rr / dhd * rr.sqrt()
+                    } else {
+                        rr.sqrt()
+                    }
+                });
+                let to_boundary = |s: &[f64], d: &[f64]| {
+                    let (a, b, c) = (dot(d, d), 2.0 * dot(s, d), dot(s, s) - delta * delta);
+                    (-b + (b * b - 4.0 * a * c).max(0.0).sqrt()) / (2.0 * a)
+                };
+                let alpha = rr / dhd;
+                let inside = dhd > 0.0 && {
+                    let s1: Vec<f64> = s.iter().zip(&d).map(|(a, b)| a + alpha * b).collect();
+                    norm(&s1) < delta
+                };
+                if !inside {
+                    let tau = to_boundary(&s, &d);
+                    for k in 0..n {
+                        s[k] += tau * d[k];
+                        hs[k] += tau * hd[k];
+                    }
+                    break;
+                }
+                for k in 0..n {
+                    s[k] += alpha * d[k];
+                    hs[k] += alpha * hd[k];
+                    r[k] += alpha * hd[k];
+                }
+                let rr1 = dot(&r, &r);
+                if rr1 <= stop {
+                    break;
+                }
+                let beta = rr1 / rr;
+                for k in 0..n {
+                    d[k] = -r[k] + beta * d[k];
+                }
+            }
+            let delta = radius.expect("set by the first product");
             let predicted = -(dot(&g, &s) + 0.5 * dot(&s, &hs));
             let trial: Vec<f64> = x.iter().zip(&s).map(|(a, b)| a + b).collect();
             let (rho, next) = match product(&trial, &zero, true) {
@@ -650,9 +687,10 @@ fn newton_cg_run(
                 Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
                 Err(e) => return Err(e),
             };
+            let step = norm(&s);
             radius = Some(if rho < 0.25 {
-                0.25 * length
-            } else if rho > 0.75 && length >= 0.99 * delta {
+                0.25 * step
+            } else if rho > 0.75 && step >= 0.99 * delta {
                 2.0 * delta
             } else {
                 delta
