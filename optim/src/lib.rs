@@ -142,9 +142,10 @@ pub struct Iteration {
     /// Sweeps over one evaluation of a constraint so far (not the simulation: per step of
     /// [`Optimizer::least_squares_kkt`], the recording of `constrained` and the tangent
     /// passes that give the columns of its KKT system: at the first step, the probes that find
-    /// the pattern (or one per unknown for a small system); one per colour of the columns and
-    /// two for the check at every step, and one per unknown again when the check finds the
-    /// pattern changed; 0 for the other methods). Counted apart from
+    /// the pattern (or one per unknown for a small or dense system, after the probes of one
+    /// round for a dense one); one per colour of the columns, one adjoint pass per dense row
+    /// and two for the check at every step, and one per unknown again when the check finds
+    /// the pattern changed; 0 for the other methods). Counted apart from
     /// `passes`, being far cheaper.
     pub sweeps: usize,
     /// Time since the start.

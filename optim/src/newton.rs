@@ -53,8 +53,10 @@ impl Optimizer<'_> {
     /// gradient pushes it out stays there for the step, which solves for the others, and each
     /// trial point is projected into the bounds (Armijo's test along the projected path;
     /// Levenberg-Marquardt's predicted decrease is the model's along the projected step, one
-    /// more product when the projection cuts it). Convergence is measured by the projected
-    /// gradient. A parameter may start on its bound, not outside it.
+    /// more product when the projection cuts it; a cut step that no longer descends is
+    /// shortened). `grad_tol_rel` measures the projected gradient; `grad_tol` measures the
+    /// whole gradient, which does not vanish at an active bound, so a bounded run should set
+    /// `grad_tol_rel`. A parameter may start on its bound, not outside it.
     ///
     /// Errors: as [`Optimizer::minimize`]; [`Error::InvalidInput`] for another method, or
     /// naming a parameter that starts outside its bounds.
@@ -446,6 +448,14 @@ fn least_squares_run(
                         return Ok((best, End::Stop(Stop::MaxEvaluations)));
                     }
                     let (trial, change) = along(&x, &g, &d, t);
+                    // A projection can cut a step until it no longer descends: shorter then.
+                    if bounded && change >= 0.0 {
+                        t *= 0.5;
+                        if t < 1e-10 {
+                            break None;
+                        }
+                        continue;
+                    }
                     match record(&trial) {
                         Ok(rec) if rec.loss <= cur.loss + 1e-4 * change => {
                             break Some((trial, rec))
@@ -481,14 +491,17 @@ fn least_squares_run(
                     None => {
                         // The curvature along the gradient (of the parameters not pinned at a
                         // bound) sets the damping's scale.
+                        let pin = |v: &mut Vec<f64>| {
+                            for (v, _) in v.iter_mut().zip(pinned.iter().flatten()).filter(|p| *p.1)
+                            {
+                                *v = 0.0;
+                            }
+                        };
                         let mut g = g.clone();
-                        for (g, _) in g.iter_mut().zip(pinned.iter().flatten()).filter(|p| *p.1) {
-                            *g = 0.0;
-                        }
-                        let jg = gn(&mut cur, &g)?;
-                        if !bounded {
-                            memory.push(&g, &jg);
-                        }
+                        pin(&mut g);
+                        let mut jg = gn(&mut cur, &g)?;
+                        pin(&mut jg);
+                        memory.push(&g, &jg);
                         let q = dot(&g, &jg) / dot(&g, &g).max(f64::MIN_POSITIVE);
                         (rel * q).max(f64::MIN_POSITIVE)
                     }
@@ -511,11 +524,14 @@ fn least_squares_run(
                 if spent(counts, config.max_evals) {
                     return Ok((best, End::Stop(Stop::MaxEvaluations)));
                 }
-                let (rho, rec) = match record(&trial) {
-                    Ok(_) if predicted <= 0.0 => (f64::NEG_INFINITY, None),
-                    Ok(rec) => ((cur.loss - rec.loss) / predicted, Some(rec)),
-                    Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
-                    Err(e) => return Err(e),
+                let (rho, rec) = match predicted > 0.0 {
+                    // No decrease predicted (a cut step): no evaluation, backtrack below.
+                    false => (f64::NEG_INFINITY, None),
+                    true => match record(&trial) {
+                        Ok(rec) => ((cur.loss - rec.loss) / predicted, Some(rec)),
+                        Err(e) if trial_failure(&e) => (f64::NEG_INFINITY, None),
+                        Err(e) => return Err(e),
+                    },
                 };
                 match rec {
                     Some(rec) if rho > 1e-4 => {
@@ -536,6 +552,10 @@ fn least_squares_run(
                                 return Ok((best, End::Stop(Stop::MaxEvaluations)));
                             }
                             let (trial, change) = along(&x, &g, &d, t);
+                            if bounded && change >= 0.0 {
+                                t *= 0.5;
+                                continue;
+                            }
                             match record(&trial) {
                                 Ok(rec) if rec.loss <= cur.loss + 1e-4 * change => {
                                     taken = Some((trial, rec));

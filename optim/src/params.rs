@@ -301,7 +301,8 @@ impl Params {
                 return Err(Error::InvalidInput {
                     what: self.component_name(i),
                     message: format!(
-                        "starts at {p}, outside its bounds [{}, {}]; {method} keeps bounds by                          projection: start inside them or on them",
+                        "starts at {p}, outside its bounds [{}, {}]; {method} keeps bounds by \
+                         projection: start inside them or on them",
                         e.bounds.lower, e.bounds.upper
                     ),
                 });

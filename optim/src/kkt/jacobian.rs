@@ -231,18 +231,25 @@ pub(super) fn jacobian(
     Ok(a)
 }
 
-/// Groups of input elements per round of probing.
+/// Groups of input elements per round of probing (more when a probe moves too many rows).
 pub(super) const GROUPS: usize = 32;
 
+/// The candidate lists' entries at most (64 MB of indices): past it, more groups.
+const CANDIDATES: usize = 8 << 20;
+
 /// The pattern of the Jacobian at the level of elements, by probing (`None`: too few input
-/// elements for probing to save passes, or a pattern too dense). Each round partitions the
-/// input elements at random into [`GROUPS`] groups and seeds each group's scalars with random
-/// weights (exact in `f32`, from a fixed sequence: runs repeat exactly) in one pass; an input
-/// element's candidates are the output elements every probe of it moved. An output element
-/// moved by `k` input elements stays a false candidate of another with probability about
-/// `k / GROUPS` per round, so rounds go on until one removes no candidate; a false candidate
-/// left costs only colours, and a missed entry (weights that cancel exactly) is caught by the
-/// check that follows. Returns a matrix with a nonzero at every candidate's scalars.
+/// elements for probing to save passes, a pattern too dense, or probes that would cost as
+/// many passes as the columns). Each round partitions the input elements at random into
+/// groups and seeds each group's scalars with random weights (exact in `f32`, from a fixed
+/// sequence: runs repeat exactly) in one pass; an input element's candidates are the output
+/// elements every probe of it moved. An output element moved by `k` other input elements
+/// stays a false candidate with probability `1 - (1 - 1/groups)^k` per round, so rounds go
+/// on until one removes no candidate; a false candidate left costs only colours, and a missed
+/// entry (weights that cancel exactly) above the check's tolerance is caught by the check
+/// that follows. The first round starts with [`GROUPS`] groups and takes four times as many
+/// while its candidate lists would hold more than [`CANDIDATES`] entries or half of all
+/// pairs (a probe that moves most rows tells little). Returns a matrix with a nonzero at every
+/// candidate's scalars.
 fn probe(
     forward: &mut Apply<'_>,
     elements: &Elements<'_>,
@@ -270,21 +277,21 @@ fn probe(
         let u = (r >> 40) as f64 / (1u64 << 24) as f64;
         (0.5 + u) * if r & 1 == 0 { 1.0 } else { -1.0 }
     };
-    // Each input element's candidates (sorted), `None` before its first probe.
-    let mut candidates: Vec<Option<Vec<usize>>> = vec![None; col_el];
     let mut mark = vec![usize::MAX; row_el];
     let mut seed = vec![0.0; cols];
-    for round in 0.. {
+    let mut probes = 0usize;
+    // One round: each group's probe, the output elements it moved (a NaN moves one too).
+    let mut round = |groups: usize, passes: &mut usize| -> Result<_, Error> {
         let group: Vec<usize> = (0..col_el)
-            .map(|_| (random() % GROUPS as u64) as usize)
+            .map(|_| (random() % groups as u64) as usize)
             .collect();
-        let mut removed = 0usize;
-        for g in 0..GROUPS {
-            let members: Vec<usize> = (0..col_el).filter(|&e| group[e] == g).collect();
-            if members.is_empty() {
-                continue;
-            }
-            for &e in &members {
+        let mut members = vec![Vec::new(); groups];
+        for (e, g) in group.iter().enumerate() {
+            members[*g].push(e);
+        }
+        let mut moved = vec![Vec::new(); groups];
+        for (g, members) in members.iter().enumerate().filter(|(_, m)| !m.is_empty()) {
+            for &e in members {
                 for s in &mut seed[elements.cols[e]..elements.cols[e + 1]] {
                     *s = weight(random());
                 }
@@ -292,34 +299,55 @@ fn probe(
             let t = forward(&seed)?;
             *passes += 1;
             seed.iter_mut().for_each(|s| *s = 0.0);
-            // The output elements this probe moved (a NaN moved it too).
-            let probe_id = round * GROUPS + g;
-            let mut moved = Vec::new();
+            probes += 1;
             for (i, v) in t.iter().enumerate() {
                 let o = row_element[i];
-                if *v != 0.0 && mark[o] != probe_id {
-                    mark[o] = probe_id;
-                    moved.push(o);
+                if *v != 0.0 && mark[o] != probes {
+                    mark[o] = probes;
+                    moved[g].push(o);
                 }
             }
-            for &e in &members {
-                match &mut candidates[e] {
-                    Some(c) => {
-                        let before = c.len();
-                        c.retain(|o| mark[*o] == probe_id);
-                        removed += before - c.len();
-                    }
-                    None => candidates[e] = Some(moved.clone()),
-                }
+            moved[g].sort_unstable();
+        }
+        Ok((members, moved))
+    };
+    let mut groups = GROUPS;
+    let (members, moved) = loop {
+        let (members, moved) = round(groups, passes)?;
+        let size: usize = members
+            .iter()
+            .zip(&moved)
+            .map(|(m, o)| m.len() * o.len())
+            .sum();
+        if size <= CANDIDATES && 2 * size <= col_el * row_el {
+            break (members, moved);
+        }
+        groups *= 4;
+        if 4 * groups > col_el || *passes + groups >= cols {
+            return Ok(None);
+        }
+    };
+    // Each input element's candidates (sorted).
+    let mut candidates: Vec<Vec<usize>> = vec![Vec::new(); col_el];
+    for (m, o) in members.iter().zip(&moved) {
+        for &e in m {
+            candidates[e] = o.clone();
+        }
+    }
+    loop {
+        if *passes + groups >= cols {
+            return Ok(None);
+        }
+        let (members, moved) = round(groups, passes)?;
+        let mut removed = 0usize;
+        for (m, o) in members.iter().zip(&moved) {
+            for &e in m {
+                let before = candidates[e].len();
+                candidates[e].retain(|x| o.binary_search(x).is_ok());
+                removed += before - candidates[e].len();
             }
         }
-        if round == 0 {
-            // Dense (on average half the rows): probing saves nothing.
-            let total: usize = candidates.iter().flatten().map(Vec::len).sum();
-            if 2 * total > col_el * row_el {
-                return Ok(None);
-            }
-        } else if removed == 0 {
+        if removed == 0 {
             break;
         }
     }
@@ -330,10 +358,8 @@ fn probe(
         val: Vec::new(),
     };
     for (e, c) in candidates.iter().enumerate() {
-        let mut c = c.clone().unwrap_or_default();
-        c.sort_unstable();
         for _ in elements.cols[e]..elements.cols[e + 1] {
-            for &o in &c {
+            for &o in c {
                 a.idx.extend(elements.rows[o]..elements.rows[o + 1]);
             }
             a.ptr.push(a.idx.len());
