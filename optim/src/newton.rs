@@ -408,6 +408,13 @@ fn least_squares_run(
     for iter in 0.. {
         let it = counts.iteration(iter, cur.loss, norm(&g), start);
         if let Some(stop) = observe(it, stationarity(&x, &g)) {
+            // The iterate that passed a convergence test is the answer when its loss ties
+            // the lowest one to rounding (at a fit with a residual the last steps change the
+            // loss by an ulp either way; the lowest may be an earlier, less converged point).
+            let tie = cur.loss - best.loss <= 8.0 * f64::EPSILON * best.loss.abs();
+            if matches!(stop, Stop::Converged(_)) && tie {
+                best = point(cur.loss, &x, &g);
+            }
             return Ok((best, End::Stop(stop)));
         }
         if iter == config.max_iters {

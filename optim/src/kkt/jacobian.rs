@@ -258,9 +258,14 @@ fn probe(
     let (col_el, row_el) = (elements.cols.len() - 1, elements.rows.len() - 1);
     let cols = elements.cols[col_el];
     let rows = elements.rows[row_el];
-    if col_el < 4 * GROUPS {
+    // Probing takes a few rounds of groups (about 200 to 550 sweeps on a cloth): below 16
+    // rounds' worth of columns, one pass per column is as cheap.
+    if col_el < 4 * GROUPS || cols < 16 * GROUPS {
         return Ok(None);
     }
+    // Probing that would take three quarters of the columns' passes gives up (then the
+    // columns are taken one by one: at most 1.75 times their passes in all).
+    let over = |passes: usize, groups: usize| 4 * (passes + groups) > 3 * cols;
     let mut row_element = vec![0; rows];
     for (e, w) in elements.rows.windows(2).enumerate() {
         row_element[w[0]..w[1]].iter_mut().for_each(|r| *r = e);
@@ -323,7 +328,7 @@ fn probe(
             break (members, moved);
         }
         groups *= 4;
-        if 4 * groups > col_el || *passes + groups >= cols {
+        if 4 * groups > col_el || over(*passes, groups) {
             return Ok(None);
         }
     };
@@ -335,7 +340,7 @@ fn probe(
         }
     }
     loop {
-        if *passes + groups >= cols {
+        if over(*passes, groups) {
             return Ok(None);
         }
         let (members, moved) = round(groups, passes)?;
@@ -574,7 +579,7 @@ mod tests {
     /// A large Jacobian's pattern is found by probing: the band and the dense column exactly
     /// (four colours), the values those of unit seeds, in a few rounds of passes instead of
     /// one per column; a probe's entry outside the band is found too, and a dense Jacobian
-    /// falls back to one pass per column after one round.
+    /// falls back to one pass per column after two rounds.
     #[test]
     fn a_large_pattern_is_found_by_probing() {
         let n = 2000;
@@ -602,7 +607,7 @@ mod tests {
             }
         }
         // Dense: every row reads every column.
-        let m = 400;
+        let m = 800;
         let dense = |v: &[f64]| -> Vec<f64> {
             let s: f64 = v.iter().sum();
             (0..m).map(|i| s + i as f64 * v[i]).collect()
@@ -614,7 +619,11 @@ mod tests {
         };
         let (mut pattern, mut passes) = (None, 0);
         jac(&dense, &scalars, &mut pattern, &mut passes);
-        assert_eq!(passes, GROUPS + m, "one round, then one pass per column");
+        assert_eq!(
+            passes,
+            GROUPS + 4 * GROUPS + m,
+            "a round, one with four times the groups, then one pass per column"
+        );
     }
 
     /// A row that reads every column (a residual on a sum) is left out of the colouring and

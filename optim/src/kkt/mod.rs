@@ -47,8 +47,8 @@ impl Optimizer<'_> {
     /// the residuals at `x`. At the first step the sparsity pattern is found by probing:
     /// rounds of 32 passes, each seeded on a random group of the unknowns' elements (an
     /// equation a probe leaves at zero reads none of them), until a round rules out nothing
-    /// (a system of fewer than 128 elements, or one the probes find dense, takes one pass per
-    /// unknown instead). Then one pass per colour of the columns (columns that share no row
+    /// (a system of fewer than 512 unknowns or 128 elements, or one the probes find dense,
+    /// takes one pass per unknown instead). Then one pass per colour of the columns (columns that share no row
     /// are seeded together: a few dozen for a cloth, whatever its size), checked by two more
     /// passes along random directions. If the check fails (the pattern changed: a contact
     /// started touching), the step takes the columns one by one again and the pattern grows.
