@@ -147,6 +147,13 @@ impl Curvature {
     }
 }
 
+/// Zeroes the components of `v` marked in `pinned` (parameters held at a bound).
+pub(crate) fn zero_pinned(v: &mut [f64], pinned: Option<&[bool]>) {
+    for (v, _) in v.iter_mut().zip(pinned.unwrap_or(&[])).filter(|(_, p)| **p) {
+        *v = 0.0;
+    }
+}
+
 /// Preconditioned conjugate gradients on `(A + shift I) d = -g`, `A v` given by `apply`
 /// (symmetric positive semidefinite), preconditioned by `memory` and adding the products it
 /// computes to it: at most `iters` iterations, to `|(A + shift I) d + g| <= tol |g|`; stops
@@ -163,11 +170,7 @@ pub(crate) fn cg(
     apply: &mut Apply<'_>,
 ) -> Result<Vec<f64>, Error> {
     let n = g.len();
-    let mask = |v: &mut [f64]| {
-        for (v, _) in v.iter_mut().zip(pinned.unwrap_or(&[])).filter(|(_, p)| **p) {
-            *v = 0.0;
-        }
-    };
+    let mask = |v: &mut [f64]| zero_pinned(v, pinned);
     let mut d = vec![0.0; n];
     let mut r: Vec<f64> = g.iter().map(|x| -x).collect();
     mask(&mut r);

@@ -9,7 +9,7 @@ use std::time::Instant;
 use adflex_runtime::second_order::{hvp, Hvp};
 use adflex_runtime::{AnyArray, Array, Element, Error, Tape};
 
-use crate::cg::{cg, Curvature, Forcing, LEAST_SQUARES_FORCING, NEWTON_FORCING};
+use crate::cg::{cg, zero_pinned, Curvature, Forcing, LEAST_SQUARES_FORCING, NEWTON_FORCING};
 use crate::{norm, Best, Counts, End, Method, Observe, Optimizer, Params, Stop};
 
 impl Optimizer<'_> {
@@ -498,16 +498,10 @@ fn least_squares_run(
                     None => {
                         // The curvature along the gradient (of the parameters not pinned at a
                         // bound) sets the damping's scale.
-                        let pin = |v: &mut Vec<f64>| {
-                            for (v, _) in v.iter_mut().zip(pinned.iter().flatten()).filter(|p| *p.1)
-                            {
-                                *v = 0.0;
-                            }
-                        };
                         let mut g = g.clone();
-                        pin(&mut g);
+                        zero_pinned(&mut g, pinned.as_deref());
                         let mut jg = gn(&mut cur, &g)?;
-                        pin(&mut jg);
+                        zero_pinned(&mut jg, pinned.as_deref());
                         memory.push(&g, &jg);
                         let q = dot(&g, &jg) / dot(&g, &g).max(f64::MIN_POSITIVE);
                         (rel * q).max(f64::MIN_POSITIVE)

@@ -4,8 +4,8 @@
 //! the input elements seeded at once; an output element a probe leaves at zero is not touched
 //! by any element of the group), which takes a few rounds of [`GROUPS`] passes where one pass
 //! per column would take thousands; a small Jacobian, or one the probes find dense, is taken
-//! one pass per column instead (a unit seed). After that the columns are coloured so that no two of one colour share a row
-//! (Curtis, Powell and Reid's compression), and one pass per colour, seeded on all of its
+//! one pass per column instead (a unit seed). After that the columns are coloured so that no
+//! two of one colour share a row (Curtis, Powell and Reid's compression), and one pass per colour, seeded on all of its
 //! columns, gives every column of that colour at once: a cloth's stiffness takes a few dozen
 //! passes instead of three per particle. The pattern is the values' at the point it was found
 //! (a contact may start touching later), so each compressed Jacobian is checked by two more
@@ -231,6 +231,24 @@ pub(super) fn jacobian(
     Ok(a)
 }
 
+/// The next state of a xorshift64 generator (the probes' and the checks' fixed sequences).
+fn xorshift(state: &mut u64) -> u64 {
+    *state ^= *state >> 12;
+    *state ^= *state << 25;
+    *state ^= *state >> 27;
+    *state
+}
+
+/// A weight in `±[0.5, 1.5)` from the high 24 bits of `bits` (exact in `f32`), negative if
+/// `negative`.
+fn weight(bits: u64, negative: bool) -> f64 {
+    let u = (bits >> 40) as f64 / (1u64 << 24) as f64;
+    (0.5 + u) * if negative { -1.0 } else { 1.0 }
+}
+
+/// xorshift64*'s multiplier.
+const STAR: u64 = 0x2545_f491_4f6c_dd1d;
+
 /// Groups of input elements per round of probing (more when a probe moves too many rows).
 pub(super) const GROUPS: usize = 32;
 
@@ -270,18 +288,9 @@ fn probe(
     for (e, w) in elements.rows.windows(2).enumerate() {
         row_element[w[0]..w[1]].iter_mut().for_each(|r| *r = e);
     }
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut random = move || {
-        // xorshift64*
-        state ^= state >> 12;
-        state ^= state << 25;
-        state ^= state >> 27;
-        state.wrapping_mul(0x2545_f491_4f6c_dd1d)
-    };
-    let weight = |r: u64| {
-        let u = (r >> 40) as f64 / (1u64 << 24) as f64;
-        (0.5 + u) * if r & 1 == 0 { 1.0 } else { -1.0 }
-    };
+    let mut state = STAR;
+    // xorshift64*
+    let mut random = move || xorshift(&mut state).wrapping_mul(STAR);
     let mut mark = vec![usize::MAX; row_el];
     let mut seed = vec![0.0; cols];
     let mut probes = 0usize;
@@ -298,7 +307,8 @@ fn probe(
         for (g, members) in members.iter().enumerate().filter(|(_, m)| !m.is_empty()) {
             for &e in members {
                 for s in &mut seed[elements.cols[e]..elements.cols[e + 1]] {
-                    *s = weight(random());
+                    let r = random();
+                    *s = weight(r, r & 1 == 1);
                 }
             }
             let t = forward(&seed)?;
@@ -473,12 +483,8 @@ fn agrees(
     p.probes.set(probes + 1);
     let mut state = 0x9e37_79b9_7f4a_7c15u64 ^ probes.wrapping_mul(0xbf58_476d_1ce4_e5b9);
     let mut random = || {
-        // xorshift64*
-        state ^= state >> 12;
-        state ^= state << 25;
-        state ^= state >> 27;
-        let u = (state.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f64 / (1u64 << 24) as f64;
-        (0.5 + u) * if state & 1 == 0 { 1.0 } else { -1.0 }
+        let s = xorshift(&mut state);
+        weight(s.wrapping_mul(STAR), s & 1 == 1)
     };
     for scaled in [true, false] {
         let v: Vec<f64> = (0..a.cols())
