@@ -462,6 +462,7 @@ pub(crate) fn finalize<R: Real>(
             };
             dof.limit_k.push(k);
             dof.limit_b.push(b);
+            dof.limit_m.push(1.0);
             dof.limit_imp.push(Vec3::new(dmin, dmax, width));
         }
     }
@@ -588,6 +589,7 @@ pub(crate) fn finalize<R: Real>(
         limit_ke: r(b.limit_ke),
         limit_kd: r(b.limit_kd),
         fluid_on: b.fluid.is_some(),
+        limit_refsafe: b.limit_refsafe,
         implicit_damping: b.implicit_damping,
         integrator: b.integrator,
         fluid_density: rs(&[b.fluid.map_or(0.0, |f| f.density)]),
@@ -671,6 +673,7 @@ pub(crate) fn finalize<R: Real>(
         upper: rs(&dof.upper),
         limit_k: rs(&dof.limit_k),
         limit_b: rs(&dof.limit_b),
+        limit_m: rs(&dof.limit_m),
         limit_imp: Array::from_vec(dof.limit_imp.iter().map(v3).collect()),
         m_len,
         shapes: LinkShapes::new(b.contact_shapes(), |l| new_index[l]),
@@ -931,6 +934,7 @@ fn scale_limits<R: Real>(model: &Articulations<R>, m: &[R]) {
             let inertia = R::lit(1.0 / inv[(i, i)]);
             model.limit_k.set(d, model.limit_k.get(d) * inertia);
             model.limit_b.set(d, model.limit_b.get(d) * inertia);
+            model.limit_m.set(d, inertia);
         }
     }
 }
@@ -953,6 +957,7 @@ struct DofArrays {
     upper: Vec<f64>,
     limit_k: Vec<f64>,
     limit_b: Vec<f64>,
+    limit_m: Vec<f64>,
     limit_imp: Vec<Vec3<f64>>,
 }
 

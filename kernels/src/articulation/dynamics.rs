@@ -559,8 +559,6 @@ impl<R: Real> Articulations<R> {
                 self.limit_ke,
                 self.limit_kd,
                 &self.limit_k,
-                &self.limit_b,
-                &self.limit_imp,
                 dt,
                 match (self.integrator, self.implicit_damping) {
                     (ArticulationIntegrator::ImplicitFast, _) | (_, true) => dt,
@@ -923,7 +921,133 @@ impl<R: Real> Articulations<R> {
                 ..PassInput::new(&state.q, &state.qd, &control.tau)
             },
         );
-        self.solve(tape, &p.m, &p.rhs)
+        let side = self.violated_limits(&state.q);
+        if side.iter().all(|&s| s == 0) {
+            return self.solve(tape, &p.m, &p.rhs);
+        }
+        self.limit_constraints(tape, state, &p, side, dt)
+    }
+
+    /// Which time-constant limits ([`Joint::limit_time_constant`](super::Joint)) `q`
+    /// violates, per velocity: 1 below the lower limit, 2 above the upper, 0 neither (or a
+    /// penalty limit, or no limit).
+    fn violated_limits(&self, q: &Array<R>) -> Vec<u32> {
+        let (q, k) = (q.to_vec(), self.limit_k.to_vec());
+        let (lo, hi) = (self.lower.to_vec(), self.upper.to_vec());
+        let (dof_q, scalar) = (self.dof_q.to_vec(), self.dof_scalar.to_vec());
+        (0..self.n_dof)
+            .map(|a| {
+                let x = q[dof_q[a] as usize].to_f64();
+                match scalar[a] == 1 && k[a].to_f64() != 0.0 {
+                    true if x < lo[a].to_f64() => 1,
+                    true if x > hi[a].to_f64() => 2,
+                    _ => 0,
+                }
+            })
+            .collect()
+    }
+
+    /// The accelerations with the violated time-constant limits `side` as MuJoCo's soft
+    /// constraints, as MuJoCo's step: the constraint forces `g >= 0` (into the range) from the
+    /// mass matrix `M` alone and the pass's right-hand side, then `qdd` from the pass's matrix
+    /// (with a step's implicit terms) and `rhs + g` (the constraint force explicit). The forces
+    /// come from one solve ([`articulation_limit_system`]); a limit whose force would pull is
+    /// dropped, and a dropped one whose acceleration falls below its reference is taken back,
+    /// until neither happens (MuJoCo's solver's optimum of the soft constraints' problem).
+    fn limit_constraints(
+        &self,
+        tape: &mut Tape,
+        state: &ArticulationState<R>,
+        p: &Pass<R>,
+        side: Vec<u32>,
+        dt: R,
+    ) -> Result<Array<R>, Error> {
+        let nd = self.n_dof;
+        let (mu, aref) = (Array::<R>::zeros(nd), Array::<R>::zeros(nd));
+        let min_tc = match self.limit_refsafe {
+            true => dt * R::lit(2.0),
+            false => R::lit(0.0),
+        };
+        let side_a = Array::from_vec(side.clone());
+        tape.launch(
+            articulation_limit_constraint,
+            nd,
+            (
+                &side_a,
+                &self.dof_q,
+                &state.q,
+                &state.qd,
+                &self.lower,
+                &self.upper,
+                &self.limit_k,
+                &self.limit_b,
+                &self.limit_m,
+                &self.limit_imp,
+                min_tc,
+                &mu,
+                &aref,
+            ),
+        );
+        // `M` alone: a step's pass has its implicit terms on the diagonal (RK4's stages, with
+        // `dt` 0, have none).
+        let implicit = dt.to_f64() > 0.0;
+        let m = match implicit {
+            true => {
+                let z = Array::zeros(nd);
+                self.pass(tape, PassInput::new(&state.q, &z, &z)).m
+            }
+            false => p.m.clone(),
+        };
+        let aref_v = aref.to_vec();
+        let mut on: Vec<u32> = side.iter().map(|&s| (s != 0) as u32).collect();
+        for round in 0usize.. {
+            // Past this many rounds (a cycle, not met in practice) limits are only dropped,
+            // which ends.
+            let drop_only = round > 2 * nd + 2;
+            let on_a = Array::from_vec(on.clone());
+            let (m_c, rhs_c) = (Array::<R>::zeros(m.len()), Array::<R>::zeros(nd));
+            tape.launch(crate::tied::slice_scalar, m.len(), (&m, 0usize, &m_c));
+            tape.launch(
+                articulation_limit_system,
+                nd,
+                (
+                    &on_a,
+                    &self.dof_m_row,
+                    &self.dof_art_start,
+                    &mu,
+                    &aref,
+                    &p.rhs,
+                    &m_c,
+                    &rhs_c,
+                ),
+            );
+            let x = self.solve(tape, &m_c, &rhs_c)?;
+            let xv = x.to_vec();
+            // Into the range (`s (aref - x) > 0`): a force that pushes, or a dropped limit
+            // whose acceleration is below its reference.
+            let next: Vec<u32> = (0..nd)
+                .map(|a| {
+                    let s = if side[a] == 2 { -1.0 } else { 1.0 };
+                    let push = s * (aref_v[a].to_f64() - xv[a].to_f64());
+                    (side[a] != 0 && push > 0.0 && (on[a] == 1 || !drop_only)) as u32
+                })
+                .collect();
+            if next == on {
+                let rhs_g = Array::<R>::zeros(nd);
+                tape.launch(
+                    articulation_limit_force,
+                    nd,
+                    (&on_a, &mu, &aref, &x, &p.rhs, &rhs_g),
+                );
+                if !implicit {
+                    // The pass's matrix is `M`: `x` is the step's acceleration already.
+                    return Ok(x);
+                }
+                return self.solve(tape, &p.m, &rhs_g);
+            }
+            on = next;
+        }
+        unreachable!("the rounds end once the set of limits settles")
     }
 
     /// MuJoCo's RK4 (`mj_RungeKutta`, as in MuJoCo 4): four explicit evaluations, each stage's

@@ -221,9 +221,8 @@ pub fn articulation_link_dynamics<R: Real>(
 /// `+ kp (q_target - q) + kv (qd_target - qd) - damping qd - stiffness (q - spring_ref) +
 /// limit` (PD, spring and limit terms on revolute and prismatic joints, `dof_q[d]` their
 /// coordinate; the limit pushes back by `ke (lower - q) - kd qd` below `lower`, likewise above
-/// `upper`, with `ke = limit_ke`, `kd = limit_kd`, or, where `limit_k[a]` is not 0,
-/// `ke = d^2 limit_k[a]`, `kd = d limit_b[a]` with `d` the impedance at that depth, MuJoCo's
-/// `solimp` function of `limit_imp[a] = (dmin, dmax, width)`, midpoint 0.5 and power 2).
+/// `upper`, with `ke = limit_ke`, `kd = limit_kd`, where `limit_k[a]` is 0: the other limits
+/// are MuJoCo's constraint, [`articulation_limit_constraint`], solved after).
 /// With `dt > 0` (a step), a violated limit is integrated implicitly: `dt kd + dt^2 ke` joins
 /// `M[a][a]` and `-dt ke qd` the right-hand side (backward Euler of the limit's spring and
 /// damper, linearized). The joint damping is implicit too when `damp_dt` is the step's `dt`
@@ -268,8 +267,6 @@ pub fn articulation_joint_space<R: Real>(
     limit_ke: R,
     limit_kd: R,
     limit_k: &Array<R>,
-    limit_b: &Array<R>,
-    limit_imp: &Array<Vec3<R>>,
     dt: R,
     damp_dt: R,
     kv_dt: R,
@@ -342,29 +339,117 @@ pub fn articulation_joint_space<R: Real>(
             f = f + kp[a] * (target_q[a] - x) + kv[a] * (target_qd[a] - v)
                 - stiffness[a] * (x - spring_ref[a]);
             extra = extra + kv[a] * kv_dt;
-            if x < lower[a] || x > upper[a] {
+            if limit_k[a] == 0.0 && (x < lower[a] || x > upper[a]) {
                 let past = select(x < lower[a], lower[a], upper[a]);
-                let mut ke = limit_ke;
-                let mut kd = limit_kd;
-                if limit_k[a] != 0.0 {
-                    let imp = limit_imp[a];
-                    // MuJoCo's impedance: from dmin at the limit to dmax at `width` past it.
-                    let s = min(abs(past - x) / imp.z, 1.0);
-                    let mut y = 2.0 * s * s;
-                    if s > 0.5 {
-                        y = 1.0 - 2.0 * (1.0 - s) * (1.0 - s);
-                    }
-                    let d = imp.x + y * (imp.y - imp.x);
-                    ke = limit_k[a] * d * d;
-                    kd = limit_b[a] * d;
-                }
-                f = f + ke * (past - x) - kd * v - ke * v * dt;
-                extra = extra + (kd + ke * dt) * dt;
+                f = f + limit_ke * (past - x) - limit_kd * v - limit_ke * v * dt;
+                extra = extra + (limit_kd + limit_ke * dt) * dt;
             }
         }
     }
     m[row + a - first] = m_aa + extra;
     rhs[a] = f;
+}
+
+/// MuJoCo's soft limit constraint of velocity `tid`, for a time-constant limit
+/// ([`Joint::limit_time_constant`](super::Joint::limit_time_constant)) that `side` says is
+/// violated (1 below `lower`, 2 above `upper`, 0 none): its regularization's inverse `mu = 1 /
+/// R = d m / (1 - d)` and its reference acceleration `aref = s (-b s qd - k d r)` in the
+/// joint's direction (`s` +1 at the lower limit, -1 at the upper; `r = s (q - limit) < 0`;
+/// `k = limit_k / m`, `b = limit_b / m`, `m = limit_m`; `d` the impedance at depth `r`,
+/// MuJoCo's `solimp` function of `limit_imp = (dmin, dmax, width)`, midpoint 0.5 and power 2).
+/// With `min_tc > 0` (MuJoCo's `refsafe`), a time constant `2 / (dmax b)` under `min_tc` is
+/// raised to it (`b` scaled by their ratio, `k` by its square). 0 and 0 where `side` is 0.
+#[diff_kernel]
+pub fn articulation_limit_constraint<R: Real>(
+    side: &Array<u32>,
+    dof_q: &Array<u32>,
+    q: &Array<R>,
+    qd: &Array<R>,
+    lower: &Array<R>,
+    upper: &Array<R>,
+    limit_k: &Array<R>,
+    limit_b: &Array<R>,
+    limit_m: &Array<R>,
+    limit_imp: &Array<Vec3<R>>,
+    min_tc: R,
+    mu: &Array<R>,
+    aref: &Array<R>,
+) {
+    let a = tid();
+    let which = side[a];
+    if which != 0 {
+        let x = q[dof_q[a] as usize];
+        let mut s = x * 0.0 + 1.0;
+        let mut r = x - lower[a];
+        if which == 2 {
+            s = x * 0.0 - 1.0;
+            r = upper[a] - x;
+        }
+        let imp = limit_imp[a];
+        // The impedance: from dmin at the limit to dmax at `width` past it.
+        let w = min(abs(r) / imp.z, 1.0);
+        let mut y = 2.0 * w * w;
+        if w > 0.5 {
+            y = 1.0 - 2.0 * (1.0 - w) * (1.0 - w);
+        }
+        let d = imp.x + y * (imp.y - imp.x);
+        let m = limit_m[a];
+        let mut k = limit_k[a] / m;
+        let mut b = limit_b[a] / m;
+        // The time constant is 2 / (dmax b); compared without dividing by b (it may be 0).
+        if min_tc * imp.y * b > 2.0 {
+            let ratio = 2.0 / (min_tc * imp.y * b);
+            b = b * ratio;
+            k = k * ratio * ratio;
+        }
+        mu[a] = d * m / (1.0 - d);
+        aref[a] = s * (0.0 - b * s * qd[a] - k * d * r);
+    }
+}
+
+/// The system of a constraint solve, for velocity `tid`: `m_c = m + mu` on the diagonal and
+/// `rhs_c = rhs + mu aref` where `on[tid]` is 1 (`m_c` holds a copy of `m`; its row `tid`
+/// starts at `m_row[tid]`, its articulation's first velocity is `art_start[tid]`). By the
+/// Woodbury identity the solution `x` of `m_c x = rhs_c` is `m^-1 (rhs + g)` with the
+/// constraint forces `g = mu (aref - x)` of [`articulation_limit_force`].
+#[diff_kernel]
+pub fn articulation_limit_system<R: Real>(
+    on: &Array<u32>,
+    m_row: &Array<u32>,
+    art_start: &Array<u32>,
+    mu: &Array<R>,
+    aref: &Array<R>,
+    rhs: &Array<R>,
+    m_c: &Array<R>,
+    rhs_c: &Array<R>,
+) {
+    let a = tid();
+    if on[a] == 1 {
+        m_c.atomic_add(m_row[a] as usize + a - art_start[a] as usize, mu[a]);
+        rhs_c[a] = rhs[a] + mu[a] * aref[a];
+    } else {
+        rhs_c[a] = rhs[a];
+    }
+}
+
+/// The constraint force of velocity `tid` from a constraint solve's `x`
+/// ([`articulation_limit_system`]): `g = mu (aref - x)` where `on[tid]` is 1, else 0, and
+/// `rhs_g = rhs + g`.
+#[diff_kernel]
+pub fn articulation_limit_force<R: Real>(
+    on: &Array<u32>,
+    mu: &Array<R>,
+    aref: &Array<R>,
+    x: &Array<R>,
+    rhs: &Array<R>,
+    rhs_g: &Array<R>,
+) {
+    let a = tid();
+    let mut g = rhs[a] * 0.0;
+    if on[a] == 1 {
+        g = mu[a] * (aref[a] - x[a]);
+    }
+    rhs_g[a] = rhs[a] + g;
 }
 
 /// The inverse dynamics' force of velocity `tid`: the links' `tau_id` plus the armature's

@@ -34,7 +34,7 @@
 //! `<tendon>` with `<fixed>` tendons (no limits or friction): a spring and damper with `stiffness`,
 //! `damping` and `springlength` ([`TendonSpring`]), and what actuators may drive. A limit follows
 //! the joint's `solreflimit` and `solimplimit` (MuJoCo's defaults `0.02 1` and `0.9 0.95 0.001`;
-//! the time constant at least twice the time step unless `<flag refsafe="disable">`), as
+//! a step's time constant at least twice its `dt` unless `<flag refsafe="disable">`), as
 //! [`Joint::limit_time_constant`] describes. Anything else is an error naming the element and its
 //! line: MuJoCo would simulate it, and silently dropping it would simulate a different robot.
 //!
@@ -185,11 +185,6 @@ struct Reader<'a> {
     world_shapes: Vec<(Geom, ContactFilter)>,
     /// `<compiler settotalmass>`, when positive.
     total_mass: Option<f64>,
-    /// `<option timestep>` (MuJoCo's default 2 ms): MuJoCo's `refsafe` keeps a limit's time
-    /// constant at least twice it.
-    timestep: f64,
-    /// `<flag refsafe>` (on by default).
-    refsafe: bool,
     /// `<flag clampctrl>` (on by default): controls are clamped to their `ctrlrange`.
     clamp_ctrl: bool,
     /// The named fixed tendons: their joints' links and coefficients.
@@ -339,8 +334,6 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         no_actuation: false,
         world_shapes: Vec::new(),
         total_mass: None,
-        timestep: 0.002,
-        refsafe: true,
         clamp_ctrl: true,
         tendons: HashMap::new(),
     };
@@ -413,7 +406,7 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
                 )?;
                 // A later <option> without these attributes keeps what an earlier one set.
                 if let Some(t) = r.src.number(*n, "timestep")? {
-                    (timestep, r.timestep) = (Some(t), t);
+                    timestep = Some(t);
                 }
                 r.builder.integrator = match n.attribute("integrator") {
                     None => r.builder.integrator,
@@ -764,7 +757,7 @@ impl<'a> Reader<'a> {
                 ("limit", false) => self.no_limits = true,
                 ("constraint", false) => (self.no_contact, self.no_limits) = (true, true),
                 ("gravity", false) => self.builder.gravity = Vec3::zeros(),
-                ("refsafe", e) => self.refsafe = e,
+                ("refsafe", e) => self.builder.limit_refsafe = e,
                 ("eulerdamp", e) => self.builder.implicit_damping = e,
                 ("clampctrl", e) => self.clamp_ctrl = e,
                 ("spring", e) => self.no_spring = !e,
@@ -1365,6 +1358,7 @@ impl<'a> Reader<'a> {
             return Err(self.src.error(n, format!("margin {margin} is negative")));
         }
         let limited = self.attr(n, class, "limited").unwrap_or("auto");
+        self.keyword(n, "limited", limited)?;
         if let Some(r) = range {
             if limited != "false" && (kind == "hinge" || kind == "slide") {
                 let s = |x| if kind == "hinge" { self.angle(x) } else { x };
@@ -1397,12 +1391,7 @@ impl<'a> Reader<'a> {
                             ),
                         ));
                     }
-                    // MuJoCo's `refsafe`: a time constant at least twice the time step.
-                    let tc = if self.refsafe {
-                        tc.max(2.0 * self.timestep)
-                    } else {
-                        tc
-                    };
+                    // (MuJoCo's `refsafe` applies at each step: `builder.limit_refsafe`.)
                     j = j.limit_time_constant(tc, zeta);
                     if let Some(v) = self.nums(n, class, "solimplimit", &[3, 4, 5])? {
                         if v.len() > 3 && (v[3] != 0.5 || v.get(4).is_some_and(|&p| p != 2.0)) {
@@ -1902,6 +1891,17 @@ impl<'a> Reader<'a> {
         })
     }
 
+    /// Refuses a `limited`-style attribute that is not MuJoCo's `true`, `false` or `auto`.
+    fn keyword(&self, n: Node, attr: &str, value: &str) -> Result<(), ArticulationError> {
+        match value {
+            "true" | "false" | "auto" => Ok(()),
+            v => Err(self.src.error(
+                n,
+                format!("{attr}=\"{v}\": MuJoCo's keywords are true, false and auto"),
+            )),
+        }
+    }
+
     /// `ctrlrange`/`ctrllimited` (`what` "ctrl") or `forcerange`/`forcelimited` ("force"), as
     /// MuJoCo reads them: `"auto"` (the default) limits a range with lower < upper.
     fn range(
@@ -1913,6 +1913,7 @@ impl<'a> Reader<'a> {
         let limited = self
             .attr(n, class, &format!("{what}limited"))
             .unwrap_or("auto");
+        self.keyword(n, &format!("{what}limited"), limited)?;
         Ok(match self.nums(n, class, &format!("{what}range"), &[2])? {
             Some(r) if limited != "false" => {
                 if r[0] > r[1] || (r[0] == r[1] && limited == "true") {

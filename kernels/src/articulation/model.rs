@@ -215,19 +215,29 @@ impl Joint {
         self
     }
 
-    /// Makes the limits push back as MuJoCo's (`solreflimit="time_constant damping_ratio"`,
-    /// MuJoCo's default `0.02 1`): past a limit by `r` at velocity `v`, the joint gets
-    /// `-m d (2 v / (dmax tc) + d r / (dmax tc zeta)^2)`, with `m = 1 / (M^-1)[j][j]` the
-    /// joint's inertia as a limit sees it at the neutral configuration (MuJoCo's
-    /// `dof_invweight0`) and `d` the impedance ([`Joint::limit_impedance`]; `dmax` beyond its
-    /// width). A light link and a heavy one come back alike, in about `tc`. (The builder's
-    /// `limit_ke`, `limit_kd` are one stiffness for every joint: a light link pressed far past
-    /// its limit snaps back, and needs a small step.) An `Euler` or `ImplicitFast` step
-    /// integrates both kinds implicitly (the limit's stiffness and damping join the mass
-    /// matrix's diagonal times `dt^2` and `dt`), so that they are stable at any `dt`; `Rk4`'s
-    /// stages apply them explicitly. Unlike MuJoCo's limit constraint, this one
-    /// does not cancel the load pressing into it: a steady load sags past the limit by
-    /// `load / stiffness` (about 20 times more than in MuJoCo with its defaults).
+    /// Makes the limits push back as MuJoCo's limit constraint
+    /// (`solreflimit="time_constant damping_ratio"`, MuJoCo's default `0.02 1`;
+    /// [`Joint::limit_impedance`] is its `solimplimit`). Past a limit by `r < 0` (measured into
+    /// the range: `q - lower` or `upper - q`) at the velocity `u` into the range (`qd` or
+    /// `-qd`), the constraint asks for the acceleration `a_ref = -b u - k d r`, with
+    /// `k = 1 / (dmax tc zeta)^2`, `b = 2 / (dmax tc)` and `d` the impedance at that depth, and
+    /// pushes with the force `f = (a_ref - a0) / (A + R) >= 0` into the range: `a0` is the
+    /// acceleration the joint would have without it, `A = (M^-1)[j][j]`, and
+    /// `R = (1 - d) / (d m)` with `m = 1 / (M^-1)[j][j]` at the neutral configuration (MuJoCo's
+    /// `dof_invweight0`, the model's [`limit_m`](Articulations::limit_m)). Violated limits
+    /// are solved together (forces that would pull are dropped, as MuJoCo's solver does), so:
+    /// - a light link and a heavy one come back alike, in about `tc`;
+    /// - a steady load pressing into the limit is cancelled but for about `1 - d` of it (the
+    ///   joint sags past the limit by `(1 - d) a0 / (d^2 k)`, as in MuJoCo);
+    /// - the force is explicit (from the step's start, as MuJoCo's); with
+    ///   [`ArticulationBuilder::limit_refsafe`] (the default) a step uses a time constant of at
+    ///   least `2 dt`, which keeps it stable at any step.
+    ///
+    /// `Euler` and `ImplicitFast` steps solve with the implicit damping terms on the mass
+    /// matrix after the constraint (computed with `M` alone), as MuJoCo's. (The builder's
+    /// `limit_ke`, `limit_kd` are one stiffness for every joint, a penalty integrated
+    /// implicitly: a light link pressed far past its limit snaps back, and a load sags
+    /// `load / limit_ke` past it.)
     pub fn limit_time_constant(mut self, time_constant: f64, damping_ratio: f64) -> Self {
         self.limit_time = Some((time_constant, damping_ratio));
         self
@@ -403,6 +413,10 @@ pub struct ArticulationBuilder {
     pub limit_ke: f64,
     /// Damping of the joint limits while violated.
     pub limit_kd: f64,
+    /// Whether a step keeps the time constant of a [`Joint::limit_time_constant`] limit at
+    /// least twice its `dt` (default true, MuJoCo's `refsafe` flag): the limit is then stable
+    /// at any step, softer at steps longer than half its time constant.
+    pub limit_refsafe: bool,
     /// Whether an `Euler` step integrates the joint damping implicitly (default true, as
     /// MuJoCo's Euler integrator with its `eulerdamp` flag): stable for any damping at any
     /// step. (`ImplicitFast` always does, `Rk4` never: see [`ArticulationIntegrator`].)
@@ -446,6 +460,7 @@ impl ArticulationBuilder {
             gravity: Vec3::new(0.0, 0.0, -9.81),
             limit_ke: 1e4,
             limit_kd: 10.0,
+            limit_refsafe: true,
             implicit_damping: true,
             integrator: ArticulationIntegrator::Euler,
             fluid: None,
@@ -775,6 +790,7 @@ impl ArticulationBuilder {
             self.link_contact = other.link_contact;
             self.limit_ke = other.limit_ke;
             self.limit_kd = other.limit_kd;
+            self.limit_refsafe = other.limit_refsafe;
             self.implicit_damping = other.implicit_damping;
             self.integrator = other.integrator;
             self.fluid = other.fluid;
@@ -792,11 +808,12 @@ impl ArticulationBuilder {
             };
             format!(
                 "{ground}ground_filter {:?}, link_contact {}, limit_ke {}, limit_kd {}, \
-                 implicit_damping {}, integrator {:?}, fluid {:?}",
+                 limit_refsafe {}, implicit_damping {}, integrator {:?}, fluid {:?}",
                 b.ground_filter,
                 b.link_contact,
                 b.limit_ke,
                 b.limit_kd,
+                b.limit_refsafe,
                 b.implicit_damping,
                 b.integrator,
                 b.fluid
@@ -924,6 +941,7 @@ impl ArticulationBuilder {
             gravity: self.gravity,
             limit_ke: self.limit_ke,
             limit_kd: self.limit_kd,
+            limit_refsafe: self.limit_refsafe,
             implicit_damping: self.implicit_damping,
             integrator: self.integrator,
             fluid: self.fluid,
@@ -1041,6 +1059,9 @@ pub struct Articulations<R: Real> {
     pub limit_ke: R,
     /// Damping of the joint limits while violated.
     pub limit_kd: R,
+    /// Whether a step keeps a time-constant limit's time constant at least twice its `dt`
+    /// ([`ArticulationBuilder::limit_refsafe`]).
+    pub limit_refsafe: bool,
     /// Whether a step integrates the joint damping implicitly
     /// ([`ArticulationBuilder::implicit_damping`]).
     pub implicit_damping: bool,
@@ -1123,11 +1144,16 @@ pub struct Articulations<R: Real> {
     /// Per velocity: PD velocity gain.
     pub kv: Array<R>,
     /// Per velocity: a time-constant limit's stiffness and damping at full impedance, `m /
-    /// (dmax tc zeta)^2` and `2 m / (dmax tc)` ([`Joint::limit_time_constant`]); 0 for the
-    /// other joints, whose limits use `limit_ke`, `limit_kd`.
+    /// (dmax tc zeta)^2` and `2 m / (dmax tc)` ([`Joint::limit_time_constant`], `m` is
+    /// [`limit_m`](Self::limit_m)); 0 for the other joints, whose limits use `limit_ke`,
+    /// `limit_kd`.
     pub limit_k: Array<R>,
     /// See [`limit_k`](Self::limit_k).
     pub limit_b: Array<R>,
+    /// Per velocity: the joint's inertia as a time-constant limit sees it, `1 / (M^-1)[d][d]`
+    /// at the neutral configuration (MuJoCo's `1 / dof_invweight0`): it scales the limit's
+    /// regularization (see [`Joint::limit_time_constant`]).
+    pub limit_m: Array<R>,
     /// Per velocity: the limit's impedance `(dmin, dmax, width)` ([`Joint::limit_impedance`]).
     pub limit_imp: Array<Vec3<R>>,
     /// Per velocity: lower limit (`-inf` when none).

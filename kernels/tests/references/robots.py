@@ -21,6 +21,8 @@ ROBOTS = HERE.parent.parent / "robots"
 RNG = np.random.default_rng(20261126)
 # The external wrenches' draws, apart so that the other references keep their states.
 WRENCH_RNG = np.random.default_rng(20261129)
+# The rollouts with limits', likewise.
+LIMIT_RNG = np.random.default_rng(20261207)
 
 
 def quat_xyzw(rng):
@@ -207,6 +209,52 @@ def mujoco_rollout(model, data, kinds, integrator, steps=200):
     return out
 
 
+def mujoco_limit_rollout(file, kinds, integrator, steps=200):
+    """As `mujoco_rollout`, with the joint limits on (contact still off): every limited joint
+    starts up to 5% of its range past one of its limits, moving into it, under gravity and
+    random controls within their ranges. MuJoCo's solver runs to convergence (tolerance
+    1e-15), so the soft constraints' forces are its exact optimum. Also the number of steps
+    that had an active limit."""
+    model = mujoco.MjModel.from_xml_path(str(ROBOTS / file))
+    data = mujoco.MjData(model)
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    model.opt.timestep = min(model.opt.timestep, 0.002)
+    model.opt.tolerance = 1e-15
+    model.opt.iterations = 1000
+    model.opt.integrator = int({"Euler": mujoco.mjtIntegrator.mjINT_EULER,
+                                "RK4": mujoco.mjtIntegrator.mjINT_RK4,
+                                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}[integrator])
+    q, v = random_state(kinds, LIMIT_RNG)
+    for j, kind in enumerate(kinds):
+        if kind in ("revolute", "prismatic") and model.jnt_limited[j]:
+            lo, hi = model.jnt_range[j]
+            a, d = model.jnt_qposadr[j], model.jnt_dofadr[j]
+            past = LIMIT_RNG.uniform(0, 0.05) * (hi - lo)
+            if LIMIT_RNG.uniform() < 0.5:
+                q[a], v[d] = lo - past, -abs(v[d])
+            else:
+                q[a], v[d] = hi + past, abs(v[d])
+    ctrl = []
+    for u in range(model.nu):
+        lo, hi = model.actuator_ctrlrange[u] if model.actuator_ctrllimited[u] else (-1, 1)
+        ctrl.append(LIMIT_RNG.uniform(lo, hi))
+    mujoco.mj_resetData(model, data)
+    data.qpos[:], data.qvel[:], _ = to_mujoco(model, kinds, q, v)
+    data.ctrl[:] = ctrl
+    out = {"integrator": integrator, "dt": model.opt.timestep, "q0": q.tolist(), "qd0": v.tolist(), "ctrl": ctrl,
+           "every": 50, "q": [], "qd": [], "steps_with_limits": 0}
+    for k in range(1, steps + 1):
+        mujoco.mj_step(model, data)
+        if data.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number:
+            raise RuntimeError("the reference rollout blew up")
+        out["steps_with_limits"] += int(data.nefc > 0)
+        if k % 50 == 0:
+            qa, va = from_mujoco(model, kinds, data.qpos, data.qvel)
+            out["q"].append(qa.tolist())
+            out["qd"].append(va.tolist())
+    return out
+
+
 def wrench_reference(model, data, T, tdot):
     """MuJoCo's acceleration (in adflex's velocities) at the state in `data` with no joint
     torque, no control, contact, limits and equality constraints off, and a random wrench
@@ -301,6 +349,10 @@ def mujoco_reference(file, n_random=4):
         "rollouts": [mujoco_rollout(model, data, kinds, i) for i in ["Euler", "RK4", "implicitfast"]
                      if i != "implicitfast" or (model.opt.density == 0 and model.opt.viscosity == 0)],
         "body_mass": model.body_mass[1:].tolist(),
+        # The same with the joint limits on (MuJoCo's soft constraints).
+        "limit_rollouts": [mujoco_limit_rollout(file, kinds, i) for i in ["Euler", "RK4", "implicitfast"]
+                           if model.jnt_limited.any()
+                           and (i != "implicitfast" or (model.opt.density == 0 and model.opt.viscosity == 0))],
     }
 
 
