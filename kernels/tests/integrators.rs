@@ -834,6 +834,74 @@ fn jacobian_products_name_their_mistakes() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("is given twice"), "{err}");
+    // A direction or a seed that is not finite, naming the entry.
+    let mut v = [0.0; 5];
+    v[3] = f64::NAN;
+    let err = tape.jvp(&[&ke], &v, &[&s2.x]).unwrap_err().to_string();
+    assert!(
+        err.contains("Tape::jvp: v[3]") && err.contains("not finite"),
+        "{err}"
+    );
+    let mut w = [0.0; 12];
+    w[7] = f64::INFINITY;
+    let err = tape.vjp(&[&s2.x], &w, &[&ke]).unwrap_err().to_string();
+    assert!(err.contains("Tape::vjp: w[7]"), "{err}");
+    // An output given twice gets the sum of its seeds.
+    let w1: Vec<f64> = (0..12).map(|k| 0.1 * k as f64 - 0.4).collect();
+    let w2: Vec<f64> = (0..12).map(|k| 0.3 - 0.05 * k as f64).collect();
+    let sum: Vec<f64> = w1.iter().zip(&w2).map(|(a, b)| a + b).collect();
+    let once = tape.vjp(&[&s2.x], &sum, &[&ke]).unwrap();
+    let both: Vec<f64> = w1.iter().chain(&w2).copied().collect();
+    let twice = tape.vjp(&[&s2.x, &s2.x], &both, &[&ke]).unwrap();
+    for (a, b) in once.iter().zip(&twice) {
+        assert!(
+            (a - b).abs() <= 1e-12 * a.abs().max(1.0),
+            "{once:?} vs {twice:?}"
+        );
+    }
+}
+
+/// A `jvp` gives no tangent buffer to the tape's leaves it was not asked about (they count as
+/// constant): forward mode through `ImplicitEuler`, which refuses tangents on arrays it does
+/// not differentiate (the springs' index pairs), works after it, on the same tape and on a
+/// fresh one.
+#[test]
+fn a_jvp_leaves_no_tangents_on_the_other_leaves() {
+    let model = spring_system(40.0);
+    let s0 = model.state();
+    let mut tape = Tape::new();
+    let s1 = SemiImplicitEuler
+        .step(&model, &mut tape, &s0, None, 0.01)
+        .unwrap();
+    let s2 = ImplicitEuler::default()
+        .step(&model, &mut tape, &s1, None, 0.01)
+        .unwrap();
+    let v: Vec<f64> = (0..s0.v.len() * 3).map(|k| 0.1 * k as f64).collect();
+    let jv = tape.jvp(&[&s0.v], &v, &[&s2.x]).unwrap();
+    assert!(jv.iter().any(|x| *x != 0.0) && jv.iter().all(|x| x.is_finite()));
+    for input in tape.inputs() {
+        if input.array.id() != s0.v.id() {
+            assert!(
+                input.array.tangent_any().is_none(),
+                "`{}` has a tangent",
+                input.array.label()
+            );
+        }
+    }
+    // `<J v, w> = <v, J^T w>` on the same tape.
+    let w: Vec<f64> = (0..jv.len()).map(|k| 1.0 - 0.07 * k as f64).collect();
+    let jtw = tape.vjp(&[&s2.x], &w, &[&s0.v]).unwrap();
+    let (a, b): (f64, f64) = (
+        jv.iter().zip(&w).map(|(x, y)| x * y).sum(),
+        v.iter().zip(&jtw).map(|(x, y)| x * y).sum(),
+    );
+    assert!((a - b).abs() <= 1e-10 * a.abs().max(1.0), "{a} vs {b}");
+    // A fresh tape through ImplicitEuler alone.
+    let mut fresh = Tape::new();
+    let s3 = ImplicitEuler::default()
+        .step(&model, &mut fresh, &s0, None, 0.01)
+        .unwrap();
+    fresh.jvp(&[&s0.v], &v, &[&s3.x]).unwrap();
 }
 
 /// `rollout_jvp`, one step on a tape at a time, gives bit for bit the `J v` of a tape of the

@@ -56,6 +56,26 @@ fn busy_loss<R: Real + Element>(
     Ok(loss)
 }
 
+/// A parameter array given twice to `hvp` or `hessian` is refused (its second copy's
+/// direction would overwrite the first's).
+#[test]
+fn a_parameter_given_twice_is_refused() {
+    let p =
+        Array::from_vec(vec![Dual::from(0.4), Dual::from(-0.3), Dual::from(0.9)]).requires_grad();
+    let v = Array::from_vec(vec![
+        Vec3::new(
+            Dual::from(0.1),
+            Dual::from(0.2),
+            Dual::from(0.3)
+        );
+        3
+    ]);
+    let e = hvp(&[&p, &p], &[1.0; 6], |t| busy_loss(t, &p, &v)).unwrap_err();
+    assert!(e.to_string().contains("given twice"), "{e}");
+    let e = hessian(&[&p, &p], |t| busy_loss(t, &p, &v)).unwrap_err();
+    assert!(e.to_string().contains("given twice"), "{e}");
+}
+
 /// The f64 gradient of `f` at the parameters' values `x`, over all their components.
 fn grad_f64(
     params: &[&dyn AnyArray],

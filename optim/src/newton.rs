@@ -242,7 +242,9 @@ impl Optimizer<'_> {
         let arrays = params.arrays();
         let mut product = |x: &[f64], v: &[f64], evaluation: bool| -> Result<Hvp, Error> {
             params.set_values(x);
-            let out = hvp(&arrays, v, &mut loss)?;
+            let n = counts.evaluations.get() + 1;
+            let out = hvp(&arrays, v, &mut loss)
+                .map_err(|e| e.in_context(format!("Newton-CG, evaluation {n}")))?;
             if evaluation {
                 counts.evaluated(2);
                 counts.offer(out.loss, x);

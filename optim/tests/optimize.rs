@@ -259,6 +259,22 @@ fn a_parameter_the_loss_ignores_and_a_diverging_loss_are_errors() {
         })
         .unwrap_err();
     assert!(err.to_string().contains("loss (evaluation 1)"), "{err}");
+    // Newton-CG names the loss and the evaluation too (not the product's gradient).
+    let cd = Array::from_vec(vec![Dual::constant(1.0)]);
+    let ad = Array::from_vec(vec![Dual::constant(f64::NAN)]);
+    let err = Optimizer::newton_cg()
+        .progress(false)
+        .minimize_newton(&Params::new().with(&cd), |tape| {
+            let l = Array::<Dual>::zeros(1);
+            tape.launch(bowl, 1, (&cd, &ad, &l));
+            Ok(l)
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("the loss") && err.contains("NaN") && err.contains("evaluation 1"),
+        "{err}"
+    );
 }
 
 /// `loss += w (c - 3)^2 + sqrt(2 - c)`: pulled towards 3, NaN past the cliff at `c = 2`.

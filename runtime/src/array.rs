@@ -571,6 +571,8 @@ pub trait AnyArray: Send + Sync {
     fn copy_from(&self, src: &dyn AnyArray);
     /// Allocates a zeroed tangent buffer, or zeroes the existing one.
     fn reset_tangent(&self);
+    /// Drops the tangent buffer: the array counts as constant in forward mode.
+    fn clear_tangent(&self);
 }
 
 impl<T: Element> AnyArray for Array<T> {
@@ -691,6 +693,9 @@ impl<T: Element> AnyArray for Array<T> {
     }
     fn reset_tangent(&self) {
         self.ensure_tangent().fill(T::zeroed())
+    }
+    fn clear_tangent(&self) {
+        self.set_tangent(None)
     }
     fn deep_clone_any(&self) -> Box<dyn AnyArray> {
         Box::new(self.deep_clone())

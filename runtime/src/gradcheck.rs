@@ -755,7 +755,7 @@ pub fn jacobian_tangent(
         }
     }
     for b in inputs {
-        b.reset_tangent();
+        b.clear_tangent();
     }
     Ok(j)
 }
@@ -862,7 +862,7 @@ pub fn dot_test(
     tape.backward_seeded(&outs, &ids(inputs))?;
     let v_jtw = dot(&v, inputs.iter().flat_map(|&a| grads(a)).collect());
     for a in inputs {
-        a.reset_tangent();
+        a.clear_tangent();
     }
     Ok(DotTest { jv_w, v_jtw })
 }

@@ -66,6 +66,17 @@ fn check_len(what: &str, arrays: &[&dyn AnyArray], v: &[f64]) -> Result<(), Erro
     })
 }
 
+/// An error naming `what[k]` for the first entry that is not finite.
+fn check_finite(what: &str, v: &[f64]) -> Result<(), Error> {
+    match v.iter().position(|x| !x.is_finite()) {
+        None => Ok(()),
+        Some(k) => Err(Error::InvalidInput {
+            what: format!("{what}[{k}]"),
+            message: format!("{} is not finite", v[k]),
+        }),
+    }
+}
+
 /// The arrays' scalars of `buffer` (their tangent or gradient), zeros where there is none.
 fn flat(
     arrays: &[&dyn AnyArray],
@@ -139,11 +150,15 @@ impl Tape {
         outputs: &[&dyn AnyArray],
     ) -> Result<Vec<f64>, Error> {
         check_len("Tape::jvp: v", inputs, v)?;
+        check_finite("Tape::jvp: v", v)?;
         self.check_arrays("Tape::jvp", inputs, outputs)?;
         let chosen: HashSet<u64> = inputs.iter().map(|a| a.id()).collect();
+        // The tape's other leaves count as constant: no tangent buffer (a zeroed one would
+        // stay on the model's arrays, and solvers refuse tangents on arrays they do not
+        // differentiate).
         for input in self.inputs() {
             if !chosen.contains(&input.array.id()) {
-                input.array.reset_tangent();
+                input.array.clear_tangent();
             }
         }
         let mut k = 0;
@@ -161,8 +176,9 @@ impl Tape {
 
     /// `J^T w`, `J` the Jacobian of `outputs` with respect to `inputs` (leaves of the tape), by
     /// one adjoint pass seeded with `w` on the outputs. `w` has the outputs' scalars, the
-    /// result the inputs'. The inputs need not require grad; the gradient buffers on the tape
-    /// are zeroed first and hold the pass's results after.
+    /// result the inputs'. An output listed twice gets the sum of its seeds (`J^T (w1 + w2)`).
+    /// The inputs need not require grad; the gradient buffers on the tape are zeroed first and
+    /// hold the pass's results after.
     ///
     /// Errors: [`Error::InvalidInput`] as for [`Tape::jvp`]; the errors of [`Tape::backward`].
     pub fn vjp(
@@ -172,22 +188,28 @@ impl Tape {
         inputs: &[&dyn AnyArray],
     ) -> Result<Vec<f64>, Error> {
         check_len("Tape::vjp: w", outputs, w)?;
+        check_finite("Tape::vjp: w", w)?;
         self.check_arrays("Tape::vjp", inputs, outputs)?;
         self.zero();
         for &a in inputs.iter().chain(outputs) {
             a.zero_grad();
         }
         let mut k = 0;
+        let mut seeded = HashSet::new();
+        let mut unique: Vec<&dyn AnyArray> = Vec::new();
         for &o in outputs {
             o.ensure_grad();
             let g = o.grad_any().expect("ensure_grad allocates it");
             for i in 0..o.n_scalars() {
-                g.set_scalar(i, w[k]);
+                g.set_scalar(i, g.scalar(i) + w[k]);
                 k += 1;
+            }
+            if seeded.insert(o.id()) {
+                unique.push(o);
             }
         }
         let sources = inputs.iter().map(|a| a.id()).collect();
-        self.backward_seeded(outputs, &sources)?;
+        self.backward_seeded(&unique, &sources)?;
         Ok(flat(inputs, |a| a.grad_any()))
     }
 

@@ -63,8 +63,9 @@ pub struct Hvp {
 ///
 /// Errors: [`Error::InvalidInput`] naming the parameter if one is not a `Dual` array or does
 /// not require grad, or if `v` has the wrong length or a non-finite entry, or if the loss is
-/// not `Dual`; the closure's and `backward`'s errors (among them a custom step not declared
-/// dual-safe). The parameters' derivative parts are zero again on return, also after an error.
+/// not `Dual`, or if an array is given twice; the closure's and `backward`'s errors (among
+/// them a custom step not declared dual-safe). The parameters' derivative parts are zero again
+/// on return, also after an error.
 pub fn hvp<L: Element>(
     params: &[&dyn AnyArray],
     v: &[f64],
@@ -131,6 +132,15 @@ pub fn hvp_with(
     let out = eval();
     drop(clear);
     let l = out?;
+    if !l.re.is_finite() {
+        return Err(Error::InvalidInput {
+            what: "the loss".into(),
+            message: format!(
+                "is {}: the simulation diverged at these parameter values",
+                l.re
+            ),
+        });
+    }
     let (mut grad, mut hv) = (Vec::with_capacity(n), Vec::with_capacity(n));
     for p in params {
         let g = p.grad_any().expect("reset_grad allocated it");
@@ -177,8 +187,16 @@ pub fn hessian<L: Element>(
 /// requires grad.
 fn check_params(params: &[&dyn AnyArray]) -> Result<usize, Error> {
     let mut n = 0;
+    let mut given = std::collections::HashSet::new();
     for (i, p) in params.iter().enumerate() {
         let what = || format!("parameter {i} (`{}`)", p.label());
+        // One direction per array: a second copy's would overwrite the first's.
+        if !given.insert(p.id()) {
+            return Err(Error::InvalidInput {
+                what: what(),
+                message: "is given twice; give each parameter array once".into(),
+            });
+        }
         if !p.is_dual() {
             return Err(Error::InvalidInput {
                 what: what(),

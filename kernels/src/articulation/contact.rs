@@ -317,12 +317,18 @@ pub struct GroundContact<R: Real> {
     /// the plain depth exceeds `onset / 2`). Its slope at first contact is 0, so with an
     /// onset the `leak` has no effect. 0, or at least 1e-9.
     pub onset: R,
-    /// The sliding speed below which friction grows linearly with the speed (m/s; default
-    /// [`STICTION_TOLERANCE`], 0.01; positive; see [`contact_force_with_stiction`]). At rest
-    /// the friction is a damper of slope `mu |f| / stiction_tolerance`: a light link under a
-    /// heavy load (a leg's foot) needs `mu |f| dt / (stiction_tolerance m) < 2`, `m` the
-    /// mass the contact moves, or the rollout's gradient grows exponentially with its steps
-    /// (the quadruped's gait takes 0.1). A larger value lets a body creep on a slope.
+    /// The friction's smoothing speed `vs` (m/s; default [`STICTION_TOLERANCE`], 0.01;
+    /// positive; see [`contact_force_with_stiction`]): at the sliding speed `u` the friction
+    /// is `mu |f| u / (u + vs)`, linear in `u` well below `vs`, half of Coulomb's at `vs`, 91%
+    /// at `10 vs`. At rest it is a damper of slope `mu |f| / vs`, which an explicit step
+    /// integrates stably only where `mu |f| dt / (vs m) < 2`, `m` the mass the contact moves
+    /// in that direction: a light link under a heavy load (a leg's foot), or a box resting on
+    /// a face, whose turn about the normal moves a third of its mass
+    /// (`3 mu g dt / vs < 2`: at `mu` 1 and a 2 ms step it needs `vs` above 0.03). Past the
+    /// bound the motion stays bounded (the friction saturates) but never settles (the box
+    /// turns back and forth at about `vs / 2`), and a rollout's gradient grows exponentially
+    /// with its steps (the quadruped's gait takes 0.1). A larger value lets a body on a slope
+    /// creep at about `vs tan(a) / (mu - tan(a))`.
     pub stiction_tolerance: R,
 }
 

@@ -170,6 +170,8 @@ struct Reader<'a> {
     builder: ArticulationBuilder,
     geoms: Vec<Geom>,
     joints: HashMap<String, ()>,
+    /// The bodies' names so far (MuJoCo refuses a repeated one).
+    bodies: HashMap<String, ()>,
     /// Each moving body's link and its parent body's link, for MuJoCo's filterparent.
     parents: Vec<(LinkId, LinkId)>,
     /// `<flag contact="disable">` (or `constraint`): no contact at all.
@@ -326,6 +328,7 @@ fn parse_named(text: &str, file: Option<&str>, dir: &Path) -> Result<Mjcf, Artic
         builder: ArticulationBuilder::new(),
         geoms: Vec::new(),
         joints: HashMap::new(),
+        bodies: HashMap::new(),
         parents: Vec::new(),
         no_contact: false,
         no_limits: false,
@@ -1056,6 +1059,11 @@ impl<'a> Reader<'a> {
             }
         }
         let class = n.attribute("childclass").unwrap_or(class).to_string();
+        if let Some(name) = n.attribute("name") {
+            if self.bodies.insert(name.to_string(), ()).is_some() {
+                return Err(self.src.error(n, "a second body with this name"));
+            }
+        }
         let name = n
             .attribute("name")
             .map(str::to_string)
