@@ -177,36 +177,48 @@ def from_mujoco(model, kinds, qm, vm):
     return q, v
 
 
-def mujoco_rollout(model, data, kinds, integrator, steps=200):
-    """mj_step by `integrator` ("Euler", "RK4" or "implicitfast") from a random state with random
-    controls (some outside their range, to check the clamping), contact and limits off, at the
-    file's time step or 2 ms if shorter (the legs of gym's ant, driven hard without limits, blow
-    up at its 10 ms): the states every 50 steps, in adflex's terms."""
-    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
+INTEGRATORS = {"Euler": mujoco.mjtIntegrator.mjINT_EULER,
+               "RK4": mujoco.mjtIntegrator.mjINT_RK4,
+               "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
+
+
+def run_rollout(model, data, kinds, integrator, q, v, ctrl, steps):
+    """mj_step `steps` times by `integrator` from (q, v) in adflex's terms with the controls
+    `ctrl`, at the file's time step or 2 ms if shorter: the states every 50 steps, in adflex's
+    terms, and the number of steps that had a constraint."""
     model.opt.timestep = min(model.opt.timestep, 0.002)
-    model.opt.integrator = int({"Euler": mujoco.mjtIntegrator.mjINT_EULER,
-                                "RK4": mujoco.mjtIntegrator.mjINT_RK4,
-                                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}[integrator])
-    q, v = random_state(kinds, RNG)
-    ctrl = []
-    for u in range(model.nu):
-        lo, hi = model.actuator_ctrlrange[u] if model.actuator_ctrllimited[u] else (-1, 1)
-        ctrl.append(RNG.uniform(lo - 0.25 * (hi - lo), hi + 0.25 * (hi - lo)))
+    model.opt.integrator = int(INTEGRATORS[integrator])
     mujoco.mj_resetData(model, data)
     data.qpos[:], data.qvel[:], _ = to_mujoco(model, kinds, q, v)
     data.ctrl[:] = ctrl
     out = {"integrator": integrator, "dt": model.opt.timestep, "q0": q.tolist(), "qd0": v.tolist(), "ctrl": ctrl,
            "every": 50, "q": [], "qd": []}
+    constrained = 0
     for k in range(1, steps + 1):
         mujoco.mj_step(model, data)
         if data.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number:
             raise RuntimeError("the reference rollout blew up")
+        constrained += int(data.nefc > 0)
         if k % 50 == 0:
             qa, va = from_mujoco(model, kinds, data.qpos, data.qvel)
             out["q"].append(qa.tolist())
             out["qd"].append(va.tolist())
-    return out
+    return out, constrained
+
+
+def mujoco_rollout(model, data, kinds, integrator, steps=200):
+    """mj_step by `integrator` ("Euler", "RK4" or "implicitfast") from a random state with random
+    controls (some outside their range, to check the clamping), contact and limits off (the legs
+    of gym's ant, driven hard without limits, blow up at its 10 ms step: `run_rollout` takes 2
+    ms)."""
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
+    q, v = random_state(kinds, RNG)
+    ctrl = []
+    for u in range(model.nu):
+        lo, hi = model.actuator_ctrlrange[u] if model.actuator_ctrllimited[u] else (-1, 1)
+        ctrl.append(RNG.uniform(lo - 0.25 * (hi - lo), hi + 0.25 * (hi - lo)))
+    return run_rollout(model, data, kinds, integrator, q, v, ctrl, steps)[0]
 
 
 def mujoco_limit_rollout(file, kinds, integrator, steps=200):
@@ -218,12 +230,8 @@ def mujoco_limit_rollout(file, kinds, integrator, steps=200):
     model = mujoco.MjModel.from_xml_path(str(ROBOTS / file))
     data = mujoco.MjData(model)
     model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-    model.opt.timestep = min(model.opt.timestep, 0.002)
     model.opt.tolerance = 1e-15
     model.opt.iterations = 1000
-    model.opt.integrator = int({"Euler": mujoco.mjtIntegrator.mjINT_EULER,
-                                "RK4": mujoco.mjtIntegrator.mjINT_RK4,
-                                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}[integrator])
     q, v = random_state(kinds, LIMIT_RNG)
     for j, kind in enumerate(kinds):
         if kind in ("revolute", "prismatic") and model.jnt_limited[j]:
@@ -238,20 +246,8 @@ def mujoco_limit_rollout(file, kinds, integrator, steps=200):
     for u in range(model.nu):
         lo, hi = model.actuator_ctrlrange[u] if model.actuator_ctrllimited[u] else (-1, 1)
         ctrl.append(LIMIT_RNG.uniform(lo, hi))
-    mujoco.mj_resetData(model, data)
-    data.qpos[:], data.qvel[:], _ = to_mujoco(model, kinds, q, v)
-    data.ctrl[:] = ctrl
-    out = {"integrator": integrator, "dt": model.opt.timestep, "q0": q.tolist(), "qd0": v.tolist(), "ctrl": ctrl,
-           "every": 50, "q": [], "qd": [], "steps_with_limits": 0}
-    for k in range(1, steps + 1):
-        mujoco.mj_step(model, data)
-        if data.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number:
-            raise RuntimeError("the reference rollout blew up")
-        out["steps_with_limits"] += int(data.nefc > 0)
-        if k % 50 == 0:
-            qa, va = from_mujoco(model, kinds, data.qpos, data.qvel)
-            out["q"].append(qa.tolist())
-            out["qd"].append(va.tolist())
+    out, constrained = run_rollout(model, data, kinds, integrator, q, v, ctrl, steps)
+    out["steps_with_limits"] = constrained
     return out
 
 
