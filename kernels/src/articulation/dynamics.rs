@@ -746,7 +746,7 @@ impl<R: Real> Articulations<R> {
             ArticulationIntegrator::ImplicitFast => self.check_implicit_fast()?,
             ArticulationIntegrator::Euler => {}
         }
-        let qdd = self.accelerations(tape, state, control, dt)?;
+        let qdd = self.accelerations(tape, state, control, dt, dt)?;
         let next = ArticulationState {
             q: Array::zeros(self.n_q),
             qd: Array::zeros(self.n_dof),
@@ -905,12 +905,14 @@ impl<R: Real> Articulations<R> {
 
     /// `qdd` at `state` with everything a step applies; with `dt > 0` the step's implicit terms
     /// join the solve (see [`ArticulationIntegrator`]), with `dt = 0` every force is explicit.
+    /// `step_dt` is the step's time step (MuJoCo's `refsafe`, RK4's stages included).
     fn accelerations(
         &self,
         tape: &mut Tape,
         state: &ArticulationState<R>,
         control: &ArticulationControl<R>,
         dt: R,
+        step_dt: R,
     ) -> Result<Array<R>, Error> {
         let p = self.pass(
             tape,
@@ -925,7 +927,7 @@ impl<R: Real> Articulations<R> {
         if side.iter().all(|&s| s == 0) {
             return self.solve(tape, &p.m, &p.rhs);
         }
-        self.limit_constraints(tape, state, &p, side, dt)
+        self.limit_constraints(tape, state, &p, side, dt, step_dt)
     }
 
     /// Which time-constant limits ([`Joint::limit_time_constant`](super::Joint)) `q`
@@ -961,11 +963,13 @@ impl<R: Real> Articulations<R> {
         p: &Pass<R>,
         side: Vec<u32>,
         dt: R,
+        step_dt: R,
     ) -> Result<Array<R>, Error> {
         let nd = self.n_dof;
         let (mu, aref) = (Array::<R>::zeros(nd), Array::<R>::zeros(nd));
+        // MuJoCo's `refsafe` uses the step's `dt`, in RK4's stages too.
         let min_tc = match self.limit_refsafe {
-            true => dt * R::lit(2.0),
+            true => step_dt * R::lit(2.0),
             false => R::lit(0.0),
         };
         let side_a = Array::from_vec(side.clone());
@@ -1065,7 +1069,7 @@ impl<R: Real> Articulations<R> {
         let (mut vels, mut accs) = (Vec::with_capacity(4), Vec::with_capacity(4));
         let mut stage = state.clone();
         for i in 0..4 {
-            let qdd = self.accelerations(tape, &stage, control, zero)?;
+            let qdd = self.accelerations(tape, &stage, control, zero, dt)?;
             let (vel, acc) = self.rates(tape, state, &stage, &qdd);
             if i < 3 {
                 // MuJoCo's RK4_A: the stages at dt/2, dt/2, dt, each from the previous rates.
