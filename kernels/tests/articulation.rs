@@ -1145,7 +1145,7 @@ const URDF: &str = r#"<robot name="r">
   </link>
   <joint name="j" type="revolute">
     <parent link="a"/><child link="b"/><axis xyz="0 0 1"/>
-    <origin xyz="0 0 0.1" rpy="0 0 0"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/>
   </joint>
 </robot>"#;
 
@@ -1194,7 +1194,7 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
         .unwrap()
         .finalize::<f64>()
         .is_ok());
-    let cases: [(&str, &str, u32, &str); 10] = [
+    let cases: [(&str, &str, u32, &str); 11] = [
         (
             "<parent link=\"a\"/>",
             "<parent link=\"z\"/>",
@@ -1231,6 +1231,13 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
             "uper",
         ),
         ("<mass value", "<mass valeu=\"2\" value", 4, "valeu"),
+        // URDF requires a revolute or prismatic joint's limits (a continuous one has none).
+        (
+            "<limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>",
+            "",
+            6,
+            "revolute joint needs a `<limit",
+        ),
     ];
     for (from, to, line, message) in cases {
         let e = urdf_error(&URDF.replacen(from, to, 1));
@@ -1243,6 +1250,24 @@ fn bad_urdf_is_refused_naming_the_element_and_line() {
         "<joint name=\"k\" type=\"fixed\"><parent link=\"b\"/><child link=\"a\"/></joint></robot>",
     );
     assert!(urdf_error(&cycle).to_string().contains("cycle"));
+    let slider = URDF
+        .replace("type=\"revolute\"", "type=\"prismatic\"")
+        .replace(
+            "<limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>",
+            "",
+        );
+    let e = urdf_error(&slider);
+    assert!(
+        e.to_string().contains("prismatic joint needs a `<limit"),
+        "{e}"
+    );
+    let hinge = URDF
+        .replace("type=\"revolute\"", "type=\"continuous\"")
+        .replace(
+            "<limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>",
+            "",
+        );
+    assert!(urdf::parse(&hinge, &Default::default()).is_ok());
     // Two parents.
     let two = URDF.replace(
         "</robot>",
@@ -2147,7 +2172,8 @@ fn a_load_on_a_time_constant_limit_sags_as_under_mujocos_constraint() {
 #[test]
 fn limits_with_a_time_constant_come_back_alike_for_light_and_heavy_links_at_any_step() {
     use adflex_kernels::articulation::{
-        ArticulationBuilder, ArticulationControl, ArticulationState, Inertial, Joint,
+        ArticulationBuilder, ArticulationControl, ArticulationIntegrator, ArticulationState,
+        Inertial, Joint,
     };
     use adflex_runtime::Vec3;
     // A pendulum started 0.5 rad past its upper limit 0.1, a weak gravity along x pulling it
@@ -2184,14 +2210,29 @@ fn limits_with_a_time_constant_come_back_alike_for_light_and_heavy_links_at_any_
         out
     };
     let tc = 0.02;
-    for dt in [1e-3, 0.01, 0.05] {
-        let light = run(&pendulum(1e-3, Some(tc)), 0.6, dt, 0.3);
-        let heavy = run(&pendulum(1e3, Some(tc)), 0.6, dt, 0.3);
+    // Each integrator, at steps under and over half the time constant (RK4's stages take
+    // `refsafe` at the step's `dt` too).
+    let integrators = [
+        ArticulationIntegrator::Euler,
+        ArticulationIntegrator::Rk4,
+        ArticulationIntegrator::ImplicitFast,
+    ];
+    for (integrator, dt) in integrators
+        .into_iter()
+        .flat_map(|i| [1e-3, 0.01, 0.05].map(|dt| (i, dt)))
+    {
+        let by = |mut model: Articulations<f64>| {
+            model.integrator = integrator;
+            model
+        };
+        let light = run(&by(pendulum(1e-3, Some(tc))), 0.6, dt, 0.3);
+        let heavy = run(&by(pendulum(1e3, Some(tc))), 0.6, dt, 0.3);
+        let case = format!("{integrator:?}, dt {dt}");
         // The same motion whatever the inertia (to rounding).
         for (a, b) in light.iter().zip(&heavy) {
             assert!(
                 (a - b).abs() < 1e-12,
-                "dt {dt}: light {a} vs heavy {b}\n{light:?}\n{heavy:?}"
+                "{case}: light {a} vs heavy {b}\n{light:?}\n{heavy:?}"
             );
         }
         // MuJoCo's constraint only pushes: the joint comes back into its range within a few
@@ -2199,14 +2240,14 @@ fn limits_with_a_time_constant_come_back_alike_for_light_and_heavy_links_at_any_
         // the time constant too), and never goes farther out than it started.
         let tc_step = tc.max(2.0 * dt);
         let back = light.iter().position(|&x| x < 0.1);
-        println!("dt {dt}: back in the range after {back:?} steps");
+        println!("{case}: back in the range after {back:?} steps");
         assert!(
             back.is_some_and(|k| (k + 1) as f64 * dt <= 5.0 * tc_step),
-            "dt {dt}: not back within 5 time constants: {light:?}"
+            "{case}: not back within 5 time constants: {light:?}"
         );
         assert!(
             light.iter().all(|x| x.abs() <= 0.6 + 1e-9),
-            "dt {dt}: {light:?}"
+            "{case}: {light:?}"
         );
     }
     // The builder's one stiffness for every joint: in 50 ms a light link is back, a heavy one

@@ -821,9 +821,12 @@ fn every_contact_slides_with_the_stiction_tolerance() {
     let mut bad = Vec::new();
     for (base, shape) in EVERY_CONTACT {
         let slowed = |stiction_tolerance: f64| {
+            // (Explicit friction: the law itself; an implicit step's is
+            // `implicit_friction_settles_where_explicit_friction_chatters`'s.)
             let ground = GroundContact {
                 stiction_tolerance,
                 mu: 0.5,
+                implicit_friction: false,
                 ..GroundContact::default()
             };
             let model = body_on(base, shape, ground, -1e-3);
@@ -850,6 +853,166 @@ fn every_contact_slides_with_the_stiction_tolerance() {
         });
         assert!(e.contains("stiction_tolerance"), "{vs}: {e}");
     }
+}
+
+/// Implicit ground friction (`GroundContact::implicit_friction`, the default): an `Euler` or
+/// `ImplicitFast` step solves with the friction's damper `k (I - n n^T)`, `k = mu |fn| /
+/// sqrt(|u|^2 + vs^2)`, in its matrix.
+/// - Closed form: a ball on two sliders (a light carriage along x, the ball along z on it),
+///   resting on the ground and pushed along x at `v` well below `vs`: one step scales `v` by
+///   `1 - dt k / (m + dt d)` (the x slider's mass `m`, the friction's coefficient `k` and its
+///   damper `d`, both `mu |fn| / vs` at rest), where the explicit law gives `1 - dt k / m`
+///   (checked too with the option off, which is unstable here: `dt k / m` is 3.9).
+/// - A box resting on a face, turning slowly about the normal, at MJCF's defaults (friction
+///   1, 2 ms): it stops, where the explicit law turns it back and forth for ever.
+/// - Gradients of a rollout in which the box slides, turns and sticks, against central
+///   differences, and forward mode against reverse.
+#[test]
+fn implicit_friction_settles_where_explicit_friction_chatters() {
+    use adflex_kernels::articulation::ArticulationIntegrator::{Euler, ImplicitFast};
+    let slider = |implicit_friction: bool| {
+        let mut b = ArticulationBuilder::new();
+        b.ground = Some(GroundContact {
+            mu: 1.0,
+            implicit_friction,
+            ..GroundContact::default()
+        });
+        let carriage = b.add_link(
+            "carriage",
+            None,
+            Joint::prismatic(Vec3::x()),
+            Inertial::point(0.02, Vec3::zeros()),
+        );
+        let ball = b.add_link(
+            "ball",
+            Some(carriage),
+            Joint::prismatic(Vec3::z()).initial(&[0.05]),
+            Inertial::point(1.0, Vec3::zeros()),
+        );
+        b.add_contact_sphere(ball, Vec3::zeros(), 0.05);
+        b.finalize::<f64>().unwrap()
+    };
+    let (dt, v) = (4e-3, 1e-4);
+    for integrator in [Euler, ImplicitFast] {
+        for implicit in [true, false] {
+            let mut model = slider(implicit);
+            model.integrator = integrator;
+            let mut s = model.state();
+            for _ in 0..3000 {
+                s = model.step(&mut Tape::new(), &s, None, 1e-3).unwrap();
+            }
+            assert!(s.qd.get(1).abs() < 1e-9, "settled: {:?}", s.qd.to_vec());
+            s.qd.set(0, v);
+            // The friction's coefficient at this state (1 kg on the ground, 1e4 N/m).
+            let fn_ = -1e4 * (s.q.get(1) - 0.05).min(0.0);
+            let k = 1.0 * fn_ / (v + 0.01);
+            let damper = 1.0 * fn_ / (v * v + 1e-4f64).sqrt();
+            let m = 1.02;
+            let next = model.step(&mut Tape::new(), &s, None, dt).unwrap();
+            let (got, expected) = match implicit {
+                true => (next.qd.get(0) / v, 1.0 - dt * k / (m + dt * damper)),
+                false => (next.qd.get(0) / v, 1.0 - dt * k / m),
+            };
+            assert!(
+                (got - expected).abs() < 1e-9,
+                "{integrator:?}, implicit {implicit}: v scaled by {got}, expected {expected} \
+                 (dt k / m = {})",
+                dt * k / m
+            );
+        }
+    }
+
+    // The box at MJCF's defaults, turning at 0.05 rad/s.
+    let box_on_floor = |implicit: bool| {
+        let text = r#"<mujoco><worldbody><geom type="plane" size="5 5 0.1"/>
+            <body name="box" pos="0 0 0.0488"><freejoint/>
+              <geom type="box" size="0.1 0.07 0.05" density="1000"/></body>
+            </worldbody></mujoco>"#;
+        let mut b = mjcf::parse(text).unwrap().builder;
+        b.ground.as_mut().unwrap().implicit_friction = implicit;
+        b.finalize::<f64>().unwrap()
+    };
+    let spin = |model: &Articulations<f64>, steps: usize| {
+        let mut s = model.state();
+        s.qd.set(5, 0.05);
+        let mut late = 0.0f64;
+        for k in 0..steps {
+            s = model.step(&mut Tape::new(), &s, None, 2e-3).unwrap();
+            if k >= steps - 100 {
+                late = late.max(s.qd.get(5).abs());
+            }
+        }
+        late
+    };
+    let (settled, chatter) = (
+        spin(&box_on_floor(true), 1000),
+        spin(&box_on_floor(false), 1000),
+    );
+    println!("turn rate over the last 100 steps: implicit {settled:.3e}, explicit {chatter:.3e}");
+    assert!(
+        settled < 1e-6,
+        "implicit friction: still turning at {settled} rad/s"
+    );
+    assert!(
+        chatter > 1e-3,
+        "explicit friction settled ({chatter}): the test is moot"
+    );
+
+    // Gradients: the box thrown sliding and turning, stopping within the rollout; loss: its
+    // final position and turn, with respect to its initial velocity and the friction.
+    let model = box_on_floor(true);
+    let qd0 = [0.15, -0.05, 0.0, 0.0, 0.0, 1.0];
+    let run = |model: &Articulations<f64>, qd0: &[f64], tape: &mut Tape| {
+        let s = ArticulationState {
+            q: Array::from_vec(model.q0.clone()),
+            qd: Array::from_vec(qd0.to_vec()),
+        };
+        let mut t = s.clone();
+        for _ in 0..150 {
+            t = model.step(tape, &t, None, 2e-3).unwrap();
+        }
+        (s, t)
+    };
+    let w = [1.0, 0.5, 0.0, 0.0, 0.0, 2.0, 0.0];
+    let loss = |model: &Articulations<f64>, qd0: &[f64]| -> f64 {
+        let (_, t) = run(model, qd0, &mut Tape::new());
+        t.q.to_vec().iter().zip(&w).map(|(a, b)| a * b).sum()
+    };
+    let mut tape = Tape::new();
+    let (s, t) = run(&model, &qd0, &mut tape);
+    let g = tape.vjp(&[&t.q], &w, &[&s.qd, &model.contact_mu]).unwrap();
+    let h = 1e-6;
+    let mut worst = 0.0f64;
+    for i in [0, 1, 5] {
+        let at = |e: f64| {
+            let mut x = qd0;
+            x[i] += e;
+            loss(&model, &x)
+        };
+        let fd = (at(h) - at(-h)) / (2.0 * h);
+        worst = worst.max((g[i] - fd).abs() / fd.abs().max(1e-3));
+    }
+    let mu = model.contact_mu.to_vec();
+    let with_mu = |e: f64| {
+        let m = Articulations {
+            contact_mu: Array::from_vec(mu.iter().map(|m| m + e).collect()),
+            ..model.clone()
+        };
+        loss(&m, &qd0)
+    };
+    let fd_mu = (with_mu(h) - with_mu(-h)) / (2.0 * h);
+    let rev_mu: f64 = g[6..].iter().sum();
+    worst = worst.max((rev_mu - fd_mu).abs() / fd_mu.abs().max(1e-3));
+    println!("through implicit friction: worst relative gradient error {worst:.2e}");
+    assert!(worst < 1e-6, "{g:?}");
+    let dir = [0.3, -0.2, 0.1, 0.4, -0.1, 0.5];
+    let jv = tape.jvp(&[&s.qd], &dir, &[&t.q]).unwrap();
+    let jv_w: f64 = jv.iter().zip(&w).map(|(a, b)| a * b).sum();
+    let gw: f64 = g[..6].iter().zip(&dir).map(|(a, b)| a * b).sum();
+    assert!(
+        (jv_w - gw).abs() < 1e-9 * gw.abs().max(1.0),
+        "{jv_w} vs {gw}"
+    );
 }
 
 /// A capsule lying on another, parallel, touches it at the two ends of their overlap (as a

@@ -55,7 +55,8 @@ use adflex_runtime::prelude::*;
 
 use super::pose::{LinkId, Pose};
 use crate::contact::law::{
-    contact_damping, contact_depth, contact_force_with_stiction, contact_onset, STICTION_TOLERANCE,
+    contact_damping, contact_depth, contact_force_with_stiction, contact_onset, friction_damper,
+    STICTION_TOLERANCE,
 };
 use crate::contact::shapes::sdf_cylinder;
 
@@ -329,7 +330,23 @@ pub struct GroundContact<R: Real> {
     /// turns back and forth at about `vs / 2`), and a rollout's gradient grows exponentially
     /// with its steps (the quadruped's gait takes 0.1). A larger value lets a body on a slope
     /// creep at about `vs tan(a) / (mu - tan(a))`.
+    ///
+    /// With [`implicit_friction`](GroundContact::implicit_friction) (the default) `Euler` and
+    /// `ImplicitFast` steps integrate the ground's damper implicitly, and the bound above
+    /// applies only to `Rk4` (whose stages are explicit) and to contacts between links.
     pub stiction_tolerance: R,
+    /// Whether `Euler` and `ImplicitFast` steps integrate the ground friction's damper
+    /// implicitly (default true): the step solves with `M + dt D`, `D` the damper
+    /// `k (I - n n^T)` of each contact on the ground
+    /// ([`friction_damper`](crate::contact::law::friction_damper): the friction's slope at
+    /// rest, `1 / |u|` sliding fast; at the step's start) mapped to the joints, as the joint
+    /// damping is. A body at rest then settles at
+    /// any step, however light it is and however hard it is pressed; without it the
+    /// friction is explicit and the bound of
+    /// [`stiction_tolerance`](GroundContact::stiction_tolerance) applies. The friction force
+    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`.
+    /// `Rk4` and contacts between links stay explicit.
+    pub implicit_friction: bool,
 }
 
 impl Default for GroundContact<f64> {
@@ -344,6 +361,7 @@ impl Default for GroundContact<f64> {
             damping_depth: 1e-3,
             onset: 0.0,
             stiction_tolerance: STICTION_TOLERANCE,
+            implicit_friction: true,
         }
     }
 }
@@ -399,6 +417,7 @@ impl GroundContact<f64> {
             damping_depth: r(self.damping_depth),
             onset: r(self.onset),
             stiction_tolerance: r(self.stiction_tolerance),
+            implicit_friction: self.implicit_friction,
         }
     }
 }
@@ -419,12 +438,34 @@ fn ground_force<R: Real>(
     link_pair_force(n, dot(n, x) - plane.w, v, law, ramp)
 }
 
+/// The damper `k (I - n n^T)` that an implicit step takes for [`ground_force`]'s friction at
+/// the same point (arguments as there), `k` the [`friction_damper`] of its sliding velocity.
+#[diff_func]
+fn ground_friction_damper<R: Real>(
+    x: Vec3<R>,
+    v: Vec3<R>,
+    plane: Vec4<R>,
+    law: Vec3<R>,
+    ramp: Vec4<R>,
+) -> Mat33<R> {
+    let n = vec3(plane.x, plane.y, plane.z);
+    let c = contact_onset(contact_depth(dot(n, x) - plane.w, ramp.x), ramp.z);
+    let vt = v - n * dot(n, v);
+    (mat33_identity() - outer(n, n)) * friction_damper(c, vt, law.x, law.z, ramp.w)
+}
+
 /// Ground contact of contact sphere `tid` (centre `contact_pos` in the frame of link
 /// `contact_link`, radius `contact_radius`): its lowest point `x` at signed distance
 /// `d = n.x - offset` gets `f = contact_force_with_stiction(n, c, v, ke, kd', mu, vs)` with
 /// `c = contact_onset(contact_depth(d, leak), onset)`, `v` the velocity of the link's point at
 /// `x`, `kd'` the ramped damping and `mu` the sphere's `contact_mu`; the link receives the
 /// wrench `(x x f, f)` (world frame, at the origin).
+///
+/// With `damper_dt > 0` (an implicit step's `dt`), the friction's damper `K`
+/// ([`ground_friction_damper`]) times `damper_dt` joins the link's damping blocks
+/// `(damp_ww, damp_wv, damp_vv)` `+= (-X K X, X K, K)`, `X` the cross-product matrix of `x`:
+/// the wrench's derivative in the link's angular and linear velocities (`v` that of the
+/// point at the origin) is `-(ww w + wv v, wv^T w + vv v)`.
 #[diff_kernel]
 pub fn articulation_ground_contact<R: Real>(
     contact_link: &Array<u32>,
@@ -443,8 +484,12 @@ pub fn articulation_ground_contact<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
+    damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid();
     let l = contact_link[t] as usize;
@@ -452,15 +497,18 @@ pub fn articulation_ground_contact<R: Real>(
     let x = centre - normal * contact_radius[t];
     let v = link_v[l] + cross(link_w[l], x);
     let law = vec3(ke, kd, contact_mu[t]);
-    let f = ground_force(
-        x,
-        v,
-        vec4(normal.x, normal.y, normal.z, offset),
-        law,
-        vec4(leak, damping_depth, onset, stiction),
-    );
+    let plane = vec4(normal.x, normal.y, normal.z, offset);
+    let ramp = vec4(leak, damping_depth, onset, stiction);
+    let f = ground_force(x, v, plane, law, ramp);
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
+    if damper_dt > 0.0 {
+        let k = ground_friction_damper(x, v, plane, law, ramp) * damper_dt;
+        let xk = skew(x) * k;
+        damp_ww.atomic_sub(l, xk * skew(x));
+        damp_wv.atomic_add(l, xk);
+        damp_vv.atomic_add(l, k);
+    }
 }
 
 /// The offset, in the world frame, from the centre of an ellipsoid or a cylinder (its frame
@@ -529,8 +577,8 @@ pub fn support_offset<R: Real>(variant: u32, q: Quat<R>, size: Vec3<R>, n: Vec3<
 /// at `support_pos`, rotated by `support_rot`, in the frame of link `support_link`, of size
 /// `support_size`, is [`support_offset`]'s point `support_variant` from the shape's centre;
 /// it touches the ground as a contact sphere of radius 0 does in
-/// [`articulation_ground_contact`], with the friction `support_mu`, its force times the
-/// point's weight.
+/// [`articulation_ground_contact`], with the friction `support_mu`, its force (and its
+/// friction's damper) times the point's weight.
 #[diff_kernel]
 pub fn articulation_support_contact<R: Real>(
     support_link: &Array<u32>,
@@ -551,8 +599,12 @@ pub fn articulation_support_contact<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
+    damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid();
     let l = support_link[t] as usize;
@@ -562,15 +614,18 @@ pub fn articulation_support_contact<R: Real>(
     let x = centre + vec3(o.x, o.y, o.z);
     let v = link_v[l] + cross(link_w[l], x);
     let law = vec3(ke, kd, support_mu[t]);
-    let f = ground_force(
-        x,
-        v,
-        vec4(normal.x, normal.y, normal.z, offset),
-        law,
-        vec4(leak, damping_depth, onset, stiction),
-    ) * o.w;
+    let plane = vec4(normal.x, normal.y, normal.z, offset);
+    let ramp = vec4(leak, damping_depth, onset, stiction);
+    let f = ground_force(x, v, plane, law, ramp) * o.w;
     ext_n.atomic_add(l, cross(x, f));
     ext_f.atomic_add(l, f);
+    if damper_dt > 0.0 {
+        let k = ground_friction_damper(x, v, plane, law, ramp) * (damper_dt * o.w);
+        let xk = skew(x) * k;
+        damp_ww.atomic_sub(l, xk * skew(x));
+        damp_wv.atomic_add(l, xk);
+        damp_vv.atomic_add(l, k);
+    }
 }
 
 /// The parameters `(s, t)` in `[0, 1]` of the closest points `a0 + s (a1 - a0)` and `b0 + t

@@ -259,6 +259,20 @@ impl<R: Real> Articulations<R> {
             ),
         );
         let (en, ef) = (Array::zeros(n), Array::zeros(n));
+        // An implicit step's ground friction: its dampers, per link (`GroundContact::
+        // implicit_friction`); empty arrays, never read, otherwise.
+        let damper_dt = match (contact, &self.ground) {
+            (true, Some(g))
+                if g.implicit_friction
+                    && dt.to_f64() > 0.0
+                    && !(self.contact_link.is_empty() && self.support_link.is_empty()) =>
+            {
+                dt
+            }
+            _ => R::lit(0.0),
+        };
+        let damped = damper_dt.to_f64() > 0.0;
+        let damp = [(); 3].map(|_| Array::<Mat33<R>>::zeros(if damped { n } else { 0 }));
         if let (true, Some(g), false) = (contact, &self.ground, self.contact_link.is_empty()) {
             tape.launch(
                 super::contact::articulation_ground_contact,
@@ -280,8 +294,12 @@ impl<R: Real> Articulations<R> {
                     g.damping_depth,
                     g.onset,
                     g.stiction_tolerance,
+                    damper_dt,
                     &en,
                     &ef,
+                    &damp[0],
+                    &damp[1],
+                    &damp[2],
                 ),
             );
         }
@@ -308,8 +326,12 @@ impl<R: Real> Articulations<R> {
                     g.damping_depth,
                     g.onset,
                     g.stiction_tolerance,
+                    damper_dt,
                     &en,
                     &ef,
+                    &damp[0],
+                    &damp[1],
+                    &damp[2],
                 ),
             );
         }
@@ -573,6 +595,43 @@ impl<R: Real> Articulations<R> {
                 &rhs,
             ),
         );
+        if damped {
+            let comp = [(); 3].map(|_| Array::<Mat33<R>>::zeros(n));
+            tape.launch(
+                super::kernels::articulation_composite_damping,
+                n,
+                (
+                    &self.subtree_start,
+                    &self.subtree,
+                    &damp[0],
+                    &damp[1],
+                    &damp[2],
+                    &comp[0],
+                    &comp[1],
+                    &comp[2],
+                ),
+            );
+            tape.launch(
+                super::kernels::articulation_damping_matrix,
+                nd,
+                (
+                    &self.dof_link,
+                    &self.dof_art_start,
+                    &self.dof_m_row,
+                    &self.chain_start,
+                    &self.chain,
+                    &self.subtree_start,
+                    &self.subtree,
+                    &self.qd_start,
+                    &k.s_w,
+                    &k.s_v,
+                    &comp[0],
+                    &comp[1],
+                    &comp[2],
+                    &m,
+                ),
+            );
+        }
         // MuJoCo's implicitfast: the tendons' and actuators' damping join M too.
         if self.integrator == ArticulationIntegrator::ImplicitFast && dt.to_f64() > 0.0 {
             for (start, dof, coef, damping) in [
@@ -1037,16 +1096,16 @@ impl<R: Real> Articulations<R> {
                 })
                 .collect();
             if next == on {
+                if !implicit {
+                    // The pass's matrix is `M`: `x` is the step's acceleration already.
+                    return Ok(x);
+                }
                 let rhs_g = Array::<R>::zeros(nd);
                 tape.launch(
                     articulation_limit_force,
                     nd,
                     (&on_a, &mu, &aref, &x, &p.rhs, &rhs_g),
                 );
-                if !implicit {
-                    // The pass's matrix is `M`: `x` is the step's acceleration already.
-                    return Ok(x);
-                }
                 return self.solve(tape, &p.m, &rhs_g);
             }
             on = next;

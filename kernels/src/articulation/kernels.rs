@@ -350,6 +350,92 @@ pub fn articulation_joint_space<R: Real>(
     rhs[a] = f;
 }
 
+/// The damping blocks of link `tid`'s subtree (`(ww, wv, vv)`, summed from each link's
+/// `damp_*`, e.g. [`articulation_ground_contact`](super::contact::articulation_ground_contact)'s
+/// friction): the composite damping, as `comp_*` is the composite inertia.
+#[diff_kernel]
+pub fn articulation_composite_damping<R: Real>(
+    subtree_start: &Array<u32>,
+    subtree: &Array<u32>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
+    comp_ww: &Array<Mat33<R>>,
+    comp_wv: &Array<Mat33<R>>,
+    comp_vv: &Array<Mat33<R>>,
+) {
+    let l = tid();
+    let mut ww = damp_ww[l] * 0.0;
+    let mut wv = ww;
+    let mut vv = ww;
+    let s0 = subtree_start[l] as usize;
+    let s1 = subtree_start[l + 1] as usize;
+    for k in s0..s1 {
+        let i = subtree[k] as usize;
+        ww = ww + damp_ww[i];
+        wv = wv + damp_wv[i];
+        vv = vv + damp_vv[i];
+    }
+    comp_ww[l] = ww;
+    comp_wv[l] = wv;
+    comp_vv[l] = vv;
+}
+
+/// Adds the links' damping (composite blocks `comp_*` of
+/// [`articulation_composite_damping`]) to row `tid` of the mass matrix, as
+/// [`articulation_joint_space`] adds their inertia: `D[a][b] = S_b . Dc_i S_a`, `i` the deeper
+/// of the two velocities' links, `Dc S = (ww w + wv v, wv^T w + vv v)` for `S = (w, v)`. With
+/// blocks already scaled by a step's `dt`, the step solves with `M + dt D`: the dampers are
+/// implicit.
+#[diff_kernel]
+pub fn articulation_damping_matrix<R: Real>(
+    dof_link: &Array<u32>,
+    art_start: &Array<u32>,
+    m_row: &Array<u32>,
+    chain_start: &Array<u32>,
+    chain: &Array<u32>,
+    subtree_start: &Array<u32>,
+    subtree: &Array<u32>,
+    qd_start: &Array<u32>,
+    s_w: &Array<Vec3<R>>,
+    s_v: &Array<Vec3<R>>,
+    comp_ww: &Array<Mat33<R>>,
+    comp_wv: &Array<Mat33<R>>,
+    comp_vv: &Array<Mat33<R>>,
+    m: &Array<R>,
+) {
+    let a = tid();
+    let la = dof_link[a] as usize;
+    let wa = s_w[a];
+    let va = s_v[a];
+    let row = m_row[a] as usize;
+    let first = art_start[a] as usize;
+    let na = comp_ww[la] * wa + comp_wv[la] * va;
+    let fa = transpose(comp_wv[la]) * wa + comp_vv[la] * va;
+    let c0 = chain_start[la] as usize;
+    let c1 = chain_start[la + 1] as usize;
+    for k in c0..c1 {
+        let j = chain[k] as usize;
+        let d0 = qd_start[j] as usize;
+        let d1 = qd_start[j + 1] as usize;
+        for b in d0..d1 {
+            m.atomic_add(row + b - first, dot(s_w[b], na) + dot(s_v[b], fa));
+        }
+    }
+    let s0 = subtree_start[la] as usize;
+    let s1 = subtree_start[la + 1] as usize;
+    for k in s0 + 1..s1 {
+        let i = subtree[k] as usize;
+        let ni = comp_ww[i] * wa + comp_wv[i] * va;
+        let fi = transpose(comp_wv[i]) * wa + comp_vv[i] * va;
+        let d0 = qd_start[i] as usize;
+        let d1 = qd_start[i + 1] as usize;
+        for b in d0..d1 {
+            m.atomic_add(row + b - first, dot(s_w[b], ni) + dot(s_v[b], fi));
+        }
+    }
+}
+
 /// MuJoCo's soft limit constraint of velocity `tid`, for a time-constant limit
 /// ([`Joint::limit_time_constant`](super::Joint::limit_time_constant)) that `side` says is
 /// violated (1 below `lower`, 2 above `upper`, 0 none): its regularization's inverse `mu = 1 /

@@ -2,8 +2,9 @@
 //!
 //! The physics of URDF is read: `<link>` with `<inertial>` (`<origin xyz rpy>`, `<mass>`,
 //! `<inertia>`); `<joint>` of type `revolute`, `continuous`, `prismatic`, `fixed` and
-//! `floating`, with `<origin>`, `<parent>`, `<child>`, `<axis>`, `<limit lower upper>` (equal
-//! bounds leave the joint free, as MuJoCo reads them) and `<dynamics damping>` (a non-zero
+//! `floating`, with `<origin>`, `<parent>`, `<child>`, `<axis>`, `<limit lower upper>` (required
+//! for `revolute` and `prismatic`, as URDF says; equal bounds leave the joint free, as MuJoCo
+//! reads them) and `<dynamics damping>` (a non-zero
 //! `friction` is an error unless [`UrdfOptions::ignore_friction`] leaves it out). `<visual>`,
 //! `<collision>`, `<material>`, `<gazebo>` and `<transmission>` carry nothing the dynamics
 //! uses and are passed over. Anything else (a
@@ -393,7 +394,22 @@ fn joint<'a, 'i>(
         }
     };
     j = j.name(name).origin(origin(src, n)?);
-    if let Some(l) = n.children().find(|c| c.has_tag_name("limit")) {
+    let limit = n.children().find(|c| c.has_tag_name("limit"));
+    if limit.is_none() && (kind == "revolute" || kind == "prismatic") {
+        // URDF requires it (urdfdom, and so ROS and Pinocchio, refuse the file); reading the
+        // joint as unlimited would guess.
+        return Err(src.error(
+            n,
+            format!(
+                "a {kind} joint needs a `<limit lower upper effort velocity>` (URDF requires                  it){}",
+                match kind {
+                    "revolute" => "; an unlimited hinge is type `continuous`",
+                    _ => "",
+                }
+            ),
+        ));
+    }
+    if let Some(l) = limit {
         // `effort` and `velocity` are the actuator's bounds, which the dynamics do not use.
         src.only_attributes(l, &["lower", "upper", "effort", "velocity"])?;
         if kind == "revolute" || kind == "prismatic" {

@@ -97,8 +97,44 @@ pub fn contact_force_with_stiction<R: Real>(
     let vt = v - n * vn;
     let fnormal = n * c * ke;
     let fd = n * min(vn, 0.0) * kd;
-    let ft = vt * (mu * c * ke / (length(vt) + vs));
-    (fnormal + fd - ft) * -1.0
+    (fnormal + fd + vt * friction_coefficient(c, vt, ke, mu, vs)) * -1.0
+}
+
+/// The coefficient `k = mu |fn| / (|vt| + vs) >= 0` (N s/m, `|fn| = -c ke`) of
+/// [`contact_force_with_stiction`]'s friction `-k vt`: a damper on the sliding velocity `vt`,
+/// whose coefficient falls as the speed grows.
+///
+/// ```
+/// use adflex_kernels::contact::law::friction_coefficient;
+/// use adflex_runtime::prelude::Vec3;
+/// // 10 N pressing (1 mm deep at 1e4 N/m), sliding at 2 mm/s, mu 0.5, vs 1 cm/s.
+/// let k: f64 = friction_coefficient::call(-1e-3, Vec3::new(2e-3, 0.0, 0.0), 1e4, 0.5, 0.01);
+/// assert!((k - 5.0 / 0.012).abs() < 1e-9);
+/// ```
+#[diff_func]
+pub fn friction_coefficient<R: Real>(c: R, vt: Vec3<R>, ke: R, mu: R, vs: R) -> R {
+    mu * -c * ke / (length(vt) + vs)
+}
+
+/// The damper an implicit step takes for [`contact_force_with_stiction`]'s friction
+/// ([`GroundContact::implicit_friction`](crate::articulation::GroundContact)):
+/// `mu |fn| / sqrt(|vt|^2 + vs^2)` (N s/m). At rest it is the friction's slope `mu |fn| / vs`
+/// (so a body at rest is damped implicitly at exactly its rate), and sliding fast it falls as
+/// `1 / |vt|`, as [`friction_coefficient`] does (so a sliding body decelerates at Coulomb's
+/// rate, to `O(dt)`). Unlike that coefficient it is smooth at rest (`|vt|` has a kink there,
+/// which would make a rollout's derivative jump each time a contact comes to rest).
+///
+/// ```
+/// use adflex_kernels::contact::law::{friction_coefficient, friction_damper};
+/// use adflex_runtime::prelude::Vec3;
+/// let (rest, fast): (Vec3<f64>, _) = (Vec3::zeros(), Vec3::new(3.0, 4.0, 0.0));
+/// let k = |v| friction_damper::call(-1e-3, v, 1e4, 0.5, 0.01);
+/// assert_eq!(k(rest), friction_coefficient::call(-1e-3, rest, 1e4, 0.5, 0.01));
+/// assert!((k(fast) - 1.0).abs() < 1e-5); // 5 N over 5 m/s
+/// ```
+#[diff_func]
+pub fn friction_damper<R: Real>(c: R, vt: Vec3<R>, ke: R, mu: R, vs: R) -> R {
+    mu * -c * ke / sqrt(dot(vt, vt) + vs * vs)
 }
 
 /// The potential of [`contact_force`]'s normal (penalty) part at signed distance `d` (m):
