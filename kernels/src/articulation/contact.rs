@@ -340,12 +340,11 @@ pub struct GroundContact<R: Real> {
     /// `k (I - n n^T)` of each contact on the ground
     /// ([`friction_damper`](crate::contact::law::friction_damper): the friction's slope at
     /// rest, `1 / |u|` sliding fast; at the step's start) mapped to the joints, as the joint
-    /// damping is. A body at rest then settles at
-    /// any step, however light it is and however hard it is pressed; without it the
-    /// friction is explicit and the bound of
+    /// damping is. A body at rest then settles at any step, however light it is and however
+    /// hard it is pressed; without it the friction is explicit and the bound of
     /// [`stiction_tolerance`](GroundContact::stiction_tolerance) applies. The friction force
-    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`.
-    /// `Rk4` and contacts between links stay explicit.
+    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`. `Rk4` and
+    /// contacts between links stay explicit.
     pub implicit_friction: bool,
 }
 
