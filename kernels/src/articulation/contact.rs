@@ -338,7 +338,7 @@ pub struct GroundContact<R: Real> {
     /// Whether `Euler` and `ImplicitFast` steps integrate the ground friction's damper
     /// implicitly (default true): the step solves with `M + dt D`, `D` the damper
     /// `k (I - n n^T)` of each contact on the ground
-    /// ([`friction_damper`](crate::contact::law::friction_damper): the friction's slope at
+    /// ([`friction_damper`]: the friction's slope at
     /// rest, `1 / |u|` sliding fast; at the step's start) mapped to the joints, as the joint
     /// damping is. A body at rest then settles at any step, however light it is and however
     /// hard it is pressed; without it the friction is explicit and the bound of
@@ -461,7 +461,7 @@ fn ground_friction_damper<R: Real>(
 /// wrench `(x x f, f)` (world frame, at the origin).
 ///
 /// With `damper_dt > 0` (an implicit step's `dt`), the friction's damper `K`
-/// ([`ground_friction_damper`]) times `damper_dt` joins the link's damping blocks
+/// (`k (I - n n^T)`, `k` the [`friction_damper`] of the sliding velocity) times `damper_dt` joins the link's damping blocks
 /// `(damp_ww, damp_wv, damp_vv)` `+= (-X K X, X K, K)`, `X` the cross-product matrix of `x`:
 /// the wrench's derivative in the link's angular and linear velocities (`v` that of the
 /// point at the origin) is `-(ww w + wv v, wv^T w + vv v)`.
