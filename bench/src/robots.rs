@@ -1,4 +1,4 @@
-//! `robots [--python PATH] [--newton PATH] [--steps 200] [--reps 5] [--no-grad-only MODEL]`: the articulation family
+//! `robots [--python PATH] [--newton PATH] [--steps 200] [--reps 5] [--no-grad-only MODEL [--threads N]]`: the articulation family
 //! on the repository's robots (`kernels/robots/`): the time of a semi-implicit step recorded on
 //! a tape (forward), of one on a `Tape::no_grad` (a rollout without derivatives), of a step's
 //! forward and backward, and of the full `d qdd / d(q, qd, tau)` and `d tau / d(q, qd, qdd)`,
@@ -101,10 +101,13 @@ pub fn main(rest: &[String]) {
     };
     let steps: usize = arg("--steps").and_then(|v| v.parse().ok()).unwrap_or(200);
     let reps: usize = arg("--reps").and_then(|v| v.parse().ok()).unwrap_or(5);
-    // `--no-grad-only MODEL`: only that model's `no_grad` steps on one thread (for a profiler).
+    // `--no-grad-only MODEL [--threads N]`: only that model's `no_grad` steps on N threads (1
+    // by default; for a profiler).
     if let Some(name) = arg("--no-grad-only") {
         let model = load(&name);
-        let us = adflex_runtime::with_threads(1, || per_step(&model, steps, reps, Pass::NoGrad));
+        let threads = arg("--threads").and_then(|v| v.parse().ok()).unwrap_or(1);
+        let us =
+            adflex_runtime::with_threads(threads, || per_step(&model, steps, reps, Pass::NoGrad));
         println!("{{\"model\": \"{name}\", \"no_grad_step_us\": {us:.2}}}");
         return;
     }

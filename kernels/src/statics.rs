@@ -38,7 +38,9 @@
 //! `x*` its derivative part by that forward rule, and the backward runs at `x*` with its
 //! derivative part, solving `K^T lambda = x*_bar` part by part (`K0^T lambda1 = x*_bar1 -
 //! K1^T lambda0`: the theorem's second-order term). A direction on the inverse masses needs no
-//! more (`M` cancels in the solve).
+//! more (`M` cancels in the solve). Newton's iterations and the linear solves run on a copy of
+//! the model in `f64` ([`Force::to_f64`](crate::forces::Force::to_f64)), as implicit Euler's
+//! do.
 //!
 //! The equilibrium found is the one Newton reaches from the guess: a structure can have
 //! several (a cable hanging or standing as an arch). Start near the one you mean (and warm
@@ -94,13 +96,14 @@ use adflex_runtime::prelude::*;
 use crate::integrators::common::{
     acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, flat, flat_parts,
     forces_only, is_f32, pull, record, unflat, unflat_parts, Copies, Dofs, Needs, Point, Through,
+    Twin,
 };
 use crate::integrators::SolverPolicy;
 use crate::model::Model;
 use crate::solver::krylov::SolveSettings;
 use crate::solver::newton::{
-    dot, max_abs, newton, solve_linear, solve_transposed, with_world, world_context, LinearSolve,
-    NewtonSettings, NewtonSystem, Parts, PassFailure,
+    dot, max_abs, newton, solve_linear, solve_transposed, solve_transposed_with, with_world,
+    world_context, LinearSolve, NewtonSettings, NewtonSystem, Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::State;
@@ -393,6 +396,7 @@ impl Equilibrium {
         let x0 = flat(&guess.x);
         let sys = System::new(copies(model, None, false), x0, &inv_mass);
         check_inputs("Equilibrium", model, &[&guess.x], &sys.c.links)?;
+        let twin = Twin::of(model, None).map(Arc::new);
         let mut stats = EquilibriumStats::default();
         let x1 = if n == 0 {
             stats.converged = true;
@@ -414,7 +418,15 @@ impl Equilibrium {
                 line_search: true,
                 linear: &self.linear,
             };
-            newton(&sys, first, &settings, &mut stats)?
+            match &twin {
+                // In `Dual`, Newton on the real parts in `f64` (see `Twin`).
+                Some(t) => {
+                    let real = System::new(t.copies(), sys.x0.clone(), &t.inv_mass);
+                    let first = real.eval(&real.x0);
+                    newton(&real, first, &settings, &mut stats)?
+                }
+                None => newton(&sys, first, &settings, &mut stats)?,
+            }
         };
         if !stats.converged {
             self.on_failure.handle(Error::NotConverged {
@@ -447,6 +459,7 @@ impl Equilibrium {
             x: x.clone(),
             x_val: Parts::real(x1),
             inv_mass,
+            twin,
         };
         if R::DUAL {
             // A Hessian-vector product's first sweep: the solution's derivative part along
@@ -558,6 +571,8 @@ struct Shared<R: Real> {
     /// The solution, with its derivative part in `Dual`.
     x_val: Parts,
     inv_mass: Vec<R>,
+    /// In `Dual`, the model in `f64` that the linear solves run on.
+    twin: Option<Arc<Twin>>,
 }
 
 impl<R: Real> Shared<R> {
@@ -567,6 +582,12 @@ impl<R: Real> Shared<R> {
             self.x_val.re.clone(),
             &self.inv_mass,
         )
+    }
+
+    /// The system on the twin, if there is one.
+    fn twin_system(&self) -> Option<System<f64>> {
+        let t = self.twin.as_ref()?;
+        Some(System::new(t.copies(), self.x_val.re.clone(), &t.inv_mass))
     }
 
     /// Reverse mode by the implicit function theorem. Fails per the policy if the adjoint
@@ -588,9 +609,18 @@ impl<R: Real> Shared<R> {
             r
         });
         let settings = self.solver.gradient_settings();
-        let lambda = solve_transposed(&sys, &mut p, &rhs, settings, |info| {
-            self.check_gradient_solve("adjoint", info)
-        })?;
+        let check = |info: &LinearSolve| self.check_gradient_solve("adjoint", info);
+        let lambda = match self.twin_system() {
+            Some(twin) => {
+                let mut tp = twin.eval_at(&Parts::real(self.x_val.re.clone()), true);
+                solve_transposed_with(&sys, &mut p, &rhs, |_, r| {
+                    let (x, solve) = solve_linear(&twin, &mut tp, r, settings, true)?;
+                    check(&solve)?;
+                    Ok(x)
+                })?
+            }
+            None => solve_transposed(&sys, &mut p, &rhs, settings, check)?,
+        };
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
@@ -657,7 +687,7 @@ impl<R: Real> Shared<R> {
                 let p = sys.eval_at(
                     &Parts {
                         eps: Some(dpin.clone()),
-                        ..x
+                        ..x.clone()
                     },
                     false,
                 );
@@ -668,7 +698,10 @@ impl<R: Real> Shared<R> {
         let mut rhs: Vec<f64> = (0..m).map(|k| sys.dofs.mass[k] * ad[k]).collect();
         sys.mask(&mut rhs);
         let settings = self.solver.gradient_settings();
-        let (mut dx, solve) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
+        let (mut dx, solve) = match self.twin_system() {
+            Some(twin) => solve_linear(&twin, &mut twin.eval(&x.re), &rhs, settings, false)?,
+            None => solve_linear(&sys, &mut p, &rhs, settings, false)?,
+        };
         self.check_gradient_solve("tangent", &solve)?;
         for k in 0..m {
             if !sys.dofs.free[k] {

@@ -185,6 +185,30 @@ fn the_scene_has_every_library_force() {
     assert_eq!(names, expected);
 }
 
+/// `Force::to_f64`, the copy in `f64` that a Hessian-vector product's implicit solves run on:
+/// every library force has it, and it is the same force (every field carried over: a field
+/// dropped or swapped would change the force at this state, where each is active).
+#[test]
+fn every_library_force_has_its_f64_twin() {
+    let m = every_force();
+    let s = m.state();
+    let cx = m.context(&s, None);
+    let eval = |f: &dyn Force<f64>| {
+        let out = Array::zeros(s.x.len());
+        f.eval(&cx, &mut Tape::new(), &out);
+        out.to_vec()
+    };
+    for f in m.forces.iter().filter(|f| BUILTIN_FORCES.contains(&f.name())) {
+        let name = f.name();
+        let twin = f
+            .to_f64()
+            .unwrap_or_else(|| panic!("`{name}` has no Force::to_f64"));
+        let (a, b) = (eval(&**f), eval(&*twin));
+        assert!(a.iter().any(|v| v.norm() > 0.0), "`{name}` is idle here");
+        assert_eq!(a, b, "`{name}`: its f64 twin computes another force");
+    }
+}
+
 /// `loss += |x - x0|^2 / dt^2 + <v, w>` over the particles: of the order of the forces'
 /// effect, so that central differences are not swamped by the rounding of `|x|`.
 #[test]

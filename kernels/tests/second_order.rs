@@ -7,6 +7,7 @@ use crate::common;
 
 use adflex_kernels::articulation::{urdf, ArticulationState, Articulations};
 use adflex_kernels::fluid::{FluidGrid, Pressure};
+use adflex_kernels::forces::{Force, ForceContext, Param};
 use adflex_kernels::integrators::{ImplicitEuler, Integrator, Rk4, SemiImplicitEuler};
 use adflex_kernels::mpm::{Material, Mpm, MpmBuilder};
 use adflex_kernels::statics::Equilibrium;
@@ -577,6 +578,63 @@ fn hvp_through_implicit_euler_matches_differences() {
             |m, v, t| rollout_loss(m, &ie, v, t),
         );
     }
+}
+
+/// A user's force wrapping a library one, without `Force::to_f64`: implicit Euler then solves
+/// in `Dual`.
+#[derive(Clone, Debug)]
+struct NoF64(Box<dyn Force<Dual>>);
+
+impl Force<Dual> for NoF64 {
+    fn name(&self) -> &'static str {
+        self.0.name()
+    }
+    fn eval(&self, cx: &ForceContext<'_, Dual>, tape: &mut Tape, f: &Array<Vec3<Dual>>) {
+        self.0.eval(cx, tape, f)
+    }
+    fn energy(&self, cx: &ForceContext<'_, Dual>, tape: &mut Tape, e: &Array<Dual>) -> bool {
+        self.0.energy(cx, tape, e)
+    }
+    fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
+        self.0.params_mut(visit)
+    }
+}
+
+/// Implicit Euler runs a Hessian-vector product's solves on the model's real parts in `f64`
+/// when every force converts (`Force::to_f64`), and in `Dual` otherwise: both give the same
+/// `H u` (and the same gradient, the f64 one).
+#[test]
+fn hvp_through_implicit_euler_is_the_same_with_a_force_that_stays_dual() {
+    let ie = tight_implicit();
+    let direction: Vec<f64> = (0..5 + 12)
+        .map(|k| ((k * 7 % 11) as f64 - 5.0) / 5.0)
+        .collect();
+    let run = |opaque: bool| {
+        let mut md = scene_with::<Dual>(false);
+        if opaque {
+            md.forces = md
+                .forces
+                .into_iter()
+                .map(|f| Box::new(NoF64(f)) as Box<dyn Force<Dual>>)
+                .collect();
+        }
+        let ke = md.param::<Dual>("springs", "ke").unwrap().requires_grad();
+        let v = md.state().v.requires_grad();
+        hvp(&[&ke, &v], &direction, |t| rollout_loss(&md, &ie, &v, t)).unwrap()
+    };
+    let (twin, dual) = (run(false), run(true));
+    assert_close(
+        "H u, solves in f64 against in Dual",
+        &twin.hv,
+        &dual.hv,
+        1e-9,
+    );
+    assert_close(
+        "gradient, solves in f64 against in Dual",
+        &twin.grad,
+        &dual.grad,
+        1e-11,
+    );
 }
 
 /// The equilibrium from the guess `x0` (whose pinned particles are the pins), then a short

@@ -295,6 +295,19 @@ impl<R: Real> Force<R> for Ground<R> {
         }
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(Ground::<f64> {
+            normal: self.normal.map(|c| c.to_f64()),
+            offset: self.offset.to_f64(),
+            ke: self.ke.to_f64(),
+            kd: self.kd.to_f64(),
+            mu: self.mu.to_f64(),
+            leak: self.leak.to_f64(),
+            damp_approach: self.damp_approach,
+            damping_depth: self.damping_depth.to_f64(),
+        }))
+    }
+
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }
 

@@ -582,6 +582,17 @@ impl<R: Real> Force<R> for ParticleContact<R> {
         }
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(ParticleContact::<f64> {
+            ke: self.ke.to_f64(),
+            kd: self.kd.to_f64(),
+            damping_depth: self.damping_depth.to_f64(),
+            mu: self.mu.to_f64(),
+            leak: self.leak.to_f64(),
+            margin: self.margin.to_f64(),
+        }))
+    }
+
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }
 

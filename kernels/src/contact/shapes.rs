@@ -7,7 +7,7 @@ use adflex_runtime::prelude::*;
 
 use super::particle::ContactDesc;
 use super::particle::ParticleContact;
-use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
+use crate::forces::component::{real_parts, Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{identity_quat, sub, v3, Checker, SceneError};
 use serde::Deserialize;
@@ -463,6 +463,20 @@ impl<R: Real> Force<R> for Shapes<R> {
         );
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(Shapes::<f64> {
+            kind: self.kind.clone(),
+            pos: real_parts(&self.pos),
+            rot: real_parts(&self.rot),
+            size: real_parts(&self.size),
+            ke: self.ke.to_f64(),
+            kd: self.kd.to_f64(),
+            damping_depth: self.damping_depth.to_f64(),
+            mu: self.mu.to_f64(),
+            leak: self.leak.to_f64(),
+        }))
+    }
+
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("pos", &mut self.pos);
         visit("rot", &mut self.rot);

@@ -8,7 +8,7 @@ use std::collections::HashMap;
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
+use crate::forces::component::{real_parts, Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use serde::Deserialize;
@@ -240,6 +240,15 @@ impl<R: Real> Force<R> for Bending<R> {
         Bending::energy(self, tape, cx.x, &cx.particle_worlds(), energy);
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(Bending::<f64> {
+            quads: self.quads.clone(),
+            rest: real_parts(&self.rest),
+            ke: real_parts(&self.ke),
+            kd: real_parts(&self.kd),
+        }))
+    }
+
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("rest", &mut self.rest);
         visit("ke", &mut self.ke);

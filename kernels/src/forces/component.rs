@@ -122,6 +122,53 @@ pub trait Force<R: Real>: ForceClone<R> + Debug + Send + Sync {
     /// (not index arrays, not scalars), in a fixed order. `visit` may replace the array
     /// ([`Param::substitute`]): the force must then read the replacement.
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param));
+
+    /// The force in `f64`: the real parts of its values (a [`Dual`](adflex_runtime::Dual)'s
+    /// derivative parts dropped; [`real_parts`] converts an array, index arrays are shared).
+    /// [`ImplicitEuler`](crate::integrators::ImplicitEuler) then runs a Hessian-vector
+    /// product's Newton iterations and linear solves, which need only the real parts, in
+    /// `f64` (several times cheaper than in `Dual`), and keeps `Dual` for the passes that carry
+    /// the direction. The default, `None`, runs them in `R`: the same result, slower. The
+    /// library's forces all have it.
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        None
+    }
+}
+
+/// The real parts of `a`'s values as a new array of `U`, the same type in `f64`
+/// (`Vec3<Dual>` to `Vec3<f64>`), with `a`'s name: for [`Force::to_f64`].
+///
+/// ```
+/// use adflex_kernels::forces::real_parts;
+/// use adflex_runtime::{Array, Dual, Vec3};
+///
+/// let a = Array::from_vec(vec![Vec3::new(Dual::new(1.0, 5.0), Dual::new(2.0, 0.0), Dual::new(3.0, 1.0))]);
+/// let b: Array<Vec3<f64>> = real_parts(&a);
+/// assert_eq!(b.get(0), Vec3::new(1.0, 2.0, 3.0));
+/// ```
+///
+/// # Panics
+/// If `T` and `U` have different numbers of components, or none (an index array: share it,
+/// `a.clone()`).
+pub fn real_parts<T: Element, U: Element>(a: &Array<T>) -> Array<U> {
+    assert!(
+        T::DIM == U::DIM && T::DIM > 0,
+        "real_parts: `{}` has {} components per element, its f64 type {}; index arrays are \
+         shared, not converted",
+        a.label(),
+        T::DIM,
+        U::DIM
+    );
+    let values = a.to_vec().into_iter().map(|t| {
+        let mut u = U::zeroed();
+        (0..T::DIM).for_each(|k| u.set_component(k, t.component(k)));
+        u
+    });
+    let out = Array::from_vec(values.collect());
+    match a.name() {
+        Some(name) => out.named(&*name),
+        None => out,
+    }
 }
 
 /// Cloning and downcasting of a boxed [`Force`]; implemented for every `Force + Clone`.

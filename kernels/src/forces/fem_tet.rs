@@ -13,7 +13,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
+use crate::forces::component::{real_parts, Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use crate::validation::{min_quality, precision};
@@ -253,6 +253,18 @@ impl<R: Real> Force<R> for TetFem<R> {
         TetFem::energy(self, tape, cx.x, act, &cx.particle_worlds(), energy);
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(TetFem::<f64> {
+            tets: self.tets.clone(),
+            dm_inv: real_parts(&self.dm_inv),
+            rest_volume: real_parts(&self.rest_volume),
+            mu: real_parts(&self.mu),
+            lambda: real_parts(&self.lambda),
+            kd: real_parts(&self.kd),
+            activation: real_parts(&self.activation),
+        }))
+    }
+
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("dm_inv", &mut self.dm_inv);
         visit("rest_volume", &mut self.rest_volume);

@@ -10,7 +10,7 @@
 use adflex_macros::diff_kernel;
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
+use crate::forces::component::{real_parts, Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::particles::Particles;
 use crate::scene_file::reader::{sub, Checker, SceneError};
@@ -226,6 +226,17 @@ impl<R: Real> Force<R> for TriangleFem<R> {
         TriangleFem::energy(self, tape, cx.x, &cx.particle_worlds(), energy);
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(TriangleFem::<f64> {
+            tris: self.tris.clone(),
+            dm_inv: real_parts(&self.dm_inv),
+            area: real_parts(&self.area),
+            mu: real_parts(&self.mu),
+            lambda: real_parts(&self.lambda),
+            kd: real_parts(&self.kd),
+        }))
+    }
+
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("dm_inv", &mut self.dm_inv);
         visit("area", &mut self.area);

@@ -73,7 +73,7 @@ pub mod particle;
 pub mod spring;
 
 pub(crate) use component::ForcePart;
-pub use component::{Force, ForceClone, ForceContext, Param, ParamCopy, ParamDoc};
+pub use component::{real_parts, Force, ForceClone, ForceContext, Param, ParamCopy, ParamDoc};
 
 /// The library's forces, listed once: each line gives the builder's field for the force's
 /// part, the part's type, the name constant, and the module whose `NAME` ([`Force::name`])

@@ -111,6 +111,13 @@ impl<R: Real> Force<R> for Drag<R> {
     fn eval(&self, cx: &ForceContext<'_, R>, tape: &mut Tape, f: &Array<Vec3<R>>) {
         Drag::eval(self, tape, cx.v, f);
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(Drag::<f64> {
+            kd: self.kd.to_f64(),
+            wind: self.wind.map(|c| c.to_f64()),
+        }))
+    }
+
     fn params_mut(&mut self, _visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {}
 }
 

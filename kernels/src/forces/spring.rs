@@ -4,7 +4,7 @@
 use adflex_macros::{diff_func, diff_kernel};
 use adflex_runtime::prelude::*;
 
-use crate::forces::component::{Force, ForceContext, ForcePart, Param, ParamDoc};
+use crate::forces::component::{real_parts, Force, ForceContext, ForcePart, Param, ParamDoc};
 use crate::particles::Elements;
 use crate::scene_file::reader::{sub, Checker, SceneError};
 use serde::Deserialize;
@@ -135,6 +135,15 @@ impl<R: Real> Force<R> for Springs<R> {
         Springs::energy(self, tape, cx.x, &cx.particle_worlds(), energy);
         true
     }
+    fn to_f64(&self) -> Option<Box<dyn Force<f64>>> {
+        Some(Box::new(Springs::<f64> {
+            pairs: self.pairs.clone(),
+            rest: real_parts(&self.rest),
+            ke: real_parts(&self.ke),
+            kd: real_parts(&self.kd),
+        }))
+    }
+
     fn params_mut(&mut self, visit: &mut dyn FnMut(&'static str, &mut dyn Param)) {
         visit("rest", &mut self.rest);
         visit("ke", &mut self.ke);

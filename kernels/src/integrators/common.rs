@@ -6,7 +6,7 @@
 
 use adflex_runtime::{AnyArray, Array, Error, Real, Tape, Vec3};
 
-use crate::forces::{Param, ParamCopy};
+use crate::forces::{real_parts, Param, ParamCopy};
 use crate::model::Model;
 use crate::precompiled::precompiled;
 use crate::solver::newton::Parts;
@@ -215,6 +215,72 @@ pub(crate) fn copies<R: Real>(
         model: m,
         control: c,
         links: l,
+    }
+}
+
+/// In `Dual` (a Hessian-vector product), a solver's model (its forces, inverse masses and
+/// gravity) and control with their real parts in `f64` ([`Force::to_f64`]). Newton's
+/// iterations and every linear solve of the implicit function theorem need only the real
+/// parts of the Jacobian, and run on the twin in `f64`, since a `Dual` pass costs several
+/// `f64` ones; only the passes that carry the direction (the derivative part of a right-hand
+/// side, and `A1^T lambda0`) stay in `Dual`.
+///
+/// [`Force::to_f64`]: crate::forces::Force::to_f64
+pub(crate) struct Twin {
+    model: Model<f64>,
+    control: Option<Control<f64>>,
+    /// The inverse masses (1/kg).
+    pub(crate) inv_mass: Vec<f64>,
+}
+
+impl Twin {
+    /// `None` in `f32` and `f64`, or if a force has no `to_f64` (the solves then run in `R`).
+    pub(crate) fn of<R: Real>(model: &Model<R>, control: Option<&Control<R>>) -> Option<Twin> {
+        if !R::DUAL {
+            return None;
+        }
+        let forces = model
+            .forces
+            .iter()
+            .map(|f| f.to_f64())
+            .collect::<Option<Vec<_>>>()?;
+        let model = Model::<f64> {
+            worlds: model.worlds.clone(),
+            particle_world: model.particle_world.clone(),
+            body_world: model.body_world.clone(),
+            particle_count: model.particle_count,
+            particle_x: real_parts(&model.particle_x),
+            particle_v: real_parts(&model.particle_v),
+            particle_inv_mass: real_parts(&model.particle_inv_mass),
+            gravity: real_parts(&model.gravity),
+            particle_radius: model.particle_radius.to_f64(),
+            particle_radii: model.particle_radii.as_ref().map(real_parts),
+            triangles: Vec::new(),
+            forces,
+            // The particles' accelerations do not read them (bodies are stepped apart).
+            bodies: None,
+            distance_constraints: None,
+        };
+        let control = control.map(|c| Control::<f64> {
+            particle_f: c.particle_f.as_ref().map(real_parts),
+            tet_activation: c.tet_activation.as_ref().map(real_parts),
+            body_f: None,
+            body_t: None,
+        });
+        Some(Twin {
+            inv_mass: model.particle_inv_mass.to_vec(),
+            model,
+            control,
+        })
+    }
+
+    /// The twin as a solver's copies (array handles: nothing maps back to the originals).
+    pub(crate) fn copies(&self) -> Copies<f64> {
+        Copies {
+            model: self.model.clone(),
+            control: self.control.clone(),
+            links: Vec::new(),
+        }
     }
 }
 

@@ -57,8 +57,12 @@
 //! the backward runs at the new state with its derivative part: `A^T lambda = b` is solved
 //! part by part, `A0^T lambda0 = b0`, then `A0^T lambda1 = b1 - A1^T lambda0` (the theorem's
 //! second-order term, `A` moving along the direction), and every map after it acts on both
-//! parts. A direction on the inverse masses needs no more (`M` cancels in the solve). The
-//! [linearized](ImplicitEuler::linearized) step refuses `Dual`.
+//! parts. A direction on the inverse masses needs no more (`M` cancels in the solve). Newton's
+//! iterations and these linear solves need only the real parts of `A`: they run on a copy of
+//! the model in `f64` ([`Force::to_f64`], which every library force has; a force without it
+//! keeps them in `Dual`, the same result at a few times the cost), and only the passes that
+//! carry the direction (`b1`'s and the right-hand side's derivative parts, `A1^T lambda0`) run
+//! in `Dual`. The [linearized](ImplicitEuler::linearized) step refuses `Dual`.
 //!
 //! # Failures
 //!
@@ -114,7 +118,7 @@ use adflex_runtime::prelude::*;
 use super::common::{
     acceleration_tangent, add_into, check_inputs, check_visited, copies, epsilon, finish_step,
     flat, flat_parts, forces_only, is_f32, particles, pull, record, step_bodies, unflat,
-    unflat_parts, Copies, Dofs, Needs, Point, Through,
+    unflat_parts, Copies, Dofs, Needs, Point, Through, Twin,
 };
 use super::{check_dt, Integrator, SolverPolicy};
 use crate::forces::particle::accelerations;
@@ -123,8 +127,9 @@ use crate::model::Model;
 use crate::precompiled::precompiled;
 use crate::solver::krylov::SolveSettings;
 use crate::solver::newton::{
-    direction, linear_solve, max_abs, newton, solve_linear, solve_transposed, with_world,
-    world_context, LinearSolve, NewtonSettings, NewtonSystem, Parts, PassFailure,
+    direction, linear_solve, max_abs, newton, solve_linear, solve_transposed,
+    solve_transposed_with, with_world, world_context, LinearSolve, NewtonSettings, NewtonSystem,
+    Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::{Control, State};
@@ -326,6 +331,20 @@ fn explicit_accelerations<R: Real>(
         ),
     );
     a
+}
+
+/// The step's system on `twin` (the real parts of the start and of the explicit
+/// accelerations).
+fn twin_system(twin: &Twin, x0: &Parts, v0: &[f64], dt: f64, a_e: &[f64]) -> System<f64> {
+    let x0 = Parts::real(x0.re.clone());
+    System::new(
+        twin.copies(),
+        x0,
+        v0.to_vec(),
+        &twin.inv_mass,
+        dt,
+        a_e.to_vec(),
+    )
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -675,6 +694,7 @@ impl ImplicitEuler {
             dtf,
             a_e.re.clone(),
         );
+        let twin = Twin::of(&implicit, control).map(Arc::new);
         let explicit_params: Vec<Box<dyn AnyArray>> = explicit
             .iter()
             .flat_map(|f| f.params().into_iter().map(|(_, a)| a))
@@ -687,6 +707,10 @@ impl ImplicitEuler {
             Vec::new()
         } else if self.linearized {
             self.linear_step(&sys, &mut stats)?
+        } else if let Some(t) = &twin {
+            // The forces read the copies where they must (checked in `R`); Newton on the twin.
+            sys.check_visited(&sys.eval(&sys.v0), Needs::Gradient)?;
+            self.newton(&twin_system(t, &x0, &v0.re, dtf, &a_e.re), &mut stats)?
         } else {
             self.newton(&sys, &mut stats)?
         };
@@ -714,6 +738,7 @@ impl ImplicitEuler {
             v1_val: Parts::real(v1),
             inv_mass,
             dt: dtf,
+            twin,
         };
         if let (Some(dx0), Some(dv0)) = (&shared.x0_val.eps, &v0.eps) {
             // A Hessian-vector product's first sweep: the new velocities' derivative part
@@ -906,9 +931,23 @@ struct Shared<R: Real> {
     v1_val: Parts,
     inv_mass: Vec<R>,
     dt: f64,
+    /// In `Dual`, the model in `f64` that the linear solves run on.
+    twin: Option<Arc<Twin>>,
 }
 
 impl<R: Real> Shared<R> {
+    /// The system on the twin, if there is one.
+    fn twin_system(&self) -> Option<System<f64>> {
+        let t = self.twin.as_ref()?;
+        Some(twin_system(
+            t,
+            &self.x0_val,
+            &self.v0_val,
+            self.dt,
+            &self.a_e_val,
+        ))
+    }
+
     fn system(&self, grads: bool) -> System<R> {
         System::new(
             copies(&self.model, self.control.as_ref(), grads),
@@ -1003,9 +1042,18 @@ impl<R: Real> Shared<R> {
             r
         });
         let settings = self.integrator.gradient_settings();
-        let lambda = solve_transposed(&sys, &mut p, &rhs, settings, |info| {
-            self.integrator.check_gradient_solve("adjoint", info)
-        })?;
+        let check = |info: &LinearSolve| self.integrator.check_gradient_solve("adjoint", info);
+        let lambda = match self.twin_system() {
+            Some(twin) => {
+                let mut tp = twin.eval_at(&Parts::real(v.re.clone()), true);
+                solve_transposed_with(&sys, &mut p, &rhs, |_, r| {
+                    let (x, solve) = solve_linear(&twin, &mut tp, r, settings, true)?;
+                    check(&solve)?;
+                    Ok(x)
+                })?
+            }
+            None => solve_transposed(&sys, &mut p, &rhs, settings, check)?,
+        };
         for l in &sys.c.links {
             l.zero_copy_grad();
         }
@@ -1203,7 +1251,7 @@ impl<R: Real> Shared<R> {
                 let p = sys.eval_at(
                     &Parts {
                         eps: Some(dvp),
-                        ..v1
+                        ..v1.clone()
                     },
                     false,
                 );
@@ -1216,7 +1264,10 @@ impl<R: Real> Shared<R> {
             .collect();
         sys.mask(&mut rhs);
         let settings = self.integrator.gradient_settings();
-        let (mut dv1, solve) = solve_linear(&sys, &mut p, &rhs, settings, false)?;
+        let (mut dv1, solve) = match self.twin_system() {
+            Some(twin) => solve_linear(&twin, &mut twin.eval(&v1.re), &rhs, settings, false)?,
+            None => solve_linear(&sys, &mut p, &rhs, settings, false)?,
+        };
         self.integrator.check_gradient_solve("tangent", &solve)?;
         for k in 0..m {
             if !sys.dofs.free[k] {

@@ -292,8 +292,22 @@ pub(crate) fn solve_transposed<S: NewtonSystem>(
     settings: &SolveSettings,
     check: impl Fn(&LinearSolve) -> Result<(), Error>,
 ) -> Result<Parts, Error> {
-    let (re, solve) = solve_linear(sys, p, &rhs.re, settings, true)?;
-    check(&solve)?;
+    solve_transposed_with(sys, p, rhs, |p, r| {
+        let (x, solve) = solve_linear(sys, p, r, settings, true)?;
+        check(&solve)?;
+        Ok(x)
+    })
+}
+
+/// [`solve_transposed`] with the solves `A0^T x = r` by `solve` (given `p`): e.g. on a twin
+/// of the system in `f64`, whose `A` is `A0`, while `A1^T x0` comes from `p` in `Dual`.
+pub(crate) fn solve_transposed_with<S: NewtonSystem>(
+    sys: &S,
+    p: &mut S::Point,
+    rhs: &Parts,
+    mut solve: impl FnMut(&mut S::Point, &[f64]) -> Result<Vec<f64>, Error>,
+) -> Result<Parts, Error> {
+    let re = solve(p, &rhs.re)?;
     let eps = match &rhs.eps {
         None => None,
         Some(rhs_eps) => {
@@ -305,9 +319,7 @@ pub(crate) fn solve_transposed<S: NewtonSystem>(
                 None => rhs_eps.clone(),
             };
             sys.mask(&mut r);
-            let (x, solve) = solve_linear(sys, p, &r, settings, true)?;
-            check(&solve)?;
-            Some(x)
+            Some(solve(p, &r)?)
         }
     };
     Ok(Parts { re, eps })
