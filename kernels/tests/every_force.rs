@@ -198,7 +198,11 @@ fn every_library_force_has_its_f64_twin() {
         f.eval(&cx, &mut Tape::new(), &out);
         out.to_vec()
     };
-    for f in m.forces.iter().filter(|f| BUILTIN_FORCES.contains(&f.name())) {
+    for f in m
+        .forces
+        .iter()
+        .filter(|f| BUILTIN_FORCES.contains(&f.name()))
+    {
         let name = f.name();
         let twin = f
             .to_f64()
