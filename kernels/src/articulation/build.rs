@@ -798,6 +798,7 @@ pub(crate) fn finalize<R: Real>(
         capsule_pairs: Array::from_vec(contact.capsule_pairs),
         capsule_pair_mu: rs(&contact.capsule_pair_mu),
         box_pairs: Array::from_vec(contact.box_pairs),
+        link_fixed: Array::from_vec(contact.link_fixed),
         box_pair_mu: rs(&contact.box_pair_mu),
         cylinder_link: Array::from_vec(contact.cylinders.iter().map(|c| c.0).collect()),
         cylinder_pos: Array::from_vec(contact.cylinders.iter().map(|c| v3(&c.1.pos)).collect()),
@@ -1007,6 +1008,8 @@ struct LinkContacts {
     cylinders: Vec<(u32, Pose, Vec3<f64>)>,
     cylinder_pairs: Vec<[u32; 2]>,
     cylinder_pair_mu: Vec<f64>,
+    /// See [`Articulations::link_fixed`].
+    link_fixed: Vec<u32>,
 }
 
 /// The pairs of contact shapes that touch (when `link_contact` is set): in one world, on
@@ -1178,6 +1181,21 @@ fn link_contact_pairs(
                 }
             }
         }
+    }
+    // Which links are fixed to the world, if a box or cylinder pair has one on one side.
+    let fixed: Vec<u32> = weld.iter().map(|&w| u32::from(w == WORLD)).collect();
+    let one_fixed = |la: u32, lb: u32| fixed[la as usize] + fixed[lb as usize] == 1;
+    let seg_link = |s: u32| out.segs[s as usize].0;
+    let against_fixed = out
+        .box_pairs
+        .iter()
+        .any(|&[s, k]| one_fixed(seg_link(s), out.boxes[k as usize].0))
+        || out
+            .cylinder_pairs
+            .iter()
+            .any(|&[s, k]| one_fixed(seg_link(s), out.cylinders[k as usize].0));
+    if against_fixed {
+        out.link_fixed = fixed;
     }
     Ok(out)
 }

@@ -333,18 +333,21 @@ pub struct GroundContact<R: Real> {
     ///
     /// With [`implicit_friction`](GroundContact::implicit_friction) (the default) `Euler` and
     /// `ImplicitFast` steps integrate the ground's damper implicitly, and the bound above
-    /// applies only to `Rk4` (whose stages are explicit) and to contacts between links.
+    /// applies only to `Rk4` (whose stages are explicit) and to the contacts between links
+    /// that stay explicit (see `implicit_friction`).
     pub stiction_tolerance: R,
     /// Whether `Euler` and `ImplicitFast` steps integrate the ground friction's damper
     /// implicitly (default true): the step solves with `M + dt D`, `D` the damper
-    /// `k (I - n n^T)` of each contact on the ground
-    /// ([`friction_damper`]: the friction's slope at
+    /// `k (I - n n^T)` of each contact on the ground, and of each contact of a box or
+    /// cylinder pair with a link fixed to the world (a table, a wall, a step: the damper is
+    /// on the other link) ([`friction_damper`]: the friction's slope at
     /// rest, `1 / |u|` sliding fast; at the step's start) mapped to the joints, as the joint
     /// damping is. A body at rest then settles at any step, however light it is and however
     /// hard it is pressed; without it the friction is explicit and the bound of
     /// [`stiction_tolerance`](GroundContact::stiction_tolerance) applies. The friction force
-    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`. `Rk4` and
-    /// contacts between links stay explicit.
+    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`. `Rk4`,
+    /// contacts between two moving links (whose damper would couple their articulations'
+    /// solves), and those of a capsule with a capsule or along a box's face stay explicit.
     pub implicit_friction: bool,
 }
 
@@ -448,8 +451,21 @@ fn ground_friction_damper<R: Real>(
     ramp: Vec4<R>,
 ) -> Mat33<R> {
     let n = vec3(plane.x, plane.y, plane.z);
-    let c = contact_onset(contact_depth(dot(n, x) - plane.w, ramp.x), ramp.z);
-    let vt = v - n * dot(n, v);
+    pair_friction_damper(n, dot(n, x) - plane.w, v, law, ramp)
+}
+
+/// The damper `k (I - n n^T)` that an implicit step takes for [`link_pair_force`]'s friction
+/// (arguments as there), `k` the [`friction_damper`] of the sliding velocity.
+#[diff_func]
+fn pair_friction_damper<R: Real>(
+    n: Vec3<R>,
+    d: R,
+    rel: Vec3<R>,
+    law: Vec3<R>,
+    ramp: Vec4<R>,
+) -> Mat33<R> {
+    let c = contact_onset(contact_depth(d, ramp.x), ramp.z);
+    let vt = rel - n * dot(n, rel);
     (mat33_identity() - outer(n, n)) * friction_damper(c, vt, law.x, law.z, ramp.w)
 }
 
@@ -1084,7 +1100,10 @@ fn box_contact_wrench<R: Real>(
 /// gives the point `x` midway between the surfaces, the normal `n` out of the box and the
 /// signed distance `d`; `f = contact_force_with_stiction(n, c, v_seg(x) - v_box(x),
 /// ...)`, with the pair's friction `box_pair_mu[tid]`, pushes the segment's link and `-f` the
-/// box's. For a capsule (radius and length above 0; a box's edge has radius 0) the force is
+/// box's; in an implicit step, against a link fixed to the world, the friction's damper
+/// ([`GroundContact::implicit_friction`]) joins the other link's blocks, as in
+/// [`articulation_ground_contact`], times the weight below. For a capsule (radius and length
+/// above 0; a box's edge has radius 0) the force is
 /// times `max(1 - smooth_ramp((a - 0.9) / 0.1), smooth_ramp((-d - r) / (0.1 r)))` times
 /// `smooth_ramp(min(s, 1 - s) |axis| / r)`, `a` the largest component of `n` in the box's
 /// frame, `s` the point's place on the axis: the closest point acts where it is on an edge or
@@ -1115,8 +1134,13 @@ pub fn articulation_box_contact<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
+    link_fixed: &Array<u32>,
+    damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid();
     let [i, k] = box_pairs[t];
@@ -1151,17 +1175,25 @@ pub fn articulation_box_contact<R: Real>(
         let n = quat_rotate(rb, vec3(m[(0, 1)], m[(1, 1)], m[(2, 1)]));
         let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
         let law = vec3(ke, kd, box_pair_mu[t]);
-        let f = link_pair_force(
-            n,
-            m[(0, 2)],
-            rel,
-            law,
-            vec4(leak, damping_depth, onset, stiction),
-        ) * weight;
+        let ramp = vec4(leak, damping_depth, onset, stiction);
+        let f = link_pair_force(n, m[(0, 2)], rel, law, ramp) * weight;
         ext_n.atomic_add(la, cross(x, f));
         ext_f.atomic_add(la, f);
         ext_n.atomic_sub(lb, cross(x, f));
         ext_f.atomic_sub(lb, f);
+        // Against a link fixed to the world, the friction's damper on the other link.
+        if damper_dt > 0.0 {
+            let fa = link_fixed[la];
+            let fb = link_fixed[lb];
+            if fa + fb == 1 {
+                let l = la * (fb as usize) + lb * (fa as usize);
+                let k = pair_friction_damper(n, m[(0, 2)], rel, law, ramp) * (damper_dt * weight);
+                let xk = skew(x) * k;
+                damp_ww.atomic_sub(l, xk * skew(x));
+                damp_wv.atomic_add(l, xk);
+                damp_vv.atomic_add(l, k);
+            }
+        }
     }
 }
 
@@ -1191,8 +1223,13 @@ pub fn articulation_capsule_box_points<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
+    _link_fixed: &Array<u32>,
+    _damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
+    _damp_ww: &Array<Mat33<R>>,
+    _damp_wv: &Array<Mat33<R>>,
+    _damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid() / 8;
     let c = (tid() % 8) as u32;
@@ -1234,7 +1271,9 @@ pub fn articulation_capsule_box_points<R: Real>(
 /// `d = sdf(p) - radius` along its normal `n`, the point `x` midway between the surfaces gets
 /// `f = contact_force_with_stiction(n, c, v_seg(x) - v_cyl(x), ...)` (`c` as in
 /// [`articulation_capsule_contact`]) with the pair's friction `cylinder_pair_mu[tid]`; `f`
-/// pushes the segment's link and `-f` the cylinder's.
+/// pushes the segment's link and `-f` the cylinder's; in an implicit step, against a link
+/// fixed to the world, the friction's damper joins the other link's blocks, as in
+/// [`articulation_box_contact`].
 /// Exact for a sphere, for a capsule parallel to the axis or crossing it; otherwise the
 /// segment's point nearest the axis stands for its nearest point to the cylinder.
 #[diff_kernel]
@@ -1259,8 +1298,13 @@ pub fn articulation_cylinder_contact<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
+    link_fixed: &Array<u32>,
+    damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid();
     let [i, k] = cylinder_pairs[t];
@@ -1284,15 +1328,24 @@ pub fn articulation_cylinder_contact<R: Real>(
     let d = g.w - r;
     let x = p - n * (r + 0.5 * d);
     let rel = (link_v[la] + cross(link_w[la], x)) - (link_v[lb] + cross(link_w[lb], x));
-    let f = link_pair_force(
-        n,
-        d,
-        rel,
-        vec3(ke, kd, cylinder_pair_mu[t]),
-        vec4(leak, damping_depth, onset, stiction),
-    );
+    let law = vec3(ke, kd, cylinder_pair_mu[t]);
+    let ramp = vec4(leak, damping_depth, onset, stiction);
+    let f = link_pair_force(n, d, rel, law, ramp);
     ext_n.atomic_add(la, cross(x, f));
     ext_f.atomic_add(la, f);
     ext_n.atomic_sub(lb, cross(x, f));
     ext_f.atomic_sub(lb, f);
+    // Against a link fixed to the world, the friction's damper on the other link.
+    if damper_dt > 0.0 {
+        let fa = link_fixed[la];
+        let fb = link_fixed[lb];
+        if fa + fb == 1 {
+            let l = la * (fb as usize) + lb * (fa as usize);
+            let k = pair_friction_damper(n, d, rel, law, ramp) * damper_dt;
+            let xk = skew(x) * k;
+            damp_ww.atomic_sub(l, xk * skew(x));
+            damp_wv.atomic_add(l, xk);
+            damp_vv.atomic_add(l, k);
+        }
+    }
 }

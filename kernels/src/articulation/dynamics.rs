@@ -259,19 +259,27 @@ impl<R: Real> Articulations<R> {
             ),
         );
         let (en, ef) = (Array::zeros(n), Array::zeros(n));
-        // An implicit step's ground friction: its dampers, per link (`GroundContact::
-        // implicit_friction`); empty arrays, never read, otherwise.
+        // An implicit step's friction against the ground and links fixed to the world: its
+        // dampers, per link (`GroundContact::implicit_friction`); empty arrays, never read,
+        // otherwise.
         let damper_dt = match (contact, &self.ground) {
             (true, Some(g))
                 if g.implicit_friction
                     && dt.to_f64() > 0.0
-                    && !(self.contact_link.is_empty() && self.support_link.is_empty()) =>
+                    && !(self.contact_link.is_empty()
+                        && self.support_link.is_empty()
+                        && self.link_fixed.is_empty()) =>
             {
                 dt
             }
             _ => R::lit(0.0),
         };
         let damped = damper_dt.to_f64() > 0.0;
+        // (The pairs read `link_fixed` only when it is not empty.)
+        let pair_damper_dt = match self.link_fixed.is_empty() {
+            true => R::lit(0.0),
+            false => damper_dt,
+        };
         let damp = [(); 3].map(|_| Array::<Mat33<R>>::zeros(if damped { n } else { 0 }));
         if let (true, Some(g), false) = (contact, &self.ground, self.contact_link.is_empty()) {
             tape.launch(
@@ -383,8 +391,13 @@ impl<R: Real> Articulations<R> {
                 g.damping_depth,
                 g.onset,
                 g.stiction_tolerance,
+                &self.link_fixed,
+                pair_damper_dt,
                 &en,
                 &ef,
+                &damp[0],
+                &damp[1],
+                &damp[2],
             );
             let n = self.box_pairs.len();
             tape.launch(super::contact::articulation_box_contact, n, args);
@@ -416,8 +429,13 @@ impl<R: Real> Articulations<R> {
                     g.damping_depth,
                     g.onset,
                     g.stiction_tolerance,
+                    &self.link_fixed,
+                    pair_damper_dt,
                     &en,
                     &ef,
+                    &damp[0],
+                    &damp[1],
+                    &damp[2],
                 ),
             );
         }
