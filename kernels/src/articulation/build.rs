@@ -1182,14 +1182,18 @@ fn link_contact_pairs(
             }
         }
     }
-    // Which links are fixed to the world, if a box or cylinder pair has one on one side.
+    // Which links are fixed to the world, if a pair has one on one side.
     let fixed: Vec<u32> = weld.iter().map(|&w| u32::from(w == WORLD)).collect();
     let one_fixed = |la: u32, lb: u32| fixed[la as usize] + fixed[lb as usize] == 1;
     let seg_link = |s: u32| out.segs[s as usize].0;
     let against_fixed = out
-        .box_pairs
+        .capsule_pairs
         .iter()
-        .any(|&[s, k]| one_fixed(seg_link(s), out.boxes[k as usize].0))
+        .any(|&[s, t]| one_fixed(seg_link(s), seg_link(t)))
+        || out
+            .box_pairs
+            .iter()
+            .any(|&[s, k]| one_fixed(seg_link(s), out.boxes[k as usize].0))
         || out
             .cylinder_pairs
             .iter()

@@ -338,16 +338,16 @@ pub struct GroundContact<R: Real> {
     pub stiction_tolerance: R,
     /// Whether `Euler` and `ImplicitFast` steps integrate the ground friction's damper
     /// implicitly (default true): the step solves with `M + dt D`, `D` the damper
-    /// `k (I - n n^T)` of each contact on the ground, and of each contact of a box or
-    /// cylinder pair with a link fixed to the world (a table, a wall, a step: the damper is
-    /// on the other link) ([`friction_damper`]: the friction's slope at
+    /// `k (I - n n^T)` of each contact on the ground, and of each contact between a link and
+    /// a link fixed to the world (a table, a wall, a step, a rail: the damper is on the
+    /// other link) ([`friction_damper`]: the friction's slope at
     /// rest, `1 / |u|` sliding fast; at the step's start) mapped to the joints, as the joint
     /// damping is. A body at rest then settles at any step, however light it is and however
     /// hard it is pressed; without it the friction is explicit and the bound of
     /// [`stiction_tolerance`](GroundContact::stiction_tolerance) applies. The friction force
-    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`. `Rk4`,
+    /// itself is unchanged; a sliding contact's deceleration differs by `O(dt)`. `Rk4` and
     /// contacts between two moving links (whose damper would couple their articulations'
-    /// solves), and those of a capsule with a capsule or along a box's face stay explicit.
+    /// solves) stay explicit.
     pub implicit_friction: bool,
 }
 
@@ -941,10 +941,46 @@ fn axis_points_wrench<R: Real>(
     ramp: Vec4<R>,
     weight: R,
 ) -> Mat33<R> {
+    let c = axis_contact(ca, cb, ra, rb);
+    let x = vec3(c[(0, 0)], c[(1, 0)], c[(2, 0)]);
+    let n = vec3(c[(0, 1)], c[(1, 1)], c[(2, 1)]);
+    point_wrench(x, n, c[(0, 2)], va, vb, law, ramp, weight)
+}
+
+/// The contact of the axis points `ca` of link `a` and `cb` of link `b` (radii `ra`, `rb`):
+/// the point `x` midway between the surfaces, the normal `n = (cb - ca) / |cb - ca|` and the
+/// signed distance `d = |cb - ca| - ra - rb`, as the columns `(x, n, (d, 0, 0))`.
+#[diff_func]
+fn axis_contact<R: Real>(ca: Vec3<R>, cb: Vec3<R>, ra: R, rb: R) -> Mat33<R> {
     let n = normalize(cb - ca);
     let d = length(cb - ca) - ra - rb;
-    let x = ca + n * (ra + 0.5 * d);
-    point_wrench(x, n, d, va, vb, law, ramp, weight)
+    mat33_cols(ca + n * (ra + 0.5 * d), n, vec3(d, 0.0, 0.0))
+}
+
+/// The damper `K` of the friction at the contact `c` of [`axis_contact`] (`va`, `vb`, `law`,
+/// `ramp` as [`point_wrench`]'s): [`pair_friction_damper`] at its point.
+#[diff_func]
+fn axis_contact_damper<R: Real>(
+    c: Mat33<R>,
+    va: Mat33<R>,
+    vb: Mat33<R>,
+    law: Vec3<R>,
+    ramp: Vec4<R>,
+) -> Mat33<R> {
+    let x = vec3(c[(0, 0)], c[(1, 0)], c[(2, 0)]);
+    let n = vec3(c[(0, 1)], c[(1, 1)], c[(2, 1)]);
+    pair_friction_damper(n, c[(0, 2)], relative_velocity(x, va, vb), law, ramp)
+}
+
+/// The velocity of link `b`'s point at `x` relative to link `a`'s (`va`, `vb`: the links'
+/// linear velocities in column 0, angular in column 1).
+#[diff_func]
+fn relative_velocity<R: Real>(x: Vec3<R>, va: Mat33<R>, vb: Mat33<R>) -> Vec3<R> {
+    let vla = vec3(va[(0, 0)], va[(1, 0)], va[(2, 0)]);
+    let wla = vec3(va[(0, 1)], va[(1, 1)], va[(2, 1)]);
+    let vlb = vec3(vb[(0, 0)], vb[(1, 0)], vb[(2, 0)]);
+    let wlb = vec3(vb[(0, 1)], vb[(1, 1)], vb[(2, 1)]);
+    (vlb + cross(wlb, x)) - (vla + cross(wla, x))
 }
 
 /// The wrench `weight (x x f, f, 0)` on link `b` of the contact law at the point `x` (normal
@@ -962,12 +998,7 @@ fn point_wrench<R: Real>(
     ramp: Vec4<R>,
     weight: R,
 ) -> Mat33<R> {
-    let vla = vec3(va[(0, 0)], va[(1, 0)], va[(2, 0)]);
-    let wla = vec3(va[(0, 1)], va[(1, 1)], va[(2, 1)]);
-    let vlb = vec3(vb[(0, 0)], vb[(1, 0)], vb[(2, 0)]);
-    let wlb = vec3(vb[(0, 1)], vb[(1, 1)], vb[(2, 1)]);
-    let rel = (vlb + cross(wlb, x)) - (vla + cross(wla, x));
-    let f = link_pair_force(n, d, rel, law, ramp) * weight;
+    let f = link_pair_force(n, d, relative_velocity(x, va, vb), law, ramp) * weight;
     mat33_cols(cross(x, f), f, vec3(0.0, 0.0, 0.0))
 }
 
@@ -1000,6 +1031,9 @@ fn parallel_weight<R: Real>(d1: Vec3<R>, d2: Vec3<R>) -> R {
 /// (`parallel_weight`), so the torque about the contact changes continuously as one tilts. An
 /// overlap shorter than the sum of the radii (capsules end to end) weighs the two ends half
 /// each at length 0 (one contact), rising smoothly to full weight.
+///
+/// In an implicit step, against a link fixed to the world, each contact's friction damper
+/// (times its weight) joins the other link's blocks, as in [`articulation_box_contact`].
 #[diff_kernel]
 pub fn articulation_capsule_contact<R: Real>(
     capsule_pairs: &Array<[u32; 2]>,
@@ -1018,8 +1052,13 @@ pub fn articulation_capsule_contact<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
+    link_fixed: &Array<u32>,
+    damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid();
     let [i, j] = capsule_pairs[t];
@@ -1042,6 +1081,12 @@ pub fn articulation_capsule_contact<R: Real>(
     let ca = a0 + d1 * st.x;
     let cb = b0 + d2 * st.y;
     let mut e = axis_points_wrench(ca, cb, ra, rb, va, vb, law, ramp, 1.0 - w);
+    // The parallel contacts' points (weight `we`; none unless `w > 0`).
+    let mut lo = ca;
+    let mut on_b_lo = cb;
+    let mut hi = ca;
+    let mut on_b_hi = cb;
+    let mut we = 0.0 * w;
     if w > 0.0 {
         // The ends of the range of `a`'s axis in `b`'s shadow, and their closest points on
         // `b`'s axis.
@@ -1051,14 +1096,14 @@ pub fn articulation_capsule_contact<R: Real>(
         let s1 = dot(d1, b1 - a0) / aa;
         let s_lo = clamp(min(s0, s1), 0.0, 1.0);
         let s_hi = clamp(max(s0, s1), 0.0, 1.0);
-        let lo = a0 + d1 * s_lo;
-        let hi = a0 + d1 * s_hi;
-        let on_b_lo = b0 + d2 * clamp(dot(lo - b0, d2) / ee, 0.0, 1.0);
-        let on_b_hi = b0 + d2 * clamp(dot(hi - b0, d2) / ee, 0.0, 1.0);
+        lo = a0 + d1 * s_lo;
+        hi = a0 + d1 * s_hi;
+        on_b_lo = b0 + d2 * clamp(dot(lo - b0, d2) / ee, 0.0, 1.0);
+        on_b_hi = b0 + d2 * clamp(dot(hi - b0, d2) / ee, 0.0, 1.0);
         // Two ends of an overlap shorter than the radii (capsules end to end, or touching by
         // their rounded ends) are one contact: half each.
         let overlap = (s_hi - s_lo) * sqrt(aa) / max(ra + rb, 1e-12);
-        let we = w * (0.5 + 0.5 * smooth_ramp(overlap));
+        we = w * (0.5 + 0.5 * smooth_ramp(overlap));
         e = e + axis_points_wrench(lo, on_b_lo, ra, rb, va, vb, law, ramp, we);
         e = e + axis_points_wrench(hi, on_b_hi, ra, rb, va, vb, law, ramp, we);
     }
@@ -1068,6 +1113,35 @@ pub fn articulation_capsule_contact<R: Real>(
     ext_f.atomic_add(lb, fb);
     ext_n.atomic_sub(la, nb);
     ext_f.atomic_sub(la, fb);
+    // Against a link fixed to the world, the friction's dampers on the other link: per
+    // contact `K` at `x`, the blocks `(-X K X, X K, K)`, summed.
+    if damper_dt > 0.0 {
+        let fixed_a = link_fixed[la];
+        let fixed_b = link_fixed[lb];
+        if fixed_a + fixed_b == 1 {
+            let l = la * (fixed_b as usize) + lb * (fixed_a as usize);
+            let c = axis_contact(ca, cb, ra, rb);
+            let x = vec3(c[(0, 0)], c[(1, 0)], c[(2, 0)]);
+            let k = axis_contact_damper(c, va, vb, law, ramp) * ((1.0 - w) * damper_dt);
+            let mut kv = k;
+            let mut kw = skew(x) * k;
+            let mut kww = kw * skew(x);
+            if w > 0.0 {
+                let c_lo = axis_contact(lo, on_b_lo, ra, rb);
+                let x_lo = vec3(c_lo[(0, 0)], c_lo[(1, 0)], c_lo[(2, 0)]);
+                let k_lo = axis_contact_damper(c_lo, va, vb, law, ramp) * (we * damper_dt);
+                let c_hi = axis_contact(hi, on_b_hi, ra, rb);
+                let x_hi = vec3(c_hi[(0, 0)], c_hi[(1, 0)], c_hi[(2, 0)]);
+                let k_hi = axis_contact_damper(c_hi, va, vb, law, ramp) * (we * damper_dt);
+                kv = kv + k_lo + k_hi;
+                kw = kw + skew(x_lo) * k_lo + skew(x_hi) * k_hi;
+                kww = kww + skew(x_lo) * k_lo * skew(x_lo) + skew(x_hi) * k_hi * skew(x_hi);
+            }
+            damp_ww.atomic_sub(l, kww);
+            damp_wv.atomic_add(l, kw);
+            damp_vv.atomic_add(l, kv);
+        }
+    }
 }
 
 /// The wrench on the segment's link of a contact with a box, `weight` times the contact law:
@@ -1200,7 +1274,8 @@ pub fn articulation_box_contact<R: Real>(
 /// The further contacts of a capsule with a box (a pair of `box_pairs` whose segment has a
 /// radius and a length above 0; other pairs have none), thread `tid` = 8 x pair + point:
 /// point `c` of [`capsule_box_point`] (its end spheres, its axis over the face's edges), with
-/// the law and friction of [`articulation_box_contact`], times the point's weight.
+/// the law and friction of [`articulation_box_contact`], times the point's weight; and, in an
+/// implicit step against a link fixed to the world, the friction's damper as there.
 #[diff_kernel]
 pub fn articulation_capsule_box_points<R: Real>(
     box_pairs: &Array<[u32; 2]>,
@@ -1223,13 +1298,13 @@ pub fn articulation_capsule_box_points<R: Real>(
     damping_depth: R,
     onset: R,
     stiction: R,
-    _link_fixed: &Array<u32>,
-    _damper_dt: R,
+    link_fixed: &Array<u32>,
+    damper_dt: R,
     ext_n: &Array<Vec3<R>>,
     ext_f: &Array<Vec3<R>>,
-    _damp_ww: &Array<Mat33<R>>,
-    _damp_wv: &Array<Mat33<R>>,
-    _damp_vv: &Array<Mat33<R>>,
+    damp_ww: &Array<Mat33<R>>,
+    damp_wv: &Array<Mat33<R>>,
+    damp_vv: &Array<Mat33<R>>,
 ) {
     let t = tid() / 8;
     let c = (tid() % 8) as u32;
@@ -1258,6 +1333,22 @@ pub fn articulation_capsule_box_points<R: Real>(
                 ext_f.atomic_add(la, f);
                 ext_n.atomic_sub(lb, tn);
                 ext_f.atomic_sub(lb, f);
+                if damper_dt > 0.0 {
+                    let fa = link_fixed[la];
+                    let fb = link_fixed[lb];
+                    if fa + fb == 1 {
+                        let l = la * (fb as usize) + lb * (fa as usize);
+                        let x = ob + quat_rotate(rb, vec3(e[(0, 0)], e[(1, 0)], e[(2, 0)]));
+                        let n = quat_rotate(rb, vec3(e[(0, 1)], e[(1, 1)], e[(2, 1)]));
+                        let rel = relative_velocity(x, vb, va);
+                        let k = pair_friction_damper(n, e[(0, 2)], rel, law, ramp)
+                            * (damper_dt * e[(1, 2)]);
+                        let xk = skew(x) * k;
+                        damp_ww.atomic_sub(l, xk * skew(x));
+                        damp_wv.atomic_add(l, xk);
+                        damp_vv.atomic_add(l, k);
+                    }
+                }
             }
         }
     }

@@ -364,8 +364,13 @@ impl<R: Real> Articulations<R> {
                     g.damping_depth,
                     g.onset,
                     g.stiction_tolerance,
+                    &self.link_fixed,
+                    pair_damper_dt,
                     &en,
                     &ef,
+                    &damp[0],
+                    &damp[1],
+                    &damp[2],
                 ),
             );
         }

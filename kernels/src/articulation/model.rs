@@ -1219,9 +1219,9 @@ pub struct Articulations<R: Real> {
     /// Pairs of a segment and a box that touch (indices into `seg_*` and `box_*`).
     pub box_pairs: Array<[u32; 2]>,
     /// Per link: 1 if it is fixed to the world (its root welded to it by fixed joints), else
-    /// 0. An implicit step takes the friction of a box or cylinder pair with one side fixed
-    /// as a damper on the other side's link ([`GroundContact::implicit_friction`]). Empty
-    /// when no such pair has a fixed side.
+    /// 0. An implicit step takes the friction of a contact pair with one side fixed as a
+    /// damper on the other side's link ([`GroundContact::implicit_friction`]). Empty when no
+    /// pair has a fixed side.
     pub link_fixed: Array<u32>,
     /// Per pair in `box_pairs`: its friction coefficient, as `capsule_pair_mu`.
     pub box_pair_mu: Array<R>,
