@@ -102,8 +102,8 @@ use crate::integrators::SolverPolicy;
 use crate::model::Model;
 use crate::solver::krylov::SolveSettings;
 use crate::solver::newton::{
-    dot, max_abs, newton, solve_linear, solve_transposed, solve_transposed_with, with_world,
-    world_context, LinearSolve, NewtonSettings, NewtonSystem, Parts, PassFailure,
+    dot, max_abs, newton, solve_linear, solve_transposed_on, with_world, world_context,
+    LinearSolve, NewtonSettings, NewtonSystem, Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::State;
@@ -593,7 +593,7 @@ impl<R: Real> Shared<R> {
     /// Reverse mode by the implicit function theorem. Fails per the policy if the adjoint
     /// solve misses its tolerance (nothing is accumulated then). In `Dual`, every product is
     /// taken at the solution with its derivative part, and the transposed solve has its
-    /// second-order term ([`solve_transposed`]).
+    /// second-order term ([`solve_transposed`](crate::solver::newton::solve_transposed)).
     fn backward(&self) -> Result<(), Error> {
         let Some(gx) = self.x.grad_buffer() else {
             return Ok(());
@@ -610,17 +610,12 @@ impl<R: Real> Shared<R> {
         });
         let settings = self.solver.gradient_settings();
         let check = |info: &LinearSolve| self.check_gradient_solve("adjoint", info);
-        let lambda = match self.twin_system() {
-            Some(twin) => {
-                let mut tp = twin.eval_at(&Parts::real(self.x_val.re.clone()), true);
-                solve_transposed_with(&sys, &mut p, &rhs, |_, r| {
-                    let (x, solve) = solve_linear(&twin, &mut tp, r, settings, true)?;
-                    check(&solve)?;
-                    Ok(x)
-                })?
-            }
-            None => solve_transposed(&sys, &mut p, &rhs, settings, check)?,
-        };
+        let twin = self.twin_system();
+        let mut tp = twin
+            .as_ref()
+            .map(|t| t.eval_at(&Parts::real(self.x_val.re.clone()), true));
+        let twin = twin.as_ref().zip(tp.as_mut());
+        let lambda = solve_transposed_on(&sys, &mut p, &rhs, twin, settings, check)?;
         for l in &sys.c.links {
             l.zero_copy_grad();
         }

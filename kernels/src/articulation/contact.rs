@@ -1086,7 +1086,7 @@ pub fn articulation_capsule_contact<R: Real>(
     let mut on_b_lo = cb;
     let mut hi = ca;
     let mut on_b_hi = cb;
-    let mut we = 0.0 * w;
+    let mut we = 0.0;
     if w > 0.0 {
         // The ends of the range of `a`'s axis in `b`'s shadow, and their closest points on
         // `b`'s axis.

@@ -21,8 +21,9 @@ pub use super::pose::{Inertial, LinkId, Pose};
 /// | `ImplicitFast` | `implicitfast` | as `Euler`, solving with `M - dt df/dqd` in place of `M`: the velocity derivatives of the joint damping, the tendons' damping, the actuators' speed terms and the joints' PD `kv` (not the Coriolis terms') |
 ///
 /// Violated joint limits are implicit in `Euler` and `ImplicitFast` steps
-/// ([`Joint::limit_time_constant`]) and explicit in `Rk4`'s stages; so is the ground
-/// friction's damper ([`GroundContact::implicit_friction`](super::GroundContact)). The rest of
+/// ([`Joint::limit_time_constant`]) and explicit in `Rk4`'s stages; so is the friction's damper
+/// of the contacts with the ground and with links fixed to the world
+/// ([`GroundContact::implicit_friction`](super::GroundContact)). The rest of
 /// the contact law, muscles and the fluid are explicit in all three.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum ArticulationIntegrator {

@@ -127,9 +127,8 @@ use crate::model::Model;
 use crate::precompiled::precompiled;
 use crate::solver::krylov::SolveSettings;
 use crate::solver::newton::{
-    direction, linear_solve, max_abs, newton, solve_linear, solve_transposed,
-    solve_transposed_with, with_world, world_context, LinearSolve, NewtonSettings, NewtonSystem,
-    Parts, PassFailure,
+    direction, linear_solve, max_abs, newton, solve_linear, solve_transposed_on, with_world,
+    world_context, LinearSolve, NewtonSettings, NewtonSystem, Parts, PassFailure,
 };
 pub use crate::solver::NewtonStats;
 use crate::state::{Control, State};
@@ -1030,7 +1029,8 @@ impl<R: Real> Shared<R> {
 
     /// The adjoint solve of both methods: the system with gradient-carrying copies, the forces
     /// recorded at `v` (`x = x0 + dt v`), and `lambda` with `A^T lambda = b` there (masked;
-    /// in `Dual`, with the theorem's second-order term, see [`solve_transposed`]); the
+    /// in `Dual`, with the theorem's second-order term, see
+    /// [`solve_transposed`](crate::solver::newton::solve_transposed)); the
     /// copies' gradients zeroed (the solve's products accumulated into them).
     fn adjoint_solve(&self, v: &Parts, b: &Parts) -> Result<AdjointSolve<R>, Error> {
         let sys = self.system(true);
@@ -1043,17 +1043,12 @@ impl<R: Real> Shared<R> {
         });
         let settings = self.integrator.gradient_settings();
         let check = |info: &LinearSolve| self.integrator.check_gradient_solve("adjoint", info);
-        let lambda = match self.twin_system() {
-            Some(twin) => {
-                let mut tp = twin.eval_at(&Parts::real(v.re.clone()), true);
-                solve_transposed_with(&sys, &mut p, &rhs, |_, r| {
-                    let (x, solve) = solve_linear(&twin, &mut tp, r, settings, true)?;
-                    check(&solve)?;
-                    Ok(x)
-                })?
-            }
-            None => solve_transposed(&sys, &mut p, &rhs, settings, check)?,
-        };
+        let twin = self.twin_system();
+        let mut tp = twin
+            .as_ref()
+            .map(|t| t.eval_at(&Parts::real(v.re.clone()), true));
+        let twin = twin.as_ref().zip(tp.as_mut());
+        let lambda = solve_transposed_on(&sys, &mut p, &rhs, twin, settings, check)?;
         for l in &sys.c.links {
             l.zero_copy_grad();
         }

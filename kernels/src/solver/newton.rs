@@ -299,6 +299,26 @@ pub(crate) fn solve_transposed<S: NewtonSystem>(
     })
 }
 
+/// [`solve_transposed`], its solves `A0^T x = r` on `twin` when there is one: the system in
+/// `f64` (whose `A` is `A0`) at its point, while `A1^T x0` comes from `p` in `Dual`.
+pub(crate) fn solve_transposed_on<S: NewtonSystem, T: NewtonSystem>(
+    sys: &S,
+    p: &mut S::Point,
+    rhs: &Parts,
+    twin: Option<(&T, &mut T::Point)>,
+    settings: &SolveSettings,
+    check: impl Fn(&LinearSolve) -> Result<(), Error>,
+) -> Result<Parts, Error> {
+    match twin {
+        Some((twin, tp)) => solve_transposed_with(sys, p, rhs, |_, r| {
+            let (x, solve) = solve_linear(twin, tp, r, settings, true)?;
+            check(&solve)?;
+            Ok(x)
+        }),
+        None => solve_transposed(sys, p, rhs, settings, check),
+    }
+}
+
 /// [`solve_transposed`] with the solves `A0^T x = r` by `solve` (given `p`): e.g. on a twin
 /// of the system in `f64`, whose `A` is `A0`, while `A1^T x0` comes from `p` in `Dual`.
 pub(crate) fn solve_transposed_with<S: NewtonSystem>(
