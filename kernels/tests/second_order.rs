@@ -1112,6 +1112,55 @@ fn custom_adjoints_must_be_declared_dual_safe() {
     assert_eq!(again.hv, out.hv);
 }
 
+/// Through implicit friction against fixed shapes (worldbody geoms): a capsule sliding on a
+/// table (the capsule-box points' dampers) and one sliding across a rail (a capsule pair's),
+/// whose dampers join the mass matrix, with respect to the start velocities and the pairs'
+/// friction.
+#[test]
+fn hvp_through_implicit_friction_on_fixed_shapes_matches_differences() {
+    use adflex_kernels::articulation::mjcf;
+    let text = r#"<mujoco><worldbody><geom type="plane" size="5 5 0.1"/>
+        <geom type="box" size="0.4 0.4 0.1" pos="0 0 0.1"/>
+        <geom type="capsule" fromto="0 0.7 0.2 0 1.3 0.2" size="0.02"/>
+        <body pos="0 0 0.228"><freejoint/>
+          <geom type="capsule" fromto="-0.2 0 0 0.2 0 0" size="0.03" density="1000"/></body>
+        <body pos="0 1 0.248"><freejoint/>
+          <geom type="capsule" fromto="-0.2 0 0 0.2 0 0" size="0.03" density="1000"/></body>
+        </worldbody></mujoco>"#;
+    let b = mjcf::parse(text).unwrap().builder;
+    let md: Articulations<Dual> = b.finalize().unwrap();
+    let mf: Articulations<f64> = b.finalize().unwrap();
+    assert!(mf.link_fixed.to_vec().contains(&1), "the damper path");
+    assert!(!mf.capsule_pairs.is_empty() && !mf.box_pairs.is_empty());
+    let mut rng = common::Rng(0xf1);
+    let qd0: Vec<f64> = (0..mf.n_dof).map(|_| rng.uniform(-0.2, 0.2)).collect();
+    let (q_d, q_f) = (
+        Array::from_vec(dual_of(&mf.q0)),
+        Array::from_vec(mf.q0.clone()),
+    );
+    let (qd_d, qd_f) = (
+        Array::from_vec(dual_of(&qd0)).requires_grad(),
+        Array::from_vec(qd0).requires_grad(),
+    );
+    let (box_d, box_f) = (
+        md.box_pair_mu.clone().requires_grad(),
+        mf.box_pair_mu.clone().requires_grad(),
+    );
+    let (cap_d, cap_f) = (
+        md.capsule_pair_mu.clone().requires_grad(),
+        mf.capsule_pair_mu.clone().requires_grad(),
+    );
+    let dp: [&dyn AnyArray; 3] = [&qd_d, &box_d, &cap_d];
+    let fp: [&dyn AnyArray; 3] = [&qd_f, &box_f, &cap_f];
+    agrees(
+        "implicit friction on fixed shapes",
+        (&dp, &fp, &[]),
+        (1e-4, 1e-6, 0xf2),
+        &mut |t| robot_loss(&md, &q_d, &qd_d, t),
+        &mut |t| robot_loss(&mf, &q_f, &qd_f, t),
+    );
+}
+
 /// Through the contact between links (a capsule pressed into a box and into a sphere, the
 /// closest-point rules and the law), with respect to the start velocities and the masses.
 #[test]
